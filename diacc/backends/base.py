@@ -1,0 +1,84 @@
+"""The Backend protocol: what every simulator behind diacc must offer.
+
+A backend owns one simulation of one :class:`~diacc.maps.Map`. It is reset
+with a :class:`~diacc.scenario.Scenario` and a seed, stepped with commands for
+the CAVs (HDVs drive themselves), and returns a
+:class:`~diacc.state.TrafficState` in the shared coordinate convention.
+
+CAV command semantics, identical on every backend (facts.md "Actions"):
+
+* ``lane_change[i]`` in {-1, 0, +1}: move one lane to the right (-1) or left
+  (+1); the change completes within the step. A change towards a lane that
+  does not exist at the vehicle's position is ignored.
+* ``speed_change_mps[i]``: the CAV's target speed for the end of the step is
+  its current speed plus this value, clipped to [0, speed limit]; it gets
+  there at constant acceleration within the CAV's accel/decel limits.
+  A CAV holds its speed when the change is 0: no built-in car following, so
+  the policy and PSAR carry safety (SUMO ``speedMode 0``).
+* A CAV still in a lane that ends is moved out of it by the same forced-merge
+  rule the HDVs follow, so that no vehicle stops at a lane end.
+
+Entries of HDVs in the command arrays are ignored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from diacc.config import BACKENDS, SimConfig
+from diacc.maps import Map
+from diacc.scenario import Scenario
+from diacc.state import TrafficState
+
+
+class BackendError(RuntimeError):
+    """A simulator failed (unknown backend, crashed worker...); one-line message."""
+
+
+@dataclass
+class CavCommands:
+    """Commands for one step, indexed by vehicle index (HDV entries ignored)."""
+
+    lane_change: np.ndarray  # (V,) int8 in {-1, 0, +1}, +1 = one lane to the left
+    speed_change_mps: np.ndarray  # (V,) float64
+
+    @classmethod
+    def idle(cls, n_vehicles: int) -> CavCommands:
+        """Commands that keep every CAV in its lane at its speed."""
+        return cls(np.zeros(n_vehicles, np.int8), np.zeros(n_vehicles, np.float64))
+
+
+@runtime_checkable
+class Backend(Protocol):
+    """A traffic simulator of one map."""
+
+    name: str
+    road: Map
+    sim: SimConfig
+
+    def reset(self, scenario: Scenario, seed: int) -> TrafficState: ...
+
+    def step(self, commands: CavCommands) -> TrafficState: ...
+
+    def render(self) -> np.ndarray:
+        """An RGB frame (H, W, 3) uint8 of the current state."""
+        ...
+
+    def close(self) -> None: ...
+
+
+def make_backend(name: str, road: Map, sim: SimConfig | None = None) -> Backend:
+    """Build a backend by name: ``"highway"`` or ``"sumo"``."""
+    sim = sim or SimConfig()
+    if name == "highway":
+        from diacc.backends.highway import HighwayBackend
+
+        return HighwayBackend(road, sim)
+    if name == "sumo":
+        from diacc.backends.sumo import SumoBackend
+
+        return SumoBackend(road, sim)
+    raise BackendError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")

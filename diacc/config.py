@@ -1,0 +1,266 @@
+"""Typed configuration. Every default comes from ``shared/reference/facts.md``.
+
+Configs are frozen dataclasses so that a run's settings cannot drift after
+start-up; ``dataclasses.replace`` makes variants. :func:`override` applies a
+flat ``{"section.field": value}`` mapping (from a TOML file or CLI flags) and
+rejects unknown keys with a one-line :class:`ConfigError`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """An unknown or ill-typed configuration key; the message is one line."""
+
+
+# --------------------------------------------------------------------------
+# Drivers
+# --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DriverStyle:
+    """One human driving style, described once for both simulators.
+
+    The IDM terms mean the same on both backends (SUMO vType ``tau``,
+    ``minGap``, ``accel``, ``decel``). Lane changing is LC2013 on SUMO and
+    MOBIL on highway: ``politeness`` and ``lc_gain_threshold_mps2`` are the
+    MOBIL image of LC2013's ``lcCooperative`` and ``lcSpeedGain``.
+    """
+
+    name: str
+    time_headway_s: float  # IDM T / SUMO tau
+    min_gap_m: float  # IDM s0 / SUMO minGap
+    accel_mps2: float  # IDM a
+    decel_mps2: float  # IDM b (comfortable braking)
+    politeness: float  # MOBIL p in [0, 1]
+    lc_gain_threshold_mps2: float  # MOBIL delta_a_th
+    lc_cooperative: float  # SUMO LC2013 lcCooperative
+    lc_speed_gain: float  # SUMO LC2013 lcSpeedGain
+    lc_strategic: float  # SUMO LC2013 lcStrategic
+
+
+STYLE_NAMES = ("aggressive", "normal", "cautious")
+AGGRESSIVE, NORMAL, CAUTIOUS = 0, 1, 2
+#: Style code stored in ``TrafficState.style`` for CAVs.
+CAV_STYLE = -1
+
+_AGGRESSIVE = DriverStyle("aggressive", 0.9, 1.0, 3.5, 5.5, 0.0, 0.05, 0.0, 100.0, 100.0)
+_NORMAL = DriverStyle("normal", 1.0, 1.5, 2.5, 4.5, 0.5, 0.2, 0.5, 1.0, 0.5)
+#: Named style presets (facts.md "lcStrategic" pitfall): ``paper`` keeps the
+#: authors' cautious values (cautious drivers may get stuck at a lane end, as in
+#: the paper's pure-HDV row); ``realistic`` lets every driver merge.
+STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
+    "paper": (
+        _AGGRESSIVE,
+        _NORMAL,
+        DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, -1.0, 0.0, -1.0),
+    ),
+    "realistic": (
+        _AGGRESSIVE,
+        _NORMAL,
+        DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, 0.0, 0.0, 0.2),
+    ),
+}
+
+#: HDV style mixes (aggressive, normal, cautious), paper Table I.
+STYLE_MIXES: dict[str, tuple[float, float, float]] = {
+    "D1": (0.2, 0.6, 0.2),
+    "D2": (0.2, 0.4, 0.4),
+    "D3": (0.4, 0.4, 0.2),
+}
+
+
+@dataclass(frozen=True)
+class CavParams:
+    """Physical limits of a CAV (SUMO vType of the authors)."""
+
+    time_headway_s: float = 1.0
+    min_gap_m: float = 1.0
+    accel_mps2: float = 5.0
+    decel_mps2: float = 5.0
+
+
+# --------------------------------------------------------------------------
+# Simulation and scenario
+# --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SimConfig:
+    """How a backend advances time; shared by both backends."""
+
+    step_s: float = 1.0  # one decision step
+    substeps: int = 10  # highway backend integration steps per decision
+    episode_steps: int = 100
+    speed_change_mps: float = 2.0  # accelerate/decelerate action, over one step
+    vehicle_length_m: float = 5.0
+    vehicle_width_m: float = 1.8
+    idm_delta: float = 4.0  # IDM acceleration exponent
+    style_preset: str = "realistic"
+    cav: CavParams = field(default_factory=CavParams)
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    """Defaults for :class:`diacc.scenario.Scenario` (training cell of the paper)."""
+
+    n_vehicles: int = 25
+    cav_penetration: float = 0.4
+    style_mix: str = "D1"
+    insert_start_m: float = 10.0  # x of the rearmost insertion row
+    insert_spacing_m: float = 8.0  # between rows of the same lane
+    insert_speed_mps: float = 10.0
+
+
+# --------------------------------------------------------------------------
+# Observation, safety, reward
+# --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ObservationConfig:
+    history_steps: int = 5  # neighbour trajectories, current step included
+    n_neighbours: int = 6  # nearest vehicles in same and adjacent lanes
+    max_vehicles: int = 40  # critic pads to this many vehicles
+    lane_window_m: float = 100.0  # lane statistics look this far ahead and behind
+
+
+@dataclass(frozen=True)
+class PSARConfig:
+    """Thresholds of Algorithm 1 (authors' values, facts.md)."""
+
+    d_lc_min_m: float = 1.0
+    d_safe_m: float = 5.0
+    d_warn_m: float = 8.0
+    d_att_m: float = 15.0
+    ttc_safe_s: float = 2.0
+    ttc_warn_s: float = 3.0
+    ttc_att_s: float = 5.0
+    b_max_mps2: float = 2.0
+
+
+@dataclass(frozen=True)
+class EventConfig:
+    """Thresholds of the metrics' event detectors."""
+
+    waiting_speed_mps: float = 3.0
+    sce_min_gap_m: float = 1.0
+    sce_ttc_s: float = 1.5
+    emergency_decel_mps2: float = 4.5
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Reward of paper eq. (reward_all..reward_global) with the authors' magnitudes."""
+
+    w_ego: float = 0.6
+    w_global: float = 0.4
+    speed_weight: float = 5.0  # speed term scaled to [0, 5]
+    speed_offset: float = 1.0  # p_ev
+    warning_distance_m: float = 3.0
+    collision_distance_m: float = 1.5
+    warning_weight: float = 0.5  # 0.05 x scale 10
+    collision_weight: float = 1.0  # 0.05 x scale 20
+    collision_offset: float = -10.0  # p_ec, fixed collision penalty
+    time_penalty_weight: float = 1.0
+    time_penalty_speed_mps: float = 5.0  # v_th
+    global_offset: float = 1.0  # p_gv
+    exit_bonus: float = 20.0  # r_done per CAV leaving the route
+    tau_init: float = 2.0
+    tau_final: float = 0.05
+    tau_anneal_fraction: float = 0.5  # of the training steps
+
+
+# --------------------------------------------------------------------------
+# Networks and training
+# --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ModelConfig:
+    hidden_dim: int = 128
+    gat_heads: int = 4
+    cross_heads: int = 8
+    cross_dim: int = 64
+    gru_hidden: int = 128
+    leaky_slope: float = 0.2
+
+
+VARIANTS = ("mappo", "mappo-iadm", "diacc-nopsar", "diacc")
+BACKENDS = ("highway", "sumo")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    variant: str = "diacc"
+    backend: str = "highway"
+    map: str = "train-25"
+    total_steps: int = 3_000_000  # environment steps (decisions x envs)
+    n_envs: int = 20
+    rollout_steps: int = 100
+    seed: int = 1
+    device: str = "auto"
+    lr: float = 5e-4
+    adam_eps: float = 1e-5
+    lr_decay: bool = True
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip: float = 0.2
+    epochs: int = 5
+    minibatches: int = 1
+    entropy_coef: float = 0.01
+    value_coef: float = 1.0
+    huber_delta: float = 10.0
+    max_grad_norm: float = 10.0
+    chunk_len: int = 10
+    checkpoint_every: int = 10  # updates
+    run_dir: str = "runs/diacc"
+    sim: SimConfig = field(default_factory=SimConfig)
+    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    obs: ObservationConfig = field(default_factory=ObservationConfig)
+    psar: PSARConfig = field(default_factory=PSARConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+
+
+def override(config: Any, values: dict[str, Any]) -> Any:
+    """Return a copy of a (nested) config dataclass with dotted keys replaced.
+
+    ``override(TrainConfig(), {"lr": 1e-3, "reward.w_ego": 0.8})``. Unknown
+    keys and values of the wrong type raise :class:`ConfigError`.
+    """
+    for key, value in values.items():
+        config = _set(config, key.split("."), value, key)
+    return config
+
+
+def _set(obj: Any, path: list[str], value: Any, full_key: str) -> Any:
+    names = {f.name: f for f in dataclasses.fields(obj)}
+    head = path[0].replace("-", "_")
+    if head not in names:
+        raise ConfigError(f"unknown config key {full_key!r}")
+    current = getattr(obj, head)
+    if len(path) > 1:
+        if not dataclasses.is_dataclass(current):
+            raise ConfigError(f"unknown config key {full_key!r}")
+        return dataclasses.replace(obj, **{head: _set(current, path[1:], value, full_key)})
+    if isinstance(value, dict) and dataclasses.is_dataclass(current):
+        return dataclasses.replace(obj, **{head: override(current, value)})
+    return dataclasses.replace(obj, **{head: _coerce(current, value, full_key)})
+
+
+def _coerce(current: Any, value: Any, key: str) -> Any:
+    kind = type(current)
+    if isinstance(value, str) and kind is not str:
+        try:
+            if kind is bool:
+                if value.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError
+                return value.lower() in ("true", "1")
+            return kind(value)
+        except ValueError:
+            raise ConfigError(
+                f"config key {key!r} expects {kind.__name__}, got {value!r}"
+            ) from None
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise ConfigError(f"config key {key!r} expects {kind.__name__}, got {value!r}")
+    return value

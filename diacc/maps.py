@@ -1,0 +1,222 @@
+"""Map descriptions: one plain-data file drives every backend.
+
+A map is a straight route cut into consecutive segments. Each segment has a
+length, a number of lanes and a speed limit, and a *kind* label
+(``multilane``, ``reduction25``, ``reduction50``) so that metrics can be
+reported per kind of road. Lanes are numbered in one absolute frame for the
+whole route: lane 0 is the rightmost lane of the widest cross-section. When a
+segment has fewer lanes, the missing ones are on ``drop_side``: with
+``drop_side = "left"`` a 3-lane segment of a 4-lane route keeps lanes 0..2,
+with ``"right"`` it keeps lanes 1..3. Keeping one absolute numbering lets the
+observation builder compare lanes across segments without knowing the
+backend.
+
+Files are TOML (see ``maps/*.toml``). Every rule is checked on load and a
+broken file raises :class:`MapError` with a one-line message naming the file
+and the field.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+#: Folder with the shipped map descriptions (``maps/`` at the repository root).
+MAPS_DIR = Path(__file__).resolve().parent.parent / "maps"
+
+SEGMENT_KINDS = ("multilane", "reduction25", "reduction50")
+DROP_SIDES = ("left", "right")
+#: The largest change in lane count allowed between two consecutive segments.
+MAX_LANE_JUMP = 2
+
+_TOP_KEYS = {"name", "description", "lane_width_m", "drop_side", "segments"}
+_SEGMENT_KEYS = {"kind", "length_m", "lanes", "speed_limit_mps"}
+
+
+class MapError(ValueError):
+    """A map file or map name is invalid; the message is one line."""
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One stretch of road with a constant cross-section."""
+
+    kind: str
+    length_m: float
+    lanes: int
+    speed_limit_mps: float
+
+
+@dataclass(frozen=True)
+class Map:
+    """A validated map description (see module docstring for conventions)."""
+
+    name: str
+    description: str
+    lane_width_m: float
+    drop_side: str
+    segments: tuple[Segment, ...]
+
+    # ---- derived geometry -------------------------------------------------
+    @property
+    def length_m(self) -> float:
+        return float(sum(s.length_m for s in self.segments))
+
+    @property
+    def max_lanes(self) -> int:
+        return max(s.lanes for s in self.segments)
+
+    @property
+    def max_speed_mps(self) -> float:
+        return max(s.speed_limit_mps for s in self.segments)
+
+    @property
+    def segment_starts_m(self) -> np.ndarray:
+        """(S,) x where each segment starts."""
+        return np.concatenate([[0.0], np.cumsum([s.length_m for s in self.segments])[:-1]])
+
+    @property
+    def segment_ends_m(self) -> np.ndarray:
+        """(S,) x where each segment ends."""
+        return np.cumsum([s.length_m for s in self.segments]).astype(float)
+
+    def first_lane(self, segment_index: int) -> int:
+        """Absolute index of the rightmost lane that exists in a segment."""
+        lanes = self.segments[segment_index].lanes
+        return 0 if self.drop_side == "left" else self.max_lanes - lanes
+
+    def lane_range(self, segment_index: int) -> range:
+        """Absolute lane indices present in a segment."""
+        first = self.first_lane(segment_index)
+        return range(first, first + self.segments[segment_index].lanes)
+
+    def lane_exists(self) -> np.ndarray:
+        """(S, L) bool: whether absolute lane l exists in segment s."""
+        table = np.zeros((len(self.segments), self.max_lanes), dtype=bool)
+        for s in range(len(self.segments)):
+            table[s, list(self.lane_range(s))] = True
+        return table
+
+    def lane_end_m(self) -> np.ndarray:
+        """(S, L) x where lane l, driven from segment s, stops existing (inf if never).
+
+        This is what forced-merge rules look at: a vehicle in lane l inside
+        segment s must leave the lane before this point.
+        """
+        exists = self.lane_exists()
+        ends = self.segment_ends_m
+        out = np.full(exists.shape, np.inf)
+        n_seg = len(self.segments)
+        for s in range(n_seg):
+            for lane in range(self.max_lanes):
+                for t in range(s, n_seg):
+                    if not exists[t, lane]:
+                        out[s, lane] = ends[t - 1] if t > 0 else 0.0
+                        break
+        return out
+
+    def segment_of(self, x_m: np.ndarray) -> np.ndarray:
+        """Segment index for each longitudinal position (clipped to the route)."""
+        idx = np.searchsorted(self.segment_ends_m, x_m, side="right")
+        return np.clip(idx, 0, len(self.segments) - 1)
+
+    def lane_center_y_m(self, lane: np.ndarray | int) -> np.ndarray:
+        """Lateral coordinate of an absolute lane's centre line."""
+        return (np.asarray(lane) + 0.5) * self.lane_width_m
+
+    def content_hash(self) -> str:
+        """Stable hash of the geometry (for caches such as SUMO networks)."""
+        payload = json.dumps(asdict(self), sort_keys=True).encode()
+        return hashlib.sha256(payload).hexdigest()[:16]
+
+
+def available_maps() -> list[str]:
+    """Names of the maps shipped in ``maps/``."""
+    return sorted(p.stem for p in MAPS_DIR.glob("*.toml"))
+
+
+def load_map(name_or_path: str | Path) -> Map:
+    """Load a shipped map by name (``"train-25"``) or any TOML file by path."""
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        path = MAPS_DIR / f"{name_or_path}.toml"
+        if not path.exists():
+            raise MapError(
+                f"unknown map {str(name_or_path)!r}; shipped maps: {', '.join(available_maps())}"
+            )
+    if not path.exists():
+        raise MapError(f"{path}: map file not found")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise MapError(f"{path}: not valid TOML ({exc})") from None
+    return parse_map(data, source=str(path))
+
+
+def parse_map(data: dict, source: str = "<map>") -> Map:
+    """Validate a map dictionary (as read from TOML) into a :class:`Map`."""
+
+    def fail(field: str, why: str) -> MapError:
+        return MapError(f"{source}: field '{field}' {why}")
+
+    unknown = set(data) - _TOP_KEYS
+    if unknown:
+        raise fail(sorted(unknown)[0], "is not a known key")
+    for key in ("name", "lane_width_m", "segments"):
+        if key not in data:
+            raise fail(key, "is missing")
+    width = data["lane_width_m"]
+    if not isinstance(width, (int, float)) or not 2.0 <= width <= 5.0:
+        raise fail("lane_width_m", f"must be a number in [2, 5] m, got {width!r}")
+    drop_side = data.get("drop_side", "left")
+    if drop_side not in DROP_SIDES:
+        raise fail("drop_side", f"must be one of {DROP_SIDES}, got {drop_side!r}")
+    raw_segments = data["segments"]
+    if not isinstance(raw_segments, list) or not raw_segments:
+        raise fail("segments", "must be a non-empty list of [[segments]] tables")
+
+    segments = []
+    for i, seg in enumerate(raw_segments):
+        where = f"segments[{i}]"
+        unknown = set(seg) - _SEGMENT_KEYS
+        if unknown:
+            raise fail(f"{where}.{sorted(unknown)[0]}", "is not a known key")
+        for key in sorted(_SEGMENT_KEYS):
+            if key not in seg:
+                raise fail(f"{where}.{key}", "is missing")
+        if seg["kind"] not in SEGMENT_KINDS:
+            raise fail(f"{where}.kind", f"must be one of {SEGMENT_KINDS}, got {seg['kind']!r}")
+        length = seg["length_m"]
+        if not isinstance(length, (int, float)) or isinstance(length, bool) or length <= 0:
+            raise fail(f"{where}.length_m", f"must be a positive number, got {length!r}")
+        lanes = seg["lanes"]
+        if not isinstance(lanes, int) or isinstance(lanes, bool) or lanes < 1:
+            raise fail(f"{where}.lanes", f"must be an integer >= 1, got {lanes!r}")
+        speed = seg["speed_limit_mps"]
+        if not isinstance(speed, (int, float)) or isinstance(speed, bool) or not 0 < speed <= 70:
+            raise fail(f"{where}.speed_limit_mps", f"must be in (0, 70] m/s, got {speed!r}")
+        if segments and abs(lanes - segments[-1].lanes) > MAX_LANE_JUMP:
+            raise fail(
+                f"{where}.lanes",
+                f"jumps from {segments[-1].lanes} to {lanes}; at most {MAX_LANE_JUMP} lanes "
+                "may start or end between two segments",
+            )
+        segments.append(Segment(seg["kind"], float(length), lanes, float(speed)))
+
+    return Map(
+        name=str(data["name"]),
+        description=str(data.get("description", "")),
+        lane_width_m=float(width),
+        drop_side=drop_side,
+        segments=tuple(segments),
+    )

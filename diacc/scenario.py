@@ -1,0 +1,141 @@
+"""Vehicle population: how many vehicles, which are CAVs, which style, where.
+
+A :class:`Scenario` is the *what* (N, penetration, style mix); a
+:class:`Population` is the seeded *draw*: one array entry per vehicle with
+its type, style and starting slot. Both backends insert exactly the same
+population, which is what makes cross-backend comparisons meaningful.
+
+Placement follows facts.md: all vehicles start at t = 0 in rows near the
+route start, ``insert_spacing_m`` apart within a lane, at
+``insert_speed_mps``. Rows are filled front to back; the last, partial row
+uses randomly chosen lanes, and vehicles are shuffled over the slots.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from diacc.config import CAV_STYLE, STYLE_MIXES, ScenarioConfig
+from diacc.maps import Map
+
+
+class ScenarioError(ValueError):
+    """Invalid scenario values; the message is one line."""
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """What traffic to simulate (the seed is given to ``Backend.reset``)."""
+
+    n_vehicles: int = ScenarioConfig.n_vehicles
+    cav_penetration: float = ScenarioConfig.cav_penetration
+    style_mix: str | tuple[float, float, float] = ScenarioConfig.style_mix
+    insert_start_m: float = ScenarioConfig.insert_start_m
+    insert_spacing_m: float = ScenarioConfig.insert_spacing_m
+    insert_speed_mps: float = ScenarioConfig.insert_speed_mps
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.n_vehicles, int) or self.n_vehicles < 1:
+            raise ScenarioError(f"n_vehicles must be a positive integer, got {self.n_vehicles!r}")
+        if not 0.0 <= self.cav_penetration <= 1.0:
+            raise ScenarioError(
+                f"cav_penetration must be in [0, 1], got {self.cav_penetration!r}"
+            )
+        mix = self.mix
+        if len(mix) != 3 or any(p < 0 for p in mix) or abs(sum(mix) - 1.0) > 1e-6:
+            raise ScenarioError(
+                f"style_mix must be 3 non-negative shares (aggressive, normal, cautious) "
+                f"summing to 1, got {self.style_mix!r}"
+            )
+        if self.insert_spacing_m <= 0 or self.insert_speed_mps < 0:
+            raise ScenarioError("insert_spacing_m must be > 0 and insert_speed_mps >= 0")
+
+    @classmethod
+    def with_cavs(cls, n_vehicles: int, n_cavs: int, **kwargs) -> Scenario:
+        """Scenario with an exact CAV count (checked against ``n_vehicles``)."""
+        if n_cavs > n_vehicles:
+            raise ScenarioError(f"{n_cavs} CAVs requested but only {n_vehicles} vehicles")
+        if n_cavs < 0:
+            raise ScenarioError(f"n_cavs must be >= 0, got {n_cavs}")
+        return cls(n_vehicles=n_vehicles, cav_penetration=n_cavs / n_vehicles, **kwargs)
+
+    @property
+    def mix(self) -> tuple[float, float, float]:
+        if isinstance(self.style_mix, str):
+            if self.style_mix not in STYLE_MIXES:
+                raise ScenarioError(
+                    f"unknown style mix {self.style_mix!r}; known: {', '.join(STYLE_MIXES)}"
+                )
+            return STYLE_MIXES[self.style_mix]
+        return tuple(float(p) for p in self.style_mix)  # type: ignore[return-value]
+
+    @property
+    def n_cavs(self) -> int:
+        return int(round(self.cav_penetration * self.n_vehicles))
+
+
+@dataclass(frozen=True)
+class Population:
+    """One seeded draw of a scenario on a map: arrays of shape (V,)."""
+
+    is_cav: np.ndarray  # (V,) bool
+    style: np.ndarray  # (V,) int8, CAV_STYLE for CAVs
+    x_m: np.ndarray  # (V,) float64 initial centre position
+    lane: np.ndarray  # (V,) int16 initial absolute lane
+    speed_mps: np.ndarray  # (V,) float64 initial speed
+
+    @property
+    def n_vehicles(self) -> int:
+        return int(self.is_cav.shape[0])
+
+
+def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
+    """Draw types, styles and starting slots for every vehicle, reproducibly."""
+    rng = np.random.default_rng(seed)
+    n, n_cav = scenario.n_vehicles, scenario.n_cavs
+    lanes = list(road.lane_range(0))
+    if not lanes:  # pragma: no cover - maps always have >= 1 lane
+        raise ScenarioError(f"map {road.name!r} has no lane at its start")
+
+    # Styles for HDVs: largest-remainder rounding of the mix, then shuffled.
+    n_hdv = n - n_cav
+    shares = np.array(scenario.mix) * n_hdv
+    counts = np.floor(shares).astype(int)
+    for k in np.argsort(-(shares - counts))[: n_hdv - counts.sum()]:
+        counts[k] += 1
+    hdv_styles = np.repeat(np.arange(3, dtype=np.int8), counts)
+    style = np.concatenate([np.full(n_cav, CAV_STYLE, np.int8), hdv_styles])
+    is_cav = np.arange(n) < n_cav
+    order = rng.permutation(n)
+    style, is_cav = style[order], is_cav[order]
+
+    # Slots: rows of one vehicle per lane, front row first.
+    n_rows = math.ceil(n / len(lanes))
+    row_x = scenario.insert_start_m + scenario.insert_spacing_m * np.arange(n_rows)[::-1]
+    if row_x[0] >= road.segments[0].length_m:
+        raise ScenarioError(
+            f"{n} vehicles do not fit in the first segment of map {road.name!r} "
+            f"at {scenario.insert_spacing_m} m spacing"
+        )
+    slot_x, slot_lane = [], []
+    for r, x in enumerate(row_x):
+        row_lanes = lanes if r < n_rows - 1 else sorted(
+            rng.choice(lanes, size=n - r * len(lanes), replace=False)
+        )
+        slot_x += [x] * len(row_lanes)
+        slot_lane += list(row_lanes)
+    # Odd rows are staggered by half a spacing so that neighbours in adjacent
+    # lanes are not side by side (avoids artificial wall-of-cars starts).
+    x = np.array(slot_x, dtype=np.float64)
+    lane = np.array(slot_lane, dtype=np.int16)
+    x = x + np.where(lane % 2 == 1, 0.5 * scenario.insert_spacing_m, 0.0)
+    return Population(
+        is_cav=is_cav,
+        style=style,
+        x_m=x,
+        lane=lane,
+        speed_mps=np.full(n, scenario.insert_speed_mps, dtype=np.float64),
+    )

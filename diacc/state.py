@@ -1,0 +1,106 @@
+"""TrafficState: the arrays every backend returns after reset and each step.
+
+Coordinate convention (identical for all backends)
+---------------------------------------------------
+* ``x_m``: longitudinal position of the vehicle's *centre* along the route,
+  metres from the route start (0 .. ``Map.length_m``).
+* ``y_m``: lateral position of the vehicle's centre, metres to the *left* of
+  the right edge of the widest cross-section. The centre line of absolute
+  lane ``l`` is at ``(l + 0.5) * lane_width_m`` (see :mod:`diacc.maps`).
+* ``heading_rad``: angle to the route direction, positive when turning left
+  (counter-clockwise with x forward and y left).
+* ``lane``: absolute lane index, 0 = rightmost lane of the widest section.
+* ``segment``: index into ``Map.segments``.
+* Vehicle index ``i`` is the vehicle's stable id for the whole episode
+  (``vehicle_id[i] == i``); arrays have fixed capacity ``n_vehicles``.
+
+A vehicle is ``active`` while it is on the road. It becomes ``arrived`` when
+its centre passes the route end, and is then inactive for ever; its other
+fields keep their last values. Inactive entries must be masked by consumers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+
+@dataclass
+class TrafficState:
+    """Arrays describing every vehicle of one simulation at one instant."""
+
+    time_s: float
+    step: int
+    vehicle_id: np.ndarray  # (V,) int32, == arange(V)
+    x_m: np.ndarray  # (V,) float64 centre, along the route
+    y_m: np.ndarray  # (V,) float64 centre, left of the right road edge
+    speed_mps: np.ndarray  # (V,) float64
+    accel_mps2: np.ndarray  # (V,) float64 over the last step (0 at reset)
+    heading_rad: np.ndarray  # (V,) float64
+    lane: np.ndarray  # (V,) int16 absolute lane, 0 = rightmost
+    segment: np.ndarray  # (V,) int16 index into Map.segments
+    length_m: np.ndarray  # (V,) float64
+    width_m: np.ndarray  # (V,) float64
+    is_cav: np.ndarray  # (V,) bool
+    style: np.ndarray  # (V,) int8: 0 aggressive, 1 normal, 2 cautious, -1 CAV
+    active: np.ndarray  # (V,) bool, on the road now
+    arrived: np.ndarray  # (V,) bool, has left at the route end
+    collisions: np.ndarray  # (K, 2) int32 vehicle index pairs that collided this step
+    arrivals: np.ndarray  # (A,) int32 vehicles that arrived this step
+
+    @property
+    def n_vehicles(self) -> int:
+        return int(self.vehicle_id.shape[0])
+
+    @property
+    def collided(self) -> np.ndarray:
+        """(V,) bool: vehicle took part in a collision this step."""
+        out = np.zeros(self.n_vehicles, dtype=bool)
+        out[self.collisions.reshape(-1)] = True
+        return out
+
+    def copy(self) -> TrafficState:
+        return TrafficState(
+            **{
+                f.name: (v.copy() if isinstance(v, np.ndarray) else v)
+                for f in fields(self)
+                for v in [getattr(self, f.name)]
+            }
+        )
+
+
+#: dtype of every array field; backends must produce exactly these.
+FIELD_DTYPES: dict[str, np.dtype] = {
+    "vehicle_id": np.dtype(np.int32),
+    "x_m": np.dtype(np.float64),
+    "y_m": np.dtype(np.float64),
+    "speed_mps": np.dtype(np.float64),
+    "accel_mps2": np.dtype(np.float64),
+    "heading_rad": np.dtype(np.float64),
+    "lane": np.dtype(np.int16),
+    "segment": np.dtype(np.int16),
+    "length_m": np.dtype(np.float64),
+    "width_m": np.dtype(np.float64),
+    "is_cav": np.dtype(bool),
+    "style": np.dtype(np.int8),
+    "active": np.dtype(bool),
+    "arrived": np.dtype(bool),
+    "collisions": np.dtype(np.int32),
+    "arrivals": np.dtype(np.int32),
+}
+
+
+def validate_state(state: TrafficState) -> None:
+    """Raise ``AssertionError`` if a state breaks the shared conventions."""
+    n = state.n_vehicles
+    for name, dtype in FIELD_DTYPES.items():
+        arr = getattr(state, name)
+        assert isinstance(arr, np.ndarray), f"{name} is not an array"
+        assert arr.dtype == dtype, f"{name} has dtype {arr.dtype}, expected {dtype}"
+        if name == "collisions":
+            assert arr.ndim == 2 and arr.shape[1] == 2, f"collisions has shape {arr.shape}"
+        elif name != "arrivals":
+            assert arr.shape == (n,), f"{name} has shape {arr.shape}, expected ({n},)"
+    assert np.array_equal(state.vehicle_id, np.arange(n)), "vehicle_id must equal arange(V)"
+    assert not np.any(state.active & state.arrived), "a vehicle is both active and arrived"
