@@ -1,0 +1,1 @@
+"""Benchmarks behind ``diacc bench``: each module measures side by side in one run."""
