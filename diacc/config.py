@@ -12,6 +12,17 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+# Style codes and mixes live with the scenario; re-exported here for convenience.
+from diacc.scenario import (  # noqa: F401
+    AGGRESSIVE,
+    CAUTIOUS,
+    CAV_STYLE,
+    NORMAL,
+    STYLE_MIXES,
+    STYLE_NAMES,
+    Scenario,
+)
+
 
 class ConfigError(ValueError):
     """An unknown or ill-typed configuration key; the message is one line."""
@@ -42,10 +53,6 @@ class DriverStyle:
     lc_strategic: float  # SUMO LC2013 lcStrategic
 
 
-STYLE_NAMES = ("aggressive", "normal", "cautious")
-AGGRESSIVE, NORMAL, CAUTIOUS = 0, 1, 2
-#: Style code stored in ``TrafficState.style`` for CAVs.
-CAV_STYLE = -1
 
 _AGGRESSIVE = DriverStyle("aggressive", 0.9, 1.0, 3.5, 5.5, 0.0, 0.05, 0.0, 100.0, 100.0)
 _NORMAL = DriverStyle("normal", 1.0, 1.5, 2.5, 4.5, 0.5, 0.2, 0.5, 1.0, 0.5)
@@ -64,14 +71,6 @@ STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
         DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, 0.0, 0.0, 0.2),
     ),
 }
-
-#: HDV style mixes (aggressive, normal, cautious), paper Table I.
-STYLE_MIXES: dict[str, tuple[float, float, float]] = {
-    "D1": (0.2, 0.6, 0.2),
-    "D2": (0.2, 0.4, 0.4),
-    "D3": (0.4, 0.4, 0.2),
-}
-
 
 @dataclass(frozen=True)
 class CavParams:
@@ -99,18 +98,6 @@ class SimConfig:
     idm_delta: float = 4.0  # IDM acceleration exponent
     style_preset: str = "realistic"
     cav: CavParams = field(default_factory=CavParams)
-
-
-@dataclass(frozen=True)
-class ScenarioConfig:
-    """Defaults for :class:`diacc.scenario.Scenario` (training cell of the paper)."""
-
-    n_vehicles: int = 25
-    cav_penetration: float = 0.4
-    style_mix: str = "D1"
-    insert_start_m: float = 10.0  # x of the rearmost insertion row
-    insert_spacing_m: float = 8.0  # between rows of the same lane
-    insert_speed_mps: float = 10.0
 
 
 # --------------------------------------------------------------------------
@@ -213,7 +200,7 @@ class TrainConfig:
     checkpoint_every: int = 10  # updates
     run_dir: str = "runs/diacc"
     sim: SimConfig = field(default_factory=SimConfig)
-    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    scenario: Scenario = field(default_factory=Scenario)
     obs: ObservationConfig = field(default_factory=ObservationConfig)
     psar: PSARConfig = field(default_factory=PSARConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)

@@ -18,8 +18,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.config import CAV_STYLE, STYLE_MIXES, ScenarioConfig
 from diacc.maps import Map
+
+STYLE_NAMES = ("aggressive", "normal", "cautious")
+AGGRESSIVE, NORMAL, CAUTIOUS = 0, 1, 2
+#: Style code stored in ``TrafficState.style`` for CAVs.
+CAV_STYLE = -1
+#: HDV style mixes (aggressive, normal, cautious), paper Table I.
+STYLE_MIXES: dict[str, tuple[float, float, float]] = {
+    "D1": (0.2, 0.6, 0.2),
+    "D2": (0.2, 0.4, 0.4),
+    "D3": (0.4, 0.4, 0.2),
+}
 
 
 class ScenarioError(ValueError):
@@ -30,12 +40,12 @@ class ScenarioError(ValueError):
 class Scenario:
     """What traffic to simulate (the seed is given to ``Backend.reset``)."""
 
-    n_vehicles: int = ScenarioConfig.n_vehicles
-    cav_penetration: float = ScenarioConfig.cav_penetration
-    style_mix: str | tuple[float, float, float] = ScenarioConfig.style_mix
-    insert_start_m: float = ScenarioConfig.insert_start_m
-    insert_spacing_m: float = ScenarioConfig.insert_spacing_m
-    insert_speed_mps: float = ScenarioConfig.insert_speed_mps
+    n_vehicles: int = 25  # paper training cell: 25 vehicles,
+    cav_penetration: float = 0.4  # 10 of them CAVs,
+    style_mix: str | tuple[float, float, float] = "D1"  # HDV styles of mix D1
+    insert_start_m: float = 10.0  # x of the rearmost insertion row (facts.md)
+    insert_spacing_m: float = 8.0  # between rows of the same lane
+    insert_speed_mps: float = 10.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_vehicles, int) or self.n_vehicles < 1:
