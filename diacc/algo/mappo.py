@@ -1,0 +1,409 @@
+"""Recurrent MAPPO for the bottleneck, readable top to bottom (CleanRL style).
+
+One update = one rollout of ``rollout_steps`` decisions in every environment,
+then ``epochs`` passes of PPO over it:
+
+* **Actors** share parameters. All CAVs of all environments act as one batch
+  of E * C agents; each has its own GRU hidden state.
+* **Critic** is centralised: one value per environment from the critic state,
+  because the team reward R_t is shared by all CAVs (paper eq. reward_all).
+* **GAE** (lambda 0.95, gamma 0.99) on de-normalised values, keeping
+  termination (no bootstrap) and truncation (bootstrap) apart.
+* **Recurrent training** on chunks of ``chunk_len`` steps, each started from
+  the hidden state stored during the rollout, with hidden states zeroed at
+  episode starts inside a chunk.
+* **Death masking**: CAVs that have left (or were never on the road) add
+  nothing to any actor loss.
+* Every update starts all environments afresh with seeds derived from
+  (run seed, env, update); with the RNG states in the checkpoint this makes
+  ``--resume`` reproduce an uninterrupted run exactly.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
+
+from diacc.algo.buffer import Rollout, compute_gae
+from diacc.algo.valuenorm import ValueNorm
+from diacc.config import TrainConfig
+from diacc.env import EnvConfig
+from diacc.models import build_policy
+from diacc.models.inputs import to_tensors
+from diacc.models.spec import ObsSpec
+from diacc.observation import stack
+from diacc.reward import temperature
+from diacc.safety import RULE_NAMES
+from diacc.vector import make_vector_env
+
+#: Variants whose actor output goes through PSAR (paper: PSAR is part of D-IADM).
+PSAR_VARIANTS = ("mappo-iadm", "diacc")
+#: Episode-counter stride per update: update u uses episode seeds u*stride, u*stride+1, ...
+EPISODES_PER_UPDATE = 1000
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, corrupt, or belongs to another run layout."""
+
+
+def env_config(cfg: TrainConfig) -> EnvConfig:
+    """The environment a training config describes."""
+    return EnvConfig(
+        backend=cfg.backend, map=cfg.map, use_psar=cfg.variant in PSAR_VARIANTS,
+        scenario=cfg.scenario, sim=cfg.sim, obs=cfg.obs, psar=cfg.psar, reward=cfg.reward,
+    )
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("--device cuda requested but no CUDA device is available")
+    return torch.device(name)
+
+
+def flatten_agents(container, n_axes: int = 2):
+    """Merge the first ``n_axes`` axes of every field: (E, C, ...) -> (E*C, ...)."""
+    cls = type(container)
+    return cls(**{f.name: (lambda a: a.reshape(-1, *a.shape[n_axes:]))(getattr(container, f.name))
+                  for f in fields(cls)})
+
+
+def chunk_time_major(arrays: np.ndarray, chunk_len: int) -> np.ndarray:
+    """(S, B, ...) -> (L, S/L * B, ...): sequences of L steps, one per (chunk, b)."""
+    steps, batch = arrays.shape[:2]
+    out = arrays.reshape(steps // chunk_len, chunk_len, batch, *arrays.shape[2:])
+    return out.swapaxes(0, 1).reshape(chunk_len, (steps // chunk_len) * batch, *arrays.shape[2:])
+
+
+def explained_variance(pred: np.ndarray, target: np.ndarray) -> float:
+    var = np.var(target)
+    return float("nan") if var == 0 else float(1 - np.var(target - pred) / var)
+
+
+@dataclass
+class Agent:
+    """Everything that learns or is saved: networks, optimiser, value normaliser."""
+
+    actor: torch.nn.Module
+    critic: torch.nn.Module
+    value_norm: ValueNorm
+    optimizer: torch.optim.Optimizer
+
+
+def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
+    actor, critic = build_policy(cfg.variant, cfg.model, ObsSpec.from_config(cfg.obs))
+    actor, critic = actor.to(device), critic.to(device)
+    value_norm = ValueNorm().to(device)
+    params = list(actor.parameters()) + list(critic.parameters())
+    optimizer = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps)
+    return Agent(actor, critic, value_norm, optimizer)
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def save_checkpoint(path: Path, agent: Agent, cfg: TrainConfig, update: int, global_step: int) -> None:
+    payload = {
+        "format": 1,
+        "config": asdict(cfg),
+        "variant": cfg.variant,
+        "obs_spec": asdict(ObsSpec.from_config(cfg.obs)),
+        "update": update,
+        "global_step": global_step,
+        "actor": agent.actor.state_dict(),
+        "critic": agent.critic.state_dict(),
+        "value_norm": agent.value_norm.state_dict(),
+        "optimizer": agent.optimizer.state_dict(),
+        "rng": {
+            "python": random.getstate(),
+            "numpy": np.random.get_state(),
+            "torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+        },
+    }
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+
+
+def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
+    """Read a checkpoint; raise :class:`CheckpointError` (one line) if it is unusable."""
+    path = Path(path)
+    if not path.exists():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        payload = torch.load(path, map_location=device, weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means corrupt
+        raise CheckpointError(f"checkpoint {path} is corrupt ({type(exc).__name__})") from None
+    if not isinstance(payload, dict) or payload.get("format") != 1:
+        raise CheckpointError(f"checkpoint {path} is not a diacc checkpoint")
+    for part in ("actor", "critic"):
+        for name, tensor in payload[part].items():
+            if torch.is_floating_point(tensor) and not torch.isfinite(tensor).all():
+                raise CheckpointError(f"checkpoint {path} has NaN/inf in {part}.{name}")
+    return payload
+
+
+def restore(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
+    """Load a checkpoint's state into ``agent`` after checking it fits ``cfg``."""
+    if payload["variant"] != cfg.variant:
+        raise CheckpointError(
+            f"checkpoint {path} is for variant {payload['variant']!r}, not {cfg.variant!r}"
+        )
+    if payload["obs_spec"] != asdict(ObsSpec.from_config(cfg.obs)):
+        raise CheckpointError(f"checkpoint {path} was trained with another observation layout")
+    try:
+        agent.actor.load_state_dict(payload["actor"])
+        agent.critic.load_state_dict(payload["critic"])
+    except RuntimeError:
+        raise CheckpointError(f"checkpoint {path} does not match the {cfg.variant} networks") from None
+    agent.value_norm.load_state_dict(payload["value_norm"])
+    agent.optimizer.load_state_dict(payload["optimizer"])
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+# ----------------------------------------------------------------------------- training
+def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
+          stop_after_updates: int | None = None) -> Path:
+    """Train ``cfg.variant``; returns the run directory (config, checkpoints, logs)."""
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_path = run_dir / "checkpoint.pt"
+    device = resolve_device(cfg.device)
+    seed_everything(cfg.seed)
+    agent = make_agent(cfg, device)
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+
+    steps_per_update = cfg.rollout_steps * cfg.n_envs
+    n_updates = max(1, cfg.total_steps // steps_per_update)
+    if cfg.rollout_steps % cfg.chunk_len:
+        raise ValueError(f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}")
+    first_update, global_step = 0, 0
+    if resume:
+        payload = load_checkpoint(ckpt_path, device)
+        restore(agent, payload, cfg, ckpt_path)
+        first_update, global_step = payload["update"], payload["global_step"]
+        rng = payload["rng"]
+        random.setstate(rng["python"])
+        np.random.set_state(rng["numpy"])
+        torch.set_rng_state(rng["torch"].cpu())
+        if rng["cuda"] is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(rng["cuda"])
+    (run_dir / "config.json").write_text(json.dumps(asdict(cfg), indent=2, default=str))
+
+    envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed)
+    E, C = cfg.n_envs, envs.n_cavs
+    H_a, H_c = cfg.model.gru_hidden, cfg.model.gru_hidden
+    writer = SummaryWriter(str(run_dir / "tb"))
+    last_update = n_updates if stop_after_updates is None else min(n_updates, first_update + stop_after_updates)
+    bar = tqdm(total=n_updates * steps_per_update, initial=global_step, unit="step",
+               disable=not progress, desc=f"train {cfg.variant}")
+    history: list[dict] = []
+    try:
+        for update in range(first_update, last_update):
+            t0 = time.perf_counter()
+            if cfg.lr_decay:
+                for group in agent.optimizer.param_groups:
+                    group["lr"] = cfg.lr * (1.0 - update / n_updates)
+            tau = temperature(global_step, cfg.total_steps, cfg.reward)
+            envs.set_temperature(tau)
+
+            # ---------------- rollout
+            roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, H_c)
+            actor_obs, critic_state = envs.reset(first_episode=update * EPISODES_PER_UPDATE)
+            h_actor = torch.zeros(E * C, H_a, device=device)
+            h_critic = torch.zeros(E, H_c, device=device)
+            start = np.ones(E, bool)
+            alive = actor_obs.alive.copy()
+            episodes, psar_counts, restarts = [], np.zeros(len(RULE_NAMES)), 0
+            for t in range(cfg.rollout_steps):
+                roll.actor_obs[t], roll.critic_state[t] = actor_obs, critic_state
+                roll.episode_start[t] = start
+                roll.alive[t] = alive
+                roll.actor_hidden[t] = h_actor.view(E, C, H_a).cpu().numpy()
+                roll.critic_hidden[t] = h_critic.cpu().numpy()
+                with torch.no_grad():
+                    start_agents = torch.as_tensor(np.repeat(start, C), device=device)
+                    logits, h_actor = agent.actor(
+                        to_tensors(flatten_agents(actor_obs), device), h_actor, start_agents)
+                    dist = torch.distributions.Categorical(logits=logits)
+                    action = dist.sample()
+                    value, h_critic = agent.critic(
+                        to_tensors(critic_state, device), h_critic, torch.as_tensor(start, device=device))
+                    value = agent.value_norm.denormalize(value)
+                roll.actions[t] = action.view(E, C).cpu().numpy()
+                roll.logprobs[t] = dist.log_prob(action).view(E, C).cpu().numpy()
+                roll.values[t] = value.cpu().numpy()
+
+                out = envs.step(roll.actions[t])
+                roll.rewards[t], roll.terminated[t], roll.truncated[t] = out.reward, out.terminated, out.truncated
+                ended = out.terminated | out.truncated
+                for e in np.flatnonzero(out.truncated):
+                    with torch.no_grad():
+                        v_final, _ = agent.critic(
+                            to_tensors(stack([out.final_critic_state[e]]), device),
+                            h_critic[e : e + 1], torch.zeros(1, dtype=torch.bool, device=device))
+                        roll.final_values[t, e] = agent.value_norm.denormalize(v_final).item()
+                actor_obs, critic_state = out.actor_obs, out.critic_state
+                start, alive = ended, actor_obs.alive.copy()
+                episodes += out.episodes
+                psar_counts += np.bincount(out.psar_rule[out.alive | roll.alive[t]].ravel(),
+                                           minlength=len(RULE_NAMES))
+                restarts += out.restarts
+            with torch.no_grad():
+                next_value, _ = agent.critic(to_tensors(critic_state, device), h_critic,
+                                             torch.as_tensor(start, device=device))
+                next_value = agent.value_norm.denormalize(next_value).cpu().numpy()
+            advantages, returns = compute_gae(
+                roll.rewards, roll.values, next_value, roll.terminated, roll.truncated,
+                roll.final_values, cfg.gamma, cfg.gae_lambda)
+            rollout_s = time.perf_counter() - t0
+
+            # ---------------- PPO update on recurrent chunks
+            L = cfg.chunk_len
+            stacked_actor = stack(roll.actor_obs)  # fields (S, E, C, ...)
+            stacked_critic = stack(roll.critic_state)  # fields (S, E, ...)
+            seq_actor = to_tensors({f.name: chunk_time_major(
+                getattr(stacked_actor, f.name).reshape(cfg.rollout_steps, E * C, *getattr(stacked_actor, f.name).shape[3:]), L)
+                for f in fields(stacked_actor)}, device)  # (L, B_a, ...)
+            seq_critic = to_tensors({f.name: chunk_time_major(getattr(stacked_critic, f.name), L)
+                                     for f in fields(stacked_critic)}, device)  # (L, B_c, ...)
+
+            def seq(array: np.ndarray, per_agent: bool, dtype=torch.float32) -> torch.Tensor:
+                array = array.reshape(cfg.rollout_steps, E * C) if per_agent else array
+                return torch.as_tensor(chunk_time_major(array, L), dtype=dtype, device=device)
+
+            b_start_a = seq(np.repeat(roll.episode_start[:, :, None], C, axis=2), True, torch.bool)
+            b_start_c = seq(roll.episode_start, False, torch.bool)
+            b_actions = seq(roll.actions, True, torch.long)
+            b_logprobs = seq(roll.logprobs, True)
+            b_alive = seq(roll.alive, True)
+            b_returns = seq(returns, False)
+            b_values = seq(roll.values, False)
+            adv_agents = np.repeat(advantages[:, :, None], C, axis=2)
+            alive_adv = adv_agents[roll.alive]
+            if alive_adv.size > 1:
+                adv_agents = (adv_agents - alive_adv.mean()) / (alive_adv.std() + 1e-8)
+            b_adv = seq(adv_agents, True)
+            h0_actor = torch.as_tensor(roll.actor_hidden[::L].reshape(-1, H_a), device=device)
+            h0_critic = torch.as_tensor(roll.critic_hidden[::L].reshape(-1, H_c), device=device)
+            agent.value_norm.update(torch.as_tensor(returns, device=device))
+            b_returns_norm = agent.value_norm.normalize(b_returns)
+            b_values_norm = agent.value_norm.normalize(b_values)
+
+            n_seq_a, n_seq_c = h0_actor.shape[0], h0_critic.shape[0]
+            stats: dict[str, list[float]] = {k: [] for k in
+                                             ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
+            for _epoch in range(cfg.epochs):
+                env_perm = torch.randperm(n_seq_c, device=device)
+                for mb_envs in env_perm.chunk(cfg.minibatches):
+                    # Minibatches split by (chunk, env) so sequences stay whole and each
+                    # environment's CAVs stay with its critic sequence.
+                    mb_agents = (mb_envs[:, None] * C + torch.arange(C, device=device)).reshape(-1)
+                    h_a, h_c = h0_actor[mb_agents], h0_critic[mb_envs]
+                    new_logprob, entropy, new_value = [], [], []
+                    for t in range(L):
+                        logits, h_a = agent.actor({k: v[t, mb_agents] for k, v in seq_actor.items()},
+                                                  h_a, b_start_a[t, mb_agents])
+                        dist = torch.distributions.Categorical(logits=logits)
+                        new_logprob.append(dist.log_prob(b_actions[t, mb_agents]))
+                        entropy.append(dist.entropy())
+                        v, h_c = agent.critic({k: v_[t, mb_envs] for k, v_ in seq_critic.items()},
+                                              h_c, b_start_c[t, mb_envs])
+                        new_value.append(v)
+                    new_logprob, entropy, new_value = map(torch.stack, (new_logprob, entropy, new_value))
+                    mask = b_alive[:, mb_agents]
+                    n_alive = mask.sum().clamp(min=1.0)
+                    log_ratio = new_logprob - b_logprobs[:, mb_agents]
+                    ratio = log_ratio.exp()
+                    adv = b_adv[:, mb_agents]
+                    pg_loss = -(torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv)
+                                * mask).sum() / n_alive
+                    entropy_mean = (entropy * mask).sum() / n_alive
+                    old_v, ret = b_values_norm[:, mb_envs], b_returns_norm[:, mb_envs]
+                    v_clipped = old_v + (new_value - old_v).clamp(-cfg.clip, cfg.clip)
+                    value_loss = torch.max(
+                        F.huber_loss(new_value, ret, delta=cfg.huber_delta, reduction="none"),
+                        F.huber_loss(v_clipped, ret, delta=cfg.huber_delta, reduction="none"),
+                    ).mean()
+                    loss = pg_loss - cfg.entropy_coef * entropy_mean + cfg.value_coef * value_loss
+                    agent.optimizer.zero_grad()
+                    loss.backward()
+                    torch.nn.utils.clip_grad_norm_(agent.actor.parameters(), cfg.max_grad_norm)
+                    torch.nn.utils.clip_grad_norm_(agent.critic.parameters(), cfg.max_grad_norm)
+                    agent.optimizer.step()
+                    with torch.no_grad():
+                        stats["policy_loss"].append(pg_loss.item())
+                        stats["value_loss"].append(value_loss.item())
+                        stats["entropy"].append(entropy_mean.item())
+                        stats["approx_kl"].append((((ratio - 1) - log_ratio) * mask).sum().item() / n_alive.item())
+                        stats["clipfrac"].append((((ratio - 1).abs() > cfg.clip).float() * mask).sum().item()
+                                                 / n_alive.item())
+
+            global_step += steps_per_update
+            update_s = time.perf_counter() - t0
+            record = {k: float(np.mean(v)) for k, v in stats.items()}
+            record.update(
+                update=update + 1, global_step=global_step, tau=tau,
+                lr=agent.optimizer.param_groups[0]["lr"],
+                explained_variance=explained_variance(roll.values.ravel(), returns.ravel()),
+                env_steps_per_s=steps_per_update / rollout_s,
+                updates_per_s=1.0 / update_s, worker_restarts=restarts,
+                global_reward=float(roll.rewards.mean()),
+            )
+            n_rules = psar_counts.sum()
+            for code, name in enumerate(RULE_NAMES[1:], start=1):
+                record[f"psar/{name}"] = float(psar_counts[code] / n_rules) if n_rules else 0.0
+            if episodes:
+                for key in episodes[0]:
+                    if isinstance(episodes[0][key], (int, float)):
+                        record[f"episode/{key}"] = float(np.mean([ep[key] for ep in episodes]))
+            for key, value in record.items():
+                if key not in ("update", "global_step"):
+                    writer.add_scalar(key if "/" in key else f"train/{key}", value, global_step)
+            history.append(record)
+            with open(run_dir / "progress.jsonl", "a") as fh:
+                fh.write(json.dumps(record) + "\n")
+            bar.update(steps_per_update)
+            bar.set_postfix(R=f"{record['global_reward']:.2f}",
+                            speed=f"{record.get('episode/mean_speed_mps', float('nan')):.1f}",
+                            sps=f"{record['env_steps_per_s']:.0f}")
+            if (update + 1) % cfg.checkpoint_every == 0 or update + 1 == last_update:
+                save_checkpoint(ckpt_path, agent, cfg, update + 1, global_step)
+    finally:
+        bar.close()
+        writer.close()
+        envs.close()
+    return run_dir
+
+
+def config_from_checkpoint(payload: dict) -> TrainConfig:
+    """Rebuild the TrainConfig stored in a checkpoint."""
+    from diacc.config import override
+
+    return override(TrainConfig(), _flatten(payload["config"]))
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
+    return flat
+
+

@@ -1,0 +1,174 @@
+"""Command line: ``diacc train | eval | table | plot | render | simulate | bench``.
+
+Every command turns known failures (bad map, backend, config key, checkpoint,
+crashed simulator) into a one-line ``diacc: error: ...`` message and exit
+code 2, never a traceback (set ``DIACC_DEBUG=1`` to see the traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+from diacc.config import BACKENDS, VARIANTS, ConfigError, TrainConfig, override
+
+#: Exceptions that carry a one-line, user-facing message.
+USER_ERRORS: tuple[type[Exception], ...] = (ValueError, RuntimeError, FileNotFoundError, KeyError)
+
+
+def _train_parser(sub) -> None:
+    p = sub.add_parser("train", help="train a MAPPO variant (writes a run directory)")
+    p.add_argument("--variant", choices=VARIANTS, default=TrainConfig.variant)
+    p.add_argument("--backend", choices=BACKENDS, default=TrainConfig.backend)
+    p.add_argument("--map", default=TrainConfig.map, help="shipped map name or .toml path")
+    p.add_argument("--steps", type=int, default=TrainConfig.total_steps, help="environment steps")
+    p.add_argument("--envs", type=int, default=TrainConfig.n_envs)
+    p.add_argument("--seed", type=int, default=TrainConfig.seed)
+    p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=TrainConfig.device)
+    p.add_argument("--run-dir", default=None, help="default: runs/<variant>-<backend>-<map>-s<seed>")
+    p.add_argument("--config", type=Path, help="TOML file of config overrides (dotted or nested keys)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override any config field, e.g. --set reward.w_ego=0.8 (repeatable)")
+    p.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoint.pt")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """Defaults <- config file <- named flags <- --set overrides."""
+    cfg = TrainConfig()
+    if args.config:
+        if not args.config.exists():
+            raise ConfigError(f"config file {args.config} does not exist")
+        cfg = override(cfg, tomllib.loads(args.config.read_text()))
+    run_dir = args.run_dir or f"runs/{args.variant}-{args.backend}-{Path(args.map).stem}-s{args.seed}"
+    cfg = override(cfg, {"variant": args.variant, "backend": args.backend, "map": args.map,
+                         "total_steps": args.steps, "n_envs": args.envs, "seed": args.seed,
+                         "device": args.device, "run_dir": run_dir})
+    for item in args.set:
+        if "=" not in item:
+            raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        cfg = override(cfg, {key: value})
+    return cfg
+
+
+def cmd_train(args: argparse.Namespace) -> None:
+    from diacc.algo.mappo import train
+    from diacc.maps import load_map
+
+    cfg = train_config_from_args(args)
+    load_map(cfg.map)  # fail fast on a bad map name
+    run_dir = train(cfg, resume=args.resume, progress=not args.no_progress)
+    print(f"run directory: {run_dir}  (checkpoint: {run_dir / 'checkpoint.pt'})")
+
+
+def _bench_parser(sub) -> None:
+    p = sub.add_parser("bench", help="speed benchmarks, measured side by side in one run")
+    p.add_argument("--backend", choices=BACKENDS, help="backend vs its reference simulator loop")
+    p.add_argument("--models", action="store_true", help="network sizes and forward/update times")
+    p.add_argument("--training", action="store_true", help="end-to-end training env-steps/s")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--steps", type=int, default=None, help="steps to time (benchmark default if unset)")
+
+
+def cmd_bench(args: argparse.Namespace) -> None:
+    ran = False
+    if args.backend == "highway":
+        from diacc.bench import highway
+
+        highway.run(**({"steps": args.steps} if args.steps else {}))
+        ran = True
+    if args.backend == "sumo":
+        from diacc.bench import sumo
+
+        sumo.run(**({"steps": args.steps} if args.steps else {}))
+        ran = True
+    if args.models:
+        from diacc.bench import models
+
+        models.run(device=args.device)
+        ran = True
+    if args.training:
+        from diacc.bench import training
+
+        training.run(device=args.device)
+        ran = True
+    if not ran:
+        raise ConfigError("choose what to benchmark: --backend highway|sumo, --models or --training")
+
+
+def _simulate_parser(sub) -> None:
+    p = sub.add_parser("simulate", help="run one episode of a baseline policy and print its metrics")
+    p.add_argument("--backend", choices=BACKENDS, default="highway")
+    p.add_argument("--map", default="train-25")
+    p.add_argument("--vehicles", type=int, default=25)
+    p.add_argument("--penetration", type=float, default=0.0, help="CAV share (CAVs keep lane and speed)")
+    p.add_argument("--mix", default="D1")
+    p.add_argument("--steps", type=int, default=150)
+    p.add_argument("--seed", type=int, default=0)
+
+
+def cmd_simulate(args: argparse.Namespace) -> None:
+    from diacc.backends.base import CavCommands, make_backend
+    from diacc.config import EventConfig
+    from diacc.maps import load_map
+    from diacc.metrics import EpisodeRecorder
+    from diacc.scenario import Scenario
+
+    road = load_map(args.map)
+    scenario = Scenario(n_vehicles=args.vehicles, cav_penetration=args.penetration, style_mix=args.mix)
+    backend = make_backend(args.backend, road)
+    try:
+        state = backend.reset(scenario, args.seed)
+        recorder = EpisodeRecorder(road, EventConfig())
+        recorder.record(state)
+        idle = CavCommands.idle(state.n_vehicles)
+        for _ in range(args.steps):
+            state = backend.step(idle)
+            recorder.record(state)
+            if not state.active.any():
+                break
+    finally:
+        backend.close()
+    for key, value in recorder.summary().as_dict().items():
+        print(f"{key:>24}: {value:.4g}" if isinstance(value, float) else f"{key:>24}: {value}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="diacc", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    _train_parser(sub)
+    _bench_parser(sub)
+    _simulate_parser(sub)
+    return parser
+
+
+COMMANDS = {"train": cmd_train, "bench": cmd_bench, "simulate": cmd_simulate}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        COMMANDS[args.command](args)
+    except USER_ERRORS as exc:
+        if os.environ.get("DIACC_DEBUG"):
+            raise
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"diacc: error: {message}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("diacc: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,236 @@
+"""The multi-agent bottleneck environment (PettingZoo ``ParallelEnv``) over any backend.
+
+One environment = one backend simulation + the shared observation builder +
+PSAR + the reward. Agents are the scenario's CAVs (``"cav_0"`` ...), in the
+order of their vehicle indices. Each step:
+
+1. the actor proposes a discrete action per CAV
+   {0 remain, 1 left, 2 right, 3 accelerate, 4 decelerate};
+2. PSAR (paper Algorithm 1) refines it, unless ``use_psar`` is off (the
+   ``diacc-nopsar`` ablation);
+3. the refined action becomes a backend command (lane change +-1, speed change
+   +-``speed_change_mps``; Decel-LC brakes by ``b_lc`` during its lane change);
+4. the backend advances one decision step and returns a TrafficState, from
+   which the observations, the team reward and the events are built.
+
+The episode terminates on a collision or when every vehicle has left, and is
+truncated at ``episode_steps``. A CAV that has left the route is done and is
+never revived.
+
+Two APIs share the same code path: the PettingZoo dict API (``reset`` /
+``step``) for users and API tests, and the batched API (:meth:`reset_arrays` /
+:meth:`step_arrays`) that the trainer uses to avoid per-agent dicts.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import asdict, dataclass, field, fields
+
+import gymnasium
+import numpy as np
+from pettingzoo import ParallelEnv
+
+from diacc.backends.base import Backend, CavCommands, make_backend
+from diacc.config import EventConfig, ObservationConfig, PSARConfig, RewardConfig, SimConfig
+from diacc.maps import Map, load_map
+from diacc.observation import ActorObs, CriticState, ObservationBuilder
+from diacc.reward import team_reward
+from diacc.safety import psar
+from diacc.scenario import Scenario
+from diacc.state import TrafficState
+
+REMAIN, LEFT, RIGHT, ACCELERATE, DECELERATE = range(5)
+ACTION_NAMES = ("remain", "left", "right", "accelerate", "decelerate")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Everything that defines one environment."""
+
+    backend: str = "highway"
+    map: str = "train-25"
+    use_psar: bool = True
+    scenario: Scenario = field(default_factory=Scenario)
+    sim: SimConfig = field(default_factory=SimConfig)
+    obs: ObservationConfig = field(default_factory=ObservationConfig)
+    psar: PSARConfig = field(default_factory=PSARConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    events: EventConfig = field(default_factory=EventConfig)
+
+
+@dataclass
+class StepResult:
+    """What :meth:`BottleneckEnv.step_arrays` returns (C = CAV slots)."""
+
+    actor_obs: ActorObs
+    critic_state: CriticState
+    reward: float  # team reward R_t (paper eq. reward_all)
+    terminated: bool
+    truncated: bool
+    alive: np.ndarray  # (C,) bool: CAV on the road after the step
+    refined_action: np.ndarray  # (C,) int64 action executed
+    psar_rule: np.ndarray  # (C,) int8 rule code that fired (0 none)
+    state: TrafficState
+    reward_terms: dict[str, float]
+
+
+class BottleneckEnv(ParallelEnv):
+    """CAVs crossing a highway bottleneck among HDVs (see module docstring)."""
+
+    metadata = {"name": "diacc_bottleneck_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
+
+    def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None) -> None:
+        self.config = config or EnvConfig()
+        self.render_mode = render_mode
+        self.road: Map = load_map(self.config.map)
+        self.backend: Backend = make_backend(self.config.backend, self.road, self.config.sim)
+        self.builder = ObservationBuilder(self.road, self.config.obs, self.config.sim.episode_steps)
+        self.n_cavs = self.config.scenario.n_cavs
+        self.possible_agents = [f"cav_{i}" for i in range(self.n_cavs)]
+        self.agents: list[str] = []
+        self.temperature = self.config.reward.tau_init
+        self.state_: TrafficState | None = None
+        self._seed: int | None = None
+
+    # ------------------------------------------------------------------ batched API
+    def reset_arrays(self, seed: int | None = None) -> tuple[ActorObs, CriticState]:
+        """Start an episode; returns observations for all CAV slots and the critic state."""
+        if seed is None:
+            seed = 0 if self._seed is None else self._seed + 1
+        self._seed = seed
+        state = self.backend.reset(self.config.scenario, seed)
+        self.cav_index = np.flatnonzero(state.is_cav)  # (C,) vehicle index of each agent
+        self.action_memory = np.zeros((self.n_cavs, 2), np.int64)  # proposed, refined
+        self.last_refined = np.zeros(state.n_vehicles, np.int64)
+        self.steps = 0
+        self.state_ = state
+        self.builder.reset(state)
+        self.agents = list(self.possible_agents)
+        return self._observe()
+
+    def step_arrays(self, actions: np.ndarray) -> StepResult:
+        """Advance one decision step with proposed actions (C,) for every CAV slot."""
+        state = self.state_
+        assert state is not None, "call reset before step"
+        proposed = np.asarray(actions, dtype=np.int64).reshape(self.n_cavs)
+        alive = state.active[self.cav_index]
+        if self.config.use_psar:
+            refined_result = psar(state, self.cav_index, proposed, self.config.psar, self.road)
+            refined = np.where(alive, refined_result.action, REMAIN)
+            rule = np.where(alive, refined_result.rule, 0).astype(np.int8)
+            brake_mps2 = np.where(alive, refined_result.decel_lc_mps2, 0.0)
+        else:
+            refined, rule = np.where(alive, proposed, REMAIN), np.zeros(self.n_cavs, np.int8)
+            brake_mps2 = np.zeros(self.n_cavs)
+
+        state = self.backend.step(self._commands(state.n_vehicles, refined, brake_mps2))
+        self.steps += 1
+        self.state_ = state
+        self.builder.push(state)
+        self.action_memory = np.stack([proposed, refined], axis=1)
+        self.last_refined[self.cav_index] = refined
+
+        terms = team_reward(
+            state, self.cav_index, alive, self.config.reward, self.temperature, self.road
+        )
+        terminated = bool(len(state.collisions) > 0 or not state.active.any())
+        truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
+        actor_obs, critic_state = self._observe()
+        return StepResult(
+            actor_obs=actor_obs,
+            critic_state=critic_state,
+            reward=float(terms.total),
+            terminated=terminated,
+            truncated=truncated,
+            alive=state.active[self.cav_index].copy(),
+            refined_action=refined,
+            psar_rule=rule,
+            state=state,
+            reward_terms=terms.as_dict(),
+        )
+
+    def _commands(self, n_vehicles: int, refined: np.ndarray, brake_mps2: np.ndarray) -> CavCommands:
+        dv = self.config.sim.speed_change_mps
+        commands = CavCommands.idle(n_vehicles)
+        commands.lane_change[self.cav_index] = np.select(
+            [refined == LEFT, refined == RIGHT], [1, -1], 0
+        )
+        commands.speed_change_mps[self.cav_index] = np.select(
+            [refined == ACCELERATE, refined == DECELERATE], [dv, -dv], 0.0
+        ) - brake_mps2 * self.config.sim.step_s
+        return commands
+
+    def _observe(self) -> tuple[ActorObs, CriticState]:
+        actor = self.builder.actor(self.cav_index, self.action_memory, self.last_refined)
+        return actor, self.builder.critic()
+
+    # ------------------------------------------------------------------ PettingZoo API
+    @functools.lru_cache(maxsize=None)
+    def observation_space(self, agent: str) -> gymnasium.spaces.Dict:
+        sample = self._agent_obs(self._template_obs(), 0)
+        return gymnasium.spaces.Dict(
+            {
+                name: (
+                    gymnasium.spaces.MultiBinary(value.shape)
+                    if value.dtype == bool
+                    else gymnasium.spaces.Box(0, 4, value.shape, np.int64)
+                    if value.dtype == np.int64
+                    else gymnasium.spaces.Box(-np.inf, np.inf, value.shape, np.float32)
+                )
+                for name, value in sample.items()
+            }
+        )
+
+    @functools.lru_cache(maxsize=None)
+    def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
+        return gymnasium.spaces.Discrete(5)
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        actor_obs, _ = self.reset_arrays(seed)
+        observations = {a: self._agent_obs(actor_obs, i) for i, a in enumerate(self.agents)}
+        return observations, {a: {} for a in self.agents}
+
+    def step(self, actions: dict[str, int]):
+        index = {a: i for i, a in enumerate(self.possible_agents)}
+        batch = np.zeros(self.n_cavs, np.int64)
+        for agent, action in actions.items():
+            batch[index[agent]] = action
+        out = self.step_arrays(batch)
+        acting = list(self.agents)
+        observations, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
+        for agent in acting:
+            i = index[agent]
+            observations[agent] = self._agent_obs(out.actor_obs, i)
+            rewards[agent] = out.reward
+            terms[agent] = out.terminated or not out.alive[i]
+            truncs[agent] = out.truncated
+            infos[agent] = {
+                "refined_action": int(out.refined_action[i]),
+                "psar_rule": int(out.psar_rule[i]),
+                "collisions": out.state.collisions.copy(),
+                "arrivals": out.state.arrivals.copy(),
+            }
+        self.agents = [a for a in acting if not (terms[a] or truncs[a])]
+        return observations, rewards, terms, truncs, infos
+
+    def state(self) -> np.ndarray:
+        """Flattened critic state (PettingZoo convention for a centralised critic)."""
+        critic = self.builder.critic()
+        return np.concatenate([np.asarray(getattr(critic, f.name), np.float32).ravel() for f in fields(critic)])
+
+    def render(self) -> np.ndarray | None:
+        return self.backend.render() if self.state_ is not None else None
+
+    def close(self) -> None:
+        self.backend.close()
+
+    # ------------------------------------------------------------------ helpers
+    @staticmethod
+    def _agent_obs(actor_obs: ActorObs, i: int) -> dict[str, np.ndarray]:
+        return {name: value[i] for name, value in asdict(actor_obs).items()}
+
+    def _template_obs(self) -> ActorObs:
+        if self.state_ is None:
+            self.reset_arrays(0)
+        return self.builder.actor(self.cav_index, self.action_memory, self.last_refined)
