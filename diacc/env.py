@@ -51,6 +51,7 @@ class EnvConfig:
     backend: str = "highway"
     map: str = "train-25"
     use_psar: bool = True
+    cav_mode: str = "commanded"  # or "cooperative": CAVs drive themselves (baseline)
     scenario: Scenario = field(default_factory=Scenario)
     sim: SimConfig = field(default_factory=SimConfig)
     obs: ObservationConfig = field(default_factory=ObservationConfig)
@@ -84,7 +85,9 @@ class BottleneckEnv(ParallelEnv):
         self.config = config or EnvConfig()
         self.render_mode = render_mode
         self.road: Map = load_map(self.config.map)
-        self.backend: Backend = make_backend(self.config.backend, self.road, self.config.sim)
+        self.backend: Backend = make_backend(
+            self.config.backend, self.road, self.config.sim, self.config.cav_mode
+        )
         self.builder = ObservationBuilder(self.road, self.config.obs, self.config.sim.episode_steps)
         self.n_cavs = self.config.scenario.n_cavs
         self.possible_agents = [f"cav_{i}" for i in range(self.n_cavs)]

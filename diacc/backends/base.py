@@ -70,15 +70,25 @@ class Backend(Protocol):
     def close(self) -> None: ...
 
 
-def make_backend(name: str, road: Map, sim: SimConfig | None = None) -> Backend:
+#: How CAVs are driven: by commands (learning policies) or on their own as the
+#: non-learning ``cooperative`` baseline (CACC car following, lcCooperative 1).
+CAV_MODES = ("commanded", "cooperative")
+
+
+def make_backend(
+    name: str, road: Map, sim: SimConfig | None = None, cav_mode: str = "commanded"
+) -> Backend:
     """Build a backend by name: ``"highway"`` or ``"sumo"``."""
     sim = sim or SimConfig()
+    if cav_mode not in CAV_MODES:
+        raise BackendError(f"unknown CAV mode {cav_mode!r}; choose one of {', '.join(CAV_MODES)}")
+    options = {} if cav_mode == "commanded" else {"cav_mode": cav_mode}
     if name == "highway":
         from diacc.backends.highway import HighwayBackend
 
-        return HighwayBackend(road, sim)
+        return HighwayBackend(road, sim, **options)
     if name == "sumo":
         from diacc.backends.sumo import SumoBackend
 
-        return SumoBackend(road, sim)
+        return SumoBackend(road, sim, **options)
     raise BackendError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")
