@@ -6,43 +6,62 @@ The builder only reads :class:`~diacc.state.TrafficState` arrays and the
 Layout (C = CAVs of the scenario, K = ``n_neighbours`` (6), T =
 ``history_steps`` (5, oldest first, current last), N = ``max_vehicles``,
 L = ``MAX_LANES``, S = ``MAX_SEGMENTS``). All float arrays are float32 and
-normalised to roughly [-1, 1]; padding entries are exactly zero and masked.
+normalised to roughly [-1, 1]; every float feature is clipped to
+[-``FEATURE_CLIP``, ``FEATURE_CLIP``] = [-5, 5] (only far-away neighbours'
+dx or very crowded lane counts ever reach the clip). Padding entries are
+exactly zero and masked. ``v_max`` is ``Map.max_speed_mps``; ``max_lanes``
+below is ``Map.max_lanes``.
+
+Neighbour rule (actor and critic alike): the K vehicles nearest by
+``|x_j - x_i|`` among *active* vehicles whose absolute lane differs from the
+ego's by at most one, the ego excluded; ties go to the lower vehicle index.
 
 Actor (:class:`ActorObs`, one row per CAV slot):
 
 * ``self_state`` (C, 6): x / route length, y / road width, v / v_max,
   heading (rad), lane / (max_lanes - 1), distance to the end of the ego lane
-  / 100 m (clipped to 1; 1 = lane does not end ahead).
+  / 100 m (clipped to [0, 1]; 1 = lane does not end within 100 m).
 * ``ego_hist`` (C, T, F): the ego's own trajectory as a node (F features below).
 * ``hdv_nodes``/``cav_nodes`` (C, K, T, F) and ``hdv_mask``/``cav_mask``
-  (C, K) bool: the K nearest vehicles (by |dx|) in the ego lane and the two
-  adjacent lanes, split by type, nearest first. Node features F = 6:
+  (C, K) bool: the K nearest vehicles (neighbour rule above), split by type,
+  each set nearest first and padded to K. Node features F = 6:
   dx / 50 m, dy / lane width, dv / v_max, heading (rad), v / v_max, is_cav,
   all relative to the ego's *current* position and speed (so a history is a
-  trajectory in the ego frame).
+  trajectory in the ego frame). Neighbours are chosen on the current step;
+  at an older step where a neighbour was not active its earliest active
+  values are repeated.
 * ``cav_prev_action`` (C, K) int64: the refined action each neighbouring CAV
   executed at the previous step (0 for padding).
-* ``lane_stats`` (C, 3, 4) and ``lane_mask`` (C, 3): ego / left / right lane
-  within +-``lane_window_m``: count / 10, density / (100 veh/km), mean speed
-  / v_max, CAV share. A lane that does not exist at the ego's position is
+* ``lane_stats`` (C, 3, 4) and ``lane_mask`` (C, 3): ego / left (lane + 1) /
+  right (lane - 1) lane, counting the *other* active vehicles with
+  ``|x_j - x_i| <= lane_window_m``: count / 10, density / (100 veh/km)
+  (window length clipped to the route), mean speed / v_max, CAV share. A lane
+  that does not exist in the ego's current segment (``Map.lane_exists``) is
   masked and zero.
 * ``road`` (C, 4 S): static road table, one row per segment
-  (start / route length, end / route length, lanes / max lanes, present).
+  (start / route length, end / route length, lanes / max_lanes, present).
 * ``action_memory`` (C, 2) int64: the actor's proposed action and the
-  PSAR-refined action of the previous step (0 at reset).
-* ``alive`` (C,) bool: the CAV is on the road.
+  PSAR-refined action of the previous step (0 at reset); passed through.
+* ``alive`` (C,) bool: the CAV is on the road. Every other field of a row
+  whose CAV is not alive is zero (masks False), except ``action_memory``.
 
 Critic (:class:`CriticState`, one per environment):
 
 * ``nodes`` (N, 6) and ``node_mask`` (N,): every vehicle: x / route length,
   y / road width, v / v_max, heading, lane / (max_lanes - 1), is_cav.
+  Inactive vehicles and padding rows are zero and masked.
 * ``neighbours`` (N, K) int64 and ``neighbour_mask`` (N, K): indices (into
-  ``nodes``) of each vehicle's K neighbours, same rule as the actor's.
+  ``nodes``) of each vehicle's K neighbours, same rule and order as the
+  actor's (the actor's HDV and CAV sets together are exactly these).
 * ``lane_stats`` (L, 4), ``lane_mask`` (L,): per absolute lane over the whole
-  route, same four statistics.
+  route, same four statistics (density over the length on which the lane
+  exists). Lanes beyond ``Map.max_lanes`` are masked and zero.
 * ``road`` (4 S,): static road table.
 * ``traffic`` (4,): active vehicles / N, mean speed / v_max, CAV share of
   active vehicles, step / episode length.
+
+Use :meth:`ObservationBuilder.spec` (or :func:`observation_spec`) to get all
+sizes, shapes and dtypes without building an observation.
 """
 
 from __future__ import annotations
@@ -50,6 +69,10 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 import numpy as np
+
+from diacc.config import ObservationConfig
+from diacc.maps import Map
+from diacc.state import TrafficState
 
 NODE_FEATURES = 6
 SELF_FEATURES = 6
@@ -60,6 +83,20 @@ ROAD_FEATURES_PER_SEGMENT = 4
 MAX_SEGMENTS = 8
 MAX_LANES = 6
 N_ACTIONS = 5
+#: Lane slots of the actor's lane statistics: ego, left, right.
+LANE_SLOTS = 3
+#: Every float feature is clipped to [-FEATURE_CLIP, FEATURE_CLIP].
+FEATURE_CLIP = 5.0
+
+# Normalisation scales (see the module docstring).
+DX_SCALE_M = 50.0
+LANE_END_SCALE_M = 100.0
+COUNT_SCALE = 10.0
+DENSITY_SCALE_VEH_PER_KM = 100.0
+
+
+class ObservationError(ValueError):
+    """A state or map does not fit the observation layout; one-line message."""
 
 
 @dataclass
@@ -98,3 +135,502 @@ def stack(items: list) -> ActorObs | CriticState:
     """Stack containers of the same type along a new leading axis."""
     cls = type(items[0])
     return cls(**{f.name: np.stack([getattr(i, f.name) for i in items]) for f in fields(cls)})
+
+
+# --------------------------------------------------------------------------
+# Sizes without building anything
+# --------------------------------------------------------------------------
+Shape = tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class ObservationSpec:
+    """Every size a network needs, derived from an :class:`ObservationConfig`."""
+
+    n_neighbours: int  # K
+    history_steps: int  # T
+    max_vehicles: int  # N
+    node_features: int = NODE_FEATURES
+    self_features: int = SELF_FEATURES
+    lane_slots: int = LANE_SLOTS
+    lane_features: int = LANE_FEATURES
+    road_features: int = ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS
+    critic_node_features: int = CRITIC_NODE_FEATURES
+    traffic_features: int = TRAFFIC_FEATURES
+    max_lanes: int = MAX_LANES
+    max_segments: int = MAX_SEGMENTS
+    n_actions: int = N_ACTIONS
+
+    def actor_shapes(self, n_cavs: int) -> dict[str, tuple[Shape, np.dtype]]:
+        """Field name -> (shape, dtype) of an :class:`ActorObs` with ``n_cavs`` rows."""
+        c, k, t = n_cavs, self.n_neighbours, self.history_steps
+        f32, i64, b = np.dtype(np.float32), np.dtype(np.int64), np.dtype(bool)
+        return {
+            "self_state": ((c, self.self_features), f32),
+            "ego_hist": ((c, t, self.node_features), f32),
+            "hdv_nodes": ((c, k, t, self.node_features), f32),
+            "hdv_mask": ((c, k), b),
+            "cav_nodes": ((c, k, t, self.node_features), f32),
+            "cav_mask": ((c, k), b),
+            "cav_prev_action": ((c, k), i64),
+            "lane_stats": ((c, self.lane_slots, self.lane_features), f32),
+            "lane_mask": ((c, self.lane_slots), b),
+            "road": ((c, self.road_features), f32),
+            "action_memory": ((c, 2), i64),
+            "alive": ((c,), b),
+        }
+
+    def critic_shapes(self) -> dict[str, tuple[Shape, np.dtype]]:
+        """Field name -> (shape, dtype) of a :class:`CriticState`."""
+        n, k = self.max_vehicles, self.n_neighbours
+        f32, i64, b = np.dtype(np.float32), np.dtype(np.int64), np.dtype(bool)
+        return {
+            "nodes": ((n, self.critic_node_features), f32),
+            "node_mask": ((n,), b),
+            "neighbours": ((n, k), i64),
+            "neighbour_mask": ((n, k), b),
+            "lane_stats": ((self.max_lanes, self.lane_features), f32),
+            "lane_mask": ((self.max_lanes,), b),
+            "road": ((self.road_features,), f32),
+            "traffic": ((self.traffic_features,), f32),
+        }
+
+
+def observation_spec(cfg: ObservationConfig) -> ObservationSpec:
+    """Sizes of the observation layout for a config (no map or state needed)."""
+    return ObservationSpec(
+        n_neighbours=cfg.n_neighbours,
+        history_steps=cfg.history_steps,
+        max_vehicles=cfg.max_vehicles,
+    )
+
+
+# --------------------------------------------------------------------------
+# Builder
+# --------------------------------------------------------------------------
+@dataclass
+class _History:
+    """The last T states' per-vehicle fields, oldest first: arrays (T, V)."""
+
+    x_m: np.ndarray
+    y_m: np.ndarray
+    speed_mps: np.ndarray
+    heading_rad: np.ndarray
+    active: np.ndarray
+
+    @classmethod
+    def filled(cls, state: TrafficState, steps: int) -> _History:
+        def rep(a: np.ndarray) -> np.ndarray:
+            return np.repeat(a[None, :], steps, axis=0)  # (T, V)
+
+        return cls(
+            rep(state.x_m),
+            rep(state.y_m),
+            rep(state.speed_mps),
+            rep(state.heading_rad),
+            rep(state.active),
+        )
+
+    def push(self, state: TrafficState) -> None:
+        for f in fields(self):
+            arr = getattr(self, f.name)  # (T, V)
+            arr[:-1] = arr[1:]
+            arr[-1] = getattr(state, f.name)
+
+
+class ObservationBuilder:
+    """Turns the stream of TrafficStates of one episode into actor/critic inputs.
+
+    Call :meth:`reset` with the first state of an episode, :meth:`push` with
+    every following state, then :meth:`actor` and :meth:`critic` for the
+    current (last pushed) state. Per-step work is vectorised over vehicles:
+    one (V, V) distance table per step serves both the actor's and the
+    critic's neighbour sets, which keeps the two consistent by construction.
+    """
+
+    def __init__(self, road: Map, cfg: ObservationConfig, episode_steps: int) -> None:
+        if len(road.segments) > MAX_SEGMENTS:
+            raise ObservationError(
+                f"map {road.name!r} has {len(road.segments)} segments; the observation "
+                f"layout holds at most MAX_SEGMENTS = {MAX_SEGMENTS}"
+            )
+        if road.max_lanes > MAX_LANES:
+            raise ObservationError(
+                f"map {road.name!r} has {road.max_lanes} lanes; the observation layout "
+                f"holds at most MAX_LANES = {MAX_LANES}"
+            )
+        if cfg.history_steps < 1 or cfg.n_neighbours < 1 or cfg.max_vehicles < 1:
+            raise ObservationError(
+                "history_steps, n_neighbours and max_vehicles must all be >= 1, got "
+                f"{cfg.history_steps}, {cfg.n_neighbours}, {cfg.max_vehicles}"
+            )
+        if episode_steps < 1:
+            raise ObservationError(f"episode_steps must be >= 1, got {episode_steps}")
+        self.road = road
+        self.cfg = cfg
+        self.episode_steps = int(episode_steps)
+        self._spec = observation_spec(cfg)
+
+        # Static map quantities, computed once.
+        self._route_m = road.length_m
+        self._v_max_mps = road.max_speed_mps
+        self._lane_w_m = road.lane_width_m
+        self._road_w_m = road.max_lanes * road.lane_width_m
+        self._lane_norm = float(max(road.max_lanes - 1, 1))
+        exists = road.lane_exists()  # (S, Lm)
+        # One False column on each side so that lane -1 and lane max_lanes index safely.
+        self._exists_pad = np.pad(exists, ((0, 0), (1, 1)), constant_values=False)  # (S, Lm+2)
+        self._lane_end_m = road.lane_end_m()  # (S, Lm)
+        seg_len_m = np.array([s.length_m for s in road.segments])  # (S,)
+        lane_len_km = (exists * seg_len_m[:, None]).sum(axis=0) / 1000.0  # (Lm,)
+        self._lane_len_km = np.zeros(MAX_LANES)
+        self._lane_len_km[: road.max_lanes] = lane_len_km
+        table = np.zeros((MAX_SEGMENTS, ROAD_FEATURES_PER_SEGMENT), np.float32)  # (S_max, 4)
+        n_seg = len(road.segments)
+        table[:n_seg, 0] = road.segment_starts_m / self._route_m
+        table[:n_seg, 1] = road.segment_ends_m / self._route_m
+        table[:n_seg, 2] = [s.lanes / road.max_lanes for s in road.segments]
+        table[:n_seg, 3] = 1.0
+        self._road_table = table.reshape(-1)  # (4 S_max,)
+
+        self._state: TrafficState | None = None
+        self._hist: _History | None = None
+        self._nbr: np.ndarray | None = None  # (V, K) int64
+        self._nbr_mask: np.ndarray | None = None  # (V, K) bool
+
+    # ---- sizes -----------------------------------------------------------
+    def spec(self) -> ObservationSpec:
+        """Sizes of this builder's observations (see :func:`observation_spec`)."""
+        return self._spec
+
+    # ---- state stream ------------------------------------------------------
+    def reset(self, state: TrafficState) -> None:
+        """Start an episode: the whole history holds copies of ``state``."""
+        self._check_state(state, expect_vehicles=None)
+        self._state = state.copy()
+        self._hist = _History.filled(self._state, self.cfg.history_steps)
+        self._update_neighbours()
+
+    def push(self, state: TrafficState) -> None:
+        """Append the state of a new step; the oldest history entry drops out."""
+        if self._state is None or self._hist is None:
+            raise ObservationError("push() called before reset(); start the episode first")
+        self._check_state(state, expect_vehicles=self._state.n_vehicles)
+        self._state = state.copy()
+        self._hist.push(self._state)
+        self._update_neighbours()
+
+    @property
+    def neighbours(self) -> tuple[np.ndarray, np.ndarray]:
+        """(V, K) int64 neighbour indices and (V, K) bool mask of the current state."""
+        self._require_state()
+        return self._nbr, self._nbr_mask  # type: ignore[return-value]
+
+    # ---- actor -------------------------------------------------------------
+    def actor(
+        self,
+        cav_index: np.ndarray,
+        action_memory: np.ndarray,
+        last_refined_action: np.ndarray,
+    ) -> ActorObs:
+        """Observations of the CAV slots ``cav_index`` for the current state.
+
+        Args:
+            cav_index: (C,) vehicle indices of the CAV slots, fixed for the episode.
+            action_memory: (C, 2) int64 proposed and PSAR-refined action of the
+                previous step per slot; copied into the observation.
+            last_refined_action: (V,) int64 refined action each vehicle executed at
+                the previous step (only CAV entries are read).
+        """
+        state = self._require_state()
+        hist = self._hist
+        assert hist is not None and self._nbr is not None and self._nbr_mask is not None
+        n_veh, k = state.n_vehicles, self.cfg.n_neighbours
+        cav_index = np.asarray(cav_index)
+        if cav_index.ndim != 1 or not np.issubdtype(cav_index.dtype, np.integer):
+            raise ObservationError(f"cav_index must be a 1-D integer array, got {cav_index!r}")
+        if cav_index.size and (cav_index.min() < 0 or cav_index.max() >= n_veh):
+            raise ObservationError(f"cav_index {cav_index.tolist()} out of range [0, {n_veh})")
+        n_cav = cav_index.shape[0]
+        action_memory = np.asarray(action_memory)
+        if action_memory.shape != (n_cav, 2):
+            raise ObservationError(
+                f"action_memory must have shape ({n_cav}, 2), got {action_memory.shape}"
+            )
+        last_refined_action = np.asarray(last_refined_action)
+        if last_refined_action.shape != (n_veh,):
+            raise ObservationError(
+                f"last_refined_action must have shape ({n_veh},), got {last_refined_action.shape}"
+            )
+
+        alive = state.active[cav_index]  # (C,)
+        ego_x = state.x_m[cav_index]  # (C,)
+        ego_y = state.y_m[cav_index]
+        ego_v = state.speed_mps[cav_index]
+        ego_lane = state.lane[cav_index].astype(np.int64)
+        ego_seg = state.segment[cav_index].astype(np.int64)
+
+        # Self features.
+        lane_clip = np.clip(ego_lane, 0, self.road.max_lanes - 1)
+        seg_clip = np.clip(ego_seg, 0, len(self.road.segments) - 1)
+        to_end_m = self._lane_end_m[seg_clip, lane_clip] - ego_x  # (C,)
+        self_state = np.stack(
+            [
+                ego_x / self._route_m,
+                ego_y / self._road_w_m,
+                ego_v / self._v_max_mps,
+                state.heading_rad[cav_index],
+                ego_lane / self._lane_norm,
+                np.clip(to_end_m / LANE_END_SCALE_M, 0.0, 1.0),
+            ],
+            axis=-1,
+        )  # (C, 6)
+
+        # Neighbour sets: the current K nearest, split by type, each compacted nearest first.
+        sel = self._nbr[cav_index]  # (C, K)
+        sel_mask = self._nbr_mask[cav_index]  # (C, K)
+        sel_cav = sel_mask & state.is_cav[sel]  # (C, K)
+        hdv_idx, hdv_mask = _compact(sel, sel_mask & ~sel_cav)  # (C, K) each
+        cav_idx, cav_mask = _compact(sel, sel_cav)
+
+        # Node histories in the ego's current frame, all sets in one gather.
+        idx = np.concatenate([cav_index[:, None], hdv_idx, cav_idx], axis=1)  # (C, 1+2K)
+        valid = np.concatenate([alive[:, None], hdv_mask, cav_mask], axis=1)  # (C, 1+2K)
+        nodes = self._relative_nodes(hist, state, idx, ego_x, ego_y, ego_v)  # (C, 1+2K, T, F)
+        nodes *= valid[:, :, None, None]
+        ego_hist = nodes[:, 0]  # (C, T, F)
+        hdv_nodes = nodes[:, 1 : 1 + k]  # (C, K, T, F)
+        cav_nodes = nodes[:, 1 + k :]
+
+        cav_prev_action = np.where(cav_mask, last_refined_action[cav_idx], 0).astype(np.int64)
+
+        lane_stats, lane_mask = self._ego_lane_stats(state, cav_index, ego_lane, ego_seg)
+        lane_mask &= alive[:, None]
+        lane_stats *= lane_mask[:, :, None]
+
+        road = np.broadcast_to(self._road_table, (n_cav, self._road_table.shape[0]))
+        road = road * alive[:, None]  # (C, 4S)
+        self_state = self_state * alive[:, None]
+
+        return ActorObs(
+            self_state=_f32(self_state),
+            ego_hist=_f32(ego_hist),
+            hdv_nodes=_f32(hdv_nodes),
+            hdv_mask=hdv_mask & alive[:, None],
+            cav_nodes=_f32(cav_nodes),
+            cav_mask=cav_mask & alive[:, None],
+            cav_prev_action=cav_prev_action * alive[:, None],
+            lane_stats=_f32(lane_stats),
+            lane_mask=lane_mask,
+            road=_f32(road),
+            action_memory=action_memory.astype(np.int64, copy=True),
+            alive=alive.copy(),
+        )
+
+    # ---- critic ------------------------------------------------------------
+    def critic(self) -> CriticState:
+        """Global state of the current step, padded to ``max_vehicles``."""
+        state = self._require_state()
+        assert self._nbr is not None and self._nbr_mask is not None
+        n_veh, n_max = state.n_vehicles, self.cfg.max_vehicles
+        active = state.active  # (V,)
+
+        nodes = np.zeros((n_max, CRITIC_NODE_FEATURES), np.float64)  # (N, 6)
+        nodes[:n_veh] = (
+            np.stack(
+                [
+                    state.x_m / self._route_m,
+                    state.y_m / self._road_w_m,
+                    state.speed_mps / self._v_max_mps,
+                    state.heading_rad,
+                    state.lane / self._lane_norm,
+                    state.is_cav.astype(np.float64),
+                ],
+                axis=-1,
+            )
+            * active[:, None]
+        )
+        node_mask = np.zeros(n_max, bool)
+        node_mask[:n_veh] = active
+        neighbours = np.zeros((n_max, self.cfg.n_neighbours), np.int64)  # (N, K)
+        neighbour_mask = np.zeros((n_max, self.cfg.n_neighbours), bool)
+        neighbours[:n_veh] = self._nbr
+        neighbour_mask[:n_veh] = self._nbr_mask
+
+        # Per absolute lane over the whole route.
+        lane = np.where(active, state.lane, MAX_LANES).astype(np.int64)  # inactive -> spare bin
+
+        def per_lane(weights: np.ndarray) -> np.ndarray:  # (V,) -> (L,) sums per lane
+            return np.bincount(lane, weights=weights, minlength=MAX_LANES + 1)[:MAX_LANES]
+
+        count = per_lane(np.ones(n_veh))
+        n_cav = per_lane(state.is_cav.astype(np.float64))
+        speed_sum = per_lane(state.speed_mps)
+        lane_mask = np.arange(MAX_LANES) < self.road.max_lanes  # (L,)
+        safe = np.maximum(count, 1.0)
+        lane_stats = (
+            np.stack(
+                [
+                    count / COUNT_SCALE,
+                    count / np.maximum(self._lane_len_km, 1e-9) / DENSITY_SCALE_VEH_PER_KM,
+                    speed_sum / safe / self._v_max_mps,
+                    n_cav / safe,
+                ],
+                axis=-1,
+            )
+            * lane_mask[:, None]
+        )  # (L, 4)
+
+        n_active = int(active.sum())
+        safe_active = max(n_active, 1)
+        traffic = np.array(
+            [
+                n_active / n_max,
+                state.speed_mps[active].sum() / safe_active / self._v_max_mps,
+                state.is_cav[active].sum() / safe_active,
+                state.step / self.episode_steps,
+            ]
+        )
+        return CriticState(
+            nodes=_f32(nodes),
+            node_mask=node_mask,
+            neighbours=neighbours,
+            neighbour_mask=neighbour_mask,
+            lane_stats=_f32(lane_stats),
+            lane_mask=lane_mask,
+            road=self._road_table.copy(),
+            traffic=_f32(traffic),
+        )
+
+    # ---- internals -----------------------------------------------------------
+    def _require_state(self) -> TrafficState:
+        if self._state is None:
+            raise ObservationError("no state yet; call reset() with the first state")
+        return self._state
+
+    def _check_state(self, state: TrafficState, expect_vehicles: int | None) -> None:
+        n_veh = state.n_vehicles
+        if n_veh > self.cfg.max_vehicles:
+            raise ObservationError(
+                f"state has {n_veh} vehicles but ObservationConfig.max_vehicles is "
+                f"{self.cfg.max_vehicles}; raise obs.max_vehicles"
+            )
+        if expect_vehicles is not None and n_veh != expect_vehicles:
+            raise ObservationError(
+                f"state has {n_veh} vehicles but the episode started with {expect_vehicles}"
+            )
+        act = state.active
+        bad_lane = act & ((state.lane < 0) | (state.lane >= self.road.max_lanes))
+        bad_seg = act & ((state.segment < 0) | (state.segment >= len(self.road.segments)))
+        if bad_lane.any() or bad_seg.any():
+            i = int(np.flatnonzero(bad_lane | bad_seg)[0])
+            raise ObservationError(
+                f"vehicle {i} has lane {int(state.lane[i])} / segment {int(state.segment[i])}, "
+                f"outside map {self.road.name!r} ({self.road.max_lanes} lanes, "
+                f"{len(self.road.segments)} segments)"
+            )
+
+    def _update_neighbours(self) -> None:
+        """K nearest active vehicles in same/adjacent lanes for every vehicle, (V, K)."""
+        state = self._state
+        assert state is not None
+        k, n_veh = self.cfg.n_neighbours, state.n_vehicles
+        x, lane, act = state.x_m, state.lane.astype(np.int64), state.active
+        dist = np.abs(x[None, :] - x[:, None])  # (V, V) ego i, other j
+        ok = (np.abs(lane[None, :] - lane[:, None]) <= 1) & act[None, :] & act[:, None]
+        np.fill_diagonal(ok, False)
+        dist = np.where(ok, dist, np.inf)
+        if n_veh < k:  # fewer candidates than slots: pad with never-chosen columns
+            dist = np.pad(dist, ((0, 0), (0, k - n_veh)), constant_values=np.inf)
+        order = np.argsort(dist, axis=1, kind="stable")[:, :k]  # (V, K)
+        mask = np.isfinite(np.take_along_axis(dist, order, axis=1))  # (V, K)
+        self._nbr = np.where(mask, order, 0).astype(np.int64)
+        self._nbr_mask = mask
+
+    def _relative_nodes(
+        self,
+        hist: _History,
+        state: TrafficState,
+        idx: np.ndarray,
+        ego_x: np.ndarray,
+        ego_y: np.ndarray,
+        ego_v: np.ndarray,
+    ) -> np.ndarray:
+        """Node features (C, M, T, F) of vehicles ``idx`` (C, M) in each ego's current frame."""
+        steps = self.cfg.history_steps
+        # Vehicles only leave, so an inactive past entry means "not yet on the
+        # road": use the earliest step at which the vehicle was active instead.
+        first = np.argmax(hist.active, axis=0)  # (V,) 0 if never active
+        t_src = np.maximum(np.arange(steps)[:, None], first[None, :])  # (T, V)
+        t_of = t_src[:, idx]  # (T, C, M)
+
+        def gather(a: np.ndarray) -> np.ndarray:  # (T, V) -> (C, M, T)
+            return np.moveaxis(a[t_of, idx[None]], 0, -1)
+
+        x, y = gather(hist.x_m), gather(hist.y_m)
+        v, heading = gather(hist.speed_mps), gather(hist.heading_rad)
+        is_cav = np.broadcast_to(state.is_cav[idx][:, :, None], x.shape)
+        feats = np.stack(
+            [
+                (x - ego_x[:, None, None]) / DX_SCALE_M,
+                (y - ego_y[:, None, None]) / self._lane_w_m,
+                (v - ego_v[:, None, None]) / self._v_max_mps,
+                heading,
+                v / self._v_max_mps,
+                is_cav.astype(np.float64),
+            ],
+            axis=-1,
+        )  # (C, M, T, F)
+        return feats
+
+    def _ego_lane_stats(
+        self,
+        state: TrafficState,
+        cav_index: np.ndarray,
+        ego_lane: np.ndarray,
+        ego_seg: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Ego / left / right lane statistics (C, 3, 4) and existence mask (C, 3)."""
+        w_m = self.cfg.lane_window_m
+        target = ego_lane[:, None] + np.array([0, 1, -1])  # (C, 3) absolute lanes
+        seg = np.clip(ego_seg, 0, len(self.road.segments) - 1)
+        exists = self._exists_pad[seg[:, None], np.clip(target + 1, 0, self.road.max_lanes + 1)]
+        ego_x = state.x_m[cav_index]  # (C,)
+        in_win = (np.abs(state.x_m[None, :] - ego_x[:, None]) <= w_m) & state.active[None, :]
+        in_win[np.arange(cav_index.shape[0]), cav_index] = False  # (C, V), ego excluded
+        hit = in_win[:, None, :] & (state.lane[None, None, :] == target[:, :, None])  # (C, 3, V)
+        count = hit.sum(axis=-1).astype(np.float64)  # (C, 3)
+        n_cav = (hit & state.is_cav[None, None, :]).sum(axis=-1)
+        speed_sum = (hit * state.speed_mps[None, None, :]).sum(axis=-1)
+        win_km = (np.minimum(ego_x + w_m, self._route_m) - np.maximum(ego_x - w_m, 0.0)) / 1000.0
+        safe = np.maximum(count, 1.0)
+        stats = np.stack(
+            [
+                count / COUNT_SCALE,
+                count / np.maximum(win_km, 1e-9)[:, None] / DENSITY_SCALE_VEH_PER_KM,
+                speed_sum / safe / self._v_max_mps,
+                n_cav / safe,
+            ],
+            axis=-1,
+        )  # (C, 3, 4)
+        return stats, exists
+
+
+def _compact(idx: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Move kept entries of each row to the front, order preserved; pad with 0 / False.
+
+    Args:
+        idx: (R, K) int indices.
+        keep: (R, K) bool which entries belong to the set.
+    """
+    k = idx.shape[1]
+    key = np.where(keep, 0, k) + np.arange(k)  # kept first, then the rest, each in order
+    order = np.argsort(key, axis=1)  # (R, K)
+    mask = np.take_along_axis(keep, order, axis=1)
+    out = np.where(mask, np.take_along_axis(idx, order, axis=1), 0).astype(np.int64)
+    return out, mask
+
+
+def _f32(a: np.ndarray) -> np.ndarray:
+    """float32 copy clipped to the documented feature range."""
+    return np.clip(a, -FEATURE_CLIP, FEATURE_CLIP).astype(np.float32)
