@@ -451,3 +451,35 @@ def test_observations_from_real_backends(road, backend_name):
         assert np.any(obs.ego_hist[alive][:, 0, DX] < 0.0)
     finally:
         backend.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend_name", ["highway", "sumo"])
+def test_full_episode_on_real_backends_masks_cavs_that_left(backend_name):
+    road = load_map("train-50")
+    backend = make_backend(backend_name, road, SimConfig())
+    try:
+        state = backend.reset(Scenario.with_cavs(40, 16), seed=1)
+        cav_index = np.flatnonzero(state.is_cav)
+        b = ObservationBuilder(road, CFG, episode_steps=100)
+        b.reset(state)
+        saw_dead = False
+        for _ in range(150):
+            obs = b.actor(cav_index, np.zeros((16, 2), np.int64), np.zeros(40, np.int64))
+            check_layout(obs, b.critic(), 16)
+            dead = ~obs.alive
+            if dead.any() and obs.alive.any():
+                saw_dead = True
+                assert np.all(obs.self_state[dead] == 0.0) and not obs.lane_mask[dead].any()
+                # Nobody has a vehicle that left among its neighbours.
+                idx, mask = b.neighbours
+                assert np.all(state.active[idx[mask]])
+            if not state.active.any():
+                break
+            cmd = CavCommands.idle(40)
+            cmd.speed_change_mps[cav_index] = 2.0
+            state = backend.step(cmd)
+            b.push(state)
+        assert saw_dead
+    finally:
+        backend.close()
