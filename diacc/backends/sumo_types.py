@@ -1,0 +1,75 @@
+"""SUMO vehicle types (vTypes) from the shared driver styles and CAV limits.
+
+Car-following models cannot be changed through TraCI, so the types are written
+to an additional route file that the worker loads with the network. HDVs are
+IDM + LC2013 with one vType per style of ``STYLE_PRESETS[sim.style_preset]``;
+the CAV type depends on the CAV mode:
+
+* ``commanded``: the policy drives. The CAV keeps SUMO's IDM only as a model
+  of its physical limits; speeds come from ``slowDown`` with ``speedMode 0``
+  (no built-in safety, facts.md) and lane changes from ``changeLane``.
+* ``cooperative``: the non-learning "cooperative" baseline of the paper: CACC
+  car following with ``lcCooperative = 1``, driving on its own with SUMO's
+  default safety.
+
+Every type uses ``speedFactor = 1`` without deviation: the desired speed is the
+speed limit, as on the highway backend, so differences between backends come
+from the driver models and not from a random speed distribution.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from xml.sax.saxutils import quoteattr
+
+from diacc.backends.base import BackendError
+from diacc.config import STYLE_NAMES, STYLE_PRESETS, SimConfig
+
+CAV_MODES = ("commanded", "cooperative")
+#: vType id per style code (index = ``TrafficState.style``), CAVs use ``CAV_TYPE``.
+HDV_TYPES = tuple(f"hdv_{name}" for name in STYLE_NAMES)
+CAV_TYPE = "cav"
+
+
+def check_cav_mode(cav_mode: str) -> None:
+    """Raise :class:`BackendError` for an unknown CAV mode."""
+    if cav_mode not in CAV_MODES:
+        raise BackendError(f"unknown cav_mode {cav_mode!r}; choose one of {', '.join(CAV_MODES)}")
+
+
+def vtypes_xml(sim: SimConfig, cav_mode: str) -> str:
+    """Additional-file text with the three HDV types and the CAV type."""
+    check_cav_mode(cav_mode)
+    if sim.style_preset not in STYLE_PRESETS:
+        raise BackendError(
+            f"unknown style_preset {sim.style_preset!r}; known: {', '.join(STYLE_PRESETS)}"
+        )
+    common = (
+        f'length="{sim.vehicle_length_m}" width="{sim.vehicle_width_m}" '
+        'speedFactor="1" speedDev="0" sigma="0" maxSpeed="70"'
+    )
+    rows = []
+    for type_id, style in zip(HDV_TYPES, STYLE_PRESETS[sim.style_preset]):
+        rows.append(
+            f"    <vType id={quoteattr(type_id)} {common} carFollowModel=\"IDM\" "
+            f'delta="{sim.idm_delta}" tau="{style.time_headway_s}" minGap="{style.min_gap_m}" '
+            f'accel="{style.accel_mps2}" decel="{style.decel_mps2}" '
+            f'laneChangeModel="LC2013" lcCooperative="{style.lc_cooperative}" '
+            f'lcSpeedGain="{style.lc_speed_gain}" lcStrategic="{style.lc_strategic}"/>'
+        )
+    cav = sim.cav
+    if cav_mode == "commanded":
+        model = f'carFollowModel="IDM" delta="{sim.idm_delta}" laneChangeModel="LC2013"'
+    else:
+        model = 'carFollowModel="CACC" laneChangeModel="LC2013" lcCooperative="1"'
+    rows.append(
+        f"    <vType id={quoteattr(CAV_TYPE)} {common} {model} tau=\"{cav.time_headway_s}\" "
+        f'minGap="{cav.min_gap_m}" accel="{cav.accel_mps2}" decel="{cav.decel_mps2}" '
+        f'emergencyDecel="{max(cav.decel_mps2, 9.0)}" color="0,160,255"/>'
+    )
+    return "<additional>\n" + "\n".join(rows) + "\n</additional>\n"
+
+
+def vtypes_key(sim: SimConfig, cav_mode: str) -> str:
+    """Short hash naming a vType file in the cache."""
+    return hashlib.sha256(vtypes_xml(sim, cav_mode).encode()).hexdigest()[:16]

@@ -1,0 +1,321 @@
+"""The libsumo simulation that runs inside one worker process.
+
+libsumo holds one simulation per process (facts.md), so every
+:class:`~diacc.backends.sumo.SumoBackend` owns a worker process that runs
+:func:`worker_main`. The worker owns a :class:`SumoSim` and answers three
+messages over a ``multiprocessing.connection.Connection`` (a socket pair
+whose child end is passed as a file descriptor number on the command line):
+``("reset", seed, population)``,
+``("step", lane_change, speed_change_mps)`` and ``("close",)``. Replies are
+``("ok", TrafficState)`` or ``("err", one-line message)``.
+
+Time: SUMO runs at ``step_s / substeps`` seconds per simulation step (0.1 s
+with the defaults), the same integration step as the highway backend, so
+that car following, lane-change manoeuvres (``--lanechange.duration`` =
+0.8 decision steps) and collisions are resolved within a decision step.
+State is read once per decision step through libsumo subscriptions (one call
+for all vehicles); collisions and arrivals are gathered after every substep.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from diacc.backends.sumo_net import ROUTE_ID, edge_ids
+from diacc.backends.sumo_types import CAV_TYPE, HDV_TYPES
+from diacc.config import SimConfig
+from diacc.maps import Map
+from diacc.scenario import Population
+from diacc.state import TrafficState
+
+#: laneChangeMode of commanded CAVs. Bits (SUMO docs): 0-1 strategic = 1
+#: ("strategic changes unless they conflict with a TraCI request"), 2-3
+#: cooperative = 0, 4-5 speed gain = 0, 6-7 keep right = 0, 8-9 = 0 ("TraCI
+#: changes ignore other vehicles' gaps"). So the policy alone chooses lane
+#: changes, without built-in safety, yet LC2013 still leaves an ending lane
+#: (the authors' 1109 also leaves speed-gain and keep-right changes on, which
+#: would let SUMO steer the agent). :data:`FORCED_MERGE_*` backs this up.
+CAV_LANE_CHANGE_MODE = 0b0000_0000_0001
+#: speedMode of commanded CAVs: no safe-speed, acceleration or right-of-way checks.
+CAV_SPEED_MODE = 0
+#: Lane-change manoeuvre time as a fraction of a decision step: long enough for
+#: a readable heading (SUMO keeps heading 0 for instant changes), short enough
+#: that a change commanded at the start of a step ends within it (base.py).
+LANE_CHANGE_FRACTION = 0.8
+#: A commanded CAV whose lane ends within one step's travel plus this margin is
+#: moved out of it (the forced-merge rule of base.py), whatever its command.
+FORCED_MERGE_MARGIN_M = 10.0
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """Everything a worker needs to build its simulation (picklable)."""
+
+    road: Map
+    sim: SimConfig
+    cav_mode: str
+    net_path: Path
+    route_path: Path
+    vtypes_path: Path
+
+
+class SimulationError(RuntimeError):
+    """The simulation cannot go on (failed insertion...); one-line message."""
+
+
+class SumoSim:
+    """One libsumo simulation of a map; returns :class:`TrafficState` arrays."""
+
+    def __init__(self, spec: WorkerSpec) -> None:
+        import libsumo  # imported here: only worker processes may load libsumo
+
+        self.ls = libsumo
+        self.tc = libsumo.constants
+        self.spec = spec
+        self.road = spec.road
+        self.sim = spec.sim
+        self.dt_s = spec.sim.step_s / spec.sim.substeps
+        self.started = False
+        self.edge_index = {e: i for i, e in enumerate(edge_ids(self.road))}
+        self.edge_start_m = self.road.segment_starts_m  # (S,)
+        self.first_lane = np.array(
+            [self.road.first_lane(s) for s in range(len(self.road.segments))], np.int16
+        )  # (S,)
+        self.n_lanes = np.array([seg.lanes for seg in self.road.segments], np.int16)  # (S,)
+        self.speed_limit = np.array([seg.speed_limit_mps for seg in self.road.segments])  # (S,)
+        self.lane_end_m = self.road.lane_end_m()  # (S, L)
+        self.merge_dir = -1 if self.road.drop_side == "left" else 1
+        self.version = ""
+        self.state: TrafficState | None = None
+
+    # ---- lifecycle -----------------------------------------------------
+    def _args(self, seed: int) -> list[str]:
+        s = self.spec
+        return [
+            "-n", str(s.net_path),
+            "-a", str(s.vtypes_path),
+            "-r", str(s.route_path),
+            "--step-length", f"{self.dt_s}",
+            "--seed", str(int(seed)),
+            "--collision.action", "warn",
+            "--collision.check-junctions", "true",
+            "--time-to-teleport", "-1",
+            # The population's slots are 3 m apart at 10 m/s (facts.md start):
+            # physically free but closer than IDM's safe gap, so only overlap is
+            # checked; the cars brake in the first steps, as on the highway backend.
+            "--insertion-checks", "collision",
+            "--lanechange.duration", f"{LANE_CHANGE_FRACTION * self.sim.step_s}",
+            "--default.action-step-length", f"{self.dt_s}",
+            "--no-step-log", "true",
+            "--no-warnings", "true",
+            "--duration-log.disable", "true",
+        ]  # fmt: skip
+
+    def load(self, seed: int) -> None:
+        """(Re)start SUMO with a seed; ``load`` is much cheaper than a new ``start``."""
+        if self.started:
+            self.ls.load(self._args(seed))
+        else:
+            import sumolib
+
+            self.ls.start([sumolib.checkBinary("sumo"), *self._args(seed)])
+            self.started = True
+            self.version = str(self.ls.simulation.getVersion()[1])
+
+    def close(self) -> None:
+        if self.started:
+            self.ls.close()
+            self.started = False
+
+    # ---- reset ---------------------------------------------------------
+    def reset(self, seed: int, pop: Population) -> TrafficState:
+        """Insert exactly ``pop`` at t = 0 and check that every vehicle is on the road."""
+        self.load(seed)
+        n = pop.n_vehicles
+        self.ids = [f"v{i}" for i in range(n)]
+        self.index = {vid: i for i, vid in enumerate(self.ids)}
+        self.is_cav = pop.is_cav.copy()
+        self.commanded = pop.is_cav & (self.spec.cav_mode == "commanded")  # (V,)
+        length_m = self.sim.vehicle_length_m
+        front_m = pop.x_m + 0.5 * length_m  # (V,) SUMO departPos is the front bumper
+        sumo_lane = pop.lane - self.first_lane[0]  # (V,)
+        veh = self.ls.vehicle
+        for i, vid in enumerate(self.ids):
+            type_id = CAV_TYPE if pop.is_cav[i] else HDV_TYPES[pop.style[i]]
+            veh.add(
+                vid, ROUTE_ID, typeID=type_id, depart="0", departLane=str(int(sumo_lane[i])),
+                departPos=f"{front_m[i]:.3f}", departSpeed=f"{pop.speed_mps[i]:.3f}",
+            )  # fmt: skip
+        self.ls.simulationStep()  # insertion happens in SUMO's first step, before any move
+        on_road = set(veh.getIDList())
+        missing = [vid for vid in self.ids if vid not in on_road]
+        if missing:
+            raise SimulationError(
+                f"SUMO did not insert {len(missing)} of {n} vehicles ({', '.join(missing[:5])}"
+                f"{'...' if len(missing) > 5 else ''}) on map {self.road.name!r}: "
+                "the starting slots are too tight for the vehicle types"
+            )
+        tc = self.tc
+        self.vars = [
+            tc.VAR_ROAD_ID, tc.VAR_LANE_INDEX, tc.VAR_LANEPOSITION,
+            tc.VAR_LANEPOSITION_LAT, tc.VAR_SPEED, tc.VAR_ANGLE,
+        ]  # fmt: skip
+        for i, vid in enumerate(self.ids):
+            veh.subscribe(vid, self.vars)
+            if self.commanded[i]:
+                veh.setSpeedMode(vid, CAV_SPEED_MODE)
+                veh.setLaneChangeMode(vid, CAV_LANE_CHANGE_MODE)
+        self.state = TrafficState(
+            time_s=0.0,
+            step=0,
+            vehicle_id=np.arange(n, dtype=np.int32),
+            x_m=np.zeros(n),
+            y_m=np.zeros(n),
+            speed_mps=np.zeros(n),
+            accel_mps2=np.zeros(n),
+            heading_rad=np.zeros(n),
+            lane=np.zeros(n, np.int16),
+            segment=np.zeros(n, np.int16),
+            length_m=np.full(n, length_m),
+            width_m=np.full(n, self.sim.vehicle_width_m),
+            is_cav=pop.is_cav.astype(bool),
+            style=pop.style.astype(np.int8),
+            active=np.ones(n, bool),
+            arrived=np.zeros(n, bool),
+            collisions=np.zeros((0, 2), np.int32),
+            arrivals=np.zeros(0, np.int32),
+        )
+        self._read_state()
+        self.state.accel_mps2[:] = 0.0
+        return self.state.copy()
+
+    # ---- step ----------------------------------------------------------
+    def step(self, lane_change: np.ndarray, speed_change_mps: np.ndarray) -> TrafficState:
+        """Apply CAV commands, advance one decision step, return the new state."""
+        st = self.state
+        if st is None:
+            raise SimulationError("step() called before reset()")
+        self._command(lane_change, speed_change_mps)
+        pairs: set[tuple[int, int]] = set()
+        arrived: list[int] = []
+        sim = self.ls.simulation
+        for _ in range(self.sim.substeps):
+            self.ls.simulationStep()
+            for c in sim.getCollisions():
+                a, b = self.index.get(c.collider), self.index.get(c.victim)
+                if a is not None and b is not None:
+                    pairs.add((min(a, b), max(a, b)))
+            arrived += [self.index[v] for v in sim.getArrivedIDList()]
+        prev_speed = st.speed_mps.copy()
+        st.arrivals = np.array(sorted(arrived), np.int32)
+        st.active[st.arrivals] = False
+        st.arrived[st.arrivals] = True
+        st.collisions = np.array(sorted(pairs), np.int32).reshape(-1, 2)
+        st.step += 1
+        st.time_s = st.step * self.sim.step_s
+        self._read_state()
+        st.accel_mps2 = np.where(st.active, (st.speed_mps - prev_speed) / self.sim.step_s, 0.0)
+        return st.copy()
+
+    def _command(self, lane_change: np.ndarray, speed_change_mps: np.ndarray) -> None:
+        st = self.state
+        cav = np.flatnonzero(self.commanded & st.active)  # (C,)
+        if cav.size == 0:
+            return
+        seg = st.segment[cav]
+        sumo_lane = st.lane[cav] - self.first_lane[seg]  # (C,)
+        # Lane changes: ignored towards a lane that does not exist here.
+        target = sumo_lane + np.clip(lane_change[cav], -1, 1).astype(np.int16)  # (C,)
+        valid = (target >= 0) & (target < self.n_lanes[seg]) & (target != sumo_lane)
+        # Forced merge: the lane ends within one step's travel plus a margin.
+        front_m = st.x_m[cav] + 0.5 * st.length_m[cav]
+        to_end_m = self.lane_end_m[seg, st.lane[cav]] - front_m  # (C,)
+        must_merge = to_end_m < st.speed_mps[cav] * self.sim.step_s + FORCED_MERGE_MARGIN_M
+        target = np.where(must_merge, sumo_lane + self.merge_dir, target)
+        valid = valid | must_merge
+        # Speed: target at the end of the step, within the CAV's limits.
+        cav_p, v = self.sim.cav, st.speed_mps[cav]
+        goal = np.clip(v + speed_change_mps[cav], 0.0, self.speed_limit[seg])
+        goal = np.clip(
+            goal, v - cav_p.decel_mps2 * self.sim.step_s, v + cav_p.accel_mps2 * self.sim.step_s
+        )  # (C,)
+        veh = self.ls.vehicle
+        step_s = self.sim.step_s
+        for k, i in enumerate(cav.tolist()):
+            vid = self.ids[i]
+            veh.slowDown(vid, float(goal[k]), step_s)
+            if valid[k]:
+                veh.changeLane(vid, int(target[k]), step_s)
+
+    # ---- state ---------------------------------------------------------
+    def _read_state(self) -> None:
+        """Copy every active vehicle's subscribed variables into the state arrays."""
+        st = self.state
+        results = self.ls.vehicle.getAllSubscriptionResults()  # {id: {var: value}}
+        if not results:
+            return
+        road, lane, pos, lat, speed, angle = self.vars
+        rows = [
+            (self.index[vid], self.edge_index[r[road]], r[lane], r[pos], r[lat], r[speed], r[angle])
+            for vid, r in results.items()
+            if r[road] in self.edge_index
+        ]
+        data = np.array(rows, dtype=np.float64)  # (A, 7)
+        idx = data[:, 0].astype(np.int64)
+        seg = data[:, 1].astype(np.int16)
+        abs_lane = (self.first_lane[seg] + data[:, 2]).astype(np.int16)
+        st.segment[idx] = seg
+        st.lane[idx] = abs_lane
+        st.x_m[idx] = self.edge_start_m[seg] + data[:, 3] - 0.5 * st.length_m[idx]
+        st.y_m[idx] = (abs_lane + 0.5) * self.road.lane_width_m + data[:, 4]
+        st.speed_mps[idx] = data[:, 5]
+        # SUMO angle: compass degrees, 90 = along +x (the route); ours: radians, left positive.
+        st.heading_rad[idx] = np.deg2rad(90.0 - data[:, 6])
+
+
+def worker_main(conn) -> None:  # pragma: no cover - runs in a child process
+    """Serve reset/step/close requests until ``close`` or until the parent goes away.
+
+    The first message is ``("spec", WorkerSpec)``; the reply carries the SUMO version.
+    """
+    sim = None
+    try:
+        try:
+            kind, spec = conn.recv()
+            if kind != "spec":
+                raise SimulationError(f"expected a spec message, got {kind!r}")
+            sim = SumoSim(spec)
+            sim.load(0)
+        except Exception as exc:  # noqa: BLE001 - reported to the parent as one line
+            conn.send(("err", f"SUMO failed to start: {type(exc).__name__}: {exc}"))
+            return
+        conn.send(("ok", sim.version))
+        while True:
+            msg = conn.recv()
+            if msg[0] == "close":
+                break
+            try:
+                if msg[0] == "reset":
+                    conn.send(("ok", sim.reset(msg[1], msg[2])))
+                elif msg[0] == "step":
+                    conn.send(("ok", sim.step(msg[1], msg[2])))
+                else:
+                    conn.send(("err", f"unknown request {msg[0]!r}"))
+            except Exception as exc:  # noqa: BLE001 - reported to the parent as one line
+                text = str(exc).strip().splitlines()
+                conn.send(("err", f"{type(exc).__name__}: {text[0] if text else ''}"))
+    except (EOFError, BrokenPipeError, KeyboardInterrupt):
+        pass  # parent gone: just exit
+    finally:
+        if sim is not None:
+            sim.close()
+
+
+if __name__ == "__main__":  # pragma: no cover - the worker process entry point
+    import sys
+    from multiprocessing.connection import Connection
+
+    worker_main(Connection(int(sys.argv[1])))

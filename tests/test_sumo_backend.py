@@ -1,0 +1,270 @@
+"""The ``sumo`` backend on real libsumo: network, episodes, workers, CAV commands."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sumolib
+
+from diacc.backends.base import Backend, BackendError, CavCommands
+from diacc.backends.sumo import SumoBackend
+from diacc.backends.sumo_net import build_network
+from diacc.config import SimConfig
+from diacc.maps import available_maps, load_map
+from diacc.scenario import Scenario, draw_population
+from diacc.state import validate_state
+
+SIM = SimConfig()
+
+
+@pytest.fixture(autouse=True)
+def _cache(tmp_path_factory, monkeypatch):
+    """Networks go to a per-session cache, so the tests exercise netconvert."""
+    monkeypatch.setenv("DIACC_CACHE", str(tmp_path_factory.getbasetemp() / "cache"))
+
+
+def _pid_gone(pid: int, wait_s: float = 5.0) -> bool:
+    """True once ``pid`` no longer exists (reaped: a zombie would still answer)."""
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@pytest.mark.parametrize("map_name", available_maps())
+def test_network_matches_map(map_name, tmp_path):
+    road = load_map(map_name)
+    net_path, route_path = build_network(road, tmp_path)
+    net = sumolib.net.readNet(str(net_path))
+    for s, seg in enumerate(road.segments):
+        edge = net.getEdge(f"e{s}")
+        assert edge.getLaneNumber() == seg.lanes
+        assert edge.getLength() == pytest.approx(seg.length_m)
+        assert edge.getSpeed() == pytest.approx(seg.speed_limit_mps)
+        # Absolute lanes continue into the same absolute lane, and only those.
+        if s + 1 < len(road.segments):
+            there = road.lane_range(s + 1)
+            for lane in edge.getLanes():
+                absolute = road.first_lane(s) + lane.getIndex()
+                targets = [c.getToLane() for c in lane.getOutgoing()]
+                if absolute in there:
+                    assert [(t.getEdge().getID(), t.getIndex()) for t in targets] == [
+                        (f"e{s + 1}", absolute - there.start)
+                    ]
+                else:
+                    assert targets == []
+        # Lane centre lines sit where the map puts absolute lanes (y relative to the right edge).
+        for lane in edge.getLanes():
+            y = lane.getShape()[0][1] + road.max_lanes * road.lane_width_m
+            absolute = road.first_lane(s) + lane.getIndex()
+            assert y == pytest.approx(float(road.lane_center_y_m(absolute)))
+    assert f'edges="{" ".join(f"e{s}" for s in range(len(road.segments)))}"' in route_path.read_text()
+
+
+@pytest.mark.parametrize("map_name", ["train-25", "train-50"])
+@pytest.mark.parametrize("cav_mode", ["commanded", "cooperative"])
+def test_episodes_complete_without_collisions(map_name, cav_mode):
+    """Pure HDV (commanded mode, no CAVs) and the cooperative baseline finish cleanly."""
+    road = load_map(map_name)
+    penetration = 0.0 if cav_mode == "commanded" else 0.4
+    with SumoBackend(road, SIM, cav_mode=cav_mode) as backend:
+        assert isinstance(backend, Backend)
+        assert backend.sumo_version.startswith("SUMO")
+        for n in (25, 40):
+            scenario = Scenario(n_vehicles=n, cav_penetration=penetration)
+            pop = draw_population(scenario, road, seed=5)
+            state = backend.reset(scenario, seed=5)
+            validate_state(state)
+            # Exactly the drawn population, at its slots, at t = 0.
+            assert state.time_s == 0.0 and state.active.all()
+            np.testing.assert_allclose(state.x_m, pop.x_m, atol=1e-6)
+            np.testing.assert_array_equal(state.lane, pop.lane)
+            np.testing.assert_allclose(state.y_m, road.lane_center_y_m(pop.lane), atol=1e-6)
+            np.testing.assert_array_equal(state.is_cav, pop.is_cav)
+            np.testing.assert_array_equal(state.style, pop.style)
+            seen_heading = 0.0
+            for _ in range(2 * SIM.episode_steps):
+                state = backend.step(CavCommands.idle(n))
+                validate_state(state)
+                assert state.collisions.shape == (0, 2), f"collision {state.collisions}"
+                act = state.active
+                assert np.all((state.x_m[act] > 0) & (state.x_m[act] < road.length_m))
+                assert np.all((state.y_m[act] > 0) & (state.y_m[act] < road.max_lanes * 3.2))
+                seg = state.segment[act]
+                exists = road.lane_exists()[seg, state.lane[act]]
+                assert exists.all(), "a vehicle is on a lane that does not exist there"
+                seen_heading = max(seen_heading, float(np.abs(state.heading_rad[act]).max(initial=0)))
+                if state.arrived.all():
+                    break
+            assert state.arrived.all(), f"{(~state.arrived).sum()} vehicles never arrived"
+            assert not state.active.any()
+            assert 0.0 < seen_heading < 1.2  # lane changes turn the vehicles, never sideways
+            frame = backend.render()
+            assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
+
+
+def test_two_backends_concurrently_and_determinism():
+    road = load_map("train-50")
+    scenario = Scenario(n_vehicles=25, cav_penetration=0.0)
+    a, b = SumoBackend(road, SIM), SumoBackend(road, SIM)
+    try:
+        assert a.worker_pid != b.worker_pid
+
+        def run(seed_a: int, seed_b: int) -> tuple[np.ndarray, np.ndarray]:
+            traj_a, traj_b = [a.reset(scenario, seed_a).x_m], [b.reset(scenario, seed_b).x_m]
+            for _ in range(30):
+                a.step_async(CavCommands.idle(25))
+                b.step_async(CavCommands.idle(25))
+                traj_a.append(a.step_wait().x_m)
+                traj_b.append(b.step_wait().x_m)
+            return np.stack(traj_a), np.stack(traj_b)
+
+        same_a, same_b = run(3, 3)
+        np.testing.assert_array_equal(same_a, same_b)
+        diff_a, diff_b = run(3, 4)
+        np.testing.assert_array_equal(diff_a, same_a)  # a reset reproduces the episode
+        assert not np.array_equal(diff_a, diff_b)
+    finally:
+        a.close()
+        b.close()
+
+
+def test_killed_worker_gives_clear_error_and_reset_recovers():
+    road = load_map("train-25")
+    scenario = Scenario(n_vehicles=10, cav_penetration=0.0)
+    with SumoBackend(road, SIM) as backend:
+        backend.reset(scenario, seed=11)
+        backend.step(CavCommands.idle(10))
+        pid = backend.worker_pid
+        os.kill(pid, signal.SIGKILL)
+        with pytest.raises(BackendError, match=r"train-25.*seed 11"):
+            for _ in range(3):  # the death may be seen when sending or when receiving
+                backend.step(CavCommands.idle(10))
+        assert _pid_gone(pid)
+        state = backend.reset(scenario, seed=12)
+        assert backend.worker_pid != pid
+        validate_state(state)
+        assert backend.step(CavCommands.idle(10)).step == 1
+
+
+def test_no_worker_left_after_close_or_interpreter_exit(tmp_path):
+    road = load_map("train-25")
+    backend = SumoBackend(road, SIM)
+    pid = backend.worker_pid
+    backend.close()
+    backend.close()  # idempotent
+    assert _pid_gone(pid)
+
+    script = textwrap.dedent(
+        """
+        from diacc.backends.sumo import SumoBackend
+        from diacc.config import SimConfig
+        from diacc.maps import load_map
+        from diacc.scenario import Scenario
+        backend = SumoBackend(load_map("train-25"), SimConfig())
+        backend.reset(Scenario(n_vehicles=5), seed=0)
+        print(backend.worker_pid, flush=True)
+        """
+    )  # no close(), no __main__ guard: exiting must still stop the worker
+    path = Path(tmp_path) / "child.py"
+    path.write_text(script)
+    out = subprocess.run(
+        [sys.executable, str(path)], capture_output=True, text=True, timeout=120, check=True
+    )
+    child_worker = int(out.stdout.split()[-1])
+    assert _pid_gone(child_worker)
+
+
+def test_bad_inputs_raise_backend_error():
+    road = load_map("train-25")
+    with pytest.raises(BackendError, match="cav_mode"):
+        SumoBackend(road, SIM, cav_mode="telepathic")
+    with SumoBackend(road, SIM) as backend:
+        with pytest.raises(BackendError, match="before reset"):
+            backend.step(CavCommands.idle(3))
+        backend.reset(Scenario(n_vehicles=4), seed=0)
+        with pytest.raises(BackendError, match="shape"):
+            backend.step(CavCommands.idle(3))
+
+
+# ---- CAV commands ------------------------------------------------------------
+@pytest.fixture(scope="module")
+def cav_backend():
+    backend = SumoBackend(load_map("train-25"), SIM)
+    yield backend
+    backend.close()
+
+
+def test_cav_lane_change_completes_within_the_step(cav_backend):
+    road = cav_backend.road
+    state = cav_backend.reset(Scenario(n_vehicles=4, cav_penetration=1.0), seed=0)
+    assert state.is_cav.all()
+    cmd = CavCommands.idle(4)
+    # One CAV per lane: lanes 0 and 1 move left, lane 3 (leftmost) asks to go left: ignored.
+    left_of = {int(lane): i for i, lane in enumerate(state.lane)}
+    cmd.lane_change[left_of[1]] = 1
+    cmd.lane_change[left_of[3]] = 1
+    cmd.lane_change[left_of[0]] = -1  # no lane to the right: ignored
+    before = state.lane.copy()
+    state = cav_backend.step(cmd)
+    expected = before + np.array([1 if i == left_of[1] else 0 for i in range(4)])
+    np.testing.assert_array_equal(state.lane, expected)
+    np.testing.assert_allclose(state.y_m, road.lane_center_y_m(expected), atol=0.05)
+
+
+def test_cav_speed_command(cav_backend):
+    state = cav_backend.reset(Scenario(n_vehicles=4, cav_penetration=1.0), seed=1)
+    v0 = state.speed_mps.copy()
+    cmd = CavCommands.idle(4)
+    cmd.speed_change_mps[:] = [2.0, -2.0, 0.0, 2.0]
+    state = cav_backend.step(cmd)
+    np.testing.assert_allclose(state.speed_mps, v0 + [2.0, -2.0, 0.0, 2.0], atol=1e-6)
+    np.testing.assert_allclose(state.accel_mps2, [2.0, -2.0, 0.0, 2.0], atol=1e-6)
+    # Holding: a zero change keeps the speed (no built-in car following).
+    state = cav_backend.step(CavCommands.idle(4))
+    np.testing.assert_allclose(state.speed_mps, v0 + [2.0, -2.0, 0.0, 2.0], atol=1e-6)
+
+
+def test_cav_driving_into_leader_reports_collision(cav_backend):
+    state = cav_backend.reset(Scenario(n_vehicles=8, cav_penetration=1.0), seed=2)
+    lane0 = np.flatnonzero(state.lane == 0)
+    rear, front = lane0[np.argsort(state.x_m[lane0])]
+    cmd = CavCommands.idle(8)
+    cmd.speed_change_mps[rear] = 2.0
+    cmd.speed_change_mps[front] = -2.0
+    pairs: set[tuple[int, int]] = set()
+    for _ in range(5):
+        state = cav_backend.step(cmd)
+        pairs |= {tuple(p) for p in state.collisions.tolist()}
+    assert (min(rear, front), max(rear, front)) in pairs
+    assert state.collided[rear] or (min(rear, front), max(rear, front)) in pairs
+
+
+def test_cav_is_forced_out_of_an_ending_lane(cav_backend):
+    """A CAV that ignores a lane drop is merged out of it instead of stopping at the end."""
+    road = cav_backend.road
+    state = cav_backend.reset(Scenario(n_vehicles=4, cav_penetration=1.0), seed=3)
+    top = int(np.flatnonzero(state.lane == road.max_lanes - 1)[0])
+    cmd = CavCommands.idle(4)
+    cmd.speed_change_mps[:] = 2.0
+    end_m = road.lane_end_m()[0, road.max_lanes - 1]
+    for _ in range(60):
+        state = cav_backend.step(cmd)
+        cmd.speed_change_mps[:] = 0.0
+        if state.x_m[top] > end_m + 20:
+            break
+    assert state.x_m[top] > end_m + 20
+    assert state.lane[top] < road.max_lanes - 1
+    assert state.speed_mps[top] > 5.0
