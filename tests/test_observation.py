@@ -453,7 +453,6 @@ def test_observations_from_real_backends(road, backend_name):
         backend.close()
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("backend_name", ["highway", "sumo"])
 def test_full_episode_on_real_backends_masks_cavs_that_left(backend_name):
     road = load_map("train-50")
