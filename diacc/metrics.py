@@ -1,0 +1,223 @@
+"""Episode metrics of paper Tables II-III from a sequence of TrafficStates.
+
+Feed :class:`EpisodeRecorder` every state of an episode (the reset state
+too, so t = 0 speeds count) and, optionally, the PSAR result of each step.
+Each call appends a few arrays (no loop over vehicles); :meth:`summary`
+reduces them to :class:`EpisodeMetrics`.
+
+Definitions:
+
+* Speeds: one sample per (vehicle, recorded state) with the vehicle active.
+  ``std_speed_mps`` is the population standard deviation (ddof = 0) of those
+  samples, as "mean +- std over all vehicles and steps" in the paper.
+* ``p_we`` / ``p_sce``: share of the vehicles ever seen on the road that had
+  at least one waiting event / safety-critical event
+  (:func:`diacc.safety.waiting_events`, :func:`diacc.safety.safety_critical_events`).
+* ``n_collisions``: distinct unordered vehicle pairs that collided during the
+  episode (a pair still overlapping on the next step is not counted twice).
+* ``arrived_fraction``: vehicles that reached the route end / vehicles seen.
+  Travel time = time of the first state marking a vehicle arrived minus the
+  time of the first state it was seen active in.
+* PSAR fire rate per rule: CAV decisions where the rule took effect
+  (:attr:`diacc.safety.PSARResult.rule_mask`) / decisions of active CAVs.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from diacc.config import EventConfig
+from diacc.maps import SEGMENT_KINDS, Map
+from diacc.safety import RULE_NAMES, PSARResult, rule_counts, safety_critical_events, waiting_events
+from diacc.state import TrafficState
+
+
+class MetricsError(ValueError):
+    """Inconsistent input to the recorder (vehicle count changed...); one line."""
+
+
+@dataclass
+class EpisodeMetrics:
+    """One episode's summary (paper Tables II-III); nan where undefined."""
+
+    mean_speed_mps: float
+    std_speed_mps: float
+    mean_cav_speed_mps: float
+    mean_hdv_speed_mps: float
+    mean_speed_by_kind_mps: dict[str, float]  # segment kind -> mean speed (nan if unvisited)
+    p_we: float
+    p_sce: float
+    n_collisions: int
+    arrived_fraction: float
+    mean_travel_time_s: float
+    episode_steps: int
+    n_vehicles: int  # vehicles seen on the road
+    psar_decisions: int  # active-CAV decisions that went through PSAR
+    psar_fire_rate: dict[str, float]  # rule name -> fraction of those decisions
+
+    def as_dict(self) -> dict:
+        """Plain dict (for JSON / TensorBoard logging)."""
+        return asdict(self)
+
+
+@dataclass
+class SpeedSamples:
+    """Per-(vehicle, step) speed samples as columns, for CSV and box plots."""
+
+    vehicle: np.ndarray  # (S,) int32
+    step: np.ndarray  # (S,) int32
+    time_s: np.ndarray  # (S,) float64
+    speed_mps: np.ndarray  # (S,) float64
+    segment_kind: np.ndarray  # (S,) int8 index into diacc.maps.SEGMENT_KINDS
+    is_cav: np.ndarray  # (S,) bool
+
+    COLUMNS = ("vehicle", "step", "time_s", "speed_mps", "segment_kind", "is_cav")
+
+    def rows(self) -> list[tuple]:
+        """Rows (vehicle, step, time_s, speed_mps, segment kind name, is_cav)."""
+        kinds = np.asarray(SEGMENT_KINDS, dtype=object)[self.segment_kind]
+        return list(
+            zip(
+                self.vehicle.tolist(),
+                self.step.tolist(),
+                self.time_s.tolist(),
+                self.speed_mps.tolist(),
+                kinds.tolist(),
+                self.is_cav.tolist(),
+                strict=True,
+            )
+        )
+
+    def to_csv(self, path: str | Path) -> None:
+        """Write the rows with a header line."""
+        with open(path, "w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(self.COLUMNS)
+            writer.writerows(self.rows())
+
+
+class EpisodeRecorder:
+    """Accumulates one episode's per-vehicle records, step by step.
+
+    Args:
+        road: the map (segment kinds for per-kind speeds).
+        events: thresholds of the waiting / safety-critical event detectors.
+    """
+
+    def __init__(self, road: Map, events: EventConfig | None = None) -> None:
+        self.road = road
+        self.events = events or EventConfig()
+        self._kind_of_segment = np.array(
+            [SEGMENT_KINDS.index(s.kind) for s in road.segments], dtype=np.int8
+        )  # (S,)
+        self._n: int | None = None
+        self._chunks: list[tuple[np.ndarray, ...]] = []
+        self._collision_pairs: list[np.ndarray] = []
+        self._psar_counts = np.zeros(len(RULE_NAMES) - 1, dtype=np.int64)
+        self._psar_decisions = 0
+        self._first_step: int | None = None
+        self._last_step = 0
+
+    def _init_vehicles(self, n: int) -> None:
+        self._n = n
+        self._seen = np.zeros(n, dtype=bool)  # (V,)
+        self._waited = np.zeros(n, dtype=bool)  # (V,)
+        self._sce = np.zeros(n, dtype=bool)  # (V,)
+        self._arrived = np.zeros(n, dtype=bool)  # (V,)
+        self._first_time_s = np.full(n, np.nan)  # (V,)
+        self._arrival_time_s = np.full(n, np.nan)  # (V,)
+
+    def record(self, state: TrafficState, psar: PSARResult | None = None) -> None:
+        """Add one state (and the PSAR result of the step that led to it, if any)."""
+        if self._n is None:
+            self._init_vehicles(state.n_vehicles)
+        elif state.n_vehicles != self._n:
+            raise MetricsError(
+                f"state has {state.n_vehicles} vehicles, the episode started with {self._n}"
+            )
+        if np.any(state.segment >= self._kind_of_segment.shape[0]):
+            raise MetricsError(
+                f"segment index outside the map's {self._kind_of_segment.shape[0]} segments"
+            )
+        if self._first_step is None:
+            self._first_step = state.step
+        self._last_step = state.step
+
+        idx = np.flatnonzero(state.active)  # (A,)
+        self._chunks.append(
+            (
+                idx.astype(np.int32),
+                np.full(idx.shape, state.step, dtype=np.int32),
+                np.full(idx.shape, state.time_s, dtype=np.float64),
+                state.speed_mps[idx].astype(np.float64),
+                self._kind_of_segment[state.segment[idx]],
+                state.is_cav[idx].copy(),
+            )
+        )
+        new = state.active & ~self._seen
+        self._first_time_s[new] = state.time_s
+        self._seen |= state.active
+        self._waited |= waiting_events(state, self.events)
+        self._sce |= safety_critical_events(state, self.events).any
+        newly_arrived = state.arrived & ~self._arrived
+        self._arrival_time_s[newly_arrived] = state.time_s
+        self._arrived |= state.arrived
+        if state.collisions.shape[0]:
+            self._collision_pairs.append(np.sort(state.collisions, axis=1))
+        if psar is not None:
+            self._psar_counts += rule_counts(psar.rule_mask[psar.active])
+            self._psar_decisions += int(np.count_nonzero(psar.active))
+
+    def speed_samples(self) -> SpeedSamples:
+        """All recorded speed samples of active vehicles, in recording order."""
+        if not self._chunks:
+            raise MetricsError("no state recorded yet")
+        cols = [np.concatenate(c) for c in zip(*self._chunks, strict=True)]
+        return SpeedSamples(*cols)
+
+    def summary(self) -> EpisodeMetrics:
+        """Reduce the records to :class:`EpisodeMetrics`."""
+        samples = self.speed_samples()
+        speed = samples.speed_mps
+        n_seen = int(np.count_nonzero(self._seen))
+        by_kind = {
+            kind: _mean(speed[samples.segment_kind == k]) for k, kind in enumerate(SEGMENT_KINDS)
+        }
+        if self._collision_pairs:
+            n_collisions = int(np.unique(np.concatenate(self._collision_pairs), axis=0).shape[0])
+        else:
+            n_collisions = 0
+        travel_s = self._arrival_time_s - self._first_time_s  # (V,) nan if not both
+        decisions = self._psar_decisions
+        fire = {
+            name: (float(count) / decisions if decisions else float("nan"))
+            for name, count in zip(RULE_NAMES[1:], self._psar_counts.tolist(), strict=True)
+        }
+        return EpisodeMetrics(
+            mean_speed_mps=_mean(speed),
+            std_speed_mps=float(speed.std()) if speed.size else float("nan"),
+            mean_cav_speed_mps=_mean(speed[samples.is_cav]),
+            mean_hdv_speed_mps=_mean(speed[~samples.is_cav]),
+            mean_speed_by_kind_mps=by_kind,
+            p_we=_share(self._waited & self._seen, n_seen),
+            p_sce=_share(self._sce & self._seen, n_seen),
+            n_collisions=n_collisions,
+            arrived_fraction=_share(self._arrived & self._seen, n_seen),
+            mean_travel_time_s=_mean(travel_s[np.isfinite(travel_s)]),
+            episode_steps=int(self._last_step - (self._first_step or 0)),
+            n_vehicles=n_seen,
+            psar_decisions=decisions,
+            psar_fire_rate=fire,
+        )
+
+
+def _mean(values: np.ndarray) -> float:
+    return float(values.mean()) if values.size else float("nan")
+
+
+def _share(flags: np.ndarray, n: int) -> float:
+    return float(np.count_nonzero(flags)) / n if n else float("nan")

@@ -1,0 +1,205 @@
+"""Team reward of the paper (eq. reward_all .. reward_global) from a TrafficState.
+
+``R = w_e * sum_i w_i r_e^i + w_g * r_g + r_done`` with softmin weights
+``w_i = softmax(-r_e / tau)`` over the CAVs that are on the road. The pieces:
+
+* ego reward of CAV ``i``::
+
+      r_e = speed_weight * (-|v - v_max| / v_max + p_ev)
+          + warning_weight * sum_{j: dist <= d_w} -(d_w - dist) / (d_w - d_c)
+          + collision_weight * sum_{j in M_c} [-(d_c - dist)^+ / d_c + p_ec]
+          + time_penalty_weight * (sigmoid(v - v_th) - 1)
+
+  ``dist`` is the centre-to-centre distance to another active vehicle (HDV or
+  CAV). The warning set holds every vehicle within ``d_w`` (the collision
+  range included). The collision set ``M_c`` holds the vehicles within
+  ``d_c`` *and* every vehicle the backend reported as colliding with ``i``
+  this step: with 5 m long cars a real collision usually happens at a centre
+  distance far above ``d_c`` = 1.5 m, and a collision must never go
+  unpunished. For such a pair the distance part is clipped at 0, so it only
+  contributes ``p_ec``.
+* ``v_max`` of a CAV is the speed limit of the segment it is in (what the
+  backend lets it reach; every shipped map has one limit, 25 m/s). The global
+  term uses the mean of those limits over the active CAVs.
+* ``r_g = -|mean v_CAV - v_max| / v_max + p_gv`` over active CAVs.
+* ``r_done = exit_bonus`` for *each* CAV that arrived this step, not
+  normalised by the number of CAVs (authors' "CAV exit bonus 20"); an episode
+  in which all C CAVs leave thus earns ``C * exit_bonus`` in total.
+* With no CAV on the road the ego and global terms are 0 (nothing to score).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from diacc.config import RewardConfig
+from diacc.maps import Map
+from diacc.state import TrafficState
+
+
+class RewardError(ValueError):
+    """Bad input to the reward (temperature <= 0, bad thresholds...); one line."""
+
+
+def temperature(step: int, total_steps: int, cfg: RewardConfig) -> float:
+    """Softmin temperature at a training step (paper eq. tau_annealing).
+
+    Linear from ``tau_init`` to ``tau_final`` over the first
+    ``tau_anneal_fraction * total_steps`` environment steps, then constant.
+    """
+    if total_steps <= 0:
+        raise RewardError(f"total_steps must be positive, got {total_steps}")
+    if step < 0:
+        raise RewardError(f"step must be >= 0, got {step}")
+    if not 0.0 < cfg.tau_anneal_fraction <= 1.0:
+        raise RewardError(f"tau_anneal_fraction must be in (0, 1], got {cfg.tau_anneal_fraction}")
+    anneal_steps = cfg.tau_anneal_fraction * total_steps
+    frac = min(step / anneal_steps, 1.0)
+    return float(cfg.tau_init - (cfg.tau_init - cfg.tau_final) * frac)
+
+
+def softmin_weights(ego_reward: np.ndarray, alive: np.ndarray, tau: float) -> np.ndarray:
+    """Softmin weights ``exp(-r_i/tau) / sum_j exp(-r_j/tau)`` over alive agents.
+
+    Computed with the max-shift trick so that tiny ``tau`` or large rewards do
+    not overflow. Dead agents get weight 0; with no alive agent all are 0.
+
+    Args:
+        ego_reward: (C,) ego rewards (values of dead agents are ignored).
+        alive: (C,) bool.
+        tau: temperature > 0.
+
+    Returns:
+        (C,) float64 weights summing to 1 over alive agents.
+    """
+    if not tau > 0.0:
+        raise RewardError(f"softmin temperature must be > 0, got {tau}")
+    alive = np.asarray(alive, dtype=bool)
+    logits = np.where(alive, -np.asarray(ego_reward, dtype=np.float64) / tau, -np.inf)  # (C,)
+    if not alive.any():
+        return np.zeros(alive.shape, dtype=np.float64)
+    expd = np.exp(logits - logits.max())  # (C,), 0 for dead
+    return expd / expd.sum()
+
+
+@dataclass
+class RewardTerms:
+    """Reward of one step and its parts (for logging), one entry per CAV slot.
+
+    Per-CAV arrays hold the *unweighted* sub-terms; ``ego`` is their weighted
+    sum r_e. Entries of CAVs that are not on the road are 0.
+    """
+
+    speed: np.ndarray  # (C,) -|v - v_max|/v_max + p_ev
+    warning: np.ndarray  # (C,) warning-distance term (<= 0)
+    collision: np.ndarray  # (C,) collision term (<= 0)
+    time_penalty: np.ndarray  # (C,) sigmoid(v - v_th) - 1
+    ego: np.ndarray  # (C,) weighted ego reward r_e
+    alive: np.ndarray  # (C,) bool CAV on the road
+    softmin_weight: np.ndarray  # (C,) w_i, sums to 1 over alive CAVs
+    tau: float
+    ego_softmin: float  # sum_i w_i r_e^i
+    global_reward: float  # r_g
+    completion: float  # r_done
+    total: float  # R
+
+
+def reward(
+    state: TrafficState,
+    cav_index: np.ndarray,
+    road: Map,
+    tau: float,
+    cfg: RewardConfig,
+) -> RewardTerms:
+    """Team reward of one step (see module docstring for every choice).
+
+    Args:
+        state: state *after* the step.
+        cav_index: (C,) vehicle indices of the CAV slots.
+        road: the map (speed limits per segment).
+        tau: softmin temperature (:func:`temperature`).
+        cfg: reward weights and thresholds.
+
+    Returns:
+        :class:`RewardTerms`.
+    """
+    _check_config(cfg)
+    cav_index = np.asarray(cav_index)
+    if cav_index.ndim != 1 or (cav_index.size and not np.issubdtype(cav_index.dtype, np.integer)):
+        raise RewardError(f"cav_index must be a 1-D integer array, got shape {cav_index.shape}")
+    if np.any((cav_index < 0) | (cav_index >= state.n_vehicles)):
+        raise RewardError(f"cav_index holds indices outside [0, {state.n_vehicles})")
+    limits_mps = np.array([s.speed_limit_mps for s in road.segments])  # (S,)
+    if np.any(state.segment >= limits_mps.shape[0]):
+        raise RewardError(f"segment index outside the map's {limits_mps.shape[0]} segments")
+
+    alive = state.active[cav_index]  # (C,)
+    speed_mps = state.speed_mps[cav_index]  # (C,)
+    v_max_mps = limits_mps[state.segment[cav_index]]  # (C,)
+
+    # ---- distances to every other active vehicle ---------------------------
+    dx_m = state.x_m[None, :] - state.x_m[cav_index][:, None]  # (C, V)
+    dy_m = state.y_m[None, :] - state.y_m[cav_index][:, None]  # (C, V)
+    dist_m = np.hypot(dx_m, dy_m)  # (C, V)
+    not_self = np.arange(state.n_vehicles)[None, :] != cav_index[:, None]  # (C, V)
+    others = not_self & state.active[None, :]  # (C, V)
+    collided_with = np.zeros((state.n_vehicles, state.n_vehicles), dtype=bool)  # (V, V)
+    pairs = state.collisions
+    collided_with[pairs[:, 0], pairs[:, 1]] = True
+    collided_with[pairs[:, 1], pairs[:, 0]] = True
+
+    d_w, d_c = cfg.warning_distance_m, cfg.collision_distance_m
+    in_warning = others & (dist_m <= d_w)  # (C, V)
+    in_collision = (others & (dist_m <= d_c)) | (collided_with[cav_index] & not_self)  # (C, V)
+
+    speed = -np.abs(speed_mps - v_max_mps) / v_max_mps + cfg.speed_offset
+    warning = np.where(in_warning, -(d_w - dist_m) / (d_w - d_c), 0.0).sum(axis=1)
+    collision = np.where(
+        in_collision, -np.maximum(d_c - dist_m, 0.0) / d_c + cfg.collision_offset, 0.0
+    ).sum(axis=1)
+    time_penalty = 1.0 / (1.0 + np.exp(-(speed_mps - cfg.time_penalty_speed_mps))) - 1.0
+    ego = (
+        cfg.speed_weight * speed
+        + cfg.warning_weight * warning
+        + cfg.collision_weight * collision
+        + cfg.time_penalty_weight * time_penalty
+    )
+    zero = np.zeros_like(ego)
+    speed, warning, collision, time_penalty, ego = (
+        np.where(alive, term, zero) for term in (speed, warning, collision, time_penalty, ego)
+    )
+
+    weights = softmin_weights(ego, alive, tau)  # (C,)
+    ego_softmin = float(np.sum(weights * ego))
+    if alive.any():
+        v_max_g = float(v_max_mps[alive].mean())
+        global_reward = -abs(float(speed_mps[alive].mean()) - v_max_g) / v_max_g + cfg.global_offset
+    else:
+        global_reward = 0.0
+    n_cav_arrivals = int(np.count_nonzero(state.is_cav[state.arrivals]))
+    completion = cfg.exit_bonus * n_cav_arrivals
+    total = cfg.w_ego * ego_softmin + cfg.w_global * global_reward + completion
+    return RewardTerms(
+        speed=speed,
+        warning=warning,
+        collision=collision,
+        time_penalty=time_penalty,
+        ego=ego,
+        alive=alive,
+        softmin_weight=weights,
+        tau=float(tau),
+        ego_softmin=ego_softmin,
+        global_reward=float(global_reward),
+        completion=float(completion),
+        total=float(total),
+    )
+
+
+def _check_config(cfg: RewardConfig) -> None:
+    if not 0.0 < cfg.collision_distance_m < cfg.warning_distance_m:
+        raise RewardError(
+            "RewardConfig needs 0 < collision_distance_m < warning_distance_m, got "
+            f"{cfg.collision_distance_m} and {cfg.warning_distance_m}"
+        )

@@ -1,0 +1,435 @@
+"""Safety geometry on a TrafficState: lane neighbours, gap/TTC, PSAR, events.
+
+Everything here reads :class:`~diacc.state.TrafficState` arrays only, so it
+works the same for every backend. All functions are vectorised over vehicles
+(a ``(Q, 3, V)`` masked matrix for the neighbour search; ``np.where`` for
+the rules), never a Python loop over vehicles.
+
+Gap and TTC (paper, PSAR section; facts.md)
+-------------------------------------------
+For an ego ``i`` and another vehicle ``j``::
+
+    d_long = (x_j - x_i - L_veh) cos(theta_i) - W_i / 2 |sin(theta_i)|
+    dv_long = v_i |cos(theta_i)| - v_j |cos(theta_j)|
+    TTC = d_long / dv_long
+
+* ``L_veh = (length_i + length_j) / 2``: positions are vehicle *centres*, so
+  centre distance minus both half lengths is the bumper-to-bumper gap (the
+  paper's ``L_veh`` for two vehicles of equal length).
+* Sign convention: ``d_long`` is *signed*, positive when ``j`` is ahead
+  (``x_j >= x_i``) and negative when ``j`` is behind. For a vehicle behind,
+  the formula is applied with the roles of the two positions swapped and the
+  sign flipped, ``d_long = -[(x_i - x_j - L_veh) cos(theta_i) - W_i/2
+  |sin(theta_i)|]``, so ``|d_long|`` is the bumper gap either way (with the
+  ego's heading and width, the ego being the one that manoeuvres).
+* With a signed gap the paper's TTC needs no special case: a front vehicle
+  is approached when the ego is faster (``d > 0``, ``dv > 0``); a rear vehicle
+  approaches the ego when it is faster (``d < 0``, ``dv < 0``). Both give a
+  positive TTC. ``TTC <= 0`` or ``dv_long == 0`` means "not closing" and is
+  reported as ``+inf``; so ``ttc_s < inf`` is the paper's ``TTC > 0``.
+* ``Risk(d0, t0) := |d_long| <= d0 and 0 < TTC <= t0``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from diacc.config import EventConfig, PSARConfig
+from diacc.maps import Map
+from diacc.state import TrafficState
+
+
+class SafetyError(ValueError):
+    """Bad input to a safety function (wrong shape, unknown action...); one line."""
+
+
+# --------------------------------------------------------------------------
+# Actions (facts.md "Actions") and PSAR rule codes
+# --------------------------------------------------------------------------
+REMAIN, LANE_LEFT, LANE_RIGHT, ACCELERATE, DECELERATE = 0, 1, 2, 3, 4
+ACTION_NAMES = ("remain", "left", "right", "accelerate", "decelerate")
+#: Lane offset of each action (+1 = one lane to the left), indexed by action.
+ACTION_LANE_OFFSET = np.array([0, +1, -1, 0, 0], dtype=np.int64)
+
+#: Rule codes of :attr:`PSARResult.rule`.
+RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
+RULE_NAMES = ("none", "cancel_lc", "decel_lc", "force_brake", "suppr_accel")
+#: Bit of each rule code in :attr:`PSARResult.rule_mask` (``1 << (code - 1)``).
+RULE_BITS = {code: 1 << (code - 1) for code in range(1, len(RULE_NAMES))}
+
+#: Lane offsets searched by :func:`lane_leaders_followers`, in column order.
+LANE_OFFSETS = (-1, 0, +1)
+RIGHT_COL, SAME_COL, LEFT_COL = 0, 1, 2
+
+
+# --------------------------------------------------------------------------
+# Neighbour search
+# --------------------------------------------------------------------------
+@dataclass
+class LaneNeighbours:
+    """Nearest vehicles ahead and behind in the right / same / left lane.
+
+    Columns follow :data:`LANE_OFFSETS` (right, same, left). ``-1`` = none.
+    """
+
+    front: np.ndarray  # (Q, 3) int64, vehicle index of the nearest vehicle ahead
+    rear: np.ndarray  # (Q, 3) int64, vehicle index of the nearest vehicle behind
+
+
+def lane_leaders_followers(state: TrafficState, query: np.ndarray) -> LaneNeighbours:
+    """Find each query vehicle's nearest front and rear vehicle in three lanes.
+
+    Candidates are active vehicles other than the query vehicle whose absolute
+    lane is ``lane[q] + offset`` for ``offset`` in (-1, 0, +1). "Front" means
+    ``x_j >= x_q`` (a vehicle exactly alongside counts as front, because for a
+    lane change it is the one the ego would cut into); "rear" means
+    ``x_j < x_q``. Ties in distance go to the lowest vehicle index, so the
+    result is deterministic. Inactive query vehicles get the same treatment
+    (their neighbours are still found); callers mask them.
+
+    Args:
+        state: Traffic state.
+        query: (Q,) vehicle indices.
+
+    Returns:
+        :class:`LaneNeighbours` with (Q, 3) index arrays.
+    """
+    query = _check_indices(state, query, "query")
+    offsets = np.asarray(LANE_OFFSETS, dtype=np.int64)  # (3,)
+    lane = state.lane.astype(np.int64)  # (V,)
+    target_lane = lane[query][:, None] + offsets[None, :]  # (Q, 3)
+    dx_m = state.x_m[None, :] - state.x_m[query][:, None]  # (Q, V)
+    others = state.active[None, :] & (
+        np.arange(state.n_vehicles)[None, :] != query[:, None]
+    )  # (Q, V)
+    in_lane = (lane[None, None, :] == target_lane[:, :, None]) & others[:, None, :]  # (Q, 3, V)
+    ahead = (dx_m >= 0.0)[:, None, :]  # (Q, 1, V)
+    front_dist = np.where(in_lane & ahead, dx_m[:, None, :], np.inf)  # (Q, 3, V)
+    rear_dist = np.where(in_lane & ~ahead, -dx_m[:, None, :], np.inf)  # (Q, 3, V)
+    return LaneNeighbours(front=_argmin_or_none(front_dist), rear=_argmin_or_none(rear_dist))
+
+
+def _argmin_or_none(dist: np.ndarray) -> np.ndarray:
+    """Index of the smallest finite entry along the last axis, -1 if all inf."""
+    if dist.shape[-1] == 0:
+        return np.full(dist.shape[:-1], -1, dtype=np.int64)
+    idx = np.argmin(dist, axis=-1)  # (Q, 3)
+    found = np.isfinite(np.take_along_axis(dist, idx[..., None], axis=-1)[..., 0])
+    return np.where(found, idx, -1).astype(np.int64)
+
+
+# --------------------------------------------------------------------------
+# Gap and TTC
+# --------------------------------------------------------------------------
+@dataclass
+class PairKinematics:
+    """Gap, closing speed and TTC of ego/other pairs (see module docstring)."""
+
+    valid: np.ndarray  # (...) bool, the other vehicle exists (index >= 0)
+    d_long_m: np.ndarray  # (...) float64, signed gap, + ahead / - behind; nan if not valid
+    dv_long_mps: np.ndarray  # (...) float64, v_i|cos th_i| - v_j|cos th_j|; nan if not valid
+    ttc_s: np.ndarray  # (...) float64, > 0 when closing, +inf otherwise or if not valid
+
+    def column(self, k: int) -> PairKinematics:
+        """The pairs in column ``k`` of 2-D arrays."""
+        return PairKinematics(
+            self.valid[:, k], self.d_long_m[:, k], self.dv_long_mps[:, k], self.ttc_s[:, k]
+        )
+
+    def risk(self, d0_m: float, t0_s: float) -> np.ndarray:
+        """Paper's ``Risk(d0, t0)``: ``|d_long| <= d0 and 0 < TTC <= t0`` (False if absent)."""
+        with np.errstate(invalid="ignore"):
+            return self.valid & (np.abs(self.d_long_m) <= d0_m) & (self.ttc_s <= t0_s)
+
+
+def pair_kinematics(state: TrafficState, ego: np.ndarray, other: np.ndarray) -> PairKinematics:
+    """Paper's ``d_long``, ``dv_long`` and TTC for pairs (ego[k], other[k]).
+
+    Args:
+        state: Traffic state.
+        ego: vehicle indices (any shape), all valid.
+        other: vehicle indices of the same shape; ``-1`` marks "no vehicle".
+
+    Returns:
+        :class:`PairKinematics` of that shape.
+    """
+    ego = np.asarray(ego, dtype=np.int64)
+    other = np.asarray(other, dtype=np.int64)
+    if ego.shape != other.shape:
+        raise SafetyError(f"ego shape {ego.shape} differs from other shape {other.shape}")
+    _check_indices(state, ego.reshape(-1), "ego")
+    if np.any((other < -1) | (other >= state.n_vehicles)):
+        raise SafetyError(f"other indices must be -1 or in [0, {state.n_vehicles})")
+    valid = other >= 0
+    j = np.where(valid, other, 0)  # safe gather index
+    cos_i = np.cos(state.heading_rad[ego])
+    side_i_m = 0.5 * state.width_m[ego] * np.abs(np.sin(state.heading_rad[ego]))
+    half_lengths_m = 0.5 * (state.length_m[ego] + state.length_m[j])  # L_veh
+    dx_m = state.x_m[j] - state.x_m[ego]
+    ahead = dx_m >= 0.0
+    gap_m = (np.abs(dx_m) - half_lengths_m) * cos_i - side_i_m  # bumper gap, ego frame
+    d_long_m = np.where(ahead, gap_m, -gap_m)
+    dv_long_mps = state.speed_mps[ego] * np.abs(cos_i) - state.speed_mps[j] * np.abs(
+        np.cos(state.heading_rad[j])
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ttc_raw_s = d_long_m / dv_long_mps
+    closing = valid & (dv_long_mps != 0.0) & (ttc_raw_s > 0.0)
+    return PairKinematics(
+        valid=valid,
+        d_long_m=np.where(valid, d_long_m, np.nan),
+        dv_long_mps=np.where(valid, dv_long_mps, np.nan),
+        ttc_s=np.where(closing, ttc_raw_s, np.inf),
+    )
+
+
+# --------------------------------------------------------------------------
+# PSAR (paper Algorithm 1)
+# --------------------------------------------------------------------------
+@dataclass
+class PSARResult:
+    """Refined actions and what PSAR did, one entry per CAV slot.
+
+    ``rule`` is the *last* refinement that took effect (the one that decided
+    the final action); ``rule_mask`` has one bit per refinement that took
+    effect (:data:`RULE_BITS`), which is what fire rates per rule should
+    count. The only combination Algorithm 1 can produce is Cancel-LC followed
+    by Force-Brake. A refinement "takes effect" only when it changes the
+    outcome: Force-Brake on an action that already is ``decelerate`` is not
+    reported, and Decel-LC is reported only if the lane change survives the
+    rear-vehicle check (its braking is then in ``decel_lc_mps2``).
+    """
+
+    action: np.ndarray  # (C,) int64 refined action
+    rule: np.ndarray  # (C,) int8 last rule code (RULE_*)
+    rule_mask: np.ndarray  # (C,) int8 bitmask of the rules that took effect
+    decel_lc_mps2: np.ndarray  # (C,) float64 Decel-LC braking b_lc >= 0 (0 = none)
+    invalid_lc: np.ndarray  # (C,) bool proposed lane change towards a missing lane
+    active: np.ndarray  # (C,) bool CAV on the road (inactive: action passed through)
+
+
+def psar(
+    state: TrafficState,
+    cav_index: np.ndarray,
+    proposed_action: np.ndarray,
+    cfg: PSARConfig,
+    road: Map | np.ndarray,
+) -> PSARResult:
+    """Refine the actor's actions with paper Algorithm 1, vectorised over CAVs.
+
+    The algorithm is followed line by line; the choices it leaves open are:
+
+    * Target lane = ego lane + 1 for ``left``, - 1 for ``right``. A lane
+      change towards a lane that does not exist at the ego's segment is
+      replaced by ``remain`` *before* Algorithm 1 (the backend would ignore it
+      anyway) and flagged in ``invalid_lc``; without this a policy could
+      dodge the car-following checks by asking for an impossible change.
+    * Rear vehicle ``k``: the first cancel test ``|d_long| <= d_LC,min`` is
+      evaluated on the rear bumper gap ``-d_long`` so that vehicles already
+      overlapping alongside (gap < 0) also cancel; for every non-overlapping
+      pair this equals the paper's ``|d_long|``.
+    * Decel-LC: ``b_lc = min(|dv_long|, b_max)`` with the target-lane front
+      vehicle; returned in ``decel_lc_mps2`` (m/s^2) for the environment to
+      turn into a speed change. It is zeroed if the change is then cancelled.
+    * The car-following block (lines 17-27) uses the front vehicle in the
+      ego's current lane, and runs for actions {remain, accelerate,
+      decelerate} including lane changes cancelled above. Its second branch
+      sets ``remain`` even if the proposal was ``decelerate`` (the gap is
+      small but not closing), exactly as the pseudocode says.
+    * Inactive CAVs keep their proposed action with rule NONE.
+
+    Args:
+        state: Traffic state the actions will be applied to.
+        cav_index: (C,) vehicle indices of the CAV slots.
+        proposed_action: (C,) int actions in 0..4.
+        cfg: PSAR thresholds.
+        road: the :class:`~diacc.maps.Map`, or its ``lane_exists()`` table (S, L).
+
+    Returns:
+        :class:`PSARResult`.
+    """
+    cav_index = _check_indices(state, cav_index, "cav_index")
+    action = np.asarray(proposed_action)
+    if action.shape != cav_index.shape:
+        raise SafetyError(
+            f"proposed_action shape {action.shape} differs from cav_index shape {cav_index.shape}"
+        )
+    if not np.issubdtype(action.dtype, np.integer):
+        raise SafetyError(f"proposed_action must be integers, got dtype {action.dtype}")
+    if np.any((action < 0) | (action >= len(ACTION_NAMES))):
+        raise SafetyError(f"proposed_action must be in 0..{len(ACTION_NAMES) - 1}")
+    _check_psar_config(cfg)
+    lane_exists = _lane_table(road)
+
+    c = cav_index.shape[0]
+    active = state.active[cav_index]  # (C,)
+    proposed = action.astype(np.int64)
+    a = proposed.copy()
+    mask = np.zeros(c, dtype=np.int8)
+    neighbours = lane_leaders_followers(state, cav_index)  # (C, 3)
+
+    # ---- lane change towards a missing lane -> remain ----------------------
+    is_lc = active & ((a == LANE_LEFT) | (a == LANE_RIGHT))
+    offset = ACTION_LANE_OFFSET[a]  # (C,)
+    target_lane = state.lane[cav_index].astype(np.int64) + offset  # (C,)
+    seg = state.segment[cav_index].astype(np.int64)
+    if np.any(seg >= lane_exists.shape[0]) or np.any(seg < 0):
+        raise SafetyError(f"segment index outside the road's {lane_exists.shape[0]} segments")
+    in_range = (target_lane >= 0) & (target_lane < lane_exists.shape[1])
+    target_exists = in_range & lane_exists[seg, np.clip(target_lane, 0, lane_exists.shape[1] - 1)]
+    invalid_lc = is_lc & ~target_exists
+    a = np.where(invalid_lc, REMAIN, a)
+    is_lc &= target_exists
+
+    # ---- lines 2-16: lane-change checks on the target lane ----------------
+    col = offset + 1  # (C,) column of the target lane in LaneNeighbours
+    rows = np.arange(c)
+    pairs = np.stack(
+        [neighbours.front[rows, col], neighbours.rear[rows, col], neighbours.front[:, SAME_COL]],
+        axis=1,
+    )  # (C, 3): target-lane front j, target-lane rear k, same-lane front j
+    kin = pair_kinematics(state, np.broadcast_to(cav_index[:, None], pairs.shape), pairs)
+    tf, tr, sf = (kin.column(k) for k in range(3))
+
+    has_front = is_lc & tf.valid
+    cancel_front = has_front & (
+        (tf.d_long_m <= cfg.d_lc_min_m) | tf.risk(cfg.d_safe_m, cfg.ttc_safe_s)
+    )
+    decel_front = (
+        has_front
+        & ~cancel_front
+        & (tf.risk(cfg.d_safe_m, cfg.ttc_att_s) | tf.risk(cfg.d_att_m, cfg.ttc_safe_s))
+    )
+    b_lc_mps2 = np.where(
+        decel_front, np.minimum(np.abs(np.nan_to_num(tf.dv_long_mps)), cfg.b_max_mps2), 0.0
+    )
+    still_lc = is_lc & ~cancel_front
+    has_rear = still_lc & tr.valid
+    rear_gap_m = -tr.d_long_m  # bumper gap to the rear vehicle (< 0: overlapping)
+    cancel_rear = has_rear & (
+        (rear_gap_m <= cfg.d_lc_min_m)
+        | tr.risk(cfg.d_safe_m, cfg.ttc_safe_s)
+        | (
+            (tr.risk(cfg.d_safe_m, cfg.ttc_att_s) | tr.risk(cfg.d_att_m, cfg.ttc_safe_s))
+            & (b_lc_mps2 != 0.0)
+        )
+    )
+    cancel = cancel_front | cancel_rear
+    a = np.where(cancel, REMAIN, a)
+    b_lc_mps2 = np.where(cancel, 0.0, b_lc_mps2)
+    mask |= np.where(cancel, RULE_BITS[CANCEL_LC], 0).astype(np.int8)
+    mask |= np.where(b_lc_mps2 > 0.0, RULE_BITS[DECEL_LC], 0).astype(np.int8)
+
+    # ---- lines 17-27: car following in the current lane -------------------
+    longitudinal = active & ((a == REMAIN) | (a == ACCELERATE) | (a == DECELERATE))
+    has_leader = longitudinal & sf.valid
+    with np.errstate(invalid="ignore"):
+        d_m = np.where(sf.valid, sf.d_long_m, np.inf)
+    closing = sf.ttc_s < np.inf  # paper's TTC > 0
+    br1 = has_leader & (d_m <= cfg.d_warn_m) & closing
+    br2 = has_leader & ~br1 & ((d_m <= cfg.d_safe_m) | ((d_m <= cfg.d_warn_m) & (a == ACCELERATE)))
+    br3 = has_leader & ~br1 & ~br2 & sf.risk(cfg.d_att_m, cfg.ttc_warn_s)
+    br4 = has_leader & ~br1 & ~br2 & ~br3 & sf.risk(cfg.d_att_m, cfg.ttc_att_s) & (a == ACCELERATE)
+    brake = (br1 | br3) & (a != DECELERATE)
+    suppress = (br2 | br4) & (a != REMAIN)
+    a = np.where(brake, DECELERATE, np.where(suppress, REMAIN, a))
+    mask |= np.where(brake, RULE_BITS[FORCE_BRAKE], 0).astype(np.int8)
+    mask |= np.where(suppress, RULE_BITS[SUPPR_ACCEL], 0).astype(np.int8)
+
+    rule = np.full(c, RULE_NONE, dtype=np.int8)
+    for code in (CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL):  # application order
+        rule = np.where(mask & RULE_BITS[code], code, rule).astype(np.int8)
+    return PSARResult(
+        action=np.where(active, a, proposed).astype(np.int64),
+        rule=rule,
+        rule_mask=mask,
+        decel_lc_mps2=b_lc_mps2.astype(np.float64),
+        invalid_lc=invalid_lc,
+        active=active,
+    )
+
+
+def rule_counts(rule_mask: np.ndarray) -> np.ndarray:
+    """(4,) int64: how many entries of a bitmask array have each rule 1..4 set."""
+    rule_mask = np.asarray(rule_mask).astype(np.int64).reshape(-1)
+    bits = np.array([RULE_BITS[c] for c in range(1, len(RULE_NAMES))], dtype=np.int64)
+    return ((rule_mask[:, None] & bits[None, :]) != 0).sum(axis=0).astype(np.int64)
+
+
+# --------------------------------------------------------------------------
+# Event detectors for metrics
+# --------------------------------------------------------------------------
+@dataclass
+class SafetyEvents:
+    """Safety-critical events of one state, per vehicle (False for inactive ones)."""
+
+    small_gap: np.ndarray  # (V,) bool bumper gap to same-lane leader < sce_min_gap_m
+    low_ttc: np.ndarray  # (V,) bool TTC to same-lane leader < sce_ttc_s
+    collision: np.ndarray  # (V,) bool in a collision pair this step
+    emergency_brake: np.ndarray  # (V,) bool accel_mps2 < -emergency_decel_mps2
+
+    @property
+    def any(self) -> np.ndarray:
+        """(V,) bool: at least one safety-critical event."""
+        return self.small_gap | self.low_ttc | self.collision | self.emergency_brake
+
+
+def waiting_events(state: TrafficState, cfg: EventConfig) -> np.ndarray:
+    """(V,) bool: active vehicles slower than ``waiting_speed_mps`` (paper: 3 m/s)."""
+    return state.active & (state.speed_mps < cfg.waiting_speed_mps)
+
+
+def safety_critical_events(state: TrafficState, cfg: EventConfig) -> SafetyEvents:
+    """Detect safety-critical events (paper p(SCE)) for every vehicle.
+
+    Gap and TTC use :func:`pair_kinematics` to the same-lane leader (its
+    ``d_long`` is the bumper gap when headings are 0). A collision counts
+    even if the backend removed the vehicle in the same step.
+    """
+    everyone = np.arange(state.n_vehicles)
+    leader = lane_leaders_followers(state, everyone).front[:, SAME_COL]  # (V,)
+    kin = pair_kinematics(state, everyone, leader)
+    active = state.active
+    with np.errstate(invalid="ignore"):
+        small_gap = active & kin.valid & (kin.d_long_m < cfg.sce_min_gap_m)
+    return SafetyEvents(
+        small_gap=small_gap,
+        low_ttc=active & (kin.ttc_s < cfg.sce_ttc_s),
+        collision=state.collided,
+        emergency_brake=active & (state.accel_mps2 < -cfg.emergency_decel_mps2),
+    )
+
+
+# --------------------------------------------------------------------------
+# Input checks
+# --------------------------------------------------------------------------
+def _check_indices(state: TrafficState, idx: np.ndarray, name: str) -> np.ndarray:
+    arr = np.asarray(idx)
+    if arr.ndim != 1:
+        raise SafetyError(f"{name} must be a 1-D index array, got shape {arr.shape}")
+    if arr.size and not np.issubdtype(arr.dtype, np.integer):
+        raise SafetyError(f"{name} must hold integer vehicle indices, got dtype {arr.dtype}")
+    arr = arr.astype(np.int64)
+    if np.any((arr < 0) | (arr >= state.n_vehicles)):
+        raise SafetyError(f"{name} holds indices outside [0, {state.n_vehicles})")
+    return arr
+
+
+def _check_psar_config(cfg: PSARConfig) -> None:
+    if not (cfg.d_lc_min_m <= cfg.d_safe_m < cfg.d_warn_m < cfg.d_att_m):
+        raise SafetyError("PSARConfig needs d_lc_min_m <= d_safe_m < d_warn_m < d_att_m")
+    if not (0 < cfg.ttc_safe_s < cfg.ttc_warn_s < cfg.ttc_att_s):
+        raise SafetyError("PSARConfig needs 0 < ttc_safe_s < ttc_warn_s < ttc_att_s")
+    if cfg.b_max_mps2 < 0:
+        raise SafetyError(f"PSARConfig.b_max_mps2 must be >= 0, got {cfg.b_max_mps2}")
+
+
+def _lane_table(road: Map | np.ndarray) -> np.ndarray:
+    if isinstance(road, Map):
+        return road.lane_exists()
+    table = np.asarray(road)
+    if table.ndim != 2 or table.dtype != bool:
+        raise SafetyError("road must be a Map or its (segments, lanes) bool lane_exists() table")
+    return table

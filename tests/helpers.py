@@ -1,0 +1,72 @@
+"""Test helpers shared by the test modules: hand-built TrafficStates.
+
+Import with ``from helpers import make_state`` (pytest puts ``tests/`` on
+``sys.path`` because the folder has no ``__init__.py``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from diacc.config import CAV_STYLE, NORMAL
+from diacc.state import TrafficState, validate_state
+
+
+def make_state(
+    x_m: Sequence[float],
+    lane: Sequence[int],
+    speed_mps: Sequence[float] | float = 20.0,
+    *,
+    is_cav: Sequence[bool] | bool = False,
+    heading_rad: Sequence[float] | float = 0.0,
+    accel_mps2: Sequence[float] | float = 0.0,
+    active: Sequence[bool] | bool = True,
+    arrived: Sequence[bool] | bool = False,
+    segment: Sequence[int] | int = 0,
+    length_m: Sequence[float] | float = 5.0,
+    width_m: Sequence[float] | float = 1.8,
+    lane_width_m: float = 3.2,
+    y_m: Sequence[float] | None = None,
+    collisions: Sequence[tuple[int, int]] = (),
+    arrivals: Sequence[int] = (),
+    time_s: float = 0.0,
+    step: int = 0,
+) -> TrafficState:
+    """Build a valid :class:`TrafficState` from per-vehicle lists or scalars.
+
+    Scalars are broadcast to every vehicle. ``y_m`` defaults to the centre of
+    each vehicle's lane. The result passes :func:`diacc.state.validate_state`.
+    """
+    n = len(x_m)
+
+    def col(value, dtype) -> np.ndarray:
+        arr = np.broadcast_to(np.asarray(value), (n,)).astype(dtype)
+        return arr.copy()
+
+    lane_arr = col(lane, np.int16)
+    cav = col(is_cav, bool)
+    state = TrafficState(
+        time_s=float(time_s),
+        step=int(step),
+        vehicle_id=np.arange(n, dtype=np.int32),
+        x_m=col(x_m, np.float64),
+        y_m=(lane_arr + 0.5) * lane_width_m if y_m is None else col(y_m, np.float64),
+        speed_mps=col(speed_mps, np.float64),
+        accel_mps2=col(accel_mps2, np.float64),
+        heading_rad=col(heading_rad, np.float64),
+        lane=lane_arr,
+        segment=col(segment, np.int16),
+        length_m=col(length_m, np.float64),
+        width_m=col(width_m, np.float64),
+        is_cav=cav,
+        style=np.where(cav, CAV_STYLE, NORMAL).astype(np.int8),
+        active=col(active, bool),
+        arrived=col(arrived, bool),
+        collisions=np.asarray(collisions, dtype=np.int32).reshape(-1, 2),
+        arrivals=np.asarray(arrivals, dtype=np.int32).reshape(-1),
+    )
+    state.y_m = state.y_m.astype(np.float64)
+    validate_state(state)
+    return state

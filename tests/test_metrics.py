@@ -1,0 +1,127 @@
+"""Tests of diacc.metrics on a hand-built three-step episode."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import numpy as np
+import pytest
+from helpers import make_state
+
+from diacc.maps import load_map
+from diacc.metrics import EpisodeRecorder, MetricsError
+from diacc.safety import PSARResult
+
+ROAD = load_map("train-25")  # segments: multilane 0-500, reduction25 500-800, multilane
+CAV = [True, True, False, False]
+LANE = [0, 1, 2, 3]
+
+
+def episode() -> list:
+    """Vehicles 0, 1 CAVs, 2, 3 HDVs, each in its own lane (no gap/TTC events)."""
+    s0 = make_state(
+        [100.0, 550.0, 200.0, 1290.0],
+        LANE,
+        [10.0, 20.0, 2.0, 24.0],
+        is_cav=CAV,
+        segment=[0, 1, 0, 2],
+        time_s=0.0,
+        step=0,
+    )
+    s1 = make_state(
+        [111.0, 569.0, 203.0, 1314.0],
+        LANE,
+        [12.0, 18.0, 4.0, 24.0],
+        is_cav=CAV,
+        segment=[0, 1, 0, 2],
+        time_s=1.0,
+        step=1,
+        active=[True, True, True, False],
+        arrived=[False, False, False, True],
+        arrivals=[3],
+        collisions=[(1, 2)],
+    )
+    s2 = make_state(
+        [124.0, 588.0, 206.0, 1314.0],
+        LANE,
+        [14.0, 20.0, 2.5, 24.0],
+        is_cav=CAV,
+        segment=[0, 1, 0, 2],
+        time_s=2.0,
+        step=2,
+        accel_mps2=[-5.0, 0, 0, 0],
+        active=[True, True, True, False],
+        arrived=[False, False, False, True],
+        collisions=[(2, 1)],
+    )
+    return [s0, s1, s2]
+
+
+def psar_result(mask: list[int]) -> PSARResult:
+    n = len(mask)
+    return PSARResult(
+        action=np.zeros(n, np.int64),
+        rule=np.zeros(n, np.int8),
+        rule_mask=np.array(mask, np.int8),
+        decel_lc_mps2=np.zeros(n),
+        invalid_lc=np.zeros(n, bool),
+        active=np.ones(n, bool),
+    )
+
+
+def recorded() -> EpisodeRecorder:
+    rec = EpisodeRecorder(ROAD)
+    s0, s1, s2 = episode()
+    rec.record(s0)
+    rec.record(s1, psar_result([0b0001, 0]))  # Cancel-LC
+    rec.record(s2, psar_result([0b0101, 0b1000]))  # Cancel-LC + Force-Brake, Suppr-Accel
+    return rec
+
+
+def test_summary_matches_hand_computation():
+    m = recorded().summary()
+    # samples: t0 10 20 2 24 | t1 12 18 4 | t2 14 20 2.5 (vehicle 3 left after t0)
+    assert m.mean_speed_mps == pytest.approx(126.5 / 10)
+    var = sum(v * v for v in [10, 20, 2, 24, 12, 18, 4, 14, 20, 2.5]) / 10 - (126.5 / 10) ** 2
+    assert m.std_speed_mps == pytest.approx(math.sqrt(var))  # 7.8027
+    assert m.mean_cav_speed_mps == pytest.approx(94.0 / 6)
+    assert m.mean_hdv_speed_mps == pytest.approx(32.5 / 4)
+    assert m.mean_speed_by_kind_mps["multilane"] == pytest.approx(68.5 / 7)
+    assert m.mean_speed_by_kind_mps["reduction25"] == pytest.approx(58.0 / 3)
+    assert math.isnan(m.mean_speed_by_kind_mps["reduction50"])
+    assert m.p_we == pytest.approx(1 / 4)  # vehicle 2 (2 and 2.5 m/s < 3)
+    assert m.p_sce == pytest.approx(3 / 4)  # 0 emergency braking, 1 and 2 collision
+    assert m.n_collisions == 1  # the same pair on two steps
+    assert m.arrived_fraction == pytest.approx(1 / 4)
+    assert m.mean_travel_time_s == pytest.approx(1.0)
+    assert m.episode_steps == 2
+    assert m.n_vehicles == 4
+    assert m.psar_decisions == 4
+    assert m.psar_fire_rate == pytest.approx(
+        {"cancel_lc": 0.5, "decel_lc": 0.0, "force_brake": 0.25, "suppr_accel": 0.25}
+    )
+
+
+def test_speed_samples_export_rows_and_csv(tmp_path):
+    samples = recorded().speed_samples()
+    rows = samples.rows()
+    assert len(rows) == 10
+    assert rows[0] == (0, 0, 0.0, 10.0, "multilane", True)
+    assert rows[1] == (1, 0, 0.0, 20.0, "reduction25", True)
+    assert rows[-1] == (2, 2, 2.0, 2.5, "multilane", False)
+    path = tmp_path / "speeds.csv"
+    samples.to_csv(path)
+    with open(path) as fh:
+        table = list(csv.reader(fh))
+    assert table[0] == list(samples.COLUMNS)
+    assert len(table) == 11 and table[4][4] == "multilane"
+
+
+def test_recorder_rejects_inconsistent_input():
+    rec = EpisodeRecorder(ROAD)
+    with pytest.raises(MetricsError, match="no state"):
+        rec.summary()
+    rec.record(make_state([0.0, 10.0], [0, 1]))
+    with pytest.raises(MetricsError, match="vehicles"):
+        rec.record(make_state([0.0], [0]))

@@ -1,0 +1,154 @@
+"""Tests of diacc.reward against hand computations."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from helpers import make_state
+
+from diacc.config import RewardConfig
+from diacc.maps import load_map
+from diacc.reward import RewardError, reward, softmin_weights, temperature
+
+CFG = RewardConfig()
+ROAD = load_map("train-25")  # 25 m/s everywhere
+
+
+def sigmoid(z: float) -> float:
+    return 1.0 / (1.0 + math.exp(-z))
+
+
+# ---------------------------------------------------------------- softmin
+def test_softmin_weights_sum_to_one_over_alive_agents():
+    r = np.array([1.0, -2.0, 3.0, 0.5])
+    alive = np.array([True, True, False, True])
+    for tau in (0.05, 0.5, 2.0, 50.0):
+        w = softmin_weights(r, alive, tau)
+        assert w.sum() == pytest.approx(1.0)
+        assert w[2] == 0.0
+    w = softmin_weights(r, alive, 1.0)
+    e = np.exp(-np.array([1.0, -2.0, 0.5]))
+    assert w[[0, 1, 3]] == pytest.approx(e / e.sum())
+
+
+def test_softmin_concentrates_on_worst_agent_as_tau_shrinks():
+    r = np.array([4.0, 1.0, 3.0])
+    w = softmin_weights(r, np.ones(3, bool), 1e-3)
+    assert w == pytest.approx([0.0, 1.0, 0.0])
+    w_mid = softmin_weights(r, np.ones(3, bool), 0.5)
+    assert w_mid[1] > w_mid[2] > w_mid[0]
+    # stable with huge rewards / tiny tau (no overflow, no nan)
+    w = softmin_weights(np.array([1e6, -1e6]), np.ones(2, bool), 1e-6)
+    assert np.isfinite(w).all() and w.tolist() == [0.0, 1.0]
+
+
+def test_softmin_becomes_uniform_as_tau_grows():
+    w = softmin_weights(np.array([4.0, 1.0, 3.0, -2.0]), np.ones(4, bool), 1e6)
+    assert w == pytest.approx(np.full(4, 0.25), abs=1e-5)
+
+
+def test_softmin_without_alive_agents_and_bad_tau():
+    assert softmin_weights(np.array([1.0, 2.0]), np.zeros(2, bool), 1.0).tolist() == [0.0, 0.0]
+    with pytest.raises(RewardError, match="temperature"):
+        softmin_weights(np.array([1.0]), np.ones(1, bool), 0.0)
+
+
+# ---------------------------------------------------------------- tau schedule
+def test_temperature_schedule_endpoints_and_midpoint():
+    assert temperature(0, 1000, CFG) == pytest.approx(2.0)
+    assert temperature(250, 1000, CFG) == pytest.approx(2.0 - 1.95 * 0.5)
+    assert temperature(500, 1000, CFG) == pytest.approx(0.05)
+    assert temperature(900, 1000, CFG) == pytest.approx(0.05)
+    with pytest.raises(RewardError, match="total_steps"):
+        temperature(0, 0, CFG)
+
+
+# ---------------------------------------------------------------- ego terms
+def test_speed_and_time_penalty_terms():
+    state = make_state([100.0, 300.0], [0, 1], [20.0, 4.0], is_cav=True)
+    terms = reward(state, np.array([0, 1]), ROAD, 1.0, CFG)
+    assert terms.speed == pytest.approx([-5.0 / 25.0 + 1.0, -21.0 / 25.0 + 1.0])
+    assert terms.time_penalty == pytest.approx([sigmoid(15.0) - 1.0, sigmoid(-1.0) - 1.0])
+    assert terms.warning.tolist() == [0.0, 0.0] and terms.collision.tolist() == [0.0, 0.0]
+    expected = 5.0 * terms.speed + terms.time_penalty
+    assert terms.ego == pytest.approx(expected)
+
+
+def test_warning_and_collision_terms_by_centre_distance():
+    # CAV 0 at (100, 1.6); HDV 1 at 2.5 m ahead (warning only); HDV 2 at 1.2 m
+    # (warning and collision); HDV 3 3.2 m to the side (outside d_w = 3); HDV 4
+    # inactive at 0.5 m (ignored).
+    x = [100.0, 102.5, 98.8, 100.0, 100.5]
+    lane = [0, 0, 0, 1, 0]
+    state = make_state(
+        x, lane, 25.0, is_cav=[True, False, False, False, False], active=[True] * 4 + [False]
+    )
+    terms = reward(state, np.array([0]), ROAD, 1.0, CFG)
+    d_w, d_c = 3.0, 1.5
+    warning = -(d_w - 2.5) / (d_w - d_c) - (d_w - 1.2) / (d_w - d_c)
+    collision = -(d_c - 1.2) / d_c - 10.0
+    assert terms.warning[0] == pytest.approx(warning)
+    assert terms.collision[0] == pytest.approx(collision)
+    time_pen = sigmoid(20.0) - 1.0
+    assert terms.ego[0] == pytest.approx(5.0 * 1.0 + 0.5 * warning + 1.0 * collision + time_pen)
+
+
+def test_reported_collision_adds_fixed_penalty_beyond_collision_distance():
+    state = make_state([100.0, 104.0], [0, 0], 20.0, is_cav=[True, False], collisions=[(1, 0)])
+    terms = reward(state, np.array([0]), ROAD, 1.0, CFG)
+    assert terms.collision[0] == pytest.approx(-10.0)  # distance part clipped at 0
+    assert terms.warning[0] == 0.0  # 4 m > d_w
+
+
+# ---------------------------------------------------------------- total
+def test_total_reward_combines_softmin_global_and_completion():
+    # CAVs 0, 1 on the road, CAV 2 arrived this step, HDV 3 arrived too (no bonus)
+    state = make_state(
+        [100.0, 400.0, 1300.0, 1300.0],
+        [0, 1, 2, 3],
+        [10.0, 22.0, 25.0, 25.0],
+        is_cav=[True, True, True, False],
+        active=[True, True, False, False],
+        arrived=[False, False, True, True],
+        segment=[0, 0, 2, 2],
+        arrivals=[2, 3],
+    )
+    tau = 0.7
+    terms = reward(state, np.array([0, 1, 2]), ROAD, tau, CFG)
+    r0 = 5.0 * (1 - 15 / 25) + sigmoid(5.0) - 1.0
+    r1 = 5.0 * (1 - 3 / 25) + sigmoid(17.0) - 1.0
+    assert terms.ego == pytest.approx([r0, r1, 0.0])
+    assert terms.alive.tolist() == [True, True, False]
+    w0 = math.exp(-r0 / tau) / (math.exp(-r0 / tau) + math.exp(-r1 / tau))
+    assert terms.softmin_weight == pytest.approx([w0, 1 - w0, 0.0])
+    ego_bar = w0 * r0 + (1 - w0) * r1
+    r_g = -abs(16.0 - 25.0) / 25.0 + 1.0
+    assert terms.ego_softmin == pytest.approx(ego_bar)
+    assert terms.global_reward == pytest.approx(r_g)
+    assert terms.completion == pytest.approx(20.0)
+    assert terms.total == pytest.approx(0.6 * ego_bar + 0.4 * r_g + 20.0)
+
+
+def test_no_cav_on_road_gives_only_completion():
+    state = make_state(
+        [1300.0, 1300.0],
+        [0, 1],
+        25.0,
+        is_cav=True,
+        active=False,
+        arrived=True,
+        segment=2,
+        arrivals=[0, 1],
+    )
+    terms = reward(state, np.array([0, 1]), ROAD, 1.0, CFG)
+    assert terms.ego_softmin == 0.0 and terms.global_reward == 0.0
+    assert terms.total == pytest.approx(40.0)
+
+
+def test_reward_rejects_bad_config():
+    state = make_state([0.0], [0], is_cav=True)
+    bad = RewardConfig(collision_distance_m=5.0)
+    with pytest.raises(RewardError, match="collision_distance_m"):
+        reward(state, np.array([0]), ROAD, 1.0, bad)
