@@ -268,3 +268,15 @@ def test_cav_is_forced_out_of_an_ending_lane(cav_backend):
     assert state.x_m[top] > end_m + 20
     assert state.lane[top] < road.max_lanes - 1
     assert state.speed_mps[top] > 5.0
+
+
+def test_benchmark_runs_and_reports_rates():
+    from diacc.bench.sumo import run
+
+    result = run(steps=20, seed=0)
+    for key in ("raw_libsumo_steps_per_s", "k1_env_steps_per_s", "k2_env_steps_per_s"):
+        assert np.isfinite(result[key]) and result[key] > 0, key
+    assert result["overhead_ratio"] == pytest.approx(
+        result["raw_libsumo_steps_per_s"] / result["k1_env_steps_per_s"]
+    )
+    assert result["sumo_version"].startswith("SUMO")

@@ -318,4 +318,7 @@ if __name__ == "__main__":  # pragma: no cover - the worker process entry point
     import sys
     from multiprocessing.connection import Connection
 
-    worker_main(Connection(int(sys.argv[1])))
+    # Import by name so that pickled specs and this code share one module object.
+    from diacc.backends.sumo_worker import worker_main as _main
+
+    _main(Connection(int(sys.argv[1])))
