@@ -35,13 +35,20 @@ from diacc.backends.base import Backend, CavCommands, make_backend
 from diacc.config import EventConfig, ObservationConfig, PSARConfig, RewardConfig, SimConfig
 from diacc.maps import Map, load_map
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
-from diacc.reward import team_reward
-from diacc.safety import psar
+from diacc.reward import reward
+from diacc.safety import (
+    ACCELERATE,
+    ACTION_LANE_OFFSET,
+    ACTION_NAMES,
+    DECELERATE,
+    REMAIN,
+    PSARResult,
+    psar,
+)
 from diacc.scenario import Scenario
 from diacc.state import TrafficState
 
-REMAIN, LEFT, RIGHT, ACCELERATE, DECELERATE = range(5)
-ACTION_NAMES = ("remain", "left", "right", "accelerate", "decelerate")
+__all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult"]
 
 
 @dataclass(frozen=True)
@@ -71,7 +78,9 @@ class StepResult:
     truncated: bool
     alive: np.ndarray  # (C,) bool: CAV on the road after the step
     refined_action: np.ndarray  # (C,) int64 action executed
-    psar_rule: np.ndarray  # (C,) int8 rule code that fired (0 none)
+    psar_rule: np.ndarray  # (C,) int8 last PSAR rule that took effect (0 none)
+    psar_rule_mask: np.ndarray  # (C,) int8 bitmask of the rules that took effect
+    psar: PSARResult | None  # full PSAR result (None when PSAR is off)
     state: TrafficState
     reward_terms: dict[str, float]
 
@@ -118,14 +127,16 @@ class BottleneckEnv(ParallelEnv):
         assert state is not None, "call reset before step"
         proposed = np.asarray(actions, dtype=np.int64).reshape(self.n_cavs)
         alive = state.active[self.cav_index]
+        no_rule = np.zeros(self.n_cavs, np.int8)
         if self.config.use_psar:
-            refined_result = psar(state, self.cav_index, proposed, self.config.psar, self.road)
-            refined = np.where(alive, refined_result.action, REMAIN)
-            rule = np.where(alive, refined_result.rule, 0).astype(np.int8)
-            brake_mps2 = np.where(alive, refined_result.decel_lc_mps2, 0.0)
+            result = psar(state, self.cav_index, proposed, self.config.psar, self.road)
+            refined = np.where(alive, result.action, REMAIN)
+            rule = np.where(alive, result.rule, 0).astype(np.int8)
+            rule_mask = np.where(alive, result.rule_mask, 0).astype(np.int8)
+            brake_mps2 = np.where(alive, result.decel_lc_mps2, 0.0)
         else:
-            refined, rule = np.where(alive, proposed, REMAIN), np.zeros(self.n_cavs, np.int8)
-            brake_mps2 = np.zeros(self.n_cavs)
+            result, refined = None, np.where(alive, proposed, REMAIN)
+            rule, rule_mask, brake_mps2 = no_rule, no_rule, np.zeros(self.n_cavs)
 
         state = self.backend.step(self._commands(state.n_vehicles, refined, brake_mps2))
         self.steps += 1
@@ -134,9 +145,7 @@ class BottleneckEnv(ParallelEnv):
         self.action_memory = np.stack([proposed, refined], axis=1)
         self.last_refined[self.cav_index] = refined
 
-        terms = team_reward(
-            state, self.cav_index, alive, self.config.reward, self.temperature, self.road
-        )
+        terms = reward(state, self.cav_index, self.road, self.temperature, self.config.reward)
         terminated = bool(len(state.collisions) > 0 or not state.active.any())
         truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
         actor_obs, critic_state = self._observe()
@@ -149,16 +158,22 @@ class BottleneckEnv(ParallelEnv):
             alive=state.active[self.cav_index].copy(),
             refined_action=refined,
             psar_rule=rule,
+            psar_rule_mask=rule_mask,
+            psar=result,
             state=state,
-            reward_terms=terms.as_dict(),
+            reward_terms={
+                "ego_softmin": terms.ego_softmin,
+                "individual": float(terms.ego[terms.alive].mean()) if terms.alive.any() else 0.0,
+                "global": terms.global_reward,
+                "completion": terms.completion,
+                "tau": terms.tau,
+            },
         )
 
     def _commands(self, n_vehicles: int, refined: np.ndarray, brake_mps2: np.ndarray) -> CavCommands:
         dv = self.config.sim.speed_change_mps
         commands = CavCommands.idle(n_vehicles)
-        commands.lane_change[self.cav_index] = np.select(
-            [refined == LEFT, refined == RIGHT], [1, -1], 0
-        )
+        commands.lane_change[self.cav_index] = ACTION_LANE_OFFSET[refined]
         commands.speed_change_mps[self.cav_index] = np.select(
             [refined == ACCELERATE, refined == DECELERATE], [dv, -dv], 0.0
         ) - brake_mps2 * self.config.sim.step_s

@@ -5,15 +5,14 @@ A :class:`Scenario` is the *what* (N, penetration, style mix); a
 its type, style and starting slot. Both backends insert exactly the same
 population, which is what makes cross-backend comparisons meaningful.
 
-Placement follows facts.md: all vehicles start at t = 0 in rows near the
-route start, ``insert_spacing_m`` apart within a lane, at
-``insert_speed_mps``. Rows are filled front to back; the last, partial row
-uses randomly chosen lanes, and vehicles are shuffled over the slots.
+Placement follows facts.md: all vehicles start at t = 0 near the route
+start at ``insert_speed_mps``, one every ``insert_spacing_m`` (8 m: 25
+vehicles fill the first 200 m), lanes taken round-robin in a random order,
+vehicles shuffled over the slots.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,7 +43,7 @@ class Scenario:
     cav_penetration: float = 0.4  # 10 of them CAVs,
     style_mix: str | tuple[float, float, float] = "D1"  # HDV styles of mix D1
     insert_start_m: float = 10.0  # x of the rearmost insertion row (facts.md)
-    insert_spacing_m: float = 8.0  # between rows of the same lane
+    insert_spacing_m: float = 8.0  # between consecutive vehicles (any lane)
     insert_speed_mps: float = 10.0
 
     def __post_init__(self) -> None:
@@ -122,26 +121,17 @@ def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
     order = rng.permutation(n)
     style, is_cav = style[order], is_cav[order]
 
-    # Slots: rows of one vehicle per lane, front row first.
-    n_rows = math.ceil(n / len(lanes))
-    row_x = scenario.insert_start_m + scenario.insert_spacing_m * np.arange(n_rows)[::-1]
-    if row_x[0] >= road.segments[0].length_m:
+    # Slots (facts.md): one vehicle every ``insert_spacing_m``, lanes round-robin,
+    # so vehicles in the same lane start n_lanes * spacing apart. The lane order
+    # of the round-robin is drawn at random; vehicles are shuffled over slots.
+    lane_order = rng.permutation(lanes)
+    x = scenario.insert_start_m + scenario.insert_spacing_m * np.arange(n - 1, -1, -1.0)
+    lane = lane_order[np.arange(n) % len(lanes)].astype(np.int16)
+    if x[0] >= road.segments[0].length_m:
         raise ScenarioError(
             f"{n} vehicles do not fit in the first segment of map {road.name!r} "
             f"at {scenario.insert_spacing_m} m spacing"
         )
-    slot_x, slot_lane = [], []
-    for r, x in enumerate(row_x):
-        row_lanes = lanes if r < n_rows - 1 else sorted(
-            rng.choice(lanes, size=n - r * len(lanes), replace=False)
-        )
-        slot_x += [x] * len(row_lanes)
-        slot_lane += list(row_lanes)
-    # Odd rows are staggered by half a spacing so that neighbours in adjacent
-    # lanes are not side by side (avoids artificial wall-of-cars starts).
-    x = np.array(slot_x, dtype=np.float64)
-    lane = np.array(slot_lane, dtype=np.int16)
-    x = x + np.where(lane % 2 == 1, 0.5 * scenario.insert_spacing_m, 0.0)
     return Population(
         is_cav=is_cav,
         style=style,

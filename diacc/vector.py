@@ -44,7 +44,7 @@ class EnvStep:
     truncated: bool
     alive: np.ndarray  # (C,) bool
     refined_action: np.ndarray  # (C,) int64
-    psar_rule: np.ndarray  # (C,) int8
+    psar_rule_mask: np.ndarray  # (C,) int8 bitmask of PSAR rules that took effect
     final_critic_state: CriticState | None  # state where the episode ended
     episode: dict | None  # metrics of the episode that just ended
     restarted: bool = False
@@ -61,7 +61,7 @@ class VectorStep:
     truncated: np.ndarray  # (E,) bool
     alive: np.ndarray  # (E, C) bool
     refined_action: np.ndarray  # (E, C)
-    psar_rule: np.ndarray  # (E, C)
+    psar_rule_mask: np.ndarray  # (E, C)
     final_critic_state: list[CriticState | None]  # (E,)
     episodes: list[dict]  # metrics of episodes that ended this step
     restarts: int
@@ -97,7 +97,7 @@ class EnvRunner:
         except BackendError:
             return _cut_episode(*self.reset(), self.env.n_cavs)
         self.return_ += out.reward
-        self.recorder.record(out.state, psar_rule=out.psar_rule)
+        self.recorder.record(out.state, psar=out.psar)
         final, episode = None, None
         actor, critic = out.actor_obs, out.critic_state
         if out.terminated or out.truncated:
@@ -107,7 +107,7 @@ class EnvRunner:
                        **self.recorder.summary().as_dict()}
             actor, critic = self.reset()
         return EnvStep(actor, critic, out.reward, out.terminated, out.truncated, out.alive,
-                       out.refined_action, out.psar_rule, final, episode)
+                       out.refined_action, out.psar_rule_mask, final, episode)
 
     def close(self) -> None:
         self.env.close()
@@ -128,7 +128,7 @@ def _stack_steps(steps: list[EnvStep]) -> VectorStep:
         truncated=np.array([s.truncated for s in steps]),
         alive=np.stack([s.alive for s in steps]),
         refined_action=np.stack([s.refined_action for s in steps]),
-        psar_rule=np.stack([s.psar_rule for s in steps]),
+        psar_rule_mask=np.stack([s.psar_rule_mask for s in steps]),
         final_critic_state=[s.final_critic_state for s in steps],
         episodes=[s.episode for s in steps if s.episode is not None],
         restarts=sum(s.restarted for s in steps),

@@ -116,7 +116,10 @@ def test_population_counts_styles_and_placement():
     assert pop.is_cav.sum() == 10
     hdv_styles = np.bincount(pop.style[~pop.is_cav], minlength=3)
     assert hdv_styles.tolist() == [3, 9, 3]  # D1 0.2/0.6/0.2 of 15
-    assert (pop.x_m < 200).all() and set(pop.lane.tolist()) <= {0, 1, 2, 3}
+    assert (pop.x_m <= 10 + 24 * 8).all() and set(pop.lane.tolist()) == {0, 1, 2, 3}
+    # Round-robin lanes: vehicles of one lane start 4 slots (32 m) apart.
+    for lane in range(4):
+        assert np.all(np.diff(np.sort(pop.x_m[pop.lane == lane])) == 32.0)
     # No two vehicles share a slot.
     assert len({(x, l) for x, l in zip(pop.x_m.tolist(), pop.lane.tolist())}) == 25
 

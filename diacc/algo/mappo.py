@@ -37,12 +37,12 @@ from diacc.algo.buffer import Rollout, compute_gae
 from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig
 from diacc.env import EnvConfig
-from diacc.models import build_policy
+from diacc.models.registry import build_policy
 from diacc.models.inputs import to_tensors
 from diacc.models.spec import ObsSpec
 from diacc.observation import stack
 from diacc.reward import temperature
-from diacc.safety import RULE_NAMES
+from diacc.safety import RULE_NAMES, rule_counts
 from diacc.vector import make_vector_env
 
 #: Variants whose actor output goes through PSAR (paper: PSAR is part of D-IADM).
@@ -228,7 +228,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
             h_critic = torch.zeros(E, H_c, device=device)
             start = np.ones(E, bool)
             alive = actor_obs.alive.copy()
-            episodes, psar_counts, restarts = [], np.zeros(len(RULE_NAMES)), 0
+            episodes, psar_counts, restarts, decisions = [], np.zeros(len(RULE_NAMES) - 1), 0, 0
             for t in range(cfg.rollout_steps):
                 roll.actor_obs[t], roll.critic_state[t] = actor_obs, critic_state
                 roll.episode_start[t] = start
@@ -260,8 +260,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
                 actor_obs, critic_state = out.actor_obs, out.critic_state
                 start, alive = ended, actor_obs.alive.copy()
                 episodes += out.episodes
-                psar_counts += np.bincount(out.psar_rule[out.alive | roll.alive[t]].ravel(),
-                                           minlength=len(RULE_NAMES))
+                psar_counts += rule_counts(out.psar_rule_mask[roll.alive[t]])
+                decisions += int(roll.alive[t].sum())
                 restarts += out.restarts
             with torch.no_grad():
                 next_value, _ = agent.critic(to_tensors(critic_state, device), h_critic,
@@ -313,18 +313,14 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
                     # Minibatches split by (chunk, env) so sequences stay whole and each
                     # environment's CAVs stay with its critic sequence.
                     mb_agents = (mb_envs[:, None] * C + torch.arange(C, device=device)).reshape(-1)
-                    h_a, h_c = h0_actor[mb_agents], h0_critic[mb_envs]
-                    new_logprob, entropy, new_value = [], [], []
-                    for t in range(L):
-                        logits, h_a = agent.actor({k: v[t, mb_agents] for k, v in seq_actor.items()},
-                                                  h_a, b_start_a[t, mb_agents])
-                        dist = torch.distributions.Categorical(logits=logits)
-                        new_logprob.append(dist.log_prob(b_actions[t, mb_agents]))
-                        entropy.append(dist.entropy())
-                        v, h_c = agent.critic({k: v_[t, mb_envs] for k, v_ in seq_critic.items()},
-                                              h_c, b_start_c[t, mb_envs])
-                        new_value.append(v)
-                    new_logprob, entropy, new_value = map(torch.stack, (new_logprob, entropy, new_value))
+                    logits, _ = agent.actor.forward_sequence(
+                        {k: v[:, mb_agents] for k, v in seq_actor.items()},
+                        h0_actor[mb_agents], b_start_a[:, mb_agents])  # (L, B_a, 5)
+                    new_value, _ = agent.critic.forward_sequence(
+                        {k: v[:, mb_envs] for k, v in seq_critic.items()},
+                        h0_critic[mb_envs], b_start_c[:, mb_envs])  # (L, B_c)
+                    dist = torch.distributions.Categorical(logits=logits)
+                    new_logprob, entropy = dist.log_prob(b_actions[:, mb_agents]), dist.entropy()
                     mask = b_alive[:, mb_agents]
                     n_alive = mask.sum().clamp(min=1.0)
                     log_ratio = new_logprob - b_logprobs[:, mb_agents]
@@ -364,9 +360,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
                 updates_per_s=1.0 / update_s, worker_restarts=restarts,
                 global_reward=float(roll.rewards.mean()),
             )
-            n_rules = psar_counts.sum()
-            for code, name in enumerate(RULE_NAMES[1:], start=1):
-                record[f"psar/{name}"] = float(psar_counts[code] / n_rules) if n_rules else 0.0
+            for name, count in zip(RULE_NAMES[1:], psar_counts):  # fire rate per CAV decision
+                record[f"psar/{name}"] = float(count / max(decisions, 1))
             if episodes:
                 for key in episodes[0]:
                     if isinstance(episodes[0][key], (int, float)):
