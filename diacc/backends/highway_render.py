@@ -1,0 +1,148 @@
+"""Offscreen frames of the highway backend, drawn by highway-env's own renderer.
+
+highway-env's viewer opens a display; with SDL's dummy driver its frames come
+out black (facts.md). Here we set the dummy driver, draw into a plain
+``pygame.Surface`` wrapped as highway-env's ``WorldSurface``, and let
+``RoadGraphics`` / ``VehicleGraphics`` paint lanes and vehicles. Lightweight
+highway-env ``Vehicle`` objects are synced from the arrays only when a frame
+is asked for, so rendering costs nothing during training.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+
+import numpy as np  # noqa: E402
+import pygame  # noqa: E402
+from highway_env.road.graphics import LaneGraphics, RoadGraphics, WorldSurface  # noqa: E402
+from highway_env.road.road import Road, RoadNetwork  # noqa: E402
+from highway_env.vehicle.graphics import VehicleGraphics  # noqa: E402
+from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
+
+from diacc.backends.highway_road import to_highway_env_y  # noqa: E402
+from diacc.config import AGGRESSIVE, CAUTIOUS, NORMAL, SimConfig  # noqa: E402
+from diacc.maps import Map  # noqa: E402
+from diacc.state import TrafficState  # noqa: E402
+
+#: Vehicle colours (RGB): CAVs green as highway-env's ego, HDVs by style.
+CAV_COLOR = VehicleGraphics.EGO_COLOR
+STYLE_COLORS = {
+    AGGRESSIVE: (255, 120, 60),
+    NORMAL: VehicleGraphics.BLUE,
+    CAUTIOUS: VehicleGraphics.YELLOW,
+}
+CRASHED_COLOR = (200, 0, 0)
+HIGHLIGHT_COLOR = (255, 0, 255)
+OFFROAD_COLOR = (60, 120, 60)
+
+
+class HighwayRenderer:
+    """Draws a :class:`TrafficState` of one map; one pygame surface reused per frame."""
+
+    def __init__(
+        self,
+        road: Map,
+        network: RoadNetwork,
+        sim: SimConfig,
+        width_px: int = 1200,
+        height_px: int = 160,
+        scaling_px_per_m: float = 4.0,
+    ) -> None:
+        self.road_map = road
+        self.sim = sim
+        self.road = Road(network=network, vehicles=[], record_history=False)
+        self.surface = WorldSurface((width_px, height_px), 0, pygame.Surface((width_px, height_px)))
+        self.surface.scaling = scaling_px_per_m
+        self._vehicles: list[Vehicle] = []
+
+    def _sync(self, state: TrafficState) -> None:
+        """Mirror the arrays into highway-env Vehicle objects (render time only)."""
+        n = state.n_vehicles
+        while len(self._vehicles) < n:
+            vehicle = Vehicle(self.road, [0.0, 0.0])
+            vehicle.LENGTH = self.sim.vehicle_length_m
+            vehicle.WIDTH = self.sim.vehicle_width_m
+            self._vehicles.append(vehicle)
+        y_he = to_highway_env_y(self.road_map, state.y_m)
+        crashed = np.zeros(n, dtype=bool)
+        crashed[state.collisions.reshape(-1)] = True
+        shown = []
+        for i in np.flatnonzero(state.active):  # render path only, not the simulation
+            vehicle = self._vehicles[i]
+            vehicle.position = np.array([state.x_m[i], y_he[i]])
+            vehicle.heading = -float(state.heading_rad[i])  # screen y points down
+            vehicle.speed = float(state.speed_mps[i])
+            if crashed[i]:
+                vehicle.color = CRASHED_COLOR
+            elif state.is_cav[i]:
+                vehicle.color = CAV_COLOR
+            else:
+                vehicle.color = STYLE_COLORS[int(state.style[i])]
+            shown.append(vehicle)
+        self.road.vehicles = shown
+
+    def draw(self, state: TrafficState, highlight: np.ndarray | None = None) -> np.ndarray:
+        """(H, W, 3) uint8 frame centred on the active traffic."""
+        if highlight is not None:
+            highlight = np.asarray(highlight, dtype=bool)
+            if highlight.shape != (state.n_vehicles,):
+                raise ValueError(
+                    f"highlight must have shape ({state.n_vehicles},), got {highlight.shape}"
+                )
+        self._sync(state)
+        surface = self.surface
+        centre_x = float(state.x_m[state.active].mean()) if state.active.any() else 0.0
+        road_mid_y = float(
+            to_highway_env_y(
+                self.road_map, 0.5 * self.road_map.max_lanes * self.road_map.lane_width_m
+            )
+        )
+        surface.move_display_window_to(np.array([centre_x, road_mid_y]))
+        surface.fill(surface.GREY)
+        self._draw_offroad()  # under the lane lines, so they stay visible
+        for lanes in (ls for to in self.road.network.graph.values() for ls in to.values()):
+            for lane in lanes:
+                LaneGraphics.display(lane, surface)
+        RoadGraphics.display_traffic(self.road, surface, offscreen=True)
+        if highlight is not None:
+            self._draw_outlines(state, highlight)
+        frame = pygame.surfarray.array3d(surface)  # (W, H, 3)
+        return np.ascontiguousarray(np.transpose(frame, (1, 0, 2))).astype(np.uint8)
+
+    def _draw_offroad(self) -> None:
+        """Paint lanes that do not exist in a segment (the bottleneck) as verge."""
+        road, surface = self.road_map, self.surface
+        exists = road.lane_exists()
+        starts, ends = road.segment_starts_m, road.segment_ends_m
+        for s in range(len(road.segments)):
+            for lane in np.flatnonzero(~exists[s]):
+                y_top = float(to_highway_env_y(road, (lane + 1) * road.lane_width_m))
+                x0, y0 = surface.pos2pix(starts[s], y_top)
+                rect = (x0, y0, surface.pix(ends[s] - starts[s]), surface.pix(road.lane_width_m))
+                pygame.draw.rect(surface, OFFROAD_COLOR, rect, 0)
+
+    def _draw_outlines(self, state: TrafficState, highlight: np.ndarray) -> None:
+        half_l, half_w = 0.5 * self.sim.vehicle_length_m + 0.6, 0.5 * self.sim.vehicle_width_m + 0.6
+        y_he = to_highway_env_y(self.road_map, state.y_m)
+        for i in np.flatnonzero(highlight & state.active):
+            h = -float(state.heading_rad[i])
+            c, s = np.cos(h), np.sin(h)
+            corners = [
+                (state.x_m[i] + c * dl - s * dw, y_he[i] + s * dl + c * dw)
+                for dl, dw in (
+                    (half_l, half_w),
+                    (half_l, -half_w),
+                    (-half_l, -half_w),
+                    (-half_l, half_w),
+                )
+            ]
+            pixels = [self.surface.pos2pix(px, py) for px, py in corners]
+            pygame.draw.polygon(self.surface, HIGHLIGHT_COLOR, pixels, 2)
+
+    def close(self) -> None:
+        self._vehicles.clear()
+        self.road.vehicles = []

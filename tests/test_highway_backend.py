@@ -1,0 +1,212 @@
+"""The highway backend on real highway-env geometry: driver models, CAV commands, episodes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from diacc.backends.base import Backend, CavCommands
+from diacc.backends.highway import HighwayBackend
+from diacc.config import AGGRESSIVE, CAUTIOUS, STYLE_PRESETS, SimConfig
+from diacc.maps import load_map
+from diacc.scenario import Scenario
+from diacc.state import validate_state
+
+SIM = SimConfig()
+
+
+def make(map_name: str = "train-25") -> HighwayBackend:
+    return HighwayBackend(load_map(map_name), SIM)
+
+
+def run_hdv_episode(map_name: str, n: int, seed: int, max_steps: int = 200):
+    """Pure-HDV episode until all arrived; returns (backend, states)."""
+    backend = make(map_name)
+    states = [backend.reset(Scenario.with_cavs(n, 0), seed)]
+    for _ in range(max_steps):
+        states.append(backend.step(CavCommands.idle(n)))
+        if not states[-1].active.any():
+            break
+    return backend, states
+
+
+def single_lane_backend(n: int, x_m: list[float], speed_mps: list[float], styles=None):
+    """A backend whose vehicles are placed by hand in lane 0 (after a normal reset).
+
+    Discretionary lane changes are switched off so that car following is tested alone.
+    """
+    backend = make()
+    backend.model = dataclasses.replace(backend.model, min_lane_change_speed_mps=1e9)
+    backend.reset(Scenario.with_cavs(n, 0), 0)
+    backend.x_m = np.array(x_m, dtype=float)
+    backend.speed_mps = np.array(speed_mps, dtype=float)
+    backend.lane_from = np.zeros(n, dtype=np.intp)
+    backend.lane_to = np.zeros(n, dtype=np.intp)
+    backend.y_m = backend.road.lane_center_y_m(backend.lane_from).astype(float)
+    backend._leaders_dirty = True
+    backend._refresh_road_facts()
+    backend._refresh_speed_bounds()
+    return backend
+
+
+def test_protocol_and_state_valid():
+    backend = make()
+    assert isinstance(backend, Backend) and backend.name == "highway"
+    state = backend.reset(Scenario(), 3)
+    validate_state(state)
+    assert state.is_cav.sum() == 10 and state.collisions.shape == (0, 2)
+    state = backend.step(CavCommands.idle(25))
+    validate_state(state)
+    assert state.step == 1 and state.time_s == pytest.approx(SIM.step_s)
+
+
+def test_idm_free_road_reaches_desired_speed():
+    backend = single_lane_backend(1, [10.0], [5.0])
+    for _ in range(40):
+        state = backend.step(CavCommands.idle(1))
+    assert state.speed_mps[0] == pytest.approx(25.0, abs=0.6)
+
+
+@pytest.mark.parametrize("style", [AGGRESSIVE, CAUTIOUS])
+def test_follower_keeps_min_gap_behind_stopping_leader(style):
+    # The leader is a wreck standing still; the follower must stop behind it.
+    backend = single_lane_backend(2, [120.0, 20.0], [0.0, 25.0])
+    backend.style[:] = style
+    preset = STYLE_PRESETS[SIM.style_preset][style]
+    backend.idm.min_gap_m[:] = preset.min_gap_m
+    backend.idm.headway_s[:] = preset.time_headway_s
+    backend.crashed[0] = True
+    backend._refresh_speed_bounds()
+    backend._leaders_dirty = True
+    gaps = []
+    for _ in range(30):
+        s = backend.step(CavCommands.idle(2))
+        gaps.append(s.x_m[0] - s.x_m[1] - SIM.vehicle_length_m)
+    assert min(gaps) >= preset.min_gap_m - 1e-6
+    assert s.speed_mps[1] < 0.1 and len(s.collisions) == 0
+
+
+def _steady_headway(style: int) -> float:
+    backend = single_lane_backend(2, [60.0, 10.0], [15.0, 15.0])
+    preset = STYLE_PRESETS[SIM.style_preset][style]
+    for arr, val in (
+        (backend.idm.headway_s, preset.time_headway_s),
+        (backend.idm.min_gap_m, preset.min_gap_m),
+        (backend.idm.accel_mps2, preset.accel_mps2),
+        (backend.idm.decel_mps2, preset.decel_mps2),
+    ):
+        arr[1] = val
+    backend._inv_2_sqrt_ab = 0.5 / np.sqrt(backend.idm.accel_mps2 * backend.idm.decel_mps2)
+    # Leader: a CAV-like constant 15 m/s (hold the speed window fixed).
+    backend.is_cav[0] = True
+    backend._cav_accel_mps2[0] = 0.0
+    backend._cav_target_mps[0] = 15.0
+    backend._refresh_speed_bounds()
+    for _ in range(40):
+        s = backend.step(CavCommands.idle(2))
+    return (s.x_m[0] - s.x_m[1] - SIM.vehicle_length_m) / s.speed_mps[1]
+
+
+def test_aggressive_headway_shorter_than_cautious():
+    assert _steady_headway(AGGRESSIVE) < _steady_headway(CAUTIOUS) - 0.2
+
+
+@pytest.mark.parametrize("map_name", ["train-25", "train-50", "test-25", "test-50"])
+@pytest.mark.parametrize("n", [25, 40])
+def test_pure_hdv_everyone_arrives_without_collisions(map_name, n):
+    seeds = range(3) if n == 40 else range(10)
+    for seed in seeds:
+        backend, states = run_hdv_episode(map_name, n, seed)
+        final = states[-1]
+        assert final.arrived.all(), f"{map_name} N={n} seed={seed}: not all arrived"
+        assert sum(len(s.collisions) for s in states) == 0
+        assert backend.stats["guard_events"] == 0
+        # Every vehicle went through the bottleneck segment (index 1).
+        assert final.arrived.sum() == n
+
+
+def test_same_seed_same_trajectory_different_seed_differs():
+    _, a = run_hdv_episode("train-50", 25, 7, max_steps=40)
+    _, b = run_hdv_episode("train-50", 25, 7, max_steps=40)
+    _, c = run_hdv_episode("train-50", 25, 8, max_steps=40)
+    xa, xb, xc = (np.stack([s.x_m for s in r]) for r in (a, b, c))
+    assert np.array_equal(xa, xb)
+    assert not np.array_equal(xa, xc)
+
+
+def _cav_backend():
+    backend = make()
+    state = backend.reset(Scenario.with_cavs(25, 10), 0)
+    return backend, state
+
+
+def test_cav_lane_change_completes_within_step():
+    backend, state = _cav_backend()
+    cav = int(np.flatnonzero(state.is_cav & (state.lane < 3))[0])
+    cmd = CavCommands.idle(25)
+    cmd.lane_change[cav] = 1
+    after = backend.step(cmd)
+    assert after.lane[cav] == state.lane[cav] + 1
+    assert after.y_m[cav] == pytest.approx(backend.road.lane_center_y_m(state.lane[cav] + 1))
+
+
+def test_cav_lane_change_towards_missing_lane_ignored():
+    backend, state = _cav_backend()
+    cav = int(np.flatnonzero(state.is_cav & (state.lane == 0))[0])
+    cmd = CavCommands.idle(25)
+    cmd.lane_change[cav] = -1
+    after = backend.step(cmd)
+    assert after.lane[cav] == 0
+
+
+def test_cav_speed_change_and_clip():
+    backend, state = _cav_backend()
+    cmd = CavCommands.idle(25)
+    cmd.speed_change_mps[state.is_cav] = 2.0
+    after = backend.step(cmd)
+    assert np.allclose(after.speed_mps[state.is_cav], state.speed_mps[state.is_cav] + 2.0)
+    cmd.speed_change_mps[state.is_cav] = 50.0
+    after = backend.step(cmd)  # clipped to the 25 m/s limit, reached within the 5 m/s2 limit
+    assert np.allclose(after.speed_mps[state.is_cav], 17.0)
+    after = backend.step(cmd)
+    assert np.allclose(after.speed_mps[after.is_cav & after.active], 22.0)
+
+
+def test_cav_driving_into_leader_collides():
+    backend = single_lane_backend(2, [40.0, 20.0], [0.0, 20.0])
+    backend.is_cav[1] = True
+    cmd = CavCommands.idle(2)
+    pairs = []
+    for _ in range(3):
+        state = backend.step(cmd)
+        pairs += [tuple(p) for p in state.collisions]
+    assert pairs == [(0, 1)]  # reported once, i < j
+    assert state.speed_mps[1] == 0.0 and state.active.all()
+
+
+def test_heading_follows_lateral_motion():
+    backend, state = _cav_backend()
+    cav = int(np.flatnonzero(state.is_cav & (state.lane < 3))[0])
+    cmd = CavCommands.idle(25)
+    cmd.lane_change[cav] = 1
+    moved = backend.step(cmd)  # heading of the last sub-step: still turning left
+    expected = np.arctan2(backend.road.lane_width_m / SIM.step_s, moved.speed_mps[cav])
+    assert moved.heading_rad[cav] == pytest.approx(min(expected, backend.model.max_heading_rad))
+    straight = backend.step(CavCommands.idle(25))
+    assert straight.heading_rad[cav] == 0.0
+
+
+def test_render_non_blank_frame_with_highlight():
+    backend, state = _cav_backend()
+    for _ in range(3):
+        backend.step(CavCommands.idle(25))
+    frame = backend.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+    assert frame.std() > 5  # not a blank or black frame
+    colours = {tuple(c) for c in frame.reshape(-1, 3)[::7]}
+    assert len(colours) > 5
+    highlighted = backend.render(highlight=state.is_cav)
+    assert not np.array_equal(frame, highlighted)
+    backend.close()
