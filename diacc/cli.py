@@ -17,6 +17,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
+from diacc import cli_eval
 from diacc.config import BACKENDS, VARIANTS, ConfigError, TrainConfig, override
 
 #: Exceptions that carry a one-line, user-facing message.
@@ -147,10 +148,11 @@ def build_parser() -> argparse.ArgumentParser:
     _train_parser(sub)
     _bench_parser(sub)
     _simulate_parser(sub)
+    cli_eval.add_parsers(sub)
     return parser
 
 
-COMMANDS = {"train": cmd_train, "bench": cmd_bench, "simulate": cmd_simulate}
+COMMANDS = {"train": cmd_train, "bench": cmd_bench, "simulate": cmd_simulate, **cli_eval.COMMANDS}
 
 
 def main(argv: list[str] | None = None) -> int:

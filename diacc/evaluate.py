@@ -1,0 +1,427 @@
+"""Evaluation runner: every grid cell x K seeded episodes, in worker processes.
+
+A results directory holds one policy on one backend::
+
+    results/<dir>/meta.json                 what was evaluated (policy, backend, settings)
+    results/<dir>/cells/<cell>.episodes.csv one row per episode of a finished cell
+    results/<dir>/cells/<cell>.speeds.csv.gz per-vehicle speed samples of that cell
+    results/<dir>/episodes.csv              all finished cells, merged (tidy, one row per episode)
+    results/<dir>/speeds.csv.gz             all speed samples, merged
+
+A cell's files are written (atomically) only once all its K episodes are in,
+so an interrupted run loses at most the cells in flight, and re-running the
+same command skips every finished cell. Episode seeds depend on the cell and
+the episode number only (:meth:`diacc.grid.Cell.seed`), so every policy meets
+exactly the same traffic draws and results do not depend on ``--workers``.
+
+Episodes end like training episodes (:class:`~diacc.env.BottleneckEnv`): on
+a collision, when every vehicle has left, or after ``episode_steps``.
+"""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import io
+import json
+import math
+import multiprocessing as mp
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from diacc.backends.base import Backend, CavCommands, make_backend
+from diacc.env import BottleneckEnv, EnvConfig
+from diacc.grid import CELL_KEYS, Cell, make_cell
+from diacc.maps import SEGMENT_KINDS, load_map
+from diacc.metrics import EpisodeRecorder, SpeedSamples
+from diacc.policies import EvalSettings, Policy, PolicySpec, build_policy
+from diacc.safety import RULE_NAMES
+from diacc.state import TrafficState
+
+META_FILE = "meta.json"
+EPISODES_FILE = "episodes.csv"
+SPEEDS_FILE = "speeds.csv.gz"
+CELLS_DIR = "cells"
+#: Columns of the speed-sample files.
+SPEED_COLUMNS = (
+    "policy",
+    "backend",
+    *CELL_KEYS,
+    "episode",
+    "vehicle",
+    "step",
+    "time_s",
+    "speed_mps",
+    "segment_kind",
+    "is_cav",
+)
+
+
+class EvaluationError(ValueError):
+    """Bad evaluation input (episodes, results directory...); one line."""
+
+
+# ----------------------------------------------------------------------------- one episode
+class EpisodeDriver:
+    """Runs episodes of one policy in one environment configuration.
+
+    Learning policies go through :class:`BottleneckEnv` (observations, PSAR,
+    commands); the baselines step the backend directly with idle commands,
+    which their CAVs (if any) ignore or do not have.
+    """
+
+    def __init__(self, policy: Policy, cfg: EnvConfig) -> None:
+        self.policy, self.cfg = policy, cfg
+        self.road = load_map(cfg.map)
+        self.env: BottleneckEnv | None = None
+        if policy.commands_cavs:
+            self.env = BottleneckEnv(cfg)
+            self.backend: Backend = self.env.backend
+        else:
+            self.backend = make_backend(cfg.backend, self.road, cfg.sim, cfg.cav_mode)
+        self.state: TrafficState | None = None
+
+    def reset(self, seed: int) -> TrafficState:
+        self.steps, self.done = 0, False
+        self.psar_rule = np.zeros(0, np.int8)  # (V,) last PSAR rule per vehicle, 0 for HDVs
+        if self.env is not None:
+            self._obs, _ = self.env.reset_arrays(seed)
+            self.state = self.env.state_
+            self.policy.begin_episode(self.env.n_cavs)
+        else:
+            self.state = self.backend.reset(self.cfg.scenario, seed)
+        self.psar_rule = np.zeros(self.state.n_vehicles, np.int8)
+        return self.state
+
+    def step(self) -> TrafficState:
+        """Advance one decision step; sets :attr:`done` and :attr:`psar_rule`."""
+        assert self.state is not None and not self.done, "reset() before step()"
+        if self.env is not None:
+            actions = self.policy.act(self._obs, first_step=self.steps == 0)
+            alive_before = self._obs.alive.copy()  # (C,)
+            out = self.env.step_arrays(actions)
+            self._obs = out.actor_obs
+            self.psar_rule = np.zeros(out.state.n_vehicles, np.int8)
+            self.psar_rule[self.env.cav_index] = np.where(alive_before, out.psar_rule, 0)
+            self.psar_decisions = int(alive_before.sum())
+            state, done = out.state, out.terminated or out.truncated
+            self.steps += 1
+        else:
+            state = self.backend.step(CavCommands.idle(self.state.n_vehicles))
+            self.psar_decisions = 0
+            self.steps += 1
+            terminated = len(state.collisions) > 0 or not state.active.any()
+            done = terminated or self.steps >= self.cfg.sim.episode_steps
+        self.state, self.done = state, bool(done)
+        return state
+
+    @property
+    def sumo_version(self) -> str:
+        return str(getattr(self.backend, "sumo_version", "") or "")
+
+    def close(self) -> None:
+        (self.env or self.backend).close()
+
+
+@dataclass
+class EpisodeResult:
+    """One evaluated episode: its CSV row and its speed samples."""
+
+    cell: Cell
+    episode: int
+    row: dict
+    speeds: SpeedSamples
+
+
+def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResult:
+    """Play one seeded episode to its end and summarise it."""
+    seed = cell.seed(episode)
+    recorder = EpisodeRecorder(driver.road, driver.cfg.events)
+    recorder.record(driver.reset(seed))
+    rule_counts = np.zeros(len(RULE_NAMES), np.int64)
+    decisions = 0
+    while not driver.done:
+        state = driver.step()
+        recorder.record(state)
+        decisions += driver.psar_decisions
+        rule_counts += np.bincount(driver.psar_rule[state.is_cav], minlength=len(RULE_NAMES))
+    metrics = recorder.summary()
+    speeds = recorder.speed_samples()
+    row = {
+        "policy": driver.policy.label,
+        "backend": driver.cfg.backend,
+        "sumo_version": driver.sumo_version,
+        "style_preset": driver.cfg.sim.style_preset,
+        **cell.as_row(),
+        "episode": episode,
+        "seed": seed,
+        "n_cavs": driver.cfg.scenario.n_cavs,
+        "psar": driver.cfg.use_psar,
+        "steps": driver.steps,
+        "collision": int(len(driver.state.collisions) > 0),
+        "mean_speed_mps": metrics.mean_speed_mps,
+        "std_speed_mps": metrics.std_speed_mps,
+        "n_speed_samples": int(speeds.speed_mps.shape[0]),
+        "mean_cav_speed_mps": metrics.mean_cav_speed_mps,
+        "mean_hdv_speed_mps": metrics.mean_hdv_speed_mps,
+        **{f"speed_{kind}_mps": metrics.mean_speed_by_kind_mps[kind] for kind in SEGMENT_KINDS},
+        "p_we": metrics.p_we,
+        "p_sce": metrics.p_sce,
+        "n_collisions": metrics.n_collisions,
+        "arrived_fraction": metrics.arrived_fraction,
+        "mean_travel_time_s": metrics.mean_travel_time_s,
+        "n_vehicles_seen": metrics.n_vehicles,
+        "psar_decisions": decisions,
+        **{
+            f"psar_{name}_rate": (rule_counts[code] / decisions if decisions else 0.0)
+            for code, name in enumerate(RULE_NAMES)
+            if code > 0
+        },
+    }
+    return EpisodeResult(cell, episode, row, speeds)
+
+
+# ----------------------------------------------------------------------------- workers
+_WORKER: dict = {}
+
+
+def _init_worker(spec: PolicySpec, settings: EvalSettings, threads: int = 1) -> None:
+    """Per-process state: the policy and the driver of the last cell (one SUMO at a time)."""
+    try:
+        import torch
+
+        torch.set_num_threads(threads)
+    except ImportError:  # pragma: no cover - torch is a dependency
+        pass
+    _close_worker_driver()
+    _WORKER.update(policy=build_policy(spec), settings=settings, key=None, driver=None)
+
+
+def _close_worker_driver() -> None:
+    if _WORKER.get("driver") is not None:
+        _WORKER["driver"].close()
+        _WORKER["driver"] = None
+
+
+def _run_task(task: tuple[Cell, int]) -> EpisodeResult:
+    cell, episode = task
+    if _WORKER["key"] != cell.key:
+        _close_worker_driver()
+        cfg = _WORKER["policy"].env_config(cell, _WORKER["settings"])
+        _WORKER.update(driver=EpisodeDriver(_WORKER["policy"], cfg), key=cell.key)
+    return run_episode(_WORKER["driver"], cell, episode)
+
+
+def _results(
+    tasks: list[tuple[Cell, int]],
+    spec: PolicySpec,
+    settings: EvalSettings,
+    workers: int,
+    episodes: int,
+) -> Iterator[EpisodeResult]:
+    if workers <= 1:
+        _init_worker(spec, settings, threads=max(1, (os.cpu_count() or 1)))
+        try:
+            for task in tasks:
+                yield _run_task(task)
+        finally:
+            _close_worker_driver()
+        return
+    chunk = max(1, min(episodes, math.ceil(len(tasks) / (4 * workers))))
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(workers, initializer=_init_worker, initargs=(spec, settings)) as pool:
+        yield from pool.imap_unordered(_run_task, tasks, chunksize=chunk)
+
+
+# ----------------------------------------------------------------------------- files
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    tmp.replace(path)
+
+
+def _csv_bytes(columns: list[str] | tuple[str, ...], rows: list) -> bytes:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(columns)
+    writer.writerows(rows)
+    return buffer.getvalue().encode()
+
+
+def _gzip(data: bytes) -> bytes:
+    out = io.BytesIO()
+    with gzip.GzipFile(fileobj=out, mode="wb", mtime=0) as fh:  # mtime 0: same bytes every run
+        fh.write(data)
+    return out.getvalue()
+
+
+def speed_rows(result: EpisodeResult) -> list[tuple]:
+    """Rows of :data:`SPEED_COLUMNS` for one episode."""
+    prefix = (
+        result.row["policy"],
+        result.row["backend"],
+        *result.cell.as_row().values(),
+        result.episode,
+    )
+    return [prefix + r for r in result.speeds.rows()]
+
+
+def write_cell(out_dir: Path, cell: Cell, results: list[EpisodeResult]) -> None:
+    """Write one finished cell (speeds first: the episodes file marks it done)."""
+    results = sorted(results, key=lambda r: r.episode)
+    cells_dir = out_dir / CELLS_DIR
+    cells_dir.mkdir(parents=True, exist_ok=True)
+    speeds = [row for r in results for row in speed_rows(r)]
+    _atomic_write(cells_dir / f"{cell.key}.speeds.csv.gz", _gzip(_csv_bytes(SPEED_COLUMNS, speeds)))
+    columns = list(results[0].row)
+    _atomic_write(
+        cells_dir / f"{cell.key}.episodes.csv",
+        _csv_bytes(columns, [[r.row[c] for c in columns] for r in results]),
+    )
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    """Rows of a (possibly gzipped) CSV file as dicts of strings."""
+    opener = gzip.open if path.suffix == ".gz" else open
+    with opener(path, "rt", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def cell_done(out_dir: Path, cell: Cell, episodes: int) -> bool:
+    """Whether a cell's files hold exactly episodes 0..K-1."""
+    path = out_dir / CELLS_DIR / f"{cell.key}.episodes.csv"
+    if not path.exists() or not (out_dir / CELLS_DIR / f"{cell.key}.speeds.csv.gz").exists():
+        return False
+    return sorted(int(r["episode"]) for r in read_csv(path)) == list(range(episodes))
+
+
+def merge_cells(out_dir: Path) -> None:
+    """Rebuild ``episodes.csv`` and ``speeds.csv.gz`` from every finished cell."""
+    cells_dir = out_dir / CELLS_DIR
+    episode_files = sorted(cells_dir.glob("*.episodes.csv"))
+    if not episode_files:
+        return
+    header, rows = None, []
+    for path in episode_files:
+        with open(path, newline="") as fh:
+            reader = csv.reader(fh)
+            file_header = next(reader)
+            header = header or file_header
+            if file_header != header:
+                raise EvaluationError(
+                    f"{path} has other columns than the other cells; "
+                    "re-run it into a fresh results directory"
+                )
+            rows += list(reader)
+    _atomic_write(out_dir / EPISODES_FILE, _csv_bytes(header, rows))
+    parts = []
+    for path in episode_files:
+        speeds = path.with_name(path.name.replace(".episodes.csv", ".speeds.csv.gz"))
+        body = gzip.decompress(speeds.read_bytes()).decode()
+        parts.append(body if not parts else body.split("\n", 1)[1])
+    _atomic_write(out_dir / SPEEDS_FILE, _gzip("".join(parts).encode()))
+
+
+def _check_meta(out_dir: Path, meta: dict) -> None:
+    path = out_dir / META_FILE
+    if path.exists():
+        old = json.loads(path.read_text())
+        for key in ("policy", "checkpoint", "backend", "settings"):
+            if old.get(key) != meta.get(key):
+                raise EvaluationError(
+                    f"results directory {out_dir} holds {old.get('policy')} on "
+                    f"{old.get('backend')} with other {key!r}; choose another --out"
+                )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _atomic_write(path, json.dumps(meta, indent=2).encode())
+
+
+@dataclass
+class EvalSummary:
+    out_dir: Path
+    cells_run: list[Cell]
+    cells_skipped: list[Cell]
+
+
+def evaluate(
+    spec: PolicySpec,
+    cells: list[Cell],
+    episodes: int,
+    out_dir: str | Path,
+    settings: EvalSettings,
+    workers: int = 1,
+    progress: bool = True,
+) -> EvalSummary:
+    """Evaluate a policy on every cell for ``episodes`` seeded episodes (see module docstring)."""
+    out_dir = Path(out_dir)
+    if episodes < 1:
+        raise EvaluationError(f"--episodes must be >= 1, got {episodes}")
+    if workers < 1:
+        raise EvaluationError(f"--workers must be >= 1, got {workers}")
+    if not cells:
+        raise EvaluationError("the grid has no cells")
+    policy = build_policy(spec)  # fail fast on a bad checkpoint, in this process
+    for cell in cells:
+        policy.env_config(cell, settings)  # fail fast on cells the policy cannot run
+    meta = {
+        **policy.describe(),
+        "backend": settings.backend,
+        "settings": {
+            "episode_steps": settings.episode_steps,
+            "style_preset": settings.style_preset,
+        },
+    }
+    _check_meta(out_dir, meta)
+    todo = [c for c in cells if not cell_done(out_dir, c, episodes)]
+    skipped = [c for c in cells if c not in todo]
+    tasks = [(cell, ep) for cell in todo for ep in range(episodes)]
+    pending: dict[str, list[EpisodeResult]] = {c.key: [] for c in todo}
+    from tqdm import tqdm
+
+    bar = tqdm(
+        total=len(tasks),
+        unit="episode",
+        disable=not progress or not tasks,
+        desc=f"eval {policy.label} on {settings.backend}",
+    )
+    try:
+        for result in _results(tasks, spec, settings, workers, episodes):
+            pending[result.cell.key].append(result)
+            if len(pending[result.cell.key]) == episodes:
+                write_cell(out_dir, result.cell, pending.pop(result.cell.key))
+            bar.update(1)
+    finally:
+        bar.close()
+        merge_cells(out_dir)
+    return EvalSummary(out_dir, todo, skipped)
+
+
+def load_episodes(out_dir: str | Path) -> tuple[dict, list[dict[str, str]]]:
+    """(meta, episode rows) of a results directory; one-line error if there are none."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise EvaluationError(f"results directory {out_dir} does not exist")
+    path = out_dir / EPISODES_FILE
+    if not (out_dir / META_FILE).exists() or not path.exists():
+        raise EvaluationError(
+            f"results directory {out_dir} holds no evaluation results "
+            f"(no {EPISODES_FILE}); run `diacc eval --out {out_dir}` first"
+        )
+    rows = read_csv(path)
+    if not rows:
+        raise EvaluationError(f"results directory {out_dir} has an empty {EPISODES_FILE}")
+    for row in rows[:1]:
+        make_cell({k: _parse_cell_value(k, row[k]) for k in CELL_KEYS}, str(path))
+    return json.loads((out_dir / META_FILE).read_text()), rows
+
+
+def _parse_cell_value(key: str, text: str):
+    if key == "n_vehicles":
+        return int(text)
+    if key == "cav_penetration":
+        return float(text)
+    return text

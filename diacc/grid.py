@@ -1,0 +1,196 @@
+"""Evaluation grids: which (map, N, rho, style mix) cells an evaluation runs.
+
+A :class:`Cell` is one traffic condition of paper Tables II-III. Grids:
+
+* ``train``: the paper's training cells, ``train-25`` and ``train-50`` with
+  N = 25, rho = 0.4, mix D1.
+* ``zero-shot``: the test maps ``test-25`` / ``test-50`` x N in {20, 25, 30, 40}
+  x rho in {0.2, 0.3} x mixes {D2, D3} (paper, Experimental Setup).
+* a TOML file, either listing cells explicitly::
+
+      [[cells]]
+      map = "test-50"
+      n_vehicles = 40
+      cav_penetration = 0.2
+      style_mix = "D3"
+
+  or as a product of value lists (every key optional, defaults as in ``train``)::
+
+      [product]
+      map = ["test-25", "test-50"]
+      n_vehicles = [20, 40]
+      cav_penetration = [0.2]
+      style_mix = ["D2"]
+
+Unknown keys, maps or mixes raise :class:`GridError` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import itertools
+import sys
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+from diacc.maps import MapError, load_map
+from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError
+
+#: Named grids (see module docstring).
+GRID_NAMES = ("train", "zero-shot")
+#: Columns that identify a cell in every results file, in this order.
+CELL_KEYS = ("map", "n_vehicles", "cav_penetration", "style_mix")
+#: First word of every evaluation seed's entropy; training seeds start with the
+#: run seed (small integers), so evaluation episodes use other random streams.
+EVAL_SEED_TAG = 0xE7A1_5EED
+
+
+class GridError(ValueError):
+    """A grid name or grid file is invalid; the message is one line."""
+
+
+@dataclass(frozen=True, order=True)
+class Cell:
+    """One traffic condition: map x vehicle count x CAV share x HDV style mix."""
+
+    map: str
+    n_vehicles: int
+    cav_penetration: float
+    style_mix: str
+
+    @property
+    def key(self) -> str:
+        """Stable, file-name-safe identifier, e.g. ``train-25_N25_rho0.40_D1``."""
+        return f"{self.map}_N{self.n_vehicles}_rho{self.cav_penetration:.2f}_{self.style_mix}"
+
+    def scenario(
+        self, cav_penetration: float | None = None, base: Scenario | None = None
+    ) -> Scenario:
+        """The scenario of this cell (``cav_penetration`` overrides rho, e.g. 0 for pure HDV)."""
+        base = base or Scenario()
+        rho = self.cav_penetration if cav_penetration is None else cav_penetration
+        return Scenario(
+            n_vehicles=self.n_vehicles,
+            cav_penetration=rho,
+            style_mix=self.style_mix,
+            insert_start_m=base.insert_start_m,
+            insert_spacing_m=base.insert_spacing_m,
+            insert_speed_mps=base.insert_speed_mps,
+        )
+
+    def seed(self, episode: int) -> int:
+        """Seed of episode ``episode`` of this cell: the same for every policy.
+
+        Common seeds let policies be compared on identical traffic draws. The
+        seed depends on the cell key and the episode only, and fits in 31 bits
+        (SUMO's ``--seed`` is a signed 32-bit integer).
+        """
+        words = [EVAL_SEED_TAG, zlib.crc32(self.key.encode()), int(episode)]
+        return int(np.random.SeedSequence(words).generate_state(1)[0] >> 1)
+
+    def as_row(self) -> dict:
+        return {
+            "map": self.map,
+            "n_vehicles": self.n_vehicles,
+            "cav_penetration": self.cav_penetration,
+            "style_mix": self.style_mix,
+        }
+
+
+def make_cell(values: dict, source: str = "<grid>") -> Cell:
+    """Validate one cell mapping (as read from TOML or CSV) into a :class:`Cell`."""
+    unknown = set(values) - set(CELL_KEYS)
+    if unknown:
+        raise GridError(
+            f"{source}: unknown grid cell key {sorted(unknown)[0]!r}; "
+            f"known keys: {', '.join(CELL_KEYS)}"
+        )
+    missing = [k for k in CELL_KEYS if k not in values]
+    if missing:
+        raise GridError(f"{source}: grid cell is missing key {missing[0]!r}")
+    try:
+        load_map(values["map"])
+    except MapError as exc:
+        raise GridError(f"{source}: {exc}") from None
+    n, rho, mix = values["n_vehicles"], values["cav_penetration"], values["style_mix"]
+    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        raise GridError(f"{source}: n_vehicles must be a positive integer, got {n!r}")
+    if not isinstance(rho, (int, float)) or isinstance(rho, bool) or not 0 <= rho <= 1:
+        raise GridError(f"{source}: cav_penetration must be a number in [0, 1], got {rho!r}")
+    if mix not in STYLE_MIXES:
+        raise GridError(f"{source}: unknown style mix {mix!r}; known: {', '.join(STYLE_MIXES)}")
+    cell = Cell(str(values["map"]), int(n), float(rho), str(mix))
+    try:
+        cell.scenario()
+    except ScenarioError as exc:
+        raise GridError(f"{source}: {exc}") from None
+    return cell
+
+
+def _product(values: dict, source: str) -> list[Cell]:
+    defaults = {
+        "map": ["train-25", "train-50"],
+        "n_vehicles": [25],
+        "cav_penetration": [0.4],
+        "style_mix": ["D1"],
+    }
+    unknown = set(values) - set(CELL_KEYS)
+    if unknown:
+        raise GridError(
+            f"{source}: unknown grid cell key {sorted(unknown)[0]!r}; "
+            f"known keys: {', '.join(CELL_KEYS)}"
+        )
+    lists = {k: values.get(k, defaults[k]) for k in CELL_KEYS}
+    for key, value in lists.items():
+        if not isinstance(value, list) or not value:
+            raise GridError(f"{source}: product key {key!r} must be a non-empty list")
+    return [
+        make_cell(dict(zip(CELL_KEYS, combo, strict=True)), source)
+        for combo in itertools.product(*(lists[k] for k in CELL_KEYS))
+    ]
+
+
+def load_grid(name_or_path: str | Path) -> list[Cell]:
+    """Cells of a named grid (``train``, ``zero-shot``) or of a TOML grid file."""
+    if str(name_or_path) == "train":
+        return _product({}, "train")
+    if str(name_or_path) == "zero-shot":
+        return _product(
+            {
+                "map": ["test-25", "test-50"],
+                "n_vehicles": [20, 25, 30, 40],
+                "cav_penetration": [0.2, 0.3],
+                "style_mix": ["D2", "D3"],
+            },
+            "zero-shot",
+        )
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        raise GridError(
+            f"unknown grid {str(name_or_path)!r}; use {', '.join(GRID_NAMES)} or a .toml grid file"
+        )
+    if not path.exists():
+        raise GridError(f"grid file {path} does not exist")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise GridError(f"{path}: not valid TOML ({str(exc).splitlines()[0]})") from None
+    unknown = set(data) - {"cells", "product"}
+    if unknown:
+        raise GridError(
+            f"{path}: unknown top-level key {sorted(unknown)[0]!r}; "
+            "use [[cells]] tables or one [product] table"
+        )
+    cells = [make_cell(c, f"{path} cells[{i}]") for i, c in enumerate(data.get("cells", []))]
+    if "product" in data:
+        cells += _product(data["product"], f"{path} [product]")
+    if not cells:
+        raise GridError(f"{path}: grid file lists no cells")
+    return sorted(set(cells), key=cells.index)

@@ -1,0 +1,264 @@
+"""Figures: training curves over seeds, and per-segment speed distributions.
+
+* :func:`plot_curves`: collision rate, global reward and individual reward
+  against environment steps, one line per variant (mean over the runs/seeds
+  of that variant) with a shaded +-1 std band. Each run is read from its
+  ``progress.jsonl`` (written by the trainer), else from its TensorBoard
+  event files; runs are grouped by ``config.json`` (variant, backend).
+* :func:`plot_speeds`: box plots of the per-vehicle speed samples by segment
+  kind (multi-lane, 25 % and 50 % reduction), one box per policy, plus one
+  Gaussian KDE panel per segment kind.
+
+Both write ``<out>.png`` and ``<out>.pdf`` with matplotlib's Agg backend (no
+display needed).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from diacc.evaluate import SPEEDS_FILE, load_episodes, read_csv
+from diacc.maps import SEGMENT_KINDS
+
+#: Panel title -> progress keys tried in order (first one a run has is used).
+CURVE_PANELS: dict[str, tuple[str, ...]] = {
+    "Collision rate": ("episode/collision",),
+    "Global reward": (
+        "reward/global",
+        "reward/global_reward",
+        "episode/global_reward",
+        "global_reward",
+    ),
+    "Individual reward": (
+        "reward/ego",
+        "reward/ego_softmin",
+        "reward/individual",
+        "episode/individual_reward",
+        "individual_reward",
+    ),
+}
+#: Colours per policy / variant, stable across figures.
+PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2")
+#: Speed samples used per KDE (subsampled with a fixed seed beyond this).
+KDE_MAX_SAMPLES = 20_000
+
+
+class PlotError(ValueError):
+    """Missing or unusable input to a plot command; one line."""
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, out: str | Path) -> list[Path]:
+    out = Path(out)
+    if out.suffix in (".png", ".pdf"):
+        out = out.with_suffix("")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    paths = [out.with_suffix(".png"), out.with_suffix(".pdf")]
+    for path in paths:
+        fig.savefig(path, dpi=150, bbox_inches="tight")
+    _pyplot().close(fig)
+    return paths
+
+
+# ----------------------------------------------------------------------------- training curves
+def read_progress(run_dir: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Series of a run: key -> (global_step (T,), value (T,)), from JSONL or TensorBoard."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise PlotError(f"run directory {run_dir} does not exist")
+    series: dict[str, list[tuple[float, float]]] = {}
+    progress = run_dir / "progress.jsonl"
+    if progress.exists():
+        for line_no, line in enumerate(progress.read_text().splitlines(), start=1):
+            if not line.strip():
+                continue
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:
+                raise PlotError(f"{progress}:{line_no} is not valid JSON") from None
+            step = record.get("global_step")
+            for key, value in record.items():
+                if isinstance(value, (int, float)) and step is not None:
+                    series.setdefault(key, []).append((float(step), float(value)))
+    else:
+        events = sorted((run_dir / "tb").glob("events.out.tfevents.*")) + sorted(
+            run_dir.glob("events.out.tfevents.*")
+        )
+        if not events:
+            raise PlotError(
+                f"run directory {run_dir} has neither progress.jsonl nor TensorBoard logs"
+            )
+        from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+        for event_file in events:
+            acc = EventAccumulator(str(event_file), size_guidance={"scalars": 0})
+            acc.Reload()
+            for tag in acc.Tags().get("scalars", []):
+                key = tag.removeprefix("train/")
+                series.setdefault(key, []).extend(
+                    (float(e.step), float(e.value)) for e in acc.Scalars(tag)
+                )
+    if not series:
+        raise PlotError(f"run directory {run_dir} has no logged values")
+    out = {}
+    for key, pairs in series.items():
+        arr = np.array(sorted(pairs))  # (T, 2)
+        out[key] = (arr[:, 0], arr[:, 1])
+    return out
+
+
+def _run_group(run_dir: Path) -> str:
+    config = run_dir / "config.json"
+    if not config.exists():
+        return run_dir.name
+    data = json.loads(config.read_text())
+    return f"{data.get('variant', run_dir.name)} ({data.get('backend', '?')})"
+
+
+def _smooth(values: np.ndarray, window: int) -> np.ndarray:
+    if window <= 1 or values.size < window:
+        return values
+    kernel = np.ones(window) / window
+    padded = np.concatenate([np.full(window - 1, values[0]), values])
+    return np.convolve(padded, kernel, mode="valid")
+
+
+def group_curves(
+    run_dirs: list[str | Path], key_options: tuple[str, ...], smooth: int = 1
+) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Group -> (steps (T,), mean (T,), std (T,)) over the runs of the group.
+
+    Runs of a group are interpolated onto the steps of the run with the fewest
+    points, inside the range that all runs cover.
+    """
+    runs: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for run_dir in map(Path, run_dirs):
+        series = read_progress(run_dir)
+        key = next((k for k in key_options if k in series), None)
+        if key is None:
+            continue
+        steps, values = series[key]
+        runs.setdefault(_run_group(run_dir), []).append((steps, _smooth(values, smooth)))
+    out = {}
+    for group, members in runs.items():
+        end = min(s[-1] for s, _ in members)
+        start = max(s[0] for s, _ in members)
+        grid = min((s for s, _ in members), key=len)
+        grid = grid[(grid >= start) & (grid <= end)]
+        stacked = np.stack([np.interp(grid, s, v) for s, v in members])  # (R, T)
+        out[group] = (grid, stacked.mean(0), stacked.std(0))
+    return out
+
+
+def plot_curves(run_dirs: list[str | Path], out: str | Path, smooth: int = 1) -> list[Path]:
+    """Training curves of several runs (see module docstring); returns the files written."""
+    if not run_dirs:
+        raise PlotError("give at least one run directory")
+    panels = {title: group_curves(run_dirs, keys, smooth) for title, keys in CURVE_PANELS.items()}
+    if not any(panels.values()):
+        raise PlotError("none of the runs logged a collision rate, global or individual reward")
+    plt = _pyplot()
+    groups = sorted({g for curves in panels.values() for g in curves})
+    colour = {g: PALETTE[i % len(PALETTE)] for i, g in enumerate(groups)}
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 3.6))
+    for ax, (title, curves) in zip(np.atleast_1d(axes), panels.items(), strict=True):
+        for group, (steps, mean, std) in sorted(curves.items()):
+            ax.plot(steps, mean, color=colour[group], label=group, lw=1.5)
+            ax.fill_between(steps, mean - std, mean + std, color=colour[group], alpha=0.25, lw=0)
+        ax.set_title(title if curves else f"{title} (not logged)")
+        ax.set_xlabel("environment steps")
+        ax.grid(alpha=0.3)
+    np.atleast_1d(axes)[0].legend(fontsize=8)
+    fig.tight_layout()
+    return _save(fig, out)
+
+
+# ----------------------------------------------------------------------------- speeds
+def load_speeds(
+    result_dir: str | Path, map_name: str | None = None
+) -> tuple[str, dict[str, np.ndarray]]:
+    """(policy label, segment kind -> speed samples (S,)) of one results directory."""
+    meta, _ = load_episodes(result_dir)
+    path = Path(result_dir) / SPEEDS_FILE
+    if not path.exists():
+        raise PlotError(f"results directory {result_dir} has no {SPEEDS_FILE}")
+    rows = read_csv(path)
+    if map_name is not None:
+        rows = [r for r in rows if r["map"] == map_name]
+        if not rows:
+            raise PlotError(
+                f"results directory {result_dir} has no speed samples on map {map_name!r}"
+            )
+    kinds = np.array([r["segment_kind"] for r in rows])
+    speeds = np.array([float(r["speed_mps"]) for r in rows])
+    return meta["policy"], {kind: speeds[kinds == kind] for kind in SEGMENT_KINDS}
+
+
+def gaussian_kde(samples: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Gaussian KDE with Scott's bandwidth, evaluated on ``grid`` (G,)."""
+    samples = np.asarray(samples, float)
+    if samples.size > KDE_MAX_SAMPLES:
+        samples = np.random.default_rng(0).choice(samples, KDE_MAX_SAMPLES, replace=False)
+    std = samples.std()
+    bandwidth = max(std, 1e-3) * samples.size ** (-1 / 5)
+    z = (grid[:, None] - samples[None, :]) / bandwidth  # (G, S)
+    return np.exp(-0.5 * z**2).sum(1) / (samples.size * bandwidth * np.sqrt(2 * np.pi))
+
+
+def plot_speeds(
+    result_dirs: list[str | Path], out: str | Path, map_name: str | None = None
+) -> list[Path]:
+    """Per-segment-kind speed box plots and KDEs, one colour per policy."""
+    if not result_dirs:
+        raise PlotError("give at least one results directory")
+    loaded = [load_speeds(d, map_name) for d in result_dirs]
+    labels = [label for label, _ in loaded]
+    if len(set(labels)) < len(labels):
+        labels = [f"{lab} [{Path(d).name}]" for lab, d in zip(labels, result_dirs, strict=True)]
+    kinds = [k for k in SEGMENT_KINDS if any(by_kind[k].size for _, by_kind in loaded)]
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 1 + len(kinds), figsize=(4.5 * (1 + len(kinds)), 3.8))
+    box_ax, kde_axes = axes[0], axes[1:]
+    width = 0.8 / len(loaded)
+    for p, (label, (_, by_kind)) in enumerate(zip(labels, loaded, strict=True)):
+        colour = PALETTE[p % len(PALETTE)]
+        data = [by_kind[k] if by_kind[k].size else np.array([np.nan]) for k in kinds]
+        positions = np.arange(len(kinds)) + (p - (len(loaded) - 1) / 2) * width
+        parts = box_ax.boxplot(
+            data,
+            positions=positions,
+            widths=width * 0.9,
+            patch_artist=True,
+            showfliers=False,
+            manage_ticks=False,
+        )
+        for patch in parts["boxes"]:
+            patch.set_facecolor(colour)
+            patch.set_alpha(0.6)
+        box_ax.plot([], [], color=colour, lw=6, alpha=0.6, label=label)
+        for ax, kind in zip(kde_axes, kinds, strict=True):
+            if by_kind[kind].size:
+                hi = max(30.0, float(by_kind[kind].max()) + 2)
+                grid = np.linspace(0.0, hi, 300)
+                ax.plot(grid, gaussian_kde(by_kind[kind], grid), color=colour, label=label)
+    box_ax.set_xticks(np.arange(len(kinds)), kinds)
+    box_ax.set_ylabel("speed (m/s)")
+    box_ax.set_title("Speed by segment kind")
+    box_ax.legend(fontsize=8)
+    for ax, kind in zip(kde_axes, kinds, strict=True):
+        ax.set_title(f"Speed density: {kind}")
+        ax.set_xlabel("speed (m/s)")
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return _save(fig, out)

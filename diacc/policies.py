@@ -1,0 +1,238 @@
+"""Policies the evaluator runs: two non-learning baselines and trained checkpoints.
+
+Every policy answers the same three questions, so the evaluator treats a
+baseline exactly like a checkpoint:
+
+* :meth:`Policy.env_config`: which environment a grid cell means for it
+  (``pure-hdv`` turns every CAV into an HDV; ``cooperative`` lets the CAVs
+  drive themselves; a checkpoint keeps the observation, PSAR, reward and
+  simulation settings it was trained with);
+* :attr:`Policy.commands_cavs`: whether it sends actions at all (the
+  baselines do not, so the evaluator steps the backend directly and skips
+  observations and PSAR);
+* :meth:`Policy.act`: greedy (argmax) actions from the actor with its GRU state.
+
+Policies are built from a :class:`PolicySpec` (a name or a checkpoint path),
+which is what crosses process boundaries: each worker loads its own copy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from diacc.config import STYLE_PRESETS, VARIANTS, SimConfig, TrainConfig
+from diacc.env import EnvConfig
+from diacc.grid import Cell
+from diacc.observation import ActorObs
+
+#: Names of the non-learning baselines.
+BASELINES = ("pure-hdv", "cooperative")
+
+
+class PolicyError(ValueError):
+    """Unknown policy name or unusable checkpoint for evaluation; one line."""
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """Evaluation-wide overrides of a policy's own simulation settings (None = keep)."""
+
+    backend: str = "highway"
+    episode_steps: int | None = None
+    style_preset: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.episode_steps is not None and self.episode_steps < 1:
+            raise PolicyError(f"episode_steps must be >= 1, got {self.episode_steps}")
+        if self.style_preset is not None and self.style_preset not in STYLE_PRESETS:
+            raise PolicyError(
+                f"unknown style preset {self.style_preset!r}; known: {', '.join(STYLE_PRESETS)}"
+            )
+
+    def apply(self, sim: SimConfig) -> SimConfig:
+        changes = {}
+        if self.episode_steps is not None:
+            changes["episode_steps"] = self.episode_steps
+        if self.style_preset is not None:
+            changes["style_preset"] = self.style_preset
+        return dataclasses.replace(sim, **changes)
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """Picklable reference to a policy: a baseline name or a checkpoint path.
+
+    Args:
+        name: ``pure-hdv``, ``cooperative`` or the path of a ``checkpoint.pt``.
+        variant: if set, a checkpoint must be of this variant (guards against
+            comparing the wrong runs).
+    """
+
+    name: str
+    variant: str | None = None
+
+    @property
+    def is_baseline(self) -> bool:
+        return self.name in BASELINES
+
+
+class Policy:
+    """Base class; see the module docstring."""
+
+    label: str = ""
+    commands_cavs: bool = False
+    #: Settings shared by every cell (simulation, observation, PSAR, reward).
+    base: EnvConfig = EnvConfig()
+
+    def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
+        """The environment of one grid cell for this policy."""
+        return dataclasses.replace(
+            self.base,
+            backend=settings.backend,
+            map=cell.map,
+            scenario=cell.scenario(base=self.base.scenario),
+            sim=settings.apply(self.base.sim),
+        )
+
+    def begin_episode(self, n_cavs: int) -> None:
+        """Forget any recurrent state (called before the first :meth:`act`)."""
+
+    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
+        """(C,) int64 greedy actions for every CAV slot."""
+        raise NotImplementedError
+
+    def describe(self) -> dict:
+        """What identifies this policy in a results directory's ``meta.json``."""
+        return {"policy": self.label}
+
+
+class PureHdvPolicy(Policy):
+    """Every vehicle is an HDV (IDM + MOBIL / LC2013 with its safety model on)."""
+
+    label = "pure-hdv"
+
+    def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
+        cfg = super().env_config(cell, settings)
+        return dataclasses.replace(
+            cfg, use_psar=False, scenario=cell.scenario(cav_penetration=0.0, base=cfg.scenario)
+        )
+
+
+class CooperativePolicy(Policy):
+    """CAVs drive themselves: CACC car following and cooperative lane changes.
+
+    On SUMO the CAVs are CACC vehicles with ``lcCooperative = 1``; on highway
+    they run the HDV IDM/MOBIL code with a CACC-like parameter set (see
+    :class:`~diacc.backends.highway.HighwayBackend`).
+    """
+
+    label = "cooperative"
+
+    def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
+        cfg = super().env_config(cell, settings)
+        return dataclasses.replace(cfg, use_psar=False, cav_mode="cooperative")
+
+
+class CheckpointPolicy(Policy):
+    """A trained actor acting greedily, with PSAR if its variant uses PSAR."""
+
+    commands_cavs = True
+
+    def __init__(self, path: str | Path, variant: str | None = None) -> None:
+        import torch
+
+        from diacc.algo.mappo import (
+            CheckpointError,
+            config_from_checkpoint,
+            env_config,
+            load_checkpoint,
+            make_agent,
+            restore,
+        )
+
+        self.path = Path(path)
+        if variant is not None and variant not in VARIANTS:
+            raise PolicyError(f"unknown variant {variant!r}; known: {', '.join(VARIANTS)}")
+        payload = load_checkpoint(self.path)
+        if variant is not None and payload.get("variant") != variant:
+            raise CheckpointError(
+                f"checkpoint {self.path} is for variant {payload.get('variant')!r}, not {variant!r}"
+            )
+        try:
+            self.train_config: TrainConfig = config_from_checkpoint(payload)
+        except ValueError as exc:
+            raise CheckpointError(
+                f"checkpoint {self.path} has an unusable config ({exc})"
+            ) from None
+        cfg = dataclasses.replace(self.train_config, device="cpu")
+        agent = make_agent(cfg, torch.device("cpu"))
+        restore(agent, payload, cfg, self.path)  # checks variant and observation layout
+        self.actor = agent.actor.eval()
+        self.hidden_size = cfg.model.gru_hidden
+        self.base = env_config(cfg)  # use_psar as the variant says (mappo.PSAR_VARIANTS)
+        self.label = cfg.variant
+        self.update = int(payload.get("update", 0))
+        self._hidden = torch.zeros(0, self.hidden_size)
+
+    def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
+        if cell.n_vehicles > self.base.obs.max_vehicles:
+            raise PolicyError(
+                f"cell {cell.key} has {cell.n_vehicles} vehicles but checkpoint {self.path} "
+                f"observes at most {self.base.obs.max_vehicles}"
+            )
+        return super().env_config(cell, settings)
+
+    def begin_episode(self, n_cavs: int) -> None:
+        import torch
+
+        self._hidden = torch.zeros(n_cavs, self.hidden_size)
+
+    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
+        import torch
+
+        from diacc.models.inputs import to_tensors
+
+        n_cavs = actor_obs.alive.shape[0]
+        start = torch.full((n_cavs,), bool(first_step))
+        with torch.no_grad():
+            logits, self._hidden = self.actor(to_tensors(actor_obs), self._hidden, start)
+        return logits.argmax(-1).cpu().numpy().astype(np.int64)  # (C,)
+
+    def describe(self) -> dict:
+        return {
+            "policy": self.label,
+            "checkpoint": str(self.path.resolve()),
+            "update": self.update,
+            "trained_on": self.train_config.backend,
+        }
+
+
+def parse_policy(name: str, variant: str | None = None) -> PolicySpec:
+    """Check a ``--policy`` value: a baseline name or an existing checkpoint file."""
+    if name in BASELINES:
+        if variant is not None:
+            raise PolicyError(f"--variant applies to checkpoints, not to the {name} baseline")
+        return PolicySpec(name)
+    path = Path(name)
+    if path.is_dir() and (path / "checkpoint.pt").exists():
+        path = path / "checkpoint.pt"
+    if path.suffix != ".pt" and not path.exists():
+        raise PolicyError(
+            f"unknown policy {name!r}; use {', '.join(BASELINES)} or the path of a checkpoint.pt"
+        )
+    if not path.exists():
+        raise PolicyError(f"checkpoint {path} does not exist")
+    return PolicySpec(str(path), variant)
+
+
+def build_policy(spec: PolicySpec) -> Policy:
+    """Instantiate the policy a spec names (loads checkpoints)."""
+    if spec.name == "pure-hdv":
+        return PureHdvPolicy()
+    if spec.name == "cooperative":
+        return CooperativePolicy()
+    return CheckpointPolicy(spec.name, spec.variant)

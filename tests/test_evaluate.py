@@ -1,0 +1,253 @@
+"""Evaluation runner, grids, policies and the eval CLI, on the real backends."""
+
+from __future__ import annotations
+
+import csv
+import gzip
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from diacc.algo.mappo import make_agent, save_checkpoint
+from diacc.cli import main
+from diacc.config import ModelConfig, TrainConfig
+from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, evaluate, read_csv
+from diacc.grid import Cell, GridError, load_grid
+from diacc.maps import SEGMENT_KINDS
+from diacc.policies import EvalSettings, PolicySpec
+
+SMALL = Cell("train-50", 10, 0.4, "D1")
+GRID_TOML = """
+[[cells]]
+map = "train-50"
+n_vehicles = 10
+cav_penetration = 0.4
+style_mix = "D1"
+"""
+TINY_MODEL = ModelConfig(hidden_dim=16, gat_heads=2, cross_heads=2, cross_dim=16, gru_hidden=16)
+
+
+def _checkpoint(path: Path, variant: str = "diacc") -> Path:
+    cfg = TrainConfig(variant=variant, model=TINY_MODEL)
+    torch.manual_seed(0)
+    agent = make_agent(cfg, torch.device("cpu"))
+    path.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(path / "checkpoint.pt", agent, cfg, 0, 0)
+    return path / "checkpoint.pt"
+
+
+def _float(text: str) -> float:
+    return float(text) if text != "nan" else float("nan")
+
+
+# ----------------------------------------------------------------------------- grids
+def test_named_grids_match_the_paper():
+    train = load_grid("train")
+    assert [(c.map, c.n_vehicles, c.cav_penetration, c.style_mix) for c in train] == [
+        ("train-25", 25, 0.4, "D1"),
+        ("train-50", 25, 0.4, "D1"),
+    ]
+    zero = load_grid("zero-shot")
+    assert len(zero) == 2 * 4 * 2 * 2
+    assert {c.map for c in zero} == {"test-25", "test-50"}
+    assert {c.n_vehicles for c in zero} == {20, 25, 30, 40}
+    assert {c.cav_penetration for c in zero} == {0.2, 0.3}
+    assert {c.style_mix for c in zero} == {"D2", "D3"}
+
+
+def test_grid_file_and_seeds(tmp_path):
+    path = tmp_path / "grid.toml"
+    path.write_text(GRID_TOML + '\n[product]\nmap = ["test-25"]\nn_vehicles = [20, 30]\n')
+    cells = load_grid(path)
+    assert cells[0] == SMALL and [c.n_vehicles for c in cells[1:]] == [20, 30]
+    seeds = {c.seed(e) for c in cells for e in range(20)}
+    assert len(seeds) == 3 * 20 and max(seeds) < 2**31  # distinct, fit SUMO's --seed
+    assert SMALL.seed(3) == Cell("train-50", 10, 0.4, "D1").seed(3)  # fixed per cell/episode
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        (GRID_TOML + "speed = 3\n", "unknown grid cell key 'speed'"),
+        ("[[cells]]\nmap = 'train-50'\n", "missing key"),
+        (GRID_TOML.replace('"D1"', '"D9"'), "unknown style mix"),
+        (GRID_TOML.replace('"train-50"', '"nowhere"'), "unknown map"),
+    ],
+)
+def test_bad_grid_files(tmp_path, text, message):
+    path = tmp_path / "grid.toml"
+    path.write_text(text)
+    with pytest.raises(GridError, match=message):
+        load_grid(path)
+
+
+# ----------------------------------------------------------------------------- runner
+@pytest.fixture(scope="module")
+def hdv_results(tmp_path_factory):
+    out = tmp_path_factory.mktemp("hdv")
+    summary = evaluate(
+        PolicySpec("pure-hdv"),
+        [SMALL],
+        2,
+        out,
+        EvalSettings("highway", episode_steps=40),
+        progress=False,
+    )
+    assert summary.cells_run == [SMALL]
+    return out
+
+
+def test_metrics_equal_recomputation_from_speed_samples(hdv_results):
+    episodes = read_csv(hdv_results / EPISODES_FILE)
+    samples = read_csv(hdv_results / SPEEDS_FILE)
+    assert len(episodes) == 2 and {r["policy"] for r in episodes} == {"pure-hdv"}
+    by_episode = defaultdict(list)
+    for s in samples:
+        by_episode[int(s["episode"])].append(s)
+    for row in episodes:
+        rows = by_episode[int(row["episode"])]
+        speed = np.array([float(s["speed_mps"]) for s in rows])
+        kind = np.array([s["segment_kind"] for s in rows])
+        vehicle = np.array([int(s["vehicle"]) for s in rows])
+        assert row["n_cavs"] == "0" and not any(s["is_cav"] == "True" for s in rows)
+        assert int(row["n_speed_samples"]) == speed.size
+        assert float(row["mean_speed_mps"]) == pytest.approx(speed.mean(), rel=1e-12)
+        assert float(row["std_speed_mps"]) == pytest.approx(speed.std(), rel=1e-12)
+        assert float(row["mean_hdv_speed_mps"]) == pytest.approx(speed.mean(), rel=1e-12)
+        for k in SEGMENT_KINDS:
+            expected = speed[kind == k].mean() if (kind == k).any() else float("nan")
+            assert _float(row[f"speed_{k}_mps"]) == pytest.approx(expected, rel=1e-12, nan_ok=True)
+        waited = np.unique(vehicle[speed < 3.0]).size
+        assert float(row["p_we"]) == pytest.approx(waited / np.unique(vehicle).size)
+        assert int(row["n_vehicles_seen"]) == np.unique(vehicle).size == SMALL.n_vehicles
+
+
+def test_rerun_skips_finished_cells(hdv_results):
+    before = (hdv_results / EPISODES_FILE).read_bytes()
+    summary = evaluate(
+        PolicySpec("pure-hdv"),
+        [SMALL],
+        2,
+        hdv_results,
+        EvalSettings("highway", episode_steps=40),
+        progress=False,
+    )
+    assert summary.cells_run == [] and summary.cells_skipped == [SMALL]
+    assert (hdv_results / EPISODES_FILE).read_bytes() == before
+
+
+def test_worker_processes_give_identical_results(hdv_results, tmp_path):
+    evaluate(
+        PolicySpec("pure-hdv"),
+        [SMALL],
+        2,
+        tmp_path,
+        EvalSettings("highway", episode_steps=40),
+        workers=2,
+        progress=False,
+    )
+    assert (tmp_path / EPISODES_FILE).read_bytes() == (hdv_results / EPISODES_FILE).read_bytes()
+    assert gzip.decompress((tmp_path / SPEEDS_FILE).read_bytes()) == gzip.decompress(
+        (hdv_results / SPEEDS_FILE).read_bytes()
+    )
+
+
+@pytest.mark.parametrize("backend", ["highway", "sumo"])
+@pytest.mark.parametrize("policy", ["pure-hdv", "cooperative"])
+def test_baselines_run_on_both_backends(tmp_path, backend, policy):
+    evaluate(
+        PolicySpec(policy),
+        [SMALL],
+        1,
+        tmp_path,
+        EvalSettings(backend, episode_steps=15),
+        progress=False,
+    )
+    (row,) = read_csv(tmp_path / EPISODES_FILE)
+    assert row["backend"] == backend and row["policy"] == policy
+    assert int(row["n_cavs"]) == (0 if policy == "pure-hdv" else 4)
+    assert row["sumo_version"].startswith("SUMO 1.") == (backend == "sumo")
+    assert 0 < float(row["mean_speed_mps"]) <= 25.0 + 1e-6
+    assert 1 <= int(row["steps"]) <= 15
+
+
+def test_checkpoint_policy_greedy_and_deterministic(tmp_path):
+    ckpt = _checkpoint(tmp_path / "run")
+    outs = []
+    for name in ("a", "b"):
+        evaluate(
+            PolicySpec(str(ckpt)),
+            [SMALL],
+            1,
+            tmp_path / name,
+            EvalSettings("highway", episode_steps=10),
+            progress=False,
+        )
+        outs.append((tmp_path / name / EPISODES_FILE).read_bytes())
+    assert outs[0] == outs[1]
+    (row,) = read_csv(tmp_path / "a" / EPISODES_FILE)
+    assert row["policy"] == "diacc" and row["psar"] == "True" and int(row["psar_decisions"]) > 0
+
+
+# ----------------------------------------------------------------------------- CLI errors
+def _cli_error(capsys, argv: list[str]) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("diacc: error: ") and "\n" not in err
+    return err
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    out = str(tmp_path / "res")
+    assert "unknown policy 'greedy'" in _cli_error(
+        capsys, ["eval", "--policy", "greedy", "--out", out]
+    )
+    ckpt = _checkpoint(tmp_path / "mappo-run", variant="mappo")
+    assert "variant 'mappo', not 'diacc'" in _cli_error(
+        capsys, ["eval", "--policy", str(ckpt), "--variant", "diacc", "--out", out]
+    )
+    payload = torch.load(ckpt, weights_only=False)
+    payload["obs_spec"]["n_neighbours"] = 4
+    torch.save(payload, tmp_path / "other.pt")
+    assert "another observation layout" in _cli_error(
+        capsys, ["eval", "--policy", str(tmp_path / "other.pt"), "--out", out]
+    )
+    grid = tmp_path / "grid.toml"
+    grid.write_text(GRID_TOML + "lanes = 3\n")
+    assert "unknown grid cell key 'lanes'" in _cli_error(
+        capsys, ["eval", "--policy", "pure-hdv", "--grid", str(grid), "--out", out]
+    )
+    (tmp_path / "empty").mkdir()
+    assert "holds no evaluation results" in _cli_error(capsys, ["table", str(tmp_path / "empty")])
+    assert "holds no evaluation results" in _cli_error(
+        capsys, ["plot", "speeds", str(tmp_path / "empty"), "--out", str(tmp_path / "f")]
+    )
+
+
+def test_cli_eval_writes_results(tmp_path, capsys):
+    grid = tmp_path / "grid.toml"
+    grid.write_text(GRID_TOML)
+    out = tmp_path / "res"
+    argv = [
+        "eval",
+        "--policy",
+        "pure-hdv",
+        "--grid",
+        str(grid),
+        "--episodes",
+        "1",
+        "--episode-steps",
+        "5",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
+    assert main(argv) == 0
+    assert "1 cells run, 0 already done" in capsys.readouterr().out
+    assert main(argv) == 0
+    assert "0 cells run, 1 already done" in capsys.readouterr().out
+    with open(out / EPISODES_FILE, newline="") as fh:
+        assert len(list(csv.DictReader(fh))) == 1

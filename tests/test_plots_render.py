@@ -1,0 +1,133 @@
+"""Figures (training curves, speed distributions) and GIF rendering."""
+
+from __future__ import annotations
+
+import json
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from diacc.cli import main
+from diacc.evaluate import evaluate
+from diacc.grid import Cell
+from diacc.plots import PlotError, gaussian_kde, group_curves, read_progress
+from diacc.policies import EvalSettings, PolicySpec
+from diacc.render import RenderError, render_episode
+
+CELL = Cell("train-50", 10, 0.4, "D1")
+
+
+def _run(path, variant: str, seed: int, offset: float) -> None:
+    path.mkdir(parents=True)
+    (path / "config.json").write_text(
+        json.dumps({"variant": variant, "backend": "highway", "seed": seed})
+    )
+    with open(path / "progress.jsonl", "w") as fh:
+        for u in range(1, 11):
+            fh.write(
+                json.dumps(
+                    {
+                        "update": u,
+                        "global_step": 2000 * u,
+                        "global_reward": offset + u,
+                        "episode/collision": 1.0 / u,
+                        "reward/ego": -offset,
+                    }
+                )
+                + "\n"
+            )
+
+
+def _assert_png(path) -> None:
+    image = imageio.imread(path)
+    assert image.ndim == 3 and image.shape[0] > 100 and image.shape[1] > 100
+    assert image[..., :3].std() > 5  # not blank
+
+
+def test_curves_mean_and_band_over_seeds(tmp_path):
+    _run(tmp_path / "a1", "diacc", 1, 0.0)
+    _run(tmp_path / "a2", "diacc", 2, 2.0)
+    _run(tmp_path / "b1", "mappo", 1, 5.0)
+    curves = group_curves([tmp_path / "a1", tmp_path / "a2", tmp_path / "b1"], ("global_reward",))
+    steps, mean, std = curves["diacc (highway)"]
+    assert np.array_equal(steps, 2000.0 * np.arange(1, 11))
+    assert np.allclose(mean, np.arange(1, 11) + 1.0) and np.allclose(std, 1.0)
+    assert np.allclose(curves["mappo (highway)"][2], 0.0)
+    assert (
+        main(
+            [
+                "plot",
+                "curves",
+                str(tmp_path / "a1"),
+                str(tmp_path / "a2"),
+                str(tmp_path / "b1"),
+                "--out",
+                str(tmp_path / "fig" / "curves"),
+            ]
+        )
+        == 0
+    )
+    _assert_png(tmp_path / "fig" / "curves.png")
+    assert (tmp_path / "fig" / "curves.pdf").stat().st_size > 1000
+
+
+def test_curves_from_tensorboard(tmp_path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(str(tmp_path / "run" / "tb"))
+    for step in range(5):
+        writer.add_scalar("train/global_reward", float(step), step * 100)
+    writer.close()
+    series = read_progress(tmp_path / "run")
+    assert np.array_equal(series["global_reward"][1], np.arange(5.0))
+    with pytest.raises(PlotError, match="neither progress.jsonl nor TensorBoard"):
+        (tmp_path / "none").mkdir()
+        read_progress(tmp_path / "none")
+
+
+def test_kde_integrates_to_one():
+    grid = np.linspace(-10, 30, 2001)
+    density = gaussian_kde(np.random.default_rng(0).normal(10, 2, 500), grid)
+    assert np.trapezoid(density, grid) == pytest.approx(1.0, abs=1e-3)
+
+
+def test_speed_plots(tmp_path):
+    for policy in ("pure-hdv", "cooperative"):
+        evaluate(
+            PolicySpec(policy),
+            [CELL],
+            1,
+            tmp_path / policy,
+            EvalSettings("sumo", episode_steps=30),
+            progress=False,
+        )
+    out = tmp_path / "speeds"
+    assert (
+        main(
+            [
+                "plot",
+                "speeds",
+                str(tmp_path / "pure-hdv"),
+                str(tmp_path / "cooperative"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    _assert_png(out.with_suffix(".png"))
+    assert out.with_suffix(".pdf").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("backend", ["highway", "sumo"])
+def test_gif_has_expected_frames(tmp_path, backend):
+    result = render_episode(
+        PolicySpec("pure-hdv"), CELL, tmp_path / "ep.gif", steps=4, settings=EvalSettings(backend)
+    )
+    frames = imageio.mimread(tmp_path / "ep.gif")
+    assert result.n_frames == len(frames) == 5  # the reset state + 4 steps
+    first, last = (np.asarray(f)[..., :3].astype(int) for f in (frames[0], frames[-1]))
+    assert first.std() > 5 and np.abs(first - last).sum() > 0  # drawn, and vehicles moved
+    with pytest.raises(RenderError, match=r"must end in \.gif"):
+        render_episode(PolicySpec("pure-hdv"), CELL, tmp_path / "ep.mp4", 4, EvalSettings(backend))
