@@ -251,3 +251,33 @@ def test_cli_eval_writes_results(tmp_path, capsys):
     assert "0 cells run, 1 already done" in capsys.readouterr().out
     with open(out / EPISODES_FILE, newline="") as fh:
         assert len(list(csv.DictReader(fh))) == 1
+
+
+# -------------------------------------------------------------- highway cooperative CAVs
+def test_highway_cooperative_cavs_drive_themselves():
+    from diacc.backends.base import BackendError, CavCommands
+    from diacc.backends.highway import HighwayBackend
+    from diacc.config import SimConfig
+    from diacc.maps import load_map
+
+    road, sim = load_map("train-50"), SimConfig()
+    scenario = SMALL.scenario()
+    coop = [HighwayBackend(road, sim, cav_mode="cooperative") for _ in range(2)]
+    commanded = HighwayBackend(road, sim)
+    states = [b.reset(scenario, 7) for b in (*coop, commanded)]
+    cav = states[0].is_cav
+    assert cav.sum() == scenario.n_cavs and np.array_equal(states[2].is_cav, cav)
+    rng = np.random.default_rng(0)
+    for _ in range(8):
+        idle = CavCommands.idle(cav.size)
+        noisy = CavCommands(
+            rng.integers(-1, 2, cav.size).astype(np.int8), rng.normal(0, 2, cav.size)
+        )
+        states = [coop[0].step(idle), coop[1].step(noisy), commanded.step(idle)]
+    assert np.array_equal(states[0].x_m, states[1].x_m)  # cooperative CAVs ignore commands
+    assert np.array_equal(states[0].is_cav, cav)  # and are still reported as CAVs
+    # Commanded CAVs hold their speed when idle; cooperative ones accelerate on their own.
+    assert np.allclose(states[2].speed_mps[cav], scenario.insert_speed_mps)
+    assert states[0].speed_mps[cav].mean() > scenario.insert_speed_mps + 1.0
+    with pytest.raises(BackendError, match="unknown CAV mode"):
+        HighwayBackend(road, sim, cav_mode="platoon")

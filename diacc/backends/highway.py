@@ -27,6 +27,13 @@ Modelling choices (documented here because both backends must agree on them):
   A commanded change towards a lane that does not exist here, or that ends
   within one step's reach, is ignored; a CAV in an ending lane is forced
   out by the HDVs' rule, unconditionally once the end is within one step.
+* **Cooperative CAVs** (``cav_mode="cooperative"``, the paper's non-learning
+  "cooperative" baseline; SUMO uses CACC with ``lcCooperative = 1``): CAVs
+  ignore the commands and are driven by the same vectorised IDM / MOBIL /
+  forced-merge code as HDVs, with a CACC-like parameter set
+  (:class:`CooperativeCavParams`: short time headway 0.6 s, minimum gap 1 m,
+  the CAV accel/decel limits, MOBIL politeness 1 i.e. fully cooperative lane
+  changes). They are still reported as CAVs in the TrafficState.
 * **Collisions** are oriented-rectangle overlaps between active vehicles at
   any sub-step. A pair is reported in the step its contact begins. Collided
   vehicles stop where they are and stay on the road as obstacles (as in
@@ -37,9 +44,11 @@ Modelling choices (documented here because both backends must agree on them):
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from diacc.backends.base import BackendError, CavCommands
+from diacc.backends.base import CAV_MODES, BackendError, CavCommands
 from diacc.backends.highway_models import (
     HighwayModel,
     IdmParams,
@@ -55,12 +64,40 @@ from diacc.state import TrafficState
 _EMPTY_PAIRS = np.zeros((0, 2), dtype=np.int32)
 
 
+@dataclass(frozen=True)
+class CooperativeCavParams:
+    """IDM/MOBIL image of a CACC CAV with cooperative lane changes (cooperative baseline).
+
+    CACC keeps shorter gaps than human drivers, so the time headway is short;
+    politeness 1 weighs the followers' gain as much as the own (SUMO's
+    ``lcCooperative = 1``). Acceleration limits are the CAVs' (``SimConfig.cav``).
+    """
+
+    time_headway_s: float = 0.6
+    min_gap_m: float = 1.0
+    politeness: float = 1.0
+    lc_gain_threshold_mps2: float = 0.1
+
+
 class HighwayBackend:
     """Vectorised highway traffic on a highway-env road (see module docstring)."""
 
     name = "highway"
 
-    def __init__(self, road: Map, sim: SimConfig, model: HighwayModel | None = None) -> None:
+    def __init__(
+        self,
+        road: Map,
+        sim: SimConfig,
+        model: HighwayModel | None = None,
+        cav_mode: str = "commanded",
+        cooperative: CooperativeCavParams | None = None,
+    ) -> None:
+        if cav_mode not in CAV_MODES:
+            raise BackendError(
+                f"unknown CAV mode {cav_mode!r}; choose one of {', '.join(CAV_MODES)}"
+            )
+        self.cav_mode = cav_mode
+        self.cooperative = cooperative or CooperativeCavParams()
         if sim.style_preset not in STYLE_PRESETS:
             raise BackendError(
                 f"unknown style preset {sim.style_preset!r}; known: {', '.join(STYLE_PRESETS)}"
@@ -87,6 +124,9 @@ class HighwayBackend:
         n = pop.n_vehicles
         styles = STYLE_PRESETS[self.sim.style_preset]
         cav = self.sim.cav
+        coop = self.cav_mode == "cooperative"
+        headway_s = self.cooperative.time_headway_s if coop else cav.time_headway_s
+        min_gap_m = self.cooperative.min_gap_m if coop else cav.min_gap_m
         hdv_style = np.where(pop.is_cav, 0, pop.style).astype(np.intp)
 
         def per_vehicle(attr: str, cav_value: float) -> np.ndarray:
@@ -94,16 +134,20 @@ class HighwayBackend:
             return np.where(pop.is_cav, cav_value, table[hdv_style])
 
         self.idm = IdmParams(
-            headway_s=per_vehicle("time_headway_s", cav.time_headway_s),
-            min_gap_m=per_vehicle("min_gap_m", cav.min_gap_m),
+            headway_s=per_vehicle("time_headway_s", headway_s),
+            min_gap_m=per_vehicle("min_gap_m", min_gap_m),
             accel_mps2=per_vehicle("accel_mps2", cav.accel_mps2),
             decel_mps2=per_vehicle("decel_mps2", cav.decel_mps2),
             delta=self.sim.idm_delta,
         )
-        self.politeness = per_vehicle("politeness", 0.0)
-        self.gain_threshold_mps2 = per_vehicle("lc_gain_threshold_mps2", 0.0)
+        self.politeness = per_vehicle("politeness", self.cooperative.politeness if coop else 0.0)
+        self.gain_threshold_mps2 = per_vehicle(
+            "lc_gain_threshold_mps2", self.cooperative.lc_gain_threshold_mps2 if coop else 0.0
+        )
 
-        self.is_cav = pop.is_cav.copy()
+        # is_cav: vehicles driven by commands; cooperative CAVs drive like HDVs.
+        self.is_cav = np.zeros(n, dtype=bool) if coop else pop.is_cav.copy()
+        self._reported_cav = pop.is_cav.copy()  # TrafficState.is_cav
         self.style = pop.style.astype(np.int8)
         self.x_m = pop.x_m.astype(np.float64).copy()
         self.lane_from = pop.lane.astype(np.intp)
@@ -574,7 +618,7 @@ class HighwayBackend:
             segment=self._segment().astype(np.int16),
             length_m=np.full(n, self.sim.vehicle_length_m),
             width_m=np.full(n, self.sim.vehicle_width_m),
-            is_cav=self.is_cav.copy(),
+            is_cav=self._reported_cav.copy(),
             style=self.style.copy(),
             active=self.active.copy(),
             arrived=self.arrived.copy(),
