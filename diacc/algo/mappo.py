@@ -175,43 +175,224 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def set_rng_state(rng: dict) -> None:
+    """Restore the RNG states saved by :func:`save_checkpoint`."""
+    random.setstate(rng["python"])
+    np.random.set_state(rng["numpy"])
+    torch.set_rng_state(rng["torch"].cpu())
+    if rng["cuda"] is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(rng["cuda"])
+
+
+# ----------------------------------------------------------------------------- rollout
+@dataclass
+class RolloutStats:
+    """What a rollout saw, for logging."""
+
+    episodes: list[dict]
+    psar_counts: np.ndarray  # (4,) decisions on which each PSAR rule took effect
+    decisions: int  # CAV decisions taken by alive CAVs
+    restarts: int
+    seconds: float
+
+
+def collect_rollout(agent: Agent, envs, cfg: TrainConfig, update: int,
+                    device: torch.device) -> tuple[Rollout, np.ndarray, RolloutStats]:
+    """Run every environment for ``rollout_steps`` decisions from a fresh reset.
+
+    Returns the filled rollout, V(s_S) for bootstrapping (E,), and stats.
+    """
+    t0 = time.perf_counter()
+    E, C, H_a, H_c = cfg.n_envs, envs.n_cavs, agent.actor.hidden_size, agent.critic.hidden_size
+    roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, H_c)
+    actor_obs, critic_state = envs.reset(first_episode=update * EPISODES_PER_UPDATE)
+    h_actor = torch.zeros(E * C, H_a, device=device)  # (E*C, H)
+    h_critic = torch.zeros(E, H_c, device=device)  # (E, H)
+    start = np.ones(E, bool)
+    stats = RolloutStats([], np.zeros(len(RULE_NAMES) - 1, np.int64), 0, 0, 0.0)
+    for t in range(cfg.rollout_steps):
+        roll.actor_obs[t], roll.critic_state[t] = actor_obs, critic_state
+        roll.episode_start[t], roll.alive[t] = start, actor_obs.alive
+        roll.actor_hidden[t] = h_actor.view(E, C, H_a).cpu().numpy()
+        roll.critic_hidden[t] = h_critic.cpu().numpy()
+        with torch.no_grad():
+            start_t = torch.as_tensor(start, device=device)
+            logits, h_actor = agent.actor(to_tensors(flatten_agents(actor_obs), device),
+                                          h_actor, start_t.repeat_interleave(C))
+            dist = torch.distributions.Categorical(logits=logits)
+            action = dist.sample()  # (E*C,)
+            value, h_critic = agent.critic(to_tensors(critic_state, device), h_critic, start_t)
+        roll.actions[t] = action.view(E, C).cpu().numpy()
+        roll.logprobs[t] = dist.log_prob(action).view(E, C).cpu().numpy()
+        roll.values[t] = agent.value_norm.denormalize(value).cpu().numpy()
+
+        out = envs.step(roll.actions[t])
+        roll.rewards[t], roll.terminated[t], roll.truncated[t] = out.reward, out.terminated, out.truncated
+        for e in np.flatnonzero(out.truncated):  # bootstrap from where the episode was cut
+            with torch.no_grad():
+                v_final, _ = agent.critic(to_tensors(stack([out.final_critic_state[e]]), device),
+                                          h_critic[e : e + 1], torch.zeros(1, dtype=torch.bool, device=device))
+            roll.final_values[t, e] = agent.value_norm.denormalize(v_final).item()
+        stats.episodes += out.episodes
+        stats.psar_counts += rule_counts(out.psar_rule_mask[roll.alive[t]])
+        stats.decisions += int(roll.alive[t].sum())
+        stats.restarts += out.restarts
+        actor_obs, critic_state = out.actor_obs, out.critic_state
+        start = out.terminated | out.truncated
+    with torch.no_grad():
+        next_value, _ = agent.critic(to_tensors(critic_state, device), h_critic,
+                                     torch.as_tensor(start, device=device))
+    stats.seconds = time.perf_counter() - t0
+    return roll, agent.value_norm.denormalize(next_value).cpu().numpy(), stats
+
+
+# ----------------------------------------------------------------------------- batch
+@dataclass
+class Batch:
+    """A rollout cut into sequences of L = ``chunk_len`` steps, time-major.
+
+    Actor tensors are (L, B_a, ...) with B_a = chunks * E * C, ordered
+    (chunk, env, cav); critic tensors are (L, B_c, ...) with B_c = chunks * E.
+    So the agents of critic sequence j are actor sequences j*C .. j*C + C-1.
+    """
+
+    actor_obs: dict[str, torch.Tensor]
+    critic_state: dict[str, torch.Tensor]
+    actor_h0: torch.Tensor  # (B_a, H) hidden state at each chunk start
+    critic_h0: torch.Tensor  # (B_c, H)
+    actor_start: torch.Tensor  # (L, B_a) bool
+    critic_start: torch.Tensor  # (L, B_c) bool
+    actions: torch.Tensor  # (L, B_a)
+    logprobs: torch.Tensor  # (L, B_a)
+    alive: torch.Tensor  # (L, B_a) float, 0 for dead/absent CAVs
+    advantages: torch.Tensor  # (L, B_a) normalised over alive CAVs
+    returns: torch.Tensor  # (L, B_c) unnormalised
+    values: torch.Tensor  # (L, B_c) unnormalised
+
+
+def make_batch(roll: Rollout, advantages: np.ndarray, returns: np.ndarray, chunk_len: int,
+               device: torch.device) -> Batch:
+    S, E, C = roll.actions.shape
+    L = chunk_len
+
+    def per_agent(array: np.ndarray) -> np.ndarray:  # (S, E, C, ...) -> (L, B_a, ...)
+        return chunk_time_major(array.reshape(S, E * C, *array.shape[3:]), L)
+
+    def tensor(array: np.ndarray, dtype=torch.float32) -> torch.Tensor:
+        return torch.as_tensor(array, dtype=dtype, device=device)
+
+    actor, critic = stack(roll.actor_obs), stack(roll.critic_state)
+    adv = np.repeat(advantages[:, :, None], C, axis=2)  # (S, E, C): team advantage per CAV
+    alive_adv = adv[roll.alive]
+    if alive_adv.size > 1:
+        adv = (adv - alive_adv.mean()) / (alive_adv.std() + 1e-8)
+    starts = np.repeat(roll.episode_start[:, :, None], C, axis=2)
+    return Batch(
+        actor_obs=to_tensors({f.name: per_agent(getattr(actor, f.name)) for f in fields(actor)}, device),
+        critic_state=to_tensors({f.name: chunk_time_major(getattr(critic, f.name), L)
+                                 for f in fields(critic)}, device),
+        actor_h0=tensor(roll.actor_hidden[::L].reshape(-1, roll.actor_hidden.shape[-1])),
+        critic_h0=tensor(roll.critic_hidden[::L].reshape(-1, roll.critic_hidden.shape[-1])),
+        actor_start=tensor(per_agent(starts), torch.bool),
+        critic_start=tensor(chunk_time_major(roll.episode_start, L), torch.bool),
+        actions=tensor(per_agent(roll.actions), torch.long),
+        logprobs=tensor(per_agent(roll.logprobs)),
+        alive=tensor(per_agent(roll.alive)),
+        advantages=tensor(per_agent(adv)),
+        returns=tensor(chunk_time_major(returns, L)),
+        values=tensor(chunk_time_major(roll.values, L)),
+    )
+
+
+def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: int):
+    """Replay critic sequences ``envs_idx`` and their CAVs' actor sequences.
+
+    Returns (new log-probs (L, b_a), entropy (L, b_a), normalised values (L, b_c),
+    actor sequence indices b_a).
+    """
+    agents_idx = (envs_idx[:, None] * n_cavs + torch.arange(n_cavs, device=envs_idx.device)).reshape(-1)
+    logits, _ = agent.actor.forward_sequence({k: v[:, agents_idx] for k, v in batch.actor_obs.items()},
+                                             batch.actor_h0[agents_idx], batch.actor_start[:, agents_idx])
+    values, _ = agent.critic.forward_sequence({k: v[:, envs_idx] for k, v in batch.critic_state.items()},
+                                              batch.critic_h0[envs_idx], batch.critic_start[:, envs_idx])
+    dist = torch.distributions.Categorical(logits=logits)  # (L, b_a, 5)
+    return dist.log_prob(batch.actions[:, agents_idx]), dist.entropy(), values, agents_idx
+
+
+# ----------------------------------------------------------------------------- PPO update
+def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dict[str, float]:
+    """``epochs`` passes of clipped PPO over the batch; returns mean diagnostics."""
+    agent.value_norm.update(batch.returns)
+    returns_n = agent.value_norm.normalize(batch.returns)
+    old_values_n = agent.value_norm.normalize(batch.values)
+    stats: dict[str, list[float]] = {k: [] for k in
+                                     ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
+    n_sequences = batch.critic_h0.shape[0]
+    for _epoch in range(cfg.epochs):
+        # Minibatches of whole (chunk, env) sequences keep each env's CAVs with its critic.
+        for envs_idx in torch.randperm(n_sequences, device=batch.returns.device).chunk(cfg.minibatches):
+            logprob, entropy, value, agents_idx = evaluate_batch(agent, batch, envs_idx, n_cavs)
+            mask = batch.alive[:, agents_idx]  # (L, b_a): dead CAVs add nothing
+            n_alive = mask.sum().clamp(min=1.0)
+            log_ratio = logprob - batch.logprobs[:, agents_idx]
+            ratio = log_ratio.exp()
+            adv = batch.advantages[:, agents_idx]
+            surrogate = torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv)
+            policy_loss = -(surrogate * mask).sum() / n_alive
+            entropy_mean = (entropy * mask).sum() / n_alive
+            old_v, target = old_values_n[:, envs_idx], returns_n[:, envs_idx]
+            v_clipped = old_v + (value - old_v).clamp(-cfg.clip, cfg.clip)
+            value_loss = torch.max(
+                F.huber_loss(value, target, delta=cfg.huber_delta, reduction="none"),
+                F.huber_loss(v_clipped, target, delta=cfg.huber_delta, reduction="none"),
+            ).mean()
+            loss = policy_loss - cfg.entropy_coef * entropy_mean + cfg.value_coef * value_loss
+            agent.optimizer.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(agent.actor.parameters(), cfg.max_grad_norm)
+            torch.nn.utils.clip_grad_norm_(agent.critic.parameters(), cfg.max_grad_norm)
+            agent.optimizer.step()
+            with torch.no_grad():
+                stats["policy_loss"].append(policy_loss.item())
+                stats["value_loss"].append(value_loss.item())
+                stats["entropy"].append(entropy_mean.item())
+                stats["approx_kl"].append(((((ratio - 1) - log_ratio) * mask).sum() / n_alive).item())
+                stats["clipfrac"].append(((((ratio - 1).abs() > cfg.clip).float() * mask).sum()
+                                          / n_alive).item())
+    return {k: float(np.mean(v)) for k, v in stats.items()}
+
+
 # ----------------------------------------------------------------------------- training
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
           stop_after_updates: int | None = None) -> Path:
-    """Train ``cfg.variant``; returns the run directory (config, checkpoints, logs)."""
+    """Train ``cfg.variant``; returns the run directory (config, checkpoints, logs).
+
+    ``stop_after_updates`` ends the run early (as if interrupted) after that
+    many updates, with a checkpoint; ``resume=True`` continues from it.
+    """
+    if cfg.rollout_steps % cfg.chunk_len:
+        raise ValueError(f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}")
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = run_dir / "checkpoint.pt"
     device = resolve_device(cfg.device)
     seed_everything(cfg.seed)
     agent = make_agent(cfg, device)
-    torch.set_num_threads(max(1, torch.get_num_threads()))
-
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     n_updates = max(1, cfg.total_steps // steps_per_update)
-    if cfg.rollout_steps % cfg.chunk_len:
-        raise ValueError(f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}")
     first_update, global_step = 0, 0
     if resume:
         payload = load_checkpoint(ckpt_path, device)
         restore(agent, payload, cfg, ckpt_path)
         first_update, global_step = payload["update"], payload["global_step"]
-        rng = payload["rng"]
-        random.setstate(rng["python"])
-        np.random.set_state(rng["numpy"])
-        torch.set_rng_state(rng["torch"].cpu())
-        if rng["cuda"] is not None and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(rng["cuda"])
+        set_rng_state(payload["rng"])
     (run_dir / "config.json").write_text(json.dumps(asdict(cfg), indent=2, default=str))
+    last_update = n_updates if stop_after_updates is None else min(n_updates, first_update + stop_after_updates)
 
     envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed)
-    E, C = cfg.n_envs, envs.n_cavs
-    H_a, H_c = cfg.model.gru_hidden, cfg.model.gru_hidden
     writer = SummaryWriter(str(run_dir / "tb"))
-    last_update = n_updates if stop_after_updates is None else min(n_updates, first_update + stop_after_updates)
     bar = tqdm(total=n_updates * steps_per_update, initial=global_step, unit="step",
                disable=not progress, desc=f"train {cfg.variant}")
-    history: list[dict] = []
     try:
         for update in range(first_update, last_update):
             t0 = time.perf_counter()
@@ -221,155 +402,33 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
             tau = temperature(global_step, cfg.total_steps, cfg.reward)
             envs.set_temperature(tau)
 
-            # ---------------- rollout
-            roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, H_c)
-            actor_obs, critic_state = envs.reset(first_episode=update * EPISODES_PER_UPDATE)
-            h_actor = torch.zeros(E * C, H_a, device=device)
-            h_critic = torch.zeros(E, H_c, device=device)
-            start = np.ones(E, bool)
-            alive = actor_obs.alive.copy()
-            episodes, psar_counts, restarts, decisions = [], np.zeros(len(RULE_NAMES) - 1), 0, 0
-            for t in range(cfg.rollout_steps):
-                roll.actor_obs[t], roll.critic_state[t] = actor_obs, critic_state
-                roll.episode_start[t] = start
-                roll.alive[t] = alive
-                roll.actor_hidden[t] = h_actor.view(E, C, H_a).cpu().numpy()
-                roll.critic_hidden[t] = h_critic.cpu().numpy()
-                with torch.no_grad():
-                    start_agents = torch.as_tensor(np.repeat(start, C), device=device)
-                    logits, h_actor = agent.actor(
-                        to_tensors(flatten_agents(actor_obs), device), h_actor, start_agents)
-                    dist = torch.distributions.Categorical(logits=logits)
-                    action = dist.sample()
-                    value, h_critic = agent.critic(
-                        to_tensors(critic_state, device), h_critic, torch.as_tensor(start, device=device))
-                    value = agent.value_norm.denormalize(value)
-                roll.actions[t] = action.view(E, C).cpu().numpy()
-                roll.logprobs[t] = dist.log_prob(action).view(E, C).cpu().numpy()
-                roll.values[t] = value.cpu().numpy()
-
-                out = envs.step(roll.actions[t])
-                roll.rewards[t], roll.terminated[t], roll.truncated[t] = out.reward, out.terminated, out.truncated
-                ended = out.terminated | out.truncated
-                for e in np.flatnonzero(out.truncated):
-                    with torch.no_grad():
-                        v_final, _ = agent.critic(
-                            to_tensors(stack([out.final_critic_state[e]]), device),
-                            h_critic[e : e + 1], torch.zeros(1, dtype=torch.bool, device=device))
-                        roll.final_values[t, e] = agent.value_norm.denormalize(v_final).item()
-                actor_obs, critic_state = out.actor_obs, out.critic_state
-                start, alive = ended, actor_obs.alive.copy()
-                episodes += out.episodes
-                psar_counts += rule_counts(out.psar_rule_mask[roll.alive[t]])
-                decisions += int(roll.alive[t].sum())
-                restarts += out.restarts
-            with torch.no_grad():
-                next_value, _ = agent.critic(to_tensors(critic_state, device), h_critic,
-                                             torch.as_tensor(start, device=device))
-                next_value = agent.value_norm.denormalize(next_value).cpu().numpy()
+            roll, next_value, rollout = collect_rollout(agent, envs, cfg, update, device)
             advantages, returns = compute_gae(
                 roll.rewards, roll.values, next_value, roll.terminated, roll.truncated,
                 roll.final_values, cfg.gamma, cfg.gae_lambda)
-            rollout_s = time.perf_counter() - t0
-
-            # ---------------- PPO update on recurrent chunks
-            L = cfg.chunk_len
-            stacked_actor = stack(roll.actor_obs)  # fields (S, E, C, ...)
-            stacked_critic = stack(roll.critic_state)  # fields (S, E, ...)
-            seq_actor = to_tensors({f.name: chunk_time_major(
-                getattr(stacked_actor, f.name).reshape(cfg.rollout_steps, E * C, *getattr(stacked_actor, f.name).shape[3:]), L)
-                for f in fields(stacked_actor)}, device)  # (L, B_a, ...)
-            seq_critic = to_tensors({f.name: chunk_time_major(getattr(stacked_critic, f.name), L)
-                                     for f in fields(stacked_critic)}, device)  # (L, B_c, ...)
-
-            def seq(array: np.ndarray, per_agent: bool, dtype=torch.float32) -> torch.Tensor:
-                array = array.reshape(cfg.rollout_steps, E * C) if per_agent else array
-                return torch.as_tensor(chunk_time_major(array, L), dtype=dtype, device=device)
-
-            b_start_a = seq(np.repeat(roll.episode_start[:, :, None], C, axis=2), True, torch.bool)
-            b_start_c = seq(roll.episode_start, False, torch.bool)
-            b_actions = seq(roll.actions, True, torch.long)
-            b_logprobs = seq(roll.logprobs, True)
-            b_alive = seq(roll.alive, True)
-            b_returns = seq(returns, False)
-            b_values = seq(roll.values, False)
-            adv_agents = np.repeat(advantages[:, :, None], C, axis=2)
-            alive_adv = adv_agents[roll.alive]
-            if alive_adv.size > 1:
-                adv_agents = (adv_agents - alive_adv.mean()) / (alive_adv.std() + 1e-8)
-            b_adv = seq(adv_agents, True)
-            h0_actor = torch.as_tensor(roll.actor_hidden[::L].reshape(-1, H_a), device=device)
-            h0_critic = torch.as_tensor(roll.critic_hidden[::L].reshape(-1, H_c), device=device)
-            agent.value_norm.update(torch.as_tensor(returns, device=device))
-            b_returns_norm = agent.value_norm.normalize(b_returns)
-            b_values_norm = agent.value_norm.normalize(b_values)
-
-            n_seq_a, n_seq_c = h0_actor.shape[0], h0_critic.shape[0]
-            stats: dict[str, list[float]] = {k: [] for k in
-                                             ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
-            for _epoch in range(cfg.epochs):
-                env_perm = torch.randperm(n_seq_c, device=device)
-                for mb_envs in env_perm.chunk(cfg.minibatches):
-                    # Minibatches split by (chunk, env) so sequences stay whole and each
-                    # environment's CAVs stay with its critic sequence.
-                    mb_agents = (mb_envs[:, None] * C + torch.arange(C, device=device)).reshape(-1)
-                    logits, _ = agent.actor.forward_sequence(
-                        {k: v[:, mb_agents] for k, v in seq_actor.items()},
-                        h0_actor[mb_agents], b_start_a[:, mb_agents])  # (L, B_a, 5)
-                    new_value, _ = agent.critic.forward_sequence(
-                        {k: v[:, mb_envs] for k, v in seq_critic.items()},
-                        h0_critic[mb_envs], b_start_c[:, mb_envs])  # (L, B_c)
-                    dist = torch.distributions.Categorical(logits=logits)
-                    new_logprob, entropy = dist.log_prob(b_actions[:, mb_agents]), dist.entropy()
-                    mask = b_alive[:, mb_agents]
-                    n_alive = mask.sum().clamp(min=1.0)
-                    log_ratio = new_logprob - b_logprobs[:, mb_agents]
-                    ratio = log_ratio.exp()
-                    adv = b_adv[:, mb_agents]
-                    pg_loss = -(torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv)
-                                * mask).sum() / n_alive
-                    entropy_mean = (entropy * mask).sum() / n_alive
-                    old_v, ret = b_values_norm[:, mb_envs], b_returns_norm[:, mb_envs]
-                    v_clipped = old_v + (new_value - old_v).clamp(-cfg.clip, cfg.clip)
-                    value_loss = torch.max(
-                        F.huber_loss(new_value, ret, delta=cfg.huber_delta, reduction="none"),
-                        F.huber_loss(v_clipped, ret, delta=cfg.huber_delta, reduction="none"),
-                    ).mean()
-                    loss = pg_loss - cfg.entropy_coef * entropy_mean + cfg.value_coef * value_loss
-                    agent.optimizer.zero_grad()
-                    loss.backward()
-                    torch.nn.utils.clip_grad_norm_(agent.actor.parameters(), cfg.max_grad_norm)
-                    torch.nn.utils.clip_grad_norm_(agent.critic.parameters(), cfg.max_grad_norm)
-                    agent.optimizer.step()
-                    with torch.no_grad():
-                        stats["policy_loss"].append(pg_loss.item())
-                        stats["value_loss"].append(value_loss.item())
-                        stats["entropy"].append(entropy_mean.item())
-                        stats["approx_kl"].append((((ratio - 1) - log_ratio) * mask).sum().item() / n_alive.item())
-                        stats["clipfrac"].append((((ratio - 1).abs() > cfg.clip).float() * mask).sum().item()
-                                                 / n_alive.item())
-
+            batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
+            losses = ppo_update(agent, batch, cfg, envs.n_cavs)
             global_step += steps_per_update
-            update_s = time.perf_counter() - t0
-            record = {k: float(np.mean(v)) for k, v in stats.items()}
-            record.update(
-                update=update + 1, global_step=global_step, tau=tau,
-                lr=agent.optimizer.param_groups[0]["lr"],
-                explained_variance=explained_variance(roll.values.ravel(), returns.ravel()),
-                env_steps_per_s=steps_per_update / rollout_s,
-                updates_per_s=1.0 / update_s, worker_restarts=restarts,
-                global_reward=float(roll.rewards.mean()),
-            )
-            for name, count in zip(RULE_NAMES[1:], psar_counts):  # fire rate per CAV decision
-                record[f"psar/{name}"] = float(count / max(decisions, 1))
-            if episodes:
-                for key in episodes[0]:
-                    if isinstance(episodes[0][key], (int, float)):
-                        record[f"episode/{key}"] = float(np.mean([ep[key] for ep in episodes]))
+
+            record = {
+                **losses, "update": update + 1, "global_step": global_step, "tau": tau,
+                "lr": agent.optimizer.param_groups[0]["lr"],
+                "explained_variance": explained_variance(roll.values.ravel(), returns.ravel()),
+                "env_steps_per_s": steps_per_update / rollout.seconds,
+                "updates_per_s": 1.0 / (time.perf_counter() - t0),
+                "worker_restarts": rollout.restarts,
+                "global_reward": float(roll.rewards.mean()),
+            }
+            for name, count in zip(RULE_NAMES[1:], rollout.psar_counts):  # per CAV decision
+                record[f"psar/{name}"] = float(count / max(rollout.decisions, 1))
+            if rollout.episodes:
+                for key, value in rollout.episodes[0].items():
+                    if isinstance(value, (int, float)):
+                        finite = [ep[key] for ep in rollout.episodes if np.isfinite(ep[key])]
+                        record[f"episode/{key}"] = float(np.mean(finite)) if finite else float("nan")
             for key, value in record.items():
                 if key not in ("update", "global_step"):
                     writer.add_scalar(key if "/" in key else f"train/{key}", value, global_step)
-            history.append(record)
             with open(run_dir / "progress.jsonl", "a") as fh:
                 fh.write(json.dumps(record) + "\n")
             bar.update(steps_per_update)

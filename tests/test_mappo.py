@@ -1,0 +1,151 @@
+"""Recurrent MAPPO: chunked replay, death masking, checkpoints and exact resume."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from diacc.algo.buffer import compute_gae
+from diacc.algo.mappo import (
+    CheckpointError,
+    collect_rollout,
+    env_config,
+    evaluate_batch,
+    load_checkpoint,
+    make_agent,
+    make_batch,
+    ppo_update,
+    seed_everything,
+    train,
+)
+from diacc.config import TrainConfig, override
+from diacc.scenario import Scenario
+from diacc.vector import make_vector_env
+
+TINY = {
+    "n_envs": 2, "rollout_steps": 20, "chunk_len": 10, "total_steps": 80, "device": "cpu",
+    "epochs": 2, "sim.episode_steps": 15, "model.hidden_dim": 32, "model.gru_hidden": 32,
+    "model.cross_dim": 32,
+}
+
+
+SHORT_MAP = """
+name = "short"
+lane_width_m = 3.2
+[[segments]]
+kind = "multilane"
+length_m = 100
+lanes = 3
+speed_limit_mps = 25.0
+[[segments]]
+kind = "reduction25"
+length_m = 60
+lanes = 2
+speed_limit_mps = 25.0
+"""
+
+
+def tiny_config(tmp_path, **extra) -> TrainConfig:
+    """Two envs of 8 vehicles on a 160 m road: CAVs leave within an episode."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    road = tmp_path / "short.toml"
+    road.write_text(SHORT_MAP)
+    cfg = override(TrainConfig(), {**TINY, "run_dir": str(tmp_path / "run"), "map": str(road), **extra})
+    return override(cfg, {"scenario": Scenario(n_vehicles=8, cav_penetration=0.5)})
+
+
+@pytest.fixture(scope="module")
+def rollout_and_batch(tmp_path_factory):
+    cfg = tiny_config(tmp_path_factory.mktemp("r"))
+    seed_everything(cfg.seed)
+    agent = make_agent(cfg, torch.device("cpu"))
+    envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed)
+    try:
+        roll, next_value, stats = collect_rollout(agent, envs, cfg, 0, torch.device("cpu"))
+    finally:
+        envs.close()
+    adv, ret = compute_gae(roll.rewards, roll.values, next_value, roll.terminated, roll.truncated,
+                           roll.final_values, cfg.gamma, cfg.gae_lambda)
+    batch = make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
+    return cfg, agent, roll, batch
+
+
+def test_rollout_has_episode_boundaries_and_dead_cavs(rollout_and_batch):
+    _, _, roll, _ = rollout_and_batch
+    # 20 steps with 15-step episodes: every env starts at least twice.
+    assert roll.episode_start[0].all() and (roll.episode_start.sum(axis=0) >= 2).all()
+    assert (roll.terminated | roll.truncated).any()
+    assert roll.alive.any()
+
+
+def test_chunked_replay_reproduces_rollout_logprobs(rollout_and_batch):
+    cfg, agent, _, batch = rollout_and_batch
+    with torch.no_grad():
+        every_env = torch.arange(batch.critic_h0.shape[0])
+        logprob, _, _, agents = evaluate_batch(agent, batch, every_env, 4)
+    ratio = (logprob - batch.logprobs[:, agents]).exp()
+    assert torch.allclose(ratio, torch.ones_like(ratio), atol=1e-5)
+
+
+def test_dead_steps_contribute_nothing(rollout_and_batch):
+    cfg, agent, _, batch = rollout_and_batch
+    cfg = override(cfg, {"epochs": 1})
+    dead = batch.alive == 0
+    assert dead.any(), "the tiny rollout should contain dead CAV steps"
+    garbage = copy.copy(batch)
+    garbage.advantages = torch.where(dead, torch.full_like(batch.advantages, 1e3), batch.advantages)
+    garbage.actions = torch.where(dead, (batch.actions + 1) % 5, batch.actions)
+    garbage.logprobs = torch.where(dead, batch.logprobs - 3.0, batch.logprobs)
+    results = []
+    for b in (batch, garbage):
+        a = copy.deepcopy(agent)
+        torch.manual_seed(0)
+        ppo_update(a, b, cfg, 4)
+        results.append(torch.cat([p.detach().ravel() for p in a.actor.parameters()]))
+    assert torch.equal(results[0], results[1])
+
+
+def test_resume_matches_uninterrupted_run(tmp_path):
+    straight = tiny_config(tmp_path / "a")
+    train(straight, progress=False)
+    split = tiny_config(tmp_path / "b")
+    train(split, progress=False, stop_after_updates=1)
+    train(split, resume=True, progress=False)
+    a = load_checkpoint(tmp_path / "a" / "run" / "checkpoint.pt")
+    b = load_checkpoint(tmp_path / "b" / "run" / "checkpoint.pt")
+    assert a["update"] == b["update"] == 2
+    for part in ("actor", "critic"):
+        for name, tensor in a[part].items():
+            assert torch.allclose(tensor, b[part][name], atol=1e-6), f"{part}.{name} differs"
+    logs = [(tmp_path / d / "run" / "progress.jsonl").read_text().splitlines() for d in ("a", "b")]
+    import json
+
+    last = [json.loads(lines[-1]) for lines in logs]
+    assert last[0]["policy_loss"] == pytest.approx(last[1]["policy_loss"], rel=1e-5, abs=1e-7)
+
+
+def test_bad_checkpoints_give_one_line_errors(tmp_path):
+    cfg = tiny_config(tmp_path, total_steps=40)
+    train(cfg, progress=False)
+    path = tmp_path / "run" / "checkpoint.pt"
+    payload = torch.load(path, weights_only=False)
+
+    corrupt = tmp_path / "corrupt.pt"
+    corrupt.write_bytes(path.read_bytes()[:100])
+    with pytest.raises(CheckpointError, match="is corrupt"):
+        load_checkpoint(corrupt)
+
+    poisoned = copy.deepcopy(payload)
+    name = next(iter(poisoned["actor"]))
+    poisoned["actor"][name] = poisoned["actor"][name].float() * np.nan
+    torch.save(poisoned, tmp_path / "nan.pt")
+    with pytest.raises(CheckpointError, match="NaN"):
+        load_checkpoint(tmp_path / "nan.pt")
+
+    with pytest.raises(CheckpointError, match="variant 'diacc', not 'mappo'"):
+        train(override(cfg, {"variant": "mappo"}), resume=True, progress=False)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_checkpoint(tmp_path / "missing.pt")
