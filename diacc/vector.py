@@ -221,14 +221,21 @@ class ProcessVectorEnv:
         return stack([p[0] for p in pairs]), stack([p[1] for p in pairs])
 
     def step(self, actions: np.ndarray) -> VectorStep:
-        for p, a in zip(self.pipes, actions):
-            p.send(("step", a))
+        crashed = set()
+        for e, (p, a) in enumerate(zip(self.pipes, actions)):
+            try:
+                p.send(("step", a))
+            except (ConnectionError, OSError):
+                crashed.add(e)
         steps = []
         for e, p in enumerate(self.pipes):
-            try:
-                steps.append(p.recv())
-            except (EOFError, ConnectionError, OSError):
-                steps.append(_cut_episode(*self._restart(e), self.n_cavs))
+            if e not in crashed:
+                try:
+                    steps.append(p.recv())
+                    continue
+                except (EOFError, ConnectionError, OSError):
+                    pass
+            steps.append(_cut_episode(*self._restart(e), self.n_cavs))
         return _stack_steps(steps)
 
     def set_temperature(self, tau: float) -> None:
