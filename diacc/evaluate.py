@@ -98,7 +98,7 @@ class EpisodeDriver:
         return self.state
 
     def step(self) -> TrafficState:
-        """Advance one decision step; sets :attr:`done` and :attr:`psar_rule`."""
+        """Advance one decision step; sets :attr:`done`, :attr:`psar_rule` and :attr:`psar`."""
         assert self.state is not None and not self.done, "reset() before step()"
         if self.env is not None:
             actions = self.policy.act(self._obs, first_step=self.steps == 0)
@@ -107,12 +107,12 @@ class EpisodeDriver:
             self._obs = out.actor_obs
             self.psar_rule = np.zeros(out.state.n_vehicles, np.int8)
             self.psar_rule[self.env.cav_index] = np.where(alive_before, out.psar_rule, 0)
-            self.psar_decisions = int(alive_before.sum())
+            self.psar = out.psar
             state, done = out.state, out.terminated or out.truncated
             self.steps += 1
         else:
             state = self.backend.step(CavCommands.idle(self.state.n_vehicles))
-            self.psar_decisions = 0
+            self.psar = None
             self.steps += 1
             terminated = len(state.collisions) > 0 or not state.active.any()
             done = terminated or self.steps >= self.cfg.sim.episode_steps
@@ -142,13 +142,9 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResul
     seed = cell.seed(episode)
     recorder = EpisodeRecorder(driver.road, driver.cfg.events)
     recorder.record(driver.reset(seed))
-    rule_counts = np.zeros(len(RULE_NAMES), np.int64)
-    decisions = 0
     while not driver.done:
         state = driver.step()
-        recorder.record(state)
-        decisions += driver.psar_decisions
-        rule_counts += np.bincount(driver.psar_rule[state.is_cav], minlength=len(RULE_NAMES))
+        recorder.record(state, psar=driver.psar)
     metrics = recorder.summary()
     speeds = recorder.speed_samples()
     row = {
@@ -175,12 +171,8 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResul
         "arrived_fraction": metrics.arrived_fraction,
         "mean_travel_time_s": metrics.mean_travel_time_s,
         "n_vehicles_seen": metrics.n_vehicles,
-        "psar_decisions": decisions,
-        **{
-            f"psar_{name}_rate": (rule_counts[code] / decisions if decisions else 0.0)
-            for code, name in enumerate(RULE_NAMES)
-            if code > 0
-        },
+        "psar_decisions": metrics.psar_decisions,
+        **{f"psar_{name}_rate": metrics.psar_fire_rate[name] for name in RULE_NAMES[1:]},
     }
     return EpisodeResult(cell, episode, row, speeds)
 

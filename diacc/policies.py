@@ -218,7 +218,9 @@ def parse_policy(name: str, variant: str | None = None) -> PolicySpec:
             raise PolicyError(f"--variant applies to checkpoints, not to the {name} baseline")
         return PolicySpec(name)
     path = Path(name)
-    if path.is_dir() and (path / "checkpoint.pt").exists():
+    if path.is_dir():
+        if not (path / "checkpoint.pt").exists():
+            raise PolicyError(f"run directory {path} has no checkpoint.pt")
         path = path / "checkpoint.pt"
     if path.suffix != ".pt" and not path.exists():
         raise PolicyError(
