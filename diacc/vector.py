@@ -30,7 +30,8 @@ from diacc.observation import ActorObs, CriticState, stack
 
 def episode_seed(run_seed: int, env_index: int, episode: int) -> int:
     """Independent, reproducible seed for one episode of one environment."""
-    return int(np.random.SeedSequence([run_seed, env_index, episode]).generate_state(1)[0])
+    # 31 bits: SUMO's --seed takes a signed 32-bit integer.
+    return int(np.random.SeedSequence([run_seed, env_index, episode]).generate_state(1)[0] >> 1)
 
 
 @dataclass
@@ -47,6 +48,7 @@ class EnvStep:
     psar_rule_mask: np.ndarray  # (C,) int8 bitmask of PSAR rules that took effect
     final_critic_state: CriticState | None  # state where the episode ended
     episode: dict | None  # metrics of the episode that just ended
+    reward_terms: dict[str, float] | None = None  # parts of the step's reward
     restarted: bool = False
 
 
@@ -64,6 +66,7 @@ class VectorStep:
     psar_rule_mask: np.ndarray  # (E, C)
     final_critic_state: list[CriticState | None]  # (E,)
     episodes: list[dict]  # metrics of episodes that ended this step
+    reward_terms: dict[str, np.ndarray]  # each part of the reward, (E',) over envs that reported it
     restarts: int
 
 
@@ -107,7 +110,7 @@ class EnvRunner:
                        **self.recorder.summary().as_dict()}
             actor, critic = self.reset()
         return EnvStep(actor, critic, out.reward, out.terminated, out.truncated, out.alive,
-                       out.refined_action, out.psar_rule_mask, final, episode)
+                       out.refined_action, out.psar_rule_mask, final, episode, out.reward_terms)
 
     def close(self) -> None:
         self.env.close()
@@ -116,7 +119,7 @@ class EnvRunner:
 def _cut_episode(actor: ActorObs, critic: CriticState, n_cavs: int) -> EnvStep:
     """The transition reported when a simulator crashed: episode cut, no reward, fresh start."""
     return EnvStep(actor, critic, 0.0, True, False, np.zeros(n_cavs, bool),
-                   np.zeros(n_cavs, np.int64), np.zeros(n_cavs, np.int8), None, None, True)
+                   np.zeros(n_cavs, np.int64), np.zeros(n_cavs, np.int8), None, None, None, True)
 
 
 def _stack_steps(steps: list[EnvStep]) -> VectorStep:
@@ -131,6 +134,10 @@ def _stack_steps(steps: list[EnvStep]) -> VectorStep:
         psar_rule_mask=np.stack([s.psar_rule_mask for s in steps]),
         final_critic_state=[s.final_critic_state for s in steps],
         episodes=[s.episode for s in steps if s.episode is not None],
+        reward_terms={
+            key: np.array([s.reward_terms[key] for s in steps if s.reward_terms])
+            for key in next((s.reward_terms for s in steps if s.reward_terms), {})
+        },
         restarts=sum(s.restarted for s in steps),
     )
 

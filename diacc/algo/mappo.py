@@ -193,6 +193,7 @@ class RolloutStats:
     psar_counts: np.ndarray  # (4,) decisions on which each PSAR rule took effect
     decisions: int  # CAV decisions taken by alive CAVs
     restarts: int
+    reward_terms: dict[str, list[float]]  # per-step means of each reward part
     seconds: float
 
 
@@ -209,7 +210,7 @@ def collect_rollout(agent: Agent, envs, cfg: TrainConfig, update: int,
     h_actor = torch.zeros(E * C, H_a, device=device)  # (E*C, H)
     h_critic = torch.zeros(E, H_c, device=device)  # (E, H)
     start = np.ones(E, bool)
-    stats = RolloutStats([], np.zeros(len(RULE_NAMES) - 1, np.int64), 0, 0, 0.0)
+    stats = RolloutStats([], np.zeros(len(RULE_NAMES) - 1, np.int64), 0, 0, {}, 0.0)
     for t in range(cfg.rollout_steps):
         roll.actor_obs[t], roll.critic_state[t] = actor_obs, critic_state
         roll.episode_start[t], roll.alive[t] = start, actor_obs.alive
@@ -237,6 +238,8 @@ def collect_rollout(agent: Agent, envs, cfg: TrainConfig, update: int,
         stats.psar_counts += rule_counts(out.psar_rule_mask[roll.alive[t]])
         stats.decisions += int(roll.alive[t].sum())
         stats.restarts += out.restarts
+        for key, values in out.reward_terms.items():
+            stats.reward_terms.setdefault(key, []).append(float(values.mean()))
         actor_obs, critic_state = out.actor_obs, out.critic_state
         start = out.terminated | out.truncated
     with torch.no_grad():
@@ -419,6 +422,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
                 "worker_restarts": rollout.restarts,
                 "global_reward": float(roll.rewards.mean()),
             }
+            for key, values in rollout.reward_terms.items():  # ego_softmin, individual, ...
+                record[f"reward/{key}"] = float(np.mean(values))
             for name, count in zip(RULE_NAMES[1:], rollout.psar_counts):  # per CAV decision
                 record[f"psar/{name}"] = float(count / max(rollout.decisions, 1))
             if rollout.episodes:

@@ -68,12 +68,14 @@ _EMPTY_PAIRS = np.zeros((0, 2), dtype=np.int32)
 class CooperativeCavParams:
     """IDM/MOBIL image of a CACC CAV with cooperative lane changes (cooperative baseline).
 
-    CACC keeps shorter gaps than human drivers, so the time headway is short;
-    politeness 1 weighs the followers' gain as much as the own (SUMO's
-    ``lcCooperative = 1``). Acceleration limits are the CAVs' (``SimConfig.cav``).
+    The time headway and minimum gap are the CAV vType's (``CavParams``), which
+    is also what SUMO's CACC model is given on the ``sumo`` backend, so the
+    baseline means the same on both; politeness 1 weighs the followers' gain as
+    much as the own (SUMO's ``lcCooperative = 1``). Acceleration limits are the
+    CAVs' (``SimConfig.cav``).
     """
 
-    time_headway_s: float = 0.6
+    time_headway_s: float = 1.0
     min_gap_m: float = 1.0
     politeness: float = 1.0
     lc_gain_threshold_mps2: float = 0.1
