@@ -1,0 +1,21 @@
+"""Actor and critic networks of every variant (MAPPO, MAPPO-IADM, DIACC).
+
+Entry points: :func:`build_policy` pairs networks per variant and
+:func:`to_tensors` turns observation containers into the tensor dicts they take.
+"""
+
+from diacc.models.errors import ModelError
+from diacc.models.inputs import merge_leading, to_tensors
+from diacc.models.recurrent import RecurrentNet
+from diacc.models.registry import build_policy, parameter_count
+from diacc.models.spec import ObsSpec
+
+__all__ = [
+    "ModelError",
+    "ObsSpec",
+    "RecurrentNet",
+    "build_policy",
+    "merge_leading",
+    "parameter_count",
+    "to_tensors",
+]

@@ -1,0 +1,103 @@
+"""ITDR (Integrated Traffic Dynamics Representation) and the C-IEC critic (paper Sec. C-IEC).
+
+Per environment (one :class:`~diacc.observation.CriticState`):
+
+1. static road MLP over the road table, dynamic traffic MLP over the masked
+   per-lane statistics, lane mask and traffic globals; concatenated they are
+   the traffic feature ``f_tf``;
+2. node embedding of every vehicle's state, one GAT over the global graph
+   (edges = each vehicle to its K neighbours) -> interaction features;
+3. multi-head cross-attention with ``f_tf`` as the single query and *all*
+   unmasked node features as keys/values (not a pooled summary: with a single
+   key the attention weights would be constant);
+4. ``[f_tf, attention output]`` -> GRU -> linear value.
+
+Nothing depends on the padded vehicle count N, so extra masked slots never
+change the value, and permuting vehicles only permutes node features.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from diacc.config import ModelConfig
+from diacc.models.attention import CrossAttention
+from diacc.models.gat import GraphAttention
+from diacc.models.inputs import TensorDict
+from diacc.models.layers import VALUE_GAIN, mlp
+from diacc.models.recurrent import Encoder, RecurrentNet
+from diacc.models.spec import ObsSpec
+from diacc.observation import (
+    CRITIC_NODE_FEATURES,
+    LANE_FEATURES,
+    MAX_LANES,
+    MAX_SEGMENTS,
+    ROAD_FEATURES_PER_SEGMENT,
+    TRAFFIC_FEATURES,
+)
+
+CRITIC_KEYS = (
+    "nodes",
+    "node_mask",
+    "neighbours",
+    "neighbour_mask",
+    "lane_stats",
+    "lane_mask",
+    "road",
+    "traffic",
+)
+
+
+class ITDR(Encoder):
+    """CriticState rows (M, ...) -> (M, 2 * hidden_dim + cross_dim)."""
+
+    input_keys = CRITIC_KEYS
+
+    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+        super().__init__()
+        hidden, slope = cfg.hidden_dim, cfg.leaky_slope
+        self.road_mlp = mlp(ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS, hidden, hidden, slope)
+        self.traffic_mlp = mlp(
+            MAX_LANES * LANE_FEATURES + MAX_LANES + TRAFFIC_FEATURES, hidden, hidden, slope
+        )
+        self.node_embed = mlp(CRITIC_NODE_FEATURES, hidden, hidden, slope)
+        self.gat = GraphAttention(hidden, hidden, cfg.gat_heads, negative_slope=slope)
+        self.cross = CrossAttention(2 * hidden, hidden, cfg.cross_dim, cfg.cross_heads)
+        self.out_dim = 2 * hidden + cfg.cross_dim
+
+    def traffic_feature(self, state: TensorDict) -> Tensor:
+        """f_tf (M, 2 * hidden_dim) from the road table and the dynamic traffic layer."""
+        lane_mask = state["lane_mask"]  # (M, L)
+        lanes = (state["lane_stats"] * lane_mask[..., None]).flatten(-2)  # (M, L*4)
+        dynamic = torch.cat([lanes, lane_mask.float(), state["traffic"]], -1)
+        return torch.cat([self.road_mlp(state["road"]), self.traffic_mlp(dynamic)], -1)
+
+    def node_features(self, state: TensorDict) -> Tensor:
+        """GAT interaction features of every vehicle (M, N, hidden_dim); zero for padding."""
+        node_mask = state["node_mask"]  # (M, N)
+        nodes = state["nodes"].masked_fill(~node_mask[..., None], 0.0)  # (M, N, 6)
+        return self.gat.forward_graph(
+            self.node_embed(nodes), state["neighbours"], state["neighbour_mask"], node_mask
+        )
+
+    def forward(
+        self, state: TensorDict, return_attention: bool = False
+    ) -> Tensor | tuple[Tensor, Tensor]:
+        """Encode; with ``return_attention`` also the cross-attention weights (M, heads, N)."""
+        f_tf = self.traffic_feature(state)  # (M, 2E)
+        attended, weights = self.cross(
+            f_tf, self.node_features(state), state["node_mask"], return_attention=True
+        )  # (M, cross_dim), (M, heads, N)
+        features = torch.cat([f_tf, attended], -1)
+        return (features, weights) if return_attention else features
+
+
+class CIECCritic(RecurrentNet):
+    """C-IEC critic.
+
+    ``critic(state (B, ...), hidden (B, H), episode_start (B,)) -> (value (B,), hidden)``.
+    """
+
+    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+        super().__init__(ITDR(cfg, spec), cfg.gru_hidden, 1, VALUE_GAIN, squeeze=True)

@@ -1,0 +1,55 @@
+"""Small building blocks shared by the networks: MLPs, masked softmax, MAPPO init."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+#: Orthogonal-init gains of MAPPO: hidden layers, policy logits, value output.
+HIDDEN_GAIN = math.sqrt(2.0)
+POLICY_GAIN = 0.01
+VALUE_GAIN = 1.0
+
+
+def mlp(
+    in_dim: int, hidden_dim: int, out_dim: int, slope: float, n_layers: int = 2
+) -> nn.Sequential:
+    """Feature extractor: ``n_layers`` Linear + LeakyReLU blocks (the output is activated too)."""
+    dims = [in_dim] + [hidden_dim] * (n_layers - 1) + [out_dim]
+    layers: list[nn.Module] = []
+    for a, b in zip(dims[:-1], dims[1:], strict=True):
+        layers += [nn.Linear(a, b), nn.LeakyReLU(slope)]
+    return nn.Sequential(*layers)
+
+
+def masked_softmax(scores: Tensor, mask: Tensor, dim: int) -> Tensor:
+    """Softmax over ``dim`` restricted to ``mask``; rows without any valid entry give zeros.
+
+    Filling with the most negative finite float (not -inf) keeps fully masked
+    rows finite, and multiplying by the mask turns their uniform weights into
+    zeros, so neither the output nor its gradient can become NaN.
+    """
+    filled = scores.masked_fill(~mask, torch.finfo(scores.dtype).min)
+    return torch.softmax(filled, dim=dim) * mask.to(scores.dtype)
+
+
+def orthogonal_init(module: nn.Module, gain: float = HIDDEN_GAIN) -> None:
+    """MAPPO initialisation: orthogonal weights, zero biases, for Linear and GRU cells."""
+    for m in module.modules():
+        if isinstance(m, nn.Linear):
+            nn.init.orthogonal_(m.weight, gain=gain)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, (nn.GRUCell, nn.GRU)):
+            for name, p in m.named_parameters():
+                if "weight" in name:
+                    nn.init.orthogonal_(p)
+                else:
+                    nn.init.zeros_(p)
+
+
+def one_hot(index: Tensor, n_classes: int) -> Tensor:
+    """Float one-hot of int64 indices (``F.one_hot`` raises on out-of-range values)."""
+    return nn.functional.one_hot(index, n_classes).to(torch.float32)

@@ -1,0 +1,141 @@
+"""TAIE (Trajectory-Aware Interaction Encoder) and the D-IADM actor (paper Sec. D-IADM).
+
+Per CAV (one row of :class:`~diacc.observation.ActorObs`):
+
+1. node embedding: each node's history (T x NODE_FEATURES, flattened) -> MLP;
+2. CAV-HDV graph: GAT over the star graph ego -> HDV neighbours -> ``f_H``;
+3. CAV-CAV graph: same, but every CAV node also carries that CAV's previous
+   (refined) action as a one-hot, the ego its own previous refined action ->
+   ``f_C``. Separate embeddings and GATs for the two graphs are the point of
+   the paper: cooperative and observed interactions are different;
+4. context MLP over masked lane statistics, lane mask, road table and
+   self state -> ``f_dt``;
+5. fusion MLP over ``[f_H, f_C, f_dt]`` -> ``f``.
+
+The actor then appends the action memory (one-hot of the proposed and of the
+refined previous action), runs a GRU and outputs 5 categorical logits.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from diacc.config import ModelConfig
+from diacc.models.gat import GraphAttention
+from diacc.models.inputs import TensorDict
+from diacc.models.layers import POLICY_GAIN, mlp, one_hot
+from diacc.models.recurrent import Encoder, RecurrentNet
+from diacc.models.spec import ObsSpec
+from diacc.observation import (
+    LANE_FEATURES,
+    MAX_SEGMENTS,
+    N_ACTIONS,
+    NODE_FEATURES,
+    ROAD_FEATURES_PER_SEGMENT,
+    SELF_FEATURES,
+)
+
+ACTOR_KEYS = (
+    "self_state",
+    "ego_hist",
+    "hdv_nodes",
+    "hdv_mask",
+    "cav_nodes",
+    "cav_mask",
+    "cav_prev_action",
+    "lane_stats",
+    "lane_mask",
+    "road",
+    "action_memory",
+)
+N_ACTOR_LANES = 3  # ego, left, right
+
+
+class TAIE(Encoder):
+    """Trajectory-aware interaction encoder: ActorObs rows (M, ...) -> (M, hidden_dim).
+
+    Independent of the number of neighbour slots K, so padding never changes it.
+    """
+
+    input_keys = ACTOR_KEYS
+
+    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+        super().__init__()
+        hidden, slope = cfg.hidden_dim, cfg.leaky_slope
+        history_in = spec.history_steps * NODE_FEATURES
+        self.hdv_embed = mlp(history_in, hidden, hidden, slope)
+        self.cav_embed = mlp(history_in + N_ACTIONS, hidden, hidden, slope)
+        self.hdv_gat = GraphAttention(hidden, hidden, cfg.gat_heads, negative_slope=slope)
+        self.cav_gat = GraphAttention(hidden, hidden, cfg.gat_heads, negative_slope=slope)
+        context_in = (
+            N_ACTOR_LANES * LANE_FEATURES
+            + N_ACTOR_LANES
+            + ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS
+            + SELF_FEATURES
+        )
+        self.context = mlp(context_in, hidden, hidden, slope)
+        self.fusion = mlp(3 * hidden, hidden, hidden, slope)
+        self.out_dim = hidden
+
+    def forward(
+        self, obs: TensorDict, return_attention: bool = False
+    ) -> Tensor | tuple[Tensor, dict[str, Tensor]]:
+        """Encode a flat batch; with ``return_attention`` also the GAT weights of both graphs."""
+        ego_hist = obs["ego_hist"].flatten(-2)  # (M, T*F)
+        hdv_mask, cav_mask = obs["hdv_mask"], obs["cav_mask"]  # (M, K)
+        hdv_hist = (
+            obs["hdv_nodes"].flatten(-2).masked_fill(~hdv_mask[..., None], 0.0)
+        )  # (M, K, T*F)
+        cav_hist = (
+            obs["cav_nodes"].flatten(-2).masked_fill(~cav_mask[..., None], 0.0)
+        )  # (M, K, T*F)
+        cav_action = torch.where(cav_mask, obs["cav_prev_action"], 0)  # (M, K)
+        ego_action = obs["action_memory"][..., 1]  # (M,) refined previous action
+
+        f_hdv, att_hdv = self.hdv_gat(
+            self.hdv_embed(ego_hist)[:, None],  # (M, 1, E)
+            self.hdv_embed(hdv_hist)[:, None],  # (M, 1, K, E)
+            hdv_mask[:, None],
+            return_attention=True,
+        )
+        f_cav, att_cav = self.cav_gat(
+            self.cav_embed(torch.cat([ego_hist, one_hot(ego_action, N_ACTIONS)], -1))[:, None],
+            self.cav_embed(torch.cat([cav_hist, one_hot(cav_action, N_ACTIONS)], -1))[:, None],
+            cav_mask[:, None],
+            return_attention=True,
+        )
+        lane_mask = obs["lane_mask"]  # (M, 3)
+        lanes = (obs["lane_stats"] * lane_mask[..., None]).flatten(-2)  # (M, 3*4)
+        f_context = self.context(
+            torch.cat([lanes, lane_mask.float(), obs["road"], obs["self_state"]], -1)
+        )  # (M, E)
+        fused = self.fusion(torch.cat([f_hdv[:, 0], f_cav[:, 0], f_context], -1))  # (M, E)
+        if return_attention:
+            return fused, {"hdv": att_hdv[:, 0], "cav": att_cav[:, 0]}  # (M, 1+K, H) each
+        return fused
+
+
+class DIADMEncoder(Encoder):
+    """TAIE features with the action memory appended (the GRU input of D-IADM)."""
+
+    input_keys = ACTOR_KEYS
+
+    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+        super().__init__()
+        self.taie = TAIE(cfg, spec)
+        self.out_dim = self.taie.out_dim + 2 * N_ACTIONS
+
+    def forward(self, obs: TensorDict) -> Tensor:
+        memory = one_hot(obs["action_memory"], N_ACTIONS).flatten(-2)  # (M, 2*5)
+        return torch.cat([self.taie(obs), memory], -1)  # (M, E + 10)
+
+
+class DIADMActor(RecurrentNet):
+    """D-IADM actor.
+
+    ``actor(obs (B, ...), hidden (B, H), episode_start (B,)) -> (logits (B, 5), hidden)``.
+    """
+
+    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+        super().__init__(DIADMEncoder(cfg, spec), cfg.gru_hidden, N_ACTIONS, POLICY_GAIN)
