@@ -12,13 +12,10 @@ import os
 import sys
 from pathlib import Path
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 from diacc import cli_eval
 from diacc.config import BACKENDS, VARIANTS, ConfigError, TrainConfig, override
+from diacc.tomlfile import read_toml
 
 #: Exceptions that carry a one-line, user-facing message.
 USER_ERRORS: tuple[type[Exception], ...] = (ValueError, RuntimeError, FileNotFoundError, KeyError)
@@ -47,7 +44,7 @@ def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
     if args.config:
         if not args.config.exists():
             raise ConfigError(f"config file {args.config} does not exist")
-        cfg = override(cfg, tomllib.loads(args.config.read_text()))
+        cfg = override(cfg, read_toml(args.config, ConfigError))
     run_dir = args.run_dir or f"runs/{args.variant}-{args.backend}-{Path(args.map).stem}-s{args.seed}"
     cfg = override(cfg, {"variant": args.variant, "backend": args.backend, "map": args.map,
                          "total_steps": args.steps, "n_envs": args.envs, "seed": args.seed,

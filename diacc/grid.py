@@ -28,19 +28,15 @@ Unknown keys, maps or mixes raise :class:`GridError` with a one-line message.
 from __future__ import annotations
 
 import itertools
-import sys
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 from diacc.maps import MapError, load_map
+from diacc.tomlfile import read_toml
 from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError
 
 #: Named grids (see module docstring).
@@ -178,10 +174,7 @@ def load_grid(name_or_path: str | Path) -> list[Cell]:
         )
     if not path.exists():
         raise GridError(f"grid file {path} does not exist")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise GridError(f"{path}: not valid TOML ({str(exc).splitlines()[0]})") from None
+    data = read_toml(path, GridError)
     unknown = set(data) - {"cells", "product"}
     if unknown:
         raise GridError(

@@ -20,16 +20,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - exercised on Python 3.10 only
-    import tomli as tomllib
+from diacc.tomlfile import read_toml
+
 
 #: Folder with the shipped map descriptions (``maps/`` at the repository root).
 MAPS_DIR = Path(__file__).resolve().parent.parent / "maps"
@@ -156,11 +153,7 @@ def load_map(name_or_path: str | Path) -> Map:
             )
     if not path.exists():
         raise MapError(f"{path}: map file not found")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise MapError(f"{path}: not valid TOML ({exc})") from None
-    return parse_map(data, source=str(path))
+    return parse_map(read_toml(path, MapError), source=str(path))
 
 
 def parse_map(data: dict, source: str = "<map>") -> Map:

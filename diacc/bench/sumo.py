@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 
 from diacc.backends.base import CavCommands
 from diacc.backends.sumo import SumoBackend
