@@ -12,7 +12,6 @@ import os
 import sys
 from pathlib import Path
 
-
 from diacc import cli_eval
 from diacc.config import BACKENDS, VARIANTS, ConfigError, TrainConfig, override
 from diacc.tomlfile import read_toml
@@ -30,10 +29,19 @@ def _train_parser(sub) -> None:
     p.add_argument("--envs", type=int, default=TrainConfig.n_envs)
     p.add_argument("--seed", type=int, default=TrainConfig.seed)
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=TrainConfig.device)
-    p.add_argument("--run-dir", default=None, help="default: runs/<variant>-<backend>-<map>-s<seed>")
-    p.add_argument("--config", type=Path, help="TOML file of config overrides (dotted or nested keys)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override any config field, e.g. --set reward.w_ego=0.8 (repeatable)")
+    p.add_argument(
+        "--run-dir", default=None, help="default: runs/<variant>-<backend>-<map>-s<seed>"
+    )
+    p.add_argument(
+        "--config", type=Path, help="TOML file of config overrides (dotted or nested keys)"
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override any config field, e.g. --set reward.w_ego=0.8 (repeatable)",
+    )
     p.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoint.pt")
     p.add_argument("--no-progress", action="store_true")
 
@@ -45,10 +53,22 @@ def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
         if not args.config.exists():
             raise ConfigError(f"config file {args.config} does not exist")
         cfg = override(cfg, read_toml(args.config, ConfigError))
-    run_dir = args.run_dir or f"runs/{args.variant}-{args.backend}-{Path(args.map).stem}-s{args.seed}"
-    cfg = override(cfg, {"variant": args.variant, "backend": args.backend, "map": args.map,
-                         "total_steps": args.steps, "n_envs": args.envs, "seed": args.seed,
-                         "device": args.device, "run_dir": run_dir})
+    run_dir = (
+        args.run_dir or f"runs/{args.variant}-{args.backend}-{Path(args.map).stem}-s{args.seed}"
+    )
+    cfg = override(
+        cfg,
+        {
+            "variant": args.variant,
+            "backend": args.backend,
+            "map": args.map,
+            "total_steps": args.steps,
+            "n_envs": args.envs,
+            "seed": args.seed,
+            "device": args.device,
+            "run_dir": run_dir,
+        },
+    )
     for item in args.set:
         if "=" not in item:
             raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
@@ -73,7 +93,9 @@ def _bench_parser(sub) -> None:
     p.add_argument("--models", action="store_true", help="network sizes and forward/update times")
     p.add_argument("--training", action="store_true", help="end-to-end training env-steps/s")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--steps", type=int, default=None, help="steps to time (benchmark default if unset)")
+    p.add_argument(
+        "--steps", type=int, default=None, help="steps to time (benchmark default if unset)"
+    )
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
@@ -99,15 +121,21 @@ def cmd_bench(args: argparse.Namespace) -> None:
         training.run(device=args.device)
         ran = True
     if not ran:
-        raise ConfigError("choose what to benchmark: --backend highway|sumo, --models or --training")
+        raise ConfigError(
+            "choose what to benchmark: --backend highway|sumo, --models or --training"
+        )
 
 
 def _simulate_parser(sub) -> None:
-    p = sub.add_parser("simulate", help="run one episode of a baseline policy and print its metrics")
+    p = sub.add_parser(
+        "simulate", help="run one episode of a baseline policy and print its metrics"
+    )
     p.add_argument("--backend", choices=BACKENDS, default="highway")
     p.add_argument("--map", default="train-25")
     p.add_argument("--vehicles", type=int, default=25)
-    p.add_argument("--penetration", type=float, default=0.0, help="CAV share (CAVs keep lane and speed)")
+    p.add_argument(
+        "--penetration", type=float, default=0.0, help="CAV share (CAVs keep lane and speed)"
+    )
     p.add_argument("--mix", default="D1")
     p.add_argument("--steps", type=int, default=150)
     p.add_argument("--seed", type=int, default=0)
@@ -121,7 +149,9 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     from diacc.scenario import Scenario
 
     road = load_map(args.map)
-    scenario = Scenario(n_vehicles=args.vehicles, cav_penetration=args.penetration, style_mix=args.mix)
+    scenario = Scenario(
+        n_vehicles=args.vehicles, cav_penetration=args.penetration, style_mix=args.mix
+    )
     backend = make_backend(args.backend, road)
     try:
         state = backend.reset(scenario, args.seed)

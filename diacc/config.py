@@ -53,7 +53,6 @@ class DriverStyle:
     lc_strategic: float  # SUMO LC2013 lcStrategic
 
 
-
 _AGGRESSIVE = DriverStyle("aggressive", 0.9, 1.0, 3.5, 5.5, 0.0, 0.05, 0.0, 100.0, 100.0)
 _NORMAL = DriverStyle("normal", 1.0, 1.5, 2.5, 4.5, 0.5, 0.2, 0.5, 1.0, 0.5)
 #: Named style presets (facts.md "lcStrategic" pitfall): ``paper`` keeps the
@@ -71,6 +70,7 @@ STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
         DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, 0.0, 0.0, 0.2),
     ),
 }
+
 
 @dataclass(frozen=True)
 class CavParams:

@@ -24,7 +24,6 @@ Two APIs share the same code path: the PettingZoo dict API (``reset`` /
 
 from __future__ import annotations
 
-import functools
 from dataclasses import asdict, dataclass, field, fields
 
 import gymnasium
@@ -88,7 +87,11 @@ class StepResult:
 class BottleneckEnv(ParallelEnv):
     """CAVs crossing a highway bottleneck among HDVs (see module docstring)."""
 
-    metadata = {"name": "diacc_bottleneck_v0", "render_modes": ["rgb_array"], "is_parallelizable": True}
+    metadata = {
+        "name": "diacc_bottleneck_v0",
+        "render_modes": ["rgb_array"],
+        "is_parallelizable": True,
+    }
 
     def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None) -> None:
         self.config = config or EnvConfig()
@@ -104,6 +107,9 @@ class BottleneckEnv(ParallelEnv):
         self.temperature = self.config.reward.tau_init
         self.state_: TrafficState | None = None
         self._seed: int | None = None
+        # Spaces are the same for every agent: built once, returned as the same object.
+        self._observation_space: gymnasium.spaces.Dict | None = None
+        self._action_space = gymnasium.spaces.Discrete(len(ACTION_NAMES))
 
     # ------------------------------------------------------------------ batched API
     def reset_arrays(self, seed: int | None = None) -> tuple[ActorObs, CriticState]:
@@ -170,13 +176,16 @@ class BottleneckEnv(ParallelEnv):
             },
         )
 
-    def _commands(self, n_vehicles: int, refined: np.ndarray, brake_mps2: np.ndarray) -> CavCommands:
+    def _commands(
+        self, n_vehicles: int, refined: np.ndarray, brake_mps2: np.ndarray
+    ) -> CavCommands:
         dv = self.config.sim.speed_change_mps
         commands = CavCommands.idle(n_vehicles)
         commands.lane_change[self.cav_index] = ACTION_LANE_OFFSET[refined]
-        commands.speed_change_mps[self.cav_index] = np.select(
-            [refined == ACCELERATE, refined == DECELERATE], [dv, -dv], 0.0
-        ) - brake_mps2 * self.config.sim.step_s
+        commands.speed_change_mps[self.cav_index] = (
+            np.select([refined == ACCELERATE, refined == DECELERATE], [dv, -dv], 0.0)
+            - brake_mps2 * self.config.sim.step_s
+        )
         return commands
 
     def _observe(self) -> tuple[ActorObs, CriticState]:
@@ -184,10 +193,11 @@ class BottleneckEnv(ParallelEnv):
         return actor, self.builder.critic()
 
     # ------------------------------------------------------------------ PettingZoo API
-    @functools.lru_cache(maxsize=None)
     def observation_space(self, agent: str) -> gymnasium.spaces.Dict:
+        if self._observation_space is not None:
+            return self._observation_space
         sample = self._agent_obs(self._template_obs(), 0)
-        return gymnasium.spaces.Dict(
+        self._observation_space = gymnasium.spaces.Dict(
             {
                 name: (
                     gymnasium.spaces.MultiBinary(value.shape)
@@ -199,10 +209,10 @@ class BottleneckEnv(ParallelEnv):
                 for name, value in sample.items()
             }
         )
+        return self._observation_space
 
-    @functools.lru_cache(maxsize=None)
     def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
-        return gymnasium.spaces.Discrete(5)
+        return self._action_space
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         actor_obs, _ = self.reset_arrays(seed)
@@ -235,7 +245,9 @@ class BottleneckEnv(ParallelEnv):
     def state(self) -> np.ndarray:
         """Flattened critic state (PettingZoo convention for a centralised critic)."""
         critic = self.builder.critic()
-        return np.concatenate([np.asarray(getattr(critic, f.name), np.float32).ravel() for f in fields(critic)])
+        return np.concatenate(
+            [np.asarray(getattr(critic, f.name), np.float32).ravel() for f in fields(critic)]
+        )
 
     def render(self) -> np.ndarray | None:
         return self.backend.render() if self.state_ is not None else None

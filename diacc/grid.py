@@ -34,10 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-
 from diacc.maps import MapError, load_map
-from diacc.tomlfile import read_toml
 from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError
+from diacc.tomlfile import read_toml
 
 #: Named grids (see module docstring).
 GRID_NAMES = ("train", "zero-shot")

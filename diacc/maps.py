@@ -27,7 +27,6 @@ import numpy as np
 
 from diacc.tomlfile import read_toml
 
-
 #: Folder with the shipped map descriptions (``maps/`` at the repository root).
 MAPS_DIR = Path(__file__).resolve().parent.parent / "maps"
 

@@ -50,9 +50,7 @@ class Scenario:
         if not isinstance(self.n_vehicles, int) or self.n_vehicles < 1:
             raise ScenarioError(f"n_vehicles must be a positive integer, got {self.n_vehicles!r}")
         if not 0.0 <= self.cav_penetration <= 1.0:
-            raise ScenarioError(
-                f"cav_penetration must be in [0, 1], got {self.cav_penetration!r}"
-            )
+            raise ScenarioError(f"cav_penetration must be in [0, 1], got {self.cav_penetration!r}")
         mix = self.mix
         if len(mix) != 3 or any(p < 0 for p in mix) or abs(sum(mix) - 1.0) > 1e-6:
             raise ScenarioError(

@@ -105,12 +105,26 @@ class EnvRunner:
         actor, critic = out.actor_obs, out.critic_state
         if out.terminated or out.truncated:
             final = critic
-            episode = {"return": self.return_, "length": self.env.steps,
-                       "collision": float(len(out.state.collisions) > 0),
-                       **self.recorder.summary().as_dict()}
+            episode = {
+                "return": self.return_,
+                "length": self.env.steps,
+                "collision": float(len(out.state.collisions) > 0),
+                **self.recorder.summary().as_dict(),
+            }
             actor, critic = self.reset()
-        return EnvStep(actor, critic, out.reward, out.terminated, out.truncated, out.alive,
-                       out.refined_action, out.psar_rule_mask, final, episode, out.reward_terms)
+        return EnvStep(
+            actor,
+            critic,
+            out.reward,
+            out.terminated,
+            out.truncated,
+            out.alive,
+            out.refined_action,
+            out.psar_rule_mask,
+            final,
+            episode,
+            out.reward_terms,
+        )
 
     def close(self) -> None:
         self.env.close()
@@ -118,8 +132,20 @@ class EnvRunner:
 
 def _cut_episode(actor: ActorObs, critic: CriticState, n_cavs: int) -> EnvStep:
     """The transition reported when a simulator crashed: episode cut, no reward, fresh start."""
-    return EnvStep(actor, critic, 0.0, True, False, np.zeros(n_cavs, bool),
-                   np.zeros(n_cavs, np.int64), np.zeros(n_cavs, np.int8), None, None, None, True)
+    return EnvStep(
+        actor,
+        critic,
+        0.0,
+        True,
+        False,
+        np.zeros(n_cavs, bool),
+        np.zeros(n_cavs, np.int64),
+        np.zeros(n_cavs, np.int8),
+        None,
+        None,
+        None,
+        True,
+    )
 
 
 def _stack_steps(steps: list[EnvStep]) -> VectorStep:
@@ -155,7 +181,7 @@ class SyncVectorEnv:
         return stack([p[0] for p in pairs]), stack([p[1] for p in pairs])
 
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
-        return _stack_steps([r.step(a) for r, a in zip(self.runners, actions)])
+        return _stack_steps([r.step(a) for r, a in zip(self.runners, actions, strict=True)])
 
     def set_temperature(self, tau: float) -> None:
         for r in self.runners:
@@ -229,7 +255,7 @@ class ProcessVectorEnv:
 
     def step(self, actions: np.ndarray) -> VectorStep:
         crashed = set()
-        for e, (p, a) in enumerate(zip(self.pipes, actions)):
+        for e, (p, a) in enumerate(zip(self.pipes, actions, strict=True)):
             try:
                 p.send(("step", a))
             except (ConnectionError, OSError):
@@ -251,7 +277,7 @@ class ProcessVectorEnv:
             p.send(("tau", tau))
 
     def close(self) -> None:
-        for p, w in zip(self.pipes, self.workers):
+        for p, w in zip(self.pipes, self.workers, strict=True):
             try:
                 p.send(("close", None))
             except (BrokenPipeError, OSError):
@@ -270,5 +296,3 @@ def make_vector_env(config: EnvConfig, n_envs: int, run_seed: int, mode: str = "
     if mode == "process":
         return ProcessVectorEnv(config, n_envs, run_seed)
     raise ValueError(f"unknown vector mode {mode!r}; choose sync, process or auto")
-
-

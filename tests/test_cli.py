@@ -20,7 +20,8 @@ def test_train_rejects_bad_input(tmp_path, capsys):
     run = ["--run-dir", str(tmp_path / "r"), "--no-progress"]
     assert "unknown map 'nowhere'" in _error(capsys, ["train", "--map", "nowhere", *run])
     assert "unknown config key 'reward.nope'" in _error(
-        capsys, ["train", "--set", "reward.nope=1", *run])
+        capsys, ["train", "--set", "reward.nope=1", *run]
+    )
     assert "expects KEY=VALUE" in _error(capsys, ["train", "--set", "lr", *run])
     assert "does not exist" in _error(capsys, ["train", "--resume", *run])
     bad = tmp_path / "bad.toml"
@@ -37,17 +38,40 @@ def test_bench_needs_a_target(capsys):
 
 def test_train_writes_a_run_directory(tmp_path, capsys):
     config = tmp_path / "small.toml"
-    config.write_text('rollout_steps = 10\nepochs = 1\n[scenario]\nn_vehicles = 8\n'
-                      'cav_penetration = 0.25\n[model]\nhidden_dim = 32\ngru_hidden = 32\n'
-                      'cross_dim = 32\n')
+    config.write_text(
+        "rollout_steps = 10\nepochs = 1\n[scenario]\nn_vehicles = 8\n"
+        "cav_penetration = 0.25\n[model]\nhidden_dim = 32\ngru_hidden = 32\n"
+        "cross_dim = 32\n"
+    )
     run = tmp_path / "run"
-    assert main(["train", "--steps", "20", "--envs", "2", "--config", str(config),
-                 "--run-dir", str(run), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--steps",
+                "20",
+                "--envs",
+                "2",
+                "--config",
+                str(config),
+                "--run-dir",
+                str(run),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert (run / "checkpoint.pt").exists() and any((run / "tb").iterdir())
     record = json.loads((run / "progress.jsonl").read_text().splitlines()[-1])
     assert record["global_step"] == 20
-    assert {"approx_kl", "clipfrac", "explained_variance", "env_steps_per_s",
-            "psar/force_brake", "reward/individual"} <= set(record)
+    assert {
+        "approx_kl",
+        "clipfrac",
+        "explained_variance",
+        "env_steps_per_s",
+        "psar/force_brake",
+        "reward/individual",
+    } <= set(record)
     stored = json.loads((run / "config.json").read_text())
     assert stored["scenario"]["n_vehicles"] == 8 and stored["model"]["hidden_dim"] == 32
 

@@ -37,13 +37,23 @@ def _two_cav_episode(backend: str, use_psar: bool, tmp_path) -> tuple[int, int]:
     """Rear CAV cuts in 3 m behind the front CAV, then keeps accelerating."""
     road = tmp_path / "two.toml"
     road.write_text(TWO_LANES)
-    env = BottleneckEnv(EnvConfig(backend=backend, map=str(road), use_psar=use_psar,
-                                  scenario=Scenario(n_vehicles=2, cav_penetration=1.0)))
+    env = BottleneckEnv(
+        EnvConfig(
+            backend=backend,
+            map=str(road),
+            use_psar=use_psar,
+            scenario=Scenario(n_vehicles=2, cav_penetration=1.0),
+        )
+    )
     try:
         env.reset_arrays(seed=0)
         state = env.state_
         front, rear = np.argsort(-state.x_m[env.cav_index])  # agent slots
-        toward = LANE_LEFT if state.lane[env.cav_index[front]] > state.lane[env.cav_index[rear]] else LANE_RIGHT
+        toward = (
+            LANE_LEFT
+            if state.lane[env.cav_index[front]] > state.lane[env.cav_index[rear]]
+            else LANE_RIGHT
+        )
         collisions = 0
         for t in range(15):
             actions = np.full(2, REMAIN)

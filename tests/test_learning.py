@@ -22,10 +22,18 @@ HELD_OUT_SEEDS = range(10_000, 10_030)
 
 
 def small_config(run_dir, steps: int) -> TrainConfig:
-    cfg = override(TrainConfig(), {
-        "total_steps": steps, "n_envs": 4, "rollout_steps": 50, "sim.episode_steps": 50,
-        "run_dir": str(run_dir), "device": "cpu", "seed": 3,
-    })
+    cfg = override(
+        TrainConfig(),
+        {
+            "total_steps": steps,
+            "n_envs": 4,
+            "rollout_steps": 50,
+            "sim.episode_steps": 50,
+            "run_dir": str(run_dir),
+            "device": "cpu",
+            "seed": 3,
+        },
+    )
     return override(cfg, {"scenario": Scenario(n_vehicles=12, cav_penetration=0.25)})
 
 
@@ -73,8 +81,10 @@ def untrained_and_trained(tmp_path, steps: int):
 
 def test_short_training_run_improves_speed_and_safety(tmp_path):
     (coll0, speed0), (coll1, speed1) = untrained_and_trained(tmp_path, steps=6_000)
-    print(f"untrained: collisions {coll0:.2f}, CAV speed {speed0:.2f} m/s; "
-          f"trained: collisions {coll1:.2f}, CAV speed {speed1:.2f} m/s")
+    print(
+        f"untrained: collisions {coll0:.2f}, CAV speed {speed0:.2f} m/s; "
+        f"trained: collisions {coll1:.2f}, CAV speed {speed1:.2f} m/s"
+    )
     assert speed1 > speed0 + 2.0
     assert coll1 < coll0
 

@@ -26,8 +26,15 @@ from diacc.scenario import Scenario
 from diacc.vector import make_vector_env
 
 TINY = {
-    "n_envs": 2, "rollout_steps": 20, "chunk_len": 10, "total_steps": 80, "device": "cpu",
-    "epochs": 2, "sim.episode_steps": 15, "model.hidden_dim": 32, "model.gru_hidden": 32,
+    "n_envs": 2,
+    "rollout_steps": 20,
+    "chunk_len": 10,
+    "total_steps": 80,
+    "device": "cpu",
+    "epochs": 2,
+    "sim.episode_steps": 15,
+    "model.hidden_dim": 32,
+    "model.gru_hidden": 32,
     "model.cross_dim": 32,
 }
 
@@ -53,7 +60,9 @@ def tiny_config(tmp_path, **extra) -> TrainConfig:
     tmp_path.mkdir(parents=True, exist_ok=True)
     road = tmp_path / "short.toml"
     road.write_text(SHORT_MAP)
-    cfg = override(TrainConfig(), {**TINY, "run_dir": str(tmp_path / "run"), "map": str(road), **extra})
+    cfg = override(
+        TrainConfig(), {**TINY, "run_dir": str(tmp_path / "run"), "map": str(road), **extra}
+    )
     return override(cfg, {"scenario": Scenario(n_vehicles=8, cav_penetration=0.5)})
 
 
@@ -67,8 +76,16 @@ def rollout_and_batch(tmp_path_factory):
         roll, next_value, stats = collect_rollout(agent, envs, cfg, 0, torch.device("cpu"))
     finally:
         envs.close()
-    adv, ret = compute_gae(roll.rewards, roll.values, next_value, roll.terminated, roll.truncated,
-                           roll.final_values, cfg.gamma, cfg.gae_lambda)
+    adv, ret = compute_gae(
+        roll.rewards,
+        roll.values,
+        next_value,
+        roll.terminated,
+        roll.truncated,
+        roll.final_values,
+        cfg.gamma,
+        cfg.gae_lambda,
+    )
     batch = make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
     return cfg, agent, roll, batch
 

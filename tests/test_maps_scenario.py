@@ -52,7 +52,13 @@ def test_lane_geometry_left_and_right_drops():
     assert list(left.lane_range(1)) == [0, 1] and list(right.lane_range(1)) == [2, 3]
     assert left.lane_end_m()[0].tolist() == [np.inf, np.inf, 500.0, 500.0]
     assert right.lane_end_m()[0].tolist() == [500.0, 500.0, np.inf, np.inf]
-    assert left.segment_of(np.array([0.0, 499.9, 500.0, 1299.0, 2000.0])).tolist() == [0, 0, 1, 2, 2]
+    assert left.segment_of(np.array([0.0, 499.9, 500.0, 1299.0, 2000.0])).tolist() == [
+        0,
+        0,
+        1,
+        2,
+        2,
+    ]
 
 
 @pytest.mark.parametrize(
@@ -121,7 +127,7 @@ def test_population_counts_styles_and_placement():
     for lane in range(4):
         assert np.all(np.diff(np.sort(pop.x_m[pop.lane == lane])) == 32.0)
     # No two vehicles share a slot.
-    assert len({(x, l) for x, l in zip(pop.x_m.tolist(), pop.lane.tolist())}) == 25
+    assert len(set(zip(pop.x_m.tolist(), pop.lane.tolist(), strict=True))) == 25
 
 
 def test_population_is_seeded():

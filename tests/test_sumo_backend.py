@@ -70,7 +70,9 @@ def test_network_matches_map(map_name, tmp_path):
             y = lane.getShape()[0][1] + road.max_lanes * road.lane_width_m
             absolute = road.first_lane(s) + lane.getIndex()
             assert y == pytest.approx(float(road.lane_center_y_m(absolute)))
-    assert f'edges="{" ".join(f"e{s}" for s in range(len(road.segments)))}"' in route_path.read_text()
+    assert (
+        f'edges="{" ".join(f"e{s}" for s in range(len(road.segments)))}"' in route_path.read_text()
+    )
 
 
 @pytest.mark.parametrize("map_name", ["train-25", "train-50"])
@@ -105,7 +107,9 @@ def test_episodes_complete_without_collisions(map_name, cav_mode):
                 seg = state.segment[act]
                 exists = road.lane_exists()[seg, state.lane[act]]
                 assert exists.all(), "a vehicle is on a lane that does not exist there"
-                seen_heading = max(seen_heading, float(np.abs(state.heading_rad[act]).max(initial=0)))
+                seen_heading = max(
+                    seen_heading, float(np.abs(state.heading_rad[act]).max(initial=0))
+                )
                 if state.arrived.all():
                     break
             assert state.arrived.all(), f"{(~state.arrived).sum()} vehicles never arrived"

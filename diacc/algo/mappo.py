@@ -37,8 +37,8 @@ from diacc.algo.buffer import Rollout, compute_gae
 from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig
 from diacc.env import EnvConfig
-from diacc.models.registry import build_policy
 from diacc.models.inputs import to_tensors
+from diacc.models.registry import build_policy
 from diacc.models.spec import ObsSpec
 from diacc.observation import stack
 from diacc.reward import temperature
@@ -58,8 +58,14 @@ class CheckpointError(RuntimeError):
 def env_config(cfg: TrainConfig) -> EnvConfig:
     """The environment a training config describes."""
     return EnvConfig(
-        backend=cfg.backend, map=cfg.map, use_psar=cfg.variant in PSAR_VARIANTS,
-        scenario=cfg.scenario, sim=cfg.sim, obs=cfg.obs, psar=cfg.psar, reward=cfg.reward,
+        backend=cfg.backend,
+        map=cfg.map,
+        use_psar=cfg.variant in PSAR_VARIANTS,
+        scenario=cfg.scenario,
+        sim=cfg.sim,
+        obs=cfg.obs,
+        psar=cfg.psar,
+        reward=cfg.reward,
     )
 
 
@@ -74,8 +80,12 @@ def resolve_device(name: str) -> torch.device:
 def flatten_agents(container, n_axes: int = 2):
     """Merge the first ``n_axes`` axes of every field: (E, C, ...) -> (E*C, ...)."""
     cls = type(container)
-    return cls(**{f.name: (lambda a: a.reshape(-1, *a.shape[n_axes:]))(getattr(container, f.name))
-                  for f in fields(cls)})
+    return cls(
+        **{
+            f.name: (lambda a: a.reshape(-1, *a.shape[n_axes:]))(getattr(container, f.name))
+            for f in fields(cls)
+        }
+    )
 
 
 def chunk_time_major(arrays: np.ndarray, chunk_len: int) -> np.ndarray:
@@ -110,7 +120,9 @@ def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
 
 
 # ----------------------------------------------------------------------------- checkpoints
-def save_checkpoint(path: Path, agent: Agent, cfg: TrainConfig, update: int, global_step: int) -> None:
+def save_checkpoint(
+    path: Path, agent: Agent, cfg: TrainConfig, update: int, global_step: int
+) -> None:
     payload = {
         "format": 1,
         "config": asdict(cfg),
@@ -164,7 +176,9 @@ def restore(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
         agent.actor.load_state_dict(payload["actor"])
         agent.critic.load_state_dict(payload["critic"])
     except RuntimeError:
-        raise CheckpointError(f"checkpoint {path} does not match the {cfg.variant} networks") from None
+        raise CheckpointError(
+            f"checkpoint {path} does not match the {cfg.variant} networks"
+        ) from None
     agent.value_norm.load_state_dict(payload["value_norm"])
     agent.optimizer.load_state_dict(payload["optimizer"])
 
@@ -197,8 +211,9 @@ class RolloutStats:
     seconds: float
 
 
-def collect_rollout(agent: Agent, envs, cfg: TrainConfig, update: int,
-                    device: torch.device) -> tuple[Rollout, np.ndarray, RolloutStats]:
+def collect_rollout(
+    agent: Agent, envs, cfg: TrainConfig, update: int, device: torch.device
+) -> tuple[Rollout, np.ndarray, RolloutStats]:
     """Run every environment for ``rollout_steps`` decisions from a fresh reset.
 
     Returns the filled rollout, V(s_S) for bootstrapping (E,), and stats.
@@ -218,8 +233,9 @@ def collect_rollout(agent: Agent, envs, cfg: TrainConfig, update: int,
         roll.critic_hidden[t] = h_critic.cpu().numpy()
         with torch.no_grad():
             start_t = torch.as_tensor(start, device=device)
-            logits, h_actor = agent.actor(to_tensors(flatten_agents(actor_obs), device),
-                                          h_actor, start_t.repeat_interleave(C))
+            logits, h_actor = agent.actor(
+                to_tensors(flatten_agents(actor_obs), device), h_actor, start_t.repeat_interleave(C)
+            )
             dist = torch.distributions.Categorical(logits=logits)
             action = dist.sample()  # (E*C,)
             value, h_critic = agent.critic(to_tensors(critic_state, device), h_critic, start_t)
@@ -228,11 +244,18 @@ def collect_rollout(agent: Agent, envs, cfg: TrainConfig, update: int,
         roll.values[t] = agent.value_norm.denormalize(value).cpu().numpy()
 
         out = envs.step(roll.actions[t])
-        roll.rewards[t], roll.terminated[t], roll.truncated[t] = out.reward, out.terminated, out.truncated
+        roll.rewards[t], roll.terminated[t], roll.truncated[t] = (
+            out.reward,
+            out.terminated,
+            out.truncated,
+        )
         for e in np.flatnonzero(out.truncated):  # bootstrap from where the episode was cut
             with torch.no_grad():
-                v_final, _ = agent.critic(to_tensors(stack([out.final_critic_state[e]]), device),
-                                          h_critic[e : e + 1], torch.zeros(1, dtype=torch.bool, device=device))
+                v_final, _ = agent.critic(
+                    to_tensors(stack([out.final_critic_state[e]]), device),
+                    h_critic[e : e + 1],
+                    torch.zeros(1, dtype=torch.bool, device=device),
+                )
             roll.final_values[t, e] = agent.value_norm.denormalize(v_final).item()
         stats.episodes += out.episodes
         stats.psar_counts += rule_counts(out.psar_rule_mask[roll.alive[t]])
@@ -243,8 +266,9 @@ def collect_rollout(agent: Agent, envs, cfg: TrainConfig, update: int,
         actor_obs, critic_state = out.actor_obs, out.critic_state
         start = out.terminated | out.truncated
     with torch.no_grad():
-        next_value, _ = agent.critic(to_tensors(critic_state, device), h_critic,
-                                     torch.as_tensor(start, device=device))
+        next_value, _ = agent.critic(
+            to_tensors(critic_state, device), h_critic, torch.as_tensor(start, device=device)
+        )
     stats.seconds = time.perf_counter() - t0
     return roll, agent.value_norm.denormalize(next_value).cpu().numpy(), stats
 
@@ -273,8 +297,9 @@ class Batch:
     values: torch.Tensor  # (L, B_c) unnormalised
 
 
-def make_batch(roll: Rollout, advantages: np.ndarray, returns: np.ndarray, chunk_len: int,
-               device: torch.device) -> Batch:
+def make_batch(
+    roll: Rollout, advantages: np.ndarray, returns: np.ndarray, chunk_len: int, device: torch.device
+) -> Batch:
     S, E, C = roll.actions.shape
     L = chunk_len
 
@@ -291,9 +316,12 @@ def make_batch(roll: Rollout, advantages: np.ndarray, returns: np.ndarray, chunk
         adv = (adv - alive_adv.mean()) / (alive_adv.std() + 1e-8)
     starts = np.repeat(roll.episode_start[:, :, None], C, axis=2)
     return Batch(
-        actor_obs=to_tensors({f.name: per_agent(getattr(actor, f.name)) for f in fields(actor)}, device),
-        critic_state=to_tensors({f.name: chunk_time_major(getattr(critic, f.name), L)
-                                 for f in fields(critic)}, device),
+        actor_obs=to_tensors(
+            {f.name: per_agent(getattr(actor, f.name)) for f in fields(actor)}, device
+        ),
+        critic_state=to_tensors(
+            {f.name: chunk_time_major(getattr(critic, f.name), L) for f in fields(critic)}, device
+        ),
         actor_h0=tensor(roll.actor_hidden[::L].reshape(-1, roll.actor_hidden.shape[-1])),
         critic_h0=tensor(roll.critic_hidden[::L].reshape(-1, roll.critic_hidden.shape[-1])),
         actor_start=tensor(per_agent(starts), torch.bool),
@@ -313,11 +341,19 @@ def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: i
     Returns (new log-probs (L, b_a), entropy (L, b_a), normalised values (L, b_c),
     actor sequence indices b_a).
     """
-    agents_idx = (envs_idx[:, None] * n_cavs + torch.arange(n_cavs, device=envs_idx.device)).reshape(-1)
-    logits, _ = agent.actor.forward_sequence({k: v[:, agents_idx] for k, v in batch.actor_obs.items()},
-                                             batch.actor_h0[agents_idx], batch.actor_start[:, agents_idx])
-    values, _ = agent.critic.forward_sequence({k: v[:, envs_idx] for k, v in batch.critic_state.items()},
-                                              batch.critic_h0[envs_idx], batch.critic_start[:, envs_idx])
+    agents_idx = (
+        envs_idx[:, None] * n_cavs + torch.arange(n_cavs, device=envs_idx.device)
+    ).reshape(-1)
+    logits, _ = agent.actor.forward_sequence(
+        {k: v[:, agents_idx] for k, v in batch.actor_obs.items()},
+        batch.actor_h0[agents_idx],
+        batch.actor_start[:, agents_idx],
+    )
+    values, _ = agent.critic.forward_sequence(
+        {k: v[:, envs_idx] for k, v in batch.critic_state.items()},
+        batch.critic_h0[envs_idx],
+        batch.critic_start[:, envs_idx],
+    )
     dist = torch.distributions.Categorical(logits=logits)  # (L, b_a, 5)
     return dist.log_prob(batch.actions[:, agents_idx]), dist.entropy(), values, agents_idx
 
@@ -328,12 +364,15 @@ def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dic
     agent.value_norm.update(batch.returns)
     returns_n = agent.value_norm.normalize(batch.returns)
     old_values_n = agent.value_norm.normalize(batch.values)
-    stats: dict[str, list[float]] = {k: [] for k in
-                                     ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")}
+    stats: dict[str, list[float]] = {
+        k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")
+    }
     n_sequences = batch.critic_h0.shape[0]
     for _epoch in range(cfg.epochs):
         # Minibatches of whole (chunk, env) sequences keep each env's CAVs with its critic.
-        for envs_idx in torch.randperm(n_sequences, device=batch.returns.device).chunk(cfg.minibatches):
+        for envs_idx in torch.randperm(n_sequences, device=batch.returns.device).chunk(
+            cfg.minibatches
+        ):
             logprob, entropy, value, agents_idx = evaluate_batch(agent, batch, envs_idx, n_cavs)
             mask = batch.alive[:, agents_idx]  # (L, b_a): dead CAVs add nothing
             n_alive = mask.sum().clamp(min=1.0)
@@ -359,22 +398,31 @@ def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dic
                 stats["policy_loss"].append(policy_loss.item())
                 stats["value_loss"].append(value_loss.item())
                 stats["entropy"].append(entropy_mean.item())
-                stats["approx_kl"].append(((((ratio - 1) - log_ratio) * mask).sum() / n_alive).item())
-                stats["clipfrac"].append(((((ratio - 1).abs() > cfg.clip).float() * mask).sum()
-                                          / n_alive).item())
+                stats["approx_kl"].append(
+                    ((((ratio - 1) - log_ratio) * mask).sum() / n_alive).item()
+                )
+                stats["clipfrac"].append(
+                    ((((ratio - 1).abs() > cfg.clip).float() * mask).sum() / n_alive).item()
+                )
     return {k: float(np.mean(v)) for k, v in stats.items()}
 
 
 # ----------------------------------------------------------------------------- training
-def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
-          stop_after_updates: int | None = None) -> Path:
+def train(
+    cfg: TrainConfig,
+    resume: bool = False,
+    progress: bool = True,
+    stop_after_updates: int | None = None,
+) -> Path:
     """Train ``cfg.variant``; returns the run directory (config, checkpoints, logs).
 
     ``stop_after_updates`` ends the run early (as if interrupted) after that
     many updates, with a checkpoint; ``resume=True`` continues from it.
     """
     if cfg.rollout_steps % cfg.chunk_len:
-        raise ValueError(f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}")
+        raise ValueError(
+            f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}"
+        )
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = run_dir / "checkpoint.pt"
@@ -390,12 +438,21 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
         first_update, global_step = payload["update"], payload["global_step"]
         set_rng_state(payload["rng"])
     (run_dir / "config.json").write_text(json.dumps(asdict(cfg), indent=2, default=str))
-    last_update = n_updates if stop_after_updates is None else min(n_updates, first_update + stop_after_updates)
+    last_update = (
+        n_updates
+        if stop_after_updates is None
+        else min(n_updates, first_update + stop_after_updates)
+    )
 
     envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed)
     writer = SummaryWriter(str(run_dir / "tb"))
-    bar = tqdm(total=n_updates * steps_per_update, initial=global_step, unit="step",
-               disable=not progress, desc=f"train {cfg.variant}")
+    bar = tqdm(
+        total=n_updates * steps_per_update,
+        initial=global_step,
+        unit="step",
+        disable=not progress,
+        desc=f"train {cfg.variant}",
+    )
     try:
         for update in range(first_update, last_update):
             t0 = time.perf_counter()
@@ -407,14 +464,24 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
 
             roll, next_value, rollout = collect_rollout(agent, envs, cfg, update, device)
             advantages, returns = compute_gae(
-                roll.rewards, roll.values, next_value, roll.terminated, roll.truncated,
-                roll.final_values, cfg.gamma, cfg.gae_lambda)
+                roll.rewards,
+                roll.values,
+                next_value,
+                roll.terminated,
+                roll.truncated,
+                roll.final_values,
+                cfg.gamma,
+                cfg.gae_lambda,
+            )
             batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
             losses = ppo_update(agent, batch, cfg, envs.n_cavs)
             global_step += steps_per_update
 
             record = {
-                **losses, "update": update + 1, "global_step": global_step, "tau": tau,
+                **losses,
+                "update": update + 1,
+                "global_step": global_step,
+                "tau": tau,
                 "lr": agent.optimizer.param_groups[0]["lr"],
                 "explained_variance": explained_variance(roll.values.ravel(), returns.ravel()),
                 "env_steps_per_s": steps_per_update / rollout.seconds,
@@ -424,22 +491,28 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True,
             }
             for key, values in rollout.reward_terms.items():  # ego_softmin, individual, ...
                 record[f"reward/{key}"] = float(np.mean(values))
-            for name, count in zip(RULE_NAMES[1:], rollout.psar_counts):  # per CAV decision
+            for name, count in zip(
+                RULE_NAMES[1:], rollout.psar_counts, strict=True
+            ):  # per CAV decision
                 record[f"psar/{name}"] = float(count / max(rollout.decisions, 1))
             if rollout.episodes:
                 for key, value in rollout.episodes[0].items():
                     if isinstance(value, (int, float)):
                         finite = [ep[key] for ep in rollout.episodes if np.isfinite(ep[key])]
-                        record[f"episode/{key}"] = float(np.mean(finite)) if finite else float("nan")
+                        record[f"episode/{key}"] = (
+                            float(np.mean(finite)) if finite else float("nan")
+                        )
             for key, value in record.items():
                 if key not in ("update", "global_step"):
                     writer.add_scalar(key if "/" in key else f"train/{key}", value, global_step)
             with open(run_dir / "progress.jsonl", "a") as fh:
                 fh.write(json.dumps(record) + "\n")
             bar.update(steps_per_update)
-            bar.set_postfix(R=f"{record['global_reward']:.2f}",
-                            speed=f"{record.get('episode/mean_speed_mps', float('nan')):.1f}",
-                            sps=f"{record['env_steps_per_s']:.0f}")
+            bar.set_postfix(
+                R=f"{record['global_reward']:.2f}",
+                speed=f"{record.get('episode/mean_speed_mps', float('nan')):.1f}",
+                sps=f"{record['env_steps_per_s']:.0f}",
+            )
             if (update + 1) % cfg.checkpoint_every == 0 or update + 1 == last_update:
                 save_checkpoint(ckpt_path, agent, cfg, update + 1, global_step)
     finally:
@@ -464,5 +537,3 @@ def _flatten(tree: dict, prefix: str = "") -> dict:
         else:
             flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
     return flat
-
-

@@ -35,6 +35,7 @@ import sys
 import weakref
 from multiprocessing.connection import Connection
 from pathlib import Path
+
 import numpy as np
 
 from diacc.backends.base import BackendError, CavCommands
@@ -100,7 +101,9 @@ class SumoBackend:
             )
         except OSError as exc:
             parent_sock.close()
-            raise BackendError(f"cannot start a SUMO worker for map {self.road.name!r}: {exc}")
+            raise BackendError(
+                f"cannot start a SUMO worker for map {self.road.name!r}: {exc}"
+            ) from None
         finally:
             child_sock.close()
         conn = Connection(parent_sock.detach())
@@ -163,7 +166,7 @@ class SumoBackend:
 
     # ---- Backend protocol -----------------------------------------------------
     def reset(self, scenario: Scenario, seed: int) -> TrafficState:
-        """Insert ``draw_population(scenario, road, seed)`` at t = 0 with SUMO seeded by ``seed``."""
+        """Insert ``draw_population(scenario, road, seed)`` at t = 0, SUMO seeded by ``seed``."""
         population = draw_population(scenario, self.road, seed)
         if self._pending:
             self._receive(REQUEST_TIMEOUT_S, "finishing a step before reset")

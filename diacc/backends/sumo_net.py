@@ -7,7 +7,8 @@ repository, so the SUMO road cannot drift from the highway backend's road.
 
 Layout: the route runs along SUMO's x axis from x = 0, one edge per segment
 (``e0``, ``e1``...), with the right road edge at SUMO y = -max_lanes * lane
-width, so absolute lane ``l`` is the straight line y = (l + 0.5) w - L w. Each edge is given its nominal ``length`` and junction
+width, so absolute lane ``l`` is the straight line y = (l + 0.5) w - L w.
+Each edge is given its nominal ``length`` and junction
 internal links are disabled, so a lane position plus the edge's start is
 exactly the route coordinate of the map. Lanes keep the map's absolute
 numbering through explicit connections: SUMO lane ``k`` of segment ``s`` is
@@ -57,7 +58,9 @@ def edge_ids(road: Map) -> list[str]:
 def nodes_xml(road: Map) -> str:
     """Node file: one node per segment boundary on the x axis."""
     xs = [0.0, *road.segment_ends_m.tolist()]
-    rows = [f'    <node id="n{i}" x="{x:.3f}" y="0.000" type="priority"/>' for i, x in enumerate(xs)]
+    rows = [
+        f'    <node id="n{i}" x="{x:.3f}" y="0.000" type="priority"/>' for i, x in enumerate(xs)
+    ]
     return "<nodes>\n" + "\n".join(rows) + "\n</nodes>\n"
 
 

@@ -31,7 +31,7 @@ def render_topdown(
     frame[:] = _GRASS
     px_per_m = width_px / road.length_m
     exists = road.lane_exists()  # (S, L)
-    for s, (x0, x1) in enumerate(zip(road.segment_starts_m, road.segment_ends_m)):
+    for s, (x0, x1) in enumerate(zip(road.segment_starts_m, road.segment_ends_m, strict=True)):
         c0, c1 = int(x0 * px_per_m), int(np.ceil(x1 * px_per_m))
         for lane in np.flatnonzero(exists[s]):
             r1 = height - margin - lane * lane_px  # image rows grow downwards: lane 0 at bottom

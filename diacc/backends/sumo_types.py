@@ -49,9 +49,9 @@ def vtypes_xml(sim: SimConfig, cav_mode: str) -> str:
         'speedFactor="1" speedDev="0" sigma="0" maxSpeed="70"'
     )
     rows = []
-    for type_id, style in zip(HDV_TYPES, STYLE_PRESETS[sim.style_preset]):
+    for type_id, style in zip(HDV_TYPES, STYLE_PRESETS[sim.style_preset], strict=True):
         rows.append(
-            f"    <vType id={quoteattr(type_id)} {common} carFollowModel=\"IDM\" "
+            f'    <vType id={quoteattr(type_id)} {common} carFollowModel="IDM" '
             f'delta="{sim.idm_delta}" tau="{style.time_headway_s}" minGap="{style.min_gap_m}" '
             f'accel="{style.accel_mps2}" decel="{style.decel_mps2}" '
             f'laneChangeModel="LC2013" lcCooperative="{style.lc_cooperative}" '
@@ -63,7 +63,7 @@ def vtypes_xml(sim: SimConfig, cav_mode: str) -> str:
     else:
         model = 'carFollowModel="CACC" laneChangeModel="LC2013" lcCooperative="1"'
     rows.append(
-        f"    <vType id={quoteattr(CAV_TYPE)} {common} {model} tau=\"{cav.time_headway_s}\" "
+        f'    <vType id={quoteattr(CAV_TYPE)} {common} {model} tau="{cav.time_headway_s}" '
         f'minGap="{cav.min_gap_m}" accel="{cav.accel_mps2}" decel="{cav.decel_mps2}" '
         f'emergencyDecel="{max(cav.decel_mps2, 9.0)}" color="0,160,255"/>'
     )

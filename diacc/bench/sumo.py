@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import time
 
-
 from diacc.backends.base import CavCommands
 from diacc.backends.sumo import SumoBackend
 from diacc.backends.sumo_net import ROUTE_ID
@@ -44,7 +43,7 @@ def _backend_rate(backends: list[SumoBackend], scenario: Scenario, steps: int, s
             b.step_async(idle)
         states = [b.step_wait() for b in backends]
         age += 1
-        for k, (b, st) in enumerate(zip(backends, states)):
+        for k, (b, st) in enumerate(zip(backends, states, strict=True)):
             if st.arrived.all() or age >= b.sim.episode_steps:
                 b.reset(scenario, seed + k)
         if age >= backends[0].sim.episode_steps:

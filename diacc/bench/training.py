@@ -24,42 +24,72 @@ from diacc.config import TrainConfig, override
 PAPER_STEPS = 3_000_000
 
 
-def measure(variant: str, backend: str, n_envs: int, updates: int, device: str,
-            rollout_steps: int = 100) -> dict:
+def measure(
+    variant: str, backend: str, n_envs: int, updates: int, device: str, rollout_steps: int = 100
+) -> dict:
     """Train ``updates`` updates; return env-steps/s of the whole loop and of rollouts."""
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = override(TrainConfig(), {
-            "variant": variant, "backend": backend, "n_envs": n_envs, "device": device,
-            "rollout_steps": rollout_steps, "total_steps": updates * rollout_steps * n_envs,
-            "run_dir": tmp, "checkpoint_every": 10_000,
-        })
+        cfg = override(
+            TrainConfig(),
+            {
+                "variant": variant,
+                "backend": backend,
+                "n_envs": n_envs,
+                "device": device,
+                "rollout_steps": rollout_steps,
+                "total_steps": updates * rollout_steps * n_envs,
+                "run_dir": tmp,
+                "checkpoint_every": 10_000,
+            },
+        )
         start = time.perf_counter()
         train(cfg, progress=False)
         seconds = time.perf_counter() - start
-        records = [json.loads(line) for line in (Path(tmp) / "progress.jsonl").read_text().splitlines()]
+        records = [
+            json.loads(line) for line in (Path(tmp) / "progress.jsonl").read_text().splitlines()
+        ]
     # The first update pays for start-up (imports, worker spawn); report the steady state.
     steady = records[1:] or records
     update_s = sum(1.0 / r["updates_per_s"] for r in steady) / len(steady)
     steps = rollout_steps * n_envs
     return {
-        "variant": variant, "backend": backend, "envs": n_envs, "device": device,
+        "variant": variant,
+        "backend": backend,
+        "envs": n_envs,
+        "device": device,
         "steps_per_s": steps / update_s,
         "rollout_steps_per_s": sum(r["env_steps_per_s"] for r in steady) / len(steady),
-        "update_s": update_s, "total_s": seconds,
+        "update_s": update_s,
+        "total_s": seconds,
         "projected_3M_h": PAPER_STEPS / (steps / update_s) / 3600,
     }
 
 
-def run(device: str = "cpu", envs: tuple[int, ...] = (1, 4, 20), backend: str = "highway",
-        variant: str = "diacc", updates: int = 2) -> list[dict]:
+def run(
+    device: str = "cpu",
+    envs: tuple[int, ...] = (1, 4, 20),
+    backend: str = "highway",
+    variant: str = "diacc",
+    updates: int = 2,
+) -> list[dict]:
     rows = [measure(variant, backend, n, updates, device) for n in envs]
     table = Table(title=f"training throughput: {variant} on {backend}, device {device}")
-    for col in ("envs", "env-steps/s (train)", "env-steps/s (rollout only)", "s / update",
-                "3 M steps (h)"):
+    for col in (
+        "envs",
+        "env-steps/s (train)",
+        "env-steps/s (rollout only)",
+        "s / update",
+        "3 M steps (h)",
+    ):
         table.add_column(col, justify="right")
     for r in rows:
-        table.add_row(str(r["envs"]), f"{r['steps_per_s']:.0f}", f"{r['rollout_steps_per_s']:.0f}",
-                      f"{r['update_s']:.1f}", f"{r['projected_3M_h']:.1f}")
+        table.add_row(
+            str(r["envs"]),
+            f"{r['steps_per_s']:.0f}",
+            f"{r['rollout_steps_per_s']:.0f}",
+            f"{r['update_s']:.1f}",
+            f"{r['projected_3M_h']:.1f}",
+        )
     Console().print(table)
     return rows
 
