@@ -25,7 +25,7 @@ from diacc.config import ModelConfig
 from diacc.models.attention import CrossAttention
 from diacc.models.gat import GraphAttention
 from diacc.models.inputs import TensorDict
-from diacc.models.layers import VALUE_GAIN, mlp
+from diacc.models.layers import VALUE_GAIN, embed_present, mlp
 from diacc.models.recurrent import Encoder, RecurrentNet
 from diacc.models.spec import ObsSpec
 from diacc.observation import (
@@ -76,9 +76,9 @@ class ITDR(Encoder):
     def node_features(self, state: TensorDict) -> Tensor:
         """GAT interaction features of every vehicle (M, N, hidden_dim); zero for padding."""
         node_mask = state["node_mask"]  # (M, N)
-        nodes = state["nodes"].masked_fill(~node_mask[..., None], 0.0)  # (M, N, 6)
+        embedded = embed_present(self.node_embed, state["nodes"], node_mask)  # (M, N, E)
         return self.gat.forward_graph(
-            self.node_embed(nodes), state["neighbours"], state["neighbour_mask"], node_mask
+            embedded, state["neighbours"], state["neighbour_mask"], node_mask
         )
 
     def forward(

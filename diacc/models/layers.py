@@ -53,3 +53,16 @@ def orthogonal_init(module: nn.Module, gain: float = HIDDEN_GAIN) -> None:
 def one_hot(index: Tensor, n_classes: int) -> Tensor:
     """Float one-hot of int64 indices (``F.one_hot`` raises on out-of-range values)."""
     return nn.functional.one_hot(index, n_classes).to(torch.float32)
+
+
+def embed_present(embed: torch.nn.Module, nodes: Tensor, mask: Tensor) -> Tensor:
+    """Embed only the nodes that exist: nodes (M, K, F), mask (M, K) -> (M, K, E), zeros elsewhere.
+
+    Padding is common (each CAV's K neighbours are split over an HDV and a CAV
+    set of K slots each; the critic pads to ``max_vehicles``), so skipping it
+    saves a large share of the embedding cost. Padded rows are exactly zero.
+    """
+    present = embed(nodes[mask])  # (P, E)
+    out = present.new_zeros(*mask.shape, present.shape[-1])  # (M, K, E)
+    out[mask] = present
+    return out

@@ -24,7 +24,7 @@ from torch import Tensor
 from diacc.config import ModelConfig
 from diacc.models.gat import GraphAttention
 from diacc.models.inputs import TensorDict
-from diacc.models.layers import POLICY_GAIN, mlp, one_hot
+from diacc.models.layers import POLICY_GAIN, embed_present, mlp, one_hot
 from diacc.models.recurrent import Encoder, RecurrentNet
 from diacc.models.spec import ObsSpec
 from diacc.observation import (
@@ -95,13 +95,15 @@ class TAIE(Encoder):
 
         f_hdv, att_hdv = self.hdv_gat(
             self.hdv_embed(ego_hist)[:, None],  # (M, 1, E)
-            self.hdv_embed(hdv_hist)[:, None],  # (M, 1, K, E)
+            embed_present(self.hdv_embed, hdv_hist, hdv_mask)[:, None],  # (M, 1, K, E)
             hdv_mask[:, None],
             return_attention=True,
         )
         f_cav, att_cav = self.cav_gat(
             self.cav_embed(torch.cat([ego_hist, one_hot(ego_action, N_ACTIONS)], -1))[:, None],
-            self.cav_embed(torch.cat([cav_hist, one_hot(cav_action, N_ACTIONS)], -1))[:, None],
+            embed_present(
+                self.cav_embed, torch.cat([cav_hist, one_hot(cav_action, N_ACTIONS)], -1), cav_mask
+            )[:, None],  # (M, 1, K, E)
             cav_mask[:, None],
             return_attention=True,
         )
