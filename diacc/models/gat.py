@@ -141,14 +141,16 @@ class GraphAttention(nn.Module):
             (B, N, out_features); zeros for masked nodes.
         """
         n_batch, n_nodes, n_nb = neighbours.shape
-        wh = self.proj(h_nodes.masked_fill(~node_mask[..., None], 0.0))
-        wh = wh.unflatten(-1, (self.heads, self.head_dim))  # (B, N, H, D)
+        h_nodes = h_nodes.masked_fill(~node_mask[..., None], 0.0)  # (B, N, F)
+        wh = self.proj(h_nodes).unflatten(-1, (self.heads, self.head_dim))  # (B, N, H, D)
         index = torch.where(edge_mask, neighbours, torch.zeros_like(neighbours))  # (B, N, K)
         flat_index = index.reshape(n_batch, n_nodes * n_nb)  # (B, N*K)
         target_alive = torch.gather(node_mask, 1, flat_index).view(n_batch, n_nodes, n_nb)
         valid = edge_mask & target_alive & node_mask[..., None]  # (B, N, K)
-        score_q = (wh * self.att_query).sum(-1)  # (B, N, H)
-        score_node = (wh * self.att_key).sum(-1)  # (B, N, H) as a key
+        # a . (W h) = (W^T a) . h: scores from the F-dim input, not the H*D projection.
+        weight = self._weights()  # (H, D, F)
+        score_q = h_nodes @ torch.einsum("hdf,hd->fh", weight, self.att_query)  # (B, N, H)
+        score_node = h_nodes @ torch.einsum("hdf,hd->fh", weight, self.att_key)  # as a key
         score_k = torch.gather(
             score_node, 1, flat_index[..., None].expand(-1, -1, self.heads)
         ).view(n_batch, n_nodes, n_nb, self.heads)  # (B, N, K, H)

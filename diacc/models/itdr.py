@@ -23,6 +23,7 @@ from torch import Tensor
 
 from diacc.config import ModelConfig
 from diacc.models.attention import CrossAttention
+from diacc.models.errors import ModelError
 from diacc.models.gat import GraphAttention
 from diacc.models.inputs import TensorDict
 from diacc.models.layers import VALUE_GAIN, embed_present, mlp
@@ -62,7 +63,14 @@ class ITDR(Encoder):
             MAX_LANES * LANE_FEATURES + MAX_LANES + TRAFFIC_FEATURES, hidden, hidden, slope
         )
         self.node_embed = mlp(CRITIC_NODE_FEATURES, hidden, hidden, slope)
-        self.gat = GraphAttention(hidden, hidden, cfg.gat_heads, negative_slope=slope)
+        # The paper writes ITDR's GAT with one head; we keep gat_heads heads but
+        # concatenate hidden/heads-wide heads, which costs a quarter of averaging
+        # hidden-wide heads over all N vehicles (the critic's largest layer).
+        if hidden % cfg.gat_heads:
+            raise ModelError(f"hidden_dim {hidden} must be a multiple of gat_heads {cfg.gat_heads}")
+        self.gat = GraphAttention(
+            hidden, hidden // cfg.gat_heads, cfg.gat_heads, concat=True, negative_slope=slope
+        )
         self.cross = CrossAttention(2 * hidden, hidden, cfg.cross_dim, cfg.cross_heads)
         self.out_dim = 2 * hidden + cfg.cross_dim
 
