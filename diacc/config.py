@@ -181,6 +181,7 @@ class TrainConfig:
     map: str = "train-25"
     total_steps: int = 3_000_000  # environment steps (decisions x envs)
     n_envs: int = 20
+    vector: str = "auto"  # sync (in process), process (one worker each), auto (by backend)
     rollout_steps: int = 100
     seed: int = 1
     device: str = "auto"

@@ -9,15 +9,17 @@ metrics, and recovery from a crashed simulator.
 * :class:`SyncVectorEnv` steps environments one after another in this
   process. Best for the ``highway`` backend, whose step is a few hundred
   microseconds: pipes would cost more than they save.
-* :class:`ProcessVectorEnv` keeps one environment per worker process
-  (``spawn`` start method; libsumo allows one simulation per process), so
-  environments step in parallel. A worker that dies is restarted; its episode
-  is cut (``terminated`` with zero reward) and counted in ``restarts``.
+* :class:`ProcessVectorEnv` splits the environments into one group per
+  worker process (``spawn`` start method; each SUMO environment still runs
+  libsumo in a worker of its own), so groups step in parallel. A worker that
+  dies is restarted; the episodes of its group are cut (``terminated`` with
+  zero reward) and counted in ``restarts``.
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -169,19 +171,31 @@ def _stack_steps(steps: list[EnvStep]) -> VectorStep:
 
 
 class SyncVectorEnv:
-    """E environments stepped one after another in this process."""
+    """Environments stepped one after another in this process.
 
-    def __init__(self, config: EnvConfig, n_envs: int, run_seed: int) -> None:
-        self.runners = [EnvRunner(config, run_seed, e) for e in range(n_envs)]
-        self.n_envs, self.n_cavs = n_envs, config.scenario.n_cavs
+    ``env_indices`` picks which of the run's environments this object holds
+    (all of ``range(n_envs)`` by default); worker processes hold a group each.
+    """
+
+    def __init__(
+        self, config: EnvConfig, n_envs: int, run_seed: int, env_indices: list[int] | None = None
+    ) -> None:
+        indices = list(range(n_envs)) if env_indices is None else env_indices
+        self.runners = [EnvRunner(config, run_seed, e) for e in indices]
+        self.n_envs, self.n_cavs = len(indices), config.scenario.n_cavs
+
+    def reset_list(self, first_episode: int | None = None) -> list[tuple[ActorObs, CriticState]]:
+        return [r.reset(first_episode) for r in self.runners]
+
+    def step_list(self, actions: np.ndarray) -> list[EnvStep]:  # actions (E, C)
+        return [r.step(a) for r, a in zip(self.runners, actions, strict=True)]
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
         """Reset every environment (optionally restarting their episode counters)."""
-        pairs = [r.reset(first_episode) for r in self.runners]
-        return stack([p[0] for p in pairs]), stack([p[1] for p in pairs])
+        return _stack_pairs(self.reset_list(first_episode))
 
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
-        return _stack_steps([r.step(a) for r, a in zip(self.runners, actions, strict=True)])
+        return _stack_steps(self.step_list(actions))
 
     def set_temperature(self, tau: float) -> None:
         for r in self.runners:
@@ -192,83 +206,98 @@ class SyncVectorEnv:
             r.close()
 
 
-def _worker(conn, config: EnvConfig, run_seed: int, env_index: int, episode: int) -> None:
-    runner = EnvRunner(config, run_seed, env_index)
-    runner.episode = episode
+def _stack_pairs(pairs: list[tuple[ActorObs, CriticState]]) -> tuple[ActorObs, CriticState]:
+    return stack([p[0] for p in pairs]), stack([p[1] for p in pairs])
+
+
+def _worker(conn, config: EnvConfig, run_seed: int, env_indices: list[int], episode: int) -> None:
+    group = SyncVectorEnv(config, 0, run_seed, env_indices)
+    for runner in group.runners:
+        runner.episode = episode
     try:
         while True:
             command, payload = conn.recv()
             if command == "step":
-                conn.send(runner.step(payload))
+                conn.send(group.step_list(payload))
             elif command == "reset":
-                conn.send(runner.reset(payload))
+                conn.send(group.reset_list(payload))
             elif command == "tau":
-                runner.set_temperature(payload)
+                group.set_temperature(payload)
             elif command == "close":
                 break
     except (EOFError, KeyboardInterrupt):
         pass
     finally:
-        runner.close()
+        group.close()
         conn.close()
 
 
 class ProcessVectorEnv:
-    """E environments, one per worker process, stepped in parallel."""
+    """E environments in W worker processes (a group of about E / W each), stepped in parallel.
 
-    def __init__(self, config: EnvConfig, n_envs: int, run_seed: int) -> None:
+    W defaults to one worker per CPU core (at most E): more workers than cores
+    only add switching, fewer leave cores idle.
+    """
+
+    def __init__(
+        self, config: EnvConfig, n_envs: int, run_seed: int, n_workers: int | None = None
+    ) -> None:
         self.config, self.run_seed = config, run_seed
         self.n_envs, self.n_cavs = n_envs, config.scenario.n_cavs
+        n_workers = min(n_envs, n_workers or os.cpu_count() or 1)
+        self.groups = [g.tolist() for g in np.array_split(np.arange(n_envs), n_workers)]
         self.ctx = mp.get_context("spawn")
         self.tau = config.reward.tau_init
         self.restarts = 0
-        self.workers: list = [None] * n_envs
-        self.pipes: list = [None] * n_envs
-        for e in range(n_envs):
-            self._start(e, episode=0)
+        self.workers: list = [None] * n_workers
+        self.pipes: list = [None] * n_workers
+        for w in range(n_workers):
+            self._start(w, episode=0)
 
-    def _start(self, e: int, episode: int) -> None:
+    def _start(self, w: int, episode: int) -> None:
         parent, child = self.ctx.Pipe()
         proc = self.ctx.Process(
-            target=_worker, args=(child, self.config, self.run_seed, e, episode), daemon=True
+            target=_worker,
+            args=(child, self.config, self.run_seed, self.groups[w], episode),
+            daemon=True,
         )
         proc.start()
         child.close()
-        self.workers[e], self.pipes[e] = proc, parent
+        self.workers[w], self.pipes[w] = proc, parent
         parent.send(("tau", self.tau))
 
-    def _restart(self, e: int) -> tuple[ActorObs, CriticState]:
+    def _restart(self, w: int) -> list[EnvStep]:
+        """Replace a dead worker; every episode of its group is cut."""
         self.restarts += 1
-        self.workers[e].kill()
-        self.workers[e].join()
+        self.workers[w].kill()
+        self.workers[w].join()
         # Episode numbers keep counting up, so a restarted env never repeats a seed.
-        self._start(e, episode=1_000_000 + self.restarts)
-        self.pipes[e].send(("reset", None))
-        return self.pipes[e].recv()
+        self._start(w, episode=1_000_000 + self.restarts)
+        self.pipes[w].send(("reset", None))
+        return [_cut_episode(a, c, self.n_cavs) for a, c in self.pipes[w].recv()]
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
         """Reset every environment (optionally restarting their episode counters)."""
         for p in self.pipes:
             p.send(("reset", first_episode))
-        pairs = [p.recv() for p in self.pipes]
-        return stack([p[0] for p in pairs]), stack([p[1] for p in pairs])
+        return _stack_pairs([pair for p in self.pipes for pair in p.recv()])
 
-    def step(self, actions: np.ndarray) -> VectorStep:
+    def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
         crashed = set()
-        for e, (p, a) in enumerate(zip(self.pipes, actions, strict=True)):
+        for w, (p, group) in enumerate(zip(self.pipes, self.groups, strict=True)):
             try:
-                p.send(("step", a))
+                p.send(("step", actions[group]))
             except (ConnectionError, OSError):
-                crashed.add(e)
-        steps = []
-        for e, p in enumerate(self.pipes):
-            if e not in crashed:
+                crashed.add(w)
+        steps: list[EnvStep] = []
+        for w, p in enumerate(self.pipes):
+            if w not in crashed:
                 try:
-                    steps.append(p.recv())
+                    steps += p.recv()
                     continue
                 except (EOFError, ConnectionError, OSError):
                     pass
-            steps.append(_cut_episode(*self._restart(e), self.n_cavs))
+            steps += self._restart(w)
         return _stack_steps(steps)
 
     def set_temperature(self, tau: float) -> None:

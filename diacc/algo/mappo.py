@@ -444,7 +444,7 @@ def train(
         else min(n_updates, first_update + stop_after_updates)
     )
 
-    envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed)
+    envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed, cfg.vector)
     writer = SummaryWriter(str(run_dir / "tb"))
     bar = tqdm(
         total=n_updates * steps_per_update,

@@ -25,7 +25,13 @@ PAPER_STEPS = 3_000_000
 
 
 def measure(
-    variant: str, backend: str, n_envs: int, updates: int, device: str, rollout_steps: int = 100
+    variant: str,
+    backend: str,
+    n_envs: int,
+    updates: int,
+    device: str,
+    rollout_steps: int = 100,
+    vector: str = "auto",
 ) -> dict:
     """Train ``updates`` updates; return env-steps/s of the whole loop and of rollouts."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -40,6 +46,7 @@ def measure(
                 "total_steps": updates * rollout_steps * n_envs,
                 "run_dir": tmp,
                 "checkpoint_every": 10_000,
+                "vector": vector,
             },
         )
         start = time.perf_counter()
