@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.algo.buffer import compute_gae
 from diacc.algo.mappo import (
     CheckpointError,
     collect_rollout,
@@ -18,6 +17,7 @@ from diacc.algo.mappo import (
     make_agent,
     make_batch,
     ppo_update,
+    rollout_gae,
     seed_everything,
     train,
 )
@@ -76,16 +76,7 @@ def rollout_and_batch(tmp_path_factory):
         roll, next_value, stats = collect_rollout(agent, envs, cfg, 0, torch.device("cpu"))
     finally:
         envs.close()
-    adv, ret = compute_gae(
-        roll.rewards,
-        roll.values,
-        next_value,
-        roll.terminated,
-        roll.truncated,
-        roll.final_values,
-        cfg.gamma,
-        cfg.gae_lambda,
-    )
+    adv, ret = rollout_gae(roll, next_value, cfg)
     batch = make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
     return cfg, agent, roll, batch
 

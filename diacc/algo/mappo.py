@@ -273,6 +273,20 @@ def collect_rollout(
     return roll, agent.value_norm.denormalize(next_value).cpu().numpy(), stats
 
 
+def rollout_gae(roll: Rollout, next_value: np.ndarray, cfg: TrainConfig):
+    """Advantages and returns (S, E) of a rollout (see :func:`compute_gae`)."""
+    return compute_gae(
+        roll.rewards,
+        roll.values,
+        next_value,
+        roll.terminated,
+        roll.truncated,
+        roll.final_values,
+        cfg.gamma,
+        cfg.gae_lambda,
+    )
+
+
 # ----------------------------------------------------------------------------- batch
 @dataclass
 class Batch:
@@ -463,16 +477,7 @@ def train(
             envs.set_temperature(tau)
 
             roll, next_value, rollout = collect_rollout(agent, envs, cfg, update, device)
-            advantages, returns = compute_gae(
-                roll.rewards,
-                roll.values,
-                next_value,
-                roll.terminated,
-                roll.truncated,
-                roll.final_values,
-                cfg.gamma,
-                cfg.gae_lambda,
-            )
+            advantages, returns = rollout_gae(roll, next_value, cfg)
             batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
             losses = ppo_update(agent, batch, cfg, envs.n_cavs)
             global_step += steps_per_update
