@@ -74,12 +74,30 @@ STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
 
 @dataclass(frozen=True)
 class CavParams:
-    """Physical limits of a CAV (SUMO vType of the authors)."""
+    """Physical limits of a CAV (SUMO vType of the authors) and its planned braking.
+
+    ``decel_mps2`` is the physical limit the simulators enforce on commands.
+    ``safe_decel_mps2`` is the braking the safety logic plans with: PSAR
+    brakes at most this hard and sizes its safe gaps with it, and HDVs
+    cutting in front of a CAV leave a gap it can brake for at this rate. It
+    sits below the metrics' emergency-braking threshold
+    (``EventConfig.emergency_decel_mps2``, 4.5) so that routine PSAR braking
+    is not a safety-critical event, and below the limit so that a reserve is
+    left.
+    """
 
     time_headway_s: float = 1.0
     min_gap_m: float = 1.0
     accel_mps2: float = 5.0
     decel_mps2: float = 5.0
+    safe_decel_mps2: float = 4.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.safe_decel_mps2 <= self.decel_mps2:
+            raise ConfigError(
+                f"CAV safe_decel_mps2 must be in (0, decel_mps2 = {self.decel_mps2}], "
+                f"got {self.safe_decel_mps2}"
+            )
 
 
 # --------------------------------------------------------------------------
@@ -113,7 +131,18 @@ class ObservationConfig:
 
 @dataclass(frozen=True)
 class PSARConfig:
-    """Thresholds of Algorithm 1 (authors' values, facts.md)."""
+    """Thresholds of Algorithm 1 (authors' values, facts.md) and two options.
+
+    ``force_brake``: ``"cancel"`` brakes away the closing speed within the
+    step (the authors' implementation, bounded by ``SimConfig.cav.decel_mps2``);
+    ``"paper"`` is Algorithm 1 read literally (Force-Brake = action 4, one
+    ``speed_change_mps`` step). ``horizon``: ``"stopping"`` lengthens the
+    distance thresholds by a safe stopping gap; ``"paper"`` keeps them
+    fixed. ``coordinate_lane_changes`` stops two connected CAVs from changing
+    lanes into each other. ``force_brake="paper", horizon="paper",
+    coordinate_lane_changes=False`` is the literal pseudocode (the ablation);
+    see :func:`diacc.safety.psar`.
+    """
 
     d_lc_min_m: float = 1.0
     d_safe_m: float = 5.0
@@ -123,6 +152,10 @@ class PSARConfig:
     ttc_warn_s: float = 3.0
     ttc_att_s: float = 5.0
     b_max_mps2: float = 2.0
+    force_brake: str = "cancel"
+    horizon: str = "stopping"
+    coordinate_lane_changes: bool = True  # CAVs do not change lanes into each other
+    queue_gap_m: float = 2.0  # standstill gap per vehicle queued at a lane end (PSAR's wall)
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,9 @@ order of their vehicle indices. Each step:
 2. PSAR (paper Algorithm 1) refines it, unless ``use_psar`` is off (the
    ``diacc-nopsar`` ablation);
 3. the refined action becomes a backend command (lane change +-1, speed change
-   +-``speed_change_mps``; Decel-LC brakes by ``b_lc`` during its lane change);
+   +-``speed_change_mps``; Decel-LC brakes by ``b_lc`` during its lane change,
+   Force-Brake by what PSAR asks, see :func:`diacc.safety.psar`). A lane
+   change the road does not allow here is not made, with or without PSAR;
 4. the backend advances one decision step and returns a TrafficState, from
    which the observations, the team reward and the events are built.
 
@@ -36,12 +38,12 @@ from diacc.maps import Map, load_map
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.reward import reward
 from diacc.safety import (
-    ACCELERATE,
     ACTION_LANE_OFFSET,
     ACTION_NAMES,
-    DECELERATE,
     REMAIN,
     PSARResult,
+    action_speed_change_mps,
+    lane_change_allowed,
     psar,
 )
 from diacc.scenario import Scenario
@@ -134,17 +136,23 @@ class BottleneckEnv(ParallelEnv):
         proposed = np.asarray(actions, dtype=np.int64).reshape(self.n_cavs)
         alive = state.active[self.cav_index]
         no_rule = np.zeros(self.n_cavs, np.int8)
+        sim = self.config.sim
         if self.config.use_psar:
-            result = psar(state, self.cav_index, proposed, self.config.psar, self.road)
+            result = psar(state, self.cav_index, proposed, self.config.psar, self.road, sim)
             refined = np.where(alive, result.action, REMAIN)
             rule = np.where(alive, result.rule, 0).astype(np.int8)
             rule_mask = np.where(alive, result.rule_mask, 0).astype(np.int8)
-            brake_mps2 = np.where(alive, result.decel_lc_mps2, 0.0)
+            speed_change_mps = np.where(alive, result.speed_change_mps, 0.0)
         else:
-            result, refined = None, np.where(alive, proposed, REMAIN)
-            rule, rule_mask, brake_mps2 = no_rule, no_rule, np.zeros(self.n_cavs)
+            # Without PSAR a lane change the road does not allow is still not made
+            # (the same rule as PSAR and the backends), so the executed action is honest.
+            allowed = lane_change_allowed(state, self.cav_index, proposed, self.road, sim)
+            is_lc = ACTION_LANE_OFFSET[proposed] != 0
+            result, refined = None, np.where(alive & (allowed | ~is_lc), proposed, REMAIN)
+            rule, rule_mask = no_rule, no_rule
+            speed_change_mps = action_speed_change_mps(refined, sim.speed_change_mps)
 
-        state = self.backend.step(self._commands(state.n_vehicles, refined, brake_mps2))
+        state = self.backend.step(self._commands(state.n_vehicles, refined, speed_change_mps))
         self.steps += 1
         self.state_ = state
         self.builder.push(state)
@@ -177,15 +185,11 @@ class BottleneckEnv(ParallelEnv):
         )
 
     def _commands(
-        self, n_vehicles: int, refined: np.ndarray, brake_mps2: np.ndarray
+        self, n_vehicles: int, refined: np.ndarray, speed_change_mps: np.ndarray
     ) -> CavCommands:
-        dv = self.config.sim.speed_change_mps
         commands = CavCommands.idle(n_vehicles)
         commands.lane_change[self.cav_index] = ACTION_LANE_OFFSET[refined]
-        commands.speed_change_mps[self.cav_index] = (
-            np.select([refined == ACCELERATE, refined == DECELERATE], [dv, -dv], 0.0)
-            - brake_mps2 * self.config.sim.step_s
-        )
+        commands.speed_change_mps[self.cav_index] = speed_change_mps
         return commands
 
     def _observe(self) -> tuple[ActorObs, CriticState]:

@@ -91,7 +91,7 @@ class EpisodeDriver:
         if self.env is not None:
             self._obs, _ = self.env.reset_arrays(seed)
             self.state = self.env.state_
-            self.policy.begin_episode(self.env.n_cavs)
+            self.policy.begin_episode(self.env.n_cavs, seed)
         else:
             self.state = self.backend.reset(self.cfg.scenario, seed)
         self.psar_rule = np.zeros(self.state.n_vehicles, np.int8)
@@ -168,6 +168,7 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResul
         "p_we": metrics.p_we,
         "p_sce": metrics.p_sce,
         "n_collisions": metrics.n_collisions,
+        "n_hdv_collisions": metrics.n_hdv_collisions,
         "arrived_fraction": metrics.arrived_fraction,
         "mean_travel_time_s": metrics.mean_travel_time_s,
         "n_vehicles_seen": metrics.n_vehicles,

@@ -121,6 +121,41 @@ class Map:
                         break
         return out
 
+    def lane_change_allowed(
+        self,
+        segment: np.ndarray,
+        lane: np.ndarray,
+        offset: np.ndarray,
+        x_m: np.ndarray,
+        reach_m: np.ndarray,
+    ) -> np.ndarray:
+        """Whether a change from ``lane`` by ``offset`` (+1 left, -1 right) can be made.
+
+        The one rule that PSAR and both backends apply to a commanded lane
+        change, so that no change PSAR approved is dropped by a simulator
+        (and none is silently skipped): the target lane exists in the
+        vehicle's ``segment`` and does not end within ``reach_m`` ahead of
+        the vehicle's centre ``x_m`` (callers pass the distance covered during
+        the change plus the vehicle length, see
+        :func:`diacc.kinematics.lane_change_reach_m`). ``offset == 0`` is not a
+        lane change and gives False. Arrays broadcast; returns bool.
+        """
+        segment = np.asarray(segment, dtype=np.int64)
+        target = np.asarray(lane, dtype=np.int64) + np.asarray(offset, dtype=np.int64)
+        in_range = (target >= 0) & (target < self.max_lanes)
+        target_c = np.clip(target, 0, self.max_lanes - 1)
+        exists = self._lane_exists_table[segment, target_c]
+        ends_later = self._lane_end_table[segment, target_c] - np.asarray(x_m) > reach_m
+        return (np.asarray(offset) != 0) & in_range & exists & ends_later
+
+    @property
+    def _lane_exists_table(self) -> np.ndarray:
+        return _cached(self, "_exists", self.lane_exists)
+
+    @property
+    def _lane_end_table(self) -> np.ndarray:
+        return _cached(self, "_ends", self.lane_end_m)
+
     def segment_of(self, x_m: np.ndarray) -> np.ndarray:
         """Segment index for each longitudinal position (clipped to the route)."""
         idx = np.searchsorted(self.segment_ends_m, x_m, side="right")
@@ -134,6 +169,16 @@ class Map:
         """Stable hash of the geometry (for caches such as SUMO networks)."""
         payload = json.dumps(asdict(self), sort_keys=True).encode()
         return hashlib.sha256(payload).hexdigest()[:16]
+
+
+def _cached(road: Map, name: str, compute) -> np.ndarray:
+    """Derived table stored on the frozen Map instance (computed once, read-only)."""
+    table = road.__dict__.get(name)
+    if table is None:
+        table = compute()
+        table.setflags(write=False)
+        object.__setattr__(road, name, table)
+    return table
 
 
 def available_maps() -> list[str]:

@@ -14,7 +14,8 @@ Definitions:
   at least one waiting event / safety-critical event
   (:func:`diacc.safety.waiting_events`, :func:`diacc.safety.safety_critical_events`).
 * ``n_collisions``: distinct unordered vehicle pairs that collided during the
-  episode (a pair still overlapping on the next step is not counted twice).
+  episode (a pair still overlapping on the next step is not counted twice);
+  ``n_hdv_collisions`` counts the pairs of two HDVs among them.
 * ``arrived_fraction``: vehicles that reached the route end / vehicles seen.
   Travel time = time of the first state marking a vehicle arrived minus the
   time of the first state it was seen active in.
@@ -52,6 +53,7 @@ class EpisodeMetrics:
     p_we: float
     p_sce: float
     n_collisions: int
+    n_hdv_collisions: int  # of those, pairs of two HDVs
     arrived_fraction: float
     mean_travel_time_s: float
     episode_steps: int
@@ -124,6 +126,7 @@ class EpisodeRecorder:
 
     def _init_vehicles(self, n: int) -> None:
         self._n = n
+        self._is_cav = np.zeros(n, dtype=bool)  # (V,)
         self._seen = np.zeros(n, dtype=bool)  # (V,)
         self._waited = np.zeros(n, dtype=bool)  # (V,)
         self._sce = np.zeros(n, dtype=bool)  # (V,)
@@ -145,6 +148,7 @@ class EpisodeRecorder:
             )
         if self._first_step is None:
             self._first_step = state.step
+            self._is_cav = state.is_cav.copy()
         self._last_step = state.step
 
         idx = np.flatnonzero(state.active)  # (A,)
@@ -187,10 +191,11 @@ class EpisodeRecorder:
         by_kind = {
             kind: _mean(speed[samples.segment_kind == k]) for k, kind in enumerate(SEGMENT_KINDS)
         }
-        if self._collision_pairs:
-            n_collisions = int(np.unique(np.concatenate(self._collision_pairs), axis=0).shape[0])
-        else:
-            n_collisions = 0
+        pairs = np.unique(
+            np.concatenate([np.zeros((0, 2), np.int32), *self._collision_pairs]), axis=0
+        )
+        n_collisions = int(pairs.shape[0])
+        n_hdv_collisions = int(np.count_nonzero(~self._is_cav[pairs].any(axis=1)))
         travel_s = self._arrival_time_s - self._first_time_s  # (V,) nan if not both
         decisions = self._psar_decisions
         fire = {
@@ -206,6 +211,7 @@ class EpisodeRecorder:
             p_we=_share(self._waited & self._seen, n_seen),
             p_sce=_share(self._sce & self._seen, n_seen),
             n_collisions=n_collisions,
+            n_hdv_collisions=n_hdv_collisions,
             arrived_fraction=_share(self._arrived & self._seen, n_seen),
             mean_travel_time_s=_mean(travel_s[np.isfinite(travel_s)]),
             episode_steps=int(self._last_step - (self._first_step or 0)),

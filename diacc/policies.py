@@ -25,12 +25,15 @@ from pathlib import Path
 import numpy as np
 
 from diacc.config import STYLE_PRESETS, VARIANTS, SimConfig, TrainConfig
-from diacc.env import EnvConfig
+from diacc.env import ACTION_NAMES, EnvConfig
 from diacc.grid import Cell
 from diacc.observation import ActorObs
 
 #: Names of the non-learning baselines.
 BASELINES = ("pure-hdv", "cooperative")
+#: Scripted CAV policies (safety benchmark): one fixed action, or uniform random.
+#: ``<name>-nopsar`` runs the same script without PSAR.
+SCRIPTED = ("remain", "accelerate", "random")
 
 
 class PolicyError(ValueError):
@@ -79,6 +82,10 @@ class PolicySpec:
     def is_baseline(self) -> bool:
         return self.name in BASELINES
 
+    @property
+    def is_scripted(self) -> bool:
+        return self.name.removesuffix("-nopsar") in SCRIPTED
+
 
 class Policy:
     """Base class; see the module docstring."""
@@ -98,7 +105,7 @@ class Policy:
             sim=settings.apply(self.base.sim),
         )
 
-    def begin_episode(self, n_cavs: int) -> None:
+    def begin_episode(self, n_cavs: int, seed: int) -> None:
         """Forget any recurrent state (called before the first :meth:`act`)."""
 
     def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
@@ -135,6 +142,35 @@ class CooperativePolicy(Policy):
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
         cfg = super().env_config(cell, settings)
         return dataclasses.replace(cfg, use_psar=False, cav_mode="cooperative")
+
+
+class ScriptedPolicy(Policy):
+    """CAVs that always take one action (``remain``, ``accelerate``) or a uniform
+    random one (``random``, seeded by the episode seed), with or without PSAR.
+
+    These are the probes of ``diacc bench --safety``: what PSAR and the
+    simulators make of a policy that knows nothing about traffic.
+    """
+
+    commands_cavs = True
+
+    def __init__(self, name: str) -> None:
+        script = name.removesuffix("-nopsar")
+        if script not in SCRIPTED:
+            raise PolicyError(f"unknown scripted policy {name!r}; known: {', '.join(SCRIPTED)}")
+        self.label = name
+        self.script = script
+        self.base = dataclasses.replace(EnvConfig(), use_psar=not name.endswith("-nopsar"))
+        self._rng = np.random.default_rng(0)
+
+    def begin_episode(self, n_cavs: int, seed: int) -> None:
+        self._rng = np.random.default_rng([int(seed), 0x5C21])
+
+    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
+        n_cavs = actor_obs.alive.shape[0]
+        if self.script == "random":
+            return self._rng.integers(0, len(ACTION_NAMES), n_cavs).astype(np.int64)
+        return np.full(n_cavs, ACTION_NAMES.index(self.script), np.int64)
 
 
 class CheckpointPolicy(Policy):
@@ -186,7 +222,7 @@ class CheckpointPolicy(Policy):
             )
         return super().env_config(cell, settings)
 
-    def begin_episode(self, n_cavs: int) -> None:
+    def begin_episode(self, n_cavs: int, seed: int) -> None:
         import torch
 
         self._hidden = torch.zeros(n_cavs, self.hidden_size)
@@ -213,7 +249,7 @@ class CheckpointPolicy(Policy):
 
 def parse_policy(name: str, variant: str | None = None) -> PolicySpec:
     """Check a ``--policy`` value: a baseline name or an existing checkpoint file."""
-    if name in BASELINES:
+    if name in BASELINES or PolicySpec(name).is_scripted:
         if variant is not None:
             raise PolicyError(f"--variant applies to checkpoints, not to the {name} baseline")
         return PolicySpec(name)
@@ -224,7 +260,8 @@ def parse_policy(name: str, variant: str | None = None) -> PolicySpec:
         path = path / "checkpoint.pt"
     if path.suffix != ".pt" and not path.exists():
         raise PolicyError(
-            f"unknown policy {name!r}; use {', '.join(BASELINES)} or the path of a checkpoint.pt"
+            f"unknown policy {name!r}; use {', '.join(BASELINES + SCRIPTED)} (scripted ones also "
+            "as <name>-nopsar) or the path of a checkpoint.pt"
         )
     if not path.exists():
         raise PolicyError(f"checkpoint {path} does not exist")
@@ -237,4 +274,6 @@ def build_policy(spec: PolicySpec) -> Policy:
         return PureHdvPolicy()
     if spec.name == "cooperative":
         return CooperativePolicy()
+    if spec.is_scripted:
+        return ScriptedPolicy(spec.name)
     return CheckpointPolicy(spec.name, spec.variant)

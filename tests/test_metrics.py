@@ -62,6 +62,7 @@ def psar_result(mask: list[int]) -> PSARResult:
     n = len(mask)
     return PSARResult(
         action=np.zeros(n, np.int64),
+        speed_change_mps=np.zeros(n),
         rule=np.zeros(n, np.int8),
         rule_mask=np.array(mask, np.int8),
         decel_lc_mps2=np.zeros(n),

@@ -31,7 +31,10 @@ from diacc.safety import (
     waiting_events,
 )
 
-CFG = PSARConfig()  # d_lc_min 1, d_safe 5, d_warn 8, d_att 15 m; TTC 2 / 3 / 5 s; b_max 2
+# Algorithm 1 read literally (fixed thresholds, Force-Brake = action 4): the cases below
+# check the pseudocode line by line; the default options are tested further down.
+CFG = PSARConfig(force_brake="paper", horizon="paper", coordinate_lane_changes=False)
+# d_lc_min 1, d_safe 5, d_warn 8, d_att 15 m; TTC 2 / 3 / 5 s; b_max 2
 ROAD = load_map("train-25")  # 4 lanes, lane 3 missing in segment 1 (500-800 m)
 EGO_X, EGO_V = 100.0, 20.0  # the CAV (index 0) in every PSAR case, 5 m long
 

@@ -24,9 +24,16 @@ Modelling choices (documented here because both backends must agree on them):
   :mod:`highway_models`). A last-resort guard keeps an HDV behind its HDV
   leader; its use is counted in ``stats["guard_events"]`` (0 in practice).
 * **CAVs** follow their commands exactly (see :mod:`diacc.backends.base`).
-  A commanded change towards a lane that does not exist here, or that ends
-  within one step's reach, is ignored; a CAV in an ending lane is forced
-  out by the HDVs' rule, unconditionally once the end is within one step.
+  A commanded change is made only if :meth:`Map.lane_change_allowed` says
+  so (the rule PSAR applies too). A CAV is never moved by the simulator: in
+  a lane that ends it stops with its front at the end (counted in
+  ``stats["cav_lane_end_stops"]`` when it arrives there moving) and may
+  change lanes later.
+* **HDV lane changes respect CAVs**: MOBIL and the forced merge accept a gap
+  in front of a CAV only if the CAV, holding its commanded speed for the
+  step and then braking at ``cav.safe_decel_mps2``, stays ``cav.min_gap_m`` behind
+  (:func:`diacc.kinematics.safe_gap_m`, the margin PSAR uses); IDM's view
+  of the follower would assume it brakes at once.
 * **Cooperative CAVs** (``cav_mode="cooperative"``, the paper's non-learning
   "cooperative" baseline; SUMO uses CACC with ``lcCooperative = 1``): CAVs
   ignore the commands and are driven by the same vectorised IDM / MOBIL /
@@ -57,6 +64,7 @@ from diacc.backends.highway_models import (
 )
 from diacc.backends.highway_road import LaneTables, build_road_network
 from diacc.config import STYLE_PRESETS, SimConfig
+from diacc.kinematics import lane_change_reach_m, safe_gap_m
 from diacc.maps import Map
 from diacc.scenario import Scenario, draw_population
 from diacc.state import TrafficState
@@ -182,7 +190,12 @@ class HighwayBackend:
         self._refresh_speed_bounds()
         self.time_s = 0.0
         self.step_count = 0
-        self.stats = {"guard_events": 0, "forced_merges": 0, "mobil_changes": 0}
+        self.stats = {
+            "guard_events": 0,
+            "forced_merges": 0,
+            "mobil_changes": 0,
+            "cav_lane_end_stops": 0,
+        }
         self._state = self._make_state(np.zeros(n), _EMPTY_PAIRS, np.zeros(0, np.int32))
         return self._state
 
@@ -203,7 +216,7 @@ class HighwayBackend:
         new_contacts = np.zeros((n, n), dtype=bool)
         for k in range(self.sim.substeps):
             if k % self._decide_every == 0:
-                self._decide_lane_changes(cav_turn=(k == 0))
+                self._decide_lane_changes()
             contact = self._substep()
             new_contacts |= contact & ~self._contact
             self._contact = contact
@@ -254,19 +267,14 @@ class HighwayBackend:
         self._cav_accel_mps2 = np.where(cav, accel, 0.0)
         self._refresh_speed_bounds()
 
-        n_lanes = self.road.max_lanes
-        dest = self.lane_from + np.clip(lane_cmd, -1, 1)
-        dest_c = np.clip(dest, 0, n_lanes - 1)
-        reach_m = limit * self.sim.step_s + self.sim.vehicle_length_m
+        offset = np.clip(lane_cmd, -1, 1)
+        reach_m = lane_change_reach_m(self.speed_mps, self.sim.step_s, self.sim.vehicle_length_m)
         ok = (
             cav
-            & (lane_cmd != 0)
             & (self.lane_from == self.lane_to)
-            & (dest >= 0)
-            & (dest < n_lanes)
-            & self.tables.exists[seg, dest_c]
-            & (self.tables.end_m[seg, dest_c] - self.x_m > reach_m)
+            & self.road.lane_change_allowed(seg, self.lane_from, offset, self.x_m, reach_m)
         )
+        dest_c = np.clip(self.lane_from + offset, 0, self.road.max_lanes - 1)
         self._start_changes(ok, dest_c, self.sim.step_s)
 
     def _start_changes(self, start: np.ndarray, dest: np.ndarray, duration_s: float) -> None:
@@ -288,7 +296,7 @@ class HighwayBackend:
         occ &= self.active[:, None]
         return occ
 
-    def _decide_lane_changes(self, cav_turn: bool) -> None:
+    def _decide_lane_changes(self) -> None:
         """MOBIL for HDVs, forced merges for vehicles in ending lanes, yielding followers.
 
         All vehicles and all three lanes (right, own, left) are evaluated at
@@ -306,8 +314,8 @@ class HighwayBackend:
         lane = self.lane_from
         dist_end = tab.end_m[seg, lane] - x
         merge_dir = tab.merge_dir[seg, lane].astype(np.intp)
-        forced = idle & (merge_dir != 0) & (dist_end < m.merge_zone_m)
-        forced &= ~self.is_cav | cav_turn
+        # Only HDVs are forced to merge: a CAV that stays in an ending lane stops at its end.
+        forced = idle & ~self.is_cav & (merge_dir != 0) & (dist_end < m.merge_zone_m)
         discretionary = (
             idle
             & ~self.is_cav
@@ -353,6 +361,13 @@ class HighwayBackend:
         dest_c = lanes3_c[side]
         valid = (dest >= 0) & (dest < n_lanes) & tab.exists[seg, dest_c]
         gaps_ok = (lead_gap[side] >= m.min_accept_gap_m) & (foll_gap[side] >= m.min_accept_gap_m)
+        # A CAV follower holds its commanded speed for the rest of the step and only
+        # then brakes (at most at its decel limit): the gap must cover that, not IDM.
+        cav_foll = self.is_cav[foll[side]] & has_foll[side]  # (2, V)
+        cav_gap_m = sim.cav.min_gap_m + safe_gap_m(
+            self._cav_target_mps[foll[side]], v[None, :], sim.step_s, sim.cav.safe_decel_mps2
+        )
+        gaps_ok &= ~cav_foll | (foll_gap[side] >= cav_gap_m)
         nf_after = foll_with_me[side]
         gain = (
             self_acc[side]
@@ -371,11 +386,9 @@ class HighwayBackend:
         accept_brake = m.mobil_max_imposed_brake_mps2 + urgency * (
             m.forced_max_imposed_brake_mps2 - m.mobil_max_imposed_brake_mps2
         )
-        # A CAV gets no further chance once the end is within one step.
-        must_go = forced & self.is_cav & (dist_end < desired * sim.step_s + length)
         is_merge = forced & valid & (merge_dir == self._sides[side, None])  # (2, V)
-        forced_ok = is_merge & (
-            must_go | (gaps_ok & (nf_after >= -accept_brake) & (self_acc[side] >= -accept_brake))
+        forced_ok = (
+            is_merge & gaps_ok & (nf_after >= -accept_brake) & (self_acc[side] >= -accept_brake)
         )
         score = np.where(forced_ok, np.inf, np.where(mobil_ok, gain, -np.inf))  # (2, V)
         pick = score.argmax(axis=0)  # (V,)
@@ -383,8 +396,8 @@ class HighwayBackend:
         target = dest_c[pick, self._rows]
 
         # Two vehicles entering the same lane side by side in the same instant
-        # would not see each other: keep the front one (a CAV that must go first).
-        priority = x + np.where(must_go, 1e6, 0.0)
+        # would not see each other: keep the front one.
+        priority = x
         rear_gap_need = self.idm.min_gap_m + v * self.idm.headway_s  # (V,)
         clash = (
             start[:, None]
@@ -398,8 +411,7 @@ class HighwayBackend:
 
         self.stats["forced_merges"] += int((start & forced).sum())
         self.stats["mobil_changes"] += int((start & ~forced).sum())
-        self._start_changes(start & ~self.is_cav, target, m.hdv_lane_change_s)
-        self._start_changes(start & self.is_cav, target, sim.step_s)  # completes within the step
+        self._start_changes(start, target, m.hdv_lane_change_s)
 
         # Yielding: the nearest follower in the merge lane treats a waiting merger as leader.
         merge_row = np.where(merge_dir > 0, 2, 0)
@@ -464,8 +476,9 @@ class HighwayBackend:
         return p.accel_mps2 * (1.0 - free - ratio * ratio)
 
     def _refresh_leaders(self) -> None:
-        """Leader of every vehicle: nearest active vehicle ahead sharing a lane, or a
-        merger it yields to.
+        """Leader of every vehicle: nearest active vehicle ahead sharing a lane.
+
+        (A merger a vehicle yields to is a second leader, handled in the sub-step.)
 
         Leaders only change when a lane change starts or ends, a vehicle
         arrives or crashes, or yielding changes (vehicles in a shared lane
@@ -479,9 +492,6 @@ class HighwayBackend:
             | (lt[:, None] == lf[None, :])
             | (lt[:, None] == lt[None, :])
         )  # (V, V)
-        has_yield = self.yield_to >= 0
-        if has_yield.any():
-            shares_lane[self._rows[has_yield], self.yield_to[has_yield]] = True
         dx = x[None, :] - x[:, None]  # (V, V)
         ahead = np.where(shares_lane & (dx > 0.0) & self.active[None, :], dx, np.inf)
         self._leader = ahead.argmin(axis=1)
@@ -524,10 +534,24 @@ class HighwayBackend:
         gap = np.where(end_closer, self._end_x_m - x, gap) - length
         lead_v = np.where(end_closer, 0.0, v[leader])
         acc = self._idm_fast(v, gap, lead_v)
+        # A yielding follower brakes for the merger *and* for its own leader, whichever
+        # asks more: the merger may be alongside the real leader, not in front of it.
+        yielding = self.yield_to >= 0
+        if yielding.any():
+            merger = np.where(yielding, self.yield_to, self._rows)
+            acc_merge = self._idm_fast(v, x[merger] - x - length, v[merger])
+            acc = np.where(yielding, np.minimum(acc, acc_merge), acc)
         # CAVs: constant acceleration towards the commanded target speed.
         acc = np.where(self.is_cav, self._cav_accel_mps2, np.maximum(acc, self._min_accel))
         v_new = np.minimum(np.maximum(v + acc * dt, self._v_lo), self._v_hi)
         x_new = x + (v + v_new) * self._half_dt_active
+        # A CAV cannot drive past the end of its lane: it stops with its front there.
+        wall_x = self._end_x_m - length
+        at_wall = self.is_cav & (x_new > wall_x)
+        if at_wall.any():
+            self.stats["cav_lane_end_stops"] += int((at_wall & (v_new > 0.0)).sum())
+            x_new = np.where(at_wall, wall_x, x_new)
+            v_new = np.where(at_wall, 0.0, v_new)
 
         # Last-resort guard: an HDV never runs into the HDV it follows.
         leader_x = x_new[leader]

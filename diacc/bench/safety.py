@@ -1,0 +1,117 @@
+"""``diacc bench --safety``: can scripted CAVs cross the bottleneck without collisions?
+
+Scripted policies (:class:`~diacc.policies.ScriptedPolicy`: always
+``remain``, always ``accelerate``, uniform ``random``) drive the CAVs of the
+paper's training scenario (N = 25, rho = 0.4, D1) with and without PSAR, on
+every map and backend, through the same episode driver as evaluation
+(:func:`diacc.evaluate.run_episode`). A policy that knows nothing about
+traffic is the hardest test of the safety layer: whatever it proposes, PSAR
+should keep it out of collisions, and HDVs should never collide with each
+other. Per (backend, map, policy) it prints the collision-free share of
+episodes, the number of HDV-HDV collision pairs, the mean speed of all
+vehicles, p(SCE) and the arrived fraction.
+
+Target (issue "Collision-free bottleneck driving"): with PSAR, ``remain`` and
+``accelerate`` collision-free in >= 95 % of episodes on every map and both
+backends, and 0 HDV-HDV collisions. Without PSAR collisions are expected.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from diacc.config import BACKENDS
+from diacc.evaluate import EpisodeDriver, run_episode
+from diacc.grid import Cell
+from diacc.maps import available_maps
+from diacc.policies import SCRIPTED, EvalSettings, ScriptedPolicy
+
+#: Policies of the benchmark: each script with PSAR, then without.
+POLICIES = tuple(SCRIPTED) + tuple(f"{name}-nopsar" for name in SCRIPTED)
+#: Target collision-free share for ``remain`` and ``accelerate`` with PSAR.
+TARGET_COLLISION_FREE = 0.95
+
+
+@dataclass
+class SafetyRow:
+    """Aggregate of one (backend, map, policy) over its episodes."""
+
+    backend: str
+    map: str
+    policy: str
+    episodes: int
+    collision_free: float  # share of episodes without any collision
+    hdv_hdv_collisions: int  # collision pairs of two HDVs, summed over episodes
+    mean_speed_mps: float  # mean over episodes of the episode mean speed
+    p_sce: float  # mean over episodes
+    arrived_fraction: float  # mean over episodes
+
+    @property
+    def meets_target(self) -> bool | None:
+        """None where the target does not apply (random, no PSAR)."""
+        if self.policy not in ("remain", "accelerate"):
+            return None
+        return self.collision_free >= TARGET_COLLISION_FREE and self.hdv_hdv_collisions == 0
+
+
+def measure(backend: str, map_name: str, policy_name: str, episodes: int) -> SafetyRow:
+    """Run ``episodes`` seeded episodes of one scripted policy; seeds as evaluation's."""
+    policy = ScriptedPolicy(policy_name)
+    cell = Cell(map_name, 25, 0.4, "D1")
+    driver = EpisodeDriver(policy, policy.env_config(cell, EvalSettings(backend=backend)))
+    try:
+        rows = [run_episode(driver, cell, k).row for k in range(episodes)]
+    finally:
+        driver.close()
+    return SafetyRow(
+        backend=backend,
+        map=map_name,
+        policy=policy_name,
+        episodes=episodes,
+        collision_free=float(np.mean([r["collision"] == 0 for r in rows])),
+        hdv_hdv_collisions=int(sum(r["n_hdv_collisions"] for r in rows)),
+        mean_speed_mps=float(np.mean([r["mean_speed_mps"] for r in rows])),
+        p_sce=float(np.mean([r["p_sce"] for r in rows])),
+        arrived_fraction=float(np.mean([r["arrived_fraction"] for r in rows])),
+    )
+
+
+def run(
+    backends: tuple[str, ...] = BACKENDS,
+    maps: tuple[str, ...] | None = None,
+    policies: tuple[str, ...] = POLICIES,
+    episodes: int = 20,
+) -> list[SafetyRow]:
+    """Measure every combination and print one Markdown table; returns the rows."""
+    maps = tuple(maps or available_maps())
+    print(
+        f"safety benchmark: N = 25, rho = 0.4, D1, {episodes} seeded episodes per row "
+        f"(seeds as `diacc eval`)"
+    )
+    print(
+        "| backend | map | policy | collision-free | HDV-HDV collisions | mean speed m/s "
+        "| p(SCE) | arrived | target |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    out = []
+    start = time.perf_counter()
+    for backend in backends:
+        for map_name in maps:
+            for policy_name in policies:
+                row = measure(backend, map_name, policy_name, episodes)
+                out.append(row)
+                target = {None: "", True: "met", False: "**missed**"}[row.meets_target]
+                print(
+                    f"| {backend} | {map_name} | {policy_name} | {row.collision_free:.0%} "
+                    f"| {row.hdv_hdv_collisions} | {row.mean_speed_mps:.2f} | {row.p_sce:.0%} "
+                    f"| {row.arrived_fraction:.0%} | {target} |",
+                    flush=True,
+                )
+    checked = [r.meets_target for r in out if r.meets_target is not None]
+    print(
+        f"target met in {sum(checked)} of {len(checked)} rows ({time.perf_counter() - start:.0f} s)"
+    )
+    return out
