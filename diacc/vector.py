@@ -12,8 +12,9 @@ metrics, and recovery from a crashed simulator.
 * :class:`ProcessVectorEnv` splits the environments into one group per
   worker process (``spawn`` start method; each SUMO environment still runs
   libsumo in a worker of its own), so groups step in parallel. A worker that
-  dies is restarted; the episodes of its group are cut (``terminated`` with
-  zero reward) and counted in ``restarts``.
+  dies is restarted; the episodes of its group are cut (``truncated`` with
+  zero reward, bootstrapped from the last state before the crash) and
+  counted in ``restarts``.
 """
 
 from __future__ import annotations
@@ -100,7 +101,9 @@ class EnvRunner:
         try:
             out = self.env.step_arrays(actions)
         except BackendError:
-            return _cut_episode(*self.reset(), self.env.n_cavs)
+            # The step never happened: bootstrap from the last state that did.
+            final = self.env.builder.critic()
+            return _cut_episode(*self.reset(), self.env.n_cavs, final)
         self.return_ += out.reward
         self.recorder.record(out.state, psar=out.psar)
         final, episode = None, None
@@ -132,18 +135,25 @@ class EnvRunner:
         self.env.close()
 
 
-def _cut_episode(actor: ActorObs, critic: CriticState, n_cavs: int) -> EnvStep:
-    """The transition reported when a simulator crashed: episode cut, no reward, fresh start."""
+def _cut_episode(
+    actor: ActorObs, critic: CriticState, n_cavs: int, final_critic: CriticState | None
+) -> EnvStep:
+    """The transition reported when a simulator crashed: episode cut, no reward, fresh start.
+
+    A crash is not the episode's end but ours, so it is a *truncation*: the
+    trainer bootstraps from ``final_critic``, the last state the simulator
+    reached (a termination would teach the critic that a crash is worth 0).
+    """
     return EnvStep(
         actor,
         critic,
         0.0,
-        True,
         False,
+        True,
         np.zeros(n_cavs, bool),
         np.zeros(n_cavs, np.int64),
         np.zeros(n_cavs, np.int8),
-        None,
+        final_critic,
         None,
         None,
         True,
@@ -249,6 +259,7 @@ class ProcessVectorEnv:
         self.ctx = mp.get_context("spawn")
         self.tau = config.reward.tau_init
         self.restarts = 0
+        self._last_critic: list[CriticState | None] = [None] * n_envs  # bootstrap on a crash
         self.workers: list = [None] * n_workers
         self.pipes: list = [None] * n_workers
         for w in range(n_workers):
@@ -274,13 +285,19 @@ class ProcessVectorEnv:
         # Episode numbers keep counting up, so a restarted env never repeats a seed.
         self._start(w, episode=1_000_000 + self.restarts)
         self.pipes[w].send(("reset", None))
-        return [_cut_episode(a, c, self.n_cavs) for a, c in self.pipes[w].recv()]
+        finals = [self._last_critic[e] for e in self.groups[w]]
+        return [
+            _cut_episode(a, c, self.n_cavs, final)
+            for (a, c), final in zip(self.pipes[w].recv(), finals, strict=True)
+        ]
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
         """Reset every environment (optionally restarting their episode counters)."""
         for p in self.pipes:
             p.send(("reset", first_episode))
-        return _stack_pairs([pair for p in self.pipes for pair in p.recv()])
+        pairs = [pair for p in self.pipes for pair in p.recv()]
+        self._last_critic = [critic for _, critic in pairs]
+        return _stack_pairs(pairs)
 
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
         crashed = set()
@@ -298,6 +315,7 @@ class ProcessVectorEnv:
                 except (EOFError, ConnectionError, OSError):
                     pass
             steps += self._restart(w)
+        self._last_critic = [s.critic_state for s in steps]
         return _stack_steps(steps)
 
     def set_temperature(self, tau: float) -> None:

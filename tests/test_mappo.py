@@ -98,6 +98,27 @@ def test_chunked_replay_reproduces_rollout_logprobs(rollout_and_batch):
     assert torch.allclose(ratio, torch.ones_like(ratio), atol=1e-5)
 
 
+def test_value_clipping_keeps_every_value_gradient_in_the_first_pass(rollout_and_batch):
+    """The clip centre is the critic's own rollout output, so before any parameter
+    step no critic sample can be clipped away (re-normalising de-normalised values
+    with freshly updated statistics zeroed most value gradients)."""
+    cfg, agent, _, batch = rollout_and_batch
+    cfg = override(cfg, {"epochs": 1, "minibatches": 1})
+    a = copy.deepcopy(agent)
+    grads = []
+    replay = a.critic.forward_sequence
+
+    def recording(*args, **kwargs):
+        values, hidden = replay(*args, **kwargs)
+        values.register_hook(lambda g: grads.append(g.detach().clone()))
+        return values, hidden
+
+    a.critic.forward_sequence = recording
+    ppo_update(a, batch, cfg, 4)
+    assert len(grads) == 1
+    assert (grads[0] != 0).float().mean().item() > 0.99
+
+
 def test_dead_steps_contribute_nothing(rollout_and_batch):
     cfg, agent, _, batch = rollout_and_batch
     cfg = override(cfg, {"epochs": 1})

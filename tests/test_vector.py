@@ -50,10 +50,31 @@ def test_crashed_worker_is_restarted_and_its_episode_cut():
         envs.workers[1].join()
         out = envs.step(np.zeros((2, envs.n_cavs), np.int64))
         assert out.restarts == 1 and envs.restarts == 1
-        assert out.terminated[1] and out.reward[1] == 0.0 and not out.alive[1].any()
+        # A crash is a truncation, bootstrapped from the last state before it.
+        assert out.truncated[1] and not out.terminated[1] and out.reward[1] == 0.0
+        assert out.final_critic_state[1] is not None and not out.alive[1].any()
         assert out.actor_obs.alive[1].all(), "the restarted env starts a fresh episode"
         out = envs.step(np.zeros((2, envs.n_cavs), np.int64))  # and keeps running
         assert out.restarts == 0
     finally:
         envs.close()
     assert all(not w.is_alive() for w in envs.workers)
+
+
+def test_sumo_crash_inside_a_rollout_is_a_truncation():
+    """A SUMO worker killed mid-episode: the step is cut, not terminated, and the
+    trainer gets the last state before the crash to bootstrap from."""
+    envs = SyncVectorEnv(EnvConfig(backend="sumo", scenario=CONFIG.scenario), 1, run_seed=3)
+    try:
+        envs.reset()
+        before = envs.step(np.zeros((1, envs.n_cavs), np.int64))
+        os.kill(envs.runners[0].env.backend.worker_pid, signal.SIGKILL)
+        out = envs.step(np.zeros((1, envs.n_cavs), np.int64))
+        assert out.restarts == 1
+        assert out.truncated[0] and not out.terminated[0] and out.reward[0] == 0.0
+        final = out.final_critic_state[0]
+        np.testing.assert_array_equal(final.nodes, before.critic_state.nodes[0])
+        out = envs.step(np.zeros((1, envs.n_cavs), np.int64))  # the next episode runs
+        assert out.restarts == 0
+    finally:
+        envs.close()

@@ -52,7 +52,8 @@ class Rollout:
     actions: np.ndarray  # (S, E, C) int64 actor's proposed action
     logprobs: np.ndarray  # (S, E, C)
     alive: np.ndarray  # (S, E, C) bool: CAV on the road when acting
-    values: np.ndarray  # (S, E) de-normalised V(s_t)
+    values: np.ndarray  # (S, E) de-normalised V(s_t), for GAE
+    values_normalised: np.ndarray  # (S, E) the critic's raw output: the value-clip centre
     rewards: np.ndarray  # (S, E)
     terminated: np.ndarray  # (S, E) bool
     truncated: np.ndarray  # (S, E) bool
@@ -71,6 +72,7 @@ class Rollout:
             logprobs=np.zeros((steps, envs, cavs), f),
             alive=np.zeros((steps, envs, cavs), bool),
             values=np.zeros((steps, envs), np.float64),
+            values_normalised=np.zeros((steps, envs), f),
             rewards=np.zeros((steps, envs), np.float64),
             terminated=np.zeros((steps, envs), bool),
             truncated=np.zeros((steps, envs), bool),

@@ -241,6 +241,7 @@ def collect_rollout(
             value, h_critic = agent.critic(to_tensors(critic_state, device), h_critic, start_t)
         roll.actions[t] = action.view(E, C).cpu().numpy()
         roll.logprobs[t] = dist.log_prob(action).view(E, C).cpu().numpy()
+        roll.values_normalised[t] = value.cpu().numpy()
         roll.values[t] = agent.value_norm.denormalize(value).cpu().numpy()
 
         out = envs.step(roll.actions[t])
@@ -308,7 +309,7 @@ class Batch:
     alive: torch.Tensor  # (L, B_a) float, 0 for dead/absent CAVs
     advantages: torch.Tensor  # (L, B_a) normalised over alive CAVs
     returns: torch.Tensor  # (L, B_c) unnormalised
-    values: torch.Tensor  # (L, B_c) unnormalised
+    old_values_normalised: torch.Tensor  # (L, B_c) critic outputs at rollout time
 
 
 def make_batch(
@@ -345,7 +346,7 @@ def make_batch(
         alive=tensor(per_agent(roll.alive)),
         advantages=tensor(per_agent(adv)),
         returns=tensor(chunk_time_major(returns, L)),
-        values=tensor(chunk_time_major(roll.values, L)),
+        old_values_normalised=tensor(chunk_time_major(roll.values_normalised, L)),
     )
 
 
@@ -377,7 +378,9 @@ def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dic
     """``epochs`` passes of clipped PPO over the batch; returns mean diagnostics."""
     agent.value_norm.update(batch.returns)
     returns_n = agent.value_norm.normalize(batch.returns)
-    old_values_n = agent.value_norm.normalize(batch.values)
+    # Clip around what the critic predicted during the rollout (MAPPO): re-normalising
+    # the de-normalised values with the statistics just updated would move the centre.
+    old_values_n = batch.old_values_normalised
     stats: dict[str, list[float]] = {
         k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")
     }

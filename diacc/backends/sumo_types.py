@@ -59,12 +59,22 @@ def vtypes_xml(sim: SimConfig, cav_mode: str) -> str:
         )
     cav = sim.cav
     if cav_mode == "commanded":
-        model = f'carFollowModel="IDM" delta="{sim.idm_delta}" laneChangeModel="LC2013"'
+        # The commanded CAV's own motion ignores its vType (speedMode 0, laneChangeMode 0):
+        # decel and tau only tell the HDVs' LC2013 which gap a CAV needs behind a
+        # vehicle cutting in, so they are the braking and reaction PSAR plans with
+        # (kinematics.safe_gap_m); the lateral-speed terms let a lane change complete
+        # within the step even from standstill, as on the highway backend.
+        model = (
+            f'carFollowModel="IDM" delta="{sim.idm_delta}" laneChangeModel="LC2013" '
+            'lcMaxSpeedLatStanding="100" lcMaxSpeedLatFactor="100"'
+        )
+        decel_mps2, tau_s = cav.safe_decel_mps2, sim.step_s
     else:
         model = 'carFollowModel="CACC" laneChangeModel="LC2013" lcCooperative="1"'
+        decel_mps2, tau_s = cav.decel_mps2, cav.time_headway_s
     rows.append(
-        f'    <vType id={quoteattr(CAV_TYPE)} {common} {model} tau="{cav.time_headway_s}" '
-        f'minGap="{cav.min_gap_m}" accel="{cav.accel_mps2}" decel="{cav.decel_mps2}" '
+        f'    <vType id={quoteattr(CAV_TYPE)} {common} {model} tau="{tau_s}" '
+        f'minGap="{cav.min_gap_m}" accel="{cav.accel_mps2}" decel="{decel_mps2}" '
         f'emergencyDecel="{max(cav.decel_mps2, 9.0)}" color="0,160,255"/>'
     )
     return "<additional>\n" + "\n".join(rows) + "\n</additional>\n"

@@ -27,27 +27,25 @@ import numpy as np
 from diacc.backends.sumo_net import ROUTE_ID, edge_ids
 from diacc.backends.sumo_types import CAV_TYPE, HDV_TYPES
 from diacc.config import SimConfig
+from diacc.kinematics import lane_change_reach_m
 from diacc.maps import Map
 from diacc.scenario import Population
 from diacc.state import TrafficState
 
-#: laneChangeMode of commanded CAVs. Bits (SUMO docs): 0-1 strategic = 1
-#: ("strategic changes unless they conflict with a TraCI request"), 2-3
-#: cooperative = 0, 4-5 speed gain = 0, 6-7 keep right = 0, 8-9 = 0 ("TraCI
-#: changes ignore other vehicles' gaps"). So the policy alone chooses lane
-#: changes, without built-in safety, yet LC2013 still leaves an ending lane
-#: (the authors' 1109 also leaves speed-gain and keep-right changes on, which
-#: would let SUMO steer the agent). :data:`FORCED_MERGE_*` backs this up.
-CAV_LANE_CHANGE_MODE = 0b0000_0000_0001
+#: laneChangeMode of commanded CAVs: 0 = no lane change of SUMO's own (strategic,
+#: cooperative, speed gain, keep right all off) and TraCI changes executed without
+#: SUMO's gap checks (bits 8-9 = 0). So the policy alone chooses lane changes,
+#: without built-in safety, and SUMO never moves a CAV out of an ending lane: it
+#: stops at the lane end, as on the highway backend (the authors' 1109 leaves
+#: strategic, speed-gain and keep-right changes on, which would let SUMO steer the
+#: agent).
+CAV_LANE_CHANGE_MODE = 0
 #: speedMode of commanded CAVs: no safe-speed, acceleration or right-of-way checks.
 CAV_SPEED_MODE = 0
 #: Lane-change manoeuvre time as a fraction of a decision step: long enough for
 #: a readable heading (SUMO keeps heading 0 for instant changes), short enough
 #: that a change commanded at the start of a step ends within it (base.py).
 LANE_CHANGE_FRACTION = 0.8
-#: A commanded CAV whose lane ends within one step's travel plus this margin is
-#: moved out of it (the forced-merge rule of base.py), whatever its command.
-FORCED_MERGE_MARGIN_M = 10.0
 
 
 @dataclass(frozen=True)
@@ -86,8 +84,6 @@ class SumoSim:
         )  # (S,)
         self.n_lanes = np.array([seg.lanes for seg in self.road.segments], np.int16)  # (S,)
         self.speed_limit = np.array([seg.speed_limit_mps for seg in self.road.segments])  # (S,)
-        self.lane_end_m = self.road.lane_end_m()  # (S, L)
-        self.merge_dir = -1 if self.road.drop_side == "left" else 1
         self.version = ""
         self.state: TrafficState | None = None
 
@@ -227,15 +223,11 @@ class SumoSim:
             return
         seg = st.segment[cav]
         sumo_lane = st.lane[cav] - self.first_lane[seg]  # (C,)
-        # Lane changes: ignored towards a lane that does not exist here.
-        target = sumo_lane + np.clip(lane_change[cav], -1, 1).astype(np.int16)  # (C,)
-        valid = (target >= 0) & (target < self.n_lanes[seg]) & (target != sumo_lane)
-        # Forced merge: the lane ends within one step's travel plus a margin.
-        front_m = st.x_m[cav] + 0.5 * st.length_m[cav]
-        to_end_m = self.lane_end_m[seg, st.lane[cav]] - front_m  # (C,)
-        must_merge = to_end_m < st.speed_mps[cav] * self.sim.step_s + FORCED_MERGE_MARGIN_M
-        target = np.where(must_merge, sumo_lane + self.merge_dir, target)
-        valid = valid | must_merge
+        # Lane changes: only those the road allows (the rule PSAR and highway apply).
+        offset = np.clip(lane_change[cav], -1, 1).astype(np.int16)  # (C,)
+        reach_m = lane_change_reach_m(st.speed_mps[cav], self.sim.step_s, st.length_m[cav])
+        valid = self.road.lane_change_allowed(seg, st.lane[cav], offset, st.x_m[cav], reach_m)
+        target = sumo_lane + offset
         # Speed: target at the end of the step, within the CAV's limits.
         cav_p, v = self.sim.cav, st.speed_mps[cav]
         goal = np.clip(v + speed_change_mps[cav], 0.0, self.speed_limit[seg])
