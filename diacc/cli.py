@@ -92,6 +92,12 @@ def _bench_parser(sub) -> None:
     p.add_argument("--backend", choices=BACKENDS, help="backend vs its reference simulator loop")
     p.add_argument("--models", action="store_true", help="network sizes and forward/update times")
     p.add_argument("--training", action="store_true", help="end-to-end training env-steps/s")
+    p.add_argument(
+        "--safety",
+        action="store_true",
+        help="scripted CAVs with and without PSAR on every map (both backends, or --backend)",
+    )
+    p.add_argument("--episodes", type=int, default=20, help="seeded episodes per row of --safety")
     p.add_argument("--device", default="cpu")
     p.add_argument(
         "--steps", type=int, default=None, help="steps to time (benchmark default if unset)"
@@ -100,6 +106,14 @@ def _bench_parser(sub) -> None:
 
 def cmd_bench(args: argparse.Namespace) -> None:
     ran = False
+    if args.safety:
+        from diacc.bench import safety
+
+        if args.episodes < 1:
+            raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
+        backends = (args.backend,) if args.backend else BACKENDS
+        safety.run(backends=backends, episodes=args.episodes)
+        return
     if args.backend == "highway":
         from diacc.bench import highway
 
@@ -122,7 +136,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
         ran = True
     if not ran:
         raise ConfigError(
-            "choose what to benchmark: --backend highway|sumo, --models or --training"
+            "choose what to benchmark: --backend highway|sumo, --models, --training or --safety"
         )
 
 

@@ -256,24 +256,6 @@ def test_cav_driving_into_leader_reports_collision(cav_backend):
     assert state.collided[rear] or (min(rear, front), max(rear, front)) in pairs
 
 
-def test_cav_is_forced_out_of_an_ending_lane(cav_backend):
-    """A CAV that ignores a lane drop is merged out of it instead of stopping at the end."""
-    road = cav_backend.road
-    state = cav_backend.reset(Scenario(n_vehicles=4, cav_penetration=1.0), seed=3)
-    top = int(np.flatnonzero(state.lane == road.max_lanes - 1)[0])
-    cmd = CavCommands.idle(4)
-    cmd.speed_change_mps[:] = 2.0
-    end_m = road.lane_end_m()[0, road.max_lanes - 1]
-    for _ in range(60):
-        state = cav_backend.step(cmd)
-        cmd.speed_change_mps[:] = 0.0
-        if state.x_m[top] > end_m + 20:
-            break
-    assert state.x_m[top] > end_m + 20
-    assert state.lane[top] < road.max_lanes - 1
-    assert state.speed_mps[top] > 5.0
-
-
 def test_benchmark_runs_and_reports_rates():
     from diacc.bench.sumo import run
 
