@@ -137,3 +137,14 @@ def test_states_share_fields_dtypes_shapes_and_conventions():
     for state in (hw5, su5):
         assert np.all(state.x_m >= hw0.x_m)
         assert np.all(state.segment == road.segment_of(state.x_m))
+
+
+def test_preset_road_changes_only_reduction_speed_limits():
+    road = load_map("train-50")
+    assert preset_road(road, "realistic") is road
+    slow = preset_road(road, "paper-congestion")
+    for seg, new in zip(road.segments, slow.segments, strict=True):
+        expected = 15.0 if seg.kind.startswith("reduction") else seg.speed_limit_mps
+        assert new.speed_limit_mps == expected
+        assert (new.kind, new.lanes, new.length_m) == (seg.kind, seg.lanes, seg.length_m)
+    assert slow.content_hash() != road.content_hash()  # its own SUMO network
