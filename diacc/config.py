@@ -12,6 +12,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
+from diacc.maps import Map
+
 # Style codes and mixes live with the scenario; re-exported here for convenience.
 from diacc.scenario import (  # noqa: F401
     AGGRESSIVE,
@@ -55,14 +57,27 @@ class DriverStyle:
 
 _AGGRESSIVE = DriverStyle("aggressive", 0.9, 1.0, 3.5, 5.5, 0.0, 0.05, 0.0, 100.0, 100.0)
 _NORMAL = DriverStyle("normal", 1.0, 1.5, 2.5, 4.5, 0.5, 0.2, 0.5, 1.0, 0.5)
-#: Named style presets (facts.md "lcStrategic" pitfall): ``paper`` keeps the
-#: authors' cautious values (cautious drivers may get stuck at a lane end, as in
-#: the paper's pure-HDV row); ``realistic`` lets every driver merge.
+#: The authors' cautious values: lcStrategic -1 means "never change lanes because
+#: the route needs it", so a cautious driver in an ending lane stops at its end
+#: and stays there (both backends; the highway backend skips its forced merge).
+_CAUTIOUS_PAPER = DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, -1.0, 0.0, -1.0)
+#: Named style presets (facts.md "lcStrategic" pitfall; README "Congestion
+#: presets" has the measured pure-HDV rows of each):
+#:
+#: * ``realistic`` (default): every driver merges (cautious lcStrategic 0.2).
+#: * ``paper``: the authors' cautious values; cautious drivers in an ending lane
+#:   get stuck at its end, as in the paper's pure-HDV row.
+#: * ``paper-congestion``: ``paper`` with normal drivers' lcStrategic at SUMO's
+#:   default 1.0 (the paper: "normal driving adopts default SUMO model
+#:   parameters") and the reduction segments' speed limit lowered to
+#:   :data:`PRESET_REDUCTION_SPEED_MPS` (:func:`preset_road`). With 330-step
+#:   episodes it gives the paper's pure-HDV congestion.
 STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
-    "paper": (
+    "paper": (_AGGRESSIVE, _NORMAL, _CAUTIOUS_PAPER),
+    "paper-congestion": (
         _AGGRESSIVE,
-        _NORMAL,
-        DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, -1.0, 0.0, -1.0),
+        dataclasses.replace(_NORMAL, lc_strategic=1.0),
+        _CAUTIOUS_PAPER,
     ),
     "realistic": (
         _AGGRESSIVE,
@@ -70,6 +85,31 @@ STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
         DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, 0.0, 0.0, 0.2),
     ),
 }
+
+
+#: Speed limit of the reduction segments per preset (presets not listed keep the
+#: map's). 15 m/s is the limit of the authors' predecessor bottleneck (facts.md);
+#: the paper gives the route's *maximum* limit only (25 m/s).
+PRESET_REDUCTION_SPEED_MPS: dict[str, float] = {"paper-congestion": 15.0}
+
+
+def preset_road(road: Map, style_preset: str) -> Map:
+    """The road a preset drives on: ``road`` with its reduction segments' speed
+    limit replaced where :data:`PRESET_REDUCTION_SPEED_MPS` names one.
+
+    Applied wherever a run loads its map (environment, evaluator, ``simulate``),
+    so backends, observations and the reward all see the same limits.
+    """
+    limit = PRESET_REDUCTION_SPEED_MPS.get(style_preset)
+    if limit is None:
+        return road
+    segments = tuple(
+        dataclasses.replace(seg, speed_limit_mps=min(seg.speed_limit_mps, limit))
+        if seg.kind.startswith("reduction")
+        else seg
+        for seg in road.segments
+    )
+    return dataclasses.replace(road, segments=segments)
 
 
 @dataclass(frozen=True)

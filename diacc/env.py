@@ -33,7 +33,14 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from diacc.backends.base import Backend, CavCommands, make_backend
-from diacc.config import EventConfig, ObservationConfig, PSARConfig, RewardConfig, SimConfig
+from diacc.config import (
+    EventConfig,
+    ObservationConfig,
+    PSARConfig,
+    RewardConfig,
+    SimConfig,
+    preset_road,
+)
 from diacc.maps import Map, load_map
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.reward import reward
@@ -98,7 +105,7 @@ class BottleneckEnv(ParallelEnv):
     def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None) -> None:
         self.config = config or EnvConfig()
         self.render_mode = render_mode
-        self.road: Map = load_map(self.config.map)
+        self.road: Map = preset_road(load_map(self.config.map), self.config.sim.style_preset)
         self.backend: Backend = make_backend(
             self.config.backend, self.road, self.config.sim, self.config.cav_mode
         )

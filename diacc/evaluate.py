@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from diacc.backends.base import Backend, CavCommands, make_backend
+from diacc.config import preset_road
 from diacc.env import BottleneckEnv, EnvConfig
 from diacc.grid import CELL_KEYS, Cell, make_cell
 from diacc.maps import SEGMENT_KINDS, load_map
@@ -76,7 +77,7 @@ class EpisodeDriver:
 
     def __init__(self, policy: Policy, cfg: EnvConfig) -> None:
         self.policy, self.cfg = policy, cfg
-        self.road = load_map(cfg.map)
+        self.road = preset_road(load_map(cfg.map), cfg.sim.style_preset)
         self.env: BottleneckEnv | None = None
         if policy.commands_cavs:
             self.env = BottleneckEnv(cfg)

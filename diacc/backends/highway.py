@@ -21,7 +21,9 @@ Modelling choices (documented here because both backends must agree on them):
 * **HDVs** follow IDM (style parameters, braking clipped at
   ``max_brake_mps2``), reconsider lanes every ``decision_period_s`` with
   MOBIL, and in a lane that ends are forced to merge (see
-  :mod:`highway_models`). A last-resort guard keeps an HDV behind its HDV
+  :mod:`highway_models`), except drivers whose style has ``lc_strategic < 0``
+  (the ``paper`` presets' cautious drivers): like LC2013 on SUMO they make no
+  lane change for the lane end and stop at it. A last-resort guard keeps an HDV behind its HDV
   leader; its use is counted in ``stats["guard_events"]`` (0 in practice).
 * **CAVs** follow their commands exactly (see :mod:`diacc.backends.base`).
   A commanded change is made only if :meth:`Map.lane_change_allowed` says
@@ -154,6 +156,9 @@ class HighwayBackend:
         self.gain_threshold_mps2 = per_vehicle(
             "lc_gain_threshold_mps2", self.cooperative.lc_gain_threshold_mps2 if coop else 0.0
         )
+        # LC2013's lcStrategic < 0 (the authors' cautious drivers): no lane change
+        # because a lane ends, so such a driver stops at the end of its lane.
+        self.strategic = per_vehicle("lc_strategic", 0.0) >= 0.0
 
         # is_cav: vehicles driven by commands; cooperative CAVs drive like HDVs.
         self.is_cav = np.zeros(n, dtype=bool) if coop else pop.is_cav.copy()
@@ -314,12 +319,14 @@ class HighwayBackend:
         lane = self.lane_from
         dist_end = tab.end_m[seg, lane] - x
         merge_dir = tab.merge_dir[seg, lane].astype(np.intp)
-        # Only HDVs are forced to merge: a CAV that stays in an ending lane stops at its end.
-        forced = idle & ~self.is_cav & (merge_dir != 0) & (dist_end < m.merge_zone_m)
+        # Only HDVs are forced to merge (a CAV that stays in an ending lane stops at its
+        # end), and only drivers with a strategic lane-change term (lcStrategic >= 0).
+        near_end = idle & (merge_dir != 0) & (dist_end < m.merge_zone_m)
+        forced = near_end & self.strategic & ~self.is_cav
         discretionary = (
             idle
             & ~self.is_cav
-            & ~forced
+            & ~near_end
             & (self.cooldown_s <= 0.0)
             & (v >= m.min_lane_change_speed_mps)
         )
