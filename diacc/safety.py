@@ -319,8 +319,8 @@ def psar(
       ``d_safe`` (plus the safe gap of the "stopping" horizon) along the
       road, the rear one is cancelled (Cancel-LC). Algorithm 1 is per agent
       and neither would see the other; connected CAVs know each other's
-      intent. For the same reason a CAV does not change lanes next to a
-      vehicle alongside (within ``d_safe``) in the lane beyond the target
+      intent. For the same reason a CAV does not change lanes next to an
+      HDV alongside (within ``d_safe``) in the lane beyond the target
       lane, whose intent it cannot know.
     * Rear vehicle ``k``: the first cancel test ``|d_long| <= d_LC,min`` is
       evaluated on the rear bumper gap ``-d_long`` so that vehicles already
@@ -498,12 +498,12 @@ def psar(
     clash = (moving[:, None] & moving[None, :] & converging & j_first & (pair_gap_m <= need_m)).any(
         axis=1
     )  # (C,) i yields to a CAV ahead entering the same lane
-    # Nor does a CAV change next to a vehicle alongside beyond the target lane: that
+    # Nor does a CAV change next to an HDV alongside beyond the target lane: that
     # one may move into the same lane in the same instant, and its intent is unknown.
     dx_all_m = state.x_m[None, :] - state.x_m[cav_index][:, None]  # (C, V)
     half_all_m = 0.5 * (state.length_m[None, :] + state.length_m[cav_index][:, None])
     beyond = (
-        state.active[None, :]
+        (state.active & ~state.is_cav)[None, :]  # a CAV's intent is known (above)
         & (state.lane[None, :] == (lane + 2 * offset)[:, None])
         & (np.abs(dx_all_m) - half_all_m <= cfg.d_safe_m)
     ).any(axis=1)  # (C,)
