@@ -245,6 +245,7 @@ class ModelConfig:
 
 VARIANTS = ("mappo", "mappo-iadm", "diacc-nopsar", "diacc")
 BACKENDS = ("highway", "sumo")
+DEVICES = ("auto", "cpu", "cuda")
 
 
 @dataclass(frozen=True)
@@ -257,7 +258,10 @@ class TrainConfig:
     vector: str = "auto"  # sync (in process), process (one worker each), auto (by backend)
     rollout_steps: int = 100
     seed: int = 1
-    device: str = "auto"
+    device: str = "auto"  # of the PPO update; rollout forwards always run on the CPU
+    torch_threads: int = 0  # intra-op threads of the trainer; 0 = diacc.threads rule
+    update_bf16: bool = False  # bf16 autocast in the PPO update (changes numerics: option)
+    update_compile: bool = False  # torch.compile the networks' sequence replay in the update
     lr: float = 5e-4
     adam_eps: float = 1e-5
     lr_decay: bool = True
@@ -279,6 +283,14 @@ class TrainConfig:
     psar: PSARConfig = field(default_factory=PSARConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
+
+    def __post_init__(self) -> None:
+        if self.torch_threads < 0:
+            raise ConfigError(
+                f"torch_threads must be >= 0 (0 = automatic), got {self.torch_threads}"
+            )
+        if self.device not in DEVICES and not self.device.startswith("cuda:"):
+            raise ConfigError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
 
 
 def override(config: Any, values: dict[str, Any]) -> Any:

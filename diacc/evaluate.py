@@ -26,7 +26,6 @@ import io
 import json
 import math
 import multiprocessing as mp
-import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +41,7 @@ from diacc.metrics import EpisodeRecorder, SpeedSamples
 from diacc.policies import EvalSettings, Policy, PolicySpec, build_policy
 from diacc.safety import RULE_NAMES
 from diacc.state import TrafficState
+from diacc.threads import default_threads, worker_environment
 
 META_FILE = "meta.json"
 EPISODES_FILE = "episodes.csv"
@@ -218,7 +218,7 @@ def _results(
     episodes: int,
 ) -> Iterator[EpisodeResult]:
     if workers <= 1:
-        _init_worker(spec, settings, threads=max(1, (os.cpu_count() or 1)))
+        _init_worker(spec, settings, threads=default_threads())
         try:
             for task in tasks:
                 yield _run_task(task)
@@ -227,7 +227,9 @@ def _results(
         return
     chunk = max(1, min(episodes, math.ceil(len(tasks) / (4 * workers))))
     ctx = mp.get_context("spawn")
-    with ctx.Pool(workers, initializer=_init_worker, initargs=(spec, settings)) as pool:
+    with worker_environment():  # workers inherit one library thread (diacc.threads)
+        pool = ctx.Pool(workers, initializer=_init_worker, initargs=(spec, settings))
+    with pool:
         yield from pool.imap_unordered(_run_task, tasks, chunksize=chunk)
 
 

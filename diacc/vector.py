@@ -29,6 +29,7 @@ from diacc.backends.base import BackendError
 from diacc.env import BottleneckEnv, EnvConfig
 from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, stack
+from diacc.threads import worker_environment
 
 
 def episode_seed(run_seed: int, env_index: int, episode: int) -> int:
@@ -272,7 +273,8 @@ class ProcessVectorEnv:
             args=(child, self.config, self.run_seed, self.groups[w], episode),
             daemon=True,
         )
-        proc.start()
+        with worker_environment():  # one library thread per worker (diacc.threads)
+            proc.start()
         child.close()
         self.workers[w], self.pipes[w] = proc, parent
         parent.send(("tau", self.tau))

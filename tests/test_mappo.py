@@ -73,7 +73,7 @@ def rollout_and_batch(tmp_path_factory):
     agent = make_agent(cfg, torch.device("cpu"))
     envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed)
     try:
-        roll, next_value, stats = collect_rollout(agent, envs, cfg, 0, torch.device("cpu"))
+        roll, next_value, stats = collect_rollout(agent, envs, cfg, 0)
     finally:
         envs.close()
     adv, ret = rollout_gae(roll, next_value, cfg)

@@ -21,9 +21,12 @@ then ``epochs`` passes of PPO over it:
 
 from __future__ import annotations
 
+import copy
+import functools
 import json
 import random
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -43,6 +46,7 @@ from diacc.models.spec import ObsSpec
 from diacc.observation import stack
 from diacc.reward import temperature
 from diacc.safety import RULE_NAMES, rule_counts
+from diacc.threads import set_torch_threads
 from diacc.vector import make_vector_env
 
 #: Variants whose actor output goes through PSAR (paper: PSAR is part of D-IADM).
@@ -100,23 +104,78 @@ def explained_variance(pred: np.ndarray, target: np.ndarray) -> float:
     return float("nan") if var == 0 else float(1 - np.var(target - pred) / var)
 
 
+#: Where rollout forwards run: one small batch per decision step, between CPU-bound
+#: environment steps, so a GPU would only add transfers and kernel launches.
+ROLLOUT_DEVICE = torch.device("cpu")
+
+
 @dataclass
 class Agent:
-    """Everything that learns or is saved: networks, optimiser, value normaliser."""
+    """Everything that learns or is saved: networks, optimiser, value normaliser.
+
+    ``actor``, ``critic`` and ``value_norm`` are the learner, on the update's
+    device. Rollouts use ``rollout_*`` on :data:`ROLLOUT_DEVICE`: the same
+    modules when the learner is on the CPU, else CPU copies that
+    :meth:`sync_rollout` refreshes. The update replays sequences through
+    :meth:`replay_actor` / :meth:`replay_critic`: the learner's
+    ``forward_sequence``, or its compiled form (``*_sequence``) with
+    ``update_compile``.
+    """
 
     actor: torch.nn.Module
     critic: torch.nn.Module
     value_norm: ValueNorm
     optimizer: torch.optim.Optimizer
+    rollout_actor: torch.nn.Module | None = None
+    rollout_critic: torch.nn.Module | None = None
+    rollout_value_norm: ValueNorm | None = None
+    actor_sequence: Callable | None = None
+    critic_sequence: Callable | None = None
+
+    def __post_init__(self) -> None:
+        self.rollout_actor = self.actor if self.rollout_actor is None else self.rollout_actor
+        self.rollout_critic = self.critic if self.rollout_critic is None else self.rollout_critic
+        if self.rollout_value_norm is None:
+            self.rollout_value_norm = self.value_norm
+
+    def replay_actor(self, *args) -> tuple[torch.Tensor, torch.Tensor]:
+        """The learner actor's ``forward_sequence`` (compiled if ``actor_sequence`` is set)."""
+        return (self.actor_sequence or self.actor.forward_sequence)(*args)
+
+    def replay_critic(self, *args) -> tuple[torch.Tensor, torch.Tensor]:
+        """The learner critic's ``forward_sequence`` (compiled if ``critic_sequence`` is set)."""
+        return (self.critic_sequence or self.critic.forward_sequence)(*args)
+
+    def sync_rollout(self) -> None:
+        """Copy the learner's weights and value statistics into the rollout copies."""
+        pairs = (
+            (self.rollout_actor, self.actor),
+            (self.rollout_critic, self.critic),
+            (self.rollout_value_norm, self.value_norm),
+        )
+        for copy_, learner in pairs:
+            if copy_ is not learner:
+                copy_.load_state_dict(learner.state_dict())
 
 
 def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
+    """The networks of ``cfg.variant`` with the learner on ``device`` (rollouts on the CPU)."""
     actor, critic = build_policy(cfg.variant, cfg.model, ObsSpec.from_config(cfg.obs))
-    actor, critic = actor.to(device), critic.to(device)
-    value_norm = ValueNorm().to(device)
+    value_norm = ValueNorm()
+    extras = {}
+    if device != ROLLOUT_DEVICE:
+        extras = {
+            "rollout_actor": copy.deepcopy(actor),
+            "rollout_critic": copy.deepcopy(critic),
+            "rollout_value_norm": copy.deepcopy(value_norm),
+        }
+    actor, critic, value_norm = actor.to(device), critic.to(device), value_norm.to(device)
     params = list(actor.parameters()) + list(critic.parameters())
     optimizer = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps)
-    return Agent(actor, critic, value_norm, optimizer)
+    if cfg.update_compile:
+        extras["actor_sequence"] = torch.compile(actor.forward_sequence)
+        extras["critic_sequence"] = torch.compile(critic.forward_sequence)
+    return Agent(actor, critic, value_norm, optimizer, **extras)
 
 
 # ----------------------------------------------------------------------------- checkpoints
@@ -212,14 +271,19 @@ class RolloutStats:
 
 
 def collect_rollout(
-    agent: Agent, envs, cfg: TrainConfig, update: int, device: torch.device
+    agent: Agent, envs, cfg: TrainConfig, update: int
 ) -> tuple[Rollout, np.ndarray, RolloutStats]:
     """Run every environment for ``rollout_steps`` decisions from a fresh reset.
 
-    Returns the filled rollout, V(s_S) for bootstrapping (E,), and stats.
+    The forwards run on the agent's rollout networks (:data:`ROLLOUT_DEVICE`),
+    refreshed from the learner first. Returns the filled rollout, V(s_S) for
+    bootstrapping (E,), and stats.
     """
     t0 = time.perf_counter()
-    E, C, H_a, H_c = cfg.n_envs, envs.n_cavs, agent.actor.hidden_size, agent.critic.hidden_size
+    agent.sync_rollout()
+    actor, critic, value_norm = agent.rollout_actor, agent.rollout_critic, agent.rollout_value_norm
+    device = ROLLOUT_DEVICE
+    E, C, H_a, H_c = cfg.n_envs, envs.n_cavs, actor.hidden_size, critic.hidden_size
     roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, H_c)
     actor_obs, critic_state = envs.reset(first_episode=update * EPISODES_PER_UPDATE)
     h_actor = torch.zeros(E * C, H_a, device=device)  # (E*C, H)
@@ -233,16 +297,16 @@ def collect_rollout(
         roll.critic_hidden[t] = h_critic.cpu().numpy()
         with torch.no_grad():
             start_t = torch.as_tensor(start, device=device)
-            logits, h_actor = agent.actor(
+            logits, h_actor = actor(
                 to_tensors(flatten_agents(actor_obs), device), h_actor, start_t.repeat_interleave(C)
             )
             dist = torch.distributions.Categorical(logits=logits)
             action = dist.sample()  # (E*C,)
-            value, h_critic = agent.critic(to_tensors(critic_state, device), h_critic, start_t)
+            value, h_critic = critic(to_tensors(critic_state, device), h_critic, start_t)
         roll.actions[t] = action.view(E, C).cpu().numpy()
         roll.logprobs[t] = dist.log_prob(action).view(E, C).cpu().numpy()
         roll.values_normalised[t] = value.cpu().numpy()
-        roll.values[t] = agent.value_norm.denormalize(value).cpu().numpy()
+        roll.values[t] = value_norm.denormalize(value).cpu().numpy()
 
         out = envs.step(roll.actions[t])
         roll.rewards[t], roll.terminated[t], roll.truncated[t] = (
@@ -252,12 +316,12 @@ def collect_rollout(
         )
         for e in np.flatnonzero(out.truncated):  # bootstrap from where the episode was cut
             with torch.no_grad():
-                v_final, _ = agent.critic(
+                v_final, _ = critic(
                     to_tensors(stack([out.final_critic_state[e]]), device),
                     h_critic[e : e + 1],
                     torch.zeros(1, dtype=torch.bool, device=device),
                 )
-            roll.final_values[t, e] = agent.value_norm.denormalize(v_final).item()
+            roll.final_values[t, e] = value_norm.denormalize(v_final).item()
         stats.episodes += out.episodes
         stats.psar_counts += rule_counts(out.psar_rule_mask[roll.alive[t]])
         stats.decisions += int(roll.alive[t].sum())
@@ -267,11 +331,11 @@ def collect_rollout(
         actor_obs, critic_state = out.actor_obs, out.critic_state
         start = out.terminated | out.truncated
     with torch.no_grad():
-        next_value, _ = agent.critic(
+        next_value, _ = critic(
             to_tensors(critic_state, device), h_critic, torch.as_tensor(start, device=device)
         )
     stats.seconds = time.perf_counter() - t0
-    return roll, agent.value_norm.denormalize(next_value).cpu().numpy(), stats
+    return roll, value_norm.denormalize(next_value).cpu().numpy(), stats
 
 
 def rollout_gae(roll: Rollout, next_value: np.ndarray, cfg: TrainConfig):
@@ -359,23 +423,31 @@ def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: i
     agents_idx = (
         envs_idx[:, None] * n_cavs + torch.arange(n_cavs, device=envs_idx.device)
     ).reshape(-1)
-    logits, _ = agent.actor.forward_sequence(
+    logits, _ = agent.replay_actor(
         {k: v[:, agents_idx] for k, v in batch.actor_obs.items()},
         batch.actor_h0[agents_idx],
         batch.actor_start[:, agents_idx],
     )
-    values, _ = agent.critic.forward_sequence(
+    values, _ = agent.replay_critic(
         {k: v[:, envs_idx] for k, v in batch.critic_state.items()},
         batch.critic_h0[envs_idx],
         batch.critic_start[:, envs_idx],
     )
-    dist = torch.distributions.Categorical(logits=logits)  # (L, b_a, 5)
-    return dist.log_prob(batch.actions[:, agents_idx]), dist.entropy(), values, agents_idx
+    # float(): under bf16 autocast the networks return bf16; losses are taken in fp32.
+    dist = torch.distributions.Categorical(logits=logits.float())  # (L, b_a, 5)
+    return dist.log_prob(batch.actions[:, agents_idx]), dist.entropy(), values.float(), agents_idx
 
 
 # ----------------------------------------------------------------------------- PPO update
 def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dict[str, float]:
-    """``epochs`` passes of clipped PPO over the batch; returns mean diagnostics."""
+    """``epochs`` passes of clipped PPO over the batch; returns mean diagnostics.
+
+    With ``cfg.update_bf16`` the network forwards run under bf16 autocast
+    (weights, optimiser and losses stay fp32), on the CPU as on CUDA.
+    """
+    autocast = functools.partial(
+        torch.autocast, batch.returns.device.type, torch.bfloat16, enabled=cfg.update_bf16
+    )
     agent.value_norm.update(batch.returns)
     returns_n = agent.value_norm.normalize(batch.returns)
     # Clip around what the critic predicted during the rollout (MAPPO): re-normalising
@@ -390,7 +462,8 @@ def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dic
         for envs_idx in torch.randperm(n_sequences, device=batch.returns.device).chunk(
             cfg.minibatches
         ):
-            logprob, entropy, value, agents_idx = evaluate_batch(agent, batch, envs_idx, n_cavs)
+            with autocast():
+                logprob, entropy, value, agents_idx = evaluate_batch(agent, batch, envs_idx, n_cavs)
             mask = batch.alive[:, agents_idx]  # (L, b_a): dead CAVs add nothing
             n_alive = mask.sum().clamp(min=1.0)
             log_ratio = logprob - batch.logprobs[:, agents_idx]
@@ -445,6 +518,7 @@ def train(
     ckpt_path = run_dir / "checkpoint.pt"
     device = resolve_device(cfg.device)
     seed_everything(cfg.seed)
+    set_torch_threads(cfg.torch_threads)
     agent = make_agent(cfg, device)
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     n_updates = max(1, cfg.total_steps // steps_per_update)
@@ -479,7 +553,7 @@ def train(
             tau = temperature(global_step, cfg.total_steps, cfg.reward)
             envs.set_temperature(tau)
 
-            roll, next_value, rollout = collect_rollout(agent, envs, cfg, update, device)
+            roll, next_value, rollout = collect_rollout(agent, envs, cfg, update)
             advantages, returns = rollout_gae(roll, next_value, cfg)
             batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
             losses = ppo_update(agent, batch, cfg, envs.n_cavs)

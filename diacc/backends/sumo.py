@@ -47,6 +47,7 @@ from diacc.config import SimConfig
 from diacc.maps import Map
 from diacc.scenario import Scenario, draw_population
 from diacc.state import TrafficState
+from diacc.threads import worker_env
 
 #: Folder holding the ``diacc`` package, put on the worker's PYTHONPATH.
 _PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
@@ -88,7 +89,7 @@ class SumoBackend:
     def _start_worker(self) -> None:
         parent_sock, child_sock = socket.socketpair()
         child_fd = child_sock.fileno()
-        env = dict(os.environ)
+        env = worker_env()  # one library thread (diacc.threads)
         env["PYTHONPATH"] = os.pathsep.join(
             p for p in (_PACKAGE_ROOT, env.get("PYTHONPATH", "")) if p
         )

@@ -61,8 +61,21 @@ def embed_present(embed: torch.nn.Module, nodes: Tensor, mask: Tensor) -> Tensor
     Padding is common (each CAV's K neighbours are split over an HDV and a CAV
     set of K slots each; the critic pads to ``max_vehicles``), so skipping it
     saves a large share of the embedding cost. Padded rows are exactly zero.
+    Under ``torch.compile`` the boolean indexing (a data-dependent shape) would
+    break the graph, so there :func:`embed_all` computes the same values.
     """
+    if torch.compiler.is_compiling():
+        return embed_all(embed, nodes, mask)
     present = embed(nodes[mask])  # (P, E)
     out = present.new_zeros(*mask.shape, present.shape[-1])  # (M, K, E)
     out[mask] = present
     return out
+
+
+def embed_all(embed: torch.nn.Module, nodes: Tensor, mask: Tensor) -> Tensor:
+    """:func:`embed_present` without data-dependent shapes: embed every slot, zero the padding.
+
+    Same values and gradients (up to float rounding of differently sized
+    matrix products); more arithmetic, but one static graph for the compiler.
+    """
+    return torch.where(mask[..., None], embed(nodes), 0.0)  # (M, K, E)
