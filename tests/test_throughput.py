@@ -1,0 +1,186 @@
+"""Training-throughput options: thread policy, rollout/learner devices, bf16 and compile."""
+
+from __future__ import annotations
+
+import copy
+import multiprocessing as mp
+import os
+
+import numpy as np
+import pytest
+import torch
+from test_mappo import tiny_config
+
+from diacc.algo import mappo
+from diacc.config import ConfigError, ModelConfig, TrainConfig, override
+from diacc.models.inputs import to_tensors
+from diacc.models.layers import embed_all, embed_present, mlp
+from diacc.models.registry import build_policy
+from diacc.models.spec import ObsSpec
+from diacc.models.synthetic import random_actor_obs, random_critic_state
+from diacc.threads import (
+    WORKER_THREAD_VARS,
+    default_threads,
+    set_torch_threads,
+    worker_env,
+    worker_environment,
+)
+
+SMALL = ModelConfig(hidden_dim=32, gru_hidden=32, cross_dim=32)
+
+
+# ----------------------------------------------------------------------------- threads
+def test_default_thread_rule():
+    assert [default_threads(c) for c in (1, 2, 3, 4, 16, 64)] == [1, 1, 1, 2, 8, 8]
+
+
+def test_set_torch_threads_applies_rule_and_override():
+    before = torch.get_num_threads()
+    try:
+        assert set_torch_threads(0) == default_threads() == torch.get_num_threads()
+        assert set_torch_threads(2) == 2
+        with pytest.raises(ValueError, match="torch threads must be >= 0"):
+            set_torch_threads(-1)
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_thread_config_is_validated():
+    with pytest.raises(ConfigError, match="torch_threads must be >= 0"):
+        override(TrainConfig(), {"torch_threads": "-2"})
+    with pytest.raises(ConfigError, match="device must be one of"):
+        override(TrainConfig(), {"device": "gpu"})
+    assert override(TrainConfig(), {"torch_threads": "3"}).torch_threads == 3
+
+
+def _report_env(conn) -> None:
+    conn.send({name: os.environ.get(name) for name in WORKER_THREAD_VARS})
+
+
+def test_spawned_workers_get_one_library_thread(monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "7")
+    monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
+    assert worker_env({"OMP_NUM_THREADS": "7"})["OMP_NUM_THREADS"] == "1"
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_report_env, args=(child,))
+    with worker_environment():
+        proc.start()
+    seen = parent.recv()
+    proc.join(timeout=30)
+    assert seen == {name: "1" for name in WORKER_THREAD_VARS}
+    # the parent's own settings are back as they were
+    assert os.environ["OMP_NUM_THREADS"] == "7" and "MKL_NUM_THREADS" not in os.environ
+
+
+# ----------------------------------------------------------------------------- compile
+def test_embed_all_matches_embed_present_with_gradients():
+    torch.manual_seed(0)
+    embed = mlp(6, 16, 16, 0.2)
+    nodes = torch.randn(30, 7, 6)  # (M, K, F)
+    mask = torch.rand(30, 7) < 0.4  # (M, K)
+    outs, grads = [], []
+    for fn in (embed_present, embed_all):
+        embed.zero_grad()
+        out = fn(embed, nodes, mask)
+        (out * torch.linspace(-1, 1, 16)).sum().backward()
+        outs.append(out.detach())
+        grads.append(torch.cat([p.grad.ravel() for p in embed.parameters()]))
+    assert torch.equal(outs[1][~mask], torch.zeros_like(outs[1][~mask]))
+    torch.testing.assert_close(outs[0], outs[1], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-6)
+
+
+def _chunk_inputs(make_obs, net, rng, spec: ObsSpec, rows: int):
+    """Sequence-replay inputs (L=4, rows, ...) of ``net`` from ``make_obs``."""
+    inputs = to_tensors(make_obs(spec, (4, rows), rng))
+    return inputs, torch.zeros(rows, net.hidden_size), torch.zeros(4, rows, dtype=torch.bool)
+
+
+@pytest.mark.parametrize("variant", ["diacc", "mappo"])
+def test_sequence_replay_traces_without_graph_breaks(variant):
+    """torch.compile sees one graph per network (dynamo tracing only; no code generation)."""
+    spec, rng = ObsSpec(), np.random.default_rng(0)
+    makers = (random_actor_obs, random_critic_state)
+    for net, make_obs in zip(build_policy(variant, SMALL, spec), makers, strict=True):
+        torch._dynamo.reset()
+        args = _chunk_inputs(make_obs, net, rng, spec, 6)
+        explained = torch._dynamo.explain(net.forward_sequence)(*args)
+        assert explained.graph_break_count == 0, [b.reason for b in explained.break_reasons]
+
+
+# ----------------------------------------------------------------------------- bf16
+@pytest.fixture(scope="module")
+def tiny_batch(tmp_path_factory):
+    cfg = tiny_config(tmp_path_factory.mktemp("b"))
+    mappo.seed_everything(cfg.seed)
+    agent = mappo.make_agent(cfg, torch.device("cpu"))
+    envs = mappo.make_vector_env(mappo.env_config(cfg), cfg.n_envs, cfg.seed)
+    try:
+        roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0)
+    finally:
+        envs.close()
+    adv, ret = mappo.rollout_gae(roll, next_value, cfg)
+    return cfg, agent, mappo.make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
+
+
+def test_bf16_update_stays_close_to_fp32(tiny_batch):
+    cfg, agent, batch = tiny_batch
+    every_env = torch.arange(batch.critic_h0.shape[0])
+    with torch.no_grad():
+        fp32 = mappo.evaluate_batch(agent, batch, every_env, 4)
+        with torch.autocast("cpu", torch.bfloat16):
+            bf16 = mappo.evaluate_batch(agent, batch, every_env, 4)
+    assert bf16[0].dtype == bf16[2].dtype == torch.float32  # losses are taken in fp32
+    assert (bf16[0] - fp32[0]).abs().max() < 0.05  # log-probs
+    assert (bf16[2] - fp32[2]).abs().max() < 0.05  # normalised values
+    results = {}
+    for flag in (False, True):
+        a = copy.deepcopy(agent)
+        torch.manual_seed(0)
+        stats = mappo.ppo_update(a, batch, override(cfg, {"update_bf16": flag}), 4)
+        assert all(np.isfinite(v) for v in stats.values())
+        results[flag] = torch.cat([p.detach().ravel() for p in a.actor.parameters()])
+    start = torch.cat([p.detach().ravel() for p in agent.actor.parameters()])
+    assert not torch.equal(results[True], start)
+    # bf16 moves the weights about as far as fp32 does, in about the same direction
+    step32, step16 = results[False] - start, results[True] - start
+    assert torch.nn.functional.cosine_similarity(step32, step16, dim=0) > 0.9
+
+
+# ----------------------------------------------------------------------------- devices
+def test_separate_rollout_networks_train_exactly_like_shared_ones(tmp_path, monkeypatch):
+    """Learner and rollout copies on different devices (here cpu and cpu:0, which
+    torch treats as different devices) give the same run as one shared copy: the
+    plumbing of ``--device cuda`` (rollouts on the CPU), tested without a GPU."""
+    shared = tiny_config(tmp_path / "shared")
+    mappo.train(shared, progress=False)
+    monkeypatch.setattr(mappo, "ROLLOUT_DEVICE", torch.device("cpu", 0))
+    split = tiny_config(tmp_path / "split")
+    agent = mappo.make_agent(split, torch.device("cpu"))
+    assert agent.rollout_actor is not agent.actor
+    assert agent.rollout_value_norm is not agent.value_norm
+    mappo.train(split, progress=False)
+    a = mappo.load_checkpoint(tmp_path / "shared" / "run" / "checkpoint.pt")
+    b = mappo.load_checkpoint(tmp_path / "split" / "run" / "checkpoint.pt")
+    for part in ("actor", "critic", "value_norm"):
+        for name, tensor in a[part].items():
+            assert torch.equal(tensor, b[part][name]), f"{part}.{name} differs"
+
+
+@pytest.mark.slow
+def test_compiled_update_matches_eager(tiny_batch):
+    """``update_compile``: the inductor-compiled replay gives the eager update's weights."""
+    cfg, agent, batch = tiny_batch
+    results = []
+    for flag in (False, True):
+        torch._dynamo.reset()
+        a = copy.deepcopy(agent)
+        c = override(cfg, {"update_compile": flag})
+        if flag:
+            a.actor_sequence = torch.compile(a.actor.forward_sequence)
+            a.critic_sequence = torch.compile(a.critic.forward_sequence)
+        torch.manual_seed(0)
+        mappo.ppo_update(a, batch, c, 4)
+        results.append(torch.cat([p.detach().ravel() for p in a.actor.parameters()]))
+    torch.testing.assert_close(results[0], results[1], rtol=1e-3, atol=1e-5)
