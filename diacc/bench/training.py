@@ -1,18 +1,38 @@
 """End-to-end training throughput: rollout + PPO update, env-steps per second.
 
-Runs a few real updates of :func:`diacc.algo.mappo.train` for each
-environment count, in this process, and projects the wall time of the
-paper's 3 M-step run from the measured rate.
+Runs a few real updates of :func:`diacc.algo.mappo.train` per configuration,
+in this process, one configuration after another in one run, and projects the
+wall time of the paper's 3 M-step run from the measured rate:
 
-``python -m diacc.bench.training --device cuda --envs 1 4 20``
+* ``torch default threads``: one intra-op thread per core (torch's own
+  default, what diacc did before it had a thread policy);
+* ``thread policy``: :func:`diacc.threads.default_threads`;
+* ``+ bf16 update`` / ``+ compiled update``: the learner options
+  ``update_bf16`` / ``update_compile`` (compile only where a C++ compiler or
+  CUDA is present; the first update, which compiles, is not timed);
+* the first two again **with a competing CPU-bound process** (a busy loop
+  started for their duration), which is where thread counts matter.
+
+The first update of every configuration pays start-up and is left out. The
+learner share per update is the update's time minus its rollout's (GAE,
+batching and ``epochs`` PPO passes). ``--device cuda`` puts the learner on
+CUDA (rollouts stay on the CPU).
+
+``python -m diacc.bench.training --device cuda --envs 4 --updates 3``
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
+import subprocess
+import sys
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from rich.console import Console
@@ -32,8 +52,12 @@ def measure(
     device: str,
     rollout_steps: int = 100,
     vector: str = "auto",
+    options: dict | None = None,
 ) -> dict:
-    """Train ``updates`` updates; return env-steps/s of the whole loop and of rollouts."""
+    """Train ``updates`` updates; return env-steps/s of the whole loop and of rollouts.
+
+    ``options`` are further config overrides (``torch_threads``, ``update_bf16``, ...).
+    """
     with tempfile.TemporaryDirectory() as tmp:
         cfg = override(
             TrainConfig(),
@@ -47,6 +71,7 @@ def measure(
                 "run_dir": tmp,
                 "checkpoint_every": 10_000,
                 "vector": vector,
+                **(options or {}),
             },
         )
         start = time.perf_counter()
@@ -55,61 +80,157 @@ def measure(
         records = [
             json.loads(line) for line in (Path(tmp) / "progress.jsonl").read_text().splitlines()
         ]
-    # The first update pays for start-up (imports, worker spawn); report the steady state.
+    # The first update pays for start-up (imports, worker spawn, compiling); report the rest.
     steady = records[1:] or records
-    update_s = sum(1.0 / r["updates_per_s"] for r in steady) / len(steady)
     steps = rollout_steps * n_envs
+    update_s = sum(1.0 / r["updates_per_s"] for r in steady) / len(steady)
+    rollout_s = sum(steps / r["env_steps_per_s"] for r in steady) / len(steady)
     return {
         "variant": variant,
         "backend": backend,
         "envs": n_envs,
         "device": device,
+        "options": dict(options or {}),
         "steps_per_s": steps / update_s,
-        "rollout_steps_per_s": sum(r["env_steps_per_s"] for r in steady) / len(steady),
+        "rollout_steps_per_s": steps / rollout_s,
         "update_s": update_s,
+        "learner_s": update_s - rollout_s,
         "total_s": seconds,
         "projected_3M_h": PAPER_STEPS / (steps / update_s) / 3600,
     }
 
 
+@contextmanager
+def competing_process() -> Iterator[None]:
+    """A CPU-bound busy loop in another process for the duration of the block."""
+    proc = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        yield
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def compile_available(device: str) -> bool:
+    """torch.compile generates C++ on the CPU (needs a compiler) or Triton on CUDA."""
+    return device.startswith("cuda") or shutil.which(os.environ.get("CXX", "g++")) is not None
+
+
+def configurations(device: str, with_compile: bool) -> list[tuple[str, dict, bool]]:
+    """(label, config overrides, with a competing process) in the order they are run."""
+    torch_default = {"torch_threads": os.cpu_count() or 1}
+    rows = [
+        (f"torch default threads ({torch_default['torch_threads']})", torch_default, False),
+        ("thread policy", {}, False),
+        ("thread policy + bf16 update", {"update_bf16": True}, False),
+    ]
+    if with_compile and compile_available(device):
+        rows.append(("thread policy + compiled update", {"update_compile": True}, False))
+    rows += [
+        (
+            f"torch default threads ({torch_default['torch_threads']}), busy CPU",
+            torch_default,
+            True,
+        ),
+        ("thread policy, busy CPU", {}, True),
+    ]
+    return rows
+
+
 def run(
     device: str = "cpu",
-    envs: tuple[int, ...] = (1, 4, 20),
+    envs: tuple[int, ...] = (4,),
     backend: str = "highway",
     variant: str = "diacc",
-    updates: int = 2,
+    updates: int = 3,
+    rollout_steps: int = 50,
+    with_compile: bool = True,
 ) -> list[dict]:
-    rows = [measure(variant, backend, n, updates, device) for n in envs]
-    table = Table(title=f"training throughput: {variant} on {backend}, device {device}")
+    """Measure every configuration (:func:`configurations`) per env count; print one table.
+
+    Returns the rows of :func:`measure` with ``label`` and ``busy`` added.
+    """
+    if updates < 2:
+        raise ValueError(f"updates must be >= 2 (the first one is not timed), got {updates}")
+    rows = []
+    for n_envs in envs:
+        for label, options, busy in configurations(device, with_compile):
+            with competing_process() if busy else _nothing():
+                row = measure(
+                    variant, backend, n_envs, updates, device, rollout_steps, "auto", options
+                )
+            rows.append({**row, "label": label, "busy": busy})
+    _print(rows, variant, backend, device, updates, rollout_steps)
+    return rows
+
+
+@contextmanager
+def _nothing() -> Iterator[None]:
+    yield
+
+
+def _ratio(rows: list[dict], n_envs: int, key: str, label: str, base: str) -> str:
+    """How many times faster ``label`` is than ``base`` in ``key`` (env-steps/s or 1/seconds)."""
+    by_label = {r["label"]: r for r in rows if r["envs"] == n_envs}
+    if label not in by_label or base not in by_label:
+        return ""
+    a, b = by_label[label][key], by_label[base][key]
+    return f"x{a / b:.2f}" if key.endswith("per_s") else f"x{b / a:.2f}"
+
+
+def _print(rows, variant, backend, device, updates, rollout_steps) -> None:
+    table = Table(
+        title=f"training throughput: {variant} on {backend}, learner on {device}, "
+        f"{os.cpu_count()} CPU cores, {updates - 1} timed update(s) of {rollout_steps} steps"
+    )
     for col in (
         "envs",
+        "configuration",
         "env-steps/s (train)",
         "env-steps/s (rollout only)",
-        "s / update",
+        "learner s / update",
         "3 M steps (h)",
+        "vs. torch default",
     ):
         table.add_column(col, justify="right")
     for r in rows:
+        base = next(b["label"] for b in rows if b["busy"] == r["busy"] and b["envs"] == r["envs"])
         table.add_row(
             str(r["envs"]),
+            r["label"],
             f"{r['steps_per_s']:.0f}",
             f"{r['rollout_steps_per_s']:.0f}",
-            f"{r['update_s']:.1f}",
+            f"{r['learner_s']:.2f}",
             f"{r['projected_3M_h']:.1f}",
+            _ratio(rows, r["envs"], "steps_per_s", r["label"], base),
         )
-    Console().print(table)
-    return rows
+    Console(width=160).print(table)
+    for n_envs in sorted({r["envs"] for r in rows}):
+        for option in ("bf16 update", "compiled update"):
+            ratio = _ratio(rows, n_envs, "learner_s", f"thread policy + {option}", "thread policy")
+            if ratio:
+                print(f"{n_envs} envs: learner time, {option} vs fp32 eager: {ratio} faster")
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--device", default="cpu")
-    p.add_argument("--envs", type=int, nargs="+", default=[1, 4, 20])
+    p.add_argument("--envs", type=int, nargs="+", default=[4])
     p.add_argument("--backend", default="highway")
     p.add_argument("--variant", default="diacc")
-    p.add_argument("--updates", type=int, default=2)
+    p.add_argument("--updates", type=int, default=3, help="per configuration; the first is untimed")
+    p.add_argument("--rollout-steps", type=int, default=50)
+    p.add_argument("--no-compile", action="store_true", help="skip the compiled-update row")
     args = p.parse_args(argv)
-    run(args.device, tuple(args.envs), args.backend, args.variant, args.updates)
+    run(
+        args.device,
+        tuple(args.envs),
+        args.backend,
+        args.variant,
+        args.updates,
+        args.rollout_steps,
+        not args.no_compile,
+    )
 
 
 if __name__ == "__main__":
