@@ -209,7 +209,36 @@ def _print(rows, variant, backend, device, updates, rollout_steps) -> None:
         for option in ("bf16 update", "compiled update"):
             ratio = _ratio(rows, n_envs, "learner_s", f"thread policy + {option}", "thread policy")
             if ratio:
-                print(f"{n_envs} envs: learner time, {option} vs fp32 eager: {ratio} faster")
+                print(f"{n_envs} envs: learner speed-up of {option} over fp32 eager: {ratio}")
+
+
+def profile_update(
+    n_envs: int = 4, rollout_steps: int = 50, bf16: bool = False, top: int = 15
+) -> str:
+    """torch.profiler table of one PPO pass (``epochs`` = 1) on a real rollout batch."""
+    import torch
+
+    from diacc.algo import mappo
+    from diacc.threads import set_torch_threads
+
+    cfg = override(
+        TrainConfig(),
+        {"n_envs": n_envs, "rollout_steps": rollout_steps, "device": "cpu", "epochs": 1},
+    )
+    cfg = override(cfg, {"update_bf16": bf16})
+    mappo.seed_everything(cfg.seed)
+    set_torch_threads(cfg.torch_threads)
+    agent = mappo.make_agent(cfg, torch.device("cpu"))
+    envs = mappo.make_vector_env(mappo.env_config(cfg), n_envs, cfg.seed)
+    try:
+        roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0)
+    finally:
+        envs.close()
+    advantages, returns = mappo.rollout_gae(roll, next_value, cfg)
+    batch = mappo.make_batch(roll, advantages, returns, cfg.chunk_len, torch.device("cpu"))
+    with torch.profiler.profile() as prof:
+        mappo.ppo_update(agent, batch, cfg, envs.n_cavs)
+    return prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=top)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -221,7 +250,18 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--updates", type=int, default=3, help="per configuration; the first is untimed")
     p.add_argument("--rollout-steps", type=int, default=50)
     p.add_argument("--no-compile", action="store_true", help="skip the compiled-update row")
+    p.add_argument(
+        "--profile", action="store_true", help="profile one PPO pass (fp32, then bf16) instead"
+    )
     args = p.parse_args(argv)
+    if args.profile:
+        for bf16 in (False, True):
+            print(
+                f"PPO pass on a real batch ({args.envs[0]} envs x {args.rollout_steps} steps), "
+                f"bf16 = {bf16}"
+            )
+            print(profile_update(args.envs[0], args.rollout_steps, bf16))
+        return
     run(
         args.device,
         tuple(args.envs),
