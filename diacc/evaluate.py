@@ -48,8 +48,8 @@ from diacc.grid import CELL_KEYS, Cell, make_cell
 from diacc.maps import SEGMENT_KINDS, load_map
 from diacc.metrics import EpisodeRecorder, SpeedSamples
 from diacc.policies import EvalSettings, Policy, PolicySpec, build_policy
-from diacc.safety import RULE_NAMES
 from diacc.runlog import log, run_log
+from diacc.safety import RULE_NAMES
 from diacc.state import TrafficState
 from diacc.workpool import map_resilient
 
@@ -259,7 +259,8 @@ def run_cell_task(task: CellTask) -> CellTaskResult:
                         ) from None
                     notes.append(
                         f"cell {task.cell.key} episode {episode}: {str(exc).splitlines()[0]}; "
-                        f"re-running it on a new simulator (attempt {attempt + 1} of {SIM_ATTEMPTS})"
+                        f"re-running it on a new simulator "
+                        f"(attempt {attempt + 1} of {SIM_ATTEMPTS})"
                     )
     return CellTaskResult(task, results, notes)
 

@@ -93,9 +93,7 @@ def map_resilient(
                 len(queue),
             )
     if failures:
-        raise PoolError(
-            f"{len(failures)} of {len(tasks)} tasks failed; first: {failures[0]}"
-        )
+        raise PoolError(f"{len(failures)} of {len(tasks)} tasks failed; first: {failures[0]}")
 
 
 def _one_line(exc: BaseException) -> str:
