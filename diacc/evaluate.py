@@ -210,7 +210,7 @@ def _init_worker(spec: PolicySpec, settings: EvalSettings, threads: int = 1) -> 
 def _close_worker_driver() -> None:
     if _WORKER.get("driver") is not None:
         _WORKER["driver"].close()
-        _WORKER["driver"] = None
+    _WORKER.update(driver=None, key=None)
 
 
 @dataclass(frozen=True)

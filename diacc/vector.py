@@ -31,7 +31,7 @@ from diacc.backends.base import BackendError
 from diacc.env import BottleneckEnv, EnvConfig
 from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, stack
-from diacc.runlog import log
+from diacc.runlog import join_parent_log, log
 
 #: Restarts of one worker in a row (within one call) before the vector env gives up.
 MAX_RESTARTS = 3
@@ -221,6 +221,7 @@ def _worker(conn, config: EnvConfig, run_seed: int, env_indices: list[int], epis
     # Ctrl-C is for the trainer, which stops at the next update boundary; the
     # worker (and the SUMO processes it starts, which inherit this) carries on.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    join_parent_log()  # e.g. a SUMO worker restarted at reset
     group = SyncVectorEnv(config, 0, run_seed, env_indices)
     for runner in group.runners:
         runner.episode = episode
