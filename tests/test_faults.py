@@ -24,7 +24,7 @@ from diacc.cli import main
 
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 #: Seconds any one command may take before the test calls it hung.
-HANG_S = 180
+HANG_S = float(os.environ.get("DIACC_TEST_HANG_S", "180"))
 
 TINY_TOML = """
 rollout_steps = 10
