@@ -150,7 +150,7 @@ def files(tmp_path_factory) -> dict[str, Path]:
         'cav_penetration = [0.4]\nstyle_mix = ["D1"]\n'
     )
     paths["sumo_grid"].write_text(
-        '[product]\nmap = ["train-25"]\nn_vehicles = [10, 12]\n'
+        '[product]\nmap = ["train-25"]\nn_vehicles = [20, 25]\n'
         'cav_penetration = [0.4]\nstyle_mix = ["D1"]\n'
     )
     return paths
@@ -350,9 +350,19 @@ def test_case9_sumo_worker_killed_during_eval_reruns_its_episode(files, tmp_path
     def sumo_worker():
         return [p for p, cmd in _descendants(proc.pid) if "diacc.backends.sumo_worker" in cmd]
 
-    first = _wait_for(sumo_worker, proc, "a SUMO worker")[0]
-    time.sleep(1.0)  # SUMO started and stepping
-    os.kill(first, signal.SIGKILL)
+    seen: dict[int, float] = {}
+
+    def kill_a_running_worker() -> bool:  # one that has run for a while: SUMO is stepping
+        for pid in sumo_worker():
+            if time.monotonic() - seen.setdefault(pid, time.monotonic()) > 0.5:
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                    return True
+                except ProcessLookupError:  # its cell just finished
+                    pass
+        return False
+
+    _wait_for(kill_a_running_worker, proc, "a running SUMO worker to kill")
     code, err = _finish(proc)
     assert code == 0, err
     assert "SUMO worker" in err and "diacc: warning:" in err

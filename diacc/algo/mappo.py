@@ -646,7 +646,8 @@ def _train_loop(
                         else "no checkpoint was written"
                     )
                     raise TrainingError(
-                        f"update {update + 1}: {exc}; training stopped before applying it, {kept}"
+                        f"update {update + 1}: {exc}; training stopped, this update is not "
+                        f"saved and {kept}"
                     ) from None
                 global_step += steps_per_update
 
