@@ -269,6 +269,8 @@ def test_case5_signal_checkpoints_at_the_update_boundary(files, tmp_path, signum
     done = _checkpoint_update(run)
     assert [r["update"] for r in _rows(run / "progress.jsonl")] == list(range(1, done + 1))
     assert "checkpoint" in (run / "train.log").read_text()
+    if signum != signal.SIGINT:
+        return  # resuming is the same after either signal; once is enough
     args[args.index("--steps") + 1] = str((done + 1) * STEPS_PER_UPDATE)
     assert main([*args, "--resume"]) == 0
     assert [r["update"] for r in _rows(run / "progress.jsonl")] == list(range(1, done + 2))
