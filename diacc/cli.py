@@ -3,6 +3,9 @@
 Every command turns known failures (bad map, backend, config key, checkpoint,
 crashed simulator) into a one-line ``diacc: error: ...`` message and exit
 code 2, never a traceback (set ``DIACC_DEBUG=1`` to see the traceback).
+Recoveries are one ``diacc: warning: ...`` line each (:mod:`diacc.runlog`);
+an interrupted ``train`` exits with 128 + the signal number after saving a
+checkpoint; a closed output pipe (``diacc simulate | head``) ends quietly.
 """
 
 from __future__ import annotations
@@ -43,6 +46,11 @@ def _train_parser(sub) -> None:
         help="override any config field, e.g. --set reward.w_ego=0.8 (repeatable)",
     )
     p.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoint.pt")
+    p.add_argument(
+        "--allow-config-change",
+        action="store_true",
+        help="with --resume: accept settings other than --steps that differ from the checkpoint's",
+    )
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -83,7 +91,12 @@ def cmd_train(args: argparse.Namespace) -> None:
 
     cfg = train_config_from_args(args)
     load_map(cfg.map)  # fail fast on a bad map name
-    run_dir = train(cfg, resume=args.resume, progress=not args.no_progress)
+    run_dir = train(
+        cfg,
+        resume=args.resume,
+        progress=not args.no_progress,
+        allow_config_change=args.allow_config_change,
+    )
     print(f"run directory: {run_dir}  (checkpoint: {run_dir / 'checkpoint.pt'})")
 
 
@@ -162,6 +175,8 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     from diacc.metrics import EpisodeRecorder
     from diacc.scenario import Scenario
 
+    if args.steps < 1:
+        raise ConfigError(f"--steps must be >= 1, got {args.steps}")
     road = load_map(args.map)
     scenario = Scenario(
         n_vehicles=args.vehicles, cav_penetration=args.penetration, style_mix=args.mix
@@ -197,19 +212,28 @@ COMMANDS = {"train": cmd_train, "bench": cmd_bench, "simulate": cmd_simulate, **
 
 
 def main(argv: list[str] | None = None) -> int:
+    from diacc.runlog import enable_stderr
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    enable_stderr()
     try:
         COMMANDS[args.command](args)
+        sys.stdout.flush()  # here, so that a closed pipe is caught below
     except USER_ERRORS as exc:
         if os.environ.get("DIACC_DEBUG"):
             raise
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"diacc: error: {message}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("diacc: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # TrainingInterrupted says which signal and what was saved
+        print(f"diacc: {exc or 'interrupted'}", file=sys.stderr)
+        return 128 + getattr(exc, "signum", 2)
+    except BrokenPipeError:
+        # The reader (``diacc simulate | head``) has gone: stop quietly, as Unix tools do.
+        # stdout is pointed at /dev/null so that the interpreter's final flush cannot fail.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     return 0
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -200,6 +201,11 @@ def load_map(name_or_path: str | Path) -> Map:
     return parse_map(read_toml(path, MapError), source=str(path))
 
 
+def _is_number(value) -> bool:
+    """An int or float, not a bool (comparisons then reject NaN: ``nan <= x`` is False)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def parse_map(data: dict, source: str = "<map>") -> Map:
     """Validate a map dictionary (as read from TOML) into a :class:`Map`."""
 
@@ -213,7 +219,7 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
         if key not in data:
             raise fail(key, "is missing")
     width = data["lane_width_m"]
-    if not isinstance(width, (int, float)) or not 2.0 <= width <= 5.0:
+    if not _is_number(width) or not 2.0 <= width <= 5.0:
         raise fail("lane_width_m", f"must be a number in [2, 5] m, got {width!r}")
     drop_side = data.get("drop_side", "left")
     if drop_side not in DROP_SIDES:
@@ -234,13 +240,13 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
         if seg["kind"] not in SEGMENT_KINDS:
             raise fail(f"{where}.kind", f"must be one of {SEGMENT_KINDS}, got {seg['kind']!r}")
         length = seg["length_m"]
-        if not isinstance(length, (int, float)) or isinstance(length, bool) or length <= 0:
-            raise fail(f"{where}.length_m", f"must be a positive number, got {length!r}")
+        if not _is_number(length) or not 0 < length < math.inf:
+            raise fail(f"{where}.length_m", f"must be a finite positive number, got {length!r}")
         lanes = seg["lanes"]
         if not isinstance(lanes, int) or isinstance(lanes, bool) or lanes < 1:
             raise fail(f"{where}.lanes", f"must be an integer >= 1, got {lanes!r}")
         speed = seg["speed_limit_mps"]
-        if not isinstance(speed, (int, float)) or isinstance(speed, bool) or not 0 < speed <= 70:
+        if not _is_number(speed) or not 0 < speed <= 70:
             raise fail(f"{where}.speed_limit_mps", f"must be in (0, 70] m/s, got {speed!r}")
         if segments and abs(lanes - segments[-1].lanes) > MAX_LANE_JUMP:
             raise fail(
