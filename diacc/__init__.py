@@ -47,7 +47,7 @@ def __getattr__(name: str) -> Any:
     the factory.
     """
     if name == "env":
-        import diacc.env
+        import diacc.env  # noqa: F401 - binds sys.modules['diacc.env']
 
         return sys.modules["diacc.env"]
     raise AttributeError(f"module 'diacc' has no attribute {name!r}")
