@@ -245,13 +245,21 @@ def build_table(
         cells.values(), key=lambda c: (c.map, -c.cav_penetration, c.n_vehicles, c.style_mix)
     )
     counts = sorted(episode_counts)
-    caption = (
-        f"{', '.join(dict.fromkeys(c.map for c in ordered))}: "
-        f"{_episodes(counts)} per cell; "
-        + "; ".join(
-            f"{lab} on {m['backend']}" + (f" ({_budget(m)})" if _budget(m) else "")
-            for lab, (_, m, _) in zip(labels, loaded, strict=True)
+    presets = dict.fromkeys(rows_[0].get("style_preset", "?") for _, _, rows_ in loaded)
+    budgets = [
+        f"{lab} {m['trained_steps']:,}"
+        + (
+            f" of {m['total_steps']:,}"
+            if m.get("total_steps", m["trained_steps"]) != m["trained_steps"]
+            else ""
         )
+        for lab, (_, m, _) in zip(labels, loaded, strict=True)
+        if "trained_steps" in m
+    ]
+    caption = (
+        f"{', '.join(dict.fromkeys(c.map for c in ordered))}: {_episodes(counts)} per cell, "
+        f"HDV style preset {'/'.join(presets)}"
+        + (f"; training budget (env steps): {', '.join(budgets)}" if budgets else "")
     )
     return Table(
         labels,
