@@ -12,7 +12,7 @@ import os
 import sys
 from pathlib import Path
 
-from diacc import __version__, cli_eval
+from diacc import __version__, cli_eval, cli_scale
 from diacc.config import BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError, TrainConfig, override
 from diacc.tomlfile import read_toml
 
@@ -265,10 +265,17 @@ def build_parser() -> argparse.ArgumentParser:
     _bench_parser(sub)
     _simulate_parser(sub)
     cli_eval.add_parsers(sub)
+    cli_scale.add_parsers(sub)
     return parser
 
 
-COMMANDS = {"train": cmd_train, "bench": cmd_bench, "simulate": cmd_simulate, **cli_eval.COMMANDS}
+COMMANDS = {
+    "train": cmd_train,
+    "bench": cmd_bench,
+    "simulate": cmd_simulate,
+    **cli_eval.COMMANDS,
+    **cli_scale.COMMANDS,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

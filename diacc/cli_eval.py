@@ -10,6 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from diacc import cli_scale
 from diacc.config import BACKENDS, STYLE_PRESETS
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.report`, kept here so
@@ -77,6 +78,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, type=Path, help="results directory (required)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    cli_scale.add_engine_args(p)
 
     p = sub.add_parser(
         "table",
@@ -162,6 +164,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
         _settings(args),
         workers=args.workers,
         progress=not args.no_progress,
+        engine=cli_scale.eval_engine(args),
     )
     print(
         f"{len(summary.cells_run)} cells run, {len(summary.cells_skipped)} already done; "

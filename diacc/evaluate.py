@@ -27,7 +27,7 @@ import json
 import math
 import multiprocessing as mp
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -347,8 +347,14 @@ def evaluate(
     settings: EvalSettings,
     workers: int = 1,
     progress: bool = True,
+    engine: Callable[..., Iterator[EpisodeResult]] | None = None,
 ) -> EvalSummary:
-    """Evaluate a policy on every cell for ``episodes`` seeded episodes (see module docstring)."""
+    """Evaluate a policy on every cell for ``episodes`` seeded episodes (see module docstring).
+
+    ``engine(tasks, spec, settings)`` replaces the local worker pool, e.g.
+    :class:`diacc.scaleout.RayEngine` (one Ray task per cell); it yields one
+    :class:`EpisodeResult` per (cell, episode) task, in any order.
+    """
     out_dir = Path(out_dir)
     if episodes < 1:
         raise EvaluationError(f"--episodes must be >= 1, got {episodes}")
@@ -381,7 +387,12 @@ def evaluate(
         desc=f"eval {policy.label} on {settings.backend}",
     )
     try:
-        for result in _results(tasks, spec, settings, workers, episodes):
+        results = (
+            engine(tasks, spec, settings)
+            if engine is not None
+            else _results(tasks, spec, settings, workers, episodes)
+        )
+        for result in results:
             pending[result.cell.key].append(result)
             if len(pending[result.cell.key]) == episodes:
                 write_cell(out_dir, result.cell, pending.pop(result.cell.key))
