@@ -307,6 +307,17 @@ def cell_tasks(cells: list[Cell], episodes: int, workers: int) -> list[CellTask]
     ]
 
 
+def run_tasks_here(
+    tasks: list[CellTask], spec: PolicySpec, settings: EvalSettings, threads: int = 1
+) -> Iterator[CellTaskResult]:
+    """Run tasks one after another in this process (also what one Ray task does)."""
+    _init_worker(spec, settings, threads=threads)
+    try:
+        yield from map(run_cell_task, tasks)
+    finally:
+        _close_worker_driver()
+
+
 def run_local(
     tasks: list[CellTask], spec: PolicySpec, settings: EvalSettings, workers: int
 ) -> Iterator[CellTaskResult]:
@@ -316,11 +327,7 @@ def run_local(
     per task, in any order (see :func:`evaluate`'s ``engine``).
     """
     if workers <= 1:
-        _init_worker(spec, settings, threads=max(1, (os.cpu_count() or 1)))
-        try:
-            yield from map(run_cell_task, tasks)
-        finally:
-            _close_worker_driver()
+        yield from run_tasks_here(tasks, spec, settings, threads=max(1, os.cpu_count() or 1))
         return
     for _, result in map_resilient(
         run_cell_task,
@@ -497,7 +504,8 @@ def evaluate(
 ) -> EvalSummary:
     """Evaluate a policy on every cell for ``episodes`` seeded episodes (see module docstring).
 
-    ``engine`` runs the cell tasks (default :func:`run_local`); recoveries it
+    ``engine`` runs the cell tasks (default :func:`run_local`; or
+    :class:`diacc.scaleout.RayEngine`, one Ray task per cell); recoveries it
     reports, and damaged cell files found here, are logged to stderr and to
     ``<out_dir>/eval.log``.
     """
