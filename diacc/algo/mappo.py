@@ -608,6 +608,10 @@ def _train_loop(
     saved_update = first_update if first_update else None
     envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed, cfg.vector)
     # purge_step: TensorBoard drops the events a resumed run logged after its checkpoint.
+    # It reads event files in name order, and names start with the creation second:
+    # a resumed file must not share its second with the interrupted run's last file.
+    if first_update:
+        _wait_past_event_files(run_dir / "tb")
     writer = SummaryWriter(
         str(run_dir / "tb"), purge_step=global_step + 1 if first_update else None
     )
@@ -712,6 +716,13 @@ def config_from_checkpoint(payload: dict) -> TrainConfig:
     from diacc.config import override
 
     return override(TrainConfig(), _flatten(payload["config"]))
+
+
+def _wait_past_event_files(tb_dir: Path) -> None:
+    """Sleep (at most ~1 s) until the clock's second is past every event file's."""
+    stamps = [int(p.name.split(".")[3]) for p in tb_dir.glob("events.out.tfevents.*")]
+    while stamps and int(time.time()) <= max(stamps):
+        time.sleep(0.05)
 
 
 def _flatten(tree: dict, prefix: str = "") -> dict:
