@@ -98,7 +98,10 @@ class Map:
         return range(first, first + self.segments[segment_index].lanes)
 
     def lane_exists(self) -> np.ndarray:
-        """(S, L) bool: whether absolute lane l exists in segment s."""
+        """(S, L) bool: whether absolute lane l exists in segment s (read-only, cached)."""
+        return _cached(self, "_exists", self._compute_lane_exists)
+
+    def _compute_lane_exists(self) -> np.ndarray:
         table = np.zeros((len(self.segments), self.max_lanes), dtype=bool)
         for s in range(len(self.segments)):
             table[s, list(self.lane_range(s))] = True
@@ -108,8 +111,12 @@ class Map:
         """(S, L) x where lane l, driven from segment s, stops existing (inf if never).
 
         This is what forced-merge rules look at: a vehicle in lane l inside
-        segment s must leave the lane before this point.
+        segment s must leave the lane before this point. Read-only, cached
+        (PSAR reads it every step).
         """
+        return _cached(self, "_ends", self._compute_lane_end_m)
+
+    def _compute_lane_end_m(self) -> np.ndarray:
         exists = self.lane_exists()
         ends = self.segment_ends_m
         out = np.full(exists.shape, np.inf)
@@ -145,17 +152,9 @@ class Map:
         target = np.asarray(lane, dtype=np.int64) + np.asarray(offset, dtype=np.int64)
         in_range = (target >= 0) & (target < self.max_lanes)
         target_c = np.clip(target, 0, self.max_lanes - 1)
-        exists = self._lane_exists_table[segment, target_c]
-        ends_later = self._lane_end_table[segment, target_c] - np.asarray(x_m) > reach_m
+        exists = self.lane_exists()[segment, target_c]
+        ends_later = self.lane_end_m()[segment, target_c] - np.asarray(x_m) > reach_m
         return (np.asarray(offset) != 0) & in_range & exists & ends_later
-
-    @property
-    def _lane_exists_table(self) -> np.ndarray:
-        return _cached(self, "_exists", self.lane_exists)
-
-    @property
-    def _lane_end_table(self) -> np.ndarray:
-        return _cached(self, "_ends", self.lane_end_m)
 
     def segment_of(self, x_m: np.ndarray) -> np.ndarray:
         """Segment index for each longitudinal position (clipped to the route)."""
