@@ -1,3 +1,53 @@
-"""diacc: dual-interaction-aware cooperative control of CAVs in highway bottlenecks."""
+"""diacc: dual-interaction-aware cooperative control of CAVs in highway bottlenecks.
+
+PettingZoo entry points, in that library's convention (``from diacc import
+parallel_env``)::
+
+    import diacc
+
+    env = diacc.parallel_env(map="train-50", scenario={"n_vehicles": 12})
+    observations, infos = env.reset(seed=0)
+
+The factories import the simulator stack only when called, so ``import diacc``
+(and the ``diacc`` command's start-up) stays cheap.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
+__all__ = ["__version__", "env", "parallel_env"]
+
+if TYPE_CHECKING:  # pragma: no cover
+    from diacc.env import BottleneckEnv
+
+
+def parallel_env(render_mode: str | None = None, **config: Any) -> BottleneckEnv:
+    """The bottleneck environment as a PettingZoo ``ParallelEnv``.
+
+    ``config`` holds fields of :class:`diacc.env.EnvConfig` (``backend``,
+    ``map``, ``use_psar``, ...); nested sections take a dict or their dataclass,
+    e.g. ``scenario={"n_vehicles": 12, "cav_penetration": 0.25}``. Unknown keys
+    raise :class:`diacc.config.ConfigError`.
+    """
+    from diacc.config import override
+    from diacc.env import BottleneckEnv, EnvConfig
+
+    return BottleneckEnv(override(EnvConfig(), config), render_mode=render_mode)
+
+
+def __getattr__(name: str) -> Any:
+    """``diacc.env`` is the :mod:`diacc.env` module, which is callable as PettingZoo's
+    AEC factory: ``diacc.env(**config)`` (see :class:`diacc.env.CallableEnvModule`).
+
+    A submodule named ``env`` and a factory named ``env`` cannot both be the
+    package attribute (importing the submodule rebinds it), so the module is
+    the factory.
+    """
+    if name == "env":
+        import diacc.env  # noqa: F401 - binds sys.modules['diacc.env']
+
+        return sys.modules["diacc.env"]
+    raise AttributeError(f"module 'diacc' has no attribute {name!r}")

@@ -3,6 +3,9 @@
 Every command turns known failures (bad map, backend, config key, checkpoint,
 crashed simulator) into a one-line ``diacc: error: ...`` message and exit
 code 2, never a traceback (set ``DIACC_DEBUG=1`` to see the traceback).
+Recoveries are one ``diacc: warning: ...`` line each (:mod:`diacc.runlog`);
+an interrupted ``train`` exits with 128 + the signal number after saving a
+checkpoint; a closed output pipe (``diacc simulate | head``) ends quietly.
 """
 
 from __future__ import annotations
@@ -12,28 +15,91 @@ import os
 import sys
 from pathlib import Path
 
-from diacc import cli_eval
-from diacc.config import BACKENDS, VARIANTS, ConfigError, TrainConfig, override
+from diacc import __version__, cli_eval, cli_scale
+from diacc.config import BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError, TrainConfig, override
 from diacc.tomlfile import read_toml
 
 #: Exceptions that carry a one-line, user-facing message.
 USER_ERRORS: tuple[type[Exception], ...] = (ValueError, RuntimeError, FileNotFoundError, KeyError)
 
+DESCRIPTION = """\
+diacc: multi-agent reinforcement learning for connected automated vehicles
+(CAVs) among human drivers in highway bottlenecks, on highway-env and SUMO.
+Run 'diacc COMMAND --help' for a command's options; every option shows its
+default."""
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Shows each option's default, except where there is none to show (None, off
+    flags: their help says what happens then); keeps descriptions' line breaks."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if action.default is None or action.default is False or action.default == []:
+            return action.help or ""
+        return super()._get_help_string(action)
+
+
+class Parser(argparse.ArgumentParser):
+    """``diacc``'s parser: its help formatter on every (sub)command."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
+def add_command(sub, name: str, summary: str, description: str = "") -> Parser:
+    """A subcommand whose ``--help`` starts with its summary (and description)."""
+    text = summary[0].upper() + summary[1:] + "." + (f"\n\n{description}" if description else "")
+    return sub.add_parser(name, help=summary, description=text)
+
 
 def _train_parser(sub) -> None:
-    p = sub.add_parser("train", help="train a MAPPO variant (writes a run directory)")
-    p.add_argument("--variant", choices=VARIANTS, default=TrainConfig.variant)
-    p.add_argument("--backend", choices=BACKENDS, default=TrainConfig.backend)
-    p.add_argument("--map", default=TrainConfig.map, help="shipped map name or .toml path")
-    p.add_argument("--steps", type=int, default=TrainConfig.total_steps, help="environment steps")
-    p.add_argument("--envs", type=int, default=TrainConfig.n_envs)
-    p.add_argument("--seed", type=int, default=TrainConfig.seed)
-    p.add_argument("--device", choices=("cpu", "cuda", "auto"), default=TrainConfig.device)
-    p.add_argument(
-        "--run-dir", default=None, help="default: runs/<variant>-<backend>-<map>-s<seed>"
+    p = add_command(
+        sub,
+        "train",
+        "train a MAPPO variant (writes a run directory)",
+        "Prints the resolved configuration, then trains; the run directory gets\n"
+        "config.json, checkpoint.pt, progress.jsonl and TensorBoard logs (tb/).\n"
+        "Precedence: defaults < --config file < named options < --set.",
     )
     p.add_argument(
-        "--config", type=Path, help="TOML file of config overrides (dotted or nested keys)"
+        "--variant",
+        choices=VARIANTS,
+        default=TrainConfig.variant,
+        help="mappo: plain MLP actor; mappo-iadm: + interaction-aware actor; "
+        "diacc-nopsar: + C-IEC critic; diacc: + PSAR safety filter",
+    )
+    p.add_argument(
+        "--backend", choices=BACKENDS, default=TrainConfig.backend, help="simulator to train on"
+    )
+    p.add_argument("--map", default=TrainConfig.map, help="shipped map name or .toml path")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=TrainConfig.total_steps,
+        help="environment steps in total (decisions x environments)",
+    )
+    p.add_argument(
+        "--envs", type=int, default=TrainConfig.n_envs, help="environments stepped in parallel"
+    )
+    p.add_argument(
+        "--seed", type=int, default=TrainConfig.seed, help="run seed (networks and traffic)"
+    )
+    p.add_argument(
+        "--device",
+        choices=("cpu", "cuda", "auto"),
+        default=TrainConfig.device,
+        help="torch device; auto: cuda if available",
+    )
+    p.add_argument(
+        "--run-dir",
+        default=None,
+        help="output directory (default: runs/<variant>-<backend>-<map>-s<seed>)",
+    )
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="TOML file of config overrides (dotted or nested keys; none by default)",
     )
     p.add_argument(
         "--set",
@@ -43,7 +109,12 @@ def _train_parser(sub) -> None:
         help="override any config field, e.g. --set reward.w_ego=0.8 (repeatable)",
     )
     p.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoint.pt")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "--allow-config-change",
+        action="store_true",
+        help="with --resume: accept settings other than --steps that differ from the checkpoint's",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -79,16 +150,28 @@ def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def cmd_train(args: argparse.Namespace) -> None:
     from diacc.algo.mappo import train
+    from diacc.console import print_config
     from diacc.maps import load_map
 
     cfg = train_config_from_args(args)
     load_map(cfg.map)  # fail fast on a bad map name
-    run_dir = train(cfg, resume=args.resume, progress=not args.no_progress)
+    print_config(cfg, "diacc train: resolved config", f"full config: {cfg.run_dir}/config.json")
+    run_dir = train(
+        cfg,
+        resume=args.resume,
+        progress=not args.no_progress,
+        allow_config_change=args.allow_config_change,
+    )
     print(f"run directory: {run_dir}  (checkpoint: {run_dir / 'checkpoint.pt'})")
 
 
 def _bench_parser(sub) -> None:
-    p = sub.add_parser("bench", help="speed benchmarks, measured side by side in one run")
+    p = add_command(
+        sub,
+        "bench",
+        "speed benchmarks, measured side by side in one run",
+        "Choose at least one of --backend, --models, --training.",
+    )
     p.add_argument("--backend", choices=BACKENDS, help="backend vs its reference simulator loop")
     p.add_argument("--models", action="store_true", help="network sizes and forward/update times")
     p.add_argument("--training", action="store_true", help="end-to-end training env-steps/s")
@@ -98,7 +181,7 @@ def _bench_parser(sub) -> None:
         help="scripted CAVs with and without PSAR on every map (both backends, or --backend)",
     )
     p.add_argument("--episodes", type=int, default=20, help="seeded episodes per row of --safety")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="torch device of --models and --training")
     p.add_argument(
         "--steps", type=int, default=None, help="steps to time (benchmark default if unset)"
     )
@@ -141,32 +224,46 @@ def cmd_bench(args: argparse.Namespace) -> None:
 
 
 def _simulate_parser(sub) -> None:
-    p = sub.add_parser(
-        "simulate", help="run one episode of a baseline policy and print its metrics"
+    p = add_command(
+        sub,
+        "simulate",
+        "simulate one episode of human-driven traffic and print its metrics",
+        "HDVs drive themselves (IDM + MOBIL on highway, IDM + LC2013 on SUMO); CAVs,\n"
+        "if --penetration > 0, get no commands and keep their lane and speed. To\n"
+        "run a trained policy or the cooperative baseline, use 'diacc eval'.",
     )
-    p.add_argument("--backend", choices=BACKENDS, default="highway")
-    p.add_argument("--map", default="train-25")
-    p.add_argument("--vehicles", type=int, default=25)
+    p.add_argument("--backend", choices=BACKENDS, default="highway", help="simulator")
+    p.add_argument("--map", default="train-25", help="shipped map name or .toml path")
+    p.add_argument("--vehicles", type=int, default=25, help="vehicles inserted at t = 0 (N)")
     p.add_argument(
-        "--penetration", type=float, default=0.0, help="CAV share (CAVs keep lane and speed)"
+        "--penetration", type=float, default=0.0, help="CAV share rho (CAVs keep lane and speed)"
     )
-    p.add_argument("--mix", default="D1")
-    p.add_argument("--steps", type=int, default=150)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--mix", default="D1", help="HDV style mix: D1, D2 or D3 (paper Table I)")
+    p.add_argument(
+        "--style-preset",
+        choices=tuple(STYLE_PRESETS),
+        default="realistic",
+        help="HDV driving-style parameters (paper: authors' values)",
+    )
+    p.add_argument("--steps", type=int, default=150, help="decision steps (1 s) at most")
+    p.add_argument("--seed", type=int, default=0, help="traffic seed")
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
     from diacc.backends.base import CavCommands, make_backend
-    from diacc.config import EventConfig
+    from diacc.config import EventConfig, SimConfig
+    from diacc.console import metric_lines, print_lines
     from diacc.maps import load_map
     from diacc.metrics import EpisodeRecorder
     from diacc.scenario import Scenario
 
+    if args.steps < 1:
+        raise ConfigError(f"--steps must be >= 1, got {args.steps}")
     road = load_map(args.map)
     scenario = Scenario(
         n_vehicles=args.vehicles, cav_penetration=args.penetration, style_mix=args.mix
     )
-    backend = make_backend(args.backend, road)
+    backend = make_backend(args.backend, road, SimConfig(style_preset=args.style_preset))
     try:
         state = backend.reset(scenario, args.seed)
         recorder = EpisodeRecorder(road, EventConfig())
@@ -179,37 +276,60 @@ def cmd_simulate(args: argparse.Namespace) -> None:
                 break
     finally:
         backend.close()
-    for key, value in recorder.summary().as_dict().items():
-        print(f"{key:>24}: {value:.4g}" if isinstance(value, float) else f"{key:>24}: {value}")
+    version = getattr(backend, "sumo_version", "")
+    print(
+        f"diacc simulate: backend {args.backend}{f' ({version})' if version else ''}, "
+        f"map {road.name}, N={scenario.n_vehicles} ({scenario.n_cavs} CAVs), mix {args.mix}, "
+        f"style preset {args.style_preset}, seed {args.seed}, at most {args.steps} steps"
+    )
+    kinds = tuple(dict.fromkeys(seg.kind for seg in road.segments))
+    print_lines(metric_lines(recorder.summary(), kinds))
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="diacc", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = Parser(prog="diacc", description=DESCRIPTION)
+    parser.add_argument("--version", action="version", version=f"diacc {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _train_parser(sub)
     _bench_parser(sub)
     _simulate_parser(sub)
     cli_eval.add_parsers(sub)
+    cli_scale.add_parsers(sub)
     return parser
 
 
-COMMANDS = {"train": cmd_train, "bench": cmd_bench, "simulate": cmd_simulate, **cli_eval.COMMANDS}
+COMMANDS = {
+    "train": cmd_train,
+    "bench": cmd_bench,
+    "simulate": cmd_simulate,
+    **cli_eval.COMMANDS,
+    **cli_scale.COMMANDS,
+}
 
 
 def main(argv: list[str] | None = None) -> int:
+    from diacc.runlog import enable_stderr
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    enable_stderr()
     try:
         COMMANDS[args.command](args)
+        sys.stdout.flush()  # here, so that a closed pipe is caught below
     except USER_ERRORS as exc:
         if os.environ.get("DIACC_DEBUG"):
             raise
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"diacc: error: {message}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("diacc: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # TrainingInterrupted says which signal and what was saved
+        print(f"diacc: {exc or 'interrupted'}", file=sys.stderr)
+        return 128 + getattr(exc, "signum", 2)
+    except BrokenPipeError:
+        # The reader (``diacc simulate | head``) has gone: stop quietly, as Unix tools do.
+        # stdout is pointed at /dev/null so that the interpreter's final flush cannot fail.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     return 0
 
 

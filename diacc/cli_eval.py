@@ -10,7 +10,18 @@ import argparse
 import sys
 from pathlib import Path
 
+from diacc import cli_scale
 from diacc.config import BACKENDS, STYLE_PRESETS
+
+#: How ``diacc table`` marks entries (the rule of :mod:`diacc.report`, kept here so
+#: that ``--help`` does not import the evaluation stack).
+TABLE_RULES = """\
+Per row the best value is bold and the second best underlined (italic in
+Markdown), as in the paper's Tables II/III, compared at the printed precision.
+A column is ranked in a cell only if it is no slower than the pure-HDV column
+(same backend) and has no higher collision rate; a policy slower or crashing
+more than human traffic is never marked best. Entries show the change against
+pure HDV. LaTeX output needs \\usepackage{booktabs} and \\usepackage{multirow}."""
 
 
 def _settings(args: argparse.Namespace):
@@ -27,8 +38,12 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         required=True,
         help="pure-hdv, cooperative, or a checkpoint.pt (or its run directory)",
     )
-    p.add_argument("--variant", default=None, help="require the checkpoint to be of this variant")
-    p.add_argument("--backend", choices=BACKENDS, default="highway")
+    p.add_argument(
+        "--variant",
+        default=None,
+        help="require the checkpoint to be of this variant (any by default)",
+    )
+    p.add_argument("--backend", choices=BACKENDS, default="highway", help="simulator")
     p.add_argument(
         "--episode-steps",
         type=int,
@@ -45,46 +60,93 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
 
 def add_parsers(sub) -> None:
     """Add the evaluation subcommands to the main parser."""
-    p = sub.add_parser("eval", help="evaluate a policy or baseline on a grid of scenarios")
+    p = sub.add_parser(
+        "eval",
+        help="evaluate a policy or baseline on a grid of scenarios",
+        description="Evaluate a policy or baseline on a grid of scenarios.\n\n"
+        "Writes episodes.csv and speeds.csv.gz into --out; re-running skips finished cells.\n"
+        "Episode seeds depend on the cell and episode only, so every policy meets the\n"
+        "same traffic.",
+    )
     _policy_args(p)
-    p.add_argument("--grid", default="train", help="train, zero-shot, or a grid .toml file")
+    p.add_argument(
+        "--grid",
+        default="train",
+        help="train (paper training cells), zero-shot (test maps), or a grid .toml file",
+    )
     p.add_argument("--episodes", type=int, default=10, help="seeded episodes per cell")
-    p.add_argument("--out", required=True, type=Path, help="results directory")
-    p.add_argument("--workers", type=int, default=1, help="worker processes (spawn)")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--out", required=True, type=Path, help="results directory (required)")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    cli_scale.add_engine_args(p)
 
-    p = sub.add_parser("table", help="paper-style table (Tables II/III) from results directories")
+    p = sub.add_parser(
+        "table",
+        help="paper-style table (Tables II/III) from results directories",
+        description=f"Paper-style table (Tables II/III) from results directories.\n\n{TABLE_RULES}",
+    )
     p.add_argument("results", nargs="+", type=Path, help="results directories, one per column")
-    p.add_argument("--format", choices=("markdown", "latex", "csv"), default="markdown")
+    p.add_argument(
+        "--format", choices=("markdown", "latex", "csv"), default="markdown", help="output format"
+    )
     p.add_argument(
         "--speed-std",
         choices=("samples", "episodes"),
         default="samples",
         help="speed std over all vehicle-steps (paper) or over episode means",
     )
+    p.add_argument(
+        "--rows",
+        default="speed,p_we,p_sce",
+        help="comma-separated rows: speed, p_we, p_sce (the paper's) and the optional "
+        "collision (share of episodes ending in a crash), arrived (share of vehicles)",
+    )
     p.add_argument("--out", type=Path, default=None, help="write to a file instead of stdout")
 
-    p = sub.add_parser("plot", help="training curves or speed distributions (PNG + PDF)")
-    plot_sub = p.add_subparsers(dest="plot_kind", required=True)
-    q = plot_sub.add_parser("curves", help="collision rate, global and individual reward")
+    p = sub.add_parser(
+        "plot",
+        help="training curves or speed distributions (PNG + PDF)",
+        description="Training curves or speed distributions (PNG + PDF).",
+    )
+    plot_sub = p.add_subparsers(dest="plot_kind", required=True, metavar="KIND")
+    q = plot_sub.add_parser(
+        "curves",
+        help="collision rate, global and individual reward",
+        description="Collision rate, global and individual reward against environment\n"
+        "steps: mean over the seeds of each variant, band = min..max over seeds.",
+    )
     q.add_argument("runs", nargs="+", type=Path, help="run directories (seeds of a variant group)")
-    q.add_argument("--out", type=Path, default=Path("figures/curves"))
+    q.add_argument(
+        "--out", type=Path, default=Path("figures/curves"), help="output path, .png and .pdf added"
+    )
     q.add_argument("--smooth", type=int, default=1, help="moving-average window (updates)")
-    q = plot_sub.add_parser("speeds", help="per-segment speed box plots and KDEs")
+    q = plot_sub.add_parser(
+        "speeds",
+        help="per-segment speed box plots and KDEs",
+        description="Per-segment-kind speed box plots and KDEs, one colour per policy.",
+    )
     q.add_argument("results", nargs="+", type=Path, help="results directories")
-    q.add_argument("--out", type=Path, default=Path("figures/speeds"))
-    q.add_argument("--map", default=None, help="only the samples of this map")
+    q.add_argument(
+        "--out", type=Path, default=Path("figures/speeds"), help="output path, .png and .pdf added"
+    )
+    q.add_argument("--map", default=None, help="only the samples of this map (all by default)")
 
-    p = sub.add_parser("render", help="one episode as a GIF")
+    p = sub.add_parser(
+        "render",
+        help="one episode as a GIF",
+        description="One episode as a GIF, with a legend and a time / step / PSAR stamp.",
+    )
     _policy_args(p)
-    p.add_argument("--map", default="train-25")
-    p.add_argument("--vehicles", type=int, default=25)
-    p.add_argument("--penetration", type=float, default=0.4)
-    p.add_argument("--mix", default="D1")
+    p.add_argument("--map", default="train-25", help="shipped map name or .toml path")
+    p.add_argument("--vehicles", type=int, default=25, help="vehicles inserted at t = 0 (N)")
+    p.add_argument("--penetration", type=float, default=0.4, help="CAV share rho")
+    p.add_argument("--mix", default="D1", help="HDV style mix: D1, D2 or D3")
     p.add_argument("--steps", type=int, default=100, help="decisions to render at most")
-    p.add_argument("--seed", type=int, default=None, help="default: seed of eval episode 0")
-    p.add_argument("--fps", type=float, default=5.0)
-    p.add_argument("--out", type=Path, default=Path("episode.gif"))
+    p.add_argument(
+        "--seed", type=int, default=None, help="traffic seed (default: seed of eval episode 0)"
+    )
+    p.add_argument("--fps", type=float, default=5.0, help="GIF frames per second")
+    p.add_argument("--out", type=Path, default=Path("episode.gif"), help="output .gif")
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
@@ -102,6 +164,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
         _settings(args),
         workers=args.workers,
         progress=not args.no_progress,
+        engine=cli_scale.eval_engine(args),
     )
     print(
         f"{len(summary.cells_run)} cells run, {len(summary.cells_skipped)} already done; "
@@ -112,7 +175,8 @@ def cmd_eval(args: argparse.Namespace) -> None:
 def cmd_table(args: argparse.Namespace) -> None:
     from diacc.report import build_table, render_table
 
-    text = render_table(build_table(args.results, args.speed_std), args.format)
+    rows = tuple(r.strip() for r in args.rows.split(",") if r.strip())
+    text = render_table(build_table(args.results, args.speed_std, rows), args.format)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text)

@@ -3,12 +3,14 @@
 Configs are frozen dataclasses so that a run's settings cannot drift after
 start-up; ``dataclasses.replace`` makes variants. :func:`override` applies a
 flat ``{"section.field": value}`` mapping (from a TOML file or CLI flags) and
-rejects unknown keys with a one-line :class:`ConfigError`.
+rejects unknown keys with a one-line :class:`ConfigError`; :func:`validate`
+rejects non-finite and out-of-range values.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -245,7 +247,6 @@ class ModelConfig:
 
 VARIANTS = ("mappo", "mappo-iadm", "diacc-nopsar", "diacc")
 BACKENDS = ("highway", "sumo")
-DEVICES = ("auto", "cpu", "cuda")
 
 
 @dataclass(frozen=True)
@@ -283,14 +284,6 @@ class TrainConfig:
     psar: PSARConfig = field(default_factory=PSARConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
-
-    def __post_init__(self) -> None:
-        if self.torch_threads < 0:
-            raise ConfigError(
-                f"torch_threads must be >= 0 (0 = automatic), got {self.torch_threads}"
-            )
-        if self.device not in DEVICES and not self.device.startswith("cuda:"):
-            raise ConfigError(f"device must be one of {', '.join(DEVICES)}, got {self.device!r}")
 
 
 def override(config: Any, values: dict[str, Any]) -> Any:
@@ -337,3 +330,108 @@ def _coerce(current: Any, value: Any, key: str) -> Any:
     if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
         raise ConfigError(f"config key {key!r} expects {kind.__name__}, got {value!r}")
     return value
+
+
+# --------------------------------------------------------------------------
+# Validation
+# --------------------------------------------------------------------------
+#: Allowed range of each numeric training setting: (low, high, low is exclusive).
+#: Every float of every section must also be finite (checked for all fields).
+_LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
+    "total_steps": (1, None, False),
+    "n_envs": (1, None, False),
+    "rollout_steps": (1, None, False),
+    "lr": (0, None, True),
+    "adam_eps": (0, None, True),
+    "gamma": (0, 1, False),
+    "gae_lambda": (0, 1, False),
+    "clip": (0, None, True),
+    "epochs": (1, None, False),
+    "minibatches": (1, None, False),
+    "entropy_coef": (0, None, False),
+    "value_coef": (0, None, False),
+    "huber_delta": (0, None, True),
+    "max_grad_norm": (0, None, True),
+    "chunk_len": (1, None, False),
+    "checkpoint_every": (1, None, False),
+    "torch_threads": (0, None, False),
+    "sim.step_s": (0, None, True),
+    "sim.substeps": (1, None, False),
+    "sim.episode_steps": (1, None, False),
+    "sim.speed_change_mps": (0, None, False),
+    "sim.vehicle_length_m": (0, None, True),
+    "sim.vehicle_width_m": (0, None, True),
+    "sim.idm_delta": (0, None, True),
+    "obs.history_steps": (1, None, False),
+    "obs.n_neighbours": (1, None, False),
+    "obs.max_vehicles": (1, None, False),
+    "obs.lane_window_m": (0, None, True),
+    "reward.tau_init": (0, None, True),
+    "reward.tau_final": (0, None, True),
+    "reward.tau_anneal_fraction": (0, 1, True),
+    "model.hidden_dim": (1, None, False),
+    "model.gat_heads": (1, None, False),
+    "model.cross_heads": (1, None, False),
+    "model.cross_dim": (1, None, False),
+    "model.gru_hidden": (1, None, False),
+    "model.leaky_slope": (0, None, False),
+}
+_CHOICES: dict[str, tuple[str, ...]] = {
+    "variant": VARIANTS,
+    "backend": BACKENDS,
+    "vector": ("auto", "sync", "process"),
+    "device": ("auto", "cpu", "cuda"),
+    "sim.style_preset": tuple(STYLE_PRESETS),
+}
+
+
+def validate(cfg: TrainConfig) -> TrainConfig:
+    """Reject non-finite floats, out-of-range values and unknown choices (one-line ConfigError).
+
+    Called before a run writes anything, so a bad value never leaves a run
+    directory behind or surfaces later as a NaN checkpoint or a torch error.
+    """
+    for key, value in _leaves(cfg):
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"config key {key!r} must be a finite number, got {value}")
+        if key in _LIMITS:
+            low, high, exclusive = _LIMITS[key]
+            too_low = low is not None and (value <= low if exclusive else value < low)
+            if too_low or (high is not None and value > high):
+                raise ConfigError(
+                    f"config key {key!r} must be {_range(low, high, exclusive)}, got {value}"
+                )
+        if key in _CHOICES and value not in _CHOICES[key]:
+            raise ConfigError(
+                f"config key {key!r} must be one of {', '.join(_CHOICES[key])}, got {value!r}"
+            )
+    if cfg.rollout_steps % cfg.chunk_len:
+        raise ConfigError(
+            f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}"
+        )
+    if cfg.minibatches > cfg.n_envs * (cfg.rollout_steps // cfg.chunk_len):
+        raise ConfigError(
+            f"minibatches {cfg.minibatches} exceeds the rollout's "
+            f"{cfg.n_envs * (cfg.rollout_steps // cfg.chunk_len)} sequences"
+        )
+    return cfg
+
+
+def _range(low: float | None, high: float | None, exclusive: bool) -> str:
+    if high is None:
+        return f"{'>' if exclusive else '>='} {low}"
+    return f"in {'(' if exclusive else '['}{low}, {high}]"
+
+
+def _leaves(obj: Any, prefix: str = "") -> list[tuple[str, Any]]:
+    """(dotted key, value) of every non-dataclass field; tuples give one leaf per item."""
+    out = []
+    for f in dataclasses.fields(obj):
+        value, key = getattr(obj, f.name), f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            out += _leaves(value, f"{key}.")
+        elif isinstance(value, tuple):
+            out += [(f"{key}[{i}]", v) for i, v in enumerate(value)]
+        else:
+            out.append((key, value))
+    return out

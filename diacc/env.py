@@ -26,7 +26,10 @@ Two APIs share the same code path: the PettingZoo dict API (``reset`` /
 
 from __future__ import annotations
 
+import sys
+import types
 from dataclasses import asdict, dataclass, field, fields
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -56,7 +59,7 @@ from diacc.safety import (
 from diacc.scenario import Scenario
 from diacc.state import TrafficState
 
-__all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult"]
+__all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult", "aec_env"]
 
 
 @dataclass(frozen=True)
@@ -269,9 +272,35 @@ class BottleneckEnv(ParallelEnv):
     # ------------------------------------------------------------------ helpers
     @staticmethod
     def _agent_obs(actor_obs: ActorObs, i: int) -> dict[str, np.ndarray]:
-        return {name: value[i] for name, value in asdict(actor_obs).items()}
+        # np.asarray: a per-agent scalar (``alive``) stays a 0-d array, as its space expects
+        return {name: np.asarray(value[i]) for name, value in asdict(actor_obs).items()}
 
     def _template_obs(self) -> ActorObs:
         if self.state_ is None:
             self.reset_arrays(0)
         return self.builder.actor(self.cav_index, self.action_memory, self.last_refined)
+
+
+# ---------------------------------------------------------------------- AEC entry point
+def aec_env(render_mode: str | None = None, **config: Any):
+    """The environment as a PettingZoo ``AECEnv``, by PettingZoo's own parallel->AEC wrapper."""
+    from pettingzoo.utils.conversions import parallel_to_aec
+
+    from diacc import parallel_env
+
+    return parallel_to_aec(parallel_env(render_mode=render_mode, **config))
+
+
+class CallableEnvModule(types.ModuleType):
+    """This module, callable: ``diacc.env(**config)`` is PettingZoo's ``env()`` factory.
+
+    PettingZoo's convention names the AEC factory ``env``, the name this module
+    already has as ``diacc.env``; making the module callable keeps both
+    ``from diacc.env import EnvConfig`` and ``diacc.env(map="train-50")`` working.
+    """
+
+    def __call__(self, render_mode: str | None = None, **config: Any):
+        return aec_env(render_mode=render_mode, **config)
+
+
+sys.modules[__name__].__class__ = CallableEnvModule

@@ -7,12 +7,19 @@ A results directory holds one policy on one backend::
     results/<dir>/cells/<cell>.speeds.csv.gz per-vehicle speed samples of that cell
     results/<dir>/episodes.csv              all finished cells, merged (tidy, one row per episode)
     results/<dir>/speeds.csv.gz             all speed samples, merged
+    results/<dir>/eval.log                  recoveries: restarted workers, damaged cells
 
 A cell's files are written (atomically) only once all its K episodes are in,
 so an interrupted run loses at most the cells in flight, and re-running the
 same command skips every finished cell. Episode seeds depend on the cell and
 the episode number only (:meth:`diacc.grid.Cell.seed`), so every policy meets
 exactly the same traffic draws and results do not depend on ``--workers``.
+
+Faults: a cell whose files are damaged (truncated, edited) is reported and
+recomputed; a dead pool worker costs a retry of its task
+(:mod:`diacc.workpool`); a dead simulator a retry of its episode
+(:func:`run_cell_task`). Each recovery is logged, so results are complete
+and equal to an unfaulted run's, or the command ends with a one-line error.
 
 Episodes end like training episodes (:class:`~diacc.env.BottleneckEnv`): on
 a collision, when every vehicle has left, or after ``episode_steps``.
@@ -24,29 +31,36 @@ import csv
 import gzip
 import io
 import json
+import logging
 import math
-import multiprocessing as mp
-from collections.abc import Iterator
+import zlib
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from diacc.backends.base import Backend, CavCommands, make_backend
+from diacc.backends.base import Backend, BackendError, CavCommands, make_backend
 from diacc.config import preset_road
 from diacc.env import BottleneckEnv, EnvConfig
 from diacc.grid import CELL_KEYS, Cell, make_cell
 from diacc.maps import SEGMENT_KINDS, load_map
 from diacc.metrics import EpisodeRecorder, SpeedSamples
 from diacc.policies import EvalSettings, Policy, PolicySpec, build_policy
+from diacc.runlog import log, run_log
 from diacc.safety import RULE_NAMES
 from diacc.state import TrafficState
 from diacc.threads import default_threads, worker_environment
+from diacc.workpool import map_resilient
 
 META_FILE = "meta.json"
 EPISODES_FILE = "episodes.csv"
 SPEEDS_FILE = "speeds.csv.gz"
 CELLS_DIR = "cells"
+LOG_FILE = "eval.log"
+#: Attempts per episode when its simulator dies (the first run plus retries).
+SIM_ATTEMPTS = 3
 #: Columns of the speed-sample files.
 SPEED_COLUMNS = (
     "policy",
@@ -198,39 +212,138 @@ def _init_worker(spec: PolicySpec, settings: EvalSettings, threads: int = 1) -> 
 def _close_worker_driver() -> None:
     if _WORKER.get("driver") is not None:
         _WORKER["driver"].close()
-        _WORKER["driver"] = None
+    _WORKER.update(driver=None, key=None)
 
 
-def _run_task(task: tuple[Cell, int]) -> EpisodeResult:
-    cell, episode = task
+@dataclass(frozen=True)
+class CellTask:
+    """A unit of evaluation work: some episodes of one cell (what a worker runs in one go)."""
+
+    cell: Cell
+    episodes: tuple[int, ...]
+
+
+@dataclass
+class CellTaskResult:
+    task: CellTask
+    results: list[EpisodeResult]
+    notes: list[str]  # recoveries inside the worker (simulator restarts), for the run log
+
+
+def _driver(cell: Cell) -> EpisodeDriver:
     if _WORKER["key"] != cell.key:
         _close_worker_driver()
         cfg = _WORKER["policy"].env_config(cell, _WORKER["settings"])
         _WORKER.update(driver=EpisodeDriver(_WORKER["policy"], cfg), key=cell.key)
-    return run_episode(_WORKER["driver"], cell, episode)
+    return _WORKER["driver"]
 
 
-def _results(
-    tasks: list[tuple[Cell, int]],
-    spec: PolicySpec,
-    settings: EvalSettings,
-    workers: int,
-    episodes: int,
-) -> Iterator[EpisodeResult]:
-    if workers <= 1:
-        _init_worker(spec, settings, threads=default_threads())
-        try:
-            for task in tasks:
-                yield _run_task(task)
-        finally:
-            _close_worker_driver()
+def run_cell_task(task: CellTask) -> CellTaskResult:
+    """Run a task's episodes in this (initialised) process.
+
+    A simulator that dies (:class:`BackendError`: SUMO worker killed or
+    crashed) costs only its episode, which is re-run from its seed on a fresh
+    simulator, at most :data:`SIM_ATTEMPTS` times in all; seeds fix the
+    traffic, so a retried episode is the episode an unfaulted run plays.
+    """
+    results, notes = [], []
+    with _captured(notes):
+        for episode in task.episodes:
+            for attempt in range(1, SIM_ATTEMPTS + 1):
+                try:
+                    results.append(run_episode(_driver(task.cell), task.cell, episode))
+                    break
+                except BackendError as exc:
+                    _close_worker_driver()
+                    if attempt == SIM_ATTEMPTS:
+                        raise BackendError(
+                            f"cell {task.cell.key} episode {episode} failed {attempt} times: {exc}"
+                        ) from None
+                    notes.append(
+                        f"cell {task.cell.key} episode {episode}: {str(exc).splitlines()[0]}; "
+                        f"re-running it on a new simulator "
+                        f"(attempt {attempt + 1} of {SIM_ATTEMPTS})"
+                    )
+    return CellTaskResult(task, results, notes)
+
+
+@contextmanager
+def _captured(notes: list[str]) -> Iterator[None]:
+    """In a pool worker, collect diacc's log records into ``notes`` (the parent logs them)."""
+    if not _WORKER.get("capture"):
+        yield
         return
-    chunk = max(1, min(episodes, math.ceil(len(tasks) / (4 * workers))))
-    ctx = mp.get_context("spawn")
-    with worker_environment():  # workers inherit one library thread (diacc.threads)
-        pool = ctx.Pool(workers, initializer=_init_worker, initargs=(spec, settings))
-    with pool:
-        yield from pool.imap_unordered(_run_task, tasks, chunksize=chunk)
+    handler = _ListHandler(notes)
+    log.addHandler(handler)
+    log.propagate = False
+    try:
+        yield
+    finally:
+        log.removeHandler(handler)
+        log.propagate = True
+
+
+class _ListHandler(logging.Handler):
+    def __init__(self, notes: list[str]) -> None:
+        super().__init__(logging.WARNING)
+        self.notes = notes
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.notes.append(record.getMessage())
+
+
+def _init_pool_worker(spec: PolicySpec, settings: EvalSettings) -> None:
+    _init_worker(spec, settings)
+    _WORKER["capture"] = True
+
+
+def cell_tasks(cells: list[Cell], episodes: int, workers: int) -> list[CellTask]:
+    """Split each cell's episodes into tasks: about 4 tasks per worker keeps workers busy."""
+    chunk = max(1, min(episodes, math.ceil(len(cells) * episodes / (4 * workers))))
+    return [
+        CellTask(cell, tuple(range(start, min(start + chunk, episodes))))
+        for cell in cells
+        for start in range(0, episodes, chunk)
+    ]
+
+
+def run_tasks_here(
+    tasks: list[CellTask], spec: PolicySpec, settings: EvalSettings, threads: int = 1
+) -> Iterator[CellTaskResult]:
+    """Run tasks one after another in this process (also what one Ray task does)."""
+    _init_worker(spec, settings, threads=threads)
+    try:
+        yield from map(run_cell_task, tasks)
+    finally:
+        _close_worker_driver()
+
+
+def run_local(
+    tasks: list[CellTask], spec: PolicySpec, settings: EvalSettings, workers: int
+) -> Iterator[CellTaskResult]:
+    """The default evaluation engine: this process (``workers`` = 1) or a resilient pool.
+
+    Any engine takes the same arguments and yields one :class:`CellTaskResult`
+    per task, in any order (see :func:`evaluate`'s ``engine``).
+    """
+    if workers <= 1:
+        yield from run_tasks_here(tasks, spec, settings, threads=default_threads())
+        return
+    # The pool (re)starts workers at any time: they inherit one library thread (diacc.threads).
+    with worker_environment():
+        for _, result in map_resilient(
+            run_cell_task,
+            tasks,
+            workers,
+            initializer=_init_pool_worker,
+            initargs=(spec, settings),
+            describe=lambda t: f"cell {t.cell.key} episodes {t.episodes[0]}-{t.episodes[-1]}",
+        ):
+            yield result
+
+
+#: An evaluation engine: (tasks, policy, settings, workers) -> one result per task, any order.
+Engine = Callable[[list[CellTask], PolicySpec, EvalSettings, int], Iterator[CellTaskResult]]
 
 
 # ----------------------------------------------------------------------------- files
@@ -287,18 +400,56 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
-def cell_done(out_dir: Path, cell: Cell, episodes: int) -> bool:
-    """Whether a cell's files hold exactly episodes 0..K-1."""
-    path = out_dir / CELLS_DIR / f"{cell.key}.episodes.csv"
-    if not path.exists() or not (out_dir / CELLS_DIR / f"{cell.key}.speeds.csv.gz").exists():
-        return False
-    return sorted(int(r["episode"]) for r in read_csv(path)) == list(range(episodes))
+def check_cell_files(out_dir: Path, key: str) -> tuple[list[int], str | None]:
+    """(episode numbers, None) of a cell's files, or ([], why) if they are damaged.
+
+    No episodes file means the cell is not done (it is written last); an
+    episodes file whose rows, speeds file or sample count do not add up
+    means a damaged (truncated, edited, half-copied) cell.
+    """
+    episodes_path = out_dir / CELLS_DIR / f"{key}.episodes.csv"
+    speeds_path = out_dir / CELLS_DIR / f"{key}.speeds.csv.gz"
+    if not episodes_path.exists():
+        return [], None
+    try:
+        rows = read_csv(episodes_path)
+        if not rows or any(None in r or None in r.values() for r in rows):
+            raise ValueError(f"{episodes_path.name} has missing or extra fields")
+        episodes = sorted(int(r["episode"]) for r in rows)
+        n_samples = sum(int(r["n_speed_samples"]) for r in rows)
+        if not speeds_path.exists():
+            raise ValueError(f"{speeds_path.name} is missing")
+        lines = gzip.decompress(speeds_path.read_bytes()).decode().splitlines()
+        if not lines or lines[0] != ",".join(SPEED_COLUMNS) or len(lines) - 1 != n_samples:
+            raise ValueError(f"{speeds_path.name} does not hold the {n_samples} speed samples")
+    except (OSError, EOFError, ValueError, KeyError, zlib.error, csv.Error) as exc:
+        return [], str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return episodes, None
+
+
+def _drop_if_damaged(out_dir: Path, key: str) -> list[int]:
+    """Episodes of an intact cell; a damaged cell is reported and its files removed."""
+    episodes, damage = check_cell_files(out_dir, key)
+    if damage is not None:
+        log.warning(
+            "results cell %s in %s is damaged (%s); its files were removed and it is recomputed",
+            key,
+            out_dir,
+            damage,
+        )
+        for suffix in (".episodes.csv", ".speeds.csv.gz"):
+            (out_dir / CELLS_DIR / f"{key}{suffix}").unlink(missing_ok=True)
+    return episodes
 
 
 def merge_cells(out_dir: Path) -> None:
-    """Rebuild ``episodes.csv`` and ``speeds.csv.gz`` from every finished cell."""
+    """Rebuild ``episodes.csv`` and ``speeds.csv.gz`` from every intact finished cell."""
     cells_dir = out_dir / CELLS_DIR
-    episode_files = sorted(cells_dir.glob("*.episodes.csv"))
+    episode_files = [
+        p
+        for p in sorted(cells_dir.glob("*.episodes.csv"))
+        if _drop_if_damaged(out_dir, p.name.removesuffix(".episodes.csv"))
+    ]
     if not episode_files:
         return
     header, rows = None, []
@@ -351,8 +502,15 @@ def evaluate(
     settings: EvalSettings,
     workers: int = 1,
     progress: bool = True,
+    engine: Engine | None = None,
 ) -> EvalSummary:
-    """Evaluate a policy on every cell for ``episodes`` seeded episodes (see module docstring)."""
+    """Evaluate a policy on every cell for ``episodes`` seeded episodes (see module docstring).
+
+    ``engine`` runs the cell tasks (default :func:`run_local`; or
+    :class:`diacc.scaleout.RayEngine`, one Ray task per cell); recoveries it
+    reports, and damaged cell files found here, are logged to stderr and to
+    ``<out_dir>/eval.log``.
+    """
     out_dir = Path(out_dir)
     if episodes < 1:
         raise EvaluationError(f"--episodes must be >= 1, got {episodes}")
@@ -372,27 +530,32 @@ def evaluate(
         },
     }
     _check_meta(out_dir, meta)
-    todo = [c for c in cells if not cell_done(out_dir, c, episodes)]
-    skipped = [c for c in cells if c not in todo]
-    tasks = [(cell, ep) for cell in todo for ep in range(episodes)]
-    pending: dict[str, list[EpisodeResult]] = {c.key: [] for c in todo}
-    from tqdm import tqdm
+    with run_log(out_dir / LOG_FILE):
+        done = [_drop_if_damaged(out_dir, c.key) == list(range(episodes)) for c in cells]
+        todo = [c for c, d in zip(cells, done, strict=True) if not d]
+        skipped = [c for c, d in zip(cells, done, strict=True) if d]
+        pending: dict[str, list[EpisodeResult]] = {c.key: [] for c in todo}
+        from tqdm import tqdm
 
-    bar = tqdm(
-        total=len(tasks),
-        unit="episode",
-        disable=not progress or not tasks,
-        desc=f"eval {policy.label} on {settings.backend}",
-    )
-    try:
-        for result in _results(tasks, spec, settings, workers, episodes):
-            pending[result.cell.key].append(result)
-            if len(pending[result.cell.key]) == episodes:
-                write_cell(out_dir, result.cell, pending.pop(result.cell.key))
-            bar.update(1)
-    finally:
-        bar.close()
-        merge_cells(out_dir)
+        bar = tqdm(
+            total=len(todo) * episodes,
+            unit="episode",
+            disable=not progress or not todo,
+            desc=f"eval {policy.label} on {settings.backend}",
+        )
+        tasks = cell_tasks(todo, episodes, workers)
+        try:
+            for task_result in (engine or run_local)(tasks, spec, settings, workers):
+                for note in task_result.notes:
+                    log.warning(note)
+                for result in task_result.results:
+                    pending[result.cell.key].append(result)
+                    if len(pending[result.cell.key]) == episodes:
+                        write_cell(out_dir, result.cell, pending.pop(result.cell.key))
+                bar.update(len(task_result.results))
+        finally:
+            bar.close()
+            merge_cells(out_dir)
     return EvalSummary(out_dir, todo, skipped)
 
 

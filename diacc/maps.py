@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -97,7 +98,10 @@ class Map:
         return range(first, first + self.segments[segment_index].lanes)
 
     def lane_exists(self) -> np.ndarray:
-        """(S, L) bool: whether absolute lane l exists in segment s."""
+        """(S, L) bool: whether absolute lane l exists in segment s (read-only, cached)."""
+        return _cached(self, "_exists", self._compute_lane_exists)
+
+    def _compute_lane_exists(self) -> np.ndarray:
         table = np.zeros((len(self.segments), self.max_lanes), dtype=bool)
         for s in range(len(self.segments)):
             table[s, list(self.lane_range(s))] = True
@@ -107,8 +111,12 @@ class Map:
         """(S, L) x where lane l, driven from segment s, stops existing (inf if never).
 
         This is what forced-merge rules look at: a vehicle in lane l inside
-        segment s must leave the lane before this point.
+        segment s must leave the lane before this point. Read-only, cached
+        (PSAR reads it every step).
         """
+        return _cached(self, "_ends", self._compute_lane_end_m)
+
+    def _compute_lane_end_m(self) -> np.ndarray:
         exists = self.lane_exists()
         ends = self.segment_ends_m
         out = np.full(exists.shape, np.inf)
@@ -144,17 +152,9 @@ class Map:
         target = np.asarray(lane, dtype=np.int64) + np.asarray(offset, dtype=np.int64)
         in_range = (target >= 0) & (target < self.max_lanes)
         target_c = np.clip(target, 0, self.max_lanes - 1)
-        exists = self._lane_exists_table[segment, target_c]
-        ends_later = self._lane_end_table[segment, target_c] - np.asarray(x_m) > reach_m
+        exists = self.lane_exists()[segment, target_c]
+        ends_later = self.lane_end_m()[segment, target_c] - np.asarray(x_m) > reach_m
         return (np.asarray(offset) != 0) & in_range & exists & ends_later
-
-    @property
-    def _lane_exists_table(self) -> np.ndarray:
-        return _cached(self, "_exists", self.lane_exists)
-
-    @property
-    def _lane_end_table(self) -> np.ndarray:
-        return _cached(self, "_ends", self.lane_end_m)
 
     def segment_of(self, x_m: np.ndarray) -> np.ndarray:
         """Segment index for each longitudinal position (clipped to the route)."""
@@ -200,6 +200,11 @@ def load_map(name_or_path: str | Path) -> Map:
     return parse_map(read_toml(path, MapError), source=str(path))
 
 
+def _is_number(value) -> bool:
+    """An int or float, not a bool (comparisons then reject NaN: ``nan <= x`` is False)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def parse_map(data: dict, source: str = "<map>") -> Map:
     """Validate a map dictionary (as read from TOML) into a :class:`Map`."""
 
@@ -213,7 +218,7 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
         if key not in data:
             raise fail(key, "is missing")
     width = data["lane_width_m"]
-    if not isinstance(width, (int, float)) or not 2.0 <= width <= 5.0:
+    if not _is_number(width) or not 2.0 <= width <= 5.0:
         raise fail("lane_width_m", f"must be a number in [2, 5] m, got {width!r}")
     drop_side = data.get("drop_side", "left")
     if drop_side not in DROP_SIDES:
@@ -234,13 +239,13 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
         if seg["kind"] not in SEGMENT_KINDS:
             raise fail(f"{where}.kind", f"must be one of {SEGMENT_KINDS}, got {seg['kind']!r}")
         length = seg["length_m"]
-        if not isinstance(length, (int, float)) or isinstance(length, bool) or length <= 0:
-            raise fail(f"{where}.length_m", f"must be a positive number, got {length!r}")
+        if not _is_number(length) or not 0 < length < math.inf:
+            raise fail(f"{where}.length_m", f"must be a finite positive number, got {length!r}")
         lanes = seg["lanes"]
         if not isinstance(lanes, int) or isinstance(lanes, bool) or lanes < 1:
             raise fail(f"{where}.lanes", f"must be an integer >= 1, got {lanes!r}")
         speed = seg["speed_limit_mps"]
-        if not isinstance(speed, (int, float)) or isinstance(speed, bool) or not 0 < speed <= 70:
+        if not _is_number(speed) or not 0 < speed <= 70:
             raise fail(f"{where}.speed_limit_mps", f"must be in (0, 70] m/s, got {speed!r}")
         if segments and abs(lanes - segments[-1].lanes) > MAX_LANE_JUMP:
             raise fail(

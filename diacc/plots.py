@@ -2,7 +2,11 @@
 
 * :func:`plot_curves`: collision rate, global reward and individual reward
   against environment steps, one line per variant (mean over the runs/seeds
-  of that variant) with a shaded +-1 std band. Each run is read from its
+  of that variant) with a shaded +-1 std band over seeds (a single seed has
+  no band, and its legend says so). Every panel has its own legend; the
+  collision rate keeps its [0, 1] axis, and a nearly flat reward curve gets
+  an axis of at least +-5 % of its level instead of a magnified noise band.
+  Each run is read from its
   ``progress.jsonl`` (written by the trainer), else from its TensorBoard
   event files; runs are grouped by ``config.json`` (variant, backend).
 * :func:`plot_speeds`: box plots of the per-vehicle speed samples by segment
@@ -137,7 +141,14 @@ def _smooth(values: np.ndarray, window: int) -> np.ndarray:
 def group_curves(
     run_dirs: list[str | Path], key_options: tuple[str, ...], smooth: int = 1
 ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Group -> (steps (T,), mean (T,), std (T,)) over the runs of the group.
+    """Group -> (steps (T,), mean (T,), std (T,)) over the runs of the group."""
+    return {g: c[:3] for g, c in _group_curves(run_dirs, key_options, smooth).items()}
+
+
+def _group_curves(
+    run_dirs: list[str | Path], key_options: tuple[str, ...], smooth: int = 1
+) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, int]]:
+    """Group -> (steps (T,), mean (T,), std (T,), number of runs).
 
     Runs of a group are interpolated onto the steps of the run with the fewest
     points, inside the range that all runs cover.
@@ -157,29 +168,51 @@ def group_curves(
         grid = min((s for s, _ in members), key=len)
         grid = grid[(grid >= start) & (grid <= end)]
         stacked = np.stack([np.interp(grid, s, v) for s, v in members])  # (R, T)
-        out[group] = (grid, stacked.mean(0), stacked.std(0))
+        out[group] = (grid, stacked.mean(0), stacked.std(0), len(members))
     return out
+
+
+#: Panels whose values are shares in [0, 1], drawn on a fixed axis.
+SHARE_PANELS = ("Collision rate",)
+
+
+def _y_limits(title: str, lo: float, hi: float) -> tuple[float, float]:
+    """Axis range: [0, 1] for shares; at least +-5 % of the level (or +-0.05) otherwise."""
+    if title in SHARE_PANELS:
+        return -0.03, 1.03
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    half = max(half * 1.1, 0.05 * max(abs(centre), 1.0))
+    return centre - half, centre + half
 
 
 def plot_curves(run_dirs: list[str | Path], out: str | Path, smooth: int = 1) -> list[Path]:
     """Training curves of several runs (see module docstring); returns the files written."""
     if not run_dirs:
         raise PlotError("give at least one run directory")
-    panels = {title: group_curves(run_dirs, keys, smooth) for title, keys in CURVE_PANELS.items()}
+    panels = {title: _group_curves(run_dirs, keys, smooth) for title, keys in CURVE_PANELS.items()}
     if not any(panels.values()):
         raise PlotError("none of the runs logged a collision rate, global or individual reward")
     plt = _pyplot()
     groups = sorted({g for curves in panels.values() for g in curves})
     colour = {g: PALETTE[i % len(PALETTE)] for i, g in enumerate(groups)}
-    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 3.6))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 3.8))
     for ax, (title, curves) in zip(np.atleast_1d(axes), panels.items(), strict=True):
-        for group, (steps, mean, std) in sorted(curves.items()):
-            ax.plot(steps, mean, color=colour[group], label=group, lw=1.5)
-            ax.fill_between(steps, mean - std, mean + std, color=colour[group], alpha=0.25, lw=0)
+        lo, hi = np.inf, -np.inf
+        for group, (steps, mean, std, n_runs) in sorted(curves.items()):
+            band = "1 seed, no band" if n_runs == 1 else f"mean ± std of {n_runs} seeds"
+            ax.plot(steps, mean, color=colour[group], label=f"{group}: {band}", lw=1.5)
+            if n_runs > 1:
+                ax.fill_between(
+                    steps, mean - std, mean + std, color=colour[group], alpha=0.25, lw=0
+                )
+            lo, hi = min(lo, float((mean - std).min())), max(hi, float((mean + std).max()))
         ax.set_title(title if curves else f"{title} (not logged)")
         ax.set_xlabel("environment steps")
+        ax.set_ylabel("share of episodes" if title in SHARE_PANELS else "mean reward per step")
+        if curves:
+            ax.set_ylim(*_y_limits(title, lo, hi))
+            ax.legend(fontsize=7, loc="best")
         ax.grid(alpha=0.3)
-    np.atleast_1d(axes)[0].legend(fontsize=8)
     fig.tight_layout()
     return _save(fig, out)
 

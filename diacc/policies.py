@@ -212,6 +212,7 @@ class CheckpointPolicy(Policy):
         self.base = env_config(cfg)  # use_psar as the variant says (mappo.PSAR_VARIANTS)
         self.label = cfg.variant
         self.update = int(payload.get("update", 0))
+        self.global_step = int(payload.get("global_step", 0))
         self._hidden = torch.zeros(0, self.hidden_size)
 
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
@@ -244,6 +245,8 @@ class CheckpointPolicy(Policy):
             "checkpoint": str(self.path.resolve()),
             "update": self.update,
             "trained_on": self.train_config.backend,
+            "trained_steps": self.global_step,  # budget, shown in table captions
+            "total_steps": self.train_config.total_steps,
         }
 
 

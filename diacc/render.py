@@ -4,8 +4,12 @@ Frames come from highway-env's road renderer on both backends: the highway
 backend draws itself (``HighwayBackend.render``); a SUMO episode's
 :class:`~diacc.state.TrafficState` is drawn by the same renderer on the same
 map, so both backends' GIFs look alike. CAVs and the three HDV styles have
-distinct colours, and CAVs whose action PSAR changed in the step leading to a
-frame are outlined (``highlight``).
+distinct colours, crashed vehicles are red, and CAVs whose action PSAR changed
+in the step leading to a frame are outlined (``highlight``).
+
+Below the road, every frame carries a strip (:func:`annotate`) with the
+simulated time and decision step, the PSAR rules that fired in that step and
+the crash, if any, and a legend of the colours.
 """
 
 from __future__ import annotations
@@ -31,6 +35,70 @@ class RenderResult:
     n_frames: int
     psar_frames: int  # frames with at least one highlighted CAV
     frame_shape: tuple[int, ...]
+
+
+def _legend_entries() -> list[tuple[str, tuple[int, int, int], bool]]:
+    """(label, RGB, outline only) of the legend, in the renderer's own colours."""
+    from diacc.backends.highway_render import (
+        CAV_COLOR,
+        CRASHED_COLOR,
+        HIGHLIGHT_COLOR,
+        STYLE_COLORS,
+    )
+    from diacc.scenario import STYLE_NAMES
+
+    entries = [(f"HDV {name}", STYLE_COLORS[code], False) for code, name in enumerate(STYLE_NAMES)]
+    return [
+        *entries,
+        ("CAV", CAV_COLOR, False),
+        ("PSAR rule fired", HIGHLIGHT_COLOR, True),
+        ("crash", CRASHED_COLOR, False),
+    ]
+
+
+def step_stamp(
+    state: TrafficState, max_steps: int, psar_rule: np.ndarray | None
+) -> tuple[str, str]:
+    """(time / step / crash line, PSAR line) under a frame; ``psar_rule`` (V,) None: no PSAR."""
+    from diacc.safety import RULE_NAMES
+
+    crash = (
+        "crash: vehicles "
+        + ", ".join(f"{a}+{b}" for a, b in np.asarray(state.collisions).reshape(-1, 2).tolist())
+        if len(state.collisions)
+        else "no crash"
+    )
+    line = f"t = {state.time_s:5.1f} s   step {state.step}/{max_steps}   {crash}"
+    if psar_rule is None:
+        return line, "PSAR: off for this policy"
+    counts = np.bincount(np.asarray(psar_rule, np.int64), minlength=len(RULE_NAMES))  # (R,)
+    fired = [f"{RULE_NAMES[r]} x{counts[r]}" for r in range(1, len(RULE_NAMES)) if counts[r]]
+    return line, "PSAR this step: " + (", ".join(fired) if fired else "no rule fired")
+
+
+def annotate(frame: np.ndarray, lines: tuple[str, ...]) -> np.ndarray:
+    """The frame (H, W, 3) with a strip below: ``lines`` of text, then the colour legend."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    font = ImageFont.load_default(size=13)
+    line_h, pad = 17, 6
+    height, width = frame.shape[:2]
+    strip_h = pad * 2 + line_h * (len(lines) + 1)
+    image = Image.new("RGB", (width, height + strip_h), (255, 255, 255))
+    image.paste(Image.fromarray(np.asarray(frame, np.uint8)[..., :3]), (0, 0))
+    draw = ImageDraw.Draw(image)
+    y = height + pad
+    for text in lines:
+        draw.text((pad, y), text, fill=(0, 0, 0), font=font)
+        y += line_h
+    x = pad
+    for label, colour, outline in _legend_entries():
+        box = (x, y + 3, x + 18, y + 13)
+        draw.rectangle(box, outline=colour, width=2) if outline else draw.rectangle(box, colour)
+        x += 22
+        draw.text((x, y), label, fill=(0, 0, 0), font=font)
+        x += int(draw.textlength(label, font=font)) + 14
+    return np.asarray(image)
 
 
 class _FrameSource:
@@ -87,13 +155,22 @@ def render_episode(
     try:
         state = driver.reset(cell.seed(0) if seed is None else seed)
         source = _FrameSource(driver)
-        frames = [source.draw(state, np.zeros(state.n_vehicles, bool))]
+        max_steps = min(steps, driver.cfg.sim.episode_steps)
+        psar_on = driver.env is not None and driver.cfg.use_psar
+        no_rule = np.zeros(state.n_vehicles, np.int8)  # (V,)
+        frames = [
+            annotate(
+                source.draw(state, no_rule != 0),
+                step_stamp(state, max_steps, no_rule if psar_on else None),
+            )
+        ]
         psar_frames = 0
         while not driver.done and len(frames) <= steps:
             state = driver.step()
             highlight = driver.psar_rule != 0  # (V,)
             psar_frames += int(highlight.any())
-            frames.append(source.draw(state, highlight))
+            stamp = step_stamp(state, max_steps, driver.psar_rule if psar_on else None)
+            frames.append(annotate(source.draw(state, highlight), stamp))
     finally:
         if source is not None:
             source.close()

@@ -1,7 +1,7 @@
 """Paper-style result tables (Tables II-III) from evaluation results directories.
 
 One column per evaluated policy (one results directory each), and for every
-grid cell three rows:
+grid cell the paper's three rows, plus two optional ones (``rows``):
 
 * **Speed (m/s)**: mean +- std over all vehicles and steps of all episodes,
   as in the paper (pooled exactly from each episode's mean, std and sample
@@ -9,11 +9,21 @@ grid cell three rows:
   instead.
 * **p(WE) (%)**, **p(SCE) (%)**: mean +- std over episodes of the per-episode
   shares (population std, ddof = 0).
+* optional **Collision (%)**: share of episodes that ended in a collision;
+  **Arrived (%)**: mean share of vehicles that reached the route end.
 
 Each entry also shows its relative change against the ``pure-hdv`` column
-(when one is given), ``(mean - mean_ref) / mean_ref``; the best value of a row
-(highest speed, lowest shares, compared at the printed precision) is bold.
-Output as Markdown, LaTeX (booktabs) or a tidy CSV.
+(when one is given), ``(mean - mean_ref) / mean_ref``.
+
+Emphasis follows the paper's Tables II/III: per row, the best value is bold
+and the second best underlined (italic in Markdown), compared at the printed
+precision (higher speed / arrived share, lower shares). Unlike the paper, a
+column is ranked in a cell only when the ranking means something there
+(:data:`RANKING_RULE`): it is no slower than the pure-HDV column of the same
+backend and its collision rate is no higher. A policy that is slower or
+crashes more than human traffic is never bold for one metric out of context.
+Output as Markdown, LaTeX (booktabs, multirow: :data:`LATEX_PREAMBLE`) or a
+tidy CSV.
 """
 
 from __future__ import annotations
@@ -29,14 +39,24 @@ import numpy as np
 from diacc.evaluate import EvaluationError, load_episodes
 from diacc.grid import Cell
 
-#: (key, row label, higher is better, scale for display)
+#: (key, row label, higher is better, episodes.csv column); shares are shown in percent
 METRICS = (
-    ("speed", "Speed (m/s)", True, 1.0),
-    ("p_we", "p(WE) (%)", False, 100.0),
-    ("p_sce", "p(SCE) (%)", False, 100.0),
+    ("speed", "Speed (m/s)", True, "mean_speed_mps"),
+    ("p_we", "p(WE) (%)", False, "p_we"),
+    ("p_sce", "p(SCE) (%)", False, "p_sce"),
+    ("collision", "Collision (%)", False, "collision"),
+    ("arrived", "Arrived (%)", True, "arrived_fraction"),
 )
+#: Rows of the paper's tables; ``collision`` and ``arrived`` are optional.
+DEFAULT_ROWS = ("speed", "p_we", "p_sce")
 REFERENCE = "pure-hdv"
 FORMATS = ("markdown", "latex", "csv")
+RANKING_RULE = (
+    "bold: best, underlined (Markdown: italic): second best of a row, as in the paper; "
+    "ranked only columns no slower and with no more collisions than pure HDV"
+)
+#: What a LaTeX document needs for :func:`to_latex`'s output.
+LATEX_PREAMBLE = "\\usepackage{booktabs}\n\\usepackage{multirow}"
 SPEED_STD = ("samples", "episodes")
 
 
@@ -57,6 +77,8 @@ class Table:
     notes: list[str]
     policy: dict[str, str]  # column -> policy name
     backend: dict[str, str]  # column -> backend name
+    rows: tuple[str, ...] = DEFAULT_ROWS  # metrics shown, in order
+    caption: str = ""
 
     def reference(self, column: str) -> str | None:
         """The pure-HDV column a column is compared with: same backend first."""
@@ -74,22 +96,51 @@ class Table:
             return None
         return 100.0 * (a.mean - b.mean) / b.mean
 
-    def best(self, cell: Cell, metric: str) -> set[str]:
-        """Columns holding the best value of a row, at the printed precision."""
+    def _rounded(self, cell: Cell, metric: str, column: str) -> float | None:
+        stat = self.stats.get((cell.key, metric, column))
+        return round(stat.mean, 2) if stat is not None and math.isfinite(stat.mean) else None
+
+    def ranked(self, cell: Cell, column: str) -> bool:
+        """Whether a column takes part in a cell's best / second-best marks (RANKING_RULE).
+
+        Compared at the printed precision with the pure-HDV reference: not
+        slower, and no more collisions (where both logged them).
+        """
+        ref = self.reference(column)
+        if ref is None or ref == column:
+            return True
+        for metric, sign in (("speed", 1.0), ("collision", -1.0)):
+            mine, theirs = self._rounded(cell, metric, column), self._rounded(cell, metric, ref)
+            if mine is not None and theirs is not None and sign * (mine - theirs) < 0:
+                return False
+        return True
+
+    def marks(self, cell: Cell, metric: str) -> tuple[set[str], set[str]]:
+        """(best, second-best) columns of a row; second best only with 3+ ranked columns."""
         higher = next(m[2] for m in METRICS if m[0] == metric)
         values = {
-            c: round(s.mean, 2)
+            c: v
             for c in self.columns
-            if (s := self.stats.get((cell.key, metric, c))) and math.isfinite(s.mean)
+            if self.ranked(cell, c) and (v := self._rounded(cell, metric, c)) is not None
         }
         if len(values) < 2:
-            return set()
-        target = max(values.values()) if higher else min(values.values())
-        return {c for c, v in values.items() if v == target}
+            return set(), set()
+        order = sorted(set(values.values()), reverse=higher)
+        best = {c for c, v in values.items() if v == order[0]}
+        second = (
+            {c for c, v in values.items() if v == order[1]}
+            if len(values) >= 3 and len(order) > 1
+            else set()
+        )
+        return best, second
+
+    def best(self, cell: Cell, metric: str) -> set[str]:
+        """Columns holding the best value of a row (see :meth:`marks`)."""
+        return self.marks(cell, metric)[0]
 
 
-def _float(text: str) -> float:
-    return float(text) if text not in ("", "nan") else float("nan")
+def _float(text: str | None) -> float:
+    return float(text) if text not in (None, "", "nan") else float("nan")
 
 
 def _speed_stat(rows: list[dict[str, str]], speed_std: str) -> Stat:
@@ -104,15 +155,44 @@ def _speed_stat(rows: list[dict[str, str]], speed_std: str) -> Stat:
     return Stat(mean, math.sqrt(max(second_moment - mean**2, 0.0)), len(rows))
 
 
-def _share_stat(rows: list[dict[str, str]], key: str) -> Stat:
+def _share_stat(rows: list[dict[str, str]], key: str) -> Stat | None:
+    """Mean +- std in percent over episodes; None if the results lack the column."""
+    if key not in rows[0]:
+        return None
     values = 100.0 * np.array([_float(r[key]) for r in rows])  # (K,) percent
     return Stat(float(values.mean()), float(values.std()), len(rows))
 
 
-def build_table(result_dirs: list[str | Path], speed_std: str = "samples") -> Table:
+def _episodes(counts: list[int]) -> str:
+    """``1 episode``, ``5 episodes``, ``3/5 episodes`` (cells with different counts)."""
+    return f"{'/'.join(map(str, counts))} episode{'' if counts == [1] else 's'}"
+
+
+def _budget(meta: dict) -> str:
+    """How long a checkpoint was trained, for the caption ("" for baselines)."""
+    if "checkpoint" not in meta:
+        return ""
+    steps = meta.get("trained_steps")
+    text = f"checkpoint update {meta.get('update', '?')}"
+    if steps is not None:
+        text += f", {steps:,} of {meta.get('total_steps', steps):,} training steps"
+    return text + f" on {meta.get('trained_on', '?')}"
+
+
+def build_table(
+    result_dirs: list[str | Path],
+    speed_std: str = "samples",
+    rows: tuple[str, ...] | list[str] = DEFAULT_ROWS,
+) -> Table:
     """Collect the statistics of several results directories into one table."""
     if speed_std not in SPEED_STD:
         raise EvaluationError(f"unknown speed std {speed_std!r}; use one of {', '.join(SPEED_STD)}")
+    known = [m[0] for m in METRICS]
+    unknown = [r for r in rows if r not in known]
+    if unknown or not rows:
+        raise EvaluationError(
+            f"unknown table row {(unknown or [''])[0]!r}; use some of {', '.join(known)}"
+        )
     if not result_dirs:
         raise EvaluationError("give at least one results directory")
     loaded = [(Path(d), *load_episodes(d)) for d in result_dirs]
@@ -124,9 +204,10 @@ def build_table(result_dirs: list[str | Path], speed_std: str = "samples") -> Ta
     stats: dict[tuple[str, str, str], Stat] = {}
     cells: dict[str, Cell] = {}
     notes: list[str] = []
-    for label, (_, meta, rows) in zip(labels, loaded, strict=True):
+    episode_counts: set[int] = set()
+    for label, (_, meta, episode_rows) in zip(labels, loaded, strict=True):
         by_cell: dict[Cell, list[dict[str, str]]] = {}
-        for row in rows:
+        for row in episode_rows:
             cell = Cell(
                 row["map"], int(row["n_vehicles"]), float(row["cav_penetration"]), row["style_mix"]
             )
@@ -134,24 +215,51 @@ def build_table(result_dirs: list[str | Path], speed_std: str = "samples") -> Ta
         for cell, cell_rows in by_cell.items():
             cells[cell.key] = cell
             stats[(cell.key, "speed", label)] = _speed_stat(cell_rows, speed_std)
-            stats[(cell.key, "p_we", label)] = _share_stat(cell_rows, "p_we")
-            stats[(cell.key, "p_sce", label)] = _share_stat(cell_rows, "p_sce")
-        first = rows[0]
+            for metric, _, _, column in METRICS[1:]:
+                if (stat := _share_stat(cell_rows, column)) is not None:
+                    stats[(cell.key, metric, label)] = stat
+        first = episode_rows[0]
         version = f", {first['sumo_version']}" if first.get("sumo_version") else ""
         per_cell = sorted({len(r) for r in by_cell.values()})
-        episodes = "/".join(map(str, per_cell))
+        episode_counts.update(per_cell)
+        budget = _budget(meta)
         notes.append(
             f"{label}: {meta['backend']} backend{version}, style preset "
-            f"{first.get('style_preset', '?')}, {episodes} episodes per cell"
+            f"{first.get('style_preset', '?')}, "
+            f"{_episodes(per_cell)} per cell" + (f", {budget}" if budget else "")
+        )
+    missing = [r for r in rows if not any(k[1] == r for k in stats)]
+    if missing:
+        raise EvaluationError(
+            f"no results directory has the data of row {missing[0]!r} "
+            "(re-run `diacc eval` into a fresh directory)"
         )
     speed_note = (
         "speed: mean ± std over all vehicles and steps"
         if speed_std == "samples"
         else "speed: mean ± std of episode means"
     )
-    notes.append(f"{speed_note}; p(WE), p(SCE): mean ± std over episodes")
+    notes.append(f"{speed_note}; shares: mean ± std over episodes")
+    notes.append(RANKING_RULE)
     ordered = sorted(
         cells.values(), key=lambda c: (c.map, -c.cav_penetration, c.n_vehicles, c.style_mix)
+    )
+    counts = sorted(episode_counts)
+    presets = dict.fromkeys(rows_[0].get("style_preset", "?") for _, _, rows_ in loaded)
+    budgets = [
+        f"{lab} {m['trained_steps']:,}"
+        + (
+            f" of {m['total_steps']:,}"
+            if m.get("total_steps", m["trained_steps"]) != m["trained_steps"]
+            else ""
+        )
+        for lab, (_, m, _) in zip(labels, loaded, strict=True)
+        if "trained_steps" in m
+    ]
+    caption = (
+        f"{', '.join(dict.fromkeys(c.map for c in ordered))}: {_episodes(counts)} per cell, "
+        f"HDV style preset {'/'.join(presets)}"
+        + (f"; training budget (env steps): {', '.join(budgets)}" if budgets else "")
     )
     return Table(
         labels,
@@ -160,6 +268,8 @@ def build_table(result_dirs: list[str | Path], speed_std: str = "samples") -> Ta
         notes,
         policy={lab: m["policy"] for lab, (_, m, _) in zip(labels, loaded, strict=True)},
         backend={lab: m["backend"] for lab, (_, m, _) in zip(labels, loaded, strict=True)},
+        rows=tuple(rows),
+        caption=caption,
     )
 
 
@@ -168,15 +278,28 @@ def _scenario(cell: Cell) -> str:
     return f"N={cell.n_vehicles}, rho={cell.cav_penetration:.1f}, {cell.style_mix}"
 
 
+def _label(metric: str) -> str:
+    return next(m[1] for m in METRICS if m[0] == metric)
+
+
 def _entry(
-    table: Table, cell: Cell, metric: str, column: str, bold: tuple[str, str], percent: str = "%"
+    table: Table,
+    cell: Cell,
+    metric: str,
+    column: str,
+    marks: tuple[str, str, str, str],
+    percent: str = "%",
 ) -> str:
+    """One entry; ``marks`` = (best open, best close, second open, second close)."""
     stat = table.stats.get((cell.key, metric, column))
     if stat is None:
         return "—"
     text = f"{stat.mean:.2f} ± {stat.std:.2f}"
-    if column in table.best(cell, metric):
-        text = f"{bold[0]}{text}{bold[1]}"
+    best, second = table.marks(cell, metric)
+    if column in best:
+        text = f"{marks[0]}{text}{marks[1]}"
+    elif column in second:
+        text = f"{marks[2]}{text}{marks[3]}"
     change = table.relative_change(cell, metric, column)
     if change is not None:
         text += f" ({change:+.1f}{percent})"
@@ -184,17 +307,20 @@ def _entry(
 
 
 def to_markdown(table: Table) -> str:
-    """GitHub Markdown: one section per map."""
-    lines = []
+    """GitHub Markdown: the caption, then one section per map."""
+    lines = [f"Table: {table.caption}", ""]
     header = "| Scenario | Metric | " + " | ".join(table.columns) + " |"
     rule = "|---|---|" + "---|" * len(table.columns)
     for map_name in dict.fromkeys(c.map for c in table.cells):
         lines += [f"**{map_name}**", "", header, rule]
         for cell in (c for c in table.cells if c.map == map_name):
-            for i, (metric, label, _, _) in enumerate(METRICS):
-                entries = [_entry(table, cell, metric, col, ("**", "**")) for col in table.columns]
+            for i, metric in enumerate(table.rows):
+                entries = [
+                    _entry(table, cell, metric, col, ("**", "**", "_", "_"))
+                    for col in table.columns
+                ]
                 lines.append(
-                    f"| {_scenario(cell) if i == 0 else ''} | {label} | "
+                    f"| {_scenario(cell) if i == 0 else ''} | {_label(metric)} | "
                     + " | ".join(entries)
                     + " |"
                 )
@@ -208,9 +334,14 @@ def _latex_escape(text: str) -> str:
 
 
 def to_latex(table: Table) -> str:
-    """A booktabs ``tabular`` in the paper's layout (needs ``booktabs`` and ``multirow``)."""
+    """A booktabs ``table`` in the paper's layout; needs :data:`LATEX_PREAMBLE`."""
     n = len(table.columns)
+    k = len(table.rows)
     lines = [
+        "% preamble: " + LATEX_PREAMBLE.replace("\n", " "),
+        r"\begin{table}[htbp]",
+        r"\centering",
+        rf"\caption{{{_latex_escape(table.caption)}}}",
         r"\begin{tabular}{@{}ll" + "c" * n + "@{}}",
         r"\toprule",
         r"\textbf{Scenario} & \textbf{Metric} & "
@@ -223,35 +354,38 @@ def to_latex(table: Table) -> str:
         lines.append(rf"\multicolumn{{{n + 2}}}{{c}}{{\textit{{{_latex_escape(map_name)}}}}} \\")
         lines.append(r"\midrule")
         cells = [c for c in table.cells if c.map == map_name]
-        for k, cell in enumerate(cells):
-            for i, (metric, label, _, _) in enumerate(METRICS):
+        for j, cell in enumerate(cells):
+            for i, metric in enumerate(table.rows):
                 scenario = (
-                    rf"\multirow{{3}}{{*}}{{N={cell.n_vehicles}, "
+                    rf"\multirow{{{k}}}{{*}}{{N={cell.n_vehicles}, "
                     rf"$\rho={cell.cav_penetration:.1f}$, {cell.style_mix}}}"
                     if i == 0
                     else ""
                 )
                 entries = [
-                    _latex_escape(_entry(table, cell, metric, col, ("<<B>>", "<</B>>")))
+                    _latex_escape(
+                        _entry(table, cell, metric, col, ("<<B>>", "<</B>>", "<<U>>", "<</B>>"))
+                    )
                     .replace("<<B>>", r"\textbf{")
+                    .replace("<<U>>", r"\underline{")
                     .replace("<</B>>", "}")
                     for col in table.columns
                 ]
                 lines.append(
-                    f"{scenario} & \\textit{{{_latex_escape(label)}}} & "
+                    f"{scenario} & \\textit{{{_latex_escape(_label(metric))}}} & "
                     + " & ".join(entries)
                     + r" \\"
                 )
-            if k < len(cells) - 1:
+            if j < len(cells) - 1:
                 lines.append(rf"\cmidrule{{1-{n + 2}}}")
         lines.append(r"\bottomrule" if m == len(maps) - 1 else r"\midrule")
-    lines.append(r"\end{tabular}")
+    lines += [r"\end{tabular}", r"\end{table}"]
     lines += [f"% {note}" for note in table.notes]
     return "\n".join(lines) + "\n"
 
 
 def to_csv(table: Table) -> str:
-    """Tidy CSV: one line per (cell, metric, policy)."""
+    """Tidy CSV: one line per (cell, metric, policy); ``best`` 1 best, 2 second best."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(
@@ -270,8 +404,8 @@ def to_csv(table: Table) -> str:
         ]
     )
     for cell in table.cells:
-        for metric, _, _, _ in METRICS:
-            best = table.best(cell, metric)
+        for metric in table.rows:
+            best, second = table.marks(cell, metric)
             for col in table.columns:
                 stat = table.stats.get((cell.key, metric, col))
                 if stat is None:
@@ -289,7 +423,7 @@ def to_csv(table: Table) -> str:
                         repr(stat.std),
                         stat.n_episodes,
                         "" if change is None else repr(change),
-                        int(col in best),
+                        1 if col in best else 2 if col in second else 0,
                     ]
                 )
     return buffer.getvalue()

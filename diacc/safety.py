@@ -339,9 +339,9 @@ def psar(
       distance trigger (line 19) and ``max(dv_action, c)`` for the TTC trigger
       (line 23), with ``c`` the closing speed and ``dv_action`` the
       decelerate action's step (the authors' own implementation), bounded by
-      the CAV's planned braking ``sim.cav.safe_decel_mps2`` over the step; ``"paper"`` is the literal
-      reading, action 4 = one ``dv_action`` step, which cannot stop a CAV that
-      closes faster than that.
+      the CAV's planned braking ``sim.cav.safe_decel_mps2`` over the step;
+      ``"paper"`` is the literal reading, action 4 = one ``dv_action`` step,
+      which cannot stop a CAV that closes faster than that.
     * Horizon (``cfg.horizon``): ``"stopping"`` (default) lengthens d_warn and
       d_att, and the lane-change cancel distance d_LC,min to the target-lane
       front and rear vehicles, by Gipps' safe gap

@@ -1,4 +1,4 @@
-"""Read a TOML data file, turning syntax errors into a one-line error of the caller's type."""
+"""Read a TOML data file; syntax and encoding errors become one-line errors of the caller's type."""
 
 from __future__ import annotations
 
@@ -14,6 +14,11 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 def read_toml(path: Path, error: type[Exception]) -> dict:
     """Parse ``path``; raise ``error("<path>: not valid TOML (...)")`` if it is broken."""
     try:
-        return tomllib.loads(Path(path).read_text())
+        return tomllib.loads(Path(path).read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset "
+                    f"{exc.start}); TOML files must be UTF-8") from None  # fmt: skip
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{path}: not valid TOML ({str(exc).splitlines()[0]})") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory, not a TOML file") from None

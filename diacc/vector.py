@@ -12,15 +12,18 @@ metrics, and recovery from a crashed simulator.
 * :class:`ProcessVectorEnv` splits the environments into one group per
   worker process (``spawn`` start method; each SUMO environment still runs
   libsumo in a worker of its own), so groups step in parallel. A worker that
-  dies is restarted; the episodes of its group are cut (``truncated`` with
-  zero reward, bootstrapped from the last state before the crash) and
-  counted in ``restarts``.
+  dies, whenever it is found dead (stepping, resetting, or idle while the
+  trainer updates), is restarted and logged; the episodes of its group are cut
+  (``truncated`` with zero reward, bootstrapped from the last state before the
+  crash) and counted in ``restarts``. A worker that keeps dying
+  (:data:`MAX_RESTARTS` in a row) ends the run with a one-line error.
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import signal
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +32,11 @@ from diacc.backends.base import BackendError
 from diacc.env import BottleneckEnv, EnvConfig
 from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, stack
+from diacc.runlog import join_parent_log, log
 from diacc.threads import worker_environment
+
+#: Restarts of one worker in a row (within one call) before the vector env gives up.
+MAX_RESTARTS = 3
 
 
 def episode_seed(run_seed: int, env_index: int, episode: int) -> int:
@@ -222,6 +229,10 @@ def _stack_pairs(pairs: list[tuple[ActorObs, CriticState]]) -> tuple[ActorObs, C
 
 
 def _worker(conn, config: EnvConfig, run_seed: int, env_indices: list[int], episode: int) -> None:
+    # Ctrl-C is for the trainer, which stops at the next update boundary; the
+    # worker (and the SUMO processes it starts, which inherit this) carries on.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    join_parent_log()  # e.g. a SUMO worker restarted at reset
     group = SyncVectorEnv(config, 0, run_seed, env_indices)
     for runner in group.runners:
         runner.episode = episode
@@ -261,6 +272,7 @@ class ProcessVectorEnv:
         self.tau = config.reward.tau_init
         self.restarts = 0
         self._last_critic: list[CriticState | None] = [None] * n_envs  # bootstrap on a crash
+        self._cut: dict[int, list[EnvStep]] = {}  # workers replaced while idle: their cut steps
         self.workers: list = [None] * n_workers
         self.pipes: list = [None] * n_workers
         for w in range(n_workers):
@@ -279,51 +291,92 @@ class ProcessVectorEnv:
         self.workers[w], self.pipes[w] = proc, parent
         parent.send(("tau", self.tau))
 
-    def _restart(self, w: int) -> list[EnvStep]:
-        """Replace a dead worker; every episode of its group is cut."""
+    def _replace(self, w: int) -> None:
+        """Start a new worker in place of dead worker ``w``; logged, and bounded per call."""
+        old = self.workers[w]
+        old.kill()
+        old.join()
         self.restarts += 1
-        self.workers[w].kill()
-        self.workers[w].join()
+        log.warning(
+            "vector env worker %d (envs %s, pid %s) died (exit code %s); started a new one "
+            "and cut its episodes",
+            w,
+            self.groups[w],
+            old.pid,
+            old.exitcode,
+        )
         # Episode numbers keep counting up, so a restarted env never repeats a seed.
         self._start(w, episode=1_000_000 + self.restarts)
-        self.pipes[w].send(("reset", None))
+
+    def _call(self, w: int, message: tuple):
+        """Send ``message`` to worker ``w`` and return its reply, replacing the worker if dead."""
+        for attempt in range(1, MAX_RESTARTS + 2):
+            try:
+                self.pipes[w].send(message)
+                return self.pipes[w].recv()
+            except (EOFError, ConnectionError, OSError):
+                if attempt > MAX_RESTARTS:
+                    raise RuntimeError(
+                        f"vector env worker {w} died {attempt} times in a row; giving up"
+                    ) from None
+                self._replace(w)
+
+    def _restart(self, w: int) -> list[EnvStep]:
+        """Replace a dead worker; every episode of its group is cut."""
+        self._replace(w)
         finals = [self._last_critic[e] for e in self.groups[w]]
         return [
             _cut_episode(a, c, self.n_cavs, final)
-            for (a, c), final in zip(self.pipes[w].recv(), finals, strict=True)
+            for (a, c), final in zip(self._call(w, ("reset", None)), finals, strict=True)
         ]
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
         """Reset every environment (optionally restarting their episode counters)."""
-        for p in self.pipes:
-            p.send(("reset", first_episode))
-        pairs = [pair for p in self.pipes for pair in p.recv()]
+        self._cut.clear()
+        sent = [self._send(w, ("reset", first_episode)) for w in range(len(self.pipes))]
+        pairs = []
+        for w, ok in enumerate(sent):
+            reply = self._receive(w) if ok else None
+            if reply is None:  # same seeds on the new worker: the reset is unchanged
+                self._replace(w)
+                reply = self._call(w, ("reset", first_episode))
+            pairs += reply
         self._last_critic = [critic for _, critic in pairs]
         return _stack_pairs(pairs)
 
+    def _send(self, w: int, message: tuple) -> bool:
+        try:
+            self.pipes[w].send(message)
+            return True
+        except (ConnectionError, OSError):
+            return False
+
+    def _receive(self, w: int):
+        try:
+            return self.pipes[w].recv()
+        except (EOFError, ConnectionError, OSError):
+            return None
+
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
-        crashed = set()
-        for w, (p, group) in enumerate(zip(self.pipes, self.groups, strict=True)):
-            try:
-                p.send(("step", actions[group]))
-            except (ConnectionError, OSError):
-                crashed.add(w)
+        sent = [
+            w not in self._cut and self._send(w, ("step", actions[group]))
+            for w, group in enumerate(self.groups)
+        ]
         steps: list[EnvStep] = []
-        for w, p in enumerate(self.pipes):
-            if w not in crashed:
-                try:
-                    steps += p.recv()
-                    continue
-                except (EOFError, ConnectionError, OSError):
-                    pass
-            steps += self._restart(w)
+        for w, ok in enumerate(sent):
+            if w in self._cut:  # replaced while idle: its fresh episodes start now
+                steps += self._cut.pop(w)
+                continue
+            reply = self._receive(w) if ok else None
+            steps += reply if reply is not None else self._restart(w)
         self._last_critic = [s.critic_state for s in steps]
         return _stack_steps(steps)
 
     def set_temperature(self, tau: float) -> None:
         self.tau = tau
-        for p in self.pipes:
-            p.send(("tau", tau))
+        for w in range(len(self.pipes)):
+            if not self._send(w, ("tau", tau)):  # died while idle (e.g. during the update)
+                self._cut[w] = self._restart(w)
 
     def close(self) -> None:
         for p, w in zip(self.pipes, self.workers, strict=True):

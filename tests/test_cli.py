@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import argparse
 import json
+import re
 
 import pytest
 
-from diacc.cli import main
+from diacc import __version__
+from diacc.cli import build_parser, main
 
 
 def _error(capsys, argv: list[str]) -> str:
@@ -74,10 +77,54 @@ def test_train_writes_a_run_directory(tmp_path, capsys):
     } <= set(record)
     stored = json.loads((run / "config.json").read_text())
     assert stored["scenario"]["n_vehicles"] == 8 and stored["model"]["hidden_dim"] == 32
+    out = capsys.readouterr().out
+    assert out.index("resolved config") < out.index("run directory")
+    assert re.search(r"total_steps\s+.*20\s+.*3000000", out)  # value and default
+    assert re.search(r"scenario\.n_vehicles\s+.*8\s+.*25", out)  # changed nested field
+    assert "sim.step_s" not in out  # unchanged nested fields: see config.json
 
 
 @pytest.mark.parametrize("backend", ["highway", "sumo"])
 def test_simulate_prints_metrics(backend, capsys):
-    assert main(["simulate", "--backend", backend, "--map", "train-50", "--steps", "20"]) == 0
+    argv = ["simulate", "--backend", backend, "--map", "train-50", "--steps", "20", "--seed", "3"]
+    assert main(argv) == 0
     out = capsys.readouterr().out
-    assert "mean_speed_mps" in out and "p_we" in out
+    context = out.splitlines()[0]
+    assert f"backend {backend}" in context and "map train-50" in context and "seed 3" in context
+    assert "style preset realistic" in context and "(0 CAVs)" in context
+    assert "nan" not in out.lower()
+    assert "mean CAV speed" not in out and "reduction25" not in out  # not applicable: omitted
+    assert re.search(r"mean speed +: \d+\.\d\d ± \d+\.\d\d m/s", out)
+    assert re.search(r"p\(WE\) waiting events +: \d+\.\d %", out)
+
+
+def _subparsers(parser: argparse.ArgumentParser):
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield name, sub
+                yield from ((f"{name} {n}", p) for n, p in _subparsers(sub))
+
+
+def test_every_option_is_described_with_its_default():
+    parser = build_parser()
+    commands = dict(_subparsers(parser))
+    assert {"train", "eval", "table", "plot curves", "render", "simulate", "bench"} <= set(commands)
+    for name, sub in commands.items():
+        assert sub.description, f"diacc {name} has no description"
+        text = sub.format_help()
+        for action in sub._actions:
+            if not action.option_strings or action.help == argparse.SUPPRESS:
+                continue
+            flag = action.option_strings[-1]
+            assert action.help, f"diacc {name} {flag} has no help text"
+            if action.default not in (None, False, [], argparse.SUPPRESS) and not action.required:
+                assert f"(default: {action.default})" in " ".join(text.split()), (name, flag)
+
+
+def test_version_and_plain_help(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0 and capsys.readouterr().out.strip() == f"diacc {__version__}"
+    text = build_parser().format_help()
+    assert "``" not in text and "COMMAND --help" in text

@@ -131,3 +131,59 @@ def test_gif_has_expected_frames(tmp_path, backend):
     assert first.std() > 5 and np.abs(first - last).sum() > 0  # drawn, and vehicles moved
     with pytest.raises(RenderError, match=r"must end in \.gif"):
         render_episode(PolicySpec("pure-hdv"), CELL, tmp_path / "ep.mp4", 4, EvalSettings(backend))
+
+
+def test_gif_frames_carry_stamp_and_legend(tmp_path):
+    from diacc.backends.highway_render import CAV_COLOR, CRASHED_COLOR
+    from diacc.render import annotate, step_stamp
+
+    render_episode(
+        PolicySpec("pure-hdv"), CELL, tmp_path / "ep.gif", steps=2, settings=EvalSettings()
+    )
+    frame = np.asarray(imageio.mimread(tmp_path / "ep.gif")[0])[..., :3].astype(int)
+    strip = frame[-(2 * 6 + 3 * 17) :]  # two text lines and the legend line
+    assert (strip < 60).all(axis=-1).sum() > 200  # black text under the road
+    for colour in (CAV_COLOR, CRASHED_COLOR):  # legend swatches
+        assert (np.abs(strip - colour).sum(-1) < 30).sum() > 50
+
+    class State:
+        time_s, step, collisions = 12.0, 12, np.array([[3, 7]])
+
+    line, psar = step_stamp(State(), 100, np.array([0, 3, 3, 1, 0]))
+    assert line == "t =  12.0 s   step 12/100   crash: vehicles 3+7"
+    assert psar == "PSAR this step: cancel_lc x1, force_brake x2"
+    assert step_stamp(State(), 100, None)[1] == "PSAR: off for this policy"
+    assert annotate(np.zeros((50, 400, 3), np.uint8), ("a", "b")).shape == (50 + 12 + 51, 400, 3)
+
+
+def test_curve_axes_legends_and_single_seed(tmp_path, monkeypatch):
+    from diacc.plots import _y_limits
+
+    assert _y_limits("Collision rate", 1.0, 1.0) == (-0.03, 1.03)  # a flat 1.00 keeps [0, 1]
+    assert _y_limits("Global reward", 1.0, 1.0) == pytest.approx((0.95, 1.05))
+    assert _y_limits("Global reward", 0.0, 10.0) == pytest.approx((-0.5, 10.5))
+    _run(tmp_path / "a1", "diacc", 1, 0.0)
+    _run(tmp_path / "b1", "mappo", 1, 5.0)
+    _run(tmp_path / "b2", "mappo", 2, 5.0)
+    from diacc.plots import plot_curves
+
+    captured = {}
+    import matplotlib.figure
+
+    original = matplotlib.figure.Figure.savefig
+
+    def spy(fig, *args, **kwargs):
+        captured["fig"] = fig
+        return original(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", spy)  # keeps the figure to inspect
+    paths = plot_curves([tmp_path / d for d in ("a1", "b1", "b2")], tmp_path / "c")
+    _assert_png(paths[0])
+    axes = captured["fig"].axes
+    for ax in axes:  # a legend on every panel, naming the band
+        labels = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert labels == [
+            "diacc (highway): 1 seed, no band",
+            "mappo (highway): mean ± std of 2 seeds",
+        ]
+    assert axes[0].get_ylim() == pytest.approx((-0.03, 1.03))

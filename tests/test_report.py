@@ -124,3 +124,77 @@ def test_table_cli_formats(results, tmp_path, capsys):
         == 0
     )
     assert (tmp_path / "t.csv").read_text().startswith("map,n_vehicles")
+
+
+def _results_with_safety(path: Path, policy: str, episodes: list[tuple]) -> Path:
+    """episodes: (mean speed, p_we, collision 0/1, arrived fraction), 100 samples, std 1."""
+    path.mkdir(parents=True)
+    meta = {"policy": policy, "backend": "highway"}
+    if policy != "pure-hdv":
+        meta.update(checkpoint="/x/checkpoint.pt", update=10, trained_on="highway")
+        meta.update(trained_steps=4000, total_steps=4000)
+    (path / "meta.json").write_text(json.dumps(meta))
+    columns = [*COLUMNS, "collision", "arrived_fraction"]
+    with open(path / "episodes.csv", "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(columns)
+        for ep, (speed, we, crash, arrived) in enumerate(episodes):
+            writer.writerow(
+                [policy, "highway", "", "realistic", "train-25", 25, 0.4, "D1", ep]
+                + [speed, 1.0, 100, we, 0.0, crash, arrived]
+            )
+    return path
+
+
+def test_slower_or_crashier_policies_are_not_ranked(tmp_path):
+    hdv = _results_with_safety(tmp_path / "hdv", "pure-hdv", [(20.0, 0.2, 0, 1.0)])
+    # 30 % slower, fewer waiting events: its lower p(WE) must not be bold
+    slow = _results_with_safety(tmp_path / "slow", "mappo", [(14.0, 0.0, 0, 0.5)])
+    # faster but crashes: not ranked either
+    crashy = _results_with_safety(tmp_path / "crashy", "diacc-nopsar", [(23.0, 0.0, 1, 0.8)])
+    table = build_table([hdv, slow, crashy], rows=("speed", "p_we", "collision", "arrived"))
+    (cell,) = table.cells
+    assert not table.ranked(cell, "mappo") and not table.ranked(cell, "diacc-nopsar")
+    assert table.marks(cell, "p_we") == (set(), set())  # only pure HDV is ranked
+    good = _results_with_safety(tmp_path / "good", "diacc", [(22.0, 0.04, 0, 1.0)])
+    ok = _results_with_safety(tmp_path / "ok", "mappo-iadm", [(21.0, 0.08, 0, 1.0)])
+    table = build_table([hdv, slow, ok, good], rows=("speed", "p_we", "collision", "arrived"))
+    assert table.marks(cell, "speed") == ({"diacc"}, {"mappo-iadm"})
+    assert table.marks(cell, "p_we") == ({"diacc"}, {"mappo-iadm"})
+    assert table.marks(cell, "collision")[0] == {"pure-hdv", "mappo-iadm", "diacc"}
+
+    markdown = render_table(table, "markdown")
+    assert "| Collision (%) | **0.00 ± 0.00** | 0.00 ± 0.00 | **0.00 ± 0.00** |" in markdown
+    assert "| Arrived (%) | **100.00 ± 0.00** | 50.00 ± 0.00 (-50.0%) |" in markdown
+    assert "| 14.00 ± 1.00 (-30.0%) | _21.00 ± 1.00_ (+5.0%) | **22.00 ± 1.00** (+10.0%) |" in (
+        markdown
+    )
+    caption = markdown.splitlines()[0]
+    assert caption == (
+        "Table: train-25: 1 episode per cell, HDV style preset realistic; training budget "
+        "(env steps): mappo 4,000, mappo-iadm 4,000, diacc 4,000"
+    )
+    assert "1 episodes" not in markdown and "ranked only columns no slower" in markdown
+
+    latex = render_table(table, "latex")
+    assert latex.startswith(r"% preamble: \usepackage{booktabs} \usepackage{multirow}")
+    assert r"\caption{train-25: 1 episode per cell" in latex and r"\multirow{4}{*}" in latex
+    assert r"\underline{21.00 $\pm$ 1.00}" in latex and r"\end{table}" in latex
+    csv_rows = list(csv.DictReader(io.StringIO(render_table(table, "csv"))))
+    marks = {r["policy"]: r["best"] for r in csv_rows if r["metric"] == "speed"}
+    assert marks == {"pure-hdv": "0", "mappo": "0", "mappo-iadm": "2", "diacc": "1"}
+
+
+def test_rows_the_results_lack_are_one_line_errors(results):
+    with pytest.raises(ValueError, match="no results directory has the data of row 'collision'"):
+        build_table(list(results), rows=("speed", "collision"))
+    with pytest.raises(ValueError, match="unknown table row 'speedy'"):
+        build_table(list(results), rows=("speedy",))
+
+
+def test_table_cli_rows_option(results, capsys):
+    assert main(["table", *map(str, results), "--rows", "speed,collision"]) == 2
+    assert "has the data of row 'collision'" in capsys.readouterr().err
+    assert main(["table", *map(str, results), "--rows", "p_we"]) == 0
+    out = capsys.readouterr().out
+    assert "p(WE) (%)" in out and "Speed (m/s)" not in out

@@ -38,6 +38,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from diacc.backends.base import CavCommands, make_backend
+from diacc.console import metric_lines, print_lines
 from diacc.maps import available_maps, load_map
 from diacc.metrics import EpisodeRecorder
 from diacc.scenario import Scenario
@@ -64,8 +65,11 @@ for seg, start_m, end_m in zip(
         f"  {start_m:6.0f}-{end_m:6.0f} m  {seg.kind:<12} {seg.lanes} lanes  "
         f"{seg.speed_limit_mps:.0f} m/s"
     )
-# (S, L) table: which absolute lane exists in which segment
-print(road.lane_exists().astype(int))
+# (S, L) table: which absolute lane exists in which segment (1 = exists)
+exists = road.lane_exists()
+print("  segment       " + "  ".join(f"lane {lane}" for lane in range(exists.shape[1])))
+for seg, row in zip(road.segments, exists, strict=True):
+    print(f"  {seg.kind:<12}  " + "  ".join(f"{int(x):^6}" for x in row))
 
 # %% [markdown]
 # ## Pure-HDV traffic on the `highway` backend
@@ -114,10 +118,11 @@ print(f"simulated {time_s[-1]:.0f} s; {state.arrived.sum()} of {state.n_vehicles
 
 # %%
 metrics = recorder.summary()
-print(f"mean speed {metrics.mean_speed_mps:.2f} +- {metrics.std_speed_mps:.2f} m/s")
-for kind, value in metrics.mean_speed_by_kind_mps.items():
-    print(f"  on {kind:<12} {value:.2f} m/s")
-print(f"p(WE) = {metrics.p_we:.2%}   p(SCE) = {metrics.p_sce:.2%}")
+# `metric_lines` rounds, writes shares in percent and leaves out what does not
+# apply (a segment kind this map lacks, CAV speeds without CAVs), where the raw
+# metrics hold nan.
+kinds = tuple(dict.fromkeys(seg.kind for seg in road.segments))
+print_lines(metric_lines(metrics, kinds))
 
 # %% [markdown]
 # ## Speed over position and time

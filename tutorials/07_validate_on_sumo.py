@@ -45,6 +45,7 @@ import matplotlib.pyplot as plt
 from diacc import cli
 from diacc.algo.mappo import train
 from diacc.config import TrainConfig, override
+from diacc.console import fmt
 from diacc.evaluate import evaluate, load_episodes
 from diacc.grid import make_cell
 from diacc.plots import plot_speeds
@@ -118,10 +119,13 @@ for name, (policy_spec, backend) in runs.items():
     meta, rows = load_episodes(results[name])
     row = rows[0]
     version = f" ({row['sumo_version']})" if row["sumo_version"] else ""
+    # the CSV holds nan where a value does not apply (no PSAR for pure HDV): say "n/a"
+    force_brake = fmt(float(row["psar_force_brake_rate"]), 1, percent=True)
     print(
         f"{name:>14} on {meta['backend']}{version}: mean speed "
-        f"{float(row['mean_speed_mps']):.1f} m/s, {row['steps']} steps, "
-        f"collision {row['collision']}, PSAR force-brake rate {row['psar_force_brake_rate']}"
+        f"{fmt(float(row['mean_speed_mps']), 1, 'm/s')}, {row['steps']} steps, "
+        f"{'a collision' if row['collision'] == '1' else 'no collision'}, "
+        f"PSAR force-brake rate {force_brake}"
     )
 
 # %%

@@ -25,6 +25,8 @@ import copy
 import functools
 import json
 import random
+import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
@@ -38,13 +40,14 @@ from tqdm import tqdm
 
 from diacc.algo.buffer import Rollout, compute_gae
 from diacc.algo.valuenorm import ValueNorm
-from diacc.config import TrainConfig
+from diacc.config import TrainConfig, validate
 from diacc.env import EnvConfig
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_policy
 from diacc.models.spec import ObsSpec
 from diacc.observation import stack
 from diacc.reward import temperature
+from diacc.runlog import log, run_log
 from diacc.safety import RULE_NAMES, rule_counts
 from diacc.threads import set_torch_threads
 from diacc.vector import make_vector_env
@@ -457,10 +460,10 @@ def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dic
         k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")
     }
     n_sequences = batch.critic_h0.shape[0]
-    for _epoch in range(cfg.epochs):
+    for epoch in range(cfg.epochs):
         # Minibatches of whole (chunk, env) sequences keep each env's CAVs with its critic.
-        for envs_idx in torch.randperm(n_sequences, device=batch.returns.device).chunk(
-            cfg.minibatches
+        for minibatch, envs_idx in enumerate(
+            torch.randperm(n_sequences, device=batch.returns.device).chunk(cfg.minibatches)
         ):
             with autocast():
                 logprob, entropy, value, agents_idx = evaluate_batch(agent, batch, envs_idx, n_cavs)
@@ -479,10 +482,22 @@ def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dic
                 F.huber_loss(v_clipped, target, delta=cfg.huber_delta, reduction="none"),
             ).mean()
             loss = policy_loss - cfg.entropy_coef * entropy_mean + cfg.value_coef * value_loss
+            where = f"epoch {epoch + 1}, minibatch {minibatch + 1}"
+            for name, value in (
+                ("policy_loss", policy_loss),
+                ("value_loss", value_loss),
+                ("entropy", entropy_mean),
+                ("loss", loss),
+            ):
+                if not torch.isfinite(value):
+                    raise NonFiniteError(f"non-finite {name} ({value.item()}) in {where}")
             agent.optimizer.zero_grad()
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(agent.actor.parameters(), cfg.max_grad_norm)
-            torch.nn.utils.clip_grad_norm_(agent.critic.parameters(), cfg.max_grad_norm)
+            for part, net in (("actor", agent.actor), ("critic", agent.critic)):
+                norm = torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.max_grad_norm)
+                if not torch.isfinite(norm):
+                    bad = _first_nonfinite(net, part, grad=True)
+                    raise NonFiniteError(f"non-finite gradient of {bad} in {where}")
             agent.optimizer.step()
             with torch.no_grad():
                 stats["policy_loss"].append(policy_loss.item())
@@ -494,27 +509,132 @@ def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dic
                 stats["clipfrac"].append(
                     ((((ratio - 1).abs() > cfg.clip).float() * mask).sum() / n_alive).item()
                 )
+    for part, net in (("actor", agent.actor), ("critic", agent.critic)):
+        bad = _first_nonfinite(net, part)
+        if bad is not None:
+            raise NonFiniteError(f"non-finite parameter {bad} after the optimiser step")
     return {k: float(np.mean(v)) for k, v in stats.items()}
 
 
+class NonFiniteError(RuntimeError):
+    """A loss, gradient or parameter became NaN/inf; the update must not be kept."""
+
+
+def _first_nonfinite(net: torch.nn.Module, part: str, grad: bool = False) -> str | None:
+    """First parameter (or gradient) holding NaN/inf, by name (``critic.head.weight``)."""
+    for name, param in net.named_parameters():
+        tensor = param.grad if grad else param
+        if tensor is not None and not torch.isfinite(tensor).all():
+            return f"{part}.{name}"
+    return None if not grad else f"{part} (norm)"
+
+
 # ----------------------------------------------------------------------------- training
+class TrainingError(RuntimeError):
+    """Training cannot go on (a non-finite update); the message is one line."""
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """SIGINT/SIGTERM stopped the run at an update boundary, after saving a checkpoint."""
+
+    def __init__(self, signum: int, update: int, checkpoint: Path) -> None:
+        self.signum, self.update, self.checkpoint = signum, update, checkpoint
+        super().__init__(
+            f"interrupted by {signal.Signals(signum).name} after update {update}; "
+            f"checkpoint saved to {checkpoint} (continue with --resume)"
+        )
+
+
+#: Config fields a resumed run may change: the step budget, and where the run lives.
+RESUME_FREE_FIELDS = ("total_steps", "run_dir")
+
+
+def check_resume_config(
+    saved: dict, cfg: TrainConfig, path: Path, allow_change: bool = False
+) -> list[str]:
+    """Fields (other than :data:`RESUME_FREE_FIELDS`) where ``cfg`` differs from the checkpoint's.
+
+    Raises :class:`CheckpointError` naming the first one unless ``allow_change``.
+    """
+    old, new = _flatten(saved), _flatten(asdict(cfg))
+    changed = [
+        k
+        for k in sorted(set(old) | set(new))
+        if k not in RESUME_FREE_FIELDS and old.get(k) != new.get(k)
+    ]
+    if changed and not allow_change:
+        key = changed[0]
+        raise CheckpointError(
+            f"checkpoint {path} was trained with {key} {old.get(key)!r}, not {new.get(key)!r}; "
+            "--resume may change only --steps (pass --allow-config-change to override)"
+        )
+    return changed
+
+
+def truncate_progress(path: Path, update: int) -> None:
+    """Keep the rows of ``progress.jsonl`` up to ``update`` (drops rows of lost updates)."""
+    if not path.exists():
+        return
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            if json.loads(line)["update"] <= update:
+                kept.append(line + "\n")
+        except (ValueError, KeyError, TypeError):  # a torn last line of a killed run
+            continue
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text("".join(kept))
+    tmp.replace(path)
+
+
+class _StopOnSignal:
+    """SIGINT/SIGTERM set :attr:`signum`; the loop stops at the next update boundary.
+
+    A second signal stops at once (KeyboardInterrupt), keeping the last checkpoint.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self.previous: dict = {}
+
+    def __enter__(self) -> _StopOnSignal:
+        if threading.current_thread() is threading.main_thread():
+            self.previous = {s: signal.signal(s, self._handle) for s in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)
+
+    def _handle(self, signum: int, frame) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt
+        self.signum = signum
+        log.warning(
+            "%s received: saving a checkpoint after the current update (again to stop now)",
+            signal.Signals(signum).name,
+        )
+
+
 def train(
     cfg: TrainConfig,
     resume: bool = False,
     progress: bool = True,
     stop_after_updates: int | None = None,
+    allow_config_change: bool = False,
 ) -> Path:
     """Train ``cfg.variant``; returns the run directory (config, checkpoints, logs).
 
     ``stop_after_updates`` ends the run early (as if interrupted) after that
-    many updates, with a checkpoint; ``resume=True`` continues from it.
+    many updates, with a checkpoint; ``resume=True`` continues from it, with
+    the same config but for the step budget (unless ``allow_config_change``),
+    and cuts ``progress.jsonl`` and TensorBoard back to the checkpoint.
+    Nothing is written before the config (and checkpoint) passed their checks.
     """
-    if cfg.rollout_steps % cfg.chunk_len:
-        raise ValueError(
-            f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}"
-        )
+    validate(cfg)
     run_dir = Path(cfg.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = run_dir / "checkpoint.pt"
     device = resolve_device(cfg.device)
     seed_everything(cfg.seed)
@@ -522,21 +642,53 @@ def train(
     agent = make_agent(cfg, device)
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     n_updates = max(1, cfg.total_steps // steps_per_update)
-    first_update, global_step = 0, 0
+    first_update, global_step, changed = 0, 0, []
     if resume:
         payload = load_checkpoint(ckpt_path, device)
+        changed = check_resume_config(payload["config"], cfg, ckpt_path, allow_config_change)
         restore(agent, payload, cfg, ckpt_path)
         first_update, global_step = payload["update"], payload["global_step"]
         set_rng_state(payload["rng"])
-    (run_dir / "config.json").write_text(json.dumps(asdict(cfg), indent=2, default=str))
-    last_update = (
-        n_updates
-        if stop_after_updates is None
-        else min(n_updates, first_update + stop_after_updates)
-    )
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with run_log(run_dir / "train.log"):
+        if changed:
+            log.warning("resuming %s with changed config fields: %s", run_dir, ", ".join(changed))
+        if resume:
+            truncate_progress(run_dir / "progress.jsonl", first_update)
+        (run_dir / "config.json").write_text(json.dumps(asdict(cfg), indent=2, default=str))
+        last_update = (
+            n_updates
+            if stop_after_updates is None
+            else min(n_updates, first_update + stop_after_updates)
+        )
+        return _train_loop(
+            agent, cfg, run_dir, device, first_update, last_update, n_updates, global_step, progress
+        )
 
+
+def _train_loop(
+    agent: Agent,
+    cfg: TrainConfig,
+    run_dir: Path,
+    device: torch.device,
+    first_update: int,
+    last_update: int,
+    n_updates: int,
+    global_step: int,
+    progress: bool,
+) -> Path:
+    ckpt_path = run_dir / "checkpoint.pt"
+    steps_per_update = cfg.rollout_steps * cfg.n_envs
+    saved_update = first_update if first_update else None
     envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed, cfg.vector)
-    writer = SummaryWriter(str(run_dir / "tb"))
+    # purge_step: TensorBoard drops the events a resumed run logged after its checkpoint.
+    # It reads event files in name order, and names start with the creation second:
+    # a resumed file must not share its second with the interrupted run's last file.
+    if first_update:
+        _wait_past_event_files(run_dir / "tb")
+    writer = SummaryWriter(
+        str(run_dir / "tb"), purge_step=global_step + 1 if first_update else None
+    )
     bar = tqdm(
         total=n_updates * steps_per_update,
         initial=global_step,
@@ -545,58 +697,87 @@ def train(
         desc=f"train {cfg.variant}",
     )
     try:
-        for update in range(first_update, last_update):
-            t0 = time.perf_counter()
-            if cfg.lr_decay:
-                for group in agent.optimizer.param_groups:
-                    group["lr"] = cfg.lr * (1.0 - update / n_updates)
-            tau = temperature(global_step, cfg.total_steps, cfg.reward)
-            envs.set_temperature(tau)
+        with _StopOnSignal() as stop:
+            for update in range(first_update, last_update):
+                t0 = time.perf_counter()
+                if cfg.lr_decay:
+                    for group in agent.optimizer.param_groups:
+                        group["lr"] = cfg.lr * (1.0 - update / n_updates)
+                tau = temperature(global_step, cfg.total_steps, cfg.reward)
+                envs.set_temperature(tau)
 
-            roll, next_value, rollout = collect_rollout(agent, envs, cfg, update)
-            advantages, returns = rollout_gae(roll, next_value, cfg)
-            batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
-            losses = ppo_update(agent, batch, cfg, envs.n_cavs)
-            global_step += steps_per_update
+                roll, next_value, rollout = collect_rollout(agent, envs, cfg, update)
+                if rollout.restarts:
+                    log.warning(
+                        "update %d: %d simulator restart(s) in the rollout; episodes cut",
+                        update + 1,
+                        rollout.restarts,
+                    )
+                advantages, returns = rollout_gae(roll, next_value, cfg)
+                try:
+                    for name, array in (("reward", roll.rewards), ("returns", returns)):
+                        if not np.isfinite(array).all():
+                            raise NonFiniteError(f"non-finite {name} in the rollout")
+                    batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
+                    losses = ppo_update(agent, batch, cfg, envs.n_cavs)
+                except NonFiniteError as exc:
+                    kept = (
+                        f"checkpoint {ckpt_path} still holds update {saved_update}"
+                        if saved_update
+                        else "no checkpoint was written"
+                    )
+                    raise TrainingError(
+                        f"update {update + 1}: {exc}; training stopped, this update is not "
+                        f"saved and {kept}"
+                    ) from None
+                global_step += steps_per_update
 
-            record = {
-                **losses,
-                "update": update + 1,
-                "global_step": global_step,
-                "tau": tau,
-                "lr": agent.optimizer.param_groups[0]["lr"],
-                "explained_variance": explained_variance(roll.values.ravel(), returns.ravel()),
-                "env_steps_per_s": steps_per_update / rollout.seconds,
-                "updates_per_s": 1.0 / (time.perf_counter() - t0),
-                "worker_restarts": rollout.restarts,
-                "global_reward": float(roll.rewards.mean()),
-            }
-            for key, values in rollout.reward_terms.items():  # ego_softmin, individual, ...
-                record[f"reward/{key}"] = float(np.mean(values))
-            for name, count in zip(
-                RULE_NAMES[1:], rollout.psar_counts, strict=True
-            ):  # per CAV decision
-                record[f"psar/{name}"] = float(count / max(rollout.decisions, 1))
-            if rollout.episodes:
-                for key, value in rollout.episodes[0].items():
-                    if isinstance(value, (int, float)):
-                        finite = [ep[key] for ep in rollout.episodes if np.isfinite(ep[key])]
-                        record[f"episode/{key}"] = (
-                            float(np.mean(finite)) if finite else float("nan")
-                        )
-            for key, value in record.items():
-                if key not in ("update", "global_step"):
-                    writer.add_scalar(key if "/" in key else f"train/{key}", value, global_step)
-            with open(run_dir / "progress.jsonl", "a") as fh:
-                fh.write(json.dumps(record) + "\n")
-            bar.update(steps_per_update)
-            bar.set_postfix(
-                R=f"{record['global_reward']:.2f}",
-                speed=f"{record.get('episode/mean_speed_mps', float('nan')):.1f}",
-                sps=f"{record['env_steps_per_s']:.0f}",
-            )
-            if (update + 1) % cfg.checkpoint_every == 0 or update + 1 == last_update:
-                save_checkpoint(ckpt_path, agent, cfg, update + 1, global_step)
+                record = {
+                    **losses,
+                    "update": update + 1,
+                    "global_step": global_step,
+                    "tau": tau,
+                    "lr": agent.optimizer.param_groups[0]["lr"],
+                    "explained_variance": explained_variance(roll.values.ravel(), returns.ravel()),
+                    "env_steps_per_s": steps_per_update / rollout.seconds,
+                    "updates_per_s": 1.0 / (time.perf_counter() - t0),
+                    "worker_restarts": rollout.restarts,
+                    "global_reward": float(roll.rewards.mean()),
+                }
+                for key, values in rollout.reward_terms.items():  # ego_softmin, individual, ...
+                    record[f"reward/{key}"] = float(np.mean(values))
+                for name, count in zip(
+                    RULE_NAMES[1:], rollout.psar_counts, strict=True
+                ):  # per CAV decision
+                    record[f"psar/{name}"] = float(count / max(rollout.decisions, 1))
+                if rollout.episodes:
+                    for key, value in rollout.episodes[0].items():
+                        if isinstance(value, (int, float)):
+                            finite = [ep[key] for ep in rollout.episodes if np.isfinite(ep[key])]
+                            record[f"episode/{key}"] = (
+                                float(np.mean(finite)) if finite else float("nan")
+                            )
+                for key, value in record.items():
+                    if key not in ("update", "global_step"):
+                        writer.add_scalar(key if "/" in key else f"train/{key}", value, global_step)
+                with open(run_dir / "progress.jsonl", "a") as fh:
+                    fh.write(json.dumps(record) + "\n")
+                bar.update(steps_per_update)
+                bar.set_postfix(
+                    R=f"{record['global_reward']:.2f}",
+                    speed=f"{record.get('episode/mean_speed_mps', float('nan')):.1f}",
+                    sps=f"{record['env_steps_per_s']:.0f}",
+                )
+                if (
+                    (update + 1) % cfg.checkpoint_every == 0
+                    or update + 1 == last_update
+                    or stop.signum is not None
+                ):
+                    save_checkpoint(ckpt_path, agent, cfg, update + 1, global_step)
+                    saved_update = update + 1
+                if stop.signum is not None and update + 1 < last_update:
+                    log.warning("stopped after update %d; checkpoint saved", update + 1)
+                    raise TrainingInterrupted(stop.signum, update + 1, ckpt_path)
     finally:
         bar.close()
         writer.close()
@@ -609,6 +790,13 @@ def config_from_checkpoint(payload: dict) -> TrainConfig:
     from diacc.config import override
 
     return override(TrainConfig(), _flatten(payload["config"]))
+
+
+def _wait_past_event_files(tb_dir: Path) -> None:
+    """Sleep (at most ~1 s) until the clock's second is past every event file's."""
+    stamps = [int(p.name.split(".")[3]) for p in tb_dir.glob("events.out.tfevents.*")]
+    while stamps and int(time.time()) <= max(stamps):
+        time.sleep(0.05)
 
 
 def _flatten(tree: dict, prefix: str = "") -> dict:

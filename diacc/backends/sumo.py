@@ -45,6 +45,7 @@ from diacc.backends.sumo_types import check_cav_mode, vtypes_key, vtypes_xml
 from diacc.backends.sumo_worker import WorkerSpec
 from diacc.config import SimConfig
 from diacc.maps import Map
+from diacc.runlog import log
 from diacc.scenario import Scenario, draw_population
 from diacc.state import TrafficState
 from diacc.threads import worker_env
@@ -173,6 +174,13 @@ class SumoBackend:
             self._receive(REQUEST_TIMEOUT_S, "finishing a step before reset")
             self._pending = False
         if not self._worker_alive():
+            if self._proc is not None:  # died while idle: nobody has reported it yet
+                log.warning(
+                    "SUMO worker (pid %s, map %r) had exited with code %s; starting a new one",
+                    self._proc.pid,
+                    self.road.name,
+                    self._proc.poll(),
+                )
             self._discard_worker()
             self._start_worker()
         self._seed = int(seed)

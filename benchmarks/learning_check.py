@@ -1,0 +1,82 @@
+"""Training collision rate against steps for runs of ``diacc train``: CSV + figure.
+
+The learning check of the safety issue: the paper's training scenario
+(``train-50``, N = 25, 10 CAVs, highway), 50k steps, before and after PSAR
+could stop a CAV::
+
+    diacc train --variant diacc --map train-50 --envs 4 --steps 50000 --seed 1 --run-dir R
+    python benchmarks/learning_check.py --out benchmarks/results/psar-learning-check \\
+        before=R_BEFORE after=R_AFTER
+
+Each row of ``curves.csv`` is one PPO update: the share of the episodes that
+ended in that update's rollout with a collision, and their mean speeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+COLUMNS = {
+    "collision_rate": "episode/collision",
+    "mean_speed_mps": "episode/mean_speed_mps",
+    "mean_cav_speed_mps": "episode/mean_cav_speed_mps",
+    "p_sce": "episode/p_sce",
+}
+
+
+def read_run(run_dir: Path) -> list[dict]:
+    rows = [json.loads(line) for line in (run_dir / "progress.jsonl").open() if line.strip()]
+    return [
+        {"step": r["global_step"], **{k: r.get(src, float("nan")) for k, src in COLUMNS.items()}}
+        for r in rows
+    ]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", help="LABEL=RUN_DIR")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    runs = {label: read_run(Path(path)) for label, path in (r.split("=", 1) for r in args.runs)}
+    with (args.out / "curves.csv").open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["run", "step", *COLUMNS])
+        for label, rows in runs.items():
+            for r in rows:
+                writer.writerow([label, r["step"], *(f"{r[k]:.4f}" for k in COLUMNS)])
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for label, rows in runs.items():
+        steps = [r["step"] for r in rows]
+        axes[0].plot(steps, [r["collision_rate"] for r in rows], label=label)
+        axes[1].plot(steps, [r["mean_cav_speed_mps"] for r in rows], label=label)
+    axes[0].set(xlabel="environment steps", ylabel="training episodes with a collision",
+                ylim=(-0.02, 1.02))  # fmt: skip
+    axes[1].set(xlabel="environment steps", ylabel="mean CAV speed in training [m/s]")
+    for ax in axes:
+        ax.legend()
+        ax.grid(alpha=0.3)
+    fig.suptitle("diacc on highway, train-50, N = 25, 10 CAVs, seed 1, 4 envs", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(args.out / "curves.png", dpi=100)
+    for label, rows in runs.items():
+        first = [r for r in rows if r["step"] <= 10_000]
+        last = [r for r in rows if r["step"] > rows[-1]["step"] - 10_000]
+        mean = lambda xs, k: sum(x[k] for x in xs) / len(xs)  # noqa: E731
+        print(
+            f"{label}: collision rate {mean(first, 'collision_rate'):.2f} in the first 10k steps, "
+            f"{mean(last, 'collision_rate'):.2f} in the last 10k; CAV speed "
+            f"{mean(first, 'mean_cav_speed_mps'):.1f} -> {mean(last, 'mean_cav_speed_mps'):.1f} m/s"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,137 @@
+"""Command-line options of the scale-out engines and ``diacc sweep``.
+
+Registered by :mod:`diacc.cli`; ``diacc eval`` takes the engine options too.
+Ray is imported only when ``--engine ray`` is chosen (:mod:`diacc.scaleout`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from diacc.config import BACKENDS, VARIANTS, ConfigError, TrainConfig
+
+
+def add_engine_args(p: argparse.ArgumentParser) -> None:
+    """``--engine``, ``--ray-address``, ``--ray-cpus``."""
+    p.add_argument(
+        "--engine",
+        choices=("local", "ray"),
+        default="local",
+        help="local: processes on this machine; ray: Ray tasks (pip install -e '.[ray]')",
+    )
+    p.add_argument(
+        "--ray-address",
+        default=None,
+        help="Ray cluster to join (auto, HOST:6379 or ray://HOST:10001); "
+        "default: start a local Ray instance",
+    )
+    p.add_argument(
+        "--ray-cpus",
+        type=int,
+        default=None,
+        help="CPUs of the local Ray instance (default: all of this machine's)",
+    )
+
+
+def eval_engine(args: argparse.Namespace):
+    """The evaluation engine the options ask for (None: the local worker pool)."""
+    if args.engine == "local":
+        if args.ray_address or args.ray_cpus:
+            raise ConfigError("--ray-address / --ray-cpus need --engine ray")
+        return None
+    from diacc.scaleout import RayEngine
+
+    return RayEngine(args.ray_address, args.ray_cpus)
+
+
+def _csv_list(text: str, kind=str) -> list:
+    try:
+        values = [kind(v.strip()) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ConfigError(
+            f"expected a comma-separated list of {kind.__name__}, got {text!r}"
+        ) from None
+    if not values:
+        raise ConfigError(f"expected a comma-separated list, got {text!r}")
+    return values
+
+
+def add_parsers(sub) -> None:
+    p = sub.add_parser(
+        "sweep",
+        help="train variants x maps x seeds, locally or as Ray tasks",
+        description="Train every (variant, map, seed) combination, one run directory each\n"
+        "(<out-dir>/<variant>-<backend>-<map>-s<seed>). Finished runs are skipped,\n"
+        "interrupted ones resume from their checkpoint. With --engine ray the runs\n"
+        "are parallel Ray tasks; on a cluster, put --out-dir on a shared filesystem.\n"
+        "Other settings as in 'diacc train' (--config, --set; the sweep axes win).",
+    )
+    p.add_argument("--variants", default="diacc", help=f"comma-separated, of {', '.join(VARIANTS)}")
+    p.add_argument("--maps", default=TrainConfig.map, help="comma-separated map names or paths")
+    p.add_argument("--seeds", default="1,2,3", help="comma-separated run seeds")
+    p.add_argument("--backend", choices=BACKENDS, default=TrainConfig.backend, help="simulator")
+    p.add_argument(
+        "--steps", type=int, default=TrainConfig.total_steps, help="environment steps per run"
+    )
+    p.add_argument("--envs", type=int, default=TrainConfig.n_envs, help="environments per run")
+    p.add_argument(
+        "--device", choices=("cpu", "cuda", "auto"), default="cpu", help="torch device of each run"
+    )
+    p.add_argument(
+        "--out-dir", type=Path, default=Path("runs/sweep"), help="parent of the run dirs"
+    )
+    p.add_argument("--config", type=Path, help="TOML file of config overrides (none by default)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override any config field (repeatable)",
+    )
+    p.add_argument("--cpus-per-run", type=float, default=1.0, help="CPUs Ray reserves for each run")
+    add_engine_args(p)
+
+
+def cmd_sweep(args: argparse.Namespace) -> None:
+    from diacc.cli import train_config_from_args
+    from diacc.console import print_config
+    from diacc.maps import load_map
+    from diacc.scaleout import run_sweep, sweep_configs
+
+    variants, maps = _csv_list(args.variants), _csv_list(args.maps)
+    seeds = _csv_list(args.seeds, int)
+    for variant in variants:
+        if variant not in VARIANTS:
+            raise ConfigError(f"unknown variant {variant!r}; use some of {', '.join(VARIANTS)}")
+    for map_name in maps:
+        load_map(map_name)  # fail fast on a bad map name
+    base = train_config_from_args(
+        argparse.Namespace(
+            **vars(args), variant=variants[0], map=maps[0], seed=seeds[0], run_dir=str(args.out_dir)
+        )
+    )
+    if args.engine == "local" and (args.ray_address or args.ray_cpus):
+        raise ConfigError("--ray-address / --ray-cpus need --engine ray")
+    configs = sweep_configs(base, variants, maps, seeds, args.out_dir)
+    print_config(
+        base,
+        f"diacc sweep: {len(configs)} runs ({len(variants)} variants x {len(maps)} maps x "
+        f"{len(seeds)} seeds) on engine {args.engine}; shared config",
+        "variant, map, seed and run_dir vary per run",
+    )
+    from diacc.console import fmt
+
+    for n, run in enumerate(
+        run_sweep(configs, args.engine, args.ray_address, args.ray_cpus, args.cpus_per_run), 1
+    ):
+        print(
+            f"[{n}/{len(configs)}] {run.status} {run.variant} {run.map} seed {run.seed}"
+            f"{f' on {run.host}' if run.host else ''}"
+            f"{f' in {run.wall_s:.1f} s' if run.wall_s else ''}: {run.run_dir}; last update: "
+            f"collision rate {fmt(run.last.get('episode/collision'))}, "
+            f"global reward {fmt(run.last.get('global_reward'))}"
+        )
+
+
+COMMANDS = {"sweep": cmd_sweep}

@@ -1,0 +1,123 @@
+"""What the ``diacc`` command and the tutorials print: rounded numbers, "n/a", configs.
+
+Metrics are ``nan`` where a quantity does not apply (CAV speed without CAVs,
+a segment kind the map lacks, PSAR rates without PSAR decisions); users see
+"n/a" for those, or nothing, never ``nan``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+from diacc.metrics import EpisodeMetrics
+
+NA = "n/a"
+
+
+def fmt(value: float | int | None, digits: int = 2, unit: str = "", percent: bool = False) -> str:
+    """``value`` rounded to ``digits`` (x100 and "%" if ``percent``), or "n/a" if undefined."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return NA
+    if percent:
+        return f"{100.0 * value:.{digits}f} %"
+    if isinstance(value, int) and not isinstance(value, bool):
+        return f"{value}{' ' + unit if unit else ''}"
+    return f"{value:.{digits}f}{' ' + unit if unit else ''}"
+
+
+def plural(n: int, noun: str) -> str:
+    """``1 episode``, ``3 episodes``."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def metric_lines(metrics: EpisodeMetrics, kinds: tuple[str, ...]) -> list[tuple[str, str]]:
+    """(label, value) lines of one episode's metrics, leaving out what does not apply.
+
+    ``kinds`` are the segment kinds of the map: speeds on kinds the map lacks
+    are omitted, as are CAV speeds without CAVs and PSAR rates without PSAR.
+    """
+    lines = [
+        ("mean speed", f"{fmt(metrics.mean_speed_mps)} ± {fmt(metrics.std_speed_mps)} m/s"),
+        ("mean HDV speed", fmt(metrics.mean_hdv_speed_mps, unit="m/s")),
+    ]
+    if math.isfinite(metrics.mean_cav_speed_mps):
+        lines.append(("mean CAV speed", fmt(metrics.mean_cav_speed_mps, unit="m/s")))
+    lines += [
+        (f"speed on {kind}", fmt(metrics.mean_speed_by_kind_mps[kind], unit="m/s"))
+        for kind in kinds
+    ]
+    lines += [
+        ("p(WE) waiting events", fmt(metrics.p_we, 1, percent=True)),
+        ("p(SCE) safety-critical", fmt(metrics.p_sce, 1, percent=True)),
+        ("collisions (pairs)", str(metrics.n_collisions)),
+        ("arrived", fmt(metrics.arrived_fraction, 1, percent=True)),
+        (
+            "mean travel time",
+            fmt(metrics.mean_travel_time_s, 1, unit="s")
+            if math.isfinite(metrics.mean_travel_time_s)
+            else f"{NA} (no vehicle arrived)",
+        ),
+        ("vehicles seen", str(metrics.n_vehicles)),
+        ("steps", str(metrics.episode_steps)),
+    ]
+    if metrics.psar_decisions:
+        lines += [
+            (f"PSAR {name} rate", fmt(rate, 1, percent=True))
+            for name, rate in metrics.psar_fire_rate.items()
+        ]
+    return lines
+
+
+def print_lines(lines: list[tuple[str, str]], indent: int = 2) -> None:
+    """Aligned ``label: value`` lines."""
+    width = max(len(label) for label, _ in lines)
+    for label, value in lines:
+        print(f"{' ' * indent}{label:<{width}} : {value}")
+
+
+def _flat(config: Any, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            out.update(_flat(value, f"{prefix}{f.name}."))
+        else:
+            out[prefix + f.name] = value
+    return out
+
+
+def config_table(config: Any, title: str):
+    """A rich table of a config: every top-level field, and nested fields that differ
+    from their defaults (the full tree is in the run's ``config.json``)."""
+    from rich.table import Table
+
+    table = Table(
+        caption=f"{title}; nested sections: changed keys only",
+        caption_justify="left",
+        header_style="bold",
+    )
+    table.add_column("key")
+    table.add_column("value")
+    table.add_column("default if changed", style="dim")
+    default = _flat(type(config)())
+    for key, value in _flat(config).items():
+        changed = value != default[key]
+        if "." in key and not changed:
+            continue
+        table.add_row(
+            f"[bold]{key}[/bold]" if changed else key,
+            repr(value) if isinstance(value, str) else str(value),
+            "" if not changed else str(default[key]),
+        )
+    return table
+
+
+def print_config(config: Any, heading: str, title: str) -> None:
+    """Print ``heading`` and :func:`config_table` with rich (plain when not on a terminal)."""
+    from rich.console import Console
+
+    console = Console()
+    console.print(heading, highlight=False)
+    console.print(config_table(config, title))
