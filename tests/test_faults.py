@@ -346,7 +346,7 @@ def test_case9_sumo_worker_killed_during_eval_reruns_its_episode(files, tmp_path
     """A SUMO worker killed mid-eval costs one episode's rerun (logged), not the command."""
     out = tmp_path / "sumo"
     args = ["eval", "--policy", "pure-hdv", "--backend", "sumo"]
-    args += ["--grid", str(files["sumo_grid"]), "--episodes", "3", "--no-progress"]
+    args += ["--grid", str(files["sumo_grid"]), "--episodes", "8", "--no-progress"]
     proc = _popen(*args, "--out", str(out))
 
     def sumo_worker():
@@ -356,7 +356,7 @@ def test_case9_sumo_worker_killed_during_eval_reruns_its_episode(files, tmp_path
 
     def kill_a_running_worker() -> bool:  # one that has run for a while: SUMO is stepping
         for pid in sumo_worker():
-            if time.monotonic() - seen.setdefault(pid, time.monotonic()) > 0.5:
+            if time.monotonic() - seen.setdefault(pid, time.monotonic()) > 0.2:
                 try:
                     os.kill(pid, signal.SIGKILL)
                     return True
