@@ -15,8 +15,10 @@ CAV command semantics, identical on every backend (facts.md "Actions"):
   there at constant acceleration within the CAV's accel/decel limits.
   A CAV holds its speed when the change is 0: no built-in car following, so
   the policy and PSAR carry safety (SUMO ``speedMode 0``).
-* A CAV still in a lane that ends is moved out of it by the same forced-merge
-  rule the HDVs follow, so that no vehicle stops at a lane end.
+* No simulator moves a CAV: a CAV still in a lane that ends stops with its
+  front at the lane end and may change lanes later. A lane change is made
+  only where :meth:`diacc.maps.Map.lane_change_allowed` allows it (the rule
+  PSAR applies too).
 
 Entries of HDVs in the command arrays are ignored.
 """

@@ -14,7 +14,8 @@ the network built from the map and :mod:`.sumo_types` for the vehicle types.
 CAV modes (constructor flag ``cav_mode``):
 
 * ``"commanded"`` (default): CAVs follow :class:`CavCommands` (speedMode 0,
-  lane changes only on command plus the forced merge at lane ends).
+  laneChangeMode 0: lane changes only on command; at a lane end the CAV
+  stops).
 * ``"cooperative"``: the paper's non-learning cooperative baseline: CAVs are
   SUMO CACC vehicles with ``lcCooperative = 1`` and ignore the commands.
 
