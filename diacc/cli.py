@@ -1,4 +1,4 @@
-"""Command line: ``diacc train | eval | table | plot | render | simulate | bench``.
+"""Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | simulate | bench``.
 
 Every command turns known failures (bad map, backend, config key, checkpoint,
 crashed simulator) into a one-line ``diacc: error: ...`` message and exit
@@ -15,7 +15,7 @@ import os
 import sys
 from pathlib import Path
 
-from diacc import __version__, cli_eval, cli_scale
+from diacc import __version__, cli_eval, cli_reproduce, cli_scale
 from diacc.config import BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError, TrainConfig, override
 from diacc.tomlfile import read_toml
 
@@ -295,6 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
     _simulate_parser(sub)
     cli_eval.add_parsers(sub)
     cli_scale.add_parsers(sub)
+    cli_reproduce.add_parsers(sub)
     return parser
 
 
@@ -304,6 +305,7 @@ COMMANDS = {
     "simulate": cmd_simulate,
     **cli_eval.COMMANDS,
     **cli_scale.COMMANDS,
+    **cli_reproduce.COMMANDS,
 }
 
 
@@ -312,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded by `reproduce`
     enable_stderr()
     try:
         COMMANDS[args.command](args)

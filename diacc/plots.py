@@ -259,12 +259,17 @@ def plot_speeds(
     labels = [label for label, _ in loaded]
     if len(set(labels)) < len(labels):
         labels = [f"{lab} [{Path(d).name}]" for lab, d in zip(labels, result_dirs, strict=True)]
+    return draw_speeds([(lab, by_kind) for lab, (_, by_kind) in zip(labels, loaded, strict=True)], out)
+
+
+def draw_speeds(loaded: list[tuple[str, dict[str, np.ndarray]]], out: str | Path) -> list[Path]:
+    """The figure of :func:`plot_speeds` from (label, segment kind -> samples (S,)) per policy."""
     kinds = [k for k in SEGMENT_KINDS if any(by_kind[k].size for _, by_kind in loaded)]
     plt = _pyplot()
     fig, axes = plt.subplots(1, 1 + len(kinds), figsize=(4.5 * (1 + len(kinds)), 3.8))
     box_ax, kde_axes = axes[0], axes[1:]
     width = 0.8 / len(loaded)
-    for p, (label, (_, by_kind)) in enumerate(zip(labels, loaded, strict=True)):
+    for p, (label, by_kind) in enumerate(loaded):
         colour = PALETTE[p % len(PALETTE)]
         data = [by_kind[k] if by_kind[k].size else np.array([np.nan]) for k in kinds]
         positions = np.arange(len(kinds)) + (p - (len(loaded) - 1) / 2) * width

@@ -185,6 +185,13 @@ def build_table(
     rows: tuple[str, ...] | list[str] = DEFAULT_ROWS,
 ) -> Table:
     """Collect the statistics of several results directories into one table."""
+    _check_options(speed_std, rows)
+    if not result_dirs:
+        raise EvaluationError("give at least one results directory")
+    return table_from_results([(Path(d), *load_episodes(d)) for d in result_dirs], speed_std, rows)
+
+
+def _check_options(speed_std: str, rows: tuple[str, ...] | list[str]) -> None:
     if speed_std not in SPEED_STD:
         raise EvaluationError(f"unknown speed std {speed_std!r}; use one of {', '.join(SPEED_STD)}")
     known = [m[0] for m in METRICS]
@@ -193,9 +200,17 @@ def build_table(
         raise EvaluationError(
             f"unknown table row {(unknown or [''])[0]!r}; use some of {', '.join(known)}"
         )
-    if not result_dirs:
-        raise EvaluationError("give at least one results directory")
-    loaded = [(Path(d), *load_episodes(d)) for d in result_dirs]
+
+
+def table_from_results(
+    loaded: list[tuple[Path, dict, list[dict[str, str]]]],
+    speed_std: str = "samples",
+    rows: tuple[str, ...] | list[str] = DEFAULT_ROWS,
+) -> Table:
+    """One table from (directory, meta, episode rows) per column, as :func:`load_episodes`
+    reads them; rows may also be pooled from several directories (``diacc reproduce``
+    pools the seeds of a variant into one column)."""
+    _check_options(speed_std, rows)
     labels = [meta["policy"] for _, meta, _ in loaded]
     if len(set(labels)) < len(labels):  # same policy twice: tell them apart by backend, then dir
         labels = [f"{meta['policy']} ({meta['backend']})" for _, meta, _ in loaded]

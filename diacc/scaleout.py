@@ -168,23 +168,27 @@ def _last_record(run_dir: Path) -> dict:
         return {}
 
 
-def _planned_steps(cfg: TrainConfig) -> int:
+def planned_steps(cfg: TrainConfig) -> int:
+    """Environment steps a finished run has taken: whole updates, at least one."""
     per_update = cfg.rollout_steps * cfg.n_envs
     return max(1, cfg.total_steps // per_update) * per_update
 
 
-def train_run(cfg: TrainConfig) -> SweepRun:
-    """Train one sweep run: skipped if finished, resumed if it has a checkpoint."""
+def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
+    """Train one sweep run: skipped if finished, resumed if it has a checkpoint.
+
+    ``progress`` shows the trainer's progress bar (a run in the foreground).
+    """
     from diacc.algo.mappo import train
 
     run_dir = Path(cfg.run_dir)
     last = _last_record(run_dir)
     base = {"variant": cfg.variant, "map": cfg.map, "seed": cfg.seed, "run_dir": cfg.run_dir}
-    if last.get("global_step", 0) >= _planned_steps(cfg):
+    if last.get("global_step", 0) >= planned_steps(cfg):
         return SweepRun(**base, status="skipped", host=socket.gethostname(), last=last)
     resume = (run_dir / "checkpoint.pt").exists()
     start = time.perf_counter()
-    train(cfg, resume=resume, progress=False)
+    train(cfg, resume=resume, progress=progress)
     return SweepRun(
         **base,
         status="resumed" if resume else "trained",

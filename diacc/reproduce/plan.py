@@ -1,0 +1,371 @@
+"""What ``diacc reproduce`` will do: budgets, the resolved configuration, runs, jobs, cells.
+
+Everything here is decided before any work starts, so the plan can be
+printed (and checked for bad input) first. Two rules shape it:
+
+* **Which checkpoint plays which cell.** A checkpoint is evaluated on the
+  cells whose map has the same lane reduction as the map it was trained on
+  (25 % or 50 %), as in the paper, where each reduction has its own model;
+  cells of a reduction that no training map has are left out of the plan.
+* **Budgets.** A preset fixes steps, seeds, environments, episodes, training
+  maps, how many zero-shot cells per test map, and the transfer experiment
+  together; any explicit option replaces that one value.
+
+The run and result names are the output layout of the command:
+``runs/<variant>-<map>-s<seed>[-<backend>]`` (the suffix for runs not trained
+on ``highway``) and ``eval/<backend>/<policy>/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+from diacc.config import BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError, TrainConfig
+from diacc.grid import GRID_NAMES, Cell, load_grid
+from diacc.maps import load_map
+
+#: Non-learning columns of every table (see :mod:`diacc.policies`).
+BASELINE_POLICIES = ("pure-hdv", "cooperative")
+#: Sim-to-sim transfer: this variant, trained on the training backend and on this one.
+TRANSFER_VARIANT = "diacc"
+TRANSFER_BACKEND = "sumo"
+#: The backend whose runs carry no ``-<backend>`` suffix in their names.
+DEFAULT_TRAIN_BACKEND = "highway"
+DEFAULT_OUT_DIR = Path("results/reproduce")
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How big the whole experiment is; one named preset or a preset with overrides."""
+
+    name: str
+    steps_per_run: int  # environment steps (decisions x environments) per training run
+    seeds: tuple[int, ...]  # run seeds, one training run each per variant and map
+    n_envs: int  # environments stepped in parallel by each run
+    episodes_per_cell: int  # seeded evaluation episodes per grid cell
+    maps: tuple[str, ...]  # training maps
+    zero_shot_cells_per_map: int | None  # zero-shot cells kept per test map; None: all 16
+    transfer: bool  # also train diacc on sumo and compare on sumo
+
+
+#: ``tiny``: the whole pipeline on one map in a few minutes (CI); every number it
+#: prints is untrained noise. ``small``: the learning check's 50k steps (README
+#: "Safety"), enough for safe but not yet fast agents. ``paper``: the paper's 3 M
+#: steps, 3 seeds and 20 environments; the paper does not say how many
+#: evaluation episodes it ran, 10 is ``diacc eval``'s default.
+BUDGETS: dict[str, Budget] = {
+    "tiny": Budget("tiny", 200, (1,), 1, 1, ("train-50",), 1, True),
+    "small": Budget("small", 50_000, (1, 2), 4, 2, ("train-25", "train-50"), None, True),
+    "paper": Budget("paper", 3_000_000, (1, 2, 3), 20, 10, ("train-25", "train-50"), None, True),
+}
+
+
+@dataclass(frozen=True)
+class ReproduceConfig:
+    """Everything that decides the results of ``diacc reproduce`` (not how it is executed)."""
+
+    budget: Budget
+    out_dir: Path = DEFAULT_OUT_DIR
+    variants: tuple[str, ...] = VARIANTS
+    backends: tuple[str, ...] = BACKENDS  # evaluated on
+    train_backend: str = DEFAULT_TRAIN_BACKEND
+    grids: tuple[str, ...] = GRID_NAMES
+    style_preset: str = TrainConfig().sim.style_preset  # HDV styles, training and evaluation
+    episode_steps: int | None = None  # evaluation episode length; None: the policy's own
+    device: str = "cpu"  # torch device of the PPO updates
+    train_sets: tuple[str, ...] = ()  # KEY=VALUE training overrides, as `diacc train --set`
+
+
+@dataclass(frozen=True)
+class Execution:
+    """How the work is spread; changes no result."""
+
+    jobs: int = 1  # local training processes and evaluation workers
+    engine: str = "local"  # or "ray"
+    ray_address: str | None = None
+    ray_cpus: int | None = None
+    cpus_per_run: float = 1.0  # CPUs Ray reserves per training run
+    progress: bool = True  # progress bars (the [k/n] lines are always printed)
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run."""
+
+    variant: str
+    map: str
+    seed: int
+    backend: str
+
+    @property
+    def name(self) -> str:
+        suffix = "" if self.backend == DEFAULT_TRAIN_BACKEND else f"-{self.backend}"
+        return f"{self.variant}-{Path(self.map).stem}-s{self.seed}{suffix}"
+
+
+@dataclass(frozen=True)
+class EvalJob:
+    """One policy on one backend: one ``diacc eval`` results directory."""
+
+    backend: str
+    policy: str  # a baseline name or a run name
+    run: RunSpec | None  # None for baselines
+    cells: tuple[Cell, ...]
+
+    @property
+    def rel_dir(self) -> Path:
+        return Path("eval") / self.backend / self.policy
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The resolved work of one ``diacc reproduce`` invocation."""
+
+    config: ReproduceConfig
+    runs: tuple[RunSpec, ...]
+    grid_cells: dict[str, tuple[Cell, ...]]  # grid name -> cells evaluated
+    jobs: tuple[EvalJob, ...]
+    transfer_pairs: tuple[tuple[RunSpec, RunSpec], ...]  # (training backend, sumo) runs
+    transfer_cells: tuple[Cell, ...]
+    notes: tuple[str, ...]  # decisions the user should see (e.g. why transfer is off)
+
+    def run_dir(self, run: RunSpec) -> Path:
+        return self.config.out_dir / "runs" / run.name
+
+    def eval_dir(self, job: EvalJob) -> Path:
+        return self.config.out_dir / job.rel_dir
+
+    def train_config(self, run: RunSpec) -> TrainConfig:
+        """The full training config of a run: defaults, budget, preset, --set, then the run."""
+        from diacc.cli import train_config_from_args
+
+        cfg = self.config
+        args = argparse.Namespace(
+            config=None,
+            set=[f"sim.style_preset={cfg.style_preset}", *cfg.train_sets],
+            variant=run.variant,
+            backend=run.backend,
+            map=run.map,
+            steps=cfg.budget.steps_per_run,
+            envs=cfg.budget.n_envs,
+            seed=run.seed,
+            device=cfg.device,
+            run_dir=str(self.run_dir(run)),
+        )
+        return train_config_from_args(args)
+
+    def planned_steps(self, run: RunSpec) -> int:
+        """Environment steps the run will have taken when done (whole updates)."""
+        from diacc.scaleout import planned_steps
+
+        return planned_steps(self.train_config(run))
+
+
+# ----------------------------------------------------------------------------- resolution
+def resolve_config(
+    budget: str,
+    *,
+    steps: int | None = None,
+    seeds: tuple[int, ...] | None = None,
+    envs: int | None = None,
+    episodes: int | None = None,
+    maps: tuple[str, ...] | None = None,
+    zero_shot_cells: int | None = None,
+    transfer: bool | None = None,
+    **fields,
+) -> tuple[ReproduceConfig, tuple[str, ...]]:
+    """(config, notes): ``budget``'s preset with every option given (not None) replacing its value.
+
+    ``zero_shot_cells`` 0 means all cells. ``fields`` are :class:`ReproduceConfig`
+    fields. Bad values raise :class:`ConfigError` with a one-line message.
+    """
+    if budget not in BUDGETS:
+        raise ConfigError(f"unknown budget {budget!r}; use one of {', '.join(BUDGETS)}")
+    preset = BUDGETS[budget]
+    changes = {
+        "steps_per_run": steps,
+        "seeds": seeds,
+        "n_envs": envs,
+        "episodes_per_cell": episodes,
+        "maps": maps,
+        "transfer": transfer,
+    }
+    changes = {k: v for k, v in changes.items() if v is not None}
+    if zero_shot_cells is not None:
+        changes["zero_shot_cells_per_map"] = zero_shot_cells or None
+    notes = []
+    train_backend = fields.get("train_backend", DEFAULT_TRAIN_BACKEND)
+    if train_backend == TRANSFER_BACKEND and changes.get("transfer", preset.transfer):
+        if transfer:
+            raise ConfigError(
+                f"--transfer compares a policy trained on another backend with one trained on "
+                f"{TRANSFER_BACKEND}; it needs --train-backend {DEFAULT_TRAIN_BACKEND}"
+            )
+        changes["transfer"] = False
+        notes.append(f"transfer: off (the training backend is {TRANSFER_BACKEND} already)")
+    name = preset.name if not changes else f"{preset.name} (with overrides)"
+    config = ReproduceConfig(budget=dataclasses.replace(preset, name=name, **changes), **fields)
+    check_config(config)
+    return config, tuple(notes)
+
+
+def _unknown(kind: str, values, known) -> None:
+    bad = [v for v in values if v not in known]
+    if bad:
+        raise ConfigError(f"unknown {kind} {bad[0]!r}; use some of {', '.join(known)}")
+
+
+def check_config(config: ReproduceConfig) -> None:
+    """One-line :class:`ConfigError` for the first bad value of a config."""
+    b = config.budget
+    for label, value in (
+        ("--steps", b.steps_per_run),
+        ("--envs", b.n_envs),
+        ("--episodes", b.episodes_per_cell),
+    ):
+        if value < 1:
+            raise ConfigError(f"{label} must be >= 1, got {value}")
+    if b.zero_shot_cells_per_map is not None and b.zero_shot_cells_per_map < 0:
+        raise ConfigError(f"--zero-shot-cells must be >= 0, got {b.zero_shot_cells_per_map}")
+    if config.episode_steps is not None and config.episode_steps < 1:
+        raise ConfigError(f"--episode-steps must be >= 1, got {config.episode_steps}")
+    for label, values in (
+        ("--seeds", b.seeds),
+        ("--maps", b.maps),
+        ("--variants", config.variants),
+        ("--backends", config.backends),
+        ("--grids", config.grids),
+    ):
+        if not values:
+            raise ConfigError(f"{label} must name at least one value")
+        if len(set(values)) < len(values):
+            raise ConfigError(f"{label} names a value twice: {', '.join(map(str, values))}")
+    _unknown("variant", config.variants, VARIANTS)
+    _unknown("backend", config.backends, BACKENDS)
+    _unknown("training backend", (config.train_backend,), BACKENDS)
+    _unknown("grid", config.grids, GRID_NAMES)
+    _unknown("style preset", (config.style_preset,), tuple(STYLE_PRESETS))
+    for map_name in b.maps:
+        load_map(map_name)  # one-line MapError for an unknown map
+
+
+# ----------------------------------------------------------------------------- cells
+@functools.lru_cache(maxsize=None)
+def reduction_of(map_name: str) -> tuple[str, ...]:
+    """The lane-reduction segment kinds of a map, e.g. ``("reduction50",)``."""
+    return tuple(sorted({s.kind for s in load_map(map_name).segments} - {"multilane"}))
+
+
+def _spread(cells: list[Cell], keep: int | None) -> list[Cell]:
+    """``keep`` cells of each map, evenly spaced in grid order (all if None)."""
+    if keep is None:
+        return cells
+    out = []
+    for map_name in dict.fromkeys(c.map for c in cells):
+        mine = [c for c in cells if c.map == map_name]
+        picks = sorted({int(i * len(mine) / keep) for i in range(min(keep, len(mine)))})
+        out += [mine[i] for i in picks]
+    return out
+
+
+def grid_cells(grid: str, maps: tuple[str, ...], keep_per_map: int | None = None) -> list[Cell]:
+    """Cells of a named grid that share a lane reduction with one of the training maps."""
+    reductions = {reduction_of(m) for m in maps}
+    cells = [c for c in load_grid(grid) if reduction_of(c.map) in reductions]
+    return _spread(cells, keep_per_map)
+
+
+def make_plan(config: ReproduceConfig, notes: tuple[str, ...] = ()) -> Plan:
+    """Runs, evaluation jobs and cells of a config (see the module docstring)."""
+    b = config.budget
+    runs = [
+        RunSpec(v, m, s, config.train_backend)
+        for v in config.variants
+        for m in b.maps
+        for s in b.seeds
+    ]
+    pairs = []
+    if b.transfer:
+        for m in b.maps:
+            for s in b.seeds:
+                pairs.append(
+                    (
+                        RunSpec(TRANSFER_VARIANT, m, s, config.train_backend),
+                        RunSpec(TRANSFER_VARIANT, m, s, TRANSFER_BACKEND),
+                    )
+                )
+        runs += [r for pair in pairs for r in pair]
+    runs = list(dict.fromkeys(runs))
+    cells_of = {
+        g: tuple(
+            grid_cells(g, b.maps, b.zero_shot_cells_per_map if g == "zero-shot" else None)
+        )
+        for g in config.grids
+    }
+    for grid, cells in cells_of.items():
+        if not cells:
+            raise ConfigError(f"grid {grid!r} has no cell with the lane reduction of {b.maps[0]}")
+    all_cells = list(dict.fromkeys(c for cells in cells_of.values() for c in cells))
+    transfer_cells = tuple(grid_cells("train", b.maps)) if pairs else ()
+
+    jobs: dict[tuple[str, str], EvalJob] = {}
+
+    def add(backend: str, policy: str, run: RunSpec | None, cells) -> None:
+        if run is not None:
+            cells = [c for c in cells if reduction_of(c.map) == reduction_of(run.map)]
+        old = jobs.get((backend, policy))
+        merged = tuple(dict.fromkeys([*(old.cells if old else ()), *cells]))
+        if merged:
+            jobs[(backend, policy)] = EvalJob(backend, policy, run, merged)
+
+    main_runs = [r for r in runs if r.variant in config.variants and r.backend == config.train_backend]
+    for backend in config.backends:
+        for policy in BASELINE_POLICIES:
+            add(backend, policy, None, all_cells)
+        for run in main_runs:
+            add(backend, run.name, run, all_cells)
+    if pairs:
+        add(TRANSFER_BACKEND, "pure-hdv", None, transfer_cells)
+        for pair in pairs:
+            for run in pair:
+                add(TRANSFER_BACKEND, run.name, run, transfer_cells)
+    return Plan(
+        config, tuple(runs), cells_of, tuple(jobs.values()), tuple(pairs), transfer_cells, notes
+    )
+
+
+def describe_plan(plan: Plan) -> list[str]:
+    """The lines ``diacc reproduce`` prints before it starts."""
+    cfg, b = plan.config, plan.config.budget
+    seeds = ",".join(map(str, b.seeds))
+    steps = sum(plan.planned_steps(r) for r in plan.runs)
+    episodes = sum(len(j.cells) for j in plan.jobs) * b.episodes_per_cell
+    episode_steps = cfg.episode_steps or TrainConfig().sim.episode_steps
+    cell_counts = ", ".join(f"{g} {len(c)}" for g, c in plan.grid_cells.items())
+    lines = [
+        f"diacc reproduce: budget {b.name}, results in {cfg.out_dir}",
+        f"  training: {len(plan.runs)} runs ({len(cfg.variants)} variants x {len(b.maps)} maps "
+        f"x {len(b.seeds)} seeds on {cfg.train_backend}"
+        + (f", + {len(plan.transfer_pairs)} diacc on {TRANSFER_BACKEND} for transfer" if plan.transfer_pairs else "")
+        + f"); {b.steps_per_run:,} steps each with {b.n_envs} envs; {steps:,} env steps in all",
+        f"  maps {', '.join(b.maps)}; seeds {seeds}; variants {', '.join(cfg.variants)}",
+        f"  evaluation: {len(plan.jobs)} (policy, backend) jobs on {', '.join(cfg.backends)}; "
+        f"cells: {cell_counts}"
+        + (f", transfer {len(plan.transfer_cells)}" if plan.transfer_pairs else "")
+        + f"; {b.episodes_per_cell} episodes per cell: {episodes:,} episodes "
+        f"(<= {episodes * episode_steps:,} decision steps)",
+        f"  style preset {cfg.style_preset}; evaluation episodes of "
+        f"{cfg.episode_steps or 'the policy’s own number of'} steps; "
+        f"transfer {'on' if plan.transfer_pairs else 'off'}",
+    ]
+    if b.zero_shot_cells_per_map is not None and "zero-shot" in cfg.grids:
+        lines.append(
+            f"  zero-shot: {b.zero_shot_cells_per_map} cell(s) per test map, not all 16 "
+            "(--zero-shot-cells 0 for all)"
+        )
+    lines += [f"  {note}" for note in plan.notes]
+    return lines

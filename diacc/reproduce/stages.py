@@ -1,0 +1,161 @@
+"""Training and evaluation stages of ``diacc reproduce``, on the sweep and eval machinery.
+
+* **Training**: every run of the plan through :func:`diacc.scaleout.train_run`
+  (a finished run is skipped, an interrupted one resumed from its
+  checkpoint): one after the other in this process (with the trainer's
+  progress bar), in ``jobs`` worker processes (:func:`diacc.workpool.map_resilient`:
+  a dead worker costs a retry, never a hang), or as Ray tasks
+  (:func:`diacc.scaleout.run_sweep`).
+* **Evaluation**: every (policy, backend) job through
+  :func:`diacc.evaluate.evaluate`, which skips finished cells and recomputes
+  damaged ones. A job whose cells are all intact is not even started (no
+  checkpoint loading, no re-merge), so a finished reproduction re-runs in
+  seconds. Results of a checkpoint that has since trained further are
+  removed first: a results directory always describes the checkpoint as it is.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from diacc.config import TrainConfig
+from diacc.evaluate import EPISODES_FILE, META_FILE, check_cell_files, evaluate, read_csv
+from diacc.grid import Cell
+from diacc.policies import EvalSettings, PolicySpec
+from diacc.reproduce.plan import EvalJob, Execution, Plan
+from diacc.scaleout import SweepRun, run_sweep, train_run
+from diacc.threads import worker_environment
+from diacc.workpool import map_resilient
+
+#: Where a stage's one-line progress messages go (``print`` in the CLI).
+Say = Callable[[str], None]
+
+
+# ----------------------------------------------------------------------------- training
+def _train_local(configs: list[TrainConfig], progress: bool, say: Say) -> Iterator[SweepRun]:
+    for k, cfg in enumerate(configs, 1):
+        if progress:
+            say(f"[{k}/{len(configs)}] train {Path(cfg.run_dir).name} ...")
+        yield train_run(cfg, progress)
+
+
+def _train_pool(configs: list[TrainConfig], jobs: int) -> Iterator[SweepRun]:
+    # Pool workers start with one library thread each (diacc.threads); each trainer
+    # then applies its own torch thread rule (TrainConfig.torch_threads).
+    with worker_environment():
+        for _, run in map_resilient(
+            train_run, configs, jobs, describe=lambda c: f"training run {Path(c.run_dir).name}"
+        ):
+            yield run
+
+
+def train_all(
+    plan: Plan, execution: Execution, say: Say, on_run: Callable[[SweepRun], None]
+) -> dict[str, int]:
+    """Train (or skip, or resume) every run; returns run name -> environment steps trained."""
+    configs = [plan.train_config(run) for run in plan.runs]
+    if execution.engine == "ray":
+        results = run_sweep(
+            configs, "ray", execution.ray_address, execution.ray_cpus, execution.cpus_per_run
+        )
+    elif execution.jobs > 1:
+        results = _train_pool(configs, execution.jobs)
+    else:
+        results = _train_local(configs, execution.progress, say)
+    trained = {}
+    for k, run in enumerate(results, 1):
+        name = Path(run.run_dir).name
+        trained[name] = int(run.last.get("global_step", 0))
+        took = f" in {run.wall_s:.1f} s" if run.wall_s else ""
+        where = f" on {run.host}" if execution.engine == "ray" and run.host else ""
+        say(
+            f"[{k}/{len(configs)}] {run.status} {name}{where}{took}: "
+            f"{trained[name]:,} env steps"
+        )
+        on_run(run)
+    return trained
+
+
+# ----------------------------------------------------------------------------- evaluation
+def _cell_key(row: dict[str, str]) -> str:
+    return Cell(row["map"], int(row["n_vehicles"]), float(row["cav_penetration"]), row["style_mix"]).key
+
+
+def is_complete(out_dir: Path, cells: tuple[Cell, ...], episodes: int) -> bool:
+    """Whether every cell is intact with exactly ``episodes`` episodes and merged."""
+    merged = out_dir / EPISODES_FILE
+    if not merged.exists() or not (out_dir / META_FILE).exists():
+        return False
+    if any(check_cell_files(out_dir, c.key) != (list(range(episodes)), None) for c in cells):
+        return False
+    have = {(_cell_key(r), int(r["episode"])) for r in read_csv(merged)}
+    return all((c.key, e) in have for c in cells for e in range(episodes))
+
+
+def _drop_stale(out_dir: Path, trained_steps: int, say: Say) -> None:
+    """Remove the results of a checkpoint that has trained further since."""
+    meta_path = out_dir / META_FILE
+    if not meta_path.exists():
+        return
+    evaluated = json.loads(meta_path.read_text()).get("trained_steps")
+    if evaluated != trained_steps:
+        say(
+            f"  {out_dir}: results of the checkpoint at {evaluated} steps removed; "
+            f"it has {trained_steps} now"
+        )
+        shutil.rmtree(out_dir)
+
+
+def job_spec(plan: Plan, job: EvalJob) -> PolicySpec:
+    """The policy an evaluation job runs (checkpoints checked against their variant)."""
+    if job.run is None:
+        return PolicySpec(job.policy)
+    return PolicySpec(str(plan.run_dir(job.run) / "checkpoint.pt"), job.run.variant)
+
+
+def evaluate_all(
+    plan: Plan,
+    execution: Execution,
+    trained: dict[str, int],
+    say: Say,
+    on_job: Callable[[EvalJob], None],
+) -> None:
+    """Run every evaluation job of the plan that is not complete yet."""
+    engine = None
+    if execution.engine == "ray":
+        from diacc.scaleout import RayEngine
+
+        engine = RayEngine(execution.ray_address, execution.ray_cpus)
+    cfg = plan.config
+    episodes = cfg.budget.episodes_per_cell
+    n = len(plan.jobs)
+    for k, job in enumerate(plan.jobs, 1):
+        out_dir = plan.eval_dir(job)
+        label = f"[{k}/{n}] eval {job.policy} on {job.backend}"
+        if job.run is not None:
+            _drop_stale(out_dir, trained[job.run.name], say)
+        if is_complete(out_dir, job.cells, episodes):
+            say(f"{label}: all {len(job.cells)} cells already done")
+            on_job(job)
+            continue
+        settings = EvalSettings(
+            backend=job.backend, episode_steps=cfg.episode_steps, style_preset=cfg.style_preset
+        )
+        summary = evaluate(
+            job_spec(plan, job),
+            list(job.cells),
+            episodes,
+            out_dir,
+            settings,
+            workers=execution.jobs,
+            progress=execution.progress,
+            engine=engine,
+        )
+        say(
+            f"{label}: {len(summary.cells_run)} cells run, "
+            f"{len(summary.cells_skipped)} already done"
+        )
+        on_job(job)
