@@ -1,4 +1,5 @@
-"""Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | simulate | bench``.
+"""Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | simulate |
+bench``.
 
 Every command turns known failures (bad map, backend, config key, checkpoint,
 crashed simulator) into a one-line ``diacc: error: ...`` message and exit

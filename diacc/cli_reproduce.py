@@ -159,7 +159,7 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
         cpus_per_run=args.cpus_per_run,
         progress=not args.no_progress,
     )
-    produced = reproduce(plan, execution, ["diacc", "reproduce", *args.argv], say)
+    produced = reproduce(plan, execution, ["diacc", *args.argv], say)
     for line in produced.summary():
         say(line)
 

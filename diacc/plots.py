@@ -259,10 +259,14 @@ def plot_speeds(
     labels = [label for label, _ in loaded]
     if len(set(labels)) < len(labels):
         labels = [f"{lab} [{Path(d).name}]" for lab, d in zip(labels, result_dirs, strict=True)]
-    return draw_speeds([(lab, by_kind) for lab, (_, by_kind) in zip(labels, loaded, strict=True)], out)
+    return draw_speeds(
+        [(lab, by_kind) for lab, (_, by_kind) in zip(labels, loaded, strict=True)], out
+    )
 
 
-def draw_speeds(loaded: list[tuple[str, dict[str, np.ndarray]]], out: str | Path) -> list[Path]:
+def draw_speeds(
+    loaded: list[tuple[str, dict[str, np.ndarray]]], out: str | Path, title: str | None = None
+) -> list[Path]:
     """The figure of :func:`plot_speeds` from (label, segment kind -> samples (S,)) per policy."""
     kinds = [k for k in SEGMENT_KINDS if any(by_kind[k].size for _, by_kind in loaded)]
     plt = _pyplot()
@@ -298,5 +302,7 @@ def draw_speeds(loaded: list[tuple[str, dict[str, np.ndarray]]], out: str | Path
         ax.set_title(f"Speed density: {kind}")
         ax.set_xlabel("speed (m/s)")
         ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title)
     fig.tight_layout()
     return _save(fig, out)

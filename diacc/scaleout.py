@@ -174,6 +174,15 @@ def planned_steps(cfg: TrainConfig) -> int:
     return max(1, cfg.total_steps // per_update) * per_update
 
 
+def run_state(cfg: TrainConfig) -> str:
+    """``finished`` (its last logged update reached the budget), ``checkpointed`` (it
+    can resume) or ``new``: what :func:`train_run` will do with it."""
+    run_dir = Path(cfg.run_dir)
+    if _last_record(run_dir).get("global_step", 0) >= planned_steps(cfg):
+        return "finished"
+    return "checkpointed" if (run_dir / "checkpoint.pt").exists() else "new"
+
+
 def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
     """Train one sweep run: skipped if finished, resumed if it has a checkpoint.
 
@@ -182,16 +191,17 @@ def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
     from diacc.algo.mappo import train
 
     run_dir = Path(cfg.run_dir)
-    last = _last_record(run_dir)
     base = {"variant": cfg.variant, "map": cfg.map, "seed": cfg.seed, "run_dir": cfg.run_dir}
-    if last.get("global_step", 0) >= planned_steps(cfg):
-        return SweepRun(**base, status="skipped", host=socket.gethostname(), last=last)
-    resume = (run_dir / "checkpoint.pt").exists()
+    state = run_state(cfg)
+    if state == "finished":
+        return SweepRun(
+            **base, status="skipped", host=socket.gethostname(), last=_last_record(run_dir)
+        )
     start = time.perf_counter()
-    train(cfg, resume=resume, progress=progress)
+    train(cfg, resume=state == "checkpointed", progress=progress)
     return SweepRun(
         **base,
-        status="resumed" if resume else "trained",
+        status="resumed" if state == "checkpointed" else "trained",
         host=socket.gethostname(),
         wall_s=time.perf_counter() - start,
         last=_last_record(run_dir),

@@ -60,10 +60,7 @@ class Manifest:
             "seeds": list(plan.config.budget.seeds),
             "runs": {r.name: asdict(r) for r in plan.runs},
             "eval_jobs": {str(j.rel_dir): [c.key for c in j.cells] for j in plan.jobs},
-            "stages": {
-                s: {**old.get("stages", {}).get(s, {}), "finished": False}
-                for s in STAGES
-            },
+            "stages": {s: {**old.get("stages", {}).get(s, {}), "finished": False} for s in STAGES},
         }
         self.save()
 

@@ -41,6 +41,7 @@ from diacc.reproduce.plan import (
     RunSpec,
     reduction_of,
 )
+from diacc.reproduce.stages import row_cell_key
 
 #: Table rows: the paper's three, plus the share of episodes ending in a collision.
 TABLE_ROWS = ("speed", "p_we", "p_sce", "collision")
@@ -48,10 +49,6 @@ TABLES = {"train": "table2", "zero-shot": "table3"}
 TABLE_TITLES = {"train": "Table II (training grid)", "zero-shot": "Table III (zero-shot grid)"}
 TRANSFER_MD = "transfer.md"
 TRANSFER_CSV = "transfer.csv"
-
-
-def _cell_key(row: dict[str, str]) -> str:
-    return Cell(row["map"], int(row["n_vehicles"]), float(row["cav_penetration"]), row["style_mix"]).key
 
 
 class _Results:
@@ -79,11 +76,9 @@ class _Results:
         for policy, run in members:
             meta, member_rows = self.load(backend, policy)
             keys = {
-                c.key
-                for c in cells
-                if run is None or reduction_of(c.map) == reduction_of(run.map)
+                c.key for c in cells if run is None or reduction_of(c.map) == reduction_of(run.map)
             }
-            rows += [r for r in member_rows if _cell_key(r) in keys]
+            rows += [r for r in member_rows if row_cell_key(r) in keys]
             metas.append(meta)
         meta = dict(metas[0], policy=label)
         if "trained_steps" in meta:
@@ -155,6 +150,7 @@ def _pooled_speeds(
 
 def write_figures(plan: Plan) -> list[Path]:
     """Training curves per training map; speed distributions per backend and evaluated map."""
+    from diacc.console import plural
     from diacc.plots import draw_speeds, plot_curves
 
     cfg = plan.config
@@ -167,8 +163,7 @@ def write_figures(plan: Plan) -> list[Path]:
     for backend in cfg.backends:
         for map_name in cell_maps:
             columns = [
-                (p, _pooled_speeds(plan, backend, [(p, None)], map_name))
-                for p in BASELINE_POLICIES
+                (p, _pooled_speeds(plan, backend, [(p, None)], map_name)) for p in BASELINE_POLICIES
             ]
             for variant in cfg.variants:
                 members = [
@@ -177,7 +172,8 @@ def write_figures(plan: Plan) -> list[Path]:
                     if r.variant == variant and r.backend == cfg.train_backend
                 ]
                 columns.append((variant, _pooled_speeds(plan, backend, members, map_name)))
-            written += draw_speeds(columns, out / f"speeds-{backend}-{map_name}")
+            title = f"{map_name} on {backend}: {plural(len(cfg.budget.seeds), 'seed')} pooled"
+            written += draw_speeds(columns, out / f"speeds-{backend}-{map_name}", title)
     return written
 
 
@@ -215,10 +211,10 @@ def transfer_rows(plan: Plan, results: _Results | None = None) -> list[TransferR
     results = results or _Results(plan)
     source, target = (list(side) for side in zip(*plan.transfer_pairs, strict=True))
     labels = ("pure-hdv", "source", "target")
+    members = ([("pure-hdv", None)], [(r.name, r) for r in source], [(r.name, r) for r in target])
     columns = [
-        results.column(TRANSFER_BACKEND, labels[0], [("pure-hdv", None)], plan.transfer_cells),
-        results.column(TRANSFER_BACKEND, labels[1], [(r.name, r) for r in source], plan.transfer_cells),
-        results.column(TRANSFER_BACKEND, labels[2], [(r.name, r) for r in target], plan.transfer_cells),
+        results.column(TRANSFER_BACKEND, label, mine, plan.transfer_cells)
+        for label, mine in zip(labels, members, strict=True)
     ]
     table = table_from_results(columns, rows=("speed",))
     return [

@@ -37,8 +37,8 @@ class Produced:
 
         lines = [
             f"results in {out}:",
-            f"  runs/       training runs (checkpoint.pt, progress.jsonl, tb/)",
-            f"  eval/       evaluation results per backend and policy (episodes.csv, speeds.csv.gz)",
+            "  runs/       training runs (checkpoint.pt, progress.jsonl, tb/)",
+            "  eval/       evaluation results per backend and policy (episodes.csv, speeds.csv.gz)",
             f"  tables/     {under('tables')}",
             f"  figures/    {under('figures')}",
         ]
@@ -77,7 +77,8 @@ def reproduce(plan: Plan, execution: Execution, argv: list[str], say: Say = prin
         fingerprint = inputs_fingerprint(plan)
         old = manifest.data["stages"]["outputs"]
         files = [plan.config.out_dir / f for f in old.get("files", [])]
-        rebuilt = not (old.get("fingerprint") == fingerprint and files and all(map(Path.exists, files)))
+        up_to_date = old.get("fingerprint") == fingerprint and files
+        rebuilt = not (up_to_date and all(path.exists() for path in files))
         if rebuilt:
             files = write_outputs(plan)
         manifest.stage(

@@ -254,7 +254,7 @@ def check_config(config: ReproduceConfig) -> None:
 
 
 # ----------------------------------------------------------------------------- cells
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def reduction_of(map_name: str) -> tuple[str, ...]:
     """The lane-reduction segment kinds of a map, e.g. ``("reduction50",)``."""
     return tuple(sorted({s.kind for s in load_map(map_name).segments} - {"multilane"}))
@@ -301,9 +301,7 @@ def make_plan(config: ReproduceConfig, notes: tuple[str, ...] = ()) -> Plan:
         runs += [r for pair in pairs for r in pair]
     runs = list(dict.fromkeys(runs))
     cells_of = {
-        g: tuple(
-            grid_cells(g, b.maps, b.zero_shot_cells_per_map if g == "zero-shot" else None)
-        )
+        g: tuple(grid_cells(g, b.maps, b.zero_shot_cells_per_map if g == "zero-shot" else None))
         for g in config.grids
     }
     for grid, cells in cells_of.items():
@@ -322,7 +320,9 @@ def make_plan(config: ReproduceConfig, notes: tuple[str, ...] = ()) -> Plan:
         if merged:
             jobs[(backend, policy)] = EvalJob(backend, policy, run, merged)
 
-    main_runs = [r for r in runs if r.variant in config.variants and r.backend == config.train_backend]
+    main_runs = [
+        r for r in runs if r.variant in config.variants and r.backend == config.train_backend
+    ]
     for backend in config.backends:
         for policy in BASELINE_POLICIES:
             add(backend, policy, None, all_cells)
@@ -339,32 +339,38 @@ def make_plan(config: ReproduceConfig, notes: tuple[str, ...] = ()) -> Plan:
 
 
 def describe_plan(plan: Plan) -> list[str]:
-    """The lines ``diacc reproduce`` prints before it starts."""
+    """The lines ``diacc reproduce`` prints before it starts: what, how much, where."""
+    from diacc.console import plural
+
     cfg, b = plan.config, plan.config.budget
-    seeds = ",".join(map(str, b.seeds))
+    main = len(cfg.variants) * len(b.maps) * len(b.seeds)
+    extra = len(plan.runs) - main
     steps = sum(plan.planned_steps(r) for r in plan.runs)
     episodes = sum(len(j.cells) for j in plan.jobs) * b.episodes_per_cell
     episode_steps = cfg.episode_steps or TrainConfig().sim.episode_steps
-    cell_counts = ", ".join(f"{g} {len(c)}" for g, c in plan.grid_cells.items())
+    cells = ", ".join(f"{g} {len(c)}" for g, c in plan.grid_cells.items())
+    if plan.transfer_pairs:
+        cells += f" (+ transfer {len(plan.transfer_cells)} on {TRANSFER_BACKEND})"
     lines = [
         f"diacc reproduce: budget {b.name}, results in {cfg.out_dir}",
-        f"  training: {len(plan.runs)} runs ({len(cfg.variants)} variants x {len(b.maps)} maps "
-        f"x {len(b.seeds)} seeds on {cfg.train_backend}"
-        + (f", + {len(plan.transfer_pairs)} diacc on {TRANSFER_BACKEND} for transfer" if plan.transfer_pairs else "")
-        + f"); {b.steps_per_run:,} steps each with {b.n_envs} envs; {steps:,} env steps in all",
-        f"  maps {', '.join(b.maps)}; seeds {seeds}; variants {', '.join(cfg.variants)}",
-        f"  evaluation: {len(plan.jobs)} (policy, backend) jobs on {', '.join(cfg.backends)}; "
-        f"cells: {cell_counts}"
-        + (f", transfer {len(plan.transfer_cells)}" if plan.transfer_pairs else "")
-        + f"; {b.episodes_per_cell} episodes per cell: {episodes:,} episodes "
-        f"(<= {episodes * episode_steps:,} decision steps)",
-        f"  style preset {cfg.style_preset}; evaluation episodes of "
-        f"{cfg.episode_steps or 'the policy’s own number of'} steps; "
-        f"transfer {'on' if plan.transfer_pairs else 'off'}",
+        f"  training: {plural(len(plan.runs), 'run')} = {plural(len(cfg.variants), 'variant')} "
+        f"x {plural(len(b.maps), 'map')} x {plural(len(b.seeds), 'seed')} on {cfg.train_backend}"
+        + (f" + {extra} for the transfer" if extra else "")
+        + f"; {b.steps_per_run:,} env steps each with {plural(b.n_envs, 'env')}; "
+        f"{steps:,} env steps in all",
+        f"    variants {', '.join(cfg.variants)}; maps {', '.join(b.maps)}; "
+        f"seeds {', '.join(map(str, b.seeds))}",
+        f"  evaluation: {len(plan.jobs)} jobs (policy x backend) on {', '.join(cfg.backends)}; "
+        f"cells: {cells}; {plural(b.episodes_per_cell, 'episode')} per cell: "
+        f"{episodes:,} episodes in all (at most {episodes * episode_steps:,} "
+        "decision steps)",
+        f"  HDV style preset {cfg.style_preset}; evaluation episodes of "
+        + (f"{cfg.episode_steps} steps" if cfg.episode_steps else "the policy's own length")
+        + f"; transfer {'on' if plan.transfer_pairs else 'off'}",
     ]
     if b.zero_shot_cells_per_map is not None and "zero-shot" in cfg.grids:
         lines.append(
-            f"  zero-shot: {b.zero_shot_cells_per_map} cell(s) per test map, not all 16 "
+            f"  zero-shot grid: {b.zero_shot_cells_per_map} of 16 cells per test map "
             "(--zero-shot-cells 0 for all)"
         )
     lines += [f"  {note}" for note in plan.notes]

@@ -26,7 +26,7 @@ from diacc.evaluate import EPISODES_FILE, META_FILE, check_cell_files, evaluate,
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec
 from diacc.reproduce.plan import EvalJob, Execution, Plan
-from diacc.scaleout import SweepRun, run_sweep, train_run
+from diacc.scaleout import SweepRun, run_state, run_sweep, train_run
 from diacc.threads import worker_environment
 from diacc.workpool import map_resilient
 
@@ -36,9 +36,12 @@ Say = Callable[[str], None]
 
 # ----------------------------------------------------------------------------- training
 def _train_local(configs: list[TrainConfig], progress: bool, say: Say) -> Iterator[SweepRun]:
+    """One run after the other in this process; a line before each run that has work."""
     for k, cfg in enumerate(configs, 1):
-        if progress:
-            say(f"[{k}/{len(configs)}] train {Path(cfg.run_dir).name} ...")
+        state = run_state(cfg)
+        if state != "finished":
+            how = "resuming from its checkpoint" if state == "checkpointed" else "starting"
+            say(f"[{k}/{len(configs)}] train {Path(cfg.run_dir).name}: {how}")
         yield train_run(cfg, progress)
 
 
@@ -71,17 +74,16 @@ def train_all(
         trained[name] = int(run.last.get("global_step", 0))
         took = f" in {run.wall_s:.1f} s" if run.wall_s else ""
         where = f" on {run.host}" if execution.engine == "ray" and run.host else ""
-        say(
-            f"[{k}/{len(configs)}] {run.status} {name}{where}{took}: "
-            f"{trained[name]:,} env steps"
-        )
+        say(f"[{k}/{len(configs)}] {run.status} {name}{where}{took}: {trained[name]:,} env steps")
         on_run(run)
     return trained
 
 
 # ----------------------------------------------------------------------------- evaluation
-def _cell_key(row: dict[str, str]) -> str:
-    return Cell(row["map"], int(row["n_vehicles"]), float(row["cav_penetration"]), row["style_mix"]).key
+def row_cell_key(row: dict[str, str]) -> str:
+    """The cell key of an ``episodes.csv`` row."""
+    cell = Cell(row["map"], int(row["n_vehicles"]), float(row["cav_penetration"]), row["style_mix"])
+    return cell.key
 
 
 def is_complete(out_dir: Path, cells: tuple[Cell, ...], episodes: int) -> bool:
@@ -91,7 +93,7 @@ def is_complete(out_dir: Path, cells: tuple[Cell, ...], episodes: int) -> bool:
         return False
     if any(check_cell_files(out_dir, c.key) != (list(range(episodes)), None) for c in cells):
         return False
-    have = {(_cell_key(r), int(r["episode"])) for r in read_csv(merged)}
+    have = {(row_cell_key(r), int(r["episode"])) for r in read_csv(merged)}
     return all((c.key, e) in have for c in cells for e in range(episodes))
 
 
