@@ -15,17 +15,20 @@ from diacc import cli_scale
 from diacc.config import BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError
 from diacc.grid import GRID_NAMES
 
-#: Kept here (not imported from diacc.reproduce.plan) so that ``--help`` stays light.
-BUDGET_HELP = """\
-budgets (explicit options override the preset's value):
-  tiny   200 steps per run, 1 env, seed 1, map train-50, 1 episode per cell,
-         1 zero-shot cell per test map, transfer on: the whole pipeline in
-         a few minutes (CI); its numbers are untrained noise
-  small  50,000 steps, 4 envs, seeds 1,2, maps train-25,train-50,
-         2 episodes per cell, all zero-shot cells, transfer on
-  paper  3,000,000 steps, 20 envs, seeds 1,2,3, maps train-25,train-50,
-         10 episodes per cell, all zero-shot cells, transfer on
 
+def _epilog() -> str:
+    import textwrap
+
+    from diacc.reproduce.plan import BUDGET_PURPOSE, BUDGETS, describe_budget
+
+    lines = ["budgets (explicit options override the preset's value):"]
+    for name, budget in BUDGETS.items():
+        text = f"{describe_budget(budget)}: {BUDGET_PURPOSE[name]}"
+        lines += textwrap.wrap(text, 78, initial_indent=f"  {name:<6} ", subsequent_indent=" " * 9)
+    return "\n".join(lines) + "\n\n" + LAYOUT_HELP
+
+
+LAYOUT_HELP = """\
 layout of --out:
   runs/<variant>-<map>-s<seed>[-<backend>]/   training runs
   eval/<backend>/<policy>/                    evaluation results
@@ -49,7 +52,7 @@ def add_parsers(sub) -> None:
         "curves, the speed distributions and the sim-to-sim transfer report.\n"
         "Prints the resolved plan first, one line per run and evaluation job, and\n"
         "where the files are at the end.",
-        epilog=BUDGET_HELP,
+        epilog=_epilog(),
     )
     p.add_argument("--out", type=Path, default=Path("results/reproduce"), help="results folder")
     p.add_argument("--budget", default="paper", help="tiny, small or paper (see below)")

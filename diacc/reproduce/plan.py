@@ -64,6 +64,33 @@ BUDGETS: dict[str, Budget] = {
 }
 
 
+#: What each preset is for, shown with its values in ``diacc reproduce --help``.
+BUDGET_PURPOSE = {
+    "tiny": "the whole pipeline in a few minutes (CI); its numbers are untrained noise",
+    "small": "the README learning check's 50k steps (there: diacc safe, not yet faster "
+    "than human traffic); hours",
+    "paper": "the paper's budget; 8-12 h per training run on 2 cores (README, Measured "
+    "figures), so days",
+}
+
+
+def describe_budget(budget: Budget) -> str:
+    """One line of a budget's values, e.g. for ``--help``."""
+    from diacc.console import plural
+
+    zero_shot = (
+        "all zero-shot cells"
+        if budget.zero_shot_cells_per_map is None
+        else f"{plural(budget.zero_shot_cells_per_map, 'zero-shot cell')} per test map"
+    )
+    return (
+        f"{budget.steps_per_run:,} steps per run, {plural(budget.n_envs, 'env')}, seeds "
+        f"{','.join(map(str, budget.seeds))}, maps {','.join(budget.maps)}, "
+        f"{plural(budget.episodes_per_cell, 'episode')} per cell, {zero_shot}, "
+        f"transfer {'on' if budget.transfer else 'off'}"
+    )
+
+
 @dataclass(frozen=True)
 class ReproduceConfig:
     """Everything that decides the results of ``diacc reproduce`` (not how it is executed)."""
