@@ -172,6 +172,15 @@ def test_deleted_cell_is_recomputed_and_equal(tiny, capsys):
     assert _pooled_speed(_episodes(job), TRAIN_CELL) == before  # seeded: the same episode
 
 
+def test_other_settings_into_the_same_folder_are_refused(tiny, capsys):
+    out, _ = tiny
+    before = (out / "manifest.json").read_text()
+    assert main([*TINY, "--out", str(out), "--envs", "2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("diacc: error: ") and "was trained with another n_envs" in err
+    assert "\n" not in err and (out / "manifest.json").read_text() == before
+
+
 @pytest.mark.parametrize(
     ("extra", "message"),
     [

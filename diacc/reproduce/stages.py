@@ -21,7 +21,7 @@ import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from diacc.config import TrainConfig
+from diacc.config import ConfigError, TrainConfig
 from diacc.evaluate import EPISODES_FILE, META_FILE, check_cell_files, evaluate, read_csv
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec
@@ -53,6 +53,29 @@ def _train_pool(configs: list[TrainConfig], jobs: int) -> Iterator[SweepRun]:
             train_run, configs, jobs, describe=lambda c: f"training run {Path(c.run_dir).name}"
         ):
             yield run
+
+
+def check_existing_runs(plan: Plan) -> None:
+    """One-line :class:`ConfigError` if a run directory holds a run with other settings.
+
+    Without it, a finished run trained with, say, other ``--envs`` would be
+    skipped (its step count is reached) and reported as if it had this
+    command's settings. Only the step budget may change (it resumes).
+    """
+    from diacc.algo.mappo import check_resume_config
+
+    for run in plan.runs:
+        path = plan.run_dir(run) / "config.json"
+        if not path.exists():
+            continue
+        saved = json.loads(path.read_text())
+        changed = check_resume_config(saved, plan.train_config(run), path, allow_change=True)
+        if changed:
+            raise ConfigError(
+                f"{path.parent} was trained with another {changed[0]} than this command asks "
+                "for (see its config.json); repeat the options it was started with, or choose "
+                "another --out"
+            )
 
 
 def train_all(
