@@ -274,3 +274,24 @@ def test_killed_reproduction_resumes_with_parallel_jobs(tmp_path):
     assert longer.stdout.count("resumed") == 20
     assert "results of the checkpoint at 200 steps removed; it has 300 now" in longer.stdout
     assert "cells already done" in longer.stdout  # baselines are kept
+
+
+@pytest.mark.slow
+def test_ray_engine_gives_the_local_results(tmp_path, capsys):
+    """Training runs and evaluation cells as Ray tasks on a local 2-CPU instance."""
+    pytest.importorskip("ray")
+    small = [*TINY, "--variants", "mappo,diacc", "--backends", "highway", "--no-transfer"]
+    assert main([*small, "--out", str(tmp_path / "local")]) == 0
+    ray_argv = [*small, "--out", str(tmp_path / "ray"), "--engine", "ray", "--ray-cpus", "2"]
+    try:
+        assert main(ray_argv) == 0
+    finally:
+        import ray
+
+        ray.shutdown()
+    stdout = capsys.readouterr().out
+    assert "[2/2] trained" in stdout and "[4/4] eval" in stdout
+    for policy in ("pure-hdv", "mappo-train-50-s1", "diacc-train-50-s1"):
+        local = _episodes(tmp_path / "local/eval/highway" / policy)
+        remote = _episodes(tmp_path / "ray/eval/highway" / policy)
+        assert [r["mean_speed_mps"] for r in remote] == [r["mean_speed_mps"] for r in local]
