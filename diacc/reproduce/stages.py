@@ -26,7 +26,7 @@ from diacc.evaluate import EPISODES_FILE, META_FILE, check_cell_files, evaluate,
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec
 from diacc.reproduce.plan import EvalJob, Execution, Plan
-from diacc.scaleout import SweepRun, run_state, run_sweep, train_run
+from diacc.scaleout import SweepRun, planned_steps, run_state, run_sweep, train_run
 from diacc.threads import worker_environment
 from diacc.workpool import map_resilient
 
@@ -60,15 +60,19 @@ def check_existing_runs(plan: Plan) -> None:
 
     Without it, a finished run trained with, say, other ``--envs`` would be
     skipped (its step count is reached) and reported as if it had this
-    command's settings. Only the step budget may change (it resumes).
+    command's settings. Only the step budget may change (it resumes). Fields
+    added to the config after the run was trained count as their defaults,
+    as when its checkpoint is evaluated.
     """
-    from diacc.algo.mappo import check_resume_config
+    from dataclasses import asdict
+
+    from diacc.algo.mappo import check_resume_config, config_from_checkpoint
 
     for run in plan.runs:
         path = plan.run_dir(run) / "config.json"
         if not path.exists():
             continue
-        saved = json.loads(path.read_text())
+        saved = asdict(config_from_checkpoint({"config": json.loads(path.read_text())}))
         changed = check_resume_config(saved, plan.train_config(run), path, allow_change=True)
         if changed:
             raise ConfigError(
@@ -91,13 +95,22 @@ def train_all(
         results = _train_pool(configs, execution.jobs)
     else:
         results = _train_local(configs, execution.progress, say)
+    planned = {Path(cfg.run_dir).name: planned_steps(cfg) for cfg in configs}
     trained = {}
     for k, run in enumerate(results, 1):
         name = Path(run.run_dir).name
         trained[name] = int(run.last.get("global_step", 0))
         took = f" in {run.wall_s:.1f} s" if run.wall_s else ""
         where = f" on {run.host}" if execution.engine == "ray" and run.host else ""
-        say(f"[{k}/{len(configs)}] {run.status} {name}{where}{took}: {trained[name]:,} env steps")
+        more = (
+            f" (more than the {planned[name]:,} planned: an earlier --steps was larger)"
+            if trained[name] > planned[name]
+            else ""
+        )
+        say(
+            f"[{k}/{len(configs)}] {run.status} {name}{where}{took}: "
+            f"{trained[name]:,} env steps{more}"
+        )
         on_run(run)
     return trained
 
