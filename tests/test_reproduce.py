@@ -11,6 +11,7 @@ checked against the evaluation files they are computed from.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import csv
 import io
 import json
@@ -222,6 +223,11 @@ def test_budget_presets_and_overrides():
     assert {c.map for c in job.cells} == {"train-25", "test-25"} and len(job.cells) == 17
     baseline = next(j for j in plan.jobs if j.policy == "pure-hdv" and j.backend == "highway")
     assert len(baseline.cells) == 34
+    # the style preset reaches the training config (and, through EvalSettings, evaluation)
+    plan = make_plan(resolve_config("tiny", style_preset="paper-congestion")[0])
+    cfg = plan.train_config(plan.runs[0])
+    assert '"style_preset": "paper-congestion"' in json.dumps(dataclasses.asdict(cfg))
+    assert cfg.total_steps == 200 and cfg.n_envs == 1 and cfg.map == "train-50"
 
 
 def test_sumo_training_turns_the_default_transfer_off_and_says_so(capsys):

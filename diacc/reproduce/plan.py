@@ -24,7 +24,14 @@ import functools
 from dataclasses import dataclass
 from pathlib import Path
 
-from diacc.config import BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError, TrainConfig
+from diacc.config import (
+    BACKENDS,
+    STYLE_PRESETS,
+    VARIANTS,
+    ConfigError,
+    SimConfig,
+    TrainConfig,
+)
 from diacc.grid import GRID_NAMES, Cell, load_grid
 from diacc.maps import load_map
 
@@ -101,7 +108,7 @@ class ReproduceConfig:
     backends: tuple[str, ...] = BACKENDS  # evaluated on
     train_backend: str = DEFAULT_TRAIN_BACKEND
     grids: tuple[str, ...] = GRID_NAMES
-    style_preset: str = TrainConfig().sim.style_preset  # HDV styles, training and evaluation
+    style_preset: str = SimConfig.style_preset  # HDV styles, training and evaluation
     episode_steps: int | None = None  # evaluation episode length; None: the policy's own
     device: str = "cpu"  # torch device of the PPO updates
     train_sets: tuple[str, ...] = ()  # KEY=VALUE training overrides, as `diacc train --set`
@@ -173,7 +180,7 @@ class Plan:
         cfg = self.config
         args = argparse.Namespace(
             config=None,
-            set=[f"sim.style_preset={cfg.style_preset}", *cfg.train_sets],
+            set=[f"{_sim_key()}.style_preset={cfg.style_preset}", *cfg.train_sets],
             variant=run.variant,
             backend=run.backend,
             map=run.map,
@@ -190,6 +197,24 @@ class Plan:
         from diacc.scaleout import planned_steps
 
         return planned_steps(self.train_config(run))
+
+
+def _sim_key(node: object | None = None, prefix: str = "") -> str:
+    """Dotted key of the :class:`SimConfig` inside :class:`TrainConfig` (``"sim"`` today).
+
+    Found by walking the config rather than written out, so that moving the
+    simulation settings inside the training config does not break this command.
+    """
+    node = TrainConfig() if node is None else node
+    for f in dataclasses.fields(node):
+        value = getattr(node, f.name)
+        if isinstance(value, SimConfig):
+            return prefix + f.name
+        if dataclasses.is_dataclass(value):
+            found = _sim_key(value, f"{prefix}{f.name}.")
+            if found:
+                return found
+    return ""
 
 
 # ----------------------------------------------------------------------------- resolution
@@ -374,7 +399,7 @@ def describe_plan(plan: Plan) -> list[str]:
     extra = len(plan.runs) - main
     steps = sum(plan.planned_steps(r) for r in plan.runs)
     episodes = sum(len(j.cells) for j in plan.jobs) * b.episodes_per_cell
-    episode_steps = cfg.episode_steps or TrainConfig().sim.episode_steps
+    episode_steps = cfg.episode_steps or SimConfig.episode_steps
     cells = ", ".join(f"{g} {len(c)}" for g, c in plan.grid_cells.items())
     if plan.transfer_pairs:
         cells += f" (+ transfer {len(plan.transfer_cells)} on {TRANSFER_BACKEND})"
