@@ -11,8 +11,8 @@ checked against the evaluation files they are computed from.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import csv
+import dataclasses
 import io
 import json
 import re
