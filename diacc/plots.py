@@ -218,24 +218,40 @@ def plot_curves(run_dirs: list[str | Path], out: str | Path, smooth: int = 1) ->
 
 
 # ----------------------------------------------------------------------------- speeds
-def load_speeds(
-    result_dir: str | Path, map_name: str | None = None
-) -> tuple[str, dict[str, np.ndarray]]:
-    """(policy label, segment kind -> speed samples (S,)) of one results directory."""
+def load_speeds_by_map(result_dir: str | Path) -> tuple[str, dict[str, dict[str, np.ndarray]]]:
+    """(policy label, map -> segment kind -> speed samples (S,)) of one results directory.
+
+    One pass over the speeds file for every map in it (``diacc reproduce``
+    draws one figure per map from the same directories).
+    """
     meta, _ = load_episodes(result_dir)
     path = Path(result_dir) / SPEEDS_FILE
     if not path.exists():
         raise PlotError(f"results directory {result_dir} has no {SPEEDS_FILE}")
     rows = read_csv(path)
-    if map_name is not None:
-        rows = [r for r in rows if r["map"] == map_name]
-        if not rows:
-            raise PlotError(
-                f"results directory {result_dir} has no speed samples on map {map_name!r}"
-            )
+    maps = np.array([r["map"] for r in rows])
     kinds = np.array([r["segment_kind"] for r in rows])
     speeds = np.array([float(r["speed_mps"]) for r in rows])
-    return meta["policy"], {kind: speeds[kinds == kind] for kind in SEGMENT_KINDS}
+    by_map = {
+        m: {kind: speeds[(maps == m) & (kinds == kind)] for kind in SEGMENT_KINDS}
+        for m in dict.fromkeys(maps.tolist())
+    }
+    return meta["policy"], by_map
+
+
+def load_speeds(
+    result_dir: str | Path, map_name: str | None = None
+) -> tuple[str, dict[str, np.ndarray]]:
+    """(policy label, segment kind -> speed samples (S,)) of one results directory."""
+    label, by_map = load_speeds_by_map(result_dir)
+    if map_name is None:
+        return label, {
+            kind: np.concatenate([by_kind[kind] for by_kind in by_map.values()] or [np.zeros(0)])
+            for kind in SEGMENT_KINDS
+        }
+    if map_name not in by_map:
+        raise PlotError(f"results directory {result_dir} has no speed samples on map {map_name!r}")
+    return label, by_map[map_name]
 
 
 def gaussian_kde(samples: np.ndarray, grid: np.ndarray) -> np.ndarray:

@@ -33,6 +33,7 @@ import numpy as np
 from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, load_episodes
 from diacc.grid import Cell
 from diacc.maps import SEGMENT_KINDS
+from diacc.plots import PlotError
 from diacc.reproduce.plan import (
     BASELINE_POLICIES,
     TRANSFER_BACKEND,
@@ -57,12 +58,22 @@ class _Results:
     def __init__(self, plan: Plan) -> None:
         self.plan = plan
         self._cache: dict[Path, tuple[dict, list[dict[str, str]]]] = {}
+        self._speeds: dict[Path, dict[str, dict[str, np.ndarray]]] = {}
 
     def load(self, backend: str, policy: str) -> tuple[dict, list[dict[str, str]]]:
         path = self.plan.config.out_dir / "eval" / backend / policy
         if path not in self._cache:
             self._cache[path] = load_episodes(path)
         return self._cache[path]
+
+    def speeds(self, backend: str, policy: str) -> dict[str, dict[str, np.ndarray]]:
+        """Map -> segment kind -> speed samples of one directory, read once."""
+        from diacc.plots import load_speeds_by_map
+
+        path = self.plan.config.out_dir / "eval" / backend / policy
+        if path not in self._speeds:
+            self._speeds[path] = load_speeds_by_map(path)[1]
+        return self._speeds[path]
 
     def column(
         self, backend: str, label: str, members: list[tuple[str, RunSpec | None]], cells
@@ -134,25 +145,27 @@ def write_tables(plan: Plan, results: _Results | None = None) -> list[Path]:
 
 # ----------------------------------------------------------------------------- figures
 def _pooled_speeds(
-    plan: Plan, backend: str, members: list[tuple[str, RunSpec | None]], map_name: str
+    results: _Results, backend: str, members: list[tuple[str, RunSpec | None]], map_name: str
 ) -> dict[str, np.ndarray]:
-    from diacc.plots import load_speeds
-
+    """Segment kind -> speed samples on one map, pooled over ``members`` (as in the tables)."""
     parts: dict[str, list[np.ndarray]] = {k: [] for k in SEGMENT_KINDS}
     for policy, run in members:
         if run is not None and reduction_of(run.map) != reduction_of(map_name):
             continue
-        _, by_kind = load_speeds(plan.config.out_dir / "eval" / backend / policy, map_name)
-        for kind, samples in by_kind.items():
+        by_map = results.speeds(backend, policy)
+        if map_name not in by_map:
+            raise PlotError(f"eval/{backend}/{policy} has no speed samples on map {map_name}")
+        for kind, samples in by_map[map_name].items():
             parts[kind].append(samples)
     return {k: np.concatenate(v) if v else np.zeros(0) for k, v in parts.items()}
 
 
-def write_figures(plan: Plan) -> list[Path]:
+def write_figures(plan: Plan, results: _Results | None = None) -> list[Path]:
     """Training curves per training map; speed distributions per backend and evaluated map."""
     from diacc.console import plural
     from diacc.plots import draw_speeds, plot_curves
 
+    results = results or _Results(plan)
     cfg = plan.config
     out = cfg.out_dir / "figures"
     written = []
@@ -163,7 +176,8 @@ def write_figures(plan: Plan) -> list[Path]:
     for backend in cfg.backends:
         for map_name in cell_maps:
             columns = [
-                (p, _pooled_speeds(plan, backend, [(p, None)], map_name)) for p in BASELINE_POLICIES
+                (p, _pooled_speeds(results, backend, [(p, None)], map_name))
+                for p in BASELINE_POLICIES
             ]
             for variant in cfg.variants:
                 members = [
@@ -171,7 +185,7 @@ def write_figures(plan: Plan) -> list[Path]:
                     for r in plan.runs
                     if r.variant == variant and r.backend == cfg.train_backend
                 ]
-                columns.append((variant, _pooled_speeds(plan, backend, members, map_name)))
+                columns.append((variant, _pooled_speeds(results, backend, members, map_name)))
             title = f"{map_name} on {backend}: {plural(len(cfg.budget.seeds), 'seed')} pooled"
             written += draw_speeds(columns, out / f"speeds-{backend}-{map_name}", title)
     return written
@@ -316,7 +330,7 @@ def write_outputs(plan: Plan) -> list[Path]:
     """Tables, figures and (if planned) the transfer report; returns the files written."""
     results = _Results(plan)
     written = write_tables(plan, results)
-    written += write_figures(plan)
+    written += write_figures(plan, results)
     if plan.transfer_pairs:
         written += write_transfer(plan, results)
     return written
