@@ -503,13 +503,15 @@ def evaluate(
     workers: int = 1,
     progress: bool = True,
     engine: Engine | None = None,
+    on_cell: Callable[[Cell, list[EpisodeResult]], None] | None = None,
 ) -> EvalSummary:
     """Evaluate a policy on every cell for ``episodes`` seeded episodes (see module docstring).
 
     ``engine`` runs the cell tasks (default :func:`run_local`; or
     :class:`diacc.scaleout.RayEngine`, one Ray task per cell); recoveries it
     reports, and damaged cell files found here, are logged to stderr and to
-    ``<out_dir>/eval.log``.
+    ``<out_dir>/eval.log``. ``on_cell`` is called with each cell and its
+    episodes once its files are written (``diacc reproduce`` prints a line).
     """
     out_dir = Path(out_dir)
     if episodes < 1:
@@ -551,7 +553,10 @@ def evaluate(
                 for result in task_result.results:
                     pending[result.cell.key].append(result)
                     if len(pending[result.cell.key]) == episodes:
-                        write_cell(out_dir, result.cell, pending.pop(result.cell.key))
+                        finished = pending.pop(result.cell.key)
+                        write_cell(out_dir, result.cell, finished)
+                        if on_cell is not None:
+                            on_cell(result.cell, finished)
                 bar.update(len(task_result.results))
         finally:
             bar.close()

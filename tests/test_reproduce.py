@@ -95,7 +95,8 @@ def test_tiny_budget_writes_every_output(tiny):
     )
     assert "[4/5] resumed diacc-train-50-s1" in stdout  # the interrupted run continued
     assert "[1/5] trained mappo-train-50-s1" in stdout
-    assert "[13/13] eval diacc-train-50-s1-sumo on sumo: 1 cells run" in stdout
+    assert "[13/13] eval diacc-train-50-s1-sumo on sumo: 1 of 1 cells to run" in stdout
+    assert f"  cell [1/1] {TRAIN_CELL}: mean speed " in stdout
     manifest = json.loads((out / "manifest.json").read_text())
     assert all(stage["finished"] for stage in manifest["stages"].values())
     assert manifest["invocations"][-1]["exit"] == "finished"
@@ -153,7 +154,7 @@ def test_second_invocation_only_checks(tiny, capsys):
     seconds = time.perf_counter() - start
     stdout = capsys.readouterr().out
     assert stdout.count("skipped") == 5 and "trained" not in stdout.replace("trained on", "")
-    assert stdout.count("cells already done") == 13 and "cells run" not in stdout
+    assert stdout.count("cells already done") == 13 and "cells to run" not in stdout
     assert "outputs were up to date" in stdout
     assert before == {rel: (out / rel).stat().st_mtime_ns for rel in before}
     assert seconds < 60  # a few seconds on an idle machine: nothing is loaded or simulated
@@ -168,8 +169,8 @@ def test_deleted_cell_is_recomputed_and_equal(tiny, capsys):
     (job / "cells" / f"{TRAIN_CELL}.episodes.csv").unlink()
     assert main([*TINY, "--out", str(out)]) == 0
     stdout = capsys.readouterr().out
-    assert "eval mappo-train-50-s1 on sumo: 1 cells run, 1 already done" in stdout
-    assert stdout.count("cells run") == 1
+    assert "eval mappo-train-50-s1 on sumo: 1 of 2 cells to run" in stdout
+    assert stdout.count("cells to run") == 1 and stdout.count("  cell [") == 1
     assert _pooled_speed(_episodes(job), TRAIN_CELL) == before  # seeded: the same episode
 
 

@@ -22,6 +22,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from diacc.config import ConfigError, TrainConfig
+from diacc.console import plural
 from diacc.evaluate import EPISODES_FILE, META_FILE, check_cell_files, evaluate, read_csv
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec
@@ -147,6 +148,21 @@ def _drop_stale(out_dir: Path, trained_steps: int, say: Say) -> None:
         shutil.rmtree(out_dir)
 
 
+def _cell_reporter(n_cells: int, say: Say) -> Callable[[Cell, list], None]:
+    """The line printed when an evaluation cell is finished: its mean speed, as in the tables."""
+    count = iter(range(1, n_cells + 1))
+
+    def report(cell: Cell, results: list) -> None:
+        samples = sum(r.row["n_speed_samples"] for r in results)
+        speed = sum(r.row["mean_speed_mps"] * r.row["n_speed_samples"] for r in results)
+        say(
+            f"  cell [{next(count)}/{n_cells}] {cell.key}: mean speed "
+            f"{speed / max(samples, 1):.2f} m/s over {plural(len(results), 'episode')}"
+        )
+
+    return report
+
+
 def job_spec(plan: Plan, job: EvalJob) -> PolicySpec:
     """The policy an evaluation job runs (checkpoints checked against their variant)."""
     if job.run is None:
@@ -182,7 +198,11 @@ def evaluate_all(
         settings = EvalSettings(
             backend=job.backend, episode_steps=cfg.episode_steps, style_preset=cfg.style_preset
         )
-        summary = evaluate(
+        todo = [
+            c for c in job.cells if check_cell_files(out_dir, c.key)[0] != list(range(episodes))
+        ]
+        say(f"{label}: {len(todo)} of {len(job.cells)} cells to run")
+        evaluate(
             job_spec(plan, job),
             list(job.cells),
             episodes,
@@ -191,9 +211,6 @@ def evaluate_all(
             workers=execution.jobs,
             progress=execution.progress,
             engine=engine,
-        )
-        say(
-            f"{label}: {len(summary.cells_run)} cells run, "
-            f"{len(summary.cells_skipped)} already done"
+            on_cell=_cell_reporter(len(todo), say),
         )
         on_job(job)
