@@ -96,7 +96,7 @@ def test_tiny_budget_writes_every_output(tiny):
     assert "[4/5] resumed diacc-train-50-s1" in stdout  # the interrupted run continued
     assert "[1/5] trained mappo-train-50-s1" in stdout
     assert "[13/13] eval diacc-train-50-s1-sumo on sumo: 1 of 1 cells to run" in stdout
-    assert f"  cell [1/1] {TRAIN_CELL}: mean speed " in stdout
+    assert f"  [13/13] cell [1/1] {TRAIN_CELL}: mean speed " in stdout
     manifest = json.loads((out / "manifest.json").read_text())
     assert all(stage["finished"] for stage in manifest["stages"].values())
     assert manifest["invocations"][-1]["exit"] == "finished"
@@ -170,7 +170,7 @@ def test_deleted_cell_is_recomputed_and_equal(tiny, capsys):
     assert main([*TINY, "--out", str(out)]) == 0
     stdout = capsys.readouterr().out
     assert "eval mappo-train-50-s1 on sumo: 1 of 2 cells to run" in stdout
-    assert stdout.count("cells to run") == 1 and stdout.count("  cell [") == 1
+    assert stdout.count("cells to run") == 1 and stdout.count(" cell [") == 1
     assert _pooled_speed(_episodes(job), TRAIN_CELL) == before  # seeded: the same episode
 
 

@@ -19,7 +19,9 @@ from __future__ import annotations
 import json
 import shutil
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from diacc.config import ConfigError, TrainConfig
 from diacc.console import plural
@@ -148,7 +150,7 @@ def _drop_stale(out_dir: Path, trained_steps: int, say: Say) -> None:
         shutil.rmtree(out_dir)
 
 
-def _cell_reporter(n_cells: int, say: Say) -> Callable[[Cell, list], None]:
+def _cell_reporter(tag: str, n_cells: int, say: Say) -> Callable[[Cell, list], None]:
     """The line printed when an evaluation cell is finished: its mean speed, as in the tables."""
     count = iter(range(1, n_cells + 1))
 
@@ -156,7 +158,7 @@ def _cell_reporter(n_cells: int, say: Say) -> Callable[[Cell, list], None]:
         samples = sum(r.row["n_speed_samples"] for r in results)
         speed = sum(r.row["mean_speed_mps"] * r.row["n_speed_samples"] for r in results)
         say(
-            f"  cell [{next(count)}/{n_cells}] {cell.key}: mean speed "
+            f"  {tag} cell [{next(count)}/{n_cells}] {cell.key}: mean speed "
             f"{speed / max(samples, 1):.2f} m/s over {plural(len(results), 'episode')}"
         )
 
@@ -170,6 +172,48 @@ def job_spec(plan: Plan, job: EvalJob) -> PolicySpec:
     return PolicySpec(str(plan.run_dir(job.run) / "checkpoint.pt"), job.run.variant)
 
 
+@dataclass(frozen=True)
+class _JobTask:
+    """One evaluation job as a picklable task (what a pool worker runs)."""
+
+    plan: Plan
+    job: EvalJob
+    tag: str  # "[k/n]", printed with its cells
+    workers: int  # evaluation workers of this job (1 inside a job-level pool)
+    progress: bool
+    engine: Any = None  # RayEngine or None (local)
+
+
+def _say(line: str) -> None:
+    print(line, flush=True)
+
+
+def _unfinished(plan: Plan, job: EvalJob) -> list[Cell]:
+    episodes = list(range(plan.config.budget.episodes_per_cell))
+    return [c for c in job.cells if check_cell_files(plan.eval_dir(job), c.key)[0] != episodes]
+
+
+def run_job(task: _JobTask, say: Say = _say) -> int:
+    """Evaluate one job's unfinished cells (a line per cell); returns how many it ran."""
+    plan, job = task.plan, task.job
+    cfg = plan.config
+    settings = EvalSettings(
+        backend=job.backend, episode_steps=cfg.episode_steps, style_preset=cfg.style_preset
+    )
+    summary = evaluate(
+        job_spec(plan, job),
+        list(job.cells),
+        cfg.budget.episodes_per_cell,
+        plan.eval_dir(job),
+        settings,
+        workers=task.workers,
+        progress=task.progress,
+        engine=task.engine,
+        on_cell=_cell_reporter(task.tag, len(_unfinished(plan, job)), say),
+    )
+    return len(summary.cells_run)
+
+
 def evaluate_all(
     plan: Plan,
     execution: Execution,
@@ -177,15 +221,22 @@ def evaluate_all(
     say: Say,
     on_job: Callable[[EvalJob], None],
 ) -> None:
-    """Run every evaluation job of the plan that is not complete yet."""
+    """Run every evaluation job of the plan that is not complete yet.
+
+    Locally with ``jobs`` > 1, whole jobs run in parallel worker processes
+    (one pool for all of them: a pool per job would pay its start-up, about a
+    torch import per worker, for every policy). One job at a time otherwise,
+    its cells spread over Ray tasks with ``--engine ray``.
+    """
     engine = None
     if execution.engine == "ray":
         from diacc.scaleout import RayEngine
 
         engine = RayEngine(execution.ray_address, execution.ray_cpus)
-    cfg = plan.config
-    episodes = cfg.budget.episodes_per_cell
+    episodes = plan.config.budget.episodes_per_cell
     n = len(plan.jobs)
+    pooled = execution.engine == "local" and execution.jobs > 1
+    tasks = []
     for k, job in enumerate(plan.jobs, 1):
         out_dir = plan.eval_dir(job)
         label = f"[{k}/{n}] eval {job.policy} on {job.backend}"
@@ -195,22 +246,32 @@ def evaluate_all(
             say(f"{label}: all {len(job.cells)} cells already done")
             on_job(job)
             continue
-        settings = EvalSettings(
-            backend=job.backend, episode_steps=cfg.episode_steps, style_preset=cfg.style_preset
-        )
-        todo = [
-            c for c in job.cells if check_cell_files(out_dir, c.key)[0] != list(range(episodes))
-        ]
-        say(f"{label}: {len(todo)} of {len(job.cells)} cells to run")
-        evaluate(
-            job_spec(plan, job),
-            list(job.cells),
-            episodes,
-            out_dir,
-            settings,
-            workers=execution.jobs,
-            progress=execution.progress,
+        task = _JobTask(
+            plan,
+            job,
+            f"[{k}/{n}]",
+            workers=1,
+            progress=execution.progress and not pooled,
             engine=engine,
-            on_cell=_cell_reporter(len(todo), say),
         )
+        if pooled:
+            tasks.append(task)
+            continue
+        say(f"{label}: {len(_unfinished(plan, job))} of {len(job.cells)} cells to run")
+        run_job(task, say)
         on_job(job)
+    if not tasks:
+        return
+    with worker_environment():
+        for i, ran in map_resilient(
+            run_job,
+            tasks,
+            execution.jobs,
+            describe=lambda t: f"evaluation of {t.job.policy} on {t.job.backend}",
+        ):
+            job = tasks[i].job
+            say(
+                f"{tasks[i].tag} eval {job.policy} on {job.backend}: done, {ran} of "
+                f"{len(job.cells)} cells run"
+            )
+            on_job(job)
