@@ -15,6 +15,7 @@ import csv
 import dataclasses
 import io
 import json
+import os
 import re
 import time
 from pathlib import Path
@@ -174,6 +175,21 @@ def test_deleted_cell_is_recomputed_and_equal(tiny, capsys):
     assert _pooled_speed(_episodes(job), TRAIN_CELL) == before  # seeded: the same episode
 
 
+def test_merge_cut_short_is_redone(tiny, capsys):
+    """A kill between the merged episodes file and the merged speeds file (found by the slow
+    kill test): the job is merged again instead of being taken as done."""
+    out, _ = tiny
+    job = out / "eval/highway/pure-hdv"
+    speeds = (job / "speeds.csv.gz").read_bytes()
+    (job / "speeds.csv.gz").unlink()
+    assert main([*TINY, "--out", str(out)]) == 0
+    assert "eval pure-hdv on highway: 0 of 2 cells to run" in capsys.readouterr().out
+    assert (job / "speeds.csv.gz").read_bytes() == speeds
+    os.utime(job / "speeds.csv.gz", ns=(1, 1))  # older than episodes.csv: merge cut short
+    assert main([*TINY, "--out", str(out)]) == 0
+    assert "eval pure-hdv on highway: 0 of 2 cells to run" in capsys.readouterr().out
+
+
 def test_other_settings_into_the_same_folder_are_refused(tiny, capsys):
     out, _ = tiny
     before = (out / "manifest.json").read_text()
@@ -249,7 +265,6 @@ def test_zero_shot_cells_are_spread_over_each_test_map():
 def test_killed_reproduction_resumes_with_parallel_jobs(tmp_path):
     """Two seeds, both maps, 2 local jobs; killed during evaluation, then resumed;
     then a longer budget re-trains and re-evaluates every checkpoint."""
-    import os
     import signal
     import subprocess
     import sys

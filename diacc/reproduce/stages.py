@@ -25,7 +25,14 @@ from typing import Any
 
 from diacc.config import ConfigError, TrainConfig
 from diacc.console import plural
-from diacc.evaluate import EPISODES_FILE, META_FILE, check_cell_files, evaluate, read_csv
+from diacc.evaluate import (
+    EPISODES_FILE,
+    META_FILE,
+    SPEEDS_FILE,
+    check_cell_files,
+    evaluate,
+    read_csv,
+)
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec
 from diacc.reproduce.plan import EvalJob, Execution, Plan
@@ -126,9 +133,18 @@ def row_cell_key(row: dict[str, str]) -> str:
 
 
 def is_complete(out_dir: Path, cells: tuple[Cell, ...], episodes: int) -> bool:
-    """Whether every cell is intact with exactly ``episodes`` episodes and merged."""
-    merged = out_dir / EPISODES_FILE
-    if not merged.exists() or not (out_dir / META_FILE).exists():
+    """Whether every cell is intact with exactly ``episodes`` episodes and merged.
+
+    :func:`diacc.evaluate.merge_cells` writes the merged episodes file, then
+    the merged speeds file: a speeds file older than the episodes file (or
+    none) means a merge was cut short, and the job is handed to ``evaluate``,
+    which merges again. (A copy that reorders modification times only costs
+    that re-merge.)
+    """
+    merged, speeds = out_dir / EPISODES_FILE, out_dir / SPEEDS_FILE
+    if not merged.exists() or not speeds.exists() or not (out_dir / META_FILE).exists():
+        return False
+    if speeds.stat().st_mtime_ns < merged.stat().st_mtime_ns:
         return False
     if any(check_cell_files(out_dir, c.key) != (list(range(episodes)), None) for c in cells):
         return False
