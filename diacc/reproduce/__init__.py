@@ -9,4 +9,8 @@
   all computed from the evaluation files.
 * :mod:`.manifest`: ``manifest.json``: invocations, versions, plan, and which
   stages are finished.
+* :mod:`.pipeline`: the stages in order, each skipping what is done.
+
+The command line is :mod:`diacc.cli_reproduce`; README "Reproducing the paper"
+has the budgets and the output layout.
 """
