@@ -10,7 +10,12 @@ baseline exactly like a checkpoint:
 * :attr:`Policy.commands_cavs`: whether it sends actions at all (the
   baselines do not, so the evaluator steps the backend directly and skips
   observations and PSAR);
-* :meth:`Policy.act`: greedy (argmax) actions from the actor with its GRU state.
+* :meth:`Policy.act`: actions from the actor with its GRU state: greedy
+  (argmax, the default) or, with ``PolicySpec.sampled``, drawn from the
+  policy's distribution with a generator seeded by the episode seed (the
+  stochastic policy that training optimised; an under-trained actor's argmax
+  can repeat one suppressed action forever, e.g. ``accelerate`` while
+  standing at a lane end, which sampling does not).
 
 Policies are built from a :class:`PolicySpec` (a name or a checkpoint path),
 which is what crosses process boundaries: each worker loads its own copy.
@@ -73,10 +78,12 @@ class PolicySpec:
         name: ``pure-hdv``, ``cooperative`` or the path of a ``checkpoint.pt``.
         variant: if set, a checkpoint must be of this variant (guards against
             comparing the wrong runs).
+        sampled: a checkpoint samples its actions instead of taking the argmax.
     """
 
     name: str
     variant: str | None = None
+    sampled: bool = False
 
     @property
     def is_baseline(self) -> bool:
@@ -109,7 +116,7 @@ class Policy:
         """Forget any recurrent state (called before the first :meth:`act`)."""
 
     def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
-        """(C,) int64 greedy actions for every CAV slot."""
+        """(C,) int64 actions for every CAV slot."""
         raise NotImplementedError
 
     def describe(self) -> dict:
@@ -174,11 +181,11 @@ class ScriptedPolicy(Policy):
 
 
 class CheckpointPolicy(Policy):
-    """A trained actor acting greedily, with PSAR if its variant uses PSAR."""
+    """A trained actor, greedy or sampling, with PSAR if its variant uses PSAR."""
 
     commands_cavs = True
 
-    def __init__(self, path: str | Path, variant: str | None = None) -> None:
+    def __init__(self, path: str | Path, variant: str | None = None, sampled: bool = False) -> None:
         import torch
 
         from diacc.algo.mappo import (
@@ -210,10 +217,12 @@ class CheckpointPolicy(Policy):
         self.actor = agent.actor.eval()
         self.hidden_size = cfg.model.gru_hidden
         self.base = env_config(cfg)  # use_psar as the variant says (mappo.PSAR_VARIANTS)
-        self.label = cfg.variant
+        self.sampled = sampled
+        self.label = f"{cfg.variant} (sampled)" if sampled else cfg.variant
         self.update = int(payload.get("update", 0))
         self.global_step = int(payload.get("global_step", 0))
         self._hidden = torch.zeros(0, self.hidden_size)
+        self._generator = torch.Generator()
 
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
         if cell.n_vehicles > self.base.obs.max_vehicles:
@@ -227,6 +236,7 @@ class CheckpointPolicy(Policy):
         import torch
 
         self._hidden = torch.zeros(n_cavs, self.hidden_size)
+        self._generator.manual_seed(seed)
 
     def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
         import torch
@@ -237,24 +247,32 @@ class CheckpointPolicy(Policy):
         start = torch.full((n_cavs,), bool(first_step))
         with torch.no_grad():
             logits, self._hidden = self.actor(to_tensors(actor_obs), self._hidden, start)
-        return logits.argmax(-1).cpu().numpy().astype(np.int64)  # (C,)
+            if self.sampled:
+                probs = torch.softmax(logits, -1)  # (C, 5)
+                action = torch.multinomial(probs, 1, generator=self._generator)[:, 0]
+            else:
+                action = logits.argmax(-1)
+        return action.cpu().numpy().astype(np.int64)  # (C,)
 
     def describe(self) -> dict:
         return {
             "policy": self.label,
             "checkpoint": str(self.path.resolve()),
             "update": self.update,
+            "actions": "sampled" if self.sampled else "greedy",
             "trained_on": self.train_config.backend,
             "trained_steps": self.global_step,  # budget, shown in table captions
             "total_steps": self.train_config.total_steps,
         }
 
 
-def parse_policy(name: str, variant: str | None = None) -> PolicySpec:
+def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -> PolicySpec:
     """Check a ``--policy`` value: a baseline name or an existing checkpoint file."""
     if name in BASELINES or PolicySpec(name).is_scripted:
         if variant is not None:
             raise PolicyError(f"--variant applies to checkpoints, not to the {name} baseline")
+        if sampled:
+            raise PolicyError(f"--actions sampled applies to checkpoints, not to {name}")
         return PolicySpec(name)
     path = Path(name)
     if path.is_dir():
@@ -268,7 +286,7 @@ def parse_policy(name: str, variant: str | None = None) -> PolicySpec:
         )
     if not path.exists():
         raise PolicyError(f"checkpoint {path} does not exist")
-    return PolicySpec(str(path), variant)
+    return PolicySpec(str(path), variant, sampled)
 
 
 def build_policy(spec: PolicySpec) -> Policy:
@@ -279,4 +297,4 @@ def build_policy(spec: PolicySpec) -> Policy:
         return CooperativePolicy()
     if spec.is_scripted:
         return ScriptedPolicy(spec.name)
-    return CheckpointPolicy(spec.name, spec.variant)
+    return CheckpointPolicy(spec.name, spec.variant, spec.sampled)

@@ -14,6 +14,7 @@ import torch
 from diacc.algo.mappo import make_agent, save_checkpoint
 from diacc.cli import main
 from diacc.config import ModelConfig, TrainConfig
+from diacc.env import BottleneckEnv
 from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, evaluate, read_csv
 from diacc.grid import Cell, GridError, load_grid
 from diacc.maps import SEGMENT_KINDS
@@ -192,6 +193,27 @@ def test_checkpoint_policy_greedy_and_deterministic(tmp_path):
     assert row["policy"] == "diacc" and row["psar"] == "True" and int(row["psar_decisions"]) > 0
 
 
+def test_sampled_actions_are_seeded_and_differ_from_greedy(tmp_path):
+    """``--actions sampled``: the same episode seed draws the same actions, and an
+    untrained actor's samples are not its argmax."""
+    from diacc.policies import build_policy
+
+    policy = build_policy(PolicySpec(str(_checkpoint(tmp_path / "run")), sampled=True))
+    greedy = build_policy(PolicySpec(str(tmp_path / "run" / "checkpoint.pt")))
+    assert policy.describe()["actions"] == "sampled" and policy.label == "diacc (sampled)"
+    env = BottleneckEnv(policy.env_config(SMALL, EvalSettings("highway")))
+    obs, _ = env.reset_arrays(3)
+    runs = []
+    for _ in range(2):
+        policy.begin_episode(env.n_cavs, seed=7)
+        runs.append(np.stack([policy.act(obs, t == 0) for t in range(20)]))  # (20, C)
+    env.close()
+    greedy.begin_episode(env.n_cavs, seed=7)
+    argmax = np.stack([greedy.act(obs, t == 0) for t in range(20)])
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert (runs[0] != argmax).any() and len(np.unique(runs[0])) > 1
+
+
 # ----------------------------------------------------------------------------- CLI errors
 def _cli_error(capsys, argv: list[str]) -> str:
     assert main(argv) == 2
@@ -204,6 +226,9 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     out = str(tmp_path / "res")
     assert "unknown policy 'greedy'" in _cli_error(
         capsys, ["eval", "--policy", "greedy", "--out", out]
+    )
+    assert "applies to checkpoints" in _cli_error(
+        capsys, ["eval", "--policy", "pure-hdv", "--actions", "sampled", "--out", out]
     )
     ckpt = _checkpoint(tmp_path / "mappo-run", variant="mappo")
     assert "variant 'mappo', not 'diacc'" in _cli_error(
