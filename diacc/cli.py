@@ -1,8 +1,9 @@
 """Command line: ``diacc train | eval | table | plot | render | simulate | bench``.
 
 Every command turns known failures (bad map, backend, config key, checkpoint,
-crashed simulator) into a one-line ``diacc: error: ...`` message and exit
-code 2, never a traceback (set ``DIACC_DEBUG=1`` to see the traceback).
+crashed simulator: a :class:`~diacc.errors.DiaccError`) into a one-line
+``diacc: error: ...`` message and exit code 2 (set ``DIACC_DEBUG=1`` to see
+the traceback); any other exception is a bug and shows its traceback.
 Recoveries are one ``diacc: warning: ...`` line each (:mod:`diacc.runlog`);
 an interrupted ``train`` exits with 128 + the signal number after saving a
 checkpoint; a closed output pipe (``diacc simulate | head``) ends quietly.
@@ -17,10 +18,8 @@ from pathlib import Path
 
 from diacc import __version__, cli_eval, cli_scale
 from diacc.config import BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError, TrainConfig, override
+from diacc.errors import DiaccError
 from diacc.tomlfile import read_toml
-
-#: Exceptions that carry a one-line, user-facing message.
-USER_ERRORS: tuple[type[Exception], ...] = (ValueError, RuntimeError, FileNotFoundError, KeyError)
 
 DESCRIPTION = """\
 diacc: multi-agent reinforcement learning for connected automated vehicles
@@ -316,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         COMMANDS[args.command](args)
         sys.stdout.flush()  # here, so that a closed pipe is caught below
-    except USER_ERRORS as exc:
+    except DiaccError as exc:
         if os.environ.get("DIACC_DEBUG"):
             raise
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__

@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from diacc.errors import DiaccError
 from diacc.maps import Map
 
 # Style codes and mixes live with the scenario; re-exported here for convenience.
@@ -28,7 +29,7 @@ from diacc.scenario import (  # noqa: F401
 )
 
 
-class ConfigError(ValueError):
+class ConfigError(DiaccError, ValueError):
     """An unknown or ill-typed configuration key; the message is one line."""
 
 

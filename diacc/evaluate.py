@@ -44,6 +44,7 @@ import numpy as np
 from diacc.backends.base import Backend, BackendError, CavCommands, make_backend
 from diacc.config import preset_road
 from diacc.env import BottleneckEnv, EnvConfig
+from diacc.errors import DiaccError
 from diacc.grid import CELL_KEYS, Cell, make_cell
 from diacc.maps import SEGMENT_KINDS, load_map
 from diacc.metrics import EpisodeRecorder, SpeedSamples
@@ -76,7 +77,7 @@ SPEED_COLUMNS = (
 )
 
 
-class EvaluationError(ValueError):
+class EvaluationError(DiaccError, ValueError):
     """Bad evaluation input (episodes, results directory...); one line."""
 
 

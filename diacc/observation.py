@@ -71,6 +71,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from diacc.config import ObservationConfig
+from diacc.errors import DiaccError
 from diacc.maps import Map
 from diacc.state import TrafficState
 
@@ -95,7 +96,7 @@ COUNT_SCALE = 10.0
 DENSITY_SCALE_VEH_PER_KM = 100.0
 
 
-class ObservationError(ValueError):
+class ObservationError(DiaccError, ValueError):
     """A state or map does not fit the observation layout; one-line message."""
 
 

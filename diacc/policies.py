@@ -26,6 +26,7 @@ import numpy as np
 
 from diacc.config import STYLE_PRESETS, VARIANTS, SimConfig, TrainConfig
 from diacc.env import ACTION_NAMES, EnvConfig
+from diacc.errors import DiaccError
 from diacc.grid import Cell
 from diacc.observation import ActorObs
 
@@ -36,7 +37,7 @@ BASELINES = ("pure-hdv", "cooperative")
 SCRIPTED = ("remain", "accelerate", "random")
 
 
-class PolicyError(ValueError):
+class PolicyError(DiaccError, ValueError):
     """Unknown policy name or unusable checkpoint for evaluation; one line."""
 
 

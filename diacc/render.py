@@ -19,13 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
+from diacc.errors import DiaccError
 from diacc.evaluate import EpisodeDriver
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec, build_policy
 from diacc.state import TrafficState
 
 
-class RenderError(ValueError):
+class RenderError(DiaccError, ValueError):
     """Bad render request (no steps, wrong output suffix...); one line."""
 
 

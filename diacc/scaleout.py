@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from diacc.config import TrainConfig, override
+from diacc.errors import DiaccError
 from diacc.evaluate import CellTask, CellTaskResult, run_tasks_here
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec
@@ -40,7 +41,7 @@ ENGINES = ("local", "ray")
 RAY_MISSING = 'Ray is not installed: pip install -e ".[ray]" (or use --engine local)'
 
 
-class ScaleoutError(RuntimeError):
+class ScaleoutError(DiaccError, RuntimeError):
     """Ray missing, unreachable or failing; the message is one line."""
 
 

@@ -42,6 +42,7 @@ from diacc.algo.buffer import Rollout, compute_gae
 from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig, validate
 from diacc.env import EnvConfig
+from diacc.errors import DiaccError
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_policy
 from diacc.models.spec import ObsSpec
@@ -58,7 +59,7 @@ PSAR_VARIANTS = ("mappo-iadm", "diacc")
 EPISODES_PER_UPDATE = 1000
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(DiaccError, RuntimeError):
     """A checkpoint is missing, corrupt, or belongs to another run layout."""
 
 
@@ -530,7 +531,7 @@ def _first_nonfinite(net: torch.nn.Module, part: str, grad: bool = False) -> str
 
 
 # ----------------------------------------------------------------------------- training
-class TrainingError(RuntimeError):
+class TrainingError(DiaccError, RuntimeError):
     """Training cannot go on (a non-finite update); the message is one line."""
 
 

@@ -31,12 +31,13 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from diacc.config import BACKENDS, SimConfig
+from diacc.errors import DiaccError
 from diacc.maps import Map
 from diacc.scenario import Scenario
 from diacc.state import TrafficState
 
 
-class BackendError(RuntimeError):
+class BackendError(DiaccError, RuntimeError):
     """A simulator failed (unknown backend, crashed worker...); one-line message."""
 
 
