@@ -139,12 +139,13 @@ def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
             "run_dir": run_dir,
         },
     )
+    values = {}
     for item in args.set:
         if "=" not in item:
             raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
         key, value = item.split("=", 1)
-        cfg = override(cfg, {key: value})
-    return cfg
+        values[key] = value
+    return override(cfg, values)
 
 
 def cmd_train(args: argparse.Namespace) -> None:

@@ -33,6 +33,12 @@ class ConfigError(DiaccError, ValueError):
     """An unknown or ill-typed configuration key; the message is one line."""
 
 
+def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
+    """One-line :class:`ConfigError` unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise ConfigError(f"config key {key!r} must be one of {', '.join(choices)}, got {value!r}")
+
+
 # --------------------------------------------------------------------------
 # Drivers
 # --------------------------------------------------------------------------
@@ -172,6 +178,11 @@ class ObservationConfig:
     lane_window_m: float = 100.0  # lane statistics look this far ahead and behind
 
 
+#: Options of :class:`PSARConfig` (see :func:`diacc.psar.psar`).
+FORCE_BRAKE_MODES = ("cancel", "paper")
+HORIZON_MODES = ("stopping", "paper")
+
+
 @dataclass(frozen=True)
 class PSARConfig:
     """Thresholds of Algorithm 1 (authors' values, facts.md) and two options.
@@ -184,7 +195,7 @@ class PSARConfig:
     fixed. ``coordinate_lane_changes`` stops two connected CAVs from changing
     lanes into each other. ``force_brake="paper", horizon="paper",
     coordinate_lane_changes=False`` is the literal pseudocode (the ablation);
-    see :func:`diacc.safety.psar`.
+    see :func:`diacc.psar.psar`.
     """
 
     d_lc_min_m: float = 1.0
@@ -199,6 +210,16 @@ class PSARConfig:
     horizon: str = "stopping"
     coordinate_lane_changes: bool = True  # CAVs do not change lanes into each other
     queue_gap_m: float = 2.0  # standstill gap per vehicle queued at a lane end (PSAR's wall)
+
+    def __post_init__(self) -> None:
+        if not (self.d_lc_min_m <= self.d_safe_m < self.d_warn_m < self.d_att_m):
+            raise ConfigError("PSARConfig needs d_lc_min_m <= d_safe_m < d_warn_m < d_att_m")
+        if not (0 < self.ttc_safe_s < self.ttc_warn_s < self.ttc_att_s):
+            raise ConfigError("PSARConfig needs 0 < ttc_safe_s < ttc_warn_s < ttc_att_s")
+        if self.b_max_mps2 < 0:
+            raise ConfigError(f"PSARConfig.b_max_mps2 must be >= 0, got {self.b_max_mps2}")
+        _check_choice("psar.force_brake", self.force_brake, FORCE_BRAKE_MODES)
+        _check_choice("psar.horizon", self.horizon, HORIZON_MODES)
 
 
 @dataclass(frozen=True)
@@ -291,26 +312,42 @@ def override(config: Any, values: dict[str, Any]) -> Any:
     """Return a copy of a (nested) config dataclass with dotted keys replaced.
 
     ``override(TrainConfig(), {"lr": 1e-3, "reward.w_ego": 0.8})``. Unknown
-    keys and values of the wrong type raise :class:`ConfigError`.
+    keys and values of the wrong type raise :class:`ConfigError`. Each section
+    is rebuilt once with all its new values, so the checks in its
+    ``__post_init__`` see them together (``psar.d_warn_m`` and
+    ``psar.d_att_m`` can move in one call).
     """
+    tree: dict[str, Any] = {}
     for key, value in values.items():
-        config = _set(config, key.split("."), value, key)
-    return config
+        *parents, leaf = key.split(".")
+        node = tree
+        for name in parents:
+            node = node.setdefault(name, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"unknown config key {key!r}")
+        node[leaf] = value
+    return _replace(config, tree, "")
 
 
-def _set(obj: Any, path: list[str], value: Any, full_key: str) -> Any:
-    names = {f.name: f for f in dataclasses.fields(obj)}
-    head = path[0].replace("-", "_")
-    if head not in names:
-        raise ConfigError(f"unknown config key {full_key!r}")
-    current = getattr(obj, head)
-    if len(path) > 1:
-        if not dataclasses.is_dataclass(current):
+def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
+    names = {f.name for f in dataclasses.fields(obj)}
+    changes = {}
+    for key, value in tree.items():
+        head, full_key = key.replace("-", "_"), f"{prefix}{key}"
+        if head not in names:
             raise ConfigError(f"unknown config key {full_key!r}")
-        return dataclasses.replace(obj, **{head: _set(current, path[1:], value, full_key)})
-    if isinstance(value, dict) and dataclasses.is_dataclass(current):
-        return dataclasses.replace(obj, **{head: override(current, value)})
-    return dataclasses.replace(obj, **{head: _coerce(current, value, full_key)})
+        current = getattr(obj, head)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise ConfigError(
+                    f"config key {full_key!r} expects {type(current).__name__}, got {value!r}"
+                )
+            changes[head] = _replace(current, value, f"{full_key}.")
+        elif isinstance(value, dict):
+            raise ConfigError(f"unknown config key {full_key + '.' + next(iter(value), '')!r}")
+        else:
+            changes[head] = _coerce(current, value, full_key)
+    return dataclasses.replace(obj, **changes)
 
 
 def _coerce(current: Any, value: Any, key: str) -> Any:

@@ -10,7 +10,7 @@ order of their vehicle indices. Each step:
    ``diacc-nopsar`` ablation);
 3. the refined action becomes a backend command (lane change +-1, speed change
    +-``speed_change_mps``; Decel-LC brakes by ``b_lc`` during its lane change,
-   Force-Brake by what PSAR asks, see :func:`diacc.safety.psar`). A lane
+   Force-Brake by what PSAR asks, see :func:`diacc.psar.psar`). A lane
    change the road does not allow here is not made, with or without PSAR;
 4. the backend advances one decision step and returns a TrafficState, from
    which the observations, the team reward and the events are built.
@@ -35,6 +35,13 @@ import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
+from diacc.actions import (
+    ACTION_LANE_OFFSET,
+    ACTION_NAMES,
+    REMAIN,
+    action_speed_change_mps,
+    lane_change_allowed,
+)
 from diacc.backends.base import Backend, CavCommands, make_backend
 from diacc.config import (
     EventConfig,
@@ -46,16 +53,8 @@ from diacc.config import (
 )
 from diacc.maps import Map, load_map
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
+from diacc.psar import PSARResult, psar
 from diacc.reward import reward
-from diacc.safety import (
-    ACTION_LANE_OFFSET,
-    ACTION_NAMES,
-    REMAIN,
-    PSARResult,
-    action_speed_change_mps,
-    lane_change_allowed,
-    psar,
-)
 from diacc.scenario import Scenario
 from diacc.state import TrafficState
 

@@ -49,8 +49,8 @@ from diacc.grid import CELL_KEYS, Cell, make_cell
 from diacc.maps import SEGMENT_KINDS, load_map
 from diacc.metrics import EpisodeRecorder, SpeedSamples
 from diacc.policies import EvalSettings, Policy, PolicySpec, build_policy
+from diacc.psar import RULE_NAMES
 from diacc.runlog import log, run_log
-from diacc.safety import RULE_NAMES
 from diacc.state import TrafficState
 from diacc.threads import default_threads, worker_environment
 from diacc.workpool import map_resilient

@@ -61,7 +61,7 @@ def step_stamp(
     state: TrafficState, max_steps: int, psar_rule: np.ndarray | None
 ) -> tuple[str, str]:
     """(time / step / crash line, PSAR line) under a frame; ``psar_rule`` (V,) None: no PSAR."""
-    from diacc.safety import RULE_NAMES
+    from diacc.psar import RULE_NAMES
 
     crash = (
         "crash: vehicles "

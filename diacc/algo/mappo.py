@@ -47,9 +47,9 @@ from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_policy
 from diacc.models.spec import ObsSpec
 from diacc.observation import stack
+from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
 from diacc.runlog import log, run_log
-from diacc.safety import RULE_NAMES, rule_counts
 from diacc.threads import set_torch_threads
 from diacc.vector import make_vector_env
 
