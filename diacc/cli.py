@@ -276,7 +276,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
                 break
     finally:
         backend.close()
-    version = getattr(backend, "sumo_version", "")
+    version = backend.version
     print(
         f"diacc simulate: backend {args.backend}{f' ({version})' if version else ''}, "
         f"map {road.name}, N={scenario.n_vehicles} ({scenario.n_cavs} CAVs), mix {args.mix}, "

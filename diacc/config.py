@@ -152,9 +152,14 @@ class CavParams:
 # --------------------------------------------------------------------------
 # Simulation and scenario
 # --------------------------------------------------------------------------
+#: How CAVs are driven: by commands (learning and scripted policies) or on their
+#: own as the non-learning ``cooperative`` baseline (CACC car following, lcCooperative 1).
+CAV_MODES = ("commanded", "cooperative")
+
+
 @dataclass(frozen=True)
 class SimConfig:
-    """How a backend advances time; shared by both backends."""
+    """How a backend simulates; shared by both backends, which trust it (checked here)."""
 
     step_s: float = 1.0  # one decision step
     substeps: int = 10  # highway backend integration steps per decision
@@ -164,7 +169,17 @@ class SimConfig:
     vehicle_width_m: float = 1.8
     idm_delta: float = 4.0  # IDM acceleration exponent
     style_preset: str = "realistic"
+    cav_mode: str = "commanded"  # or "cooperative" (see CAV_MODES)
     cav: CavParams = field(default_factory=CavParams)
+
+    def __post_init__(self) -> None:
+        _check_choice("sim.style_preset", self.style_preset, tuple(STYLE_PRESETS))
+        _check_choice("sim.cav_mode", self.cav_mode, CAV_MODES)
+        if self.substeps < 1 or not self.step_s > 0:
+            raise ConfigError(
+                f"SimConfig needs step_s > 0 and substeps >= 1, got {self.step_s} and "
+                f"{self.substeps}"
+            )
 
 
 # --------------------------------------------------------------------------
@@ -393,8 +408,6 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "chunk_len": (1, None, False),
     "checkpoint_every": (1, None, False),
     "torch_threads": (0, None, False),
-    "sim.step_s": (0, None, True),
-    "sim.substeps": (1, None, False),
     "sim.episode_steps": (1, None, False),
     "sim.speed_change_mps": (0, None, False),
     "sim.vehicle_length_m": (0, None, True),
@@ -419,7 +432,6 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "backend": BACKENDS,
     "vector": ("auto", "sync", "process"),
     "device": ("auto", "cpu", "cuda"),
-    "sim.style_preset": tuple(STYLE_PRESETS),
 }
 
 

@@ -68,7 +68,6 @@ class EnvConfig:
     backend: str = "highway"
     map: str = "train-25"
     use_psar: bool = True
-    cav_mode: str = "commanded"  # or "cooperative": CAVs drive themselves (baseline)
     scenario: Scenario = field(default_factory=Scenario)
     sim: SimConfig = field(default_factory=SimConfig)
     obs: ObservationConfig = field(default_factory=ObservationConfig)
@@ -108,15 +107,14 @@ class BottleneckEnv(ParallelEnv):
         self.config = config or EnvConfig()
         self.render_mode = render_mode
         self.road: Map = preset_road(load_map(self.config.map), self.config.sim.style_preset)
-        self.backend: Backend = make_backend(
-            self.config.backend, self.road, self.config.sim, self.config.cav_mode
-        )
+        self.backend: Backend = make_backend(self.config.backend, self.road, self.config.sim)
         self.builder = ObservationBuilder(self.road, self.config.obs, self.config.sim.episode_steps)
         self.n_cavs = self.config.scenario.n_cavs
         self.possible_agents = [f"cav_{i}" for i in range(self.n_cavs)]
         self.agents: list[str] = []
         self.temperature = self.config.reward.tau_init
         self.state_: TrafficState | None = None
+        self._viewer = None  # diacc.viewer.Viewer, made by the first render()
         self._seed: int | None = None
         # Spaces are the same for every agent: built once, returned as the same object.
         self._observation_space: gymnasium.spaces.Dict | None = None
@@ -263,9 +261,18 @@ class BottleneckEnv(ParallelEnv):
         )
 
     def render(self) -> np.ndarray | None:
-        return self.backend.render() if self.state_ is not None else None
+        """An RGB frame (H, W, 3) uint8 of the current state (:class:`diacc.viewer.Viewer`)."""
+        if self.state_ is None:
+            return None
+        if self._viewer is None:
+            from diacc.viewer import Viewer
+
+            self._viewer = Viewer(self.road, self.config.sim)
+        return self._viewer.draw(self.state_)
 
     def close(self) -> None:
+        if self._viewer is not None:
+            self._viewer.close()
         self.backend.close()
 
     # ------------------------------------------------------------------ helpers

@@ -98,7 +98,7 @@ class EpisodeDriver:
             self.env = BottleneckEnv(cfg)
             self.backend: Backend = self.env.backend
         else:
-            self.backend = make_backend(cfg.backend, self.road, cfg.sim, cfg.cav_mode)
+            self.backend = make_backend(cfg.backend, self.road, cfg.sim)
         self.state: TrafficState | None = None
 
     def reset(self, seed: int) -> TrafficState:
@@ -135,10 +135,6 @@ class EpisodeDriver:
         self.state, self.done = state, bool(done)
         return state
 
-    @property
-    def sumo_version(self) -> str:
-        return str(getattr(self.backend, "sumo_version", "") or "")
-
     def close(self) -> None:
         (self.env or self.backend).close()
 
@@ -166,7 +162,7 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResul
     row = {
         "policy": driver.policy.label,
         "backend": driver.cfg.backend,
-        "sumo_version": driver.sumo_version,
+        "sumo_version": driver.backend.version,
         "style_preset": driver.cfg.sim.style_preset,
         **cell.as_row(),
         "episode": episode,

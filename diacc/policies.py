@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.config import STYLE_PRESETS, VARIANTS, SimConfig, TrainConfig
+from diacc.config import VARIANTS, SimConfig, TrainConfig
 from diacc.env import ACTION_NAMES, EnvConfig
 from diacc.errors import DiaccError
 from diacc.grid import Cell
@@ -52,10 +52,6 @@ class EvalSettings:
     def __post_init__(self) -> None:
         if self.episode_steps is not None and self.episode_steps < 1:
             raise PolicyError(f"episode_steps must be >= 1, got {self.episode_steps}")
-        if self.style_preset is not None and self.style_preset not in STYLE_PRESETS:
-            raise PolicyError(
-                f"unknown style preset {self.style_preset!r}; known: {', '.join(STYLE_PRESETS)}"
-            )
 
     def apply(self, sim: SimConfig) -> SimConfig:
         changes = {}
@@ -142,7 +138,9 @@ class CooperativePolicy(Policy):
 
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
         cfg = super().env_config(cell, settings)
-        return dataclasses.replace(cfg, use_psar=False, cav_mode="cooperative")
+        return dataclasses.replace(
+            cfg, use_psar=False, sim=dataclasses.replace(cfg.sim, cav_mode="cooperative")
+        )
 
 
 class ScriptedPolicy(Policy):

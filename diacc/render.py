@@ -1,9 +1,8 @@
 """One episode of any policy as an animated GIF.
 
-Frames come from highway-env's road renderer on both backends: the highway
-backend draws itself (``HighwayBackend.render``); a SUMO episode's
-:class:`~diacc.state.TrafficState` is drawn by the same renderer on the same
-map, so both backends' GIFs look alike. CAVs and the three HDV styles have
+Frames come from :class:`diacc.viewer.Viewer` (highway-env's road renderer),
+which draws the :class:`~diacc.state.TrafficState` whichever backend made it,
+so both backends' GIFs look alike. CAVs and the three HDV styles have
 distinct colours, crashed vehicles are red, and CAVs whose action PSAR changed
 in the step leading to a frame are outlined (``highlight``).
 
@@ -40,13 +39,13 @@ class RenderResult:
 
 def _legend_entries() -> list[tuple[str, tuple[int, int, int], bool]]:
     """(label, RGB, outline only) of the legend, in the renderer's own colours."""
-    from diacc.backends.highway_render import (
+    from diacc.scenario import STYLE_NAMES
+    from diacc.viewer import (
         CAV_COLOR,
         CRASHED_COLOR,
         HIGHLIGHT_COLOR,
         STYLE_COLORS,
     )
-    from diacc.scenario import STYLE_NAMES
 
     entries = [(f"HDV {name}", STYLE_COLORS[code], False) for code, name in enumerate(STYLE_NAMES)]
     return [
@@ -102,31 +101,6 @@ def annotate(frame: np.ndarray, lines: tuple[str, ...]) -> np.ndarray:
     return np.asarray(image)
 
 
-class _FrameSource:
-    """Draws (state, highlight) with highway-env's renderer whatever the backend."""
-
-    def __init__(self, driver: EpisodeDriver) -> None:
-        self.driver = driver
-        self.own = driver.backend.__class__.__name__ == "HighwayBackend"
-        self.renderer = None
-        if not self.own:
-            from diacc.backends.highway_render import HighwayRenderer
-            from diacc.backends.highway_road import build_road_network
-
-            self.renderer = HighwayRenderer(
-                driver.road, build_road_network(driver.road), driver.cfg.sim
-            )
-
-    def draw(self, state: TrafficState, highlight: np.ndarray) -> np.ndarray:
-        if self.own:
-            return self.driver.backend.render(highlight=highlight)
-        return self.renderer.draw(state, highlight)
-
-    def close(self) -> None:
-        if self.renderer is not None:
-            self.renderer.close()
-
-
 def render_episode(
     spec: PolicySpec,
     cell: Cell,
@@ -150,12 +124,14 @@ def render_episode(
         raise RenderError(f"--steps must be >= 1, got {steps}")
     if fps <= 0:
         raise RenderError(f"--fps must be > 0, got {fps}")
+    from diacc.viewer import Viewer
+
     policy = build_policy(spec)
     driver = EpisodeDriver(policy, policy.env_config(cell, settings))
     source = None
     try:
         state = driver.reset(cell.seed(0) if seed is None else seed)
-        source = _FrameSource(driver)
+        source = Viewer(driver.road, driver.cfg.sim)
         max_steps = min(steps, driver.cfg.sim.episode_steps)
         psar_on = driver.env is not None and driver.cfg.use_psar
         no_rule = np.zeros(state.n_vehicles, np.int8)  # (V,)

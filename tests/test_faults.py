@@ -350,7 +350,7 @@ def test_case9_sumo_worker_killed_during_eval_reruns_its_episode(files, tmp_path
     proc = _popen(*args, "--out", str(out))
 
     def sumo_worker():
-        return [p for p, cmd in _descendants(proc.pid) if "diacc.backends.sumo_worker" in cmd]
+        return [p for p, cmd in _descendants(proc.pid) if "diacc.backends.sumo.worker" in cmd]
 
     seen: dict[int, float] = {}
 
