@@ -282,7 +282,31 @@ class ModelConfig:
     leaky_slope: float = 0.2
 
 
-VARIANTS = ("mappo", "mappo-iadm", "diacc-nopsar", "diacc")
+@dataclass(frozen=True)
+class Variant:
+    """One row of the paper's ablation: which actor, which critic, PSAR on or off.
+
+    Networks are named, not imported, so that configs stay free of torch;
+    :mod:`diacc.models.registry` maps the names to classes.
+    """
+
+    name: str
+    actor: str  # "mlp" (plain MAPPO) or "diadm" (TAIE + GRU, the paper's D-IADM)
+    critic: str  # "mlp" or "ciec" (ITDR + GRU, the paper's C-IEC)
+    psar: bool  # actions pass through PSAR (paper: PSAR is part of D-IADM)
+
+
+#: The four variants, the only place they are defined.
+VARIANT_TABLE: dict[str, Variant] = {
+    v.name: v
+    for v in (
+        Variant("mappo", actor="mlp", critic="mlp", psar=False),
+        Variant("mappo-iadm", actor="diadm", critic="mlp", psar=True),
+        Variant("diacc-nopsar", actor="diadm", critic="ciec", psar=False),
+        Variant("diacc", actor="diadm", critic="ciec", psar=True),
+    )
+}
+VARIANTS = tuple(VARIANT_TABLE)
 BACKENDS = ("highway", "sumo")
 
 
@@ -352,11 +376,7 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
         if head not in names:
             raise ConfigError(f"unknown config key {full_key!r}")
         current = getattr(obj, head)
-        if dataclasses.is_dataclass(current):
-            if not isinstance(value, dict):
-                raise ConfigError(
-                    f"config key {full_key!r} expects {type(current).__name__}, got {value!r}"
-                )
+        if dataclasses.is_dataclass(current) and isinstance(value, dict):
             changes[head] = _replace(current, value, f"{full_key}.")
         elif isinstance(value, dict):
             raise ConfigError(f"unknown config key {full_key + '.' + next(iter(value), '')!r}")

@@ -180,35 +180,16 @@ class CheckpointPolicy(Policy):
     def __init__(self, path: str | Path, variant: str | None = None) -> None:
         import torch
 
-        from diacc.algo.mappo import (
-            CheckpointError,
-            config_from_checkpoint,
-            env_config,
-            load_checkpoint,
-            make_agent,
-            restore,
-        )
+        from diacc.algo.checkpoint import load_actor
+        from diacc.algo.mappo import env_config
 
         self.path = Path(path)
         if variant is not None and variant not in VARIANTS:
             raise PolicyError(f"unknown variant {variant!r}; known: {', '.join(VARIANTS)}")
-        payload = load_checkpoint(self.path)
-        if variant is not None and payload.get("variant") != variant:
-            raise CheckpointError(
-                f"checkpoint {self.path} is for variant {payload.get('variant')!r}, not {variant!r}"
-            )
-        try:
-            self.train_config: TrainConfig = config_from_checkpoint(payload)
-        except ValueError as exc:
-            raise CheckpointError(
-                f"checkpoint {self.path} has an unusable config ({exc})"
-            ) from None
-        cfg = dataclasses.replace(self.train_config, device="cpu")
-        agent = make_agent(cfg, torch.device("cpu"))
-        restore(agent, payload, cfg, self.path)  # checks variant and observation layout
-        self.actor = agent.actor.eval()
+        self.actor, cfg, payload = load_actor(self.path, variant)
+        self.train_config: TrainConfig = cfg
         self.hidden_size = cfg.model.gru_hidden
-        self.base = env_config(cfg)  # use_psar as the variant says (mappo.PSAR_VARIANTS)
+        self.base = env_config(cfg)  # use_psar as the variant says (VARIANT_TABLE)
         self.label = cfg.variant
         self.update = int(payload.get("update", 0))
         self.global_step = int(payload.get("global_step", 0))

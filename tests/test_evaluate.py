@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.algo.mappo import make_agent, save_checkpoint
+from diacc.algo.checkpoint import save_checkpoint
+from diacc.algo.mappo import make_agent
 from diacc.cli import main
 from diacc.config import ModelConfig, TrainConfig
 from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, evaluate, read_csv

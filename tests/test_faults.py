@@ -224,7 +224,7 @@ def test_case3_nonfinite_gradient_stops_before_the_update(tmp_path, monkeypatch)
     """A NaN gradient in update 2: one-line error naming it; update 1's checkpoint intact."""
     from test_mappo import tiny_config
 
-    from diacc.algo import mappo
+    from diacc.algo import checkpoint, mappo
 
     cfg = tiny_config(tmp_path, checkpoint_every=1, total_steps=80)
     backward_calls = []
@@ -248,7 +248,7 @@ def test_case3_nonfinite_gradient_stops_before_the_update(tmp_path, monkeypatch)
     assert "\n" not in message
     assert message.startswith(f"update 2: non-finite gradient of critic.{backward_calls[0]}")
     assert "still holds update 1" in message
-    payload = mappo.load_checkpoint(tmp_path / "run" / "checkpoint.pt")  # finite, loads
+    payload = checkpoint.load_checkpoint(tmp_path / "run" / "checkpoint.pt")  # finite, loads
     assert payload["update"] == 1
     assert [r["update"] for r in _rows(tmp_path / "run" / "progress.jsonl")] == [1]
 

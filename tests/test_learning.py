@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.algo.mappo import env_config, load_checkpoint, make_agent, restore, train
+from diacc.algo.checkpoint import load_checkpoint, restore
+from diacc.algo.mappo import env_config, make_agent, train
 from diacc.config import TrainConfig, override
 from diacc.env import BottleneckEnv
 from diacc.models.inputs import to_tensors

@@ -8,12 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from diacc.algo.checkpoint import CheckpointError, load_checkpoint
 from diacc.algo.mappo import (
-    CheckpointError,
     collect_rollout,
     env_config,
     evaluate_batch,
-    load_checkpoint,
     make_agent,
     make_batch,
     ppo_update,

@@ -11,7 +11,7 @@ import pytest
 import torch
 from test_mappo import tiny_config
 
-from diacc.algo import mappo
+from diacc.algo import checkpoint, mappo
 from diacc.config import ConfigError, ModelConfig, TrainConfig, override, validate
 from diacc.models.inputs import to_tensors
 from diacc.models.layers import embed_all, embed_present, mlp
@@ -159,8 +159,8 @@ def test_separate_rollout_networks_train_exactly_like_shared_ones(tmp_path, monk
     assert agent.rollout_actor is not agent.actor
     assert agent.rollout_value_norm is not agent.value_norm
     mappo.train(split, progress=False)
-    a = mappo.load_checkpoint(tmp_path / "shared" / "run" / "checkpoint.pt")
-    b = mappo.load_checkpoint(tmp_path / "split" / "run" / "checkpoint.pt")
+    a = checkpoint.load_checkpoint(tmp_path / "shared" / "run" / "checkpoint.pt")
+    b = checkpoint.load_checkpoint(tmp_path / "split" / "run" / "checkpoint.pt")
     for part in ("actor", "critic", "value_norm"):
         for name, tensor in a[part].items():
             assert torch.equal(tensor, b[part][name]), f"{part}.{name} differs"

@@ -42,7 +42,8 @@ import matplotlib.pyplot as plt
 import torch
 
 from diacc import cli
-from diacc.algo.mappo import make_agent, save_checkpoint, seed_everything, train
+from diacc.algo.checkpoint import save_checkpoint
+from diacc.algo.mappo import make_agent, seed_everything, train
 from diacc.config import TrainConfig, override
 from diacc.evaluate import evaluate, load_episodes
 from diacc.grid import make_cell

@@ -39,8 +39,16 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from diacc.algo.buffer import Rollout, compute_gae
+from diacc.algo.checkpoint import (
+    CheckpointError,
+    flatten_config,
+    load_checkpoint,
+    restore,
+    save_checkpoint,
+    set_rng_state,
+)
 from diacc.algo.valuenorm import ValueNorm
-from diacc.config import TrainConfig, validate
+from diacc.config import VARIANT_TABLE, TrainConfig, validate
 from diacc.env import EnvConfig
 from diacc.errors import DiaccError
 from diacc.models.inputs import to_tensors
@@ -53,14 +61,8 @@ from diacc.runlog import log, run_log
 from diacc.threads import set_torch_threads
 from diacc.vector import make_vector_env
 
-#: Variants whose actor output goes through PSAR (paper: PSAR is part of D-IADM).
-PSAR_VARIANTS = ("mappo-iadm", "diacc")
 #: Episode-counter stride per update: update u uses episode seeds u*stride, u*stride+1, ...
 EPISODES_PER_UPDATE = 1000
-
-
-class CheckpointError(DiaccError, RuntimeError):
-    """A checkpoint is missing, corrupt, or belongs to another run layout."""
 
 
 def env_config(cfg: TrainConfig) -> EnvConfig:
@@ -68,7 +70,7 @@ def env_config(cfg: TrainConfig) -> EnvConfig:
     return EnvConfig(
         backend=cfg.backend,
         map=cfg.map,
-        use_psar=cfg.variant in PSAR_VARIANTS,
+        use_psar=VARIANT_TABLE[cfg.variant].psar,
         scenario=cfg.scenario,
         sim=cfg.sim,
         obs=cfg.obs,
@@ -182,83 +184,10 @@ def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
     return Agent(actor, critic, value_norm, optimizer, **extras)
 
 
-# ----------------------------------------------------------------------------- checkpoints
-def save_checkpoint(
-    path: Path, agent: Agent, cfg: TrainConfig, update: int, global_step: int
-) -> None:
-    payload = {
-        "format": 1,
-        "config": asdict(cfg),
-        "variant": cfg.variant,
-        "obs_spec": asdict(ObsSpec.from_config(cfg.obs)),
-        "update": update,
-        "global_step": global_step,
-        "actor": agent.actor.state_dict(),
-        "critic": agent.critic.state_dict(),
-        "value_norm": agent.value_norm.state_dict(),
-        "optimizer": agent.optimizer.state_dict(),
-        "rng": {
-            "python": random.getstate(),
-            "numpy": np.random.get_state(),
-            "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
-        },
-    }
-    tmp = path.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
-
-
-def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
-    """Read a checkpoint; raise :class:`CheckpointError` (one line) if it is unusable."""
-    path = Path(path)
-    if not path.exists():
-        raise CheckpointError(f"checkpoint {path} does not exist")
-    try:
-        payload = torch.load(path, map_location=device, weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means corrupt
-        raise CheckpointError(f"checkpoint {path} is corrupt ({type(exc).__name__})") from None
-    if not isinstance(payload, dict) or payload.get("format") != 1:
-        raise CheckpointError(f"checkpoint {path} is not a diacc checkpoint")
-    for part in ("actor", "critic"):
-        for name, tensor in payload[part].items():
-            if torch.is_floating_point(tensor) and not torch.isfinite(tensor).all():
-                raise CheckpointError(f"checkpoint {path} has NaN/inf in {part}.{name}")
-    return payload
-
-
-def restore(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
-    """Load a checkpoint's state into ``agent`` after checking it fits ``cfg``."""
-    if payload["variant"] != cfg.variant:
-        raise CheckpointError(
-            f"checkpoint {path} is for variant {payload['variant']!r}, not {cfg.variant!r}"
-        )
-    if payload["obs_spec"] != asdict(ObsSpec.from_config(cfg.obs)):
-        raise CheckpointError(f"checkpoint {path} was trained with another observation layout")
-    try:
-        agent.actor.load_state_dict(payload["actor"])
-        agent.critic.load_state_dict(payload["critic"])
-    except RuntimeError:
-        raise CheckpointError(
-            f"checkpoint {path} does not match the {cfg.variant} networks"
-        ) from None
-    agent.value_norm.load_state_dict(payload["value_norm"])
-    agent.optimizer.load_state_dict(payload["optimizer"])
-
-
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
-
-
-def set_rng_state(rng: dict) -> None:
-    """Restore the RNG states saved by :func:`save_checkpoint`."""
-    random.setstate(rng["python"])
-    np.random.set_state(rng["numpy"])
-    torch.set_rng_state(rng["torch"].cpu())
-    if rng["cuda"] is not None and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(rng["cuda"])
 
 
 # ----------------------------------------------------------------------------- rollout
@@ -557,7 +486,7 @@ def check_resume_config(
 
     Raises :class:`CheckpointError` naming the first one unless ``allow_change``.
     """
-    old, new = _flatten(saved), _flatten(asdict(cfg))
+    old, new = flatten_config(saved), flatten_config(asdict(cfg))
     changed = [
         k
         for k in sorted(set(old) | set(new))
@@ -786,25 +715,8 @@ def _train_loop(
     return run_dir
 
 
-def config_from_checkpoint(payload: dict) -> TrainConfig:
-    """Rebuild the TrainConfig stored in a checkpoint."""
-    from diacc.config import override
-
-    return override(TrainConfig(), _flatten(payload["config"]))
-
-
 def _wait_past_event_files(tb_dir: Path) -> None:
     """Sleep (at most ~1 s) until the clock's second is past every event file's."""
     stamps = [int(p.name.split(".")[3]) for p in tb_dir.glob("events.out.tfevents.*")]
     while stamps and int(time.time()) <= max(stamps):
         time.sleep(0.05)
-
-
-def _flatten(tree: dict, prefix: str = "") -> dict:
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
-    return flat
