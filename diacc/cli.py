@@ -17,7 +17,15 @@ import sys
 from pathlib import Path
 
 from diacc import __version__, cli_eval, cli_scale
-from diacc.config import BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError, TrainConfig, override
+from diacc.config import (
+    BACKENDS,
+    STYLE_PRESETS,
+    VARIANTS,
+    ConfigError,
+    EnvConfig,
+    TrainConfig,
+    override,
+)
 from diacc.errors import DiaccError
 from diacc.tomlfile import read_toml
 
@@ -69,9 +77,9 @@ def _train_parser(sub) -> None:
         "diacc-nopsar: + C-IEC critic; diacc: + PSAR safety filter",
     )
     p.add_argument(
-        "--backend", choices=BACKENDS, default=TrainConfig.backend, help="simulator to train on"
+        "--backend", choices=BACKENDS, default=EnvConfig.backend, help="simulator to train on"
     )
-    p.add_argument("--map", default=TrainConfig.map, help="shipped map name or .toml path")
+    p.add_argument("--map", default=EnvConfig.map, help="shipped map name or .toml path")
     p.add_argument(
         "--steps",
         type=int,
@@ -105,7 +113,7 @@ def _train_parser(sub) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override any config field, e.g. --set reward.w_ego=0.8 (repeatable)",
+        help="override any config field, e.g. --set env.reward.w_ego=0.8 (repeatable)",
     )
     p.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoint.pt")
     p.add_argument(
@@ -130,8 +138,8 @@ def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
         cfg,
         {
             "variant": args.variant,
-            "backend": args.backend,
-            "map": args.map,
+            "env.backend": args.backend,
+            "env.map": args.map,
             "total_steps": args.steps,
             "n_envs": args.envs,
             "seed": args.seed,
@@ -154,7 +162,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     from diacc.maps import load_map
 
     cfg = train_config_from_args(args)
-    load_map(cfg.map)  # fail fast on a bad map name
+    load_map(cfg.env.map)  # fail fast on a bad map name
     print_config(cfg, "diacc train: resolved config", f"full config: {cfg.run_dir}/config.json")
     run_dir = train(
         cfg,

@@ -269,6 +269,27 @@ class RewardConfig:
     tau_anneal_fraction: float = 0.5  # of the training steps
 
 
+BACKENDS = ("highway", "sumo")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Everything that defines one environment; training nests one (``TrainConfig.env``)."""
+
+    backend: str = "highway"
+    map: str = "train-25"
+    use_psar: bool = True  # in a TrainConfig, set by its variant
+    scenario: Scenario = field(default_factory=Scenario)
+    sim: SimConfig = field(default_factory=SimConfig)
+    obs: ObservationConfig = field(default_factory=ObservationConfig)
+    psar: PSARConfig = field(default_factory=PSARConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    events: EventConfig = field(default_factory=EventConfig)
+
+    def __post_init__(self) -> None:
+        _check_choice("backend", self.backend, BACKENDS)
+
+
 # --------------------------------------------------------------------------
 # Networks and training
 # --------------------------------------------------------------------------
@@ -307,14 +328,13 @@ VARIANT_TABLE: dict[str, Variant] = {
     )
 }
 VARIANTS = tuple(VARIANT_TABLE)
-BACKENDS = ("highway", "sumo")
 
 
 @dataclass(frozen=True)
 class TrainConfig:
+    """One training run: the variant, the PPO settings and the environment it trains in."""
+
     variant: str = "diacc"
-    backend: str = "highway"
-    map: str = "train-25"
     total_steps: int = 3_000_000  # environment steps (decisions x envs)
     n_envs: int = 20
     vector: str = "auto"  # sync (in process), process (one worker each), auto (by backend)
@@ -339,12 +359,15 @@ class TrainConfig:
     chunk_len: int = 10
     checkpoint_every: int = 10  # updates
     run_dir: str = "runs/diacc"
-    sim: SimConfig = field(default_factory=SimConfig)
-    scenario: Scenario = field(default_factory=Scenario)
-    obs: ObservationConfig = field(default_factory=ObservationConfig)
-    psar: PSARConfig = field(default_factory=PSARConfig)
-    reward: RewardConfig = field(default_factory=RewardConfig)
+    env: EnvConfig = field(default_factory=EnvConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
+
+    def __post_init__(self) -> None:
+        _check_choice("variant", self.variant, VARIANTS)
+        # The variant decides PSAR, so the environment cannot disagree with it.
+        use_psar = VARIANT_TABLE[self.variant].psar
+        if self.env.use_psar != use_psar:
+            object.__setattr__(self, "env", dataclasses.replace(self.env, use_psar=use_psar))
 
 
 def override(config: Any, values: dict[str, Any]) -> Any:
@@ -428,18 +451,18 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "chunk_len": (1, None, False),
     "checkpoint_every": (1, None, False),
     "torch_threads": (0, None, False),
-    "sim.episode_steps": (1, None, False),
-    "sim.speed_change_mps": (0, None, False),
-    "sim.vehicle_length_m": (0, None, True),
-    "sim.vehicle_width_m": (0, None, True),
-    "sim.idm_delta": (0, None, True),
-    "obs.history_steps": (1, None, False),
-    "obs.n_neighbours": (1, None, False),
-    "obs.max_vehicles": (1, None, False),
-    "obs.lane_window_m": (0, None, True),
-    "reward.tau_init": (0, None, True),
-    "reward.tau_final": (0, None, True),
-    "reward.tau_anneal_fraction": (0, 1, True),
+    "env.sim.episode_steps": (1, None, False),
+    "env.sim.speed_change_mps": (0, None, False),
+    "env.sim.vehicle_length_m": (0, None, True),
+    "env.sim.vehicle_width_m": (0, None, True),
+    "env.sim.idm_delta": (0, None, True),
+    "env.obs.history_steps": (1, None, False),
+    "env.obs.n_neighbours": (1, None, False),
+    "env.obs.max_vehicles": (1, None, False),
+    "env.obs.lane_window_m": (0, None, True),
+    "env.reward.tau_init": (0, None, True),
+    "env.reward.tau_final": (0, None, True),
+    "env.reward.tau_anneal_fraction": (0, 1, True),
     "model.hidden_dim": (1, None, False),
     "model.gat_heads": (1, None, False),
     "model.cross_heads": (1, None, False),
@@ -448,8 +471,6 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "model.leaky_slope": (0, None, False),
 }
 _CHOICES: dict[str, tuple[str, ...]] = {
-    "variant": VARIANTS,
-    "backend": BACKENDS,
     "vector": ("auto", "sync", "process"),
     "device": ("auto", "cpu", "cuda"),
 }

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import sys
 import types
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 import gymnasium
@@ -43,37 +43,14 @@ from diacc.actions import (
     lane_change_allowed,
 )
 from diacc.backends.base import Backend, CavCommands, make_backend
-from diacc.config import (
-    EventConfig,
-    ObservationConfig,
-    PSARConfig,
-    RewardConfig,
-    SimConfig,
-    preset_road,
-)
+from diacc.config import EnvConfig, preset_road
 from diacc.maps import Map, load_map
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.psar import PSARResult, psar
 from diacc.reward import reward
-from diacc.scenario import Scenario
 from diacc.state import TrafficState
 
 __all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult", "aec_env"]
-
-
-@dataclass(frozen=True)
-class EnvConfig:
-    """Everything that defines one environment."""
-
-    backend: str = "highway"
-    map: str = "train-25"
-    use_psar: bool = True
-    scenario: Scenario = field(default_factory=Scenario)
-    sim: SimConfig = field(default_factory=SimConfig)
-    obs: ObservationConfig = field(default_factory=ObservationConfig)
-    psar: PSARConfig = field(default_factory=PSARConfig)
-    reward: RewardConfig = field(default_factory=RewardConfig)
-    events: EventConfig = field(default_factory=EventConfig)
 
 
 @dataclass

@@ -181,7 +181,6 @@ class CheckpointPolicy(Policy):
         import torch
 
         from diacc.algo.checkpoint import load_actor
-        from diacc.algo.mappo import env_config
 
         self.path = Path(path)
         if variant is not None and variant not in VARIANTS:
@@ -189,7 +188,7 @@ class CheckpointPolicy(Policy):
         self.actor, cfg, payload = load_actor(self.path, variant)
         self.train_config: TrainConfig = cfg
         self.hidden_size = cfg.model.gru_hidden
-        self.base = env_config(cfg)  # use_psar as the variant says (VARIANT_TABLE)
+        self.base = cfg.env  # use_psar as the variant says (VARIANT_TABLE)
         self.label = cfg.variant
         self.update = int(payload.get("update", 0))
         self.global_step = int(payload.get("global_step", 0))
@@ -224,7 +223,7 @@ class CheckpointPolicy(Policy):
             "policy": self.label,
             "checkpoint": str(self.path.resolve()),
             "update": self.update,
-            "trained_on": self.train_config.backend,
+            "trained_on": self.train_config.env.backend,
             "trained_steps": self.global_step,  # budget, shown in table captions
             "total_steps": self.train_config.total_steps,
         }

@@ -149,12 +149,9 @@ def sweep_configs(
     """The configs of variants x maps x seeds, each with its own run directory."""
     configs = []
     for variant, map_name, seed in itertools.product(variants, maps, seeds):
-        run_dir = Path(out_dir) / f"{variant}-{base.backend}-{Path(map_name).stem}-s{seed}"
-        configs.append(
-            override(
-                base, {"variant": variant, "map": map_name, "seed": seed, "run_dir": str(run_dir)}
-            )
-        )
+        run_dir = Path(out_dir) / f"{variant}-{base.env.backend}-{Path(map_name).stem}-s{seed}"
+        changes = {"variant": variant, "env.map": map_name, "seed": seed, "run_dir": str(run_dir)}
+        configs.append(override(base, changes))
     return configs
 
 
@@ -180,7 +177,7 @@ def train_run(cfg: TrainConfig) -> SweepRun:
 
     run_dir = Path(cfg.run_dir)
     last = _last_record(run_dir)
-    base = {"variant": cfg.variant, "map": cfg.map, "seed": cfg.seed, "run_dir": cfg.run_dir}
+    base = {"variant": cfg.variant, "map": cfg.env.map, "seed": cfg.seed, "run_dir": cfg.run_dir}
     if last.get("global_step", 0) >= _planned_steps(cfg):
         return SweepRun(**base, status="skipped", host=socket.gethostname(), last=last)
     resume = (run_dir / "checkpoint.pt").exists()

@@ -22,8 +22,8 @@ def _error(capsys, argv: list[str]) -> str:
 def test_train_rejects_bad_input(tmp_path, capsys):
     run = ["--run-dir", str(tmp_path / "r"), "--no-progress"]
     assert "unknown map 'nowhere'" in _error(capsys, ["train", "--map", "nowhere", *run])
-    assert "unknown config key 'reward.nope'" in _error(
-        capsys, ["train", "--set", "reward.nope=1", *run]
+    assert "unknown config key 'env.reward.nope'" in _error(
+        capsys, ["train", "--set", "env.reward.nope=1", *run]
     )
     assert "expects KEY=VALUE" in _error(capsys, ["train", "--set", "lr", *run])
     assert "does not exist" in _error(capsys, ["train", "--resume", *run])
@@ -31,7 +31,7 @@ def test_train_rejects_bad_input(tmp_path, capsys):
     bad.write_text("lr = [")
     assert "not valid TOML" in _error(capsys, ["train", "--config", str(bad), *run])
     too_many = tmp_path / "many.toml"
-    too_many.write_text("[scenario]\nn_vehicles = 41\n")
+    too_many.write_text("[env.scenario]\nn_vehicles = 41\n")
     assert "41" in _error(capsys, ["train", "--config", str(too_many), "--steps", "10", *run])
 
 
@@ -42,8 +42,8 @@ def test_bench_needs_a_target(capsys):
 def test_train_writes_a_run_directory(tmp_path, capsys):
     config = tmp_path / "small.toml"
     config.write_text(
-        "rollout_steps = 10\nepochs = 1\n[scenario]\nn_vehicles = 8\n"
-        "cav_penetration = 0.25\n[model]\nhidden_dim = 32\ngru_hidden = 32\n"
+        "rollout_steps = 10\nepochs = 1\n[env.scenario]\nn_vehicles = 8\n"
+        "cav_penetration = 0.25\n[env.sim]\nepisode_steps = 10\n[model]\nhidden_dim = 32\ngru_hidden = 32\n"
         "cross_dim = 32\n"
     )
     run = tmp_path / "run"
@@ -76,12 +76,12 @@ def test_train_writes_a_run_directory(tmp_path, capsys):
         "reward/individual",
     } <= set(record)
     stored = json.loads((run / "config.json").read_text())
-    assert stored["scenario"]["n_vehicles"] == 8 and stored["model"]["hidden_dim"] == 32
+    assert stored["env"]["scenario"]["n_vehicles"] == 8 and stored["model"]["hidden_dim"] == 32
     out = capsys.readouterr().out
     assert out.index("resolved config") < out.index("run directory")
     assert re.search(r"total_steps\s+.*20\s+.*3000000", out)  # value and default
-    assert re.search(r"scenario\.n_vehicles\s+.*8\s+.*25", out)  # changed nested field
-    assert "sim.step_s" not in out  # unchanged nested fields: see config.json
+    assert re.search(r"env\.scenario\.n_vehicles\s+.*8\s+.*25", out)  # changed nested field
+    assert "env.sim.step_s" not in out  # unchanged nested fields: see config.json
 
 
 @pytest.mark.parametrize("backend", ["highway", "sumo"])

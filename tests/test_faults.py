@@ -31,9 +31,9 @@ rollout_steps = 10
 epochs = 2
 checkpoint_every = 1
 device = "cpu"
-[sim]
+[env.sim]
 episode_steps = 15
-[scenario]
+[env.scenario]
 n_vehicles = 8
 cav_penetration = 0.25
 [model]
@@ -418,7 +418,10 @@ LENGTH = "field 'segments[0].length_m' must be a finite positive number, got"
 BAD_INPUT = [
     # case 3: non-finite config values
     (["train", "--set", "value_coef=nan"], "'value_coef' must be a finite number, got nan"),
-    (["train", "--set", "reward.w_ego=nan"], "config key 'reward.w_ego' must be a finite number"),
+    (
+        ["train", "--set", "env.reward.w_ego=nan"],
+        "config key 'env.reward.w_ego' must be a finite number",
+    ),
     (["train", "--set", "lr=inf"], "config key 'lr' must be a finite number, got inf"),
     # case 4 and other out-of-range values
     (["train", "--envs", "0"], "config key 'n_envs' must be >= 1, got 0"),

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from diacc.algo.checkpoint import load_checkpoint, restore
-from diacc.algo.mappo import env_config, make_agent, train
+from diacc.algo.mappo import make_agent, train
 from diacc.config import TrainConfig, override
 from diacc.env import BottleneckEnv
 from diacc.models.inputs import to_tensors
@@ -31,18 +31,18 @@ def small_config(run_dir, steps: int) -> TrainConfig:
             "total_steps": steps,
             "n_envs": 4,
             "rollout_steps": 50,
-            "sim.episode_steps": 50,
+            "env.sim.episode_steps": 50,
             "run_dir": str(run_dir),
             "device": "cpu",
             "seed": 3,
         },
     )
-    return override(cfg, {"scenario": Scenario(n_vehicles=12, cav_penetration=0.25)})
+    return override(cfg, {"env.scenario": Scenario(n_vehicles=12, cav_penetration=0.25)})
 
 
 def evaluate(cfg: TrainConfig, agent, seeds) -> tuple[float, float]:
     """(collision rate over episodes, mean CAV speed over episodes) with sampled actions."""
-    env = BottleneckEnv(env_config(cfg))
+    env = BottleneckEnv(cfg.env)
     generator = torch.Generator().manual_seed(0)
     collided, speeds = [], []
     try:
@@ -51,7 +51,7 @@ def evaluate(cfg: TrainConfig, agent, seeds) -> tuple[float, float]:
             hidden = torch.zeros(env.n_cavs, agent.actor.hidden_size)
             start = torch.ones(env.n_cavs, dtype=torch.bool)
             cav_speeds = []
-            for _ in range(cfg.sim.episode_steps):
+            for _ in range(cfg.env.sim.episode_steps):
                 with torch.no_grad():
                     logits, hidden = agent.actor(to_tensors(actor_obs), hidden, start)
                 probs = torch.softmax(logits, -1)
@@ -99,7 +99,7 @@ def test_paper_training_scenario_episodes_rarely_collide(tmp_path):
     cfg = override(
         TrainConfig(),
         {
-            "map": "train-50",
+            "env.map": "train-50",
             "total_steps": 2_000,
             "n_envs": 4,
             "run_dir": str(tmp_path / "run"),

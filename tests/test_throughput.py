@@ -113,7 +113,7 @@ def tiny_batch(tmp_path_factory):
     cfg = tiny_config(tmp_path_factory.mktemp("b"))
     mappo.seed_everything(cfg.seed)
     agent = mappo.make_agent(cfg, torch.device("cpu"))
-    envs = mappo.make_vector_env(mappo.env_config(cfg), cfg.n_envs, cfg.seed)
+    envs = mappo.make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
         roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0)
     finally:

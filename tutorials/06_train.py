@@ -70,8 +70,8 @@ cfg = override(
     TrainConfig(),
     {
         "variant": "diacc",
-        "backend": "highway",
-        "map": "train-25",
+        "env.backend": "highway",
+        "env.map": "train-25",
         "total_steps": TRAIN_STEPS,  # environment steps = decisions x environments
         "n_envs": 1,
         "rollout_steps": 40,
@@ -85,11 +85,11 @@ cfg = override(
         "model.cross_dim": 32,
         "model.cross_heads": 4,
         "model.gat_heads": 2,
-        "sim.episode_steps": 50,
+        "env.sim.episode_steps": 40,
     },
 )
 print(
-    f"{cfg.variant} on {cfg.backend}/{cfg.map}: {cfg.total_steps} steps, "
+    f"{cfg.variant} on {cfg.env.backend}/{cfg.env.map}: {cfg.total_steps} steps, "
     f"{cfg.total_steps // (cfg.rollout_steps * cfg.n_envs)} PPO updates"
 )
 
@@ -176,7 +176,9 @@ print("wrote", diagnostics_png)
 # driver.
 
 # %%
-cell = make_cell({"map": "train-25", "n_vehicles": 25, "cav_penetration": 0.4, "style_mix": "D1"})
+cell = make_cell(
+    {"env.map": "train-25", "n_vehicles": 25, "cav_penetration": 0.4, "style_mix": "D1"}
+)
 settings = EvalSettings(backend="highway", episode_steps=25)
 policies = {
     "pure-hdv": parse_policy("pure-hdv"),

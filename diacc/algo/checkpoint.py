@@ -36,7 +36,7 @@ def save_checkpoint(
         "format": 1,
         "config": asdict(cfg),
         "variant": cfg.variant,
-        "obs_spec": asdict(ObsSpec.from_config(cfg.obs)),
+        "obs_spec": asdict(ObsSpec.from_config(cfg.env.obs)),
         "update": update,
         "global_step": global_step,
         "actor": agent.actor.state_dict(),
@@ -103,7 +103,7 @@ def load_actor(path: Path, variant: str | None = None) -> tuple[torch.nn.Module,
     except ValueError as exc:
         raise CheckpointError(f"checkpoint {path} has an unusable config ({exc})") from None
     _check_fits(payload, cfg, path)
-    actor, _ = build_policy(cfg.variant, cfg.model, ObsSpec.from_config(cfg.obs))
+    actor, _ = build_policy(cfg.variant, cfg.model, ObsSpec.from_config(cfg.env.obs))
     try:
         actor.load_state_dict(payload["actor"])
     except RuntimeError:
@@ -116,7 +116,7 @@ def _check_fits(payload: dict, cfg: TrainConfig, path: Path) -> None:
         raise CheckpointError(
             f"checkpoint {path} is for variant {payload['variant']!r}, not {cfg.variant!r}"
         )
-    if payload["obs_spec"] != asdict(ObsSpec.from_config(cfg.obs)):
+    if payload["obs_spec"] != asdict(ObsSpec.from_config(cfg.env.obs)):
         raise CheckpointError(f"checkpoint {path} was trained with another observation layout")
 
 
@@ -129,9 +129,20 @@ def set_rng_state(rng: dict) -> None:
         torch.cuda.set_rng_state_all(rng["cuda"])
 
 
+#: Sections a TrainConfig held at its top level before it nested an EnvConfig.
+_ENV_SECTIONS_BEFORE_NESTING = ("backend", "map", "sim", "scenario", "obs", "psar", "reward")
+
+
 def config_from_checkpoint(payload: dict) -> TrainConfig:
-    """Rebuild the TrainConfig stored in a checkpoint."""
-    return override(TrainConfig(), flatten_config(payload["config"]))
+    """Rebuild the TrainConfig stored in a checkpoint (fields it predates take their defaults).
+
+    Checkpoints written before ``TrainConfig.env`` existed kept the
+    environment's sections at the top level; they are moved under ``env``.
+    """
+    saved = dict(payload["config"])
+    if "env" not in saved:
+        saved["env"] = {k: saved.pop(k) for k in _ENV_SECTIONS_BEFORE_NESTING if k in saved}
+    return override(TrainConfig(), flatten_config(saved))
 
 
 def flatten_config(tree: dict, prefix: str = "") -> dict:

@@ -41,6 +41,7 @@ from tqdm import tqdm
 from diacc.algo.buffer import Rollout, compute_gae
 from diacc.algo.checkpoint import (
     CheckpointError,
+    config_from_checkpoint,
     flatten_config,
     load_checkpoint,
     restore,
@@ -48,8 +49,7 @@ from diacc.algo.checkpoint import (
     set_rng_state,
 )
 from diacc.algo.valuenorm import ValueNorm
-from diacc.config import VARIANT_TABLE, TrainConfig, validate
-from diacc.env import EnvConfig
+from diacc.config import TrainConfig, validate
 from diacc.errors import DiaccError
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_policy
@@ -63,20 +63,6 @@ from diacc.vector import make_vector_env
 
 #: Episode-counter stride per update: update u uses episode seeds u*stride, u*stride+1, ...
 EPISODES_PER_UPDATE = 1000
-
-
-def env_config(cfg: TrainConfig) -> EnvConfig:
-    """The environment a training config describes."""
-    return EnvConfig(
-        backend=cfg.backend,
-        map=cfg.map,
-        use_psar=VARIANT_TABLE[cfg.variant].psar,
-        scenario=cfg.scenario,
-        sim=cfg.sim,
-        obs=cfg.obs,
-        psar=cfg.psar,
-        reward=cfg.reward,
-    )
 
 
 def resolve_device(name: str) -> torch.device:
@@ -166,7 +152,7 @@ class Agent:
 
 def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
     """The networks of ``cfg.variant`` with the learner on ``device`` (rollouts on the CPU)."""
-    actor, critic = build_policy(cfg.variant, cfg.model, ObsSpec.from_config(cfg.obs))
+    actor, critic = build_policy(cfg.variant, cfg.model, ObsSpec.from_config(cfg.env.obs))
     value_norm = ValueNorm()
     extras = {}
     if device != ROLLOUT_DEVICE:
@@ -489,7 +475,7 @@ def check_resume_config(
     old, new = flatten_config(saved), flatten_config(asdict(cfg))
     changed = [
         k
-        for k in sorted(set(old) | set(new))
+        for k in sorted(set(old) | set(new), key=lambda k: (k.count("."), k))  # top level first
         if k not in RESUME_FREE_FIELDS and old.get(k) != new.get(k)
     ]
     if changed and not allow_change:
@@ -575,7 +561,8 @@ def train(
     first_update, global_step, changed = 0, 0, []
     if resume:
         payload = load_checkpoint(ckpt_path, device)
-        changed = check_resume_config(payload["config"], cfg, ckpt_path, allow_config_change)
+        saved = asdict(config_from_checkpoint(payload))
+        changed = check_resume_config(saved, cfg, ckpt_path, allow_config_change)
         restore(agent, payload, cfg, ckpt_path)
         first_update, global_step = payload["update"], payload["global_step"]
         set_rng_state(payload["rng"])
@@ -610,7 +597,7 @@ def _train_loop(
     ckpt_path = run_dir / "checkpoint.pt"
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     saved_update = first_update if first_update else None
-    envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed, cfg.vector)
+    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed, cfg.vector)
     # purge_step: TensorBoard drops the events a resumed run logged after its checkpoint.
     # It reads event files in name order, and names start with the creation second:
     # a resumed file must not share its second with the interrupted run's last file.
@@ -633,7 +620,7 @@ def _train_loop(
                 if cfg.lr_decay:
                     for group in agent.optimizer.param_groups:
                         group["lr"] = cfg.lr * (1.0 - update / n_updates)
-                tau = temperature(global_step, cfg.total_steps, cfg.reward)
+                tau = temperature(global_step, cfg.total_steps, cfg.env.reward)
                 envs.set_temperature(tau)
 
                 roll, next_value, rollout = collect_rollout(agent, envs, cfg, update)
