@@ -43,8 +43,8 @@ def test_train_writes_a_run_directory(tmp_path, capsys):
     config = tmp_path / "small.toml"
     config.write_text(
         "rollout_steps = 10\nepochs = 1\n[env.scenario]\nn_vehicles = 8\n"
-        "cav_penetration = 0.25\n[env.sim]\nepisode_steps = 10\n[model]\nhidden_dim = 32\ngru_hidden = 32\n"
-        "cross_dim = 32\n"
+        "cav_penetration = 0.25\n[env.sim]\nepisode_steps = 10\n[model]\nhidden_dim = 32\n"
+        "gru_hidden = 32\ncross_dim = 32\n"
     )
     run = tmp_path / "run"
     assert (

@@ -12,12 +12,19 @@ import torch
 from test_mappo import tiny_config
 
 from diacc.algo import checkpoint, mappo
-from diacc.config import ConfigError, ModelConfig, TrainConfig, override, validate
+from diacc.config import (
+    ConfigError,
+    ModelConfig,
+    ObservationConfig,
+    TrainConfig,
+    override,
+    validate,
+)
 from diacc.models.inputs import to_tensors
 from diacc.models.layers import embed_all, embed_present, mlp
 from diacc.models.registry import build_policy
-from diacc.models.spec import ObsSpec
 from diacc.models.synthetic import random_actor_obs, random_critic_state
+from diacc.observation import ObservationSpec
 from diacc.threads import (
     WORKER_THREAD_VARS,
     default_threads,
@@ -89,7 +96,7 @@ def test_embed_all_matches_embed_present_with_gradients():
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-6)
 
 
-def _chunk_inputs(make_obs, net, rng, spec: ObsSpec, rows: int):
+def _chunk_inputs(make_obs, net, rng, spec: ObservationSpec, rows: int):
     """Sequence-replay inputs (L=4, rows, ...) of ``net`` from ``make_obs``."""
     inputs = to_tensors(make_obs(spec, (4, rows), rng))
     return inputs, torch.zeros(rows, net.hidden_size), torch.zeros(4, rows, dtype=torch.bool)
@@ -98,7 +105,7 @@ def _chunk_inputs(make_obs, net, rng, spec: ObsSpec, rows: int):
 @pytest.mark.parametrize("variant", ["diacc", "mappo"])
 def test_sequence_replay_traces_without_graph_breaks(variant):
     """torch.compile sees one graph per network (dynamo tracing only; no code generation)."""
-    spec, rng = ObsSpec(), np.random.default_rng(0)
+    spec, rng = ObservationSpec.from_config(ObservationConfig()), np.random.default_rng(0)
     makers = (random_actor_obs, random_critic_state)
     for net, make_obs in zip(build_policy(variant, SMALL, spec), makers, strict=True):
         torch._dynamo.reset()

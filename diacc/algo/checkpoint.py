@@ -19,7 +19,7 @@ import torch
 from diacc.config import TrainConfig, override
 from diacc.errors import DiaccError
 from diacc.models.registry import build_policy
-from diacc.models.spec import ObsSpec
+from diacc.observation import ObservationSpec
 
 if TYPE_CHECKING:  # pragma: no cover
     from diacc.algo.mappo import Agent
@@ -36,7 +36,7 @@ def save_checkpoint(
         "format": 1,
         "config": asdict(cfg),
         "variant": cfg.variant,
-        "obs_spec": asdict(ObsSpec.from_config(cfg.env.obs)),
+        "obs_spec": asdict(ObservationSpec.from_config(cfg.env.obs)),
         "update": update,
         "global_step": global_step,
         "actor": agent.actor.state_dict(),
@@ -103,7 +103,7 @@ def load_actor(path: Path, variant: str | None = None) -> tuple[torch.nn.Module,
     except ValueError as exc:
         raise CheckpointError(f"checkpoint {path} has an unusable config ({exc})") from None
     _check_fits(payload, cfg, path)
-    actor, _ = build_policy(cfg.variant, cfg.model, ObsSpec.from_config(cfg.env.obs))
+    actor, _ = build_policy(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
     try:
         actor.load_state_dict(payload["actor"])
     except RuntimeError:
@@ -116,7 +116,9 @@ def _check_fits(payload: dict, cfg: TrainConfig, path: Path) -> None:
         raise CheckpointError(
             f"checkpoint {path} is for variant {payload['variant']!r}, not {cfg.variant!r}"
         )
-    if payload["obs_spec"] != asdict(ObsSpec.from_config(cfg.env.obs)):
+    # Older checkpoints stored only K, T and N; compare what a checkpoint holds.
+    spec = asdict(ObservationSpec.from_config(cfg.env.obs))
+    if payload["obs_spec"] != {key: spec.get(key) for key in payload["obs_spec"]}:
         raise CheckpointError(f"checkpoint {path} was trained with another observation layout")
 
 

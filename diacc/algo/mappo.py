@@ -53,8 +53,7 @@ from diacc.config import TrainConfig, validate
 from diacc.errors import DiaccError
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_policy
-from diacc.models.spec import ObsSpec
-from diacc.observation import stack
+from diacc.observation import ObservationSpec, stack
 from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
 from diacc.runlog import log, run_log
@@ -152,7 +151,7 @@ class Agent:
 
 def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
     """The networks of ``cfg.variant`` with the learner on ``device`` (rollouts on the CPU)."""
-    actor, critic = build_policy(cfg.variant, cfg.model, ObsSpec.from_config(cfg.env.obs))
+    actor, critic = build_policy(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
     value_norm = ValueNorm()
     extras = {}
     if device != ROLLOUT_DEVICE:

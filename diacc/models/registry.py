@@ -14,16 +14,16 @@ from diacc.models.errors import ModelError
 from diacc.models.itdr import CIECCritic
 from diacc.models.mlp import MLPActor, MLPCritic
 from diacc.models.recurrent import RecurrentNet
-from diacc.models.spec import ObsSpec
 from diacc.models.taie import DIADMActor
+from diacc.observation import ObservationSpec
 
-_Builder = Callable[[ModelConfig, ObsSpec], RecurrentNet]
+_Builder = Callable[[ModelConfig, ObservationSpec], RecurrentNet]
 _ACTORS: dict[str, _Builder] = {"mlp": MLPActor, "diadm": DIADMActor}
 _CRITICS: dict[str, _Builder] = {"mlp": MLPCritic, "ciec": CIECCritic}
 
 
 def build_policy(
-    variant: str, cfg: ModelConfig, obs_spec: ObsSpec
+    variant: str, cfg: ModelConfig, obs_spec: ObservationSpec
 ) -> tuple[RecurrentNet, RecurrentNet]:
     """Build the (actor, critic) pair of a variant, orthogonally initialised as in MAPPO.
 
