@@ -258,33 +258,31 @@ def _simulate_parser(sub) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
-    from diacc.backends.base import CavCommands, make_backend
-    from diacc.config import EventConfig, SimConfig
+    from diacc.config import ObservationConfig, SimConfig
     from diacc.console import metric_lines, print_lines
-    from diacc.maps import load_map
-    from diacc.metrics import EpisodeRecorder
+    from diacc.episode import EpisodeDriver, play_episode
+    from diacc.policies import Policy
     from diacc.scenario import Scenario
 
     if args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
-    road = load_map(args.map)
     scenario = Scenario(
         n_vehicles=args.vehicles, cav_penetration=args.penetration, style_mix=args.mix
     )
-    backend = make_backend(args.backend, road, SimConfig(style_preset=args.style_preset))
+    cfg = EnvConfig(
+        backend=args.backend,
+        map=args.map,
+        use_psar=False,  # CAVs get no commands: they keep their lane and speed
+        scenario=scenario,
+        sim=SimConfig(style_preset=args.style_preset, episode_steps=args.steps),
+        obs=ObservationConfig(max_vehicles=max(ObservationConfig.max_vehicles, args.vehicles)),
+    )
+    driver = EpisodeDriver(Policy(), cfg)
     try:
-        state = backend.reset(scenario, args.seed)
-        recorder = EpisodeRecorder(road, EventConfig())
-        recorder.record(state)
-        idle = CavCommands.idle(state.n_vehicles)
-        for _ in range(args.steps):
-            state = backend.step(idle)
-            recorder.record(state)
-            if not state.active.any():
-                break
+        recorder = play_episode(driver, args.seed)
     finally:
-        backend.close()
-    version = backend.version
+        driver.close()
+    road, version = driver.road, driver.backend.version
     print(
         f"diacc simulate: backend {args.backend}{f' ({version})' if version else ''}, "
         f"map {road.name}, N={scenario.n_vehicles} ({scenario.n_cavs} CAVs), mix {args.mix}, "

@@ -1,16 +1,16 @@
-"""Policies the evaluator runs: two non-learning baselines and trained checkpoints.
+"""Policies the evaluator runs: two non-learning baselines, scripted CAVs and checkpoints.
 
-Every policy answers the same three questions, so the evaluator treats a
+Every policy answers the same two questions, and every episode is played
+through the environment (:mod:`diacc.episode`), so the evaluator treats a
 baseline exactly like a checkpoint:
 
 * :meth:`Policy.env_config`: which environment a grid cell means for it
   (``pure-hdv`` turns every CAV into an HDV; ``cooperative`` lets the CAVs
   drive themselves; a checkpoint keeps the observation, PSAR, reward and
   simulation settings it was trained with);
-* :attr:`Policy.commands_cavs`: whether it sends actions at all (the
-  baselines do not, so the evaluator steps the backend directly and skips
-  observations and PSAR);
-* :meth:`Policy.act`: greedy (argmax) actions from the actor with its GRU state.
+* :meth:`Policy.act`: the CAVs' actions; greedy (argmax) from a trained
+  actor with its GRU state, ``remain`` for the baselines, whose CAVs do not
+  exist or drive themselves (PSAR is off for them).
 
 Policies are built from a :class:`PolicySpec` (a name or a checkpoint path),
 which is what crosses process boundaries: each worker loads its own copy.
@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.config import VARIANTS, SimConfig, TrainConfig
-from diacc.env import ACTION_NAMES, EnvConfig
+from diacc.actions import ACTION_NAMES, REMAIN
+from diacc.config import VARIANTS, EnvConfig, SimConfig, TrainConfig
 from diacc.errors import DiaccError
 from diacc.grid import Cell
 from diacc.observation import ActorObs
@@ -88,26 +88,32 @@ class Policy:
     """Base class; see the module docstring."""
 
     label: str = ""
-    commands_cavs: bool = False
     #: Settings shared by every cell (simulation, observation, PSAR, reward).
     base: EnvConfig = EnvConfig()
 
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
-        """The environment of one grid cell for this policy."""
+        """The environment of one grid cell for this policy.
+
+        Observations are padded to at least the cell's vehicles: only a
+        checkpoint's networks fix ``max_vehicles`` (:class:`CheckpointPolicy`
+        refuses larger cells).
+        """
+        obs = self.base.obs
         return dataclasses.replace(
             self.base,
             backend=settings.backend,
             map=cell.map,
             scenario=cell.scenario(base=self.base.scenario),
             sim=settings.apply(self.base.sim),
+            obs=dataclasses.replace(obs, max_vehicles=max(obs.max_vehicles, cell.n_vehicles)),
         )
 
     def begin_episode(self, n_cavs: int, seed: int) -> None:
         """Forget any recurrent state (called before the first :meth:`act`)."""
 
     def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
-        """(C,) int64 greedy actions for every CAV slot."""
-        raise NotImplementedError
+        """(C,) int64 actions for every CAV slot; here ``remain``, i.e. no command."""
+        return np.full(actor_obs.alive.shape[0], REMAIN, np.int64)
 
     def describe(self) -> dict:
         """What identifies this policy in a results directory's ``meta.json``."""
@@ -131,7 +137,7 @@ class CooperativePolicy(Policy):
 
     On SUMO the CAVs are CACC vehicles with ``lcCooperative = 1``; on highway
     they run the HDV IDM/MOBIL code with a CACC-like parameter set (see
-    :class:`~diacc.backends.highway.HighwayBackend`).
+    :class:`~diacc.backends.highway.backend.HighwayBackend`).
     """
 
     label = "cooperative"
@@ -150,8 +156,6 @@ class ScriptedPolicy(Policy):
     These are the probes of ``diacc bench --safety``: what PSAR and the
     simulators make of a policy that knows nothing about traffic.
     """
-
-    commands_cavs = True
 
     def __init__(self, name: str) -> None:
         script = name.removesuffix("-nopsar")
@@ -174,8 +178,6 @@ class ScriptedPolicy(Policy):
 
 class CheckpointPolicy(Policy):
     """A trained actor acting greedily, with PSAR if its variant uses PSAR."""
-
-    commands_cavs = True
 
     def __init__(self, path: str | Path, variant: str | None = None) -> None:
         import torch

@@ -13,13 +13,14 @@ the crash, if any, and a legend of the colours.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from diacc.episode import EpisodeDriver
 from diacc.errors import DiaccError
-from diacc.evaluate import EpisodeDriver
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec, build_policy
 from diacc.state import TrafficState
@@ -127,13 +128,15 @@ def render_episode(
     from diacc.viewer import Viewer
 
     policy = build_policy(spec)
-    driver = EpisodeDriver(policy, policy.env_config(cell, settings))
+    cfg = policy.env_config(cell, settings)
+    max_steps = min(steps, cfg.sim.episode_steps)  # the GIF's episode ends there
+    cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, episode_steps=max_steps))
+    driver = EpisodeDriver(policy, cfg)
     source = None
     try:
         state = driver.reset(cell.seed(0) if seed is None else seed)
         source = Viewer(driver.road, driver.cfg.sim)
-        max_steps = min(steps, driver.cfg.sim.episode_steps)
-        psar_on = driver.env is not None and driver.cfg.use_psar
+        psar_on = driver.cfg.use_psar
         no_rule = np.zeros(state.n_vehicles, np.int8)  # (V,)
         frames = [
             annotate(
@@ -142,7 +145,7 @@ def render_episode(
             )
         ]
         psar_frames = 0
-        while not driver.done and len(frames) <= steps:
+        while not driver.done:
             state = driver.step()
             highlight = driver.psar_rule != 0  # (V,)
             psar_frames += int(highlight.any())

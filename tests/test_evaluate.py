@@ -257,7 +257,7 @@ def test_cli_eval_writes_results(tmp_path, capsys):
 # -------------------------------------------------------------- highway cooperative CAVs
 def test_highway_cooperative_cavs_drive_themselves():
     from diacc.backends.base import CavCommands
-    from diacc.backends.highway import HighwayBackend
+    from diacc.backends.highway.backend import HighwayBackend
     from diacc.config import ConfigError, SimConfig
     from diacc.maps import load_map
 

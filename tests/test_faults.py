@@ -374,7 +374,7 @@ def test_case9_sumo_worker_killed_during_eval_reruns_its_episode(files, tmp_path
 
 
 def test_case9_sumo_worker_dead_at_reset_is_restarted_and_logged(caplog):
-    from diacc.backends.sumo import SumoBackend
+    from diacc.backends.sumo.backend import SumoBackend
     from diacc.config import SimConfig
     from diacc.maps import load_map
     from diacc.scenario import Scenario

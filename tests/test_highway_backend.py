@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from diacc.backends.base import Backend, CavCommands
-from diacc.backends.highway import HighwayBackend
+from diacc.backends.highway.backend import HighwayBackend
 from diacc.config import AGGRESSIVE, CAUTIOUS, STYLE_PRESETS, SimConfig
 from diacc.maps import load_map
 from diacc.scenario import Scenario

@@ -16,7 +16,7 @@ import pytest
 import sumolib
 
 from diacc.backends.base import Backend, BackendError, CavCommands
-from diacc.backends.sumo import SumoBackend
+from diacc.backends.sumo.backend import SumoBackend
 from diacc.backends.sumo.net import build_network
 from diacc.config import ConfigError, SimConfig
 from diacc.maps import available_maps, load_map
@@ -175,7 +175,7 @@ def test_no_worker_left_after_close_or_interpreter_exit(tmp_path):
 
     script = textwrap.dedent(
         """
-        from diacc.backends.sumo import SumoBackend
+        from diacc.backends.sumo.backend import SumoBackend
         from diacc.config import SimConfig
         from diacc.maps import load_map
         from diacc.scenario import Scenario

@@ -79,11 +79,11 @@ class Backend(Protocol):
 def backend_class(name: str) -> type[Backend]:
     """The class of backend ``name`` (``"highway"`` or ``"sumo"``), imported only when asked."""
     if name == "highway":
-        from diacc.backends.highway import HighwayBackend
+        from diacc.backends.highway.backend import HighwayBackend
 
         return HighwayBackend
     if name == "sumo":
-        from diacc.backends.sumo import SumoBackend
+        from diacc.backends.sumo.backend import SumoBackend
 
         return SumoBackend
     raise BackendError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")

@@ -20,7 +20,7 @@ from __future__ import annotations
 import time
 
 from diacc.backends.base import CavCommands
-from diacc.backends.sumo import SumoBackend
+from diacc.backends.sumo.backend import SumoBackend
 from diacc.backends.sumo.net import ROUTE_ID
 from diacc.backends.sumo.vtypes import HDV_TYPES
 from diacc.config import SimConfig

@@ -4,7 +4,3 @@
 collision tests on arrays) and ``road`` (the map as a highway-env
 ``RoadNetwork`` and lane tables).
 """
-
-from diacc.backends.highway.backend import HighwayBackend
-
-__all__ = ["HighwayBackend"]

@@ -4,7 +4,3 @@
 ``worker`` (what runs in that process), ``net`` (the SUMO network built from
 a map with ``netconvert``) and ``vtypes`` (driver styles as vehicle types).
 """
-
-from diacc.backends.sumo.backend import SumoBackend
-
-__all__ = ["SumoBackend"]

@@ -1,7 +1,7 @@
 """The libsumo simulation that runs inside one worker process.
 
 libsumo holds one simulation per process (facts.md), so every
-:class:`~diacc.backends.sumo.SumoBackend` owns a worker process that runs
+:class:`~diacc.backends.sumo.backend.SumoBackend` owns a worker process that runs
 :func:`worker_main`. The worker owns a :class:`SumoSim` and answers three
 messages over a ``multiprocessing.connection.Connection`` (a socket pair
 whose child end is passed as a file descriptor number on the command line):
