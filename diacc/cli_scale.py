@@ -130,7 +130,7 @@ def cmd_sweep(args: argparse.Namespace) -> None:
             f"{f' on {run.host}' if run.host else ''}"
             f"{f' in {run.wall_s:.1f} s' if run.wall_s else ''}: {run.run_dir}; last update: "
             f"collision rate {fmt(run.last.get('episode/collision'))}, "
-            f"global reward {fmt(run.last.get('global_reward'))}"
+            f"team reward {fmt(run.last.get('team_reward'))}"
         )
 
 

@@ -500,6 +500,13 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         raise ConfigError(
             f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}"
         )
+    if cfg.rollout_steps < cfg.env.sim.episode_steps:
+        # Every update restarts the environments: a shorter rollout would never
+        # reach (nor train on) the ends of episodes.
+        raise ConfigError(
+            f"rollout_steps {cfg.rollout_steps} must be >= env.sim.episode_steps "
+            f"{cfg.env.sim.episode_steps}, so that rollouts hold whole episodes"
+        )
     if cfg.minibatches > cfg.n_envs * (cfg.rollout_steps // cfg.chunk_len):
         raise ConfigError(
             f"minibatches {cfg.minibatches} exceeds the rollout's "

@@ -35,6 +35,24 @@ def test_train_rejects_bad_input(tmp_path, capsys):
     assert "41" in _error(capsys, ["train", "--config", str(too_many), "--steps", "10", *run])
 
 
+def test_only_user_errors_are_one_line(monkeypatch, capsys):
+    """A DiaccError is a one-line error; any other exception is a bug and keeps its traceback."""
+    from diacc import cli
+    from diacc.errors import DiaccError
+
+    def user_mistake(args):
+        raise DiaccError("bad input\nsecond line")
+
+    def bug(args):
+        raise ValueError("a bug")
+
+    monkeypatch.setitem(cli.COMMANDS, "simulate", user_mistake)
+    assert _error(capsys, ["simulate"]) == "diacc: error: bad input"
+    monkeypatch.setitem(cli.COMMANDS, "simulate", bug)
+    with pytest.raises(ValueError, match="a bug"):
+        main(["simulate"])
+
+
 def test_bench_needs_a_target(capsys):
     assert "choose what to benchmark" in _error(capsys, ["bench"])
 

@@ -32,7 +32,7 @@ epochs = 2
 checkpoint_every = 1
 device = "cpu"
 [env.sim]
-episode_steps = 15
+episode_steps = 10
 [env.scenario]
 n_vehicles = 8
 cav_penetration = 0.25
@@ -429,10 +429,11 @@ BAD_INPUT = [
     (["train", "--set", "gamma=1.5"], "config key 'gamma' must be in [0, 1], got 1.5"),
     (["train", "--set", "lr=-1"], "config key 'lr' must be > 0, got -1.0"),
     (["train", "--set", "rollout_steps=15"], "rollout_steps 15 must be a multiple of chunk_len 10"),
+    (["train", "--set", "env.sim.episode_steps=20"], "rollout_steps 10 must be >= env.sim.episode"),
     (["train", "--set", "vector=threads"], "'vector' must be one of auto, sync, process"),
     # case 6: resume with another config
     (["train", "--resume", "--seed", "2"], "was trained with seed 1, not 2; --resume may change"),
-    (["train", "--resume", "--map", "train-50"], "was trained with map 'train-25', not 'train-50'"),
+    (["train", "--resume", "--map", "train-50"], "trained with env.map 'train-25', not 'train-50'"),
     # case 7: maps
     (["simulate", "--map", "{nan_map}"], "{nan_map}: " + LENGTH + " nan"),
     (["simulate", "--map", "{inf_map}"], "{inf_map}: " + LENGTH + " inf"),

@@ -61,8 +61,8 @@ TRAIN_STEPS = int(os.environ.get("DIACC_TUTORIAL_TRAIN_STEPS", "120"))
 # `override` changes fields by dotted name, exactly like
 # `diacc train --set model.hidden_dim=32`. We shrink the run: one
 # environment, 40-step rollouts (a multiple of the 10-step recurrent chunks),
-# 2 PPO epochs per update instead of 5, smaller networks and 50-decision
-# episodes.
+# 2 PPO epochs per update instead of 5, smaller networks and 40-decision
+# episodes (a rollout must hold whole episodes: every update restarts them).
 
 # %%
 run_dir = OUT / "run"

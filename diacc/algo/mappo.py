@@ -647,40 +647,15 @@ def _train_loop(
                         f"saved and {kept}"
                     ) from None
                 global_step += steps_per_update
-
-                record = {
-                    **losses,
-                    "update": update + 1,
-                    "global_step": global_step,
-                    "tau": tau,
-                    "lr": agent.optimizer.param_groups[0]["lr"],
-                    "explained_variance": explained_variance(roll.values.ravel(), returns.ravel()),
-                    "env_steps_per_s": steps_per_update / rollout.seconds,
-                    "updates_per_s": 1.0 / (time.perf_counter() - t0),
-                    "worker_restarts": rollout.restarts,
-                    "global_reward": float(roll.rewards.mean()),
-                }
-                for key, values in rollout.reward_terms.items():  # ego_softmin, individual, ...
-                    record[f"reward/{key}"] = float(np.mean(values))
-                for name, count in zip(
-                    RULE_NAMES[1:], rollout.psar_counts, strict=True
-                ):  # per CAV decision
-                    record[f"psar/{name}"] = float(count / max(rollout.decisions, 1))
-                if rollout.episodes:
-                    for key, value in rollout.episodes[0].items():
-                        if isinstance(value, (int, float)):
-                            finite = [ep[key] for ep in rollout.episodes if np.isfinite(ep[key])]
-                            record[f"episode/{key}"] = (
-                                float(np.mean(finite)) if finite else float("nan")
-                            )
-                for key, value in record.items():
-                    if key not in ("update", "global_step"):
-                        writer.add_scalar(key if "/" in key else f"train/{key}", value, global_step)
-                with open(run_dir / "progress.jsonl", "a") as fh:
-                    fh.write(json.dumps(record) + "\n")
+                lr = agent.optimizer.param_groups[0]["lr"]
+                stats = UpdateStats(
+                    update + 1, global_step, tau, lr, losses, roll, returns, rollout
+                )
+                record = progress_record(stats, update_s=time.perf_counter() - t0)
+                write_record(record, writer, run_dir / "progress.jsonl")
                 bar.update(steps_per_update)
                 bar.set_postfix(
-                    R=f"{record['global_reward']:.2f}",
+                    R=f"{record['team_reward']:.2f}",
                     speed=f"{record.get('episode/mean_speed_mps', float('nan')):.1f}",
                     sps=f"{record['env_steps_per_s']:.0f}",
                 )
@@ -699,6 +674,65 @@ def _train_loop(
         writer.close()
         envs.close()
     return run_dir
+
+
+# ----------------------------------------------------------------------------- logging
+@dataclass
+class UpdateStats:
+    """What one finished update logs (:func:`progress_record`)."""
+
+    update: int  # 1-based
+    global_step: int  # environment steps after the update
+    tau: float  # softmin temperature of the rollout
+    lr: float
+    losses: dict[str, float]  # ppo_update's means
+    roll: Rollout
+    returns: np.ndarray  # (S, E)
+    rollout: RolloutStats
+
+
+def progress_record(stats: UpdateStats, update_s: float) -> dict:
+    """One ``progress.jsonl`` row: losses, rewards, PSAR rates and episode means.
+
+    ``team_reward`` is R, what PPO maximises (paper eq. reward_all), per step
+    and environment; ``global_reward`` is its part r_g; ``reward/*`` are the
+    other parts (``ego_softmin``, ``individual``, ``completion``, ``tau``);
+    ``psar/*`` the share of CAV decisions on which each rule took effect;
+    ``episode/*`` means over the episodes that ended in the rollout.
+    """
+    roll, rollout = stats.roll, stats.rollout
+    record = {
+        **stats.losses,
+        "update": stats.update,
+        "global_step": stats.global_step,
+        "tau": stats.tau,
+        "lr": stats.lr,
+        "explained_variance": explained_variance(roll.values.ravel(), stats.returns.ravel()),
+        "env_steps_per_s": roll.rewards.size / rollout.seconds,
+        "updates_per_s": 1.0 / update_s,
+        "worker_restarts": rollout.restarts,
+        "team_reward": float(roll.rewards.mean()),
+    }
+    terms = {key: float(np.mean(values)) for key, values in rollout.reward_terms.items()}
+    record["global_reward"] = terms.pop("global")
+    record.update({f"reward/{key}": value for key, value in terms.items()})
+    for name, count in zip(RULE_NAMES[1:], rollout.psar_counts, strict=True):
+        record[f"psar/{name}"] = float(count / max(rollout.decisions, 1))
+    if rollout.episodes:
+        for key, value in rollout.episodes[0].items():
+            if isinstance(value, (int, float)):
+                finite = [ep[key] for ep in rollout.episodes if np.isfinite(ep[key])]
+                record[f"episode/{key}"] = float(np.mean(finite)) if finite else float("nan")
+    return record
+
+
+def write_record(record: dict, writer: SummaryWriter, progress_path: Path) -> None:
+    """Append a record to ``progress.jsonl`` and to TensorBoard (``train/`` unless grouped)."""
+    for key, value in record.items():
+        if key not in ("update", "global_step"):
+            writer.add_scalar(key if "/" in key else f"train/{key}", value, record["global_step"])
+    with open(progress_path, "a") as fh:
+        fh.write(json.dumps(record) + "\n")
 
 
 def _wait_past_event_files(tb_dir: Path) -> None:
