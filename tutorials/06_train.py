@@ -176,9 +176,7 @@ print("wrote", diagnostics_png)
 # driver.
 
 # %%
-cell = make_cell(
-    {"env.map": "train-25", "n_vehicles": 25, "cav_penetration": 0.4, "style_mix": "D1"}
-)
+cell = make_cell({"map": "train-25", "n_vehicles": 25, "cav_penetration": 0.4, "style_mix": "D1"})
 settings = EvalSettings(backend="highway", episode_steps=25)
 policies = {
     "pure-hdv": parse_policy("pure-hdv"),
