@@ -43,6 +43,7 @@ class EpisodeDriver:
         self.state: TrafficState | None = None
 
     def reset(self, seed: int) -> TrafficState:
+        """Start the episode of ``seed`` (traffic and, for scripted policies, their draws)."""
         self.steps, self.done = 0, False
         self._obs, _ = self.env.reset_arrays(seed)
         self.state = self.env.state_

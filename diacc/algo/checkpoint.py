@@ -32,6 +32,7 @@ class CheckpointError(DiaccError, RuntimeError):
 def save_checkpoint(
     path: Path, agent: Agent, cfg: TrainConfig, update: int, global_step: int
 ) -> None:
+    """Write everything ``--resume`` needs, atomically (a killed run keeps the last file)."""
     payload = {
         "format": 1,
         "config": asdict(cfg),
@@ -112,6 +113,7 @@ def load_actor(path: Path, variant: str | None = None) -> tuple[torch.nn.Module,
 
 
 def _check_fits(payload: dict, cfg: TrainConfig, path: Path) -> None:
+    """One-line :class:`CheckpointError` unless the checkpoint's networks fit ``cfg``."""
     if payload["variant"] != cfg.variant:
         raise CheckpointError(
             f"checkpoint {path} is for variant {payload['variant']!r}, not {cfg.variant!r}"
