@@ -182,21 +182,20 @@ class BottleneckEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ PettingZoo API
     def observation_space(self, agent: str) -> gymnasium.spaces.Dict:
+        """One agent's row of :class:`ActorObs`, from the observation spec (no reset needed)."""
         if self._observation_space is not None:
             return self._observation_space
-        sample = self._agent_obs(self._template_obs(), 0)
-        self._observation_space = gymnasium.spaces.Dict(
-            {
-                name: (
-                    gymnasium.spaces.MultiBinary(value.shape)
-                    if value.dtype == bool
-                    else gymnasium.spaces.Box(0, 4, value.shape, np.int64)
-                    if value.dtype == np.int64
-                    else gymnasium.spaces.Box(-np.inf, np.inf, value.shape, np.float32)
-                )
-                for name, value in sample.items()
-            }
-        )
+        spec = self.builder.spec()
+        spaces = {}
+        for name, (shape, dtype) in spec.actor_shapes(n_cavs=1).items():
+            row = shape[1:]  # one agent's row
+            if dtype == np.dtype(bool):
+                spaces[name] = gymnasium.spaces.MultiBinary(row)
+            elif dtype == np.int64:  # action codes
+                spaces[name] = gymnasium.spaces.Box(0, spec.n_actions - 1, row, np.int64)
+            else:
+                spaces[name] = gymnasium.spaces.Box(-np.inf, np.inf, row, np.float32)
+        self._observation_space = gymnasium.spaces.Dict(spaces)
         return self._observation_space
 
     def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
@@ -257,11 +256,6 @@ class BottleneckEnv(ParallelEnv):
     def _agent_obs(actor_obs: ActorObs, i: int) -> dict[str, np.ndarray]:
         # np.asarray: a per-agent scalar (``alive``) stays a 0-d array, as its space expects
         return {name: np.asarray(value[i]) for name, value in asdict(actor_obs).items()}
-
-    def _template_obs(self) -> ActorObs:
-        if self.state_ is None:
-            self.reset_arrays(0)
-        return self.builder.actor(self.cav_index, self.action_memory, self.last_refined)
 
 
 # ---------------------------------------------------------------------- AEC entry point
