@@ -301,6 +301,7 @@ class ModelConfig:
     cross_dim: int = 64
     gru_hidden: int = 128
     leaky_slope: float = 0.2
+    taie_concat_heads: bool = False  # TAIE GAT heads hidden/heads wide, concatenated (cheaper)
 
 
 @dataclass(frozen=True)

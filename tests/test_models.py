@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -152,9 +154,11 @@ def _pad_actor(obs, extra: int, seed: int):
     return out
 
 
-def test_taie_ignores_extra_and_altered_padding():
+@pytest.mark.parametrize("concat_heads", [False, True])
+def test_taie_ignores_extra_and_altered_padding(concat_heads):
     obs = _actor_obs(64)
-    taie = _seeded(TAIE, CFG, SPEC)
+    taie = _seeded(TAIE, dataclasses.replace(CFG, taie_concat_heads=concat_heads), SPEC)
+    assert taie(obs).shape == (64, CFG.hidden_dim)
     with torch.no_grad():
         torch.testing.assert_close(
             taie(_pad_actor(obs, 3, seed=5)), taie(obs), atol=ATOL, rtol=1e-5
@@ -382,6 +386,8 @@ def test_bad_inputs_raise_one_line_errors():
         actor(small, torch.zeros(4, CFG.gru_hidden), torch.zeros(4))
     with pytest.raises(ModelError, match="multiple of cross_heads"):
         build_policy("diacc", ModelConfig(cross_dim=30, cross_heads=8), SPEC)
+    with pytest.raises(ModelError, match="multiple of gat_heads"):
+        TAIE(ModelConfig(hidden_dim=30, gat_heads=4, taie_concat_heads=True), SPEC)
 
 
 def test_models_benchmark_runs_small():

@@ -10,6 +10,8 @@ wall time of the paper's 3 M-step run from the measured rate:
 * ``+ bf16 update`` / ``+ compiled update``: the learner options
   ``update_bf16`` / ``update_compile`` (compile only where a C++ compiler or
   CUDA is present; the first update, which compiles, is not timed);
+* ``+ hidden 64`` (GAT, MLP and GRU widths 64 instead of 128) and ``+ concat
+  TAIE heads`` (``model.taie_concat_heads``): the cheaper learners;
 * the first two again **with a competing CPU-bound process** (a busy loop
   started for their duration), which is where thread counts matter.
 
@@ -42,6 +44,10 @@ from diacc.algo.mappo import train
 from diacc.config import EnvConfig, TrainConfig, override
 
 PAPER_STEPS = 3_000_000
+#: The smaller networks of the learner-cost rows (the paper: hidden sizes "of the order 64-256").
+SMALL_MODEL = {"model.hidden_dim": 64, "model.gru_hidden": 64}
+#: Rows "thread policy + <option>" whose learner time is compared with "thread policy".
+LEARNER_OPTIONS = ("bf16 update", "compiled update", "hidden 64", "hidden 64 + concat TAIE heads")
 
 
 def measure(
@@ -129,6 +135,14 @@ def configurations(device: str, with_compile: bool) -> list[tuple[str, dict, boo
     if with_compile and compile_available(device):
         rows.append(("thread policy + compiled update", {"update_compile": True}, False))
     rows += [
+        ("thread policy + hidden 64", SMALL_MODEL, False),
+        (
+            "thread policy + hidden 64 + concat TAIE heads",
+            {**SMALL_MODEL, "model.taie_concat_heads": True},
+            False,
+        ),
+    ]
+    rows += [
         (
             f"torch default threads ({torch_default['torch_threads']}), busy CPU",
             torch_default,
@@ -208,10 +222,10 @@ def _print(rows, variant, backend, device, updates, rollout_steps) -> None:
         )
     Console(width=160).print(table)
     for n_envs in sorted({r["envs"] for r in rows}):
-        for option in ("bf16 update", "compiled update"):
+        for option in LEARNER_OPTIONS:
             ratio = _ratio(rows, n_envs, "learner_s", f"thread policy + {option}", "thread policy")
             if ratio:
-                print(f"{n_envs} envs: learner speed-up of {option} over fp32 eager: {ratio}")
+                print(f"{n_envs} envs: learner speed-up of {option} over the default: {ratio}")
 
 
 def profile_update(

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from diacc.config import ModelConfig
+from diacc.models.errors import ModelError
 from diacc.models.gat import GraphAttention
 from diacc.models.inputs import TensorDict
 from diacc.models.layers import POLICY_GAIN, embed_present, mlp, one_hot
@@ -54,8 +55,19 @@ class TAIE(Encoder):
         history_in = spec.history_steps * NODE_FEATURES
         self.hdv_embed = mlp(history_in, hidden, hidden, slope)
         self.cav_embed = mlp(history_in + N_ACTIONS, hidden, hidden, slope)
-        self.hdv_gat = GraphAttention(hidden, hidden, cfg.gat_heads, negative_slope=slope)
-        self.cav_gat = GraphAttention(hidden, hidden, cfg.gat_heads, negative_slope=slope)
+        # Heads: averaged hidden-wide heads (the paper's eq. TAIE), or with
+        # ``taie_concat_heads`` hidden/heads-wide heads concatenated (the usual
+        # multi-head layout, as ITDR does): same output width, a quarter of the
+        # projection work. An option because it changes what is learnt.
+        if cfg.taie_concat_heads and hidden % cfg.gat_heads:
+            raise ModelError(f"hidden_dim {hidden} must be a multiple of gat_heads {cfg.gat_heads}")
+        head_dim = hidden // cfg.gat_heads if cfg.taie_concat_heads else hidden
+        self.hdv_gat, self.cav_gat = (
+            GraphAttention(
+                hidden, head_dim, cfg.gat_heads, concat=cfg.taie_concat_heads, negative_slope=slope
+            )
+            for _ in range(2)
+        )
         context_in = (
             N_ACTOR_LANES * LANE_FEATURES
             + N_ACTOR_LANES
