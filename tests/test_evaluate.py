@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.algo.mappo import make_agent, save_checkpoint
+from diacc.algo.checkpoint import save_checkpoint
+from diacc.algo.mappo import make_agent
 from diacc.cli import main
 from diacc.config import ModelConfig, TrainConfig
 from diacc.env import BottleneckEnv
@@ -280,14 +281,14 @@ def test_cli_eval_writes_results(tmp_path, capsys):
 
 # -------------------------------------------------------------- highway cooperative CAVs
 def test_highway_cooperative_cavs_drive_themselves():
-    from diacc.backends.base import BackendError, CavCommands
-    from diacc.backends.highway import HighwayBackend
-    from diacc.config import SimConfig
+    from diacc.backends.base import CavCommands
+    from diacc.backends.highway.backend import HighwayBackend
+    from diacc.config import ConfigError, SimConfig
     from diacc.maps import load_map
 
     road, sim = load_map("train-50"), SimConfig()
     scenario = SMALL.scenario()
-    coop = [HighwayBackend(road, sim, cav_mode="cooperative") for _ in range(2)]
+    coop = [HighwayBackend(road, SimConfig(cav_mode="cooperative")) for _ in range(2)]
     commanded = HighwayBackend(road, sim)
     states = [b.reset(scenario, 7) for b in (*coop, commanded)]
     cav = states[0].is_cav
@@ -304,5 +305,5 @@ def test_highway_cooperative_cavs_drive_themselves():
     # Commanded CAVs hold their speed when idle; cooperative ones accelerate on their own.
     assert np.allclose(states[2].speed_mps[cav], scenario.insert_speed_mps)
     assert states[0].speed_mps[cav].mean() > scenario.insert_speed_mps + 1.0
-    with pytest.raises(BackendError, match="unknown CAV mode"):
-        HighwayBackend(road, sim, cav_mode="platoon")
+    with pytest.raises(ConfigError, match="cav_mode"):
+        SimConfig(cav_mode="platoon")
