@@ -95,7 +95,8 @@ def main() -> None:
             f"{label} ({rows[-1]['step']} steps): collision rate "
             f"{mean(first, 'collision_rate'):.2f} in the first {args.window} steps, "
             f"{mean(last, 'collision_rate'):.2f} in the last {args.window}; CAV speed "
-            f"{mean(first, 'mean_cav_speed_mps'):.1f} -> {mean(last, 'mean_cav_speed_mps'):.1f} m/s; "
+            f"{mean(first, 'mean_cav_speed_mps'):.1f} -> "
+            f"{mean(last, 'mean_cav_speed_mps'):.1f} m/s; "
             f"arrived {mean(first, 'arrived_fraction'):.2f} -> {mean(last, 'arrived_fraction'):.2f}"
         )
 
