@@ -29,7 +29,23 @@ COLUMNS = {
     "mean_speed_mps": "episode/mean_speed_mps",
     "mean_cav_speed_mps": "episode/mean_cav_speed_mps",
     "p_sce": "episode/p_sce",
+    "arrived_fraction": "episode/arrived_fraction",
 }
+#: Panels of the figure: (column, y label).
+PANELS = (
+    ("collision_rate", "training episodes with a collision"),
+    ("mean_cav_speed_mps", "mean CAV speed in training [m/s]"),
+    ("arrived_fraction", "vehicles that arrived [share]"),
+)
+
+
+def smooth(values: list[float], window: int) -> list[float]:
+    """Trailing moving average over ``window`` updates (the first ones average what exists)."""
+    out = []
+    for i in range(len(values)):
+        chunk = values[max(0, i - window + 1) : i + 1]
+        out.append(sum(chunk) / len(chunk))
+    return out
 
 
 def read_run(run_dir: Path) -> list[dict]:
@@ -44,6 +60,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", help="LABEL=RUN_DIR")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--title", default="diacc on highway, train-50, N = 25, 10 CAVs, 4 envs")
+    parser.add_argument("--smooth", type=int, default=1, help="moving average over updates")
+    parser.add_argument("--window", type=int, default=10_000, help="steps of first/last summary")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     runs = {label: read_run(Path(path)) for label, path in (r.split("=", 1) for r in args.runs)}
@@ -53,28 +72,32 @@ def main() -> None:
         for label, rows in runs.items():
             for r in rows:
                 writer.writerow([label, r["step"], *(f"{r[k]:.4f}" for k in COLUMNS)])
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, axes = plt.subplots(1, len(PANELS), figsize=(5 * len(PANELS), 3.6))
     for label, rows in runs.items():
         steps = [r["step"] for r in rows]
-        axes[0].plot(steps, [r["collision_rate"] for r in rows], label=label)
-        axes[1].plot(steps, [r["mean_cav_speed_mps"] for r in rows], label=label)
-    axes[0].set(xlabel="environment steps", ylabel="training episodes with a collision",
-                ylim=(-0.02, 1.02))  # fmt: skip
-    axes[1].set(xlabel="environment steps", ylabel="mean CAV speed in training [m/s]")
-    for ax in axes:
+        for ax, (column, _) in zip(axes, PANELS, strict=True):
+            ax.plot(steps, smooth([r[column] for r in rows], args.smooth), label=label)
+    for ax, (column, ylabel) in zip(axes, PANELS, strict=True):
+        ax.set(xlabel="environment steps", ylabel=ylabel)
+        if column != "mean_cav_speed_mps":
+            ax.set_ylim(-0.02, 1.02)
         ax.legend()
         ax.grid(alpha=0.3)
-    fig.suptitle("diacc on highway, train-50, N = 25, 10 CAVs, seed 1, 4 envs", fontsize=10)
+    suffix = f" (moving average over {args.smooth} updates)" if args.smooth > 1 else ""
+    fig.suptitle(args.title + suffix, fontsize=10)
     fig.tight_layout()
     fig.savefig(args.out / "curves.png", dpi=100)
     for label, rows in runs.items():
-        first = [r for r in rows if r["step"] <= 10_000]
-        last = [r for r in rows if r["step"] > rows[-1]["step"] - 10_000]
+        first = [r for r in rows if r["step"] <= args.window]
+        last = [r for r in rows if r["step"] > rows[-1]["step"] - args.window]
         mean = lambda xs, k: sum(x[k] for x in xs) / len(xs)  # noqa: E731
         print(
-            f"{label}: collision rate {mean(first, 'collision_rate'):.2f} in the first 10k steps, "
-            f"{mean(last, 'collision_rate'):.2f} in the last 10k; CAV speed "
-            f"{mean(first, 'mean_cav_speed_mps'):.1f} -> {mean(last, 'mean_cav_speed_mps'):.1f} m/s"
+            f"{label} ({rows[-1]['step']} steps): collision rate "
+            f"{mean(first, 'collision_rate'):.2f} in the first {args.window} steps, "
+            f"{mean(last, 'collision_rate'):.2f} in the last {args.window}; CAV speed "
+            f"{mean(first, 'mean_cav_speed_mps'):.1f} -> "
+            f"{mean(last, 'mean_cav_speed_mps'):.1f} m/s; "
+            f"arrived {mean(first, 'arrived_fraction'):.2f} -> {mean(last, 'arrived_fraction'):.2f}"
         )
 
 

@@ -2,8 +2,9 @@
 bench``.
 
 Every command turns known failures (bad map, backend, config key, checkpoint,
-crashed simulator) into a one-line ``diacc: error: ...`` message and exit
-code 2, never a traceback (set ``DIACC_DEBUG=1`` to see the traceback).
+crashed simulator: a :class:`~diacc.errors.DiaccError`) into a one-line
+``diacc: error: ...`` message and exit code 2 (set ``DIACC_DEBUG=1`` to see
+the traceback); any other exception is a bug and shows its traceback.
 Recoveries are one ``diacc: warning: ...`` line each (:mod:`diacc.runlog`);
 an interrupted ``train`` exits with 128 + the signal number after saving a
 checkpoint; a closed output pipe (``diacc simulate | head``) ends quietly.
@@ -17,11 +18,17 @@ import sys
 from pathlib import Path
 
 from diacc import __version__, cli_eval, cli_reproduce, cli_scale
-from diacc.config import BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError, TrainConfig, override
+from diacc.config import (
+    BACKENDS,
+    STYLE_PRESETS,
+    VARIANTS,
+    ConfigError,
+    EnvConfig,
+    TrainConfig,
+    override,
+)
+from diacc.errors import DiaccError
 from diacc.tomlfile import read_toml
-
-#: Exceptions that carry a one-line, user-facing message.
-USER_ERRORS: tuple[type[Exception], ...] = (ValueError, RuntimeError, FileNotFoundError, KeyError)
 
 DESCRIPTION = """\
 diacc: multi-agent reinforcement learning for connected automated vehicles
@@ -71,9 +78,9 @@ def _train_parser(sub) -> None:
         "diacc-nopsar: + C-IEC critic; diacc: + PSAR safety filter",
     )
     p.add_argument(
-        "--backend", choices=BACKENDS, default=TrainConfig.backend, help="simulator to train on"
+        "--backend", choices=BACKENDS, default=EnvConfig.backend, help="simulator to train on"
     )
-    p.add_argument("--map", default=TrainConfig.map, help="shipped map name or .toml path")
+    p.add_argument("--map", default=EnvConfig.map, help="shipped map name or .toml path")
     p.add_argument(
         "--steps",
         type=int,
@@ -107,7 +114,7 @@ def _train_parser(sub) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override any config field, e.g. --set reward.w_ego=0.8 (repeatable)",
+        help="override any config field, e.g. --set env.reward.w_ego=0.8 (repeatable)",
     )
     p.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoint.pt")
     p.add_argument(
@@ -132,8 +139,8 @@ def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
         cfg,
         {
             "variant": args.variant,
-            "backend": args.backend,
-            "map": args.map,
+            "env.backend": args.backend,
+            "env.map": args.map,
             "total_steps": args.steps,
             "n_envs": args.envs,
             "seed": args.seed,
@@ -141,12 +148,13 @@ def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
             "run_dir": run_dir,
         },
     )
+    values = {}
     for item in args.set:
         if "=" not in item:
             raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
         key, value = item.split("=", 1)
-        cfg = override(cfg, {key: value})
-    return cfg
+        values[key] = value
+    return override(cfg, values)
 
 
 def cmd_train(args: argparse.Namespace) -> None:
@@ -155,7 +163,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     from diacc.maps import load_map
 
     cfg = train_config_from_args(args)
-    load_map(cfg.map)  # fail fast on a bad map name
+    load_map(cfg.env.map)  # fail fast on a bad map name
     print_config(cfg, "diacc train: resolved config", f"full config: {cfg.run_dir}/config.json")
     run_dir = train(
         cfg,
@@ -251,33 +259,31 @@ def _simulate_parser(sub) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
-    from diacc.backends.base import CavCommands, make_backend
-    from diacc.config import EventConfig, SimConfig
+    from diacc.config import ObservationConfig, SimConfig
     from diacc.console import metric_lines, print_lines
-    from diacc.maps import load_map
-    from diacc.metrics import EpisodeRecorder
+    from diacc.episode import EpisodeDriver, play_episode
+    from diacc.policies import Policy
     from diacc.scenario import Scenario
 
     if args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
-    road = load_map(args.map)
     scenario = Scenario(
         n_vehicles=args.vehicles, cav_penetration=args.penetration, style_mix=args.mix
     )
-    backend = make_backend(args.backend, road, SimConfig(style_preset=args.style_preset))
+    cfg = EnvConfig(
+        backend=args.backend,
+        map=args.map,
+        use_psar=False,  # CAVs get no commands: they keep their lane and speed
+        scenario=scenario,
+        sim=SimConfig(style_preset=args.style_preset, episode_steps=args.steps),
+        obs=ObservationConfig(max_vehicles=max(ObservationConfig.max_vehicles, args.vehicles)),
+    )
+    driver = EpisodeDriver(Policy(), cfg)
     try:
-        state = backend.reset(scenario, args.seed)
-        recorder = EpisodeRecorder(road, EventConfig())
-        recorder.record(state)
-        idle = CavCommands.idle(state.n_vehicles)
-        for _ in range(args.steps):
-            state = backend.step(idle)
-            recorder.record(state)
-            if not state.active.any():
-                break
+        recorder = play_episode(driver, args.seed)
     finally:
-        backend.close()
-    version = getattr(backend, "sumo_version", "")
+        driver.close()
+    road, version = driver.road, driver.backend.version
     print(
         f"diacc simulate: backend {args.backend}{f' ({version})' if version else ''}, "
         f"map {road.name}, N={scenario.n_vehicles} ({scenario.n_cavs} CAVs), mix {args.mix}, "
@@ -320,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         COMMANDS[args.command](args)
         sys.stdout.flush()  # here, so that a closed pipe is caught below
-    except USER_ERRORS as exc:
+    except DiaccError as exc:
         if os.environ.get("DIACC_DEBUG"):
             raise
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__

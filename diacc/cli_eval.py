@@ -43,6 +43,12 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         default=None,
         help="require the checkpoint to be of this variant (any by default)",
     )
+    p.add_argument(
+        "--actions",
+        choices=("greedy", "sampled"),
+        default="greedy",
+        help="a checkpoint's actions: argmax, or sampled from its distribution (seeded)",
+    )
     p.add_argument("--backend", choices=BACKENDS, default="highway", help="simulator")
     p.add_argument(
         "--episode-steps",
@@ -154,7 +160,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
     from diacc.grid import load_grid
     from diacc.policies import parse_policy
 
-    spec = parse_policy(args.policy, args.variant)
+    spec = parse_policy(args.policy, args.variant, args.actions == "sampled")
     cells = load_grid(args.grid)
     summary = evaluate(
         spec,
@@ -200,7 +206,7 @@ def cmd_render(args: argparse.Namespace) -> None:
     from diacc.policies import parse_policy
     from diacc.render import render_episode
 
-    spec = parse_policy(args.policy, args.variant)
+    spec = parse_policy(args.policy, args.variant, args.actions == "sampled")
     cell = make_cell(
         {
             "map": args.map,

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from diacc.config import BACKENDS, VARIANTS, ConfigError, TrainConfig
+from diacc.config import BACKENDS, VARIANTS, ConfigError, EnvConfig, TrainConfig
 
 
 def add_engine_args(p: argparse.ArgumentParser) -> None:
@@ -68,9 +68,9 @@ def add_parsers(sub) -> None:
         "Other settings as in 'diacc train' (--config, --set; the sweep axes win).",
     )
     p.add_argument("--variants", default="diacc", help=f"comma-separated, of {', '.join(VARIANTS)}")
-    p.add_argument("--maps", default=TrainConfig.map, help="comma-separated map names or paths")
+    p.add_argument("--maps", default=EnvConfig.map, help="comma-separated map names or paths")
     p.add_argument("--seeds", default="1,2,3", help="comma-separated run seeds")
-    p.add_argument("--backend", choices=BACKENDS, default=TrainConfig.backend, help="simulator")
+    p.add_argument("--backend", choices=BACKENDS, default=EnvConfig.backend, help="simulator")
     p.add_argument(
         "--steps", type=int, default=TrainConfig.total_steps, help="environment steps per run"
     )
@@ -130,7 +130,7 @@ def cmd_sweep(args: argparse.Namespace) -> None:
             f"{f' on {run.host}' if run.host else ''}"
             f"{f' in {run.wall_s:.1f} s' if run.wall_s else ''}: {run.run_dir}; last update: "
             f"collision rate {fmt(run.last.get('episode/collision'))}, "
-            f"global reward {fmt(run.last.get('global_reward'))}"
+            f"team reward {fmt(run.last.get('team_reward'))}"
         )
 
 

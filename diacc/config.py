@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from diacc.errors import DiaccError
 from diacc.maps import Map
 
 # Style codes and mixes live with the scenario; re-exported here for convenience.
@@ -28,8 +29,14 @@ from diacc.scenario import (  # noqa: F401
 )
 
 
-class ConfigError(ValueError):
+class ConfigError(DiaccError, ValueError):
     """An unknown or ill-typed configuration key; the message is one line."""
+
+
+def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
+    """One-line :class:`ConfigError` unless ``value`` is one of ``choices``."""
+    if value not in choices:
+        raise ConfigError(f"config key {key!r} must be one of {', '.join(choices)}, got {value!r}")
 
 
 # --------------------------------------------------------------------------
@@ -145,9 +152,14 @@ class CavParams:
 # --------------------------------------------------------------------------
 # Simulation and scenario
 # --------------------------------------------------------------------------
+#: How CAVs are driven: by commands (learning and scripted policies) or on their
+#: own as the non-learning ``cooperative`` baseline (CACC car following, lcCooperative 1).
+CAV_MODES = ("commanded", "cooperative")
+
+
 @dataclass(frozen=True)
 class SimConfig:
-    """How a backend advances time; shared by both backends."""
+    """How a backend simulates; shared by both backends, which trust it (checked here)."""
 
     step_s: float = 1.0  # one decision step
     substeps: int = 10  # highway backend integration steps per decision
@@ -157,7 +169,17 @@ class SimConfig:
     vehicle_width_m: float = 1.8
     idm_delta: float = 4.0  # IDM acceleration exponent
     style_preset: str = "realistic"
+    cav_mode: str = "commanded"  # or "cooperative" (see CAV_MODES)
     cav: CavParams = field(default_factory=CavParams)
+
+    def __post_init__(self) -> None:
+        _check_choice("sim.style_preset", self.style_preset, tuple(STYLE_PRESETS))
+        _check_choice("sim.cav_mode", self.cav_mode, CAV_MODES)
+        if self.substeps < 1 or not self.step_s > 0:
+            raise ConfigError(
+                f"SimConfig needs step_s > 0 and substeps >= 1, got {self.step_s} and "
+                f"{self.substeps}"
+            )
 
 
 # --------------------------------------------------------------------------
@@ -169,6 +191,11 @@ class ObservationConfig:
     n_neighbours: int = 6  # nearest vehicles in same and adjacent lanes
     max_vehicles: int = 40  # critic pads to this many vehicles
     lane_window_m: float = 100.0  # lane statistics look this far ahead and behind
+
+
+#: Options of :class:`PSARConfig` (see :func:`diacc.psar.psar`).
+FORCE_BRAKE_MODES = ("cancel", "paper")
+HORIZON_MODES = ("stopping", "paper")
 
 
 @dataclass(frozen=True)
@@ -183,7 +210,7 @@ class PSARConfig:
     fixed. ``coordinate_lane_changes`` stops two connected CAVs from changing
     lanes into each other. ``force_brake="paper", horizon="paper",
     coordinate_lane_changes=False`` is the literal pseudocode (the ablation);
-    see :func:`diacc.safety.psar`.
+    see :func:`diacc.psar.psar`.
     """
 
     d_lc_min_m: float = 1.0
@@ -198,6 +225,16 @@ class PSARConfig:
     horizon: str = "stopping"
     coordinate_lane_changes: bool = True  # CAVs do not change lanes into each other
     queue_gap_m: float = 2.0  # standstill gap per vehicle queued at a lane end (PSAR's wall)
+
+    def __post_init__(self) -> None:
+        if not (self.d_lc_min_m <= self.d_safe_m < self.d_warn_m < self.d_att_m):
+            raise ConfigError("PSARConfig needs d_lc_min_m <= d_safe_m < d_warn_m < d_att_m")
+        if not (0 < self.ttc_safe_s < self.ttc_warn_s < self.ttc_att_s):
+            raise ConfigError("PSARConfig needs 0 < ttc_safe_s < ttc_warn_s < ttc_att_s")
+        if self.b_max_mps2 < 0:
+            raise ConfigError(f"PSARConfig.b_max_mps2 must be >= 0, got {self.b_max_mps2}")
+        _check_choice("psar.force_brake", self.force_brake, FORCE_BRAKE_MODES)
+        _check_choice("psar.horizon", self.horizon, HORIZON_MODES)
 
 
 @dataclass(frozen=True)
@@ -232,6 +269,27 @@ class RewardConfig:
     tau_anneal_fraction: float = 0.5  # of the training steps
 
 
+BACKENDS = ("highway", "sumo")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Everything that defines one environment; training nests one (``TrainConfig.env``)."""
+
+    backend: str = "highway"
+    map: str = "train-25"
+    use_psar: bool = True  # in a TrainConfig, set by its variant
+    scenario: Scenario = field(default_factory=Scenario)
+    sim: SimConfig = field(default_factory=SimConfig)
+    obs: ObservationConfig = field(default_factory=ObservationConfig)
+    psar: PSARConfig = field(default_factory=PSARConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    events: EventConfig = field(default_factory=EventConfig)
+
+    def __post_init__(self) -> None:
+        _check_choice("backend", self.backend, BACKENDS)
+
+
 # --------------------------------------------------------------------------
 # Networks and training
 # --------------------------------------------------------------------------
@@ -246,15 +304,38 @@ class ModelConfig:
     taie_concat_heads: bool = False  # TAIE GAT heads hidden/heads wide, concatenated (cheaper)
 
 
-VARIANTS = ("mappo", "mappo-iadm", "diacc-nopsar", "diacc")
-BACKENDS = ("highway", "sumo")
+@dataclass(frozen=True)
+class Variant:
+    """One row of the paper's ablation: which actor, which critic, PSAR on or off.
+
+    Networks are named, not imported, so that configs stay free of torch;
+    :mod:`diacc.models.registry` maps the names to classes.
+    """
+
+    name: str
+    actor: str  # "mlp" (plain MAPPO) or "diadm" (TAIE + GRU, the paper's D-IADM)
+    critic: str  # "mlp" or "ciec" (ITDR + GRU, the paper's C-IEC)
+    psar: bool  # actions pass through PSAR (paper: PSAR is part of D-IADM)
+
+
+#: The four variants, the only place they are defined.
+VARIANT_TABLE: dict[str, Variant] = {
+    v.name: v
+    for v in (
+        Variant("mappo", actor="mlp", critic="mlp", psar=False),
+        Variant("mappo-iadm", actor="diadm", critic="mlp", psar=True),
+        Variant("diacc-nopsar", actor="diadm", critic="ciec", psar=False),
+        Variant("diacc", actor="diadm", critic="ciec", psar=True),
+    )
+}
+VARIANTS = tuple(VARIANT_TABLE)
 
 
 @dataclass(frozen=True)
 class TrainConfig:
+    """One training run: the variant, the PPO settings and the environment it trains in."""
+
     variant: str = "diacc"
-    backend: str = "highway"
-    map: str = "train-25"
     total_steps: int = 3_000_000  # environment steps (decisions x envs)
     n_envs: int = 20
     vector: str = "auto"  # sync (in process), process (one worker each), auto (by backend)
@@ -279,38 +360,53 @@ class TrainConfig:
     chunk_len: int = 10
     checkpoint_every: int = 10  # updates
     run_dir: str = "runs/diacc"
-    sim: SimConfig = field(default_factory=SimConfig)
-    scenario: Scenario = field(default_factory=Scenario)
-    obs: ObservationConfig = field(default_factory=ObservationConfig)
-    psar: PSARConfig = field(default_factory=PSARConfig)
-    reward: RewardConfig = field(default_factory=RewardConfig)
+    env: EnvConfig = field(default_factory=EnvConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
+
+    def __post_init__(self) -> None:
+        _check_choice("variant", self.variant, VARIANTS)
+        # The variant decides PSAR, so the environment cannot disagree with it.
+        use_psar = VARIANT_TABLE[self.variant].psar
+        if self.env.use_psar != use_psar:
+            object.__setattr__(self, "env", dataclasses.replace(self.env, use_psar=use_psar))
 
 
 def override(config: Any, values: dict[str, Any]) -> Any:
     """Return a copy of a (nested) config dataclass with dotted keys replaced.
 
     ``override(TrainConfig(), {"lr": 1e-3, "reward.w_ego": 0.8})``. Unknown
-    keys and values of the wrong type raise :class:`ConfigError`.
+    keys and values of the wrong type raise :class:`ConfigError`. Each section
+    is rebuilt once with all its new values, so the checks in its
+    ``__post_init__`` see them together (``psar.d_warn_m`` and
+    ``psar.d_att_m`` can move in one call).
     """
+    tree: dict[str, Any] = {}
     for key, value in values.items():
-        config = _set(config, key.split("."), value, key)
-    return config
+        *parents, leaf = key.split(".")
+        node = tree
+        for name in parents:
+            node = node.setdefault(name, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"unknown config key {key!r}")
+        node[leaf] = value
+    return _replace(config, tree, "")
 
 
-def _set(obj: Any, path: list[str], value: Any, full_key: str) -> Any:
-    names = {f.name: f for f in dataclasses.fields(obj)}
-    head = path[0].replace("-", "_")
-    if head not in names:
-        raise ConfigError(f"unknown config key {full_key!r}")
-    current = getattr(obj, head)
-    if len(path) > 1:
-        if not dataclasses.is_dataclass(current):
+def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
+    names = {f.name for f in dataclasses.fields(obj)}
+    changes = {}
+    for key, value in tree.items():
+        head, full_key = key.replace("-", "_"), f"{prefix}{key}"
+        if head not in names:
             raise ConfigError(f"unknown config key {full_key!r}")
-        return dataclasses.replace(obj, **{head: _set(current, path[1:], value, full_key)})
-    if isinstance(value, dict) and dataclasses.is_dataclass(current):
-        return dataclasses.replace(obj, **{head: override(current, value)})
-    return dataclasses.replace(obj, **{head: _coerce(current, value, full_key)})
+        current = getattr(obj, head)
+        if dataclasses.is_dataclass(current) and isinstance(value, dict):
+            changes[head] = _replace(current, value, f"{full_key}.")
+        elif isinstance(value, dict):
+            raise ConfigError(f"unknown config key {full_key + '.' + next(iter(value), '')!r}")
+        else:
+            changes[head] = _coerce(current, value, full_key)
+    return dataclasses.replace(obj, **changes)
 
 
 def _coerce(current: Any, value: Any, key: str) -> Any:
@@ -356,20 +452,18 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "chunk_len": (1, None, False),
     "checkpoint_every": (1, None, False),
     "torch_threads": (0, None, False),
-    "sim.step_s": (0, None, True),
-    "sim.substeps": (1, None, False),
-    "sim.episode_steps": (1, None, False),
-    "sim.speed_change_mps": (0, None, False),
-    "sim.vehicle_length_m": (0, None, True),
-    "sim.vehicle_width_m": (0, None, True),
-    "sim.idm_delta": (0, None, True),
-    "obs.history_steps": (1, None, False),
-    "obs.n_neighbours": (1, None, False),
-    "obs.max_vehicles": (1, None, False),
-    "obs.lane_window_m": (0, None, True),
-    "reward.tau_init": (0, None, True),
-    "reward.tau_final": (0, None, True),
-    "reward.tau_anneal_fraction": (0, 1, True),
+    "env.sim.episode_steps": (1, None, False),
+    "env.sim.speed_change_mps": (0, None, False),
+    "env.sim.vehicle_length_m": (0, None, True),
+    "env.sim.vehicle_width_m": (0, None, True),
+    "env.sim.idm_delta": (0, None, True),
+    "env.obs.history_steps": (1, None, False),
+    "env.obs.n_neighbours": (1, None, False),
+    "env.obs.max_vehicles": (1, None, False),
+    "env.obs.lane_window_m": (0, None, True),
+    "env.reward.tau_init": (0, None, True),
+    "env.reward.tau_final": (0, None, True),
+    "env.reward.tau_anneal_fraction": (0, 1, True),
     "model.hidden_dim": (1, None, False),
     "model.gat_heads": (1, None, False),
     "model.cross_heads": (1, None, False),
@@ -378,11 +472,8 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "model.leaky_slope": (0, None, False),
 }
 _CHOICES: dict[str, tuple[str, ...]] = {
-    "variant": VARIANTS,
-    "backend": BACKENDS,
     "vector": ("auto", "sync", "process"),
     "device": ("auto", "cpu", "cuda"),
-    "sim.style_preset": tuple(STYLE_PRESETS),
 }
 
 
@@ -409,6 +500,13 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     if cfg.rollout_steps % cfg.chunk_len:
         raise ConfigError(
             f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}"
+        )
+    if cfg.rollout_steps < cfg.env.sim.episode_steps:
+        # Every update restarts the environments: a shorter rollout would never
+        # reach (nor train on) the ends of episodes.
+        raise ConfigError(
+            f"rollout_steps {cfg.rollout_steps} must be >= env.sim.episode_steps "
+            f"{cfg.env.sim.episode_steps}, so that rollouts hold whole episodes"
         )
     if cfg.minibatches > cfg.n_envs * (cfg.rollout_steps // cfg.chunk_len):
         raise ConfigError(

@@ -10,7 +10,7 @@ order of their vehicle indices. Each step:
    ``diacc-nopsar`` ablation);
 3. the refined action becomes a backend command (lane change +-1, speed change
    +-``speed_change_mps``; Decel-LC brakes by ``b_lc`` during its lane change,
-   Force-Brake by what PSAR asks, see :func:`diacc.safety.psar`). A lane
+   Force-Brake by what PSAR asks, see :func:`diacc.psar.psar`). A lane
    change the road does not allow here is not made, with or without PSAR;
 4. the backend advances one decision step and returns a TrafficState, from
    which the observations, the team reward and the events are built.
@@ -28,54 +28,29 @@ from __future__ import annotations
 
 import sys
 import types
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from diacc.backends.base import Backend, CavCommands, make_backend
-from diacc.config import (
-    EventConfig,
-    ObservationConfig,
-    PSARConfig,
-    RewardConfig,
-    SimConfig,
-    preset_road,
-)
-from diacc.maps import Map, load_map
-from diacc.observation import ActorObs, CriticState, ObservationBuilder
-from diacc.reward import reward
-from diacc.safety import (
+from diacc.actions import (
     ACTION_LANE_OFFSET,
     ACTION_NAMES,
     REMAIN,
-    PSARResult,
     action_speed_change_mps,
     lane_change_allowed,
-    psar,
 )
-from diacc.scenario import Scenario
+from diacc.backends.base import Backend, CavCommands, make_backend
+from diacc.config import EnvConfig, preset_road
+from diacc.maps import Map, load_map
+from diacc.observation import ActorObs, CriticState, ObservationBuilder
+from diacc.psar import PSARResult, psar
+from diacc.reward import reward
 from diacc.state import TrafficState
 
 __all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult", "aec_env"]
-
-
-@dataclass(frozen=True)
-class EnvConfig:
-    """Everything that defines one environment."""
-
-    backend: str = "highway"
-    map: str = "train-25"
-    use_psar: bool = True
-    cav_mode: str = "commanded"  # or "cooperative": CAVs drive themselves (baseline)
-    scenario: Scenario = field(default_factory=Scenario)
-    sim: SimConfig = field(default_factory=SimConfig)
-    obs: ObservationConfig = field(default_factory=ObservationConfig)
-    psar: PSARConfig = field(default_factory=PSARConfig)
-    reward: RewardConfig = field(default_factory=RewardConfig)
-    events: EventConfig = field(default_factory=EventConfig)
 
 
 @dataclass
@@ -109,15 +84,14 @@ class BottleneckEnv(ParallelEnv):
         self.config = config or EnvConfig()
         self.render_mode = render_mode
         self.road: Map = preset_road(load_map(self.config.map), self.config.sim.style_preset)
-        self.backend: Backend = make_backend(
-            self.config.backend, self.road, self.config.sim, self.config.cav_mode
-        )
+        self.backend: Backend = make_backend(self.config.backend, self.road, self.config.sim)
         self.builder = ObservationBuilder(self.road, self.config.obs, self.config.sim.episode_steps)
         self.n_cavs = self.config.scenario.n_cavs
         self.possible_agents = [f"cav_{i}" for i in range(self.n_cavs)]
         self.agents: list[str] = []
         self.temperature = self.config.reward.tau_init
         self.state_: TrafficState | None = None
+        self._viewer = None  # diacc.viewer.Viewer, made by the first render()
         self._seed: int | None = None
         # Spaces are the same for every agent: built once, returned as the same object.
         self._observation_space: gymnasium.spaces.Dict | None = None
@@ -208,21 +182,20 @@ class BottleneckEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ PettingZoo API
     def observation_space(self, agent: str) -> gymnasium.spaces.Dict:
+        """One agent's row of :class:`ActorObs`, from the observation spec (no reset needed)."""
         if self._observation_space is not None:
             return self._observation_space
-        sample = self._agent_obs(self._template_obs(), 0)
-        self._observation_space = gymnasium.spaces.Dict(
-            {
-                name: (
-                    gymnasium.spaces.MultiBinary(value.shape)
-                    if value.dtype == bool
-                    else gymnasium.spaces.Box(0, 4, value.shape, np.int64)
-                    if value.dtype == np.int64
-                    else gymnasium.spaces.Box(-np.inf, np.inf, value.shape, np.float32)
-                )
-                for name, value in sample.items()
-            }
-        )
+        spec = self.builder.spec()
+        spaces = {}
+        for name, (shape, dtype) in spec.actor_shapes(n_cavs=1).items():
+            row = shape[1:]  # one agent's row
+            if dtype == np.dtype(bool):
+                spaces[name] = gymnasium.spaces.MultiBinary(row)
+            elif dtype == np.int64:  # action codes
+                spaces[name] = gymnasium.spaces.Box(0, spec.n_actions - 1, row, np.int64)
+            else:
+                spaces[name] = gymnasium.spaces.Box(-np.inf, np.inf, row, np.float32)
+        self._observation_space = gymnasium.spaces.Dict(spaces)
         return self._observation_space
 
     def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
@@ -264,9 +237,18 @@ class BottleneckEnv(ParallelEnv):
         )
 
     def render(self) -> np.ndarray | None:
-        return self.backend.render() if self.state_ is not None else None
+        """An RGB frame (H, W, 3) uint8 of the current state (:class:`diacc.viewer.Viewer`)."""
+        if self.state_ is None:
+            return None
+        if self._viewer is None:
+            from diacc.viewer import Viewer
+
+            self._viewer = Viewer(self.road, self.config.sim)
+        return self._viewer.draw(self.state_)
 
     def close(self) -> None:
+        if self._viewer is not None:
+            self._viewer.close()
         self.backend.close()
 
     # ------------------------------------------------------------------ helpers
@@ -274,11 +256,6 @@ class BottleneckEnv(ParallelEnv):
     def _agent_obs(actor_obs: ActorObs, i: int) -> dict[str, np.ndarray]:
         # np.asarray: a per-agent scalar (``alive``) stays a 0-d array, as its space expects
         return {name: np.asarray(value[i]) for name, value in asdict(actor_obs).items()}
-
-    def _template_obs(self) -> ActorObs:
-        if self.state_ is None:
-            self.reset_arrays(0)
-        return self.builder.actor(self.cav_index, self.action_memory, self.last_refined)
 
 
 # ---------------------------------------------------------------------- AEC entry point

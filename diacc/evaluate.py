@@ -21,8 +21,9 @@ recomputed; a dead pool worker costs a retry of its task
 (:func:`run_cell_task`). Each recovery is logged, so results are complete
 and equal to an unfaulted run's, or the command ends with a one-line error.
 
-Episodes end like training episodes (:class:`~diacc.env.BottleneckEnv`): on
-a collision, when every vehicle has left, or after ``episode_steps``.
+Episodes are played by :class:`diacc.episode.EpisodeDriver`, so they end
+like training episodes: on a collision, when every vehicle has left, or
+after ``episode_steps``.
 """
 
 from __future__ import annotations
@@ -39,18 +40,15 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
-from diacc.backends.base import Backend, BackendError, CavCommands, make_backend
-from diacc.config import preset_road
-from diacc.env import BottleneckEnv, EnvConfig
+from diacc.backends.base import BackendError
+from diacc.episode import EpisodeDriver, play_episode
+from diacc.errors import DiaccError
 from diacc.grid import CELL_KEYS, Cell, make_cell
-from diacc.maps import SEGMENT_KINDS, load_map
-from diacc.metrics import EpisodeRecorder, SpeedSamples
-from diacc.policies import EvalSettings, Policy, PolicySpec, build_policy
+from diacc.maps import SEGMENT_KINDS
+from diacc.metrics import SpeedSamples
+from diacc.policies import EvalSettings, PolicySpec, build_policy
+from diacc.psar import RULE_NAMES
 from diacc.runlog import log, run_log
-from diacc.safety import RULE_NAMES
-from diacc.state import TrafficState
 from diacc.threads import default_threads, worker_environment
 from diacc.workpool import map_resilient
 
@@ -76,72 +74,11 @@ SPEED_COLUMNS = (
 )
 
 
-class EvaluationError(ValueError):
+class EvaluationError(DiaccError, ValueError):
     """Bad evaluation input (episodes, results directory...); one line."""
 
 
 # ----------------------------------------------------------------------------- one episode
-class EpisodeDriver:
-    """Runs episodes of one policy in one environment configuration.
-
-    Learning policies go through :class:`BottleneckEnv` (observations, PSAR,
-    commands); the baselines step the backend directly with idle commands,
-    which their CAVs (if any) ignore or do not have.
-    """
-
-    def __init__(self, policy: Policy, cfg: EnvConfig) -> None:
-        self.policy, self.cfg = policy, cfg
-        self.road = preset_road(load_map(cfg.map), cfg.sim.style_preset)
-        self.env: BottleneckEnv | None = None
-        if policy.commands_cavs:
-            self.env = BottleneckEnv(cfg)
-            self.backend: Backend = self.env.backend
-        else:
-            self.backend = make_backend(cfg.backend, self.road, cfg.sim, cfg.cav_mode)
-        self.state: TrafficState | None = None
-
-    def reset(self, seed: int) -> TrafficState:
-        self.steps, self.done = 0, False
-        self.psar_rule = np.zeros(0, np.int8)  # (V,) last PSAR rule per vehicle, 0 for HDVs
-        if self.env is not None:
-            self._obs, _ = self.env.reset_arrays(seed)
-            self.state = self.env.state_
-            self.policy.begin_episode(self.env.n_cavs, seed)
-        else:
-            self.state = self.backend.reset(self.cfg.scenario, seed)
-        self.psar_rule = np.zeros(self.state.n_vehicles, np.int8)
-        return self.state
-
-    def step(self) -> TrafficState:
-        """Advance one decision step; sets :attr:`done`, :attr:`psar_rule` and :attr:`psar`."""
-        assert self.state is not None and not self.done, "reset() before step()"
-        if self.env is not None:
-            actions = self.policy.act(self._obs, first_step=self.steps == 0)
-            alive_before = self._obs.alive.copy()  # (C,)
-            out = self.env.step_arrays(actions)
-            self._obs = out.actor_obs
-            self.psar_rule = np.zeros(out.state.n_vehicles, np.int8)
-            self.psar_rule[self.env.cav_index] = np.where(alive_before, out.psar_rule, 0)
-            self.psar = out.psar
-            state, done = out.state, out.terminated or out.truncated
-            self.steps += 1
-        else:
-            state = self.backend.step(CavCommands.idle(self.state.n_vehicles))
-            self.psar = None
-            self.steps += 1
-            terminated = len(state.collisions) > 0 or not state.active.any()
-            done = terminated or self.steps >= self.cfg.sim.episode_steps
-        self.state, self.done = state, bool(done)
-        return state
-
-    @property
-    def sumo_version(self) -> str:
-        return str(getattr(self.backend, "sumo_version", "") or "")
-
-    def close(self) -> None:
-        (self.env or self.backend).close()
-
-
 @dataclass
 class EpisodeResult:
     """One evaluated episode: its CSV row and its speed samples."""
@@ -155,17 +92,13 @@ class EpisodeResult:
 def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResult:
     """Play one seeded episode to its end and summarise it."""
     seed = cell.seed(episode)
-    recorder = EpisodeRecorder(driver.road, driver.cfg.events)
-    recorder.record(driver.reset(seed))
-    while not driver.done:
-        state = driver.step()
-        recorder.record(state, psar=driver.psar)
+    recorder = play_episode(driver, seed)
     metrics = recorder.summary()
     speeds = recorder.speed_samples()
     row = {
         "policy": driver.policy.label,
         "backend": driver.cfg.backend,
-        "sumo_version": driver.sumo_version,
+        "sumo_version": driver.backend.version,
         "style_preset": driver.cfg.sim.style_preset,
         **cell.as_row(),
         "episode": episode,

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diacc.errors import DiaccError
 from diacc.maps import MapError, load_map
 from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError
 from diacc.tomlfile import read_toml
@@ -47,7 +48,7 @@ CELL_KEYS = ("map", "n_vehicles", "cav_penetration", "style_mix")
 EVAL_SEED_TAG = 0xE7A1_5EED
 
 
-class GridError(ValueError):
+class GridError(DiaccError, ValueError):
     """A grid name or grid file is invalid; the message is one line."""
 
 

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diacc.errors import DiaccError
 from diacc.tomlfile import read_toml
 
 #: Folder with the shipped map descriptions (``maps/`` at the repository root).
@@ -40,7 +41,7 @@ _TOP_KEYS = {"name", "description", "lane_width_m", "drop_side", "segments"}
 _SEGMENT_KEYS = {"kind", "length_m", "lanes", "speed_limit_mps"}
 
 
-class MapError(ValueError):
+class MapError(DiaccError, ValueError):
     """A map file or map name is invalid; the message is one line."""
 
 

@@ -20,7 +20,7 @@ Definitions:
   Travel time = time of the first state marking a vehicle arrived minus the
   time of the first state it was seen active in.
 * PSAR fire rate per rule: CAV decisions where the rule took effect
-  (:attr:`diacc.safety.PSARResult.rule_mask`) / decisions of active CAVs.
+  (:attr:`diacc.psar.PSARResult.rule_mask`) / decisions of active CAVs.
 """
 
 from __future__ import annotations
@@ -33,7 +33,8 @@ import numpy as np
 
 from diacc.config import EventConfig
 from diacc.maps import SEGMENT_KINDS, Map
-from diacc.safety import RULE_NAMES, PSARResult, rule_counts, safety_critical_events, waiting_events
+from diacc.psar import RULE_NAMES, PSARResult, rule_counts
+from diacc.safety import safety_critical_events, waiting_events
 from diacc.state import TrafficState
 
 

@@ -60,8 +60,9 @@ Critic (:class:`CriticState`, one per environment):
 * ``traffic`` (4,): active vehicles / N, mean speed / v_max, CAV share of
   active vehicles, step / episode length.
 
-Use :meth:`ObservationBuilder.spec` (or :func:`observation_spec`) to get all
-sizes, shapes and dtypes without building an observation.
+:class:`ObservationSpec` is the one description of this layout: every size,
+shape, dtype and field name (what the networks read: :data:`ACTOR_KEYS`,
+:data:`CRITIC_KEYS`) derives from it, without building an observation.
 """
 
 from __future__ import annotations
@@ -71,6 +72,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from diacc.config import ObservationConfig
+from diacc.errors import DiaccError
 from diacc.maps import Map
 from diacc.state import TrafficState
 
@@ -95,7 +97,7 @@ COUNT_SCALE = 10.0
 DENSITY_SCALE_VEH_PER_KM = 100.0
 
 
-class ObservationError(ValueError):
+class ObservationError(DiaccError, ValueError):
     """A state or map does not fit the observation layout; one-line message."""
 
 
@@ -131,6 +133,12 @@ class CriticState:
     traffic: np.ndarray  # (TRAFFIC_FEATURES,) float32
 
 
+#: ActorObs fields the actor networks read (``alive`` only masks the losses).
+ACTOR_KEYS = tuple(f.name for f in fields(ActorObs) if f.name != "alive")
+#: CriticState fields the critic networks read (all of them).
+CRITIC_KEYS = tuple(f.name for f in fields(CriticState))
+
+
 def stack(items: list) -> ActorObs | CriticState:
     """Stack containers of the same type along a new leading axis."""
     cls = type(items[0])
@@ -145,7 +153,10 @@ Shape = tuple[int, ...]
 
 @dataclass(frozen=True)
 class ObservationSpec:
-    """Every size a network needs, derived from an :class:`ObservationConfig`."""
+    """Every size a network needs: the config's K, T, N and the layout's constants.
+
+    Checkpoints store it, so a network is never fed observations of another layout.
+    """
 
     n_neighbours: int  # K
     history_steps: int  # T
@@ -160,6 +171,22 @@ class ObservationSpec:
     max_lanes: int = MAX_LANES
     max_segments: int = MAX_SEGMENTS
     n_actions: int = N_ACTIONS
+
+    def __post_init__(self) -> None:
+        for name in ("n_neighbours", "history_steps", "max_vehicles"):
+            if getattr(self, name) < 1:
+                raise ObservationError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+    @classmethod
+    def from_config(cls, cfg: ObservationConfig) -> ObservationSpec:
+        """Sizes of the observation layout for a config (no map or state needed)."""
+        return cls(cfg.n_neighbours, cfg.history_steps, cfg.max_vehicles)
+
+    @classmethod
+    def from_containers(cls, actor: ActorObs, critic: CriticState) -> ObservationSpec:
+        """Sizes read off one actor observation and one critic state (any batch axes)."""
+        history_steps, n_neighbours = actor.hdv_nodes.shape[-2], actor.hdv_nodes.shape[-3]
+        return cls(n_neighbours, history_steps, critic.nodes.shape[-2])
 
     def actor_shapes(self, n_cavs: int) -> dict[str, tuple[Shape, np.dtype]]:
         """Field name -> (shape, dtype) of an :class:`ActorObs` with ``n_cavs`` rows."""
@@ -194,15 +221,6 @@ class ObservationSpec:
             "road": ((self.road_features,), f32),
             "traffic": ((self.traffic_features,), f32),
         }
-
-
-def observation_spec(cfg: ObservationConfig) -> ObservationSpec:
-    """Sizes of the observation layout for a config (no map or state needed)."""
-    return ObservationSpec(
-        n_neighbours=cfg.n_neighbours,
-        history_steps=cfg.history_steps,
-        max_vehicles=cfg.max_vehicles,
-    )
 
 
 # --------------------------------------------------------------------------
@@ -269,7 +287,7 @@ class ObservationBuilder:
         self.road = road
         self.cfg = cfg
         self.episode_steps = int(episode_steps)
-        self._spec = observation_spec(cfg)
+        self._spec = ObservationSpec.from_config(cfg)
 
         # Static map quantities, computed once.
         self._route_m = road.length_m
@@ -300,7 +318,7 @@ class ObservationBuilder:
 
     # ---- sizes -----------------------------------------------------------
     def spec(self) -> ObservationSpec:
-        """Sizes of this builder's observations (see :func:`observation_spec`)."""
+        """Sizes of this builder's observations (:class:`ObservationSpec`)."""
         return self._spec
 
     # ---- state stream ------------------------------------------------------

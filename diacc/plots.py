@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diacc.errors import DiaccError
 from diacc.evaluate import SPEEDS_FILE, load_episodes, read_csv
 from diacc.maps import SEGMENT_KINDS
 
@@ -50,7 +51,7 @@ PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e
 KDE_MAX_SAMPLES = 20_000
 
 
-class PlotError(ValueError):
+class PlotError(DiaccError, ValueError):
     """Missing or unusable input to a plot command; one line."""
 
 

@@ -1,16 +1,20 @@
-"""Policies the evaluator runs: two non-learning baselines and trained checkpoints.
+"""Policies the evaluator runs: two non-learning baselines, scripted CAVs and checkpoints.
 
-Every policy answers the same three questions, so the evaluator treats a
+Every policy answers the same two questions, and every episode is played
+through the environment (:mod:`diacc.episode`), so the evaluator treats a
 baseline exactly like a checkpoint:
 
 * :meth:`Policy.env_config`: which environment a grid cell means for it
   (``pure-hdv`` turns every CAV into an HDV; ``cooperative`` lets the CAVs
   drive themselves; a checkpoint keeps the observation, PSAR, reward and
   simulation settings it was trained with);
-* :attr:`Policy.commands_cavs`: whether it sends actions at all (the
-  baselines do not, so the evaluator steps the backend directly and skips
-  observations and PSAR);
-* :meth:`Policy.act`: greedy (argmax) actions from the actor with its GRU state.
+* :meth:`Policy.act`: the CAVs' actions; from a trained actor with its GRU
+  state, greedy (argmax, the default) or, with ``PolicySpec.sampled``, drawn
+  from the policy's distribution with a generator seeded by the episode seed
+  (the stochastic policy that training optimised; an under-trained actor's
+  argmax can repeat one suppressed action forever, e.g. ``accelerate`` while
+  standing at a lane end, which sampling does not); ``remain`` for the
+  baselines, whose CAVs do not exist or drive themselves (PSAR is off for them).
 
 Policies are built from a :class:`PolicySpec` (a name or a checkpoint path),
 which is what crosses process boundaries: each worker loads its own copy.
@@ -24,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.config import STYLE_PRESETS, VARIANTS, SimConfig, TrainConfig
-from diacc.env import ACTION_NAMES, EnvConfig
+from diacc.actions import ACTION_NAMES, REMAIN
+from diacc.config import VARIANTS, EnvConfig, SimConfig, TrainConfig
+from diacc.errors import DiaccError
 from diacc.grid import Cell
 from diacc.observation import ActorObs
 
@@ -36,7 +41,7 @@ BASELINES = ("pure-hdv", "cooperative")
 SCRIPTED = ("remain", "accelerate", "random")
 
 
-class PolicyError(ValueError):
+class PolicyError(DiaccError, ValueError):
     """Unknown policy name or unusable checkpoint for evaluation; one line."""
 
 
@@ -51,10 +56,6 @@ class EvalSettings:
     def __post_init__(self) -> None:
         if self.episode_steps is not None and self.episode_steps < 1:
             raise PolicyError(f"episode_steps must be >= 1, got {self.episode_steps}")
-        if self.style_preset is not None and self.style_preset not in STYLE_PRESETS:
-            raise PolicyError(
-                f"unknown style preset {self.style_preset!r}; known: {', '.join(STYLE_PRESETS)}"
-            )
 
     def apply(self, sim: SimConfig) -> SimConfig:
         changes = {}
@@ -73,10 +74,12 @@ class PolicySpec:
         name: ``pure-hdv``, ``cooperative`` or the path of a ``checkpoint.pt``.
         variant: if set, a checkpoint must be of this variant (guards against
             comparing the wrong runs).
+        sampled: a checkpoint samples its actions instead of taking the argmax.
     """
 
     name: str
     variant: str | None = None
+    sampled: bool = False
 
     @property
     def is_baseline(self) -> bool:
@@ -91,26 +94,32 @@ class Policy:
     """Base class; see the module docstring."""
 
     label: str = ""
-    commands_cavs: bool = False
     #: Settings shared by every cell (simulation, observation, PSAR, reward).
     base: EnvConfig = EnvConfig()
 
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
-        """The environment of one grid cell for this policy."""
+        """The environment of one grid cell for this policy.
+
+        Observations are padded to at least the cell's vehicles: only a
+        checkpoint's networks fix ``max_vehicles`` (:class:`CheckpointPolicy`
+        refuses larger cells).
+        """
+        obs = self.base.obs
         return dataclasses.replace(
             self.base,
             backend=settings.backend,
             map=cell.map,
             scenario=cell.scenario(base=self.base.scenario),
             sim=settings.apply(self.base.sim),
+            obs=dataclasses.replace(obs, max_vehicles=max(obs.max_vehicles, cell.n_vehicles)),
         )
 
     def begin_episode(self, n_cavs: int, seed: int) -> None:
         """Forget any recurrent state (called before the first :meth:`act`)."""
 
     def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
-        """(C,) int64 greedy actions for every CAV slot."""
-        raise NotImplementedError
+        """(C,) int64 actions for every CAV slot; here ``remain``, i.e. no command."""
+        return np.full(actor_obs.alive.shape[0], REMAIN, np.int64)
 
     def describe(self) -> dict:
         """What identifies this policy in a results directory's ``meta.json``."""
@@ -134,14 +143,16 @@ class CooperativePolicy(Policy):
 
     On SUMO the CAVs are CACC vehicles with ``lcCooperative = 1``; on highway
     they run the HDV IDM/MOBIL code with a CACC-like parameter set (see
-    :class:`~diacc.backends.highway.HighwayBackend`).
+    :class:`~diacc.backends.highway.backend.HighwayBackend`).
     """
 
     label = "cooperative"
 
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
         cfg = super().env_config(cell, settings)
-        return dataclasses.replace(cfg, use_psar=False, cav_mode="cooperative")
+        return dataclasses.replace(
+            cfg, use_psar=False, sim=dataclasses.replace(cfg.sim, cav_mode="cooperative")
+        )
 
 
 class ScriptedPolicy(Policy):
@@ -151,8 +162,6 @@ class ScriptedPolicy(Policy):
     These are the probes of ``diacc bench --safety``: what PSAR and the
     simulators make of a policy that knows nothing about traffic.
     """
-
-    commands_cavs = True
 
     def __init__(self, name: str) -> None:
         script = name.removesuffix("-nopsar")
@@ -174,46 +183,26 @@ class ScriptedPolicy(Policy):
 
 
 class CheckpointPolicy(Policy):
-    """A trained actor acting greedily, with PSAR if its variant uses PSAR."""
+    """A trained actor, greedy or sampling, with PSAR if its variant uses PSAR."""
 
-    commands_cavs = True
-
-    def __init__(self, path: str | Path, variant: str | None = None) -> None:
+    def __init__(self, path: str | Path, variant: str | None = None, sampled: bool = False) -> None:
         import torch
 
-        from diacc.algo.mappo import (
-            CheckpointError,
-            config_from_checkpoint,
-            env_config,
-            load_checkpoint,
-            make_agent,
-            restore,
-        )
+        from diacc.algo.checkpoint import load_actor
 
         self.path = Path(path)
         if variant is not None and variant not in VARIANTS:
             raise PolicyError(f"unknown variant {variant!r}; known: {', '.join(VARIANTS)}")
-        payload = load_checkpoint(self.path)
-        if variant is not None and payload.get("variant") != variant:
-            raise CheckpointError(
-                f"checkpoint {self.path} is for variant {payload.get('variant')!r}, not {variant!r}"
-            )
-        try:
-            self.train_config: TrainConfig = config_from_checkpoint(payload)
-        except ValueError as exc:
-            raise CheckpointError(
-                f"checkpoint {self.path} has an unusable config ({exc})"
-            ) from None
-        cfg = dataclasses.replace(self.train_config, device="cpu")
-        agent = make_agent(cfg, torch.device("cpu"))
-        restore(agent, payload, cfg, self.path)  # checks variant and observation layout
-        self.actor = agent.actor.eval()
+        self.actor, cfg, payload = load_actor(self.path, variant)
+        self.train_config: TrainConfig = cfg
         self.hidden_size = cfg.model.gru_hidden
-        self.base = env_config(cfg)  # use_psar as the variant says (mappo.PSAR_VARIANTS)
-        self.label = cfg.variant
+        self.base = cfg.env  # use_psar as the variant says (VARIANT_TABLE)
+        self.sampled = sampled
+        self.label = f"{cfg.variant} (sampled)" if sampled else cfg.variant
         self.update = int(payload.get("update", 0))
         self.global_step = int(payload.get("global_step", 0))
         self._hidden = torch.zeros(0, self.hidden_size)
+        self._generator = torch.Generator()
 
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
         if cell.n_vehicles > self.base.obs.max_vehicles:
@@ -227,6 +216,7 @@ class CheckpointPolicy(Policy):
         import torch
 
         self._hidden = torch.zeros(n_cavs, self.hidden_size)
+        self._generator.manual_seed(seed)
 
     def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
         import torch
@@ -237,24 +227,32 @@ class CheckpointPolicy(Policy):
         start = torch.full((n_cavs,), bool(first_step))
         with torch.no_grad():
             logits, self._hidden = self.actor(to_tensors(actor_obs), self._hidden, start)
-        return logits.argmax(-1).cpu().numpy().astype(np.int64)  # (C,)
+            if self.sampled:
+                probs = torch.softmax(logits, -1)  # (C, 5)
+                action = torch.multinomial(probs, 1, generator=self._generator)[:, 0]
+            else:
+                action = logits.argmax(-1)
+        return action.cpu().numpy().astype(np.int64)  # (C,)
 
     def describe(self) -> dict:
         return {
             "policy": self.label,
             "checkpoint": str(self.path.resolve()),
             "update": self.update,
-            "trained_on": self.train_config.backend,
+            "actions": "sampled" if self.sampled else "greedy",
+            "trained_on": self.train_config.env.backend,
             "trained_steps": self.global_step,  # budget, shown in table captions
             "total_steps": self.train_config.total_steps,
         }
 
 
-def parse_policy(name: str, variant: str | None = None) -> PolicySpec:
+def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -> PolicySpec:
     """Check a ``--policy`` value: a baseline name or an existing checkpoint file."""
     if name in BASELINES or PolicySpec(name).is_scripted:
         if variant is not None:
             raise PolicyError(f"--variant applies to checkpoints, not to the {name} baseline")
+        if sampled:
+            raise PolicyError(f"--actions sampled applies to checkpoints, not to {name}")
         return PolicySpec(name)
     path = Path(name)
     if path.is_dir():
@@ -268,7 +266,7 @@ def parse_policy(name: str, variant: str | None = None) -> PolicySpec:
         )
     if not path.exists():
         raise PolicyError(f"checkpoint {path} does not exist")
-    return PolicySpec(str(path), variant)
+    return PolicySpec(str(path), variant, sampled)
 
 
 def build_policy(spec: PolicySpec) -> Policy:
@@ -279,4 +277,4 @@ def build_policy(spec: PolicySpec) -> Policy:
         return CooperativePolicy()
     if spec.is_scripted:
         return ScriptedPolicy(spec.name)
-    return CheckpointPolicy(spec.name, spec.variant)
+    return CheckpointPolicy(spec.name, spec.variant, spec.sampled)

@@ -1,9 +1,8 @@
 """One episode of any policy as an animated GIF.
 
-Frames come from highway-env's road renderer on both backends: the highway
-backend draws itself (``HighwayBackend.render``); a SUMO episode's
-:class:`~diacc.state.TrafficState` is drawn by the same renderer on the same
-map, so both backends' GIFs look alike. CAVs and the three HDV styles have
+Frames come from :class:`diacc.viewer.Viewer` (highway-env's road renderer),
+which draws the :class:`~diacc.state.TrafficState` whichever backend made it,
+so both backends' GIFs look alike. CAVs and the three HDV styles have
 distinct colours, crashed vehicles are red, and CAVs whose action PSAR changed
 in the step leading to a frame are outlined (``highlight``).
 
@@ -14,18 +13,20 @@ the crash, if any, and a legend of the colours.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from diacc.evaluate import EpisodeDriver
+from diacc.episode import EpisodeDriver
+from diacc.errors import DiaccError
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec, build_policy
 from diacc.state import TrafficState
 
 
-class RenderError(ValueError):
+class RenderError(DiaccError, ValueError):
     """Bad render request (no steps, wrong output suffix...); one line."""
 
 
@@ -39,13 +40,13 @@ class RenderResult:
 
 def _legend_entries() -> list[tuple[str, tuple[int, int, int], bool]]:
     """(label, RGB, outline only) of the legend, in the renderer's own colours."""
-    from diacc.backends.highway_render import (
+    from diacc.scenario import STYLE_NAMES
+    from diacc.viewer import (
         CAV_COLOR,
         CRASHED_COLOR,
         HIGHLIGHT_COLOR,
         STYLE_COLORS,
     )
-    from diacc.scenario import STYLE_NAMES
 
     entries = [(f"HDV {name}", STYLE_COLORS[code], False) for code, name in enumerate(STYLE_NAMES)]
     return [
@@ -60,7 +61,7 @@ def step_stamp(
     state: TrafficState, max_steps: int, psar_rule: np.ndarray | None
 ) -> tuple[str, str]:
     """(time / step / crash line, PSAR line) under a frame; ``psar_rule`` (V,) None: no PSAR."""
-    from diacc.safety import RULE_NAMES
+    from diacc.psar import RULE_NAMES
 
     crash = (
         "crash: vehicles "
@@ -101,31 +102,6 @@ def annotate(frame: np.ndarray, lines: tuple[str, ...]) -> np.ndarray:
     return np.asarray(image)
 
 
-class _FrameSource:
-    """Draws (state, highlight) with highway-env's renderer whatever the backend."""
-
-    def __init__(self, driver: EpisodeDriver) -> None:
-        self.driver = driver
-        self.own = driver.backend.__class__.__name__ == "HighwayBackend"
-        self.renderer = None
-        if not self.own:
-            from diacc.backends.highway_render import HighwayRenderer
-            from diacc.backends.highway_road import build_road_network
-
-            self.renderer = HighwayRenderer(
-                driver.road, build_road_network(driver.road), driver.cfg.sim
-            )
-
-    def draw(self, state: TrafficState, highlight: np.ndarray) -> np.ndarray:
-        if self.own:
-            return self.driver.backend.render(highlight=highlight)
-        return self.renderer.draw(state, highlight)
-
-    def close(self) -> None:
-        if self.renderer is not None:
-            self.renderer.close()
-
-
 def render_episode(
     spec: PolicySpec,
     cell: Cell,
@@ -149,14 +125,18 @@ def render_episode(
         raise RenderError(f"--steps must be >= 1, got {steps}")
     if fps <= 0:
         raise RenderError(f"--fps must be > 0, got {fps}")
+    from diacc.viewer import Viewer
+
     policy = build_policy(spec)
-    driver = EpisodeDriver(policy, policy.env_config(cell, settings))
+    cfg = policy.env_config(cell, settings)
+    max_steps = min(steps, cfg.sim.episode_steps)  # the GIF's episode ends there
+    cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, episode_steps=max_steps))
+    driver = EpisodeDriver(policy, cfg)
     source = None
     try:
         state = driver.reset(cell.seed(0) if seed is None else seed)
-        source = _FrameSource(driver)
-        max_steps = min(steps, driver.cfg.sim.episode_steps)
-        psar_on = driver.env is not None and driver.cfg.use_psar
+        source = Viewer(driver.road, driver.cfg.sim)
+        psar_on = driver.cfg.use_psar
         no_rule = np.zeros(state.n_vehicles, np.int8)  # (V,)
         frames = [
             annotate(
@@ -165,7 +145,7 @@ def render_episode(
             )
         ]
         psar_frames = 0
-        while not driver.done and len(frames) <= steps:
+        while not driver.done:
             state = driver.step()
             highlight = driver.psar_rule != 0  # (V,)
             psar_frames += int(highlight.any())

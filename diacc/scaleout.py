@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from diacc.config import TrainConfig, override
+from diacc.errors import DiaccError
 from diacc.evaluate import CellTask, CellTaskResult, run_tasks_here
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec
@@ -40,7 +41,7 @@ ENGINES = ("local", "ray")
 RAY_MISSING = 'Ray is not installed: pip install -e ".[ray]" (or use --engine local)'
 
 
-class ScaleoutError(RuntimeError):
+class ScaleoutError(DiaccError, RuntimeError):
     """Ray missing, unreachable or failing; the message is one line."""
 
 
@@ -148,12 +149,9 @@ def sweep_configs(
     """The configs of variants x maps x seeds, each with its own run directory."""
     configs = []
     for variant, map_name, seed in itertools.product(variants, maps, seeds):
-        run_dir = Path(out_dir) / f"{variant}-{base.backend}-{Path(map_name).stem}-s{seed}"
-        configs.append(
-            override(
-                base, {"variant": variant, "map": map_name, "seed": seed, "run_dir": str(run_dir)}
-            )
-        )
+        run_dir = Path(out_dir) / f"{variant}-{base.env.backend}-{Path(map_name).stem}-s{seed}"
+        changes = {"variant": variant, "env.map": map_name, "seed": seed, "run_dir": str(run_dir)}
+        configs.append(override(base, changes))
     return configs
 
 
@@ -191,7 +189,7 @@ def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
     from diacc.algo.mappo import train
 
     run_dir = Path(cfg.run_dir)
-    base = {"variant": cfg.variant, "map": cfg.map, "seed": cfg.seed, "run_dir": cfg.run_dir}
+    base = {"variant": cfg.variant, "map": cfg.env.map, "seed": cfg.seed, "run_dir": cfg.run_dir}
     state = run_state(cfg)
     if state == "finished":
         return SweepRun(

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diacc.errors import DiaccError
 from diacc.maps import Map
 
 STYLE_NAMES = ("aggressive", "normal", "cautious")
@@ -31,7 +32,7 @@ STYLE_MIXES: dict[str, tuple[float, float, float]] = {
 }
 
 
-class ScenarioError(ValueError):
+class ScenarioError(DiaccError, ValueError):
     """Invalid scenario values; the message is one line."""
 
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.backends.base import BackendError
+from diacc.backends.base import BackendError, backend_class
 from diacc.env import BottleneckEnv, EnvConfig
 from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, stack
@@ -390,9 +390,9 @@ class ProcessVectorEnv:
 
 
 def make_vector_env(config: EnvConfig, n_envs: int, run_seed: int, mode: str = "auto"):
-    """``mode``: ``sync``, ``process`` or ``auto`` (sync for highway, process for sumo)."""
+    """``mode``: ``sync``, ``process`` or ``auto`` (the backend's ``vector_mode``)."""
     if mode == "auto":
-        mode = "sync" if config.backend == "highway" else "process"
+        mode = backend_class(config.backend).vector_mode
     if mode == "sync":
         return SyncVectorEnv(config, n_envs, run_seed)
     if mode == "process":

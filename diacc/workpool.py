@@ -23,13 +23,14 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
+from diacc.errors import DiaccError
 from diacc.runlog import log
 
 #: Attempts per task (the first run plus retries after a worker died).
 MAX_ATTEMPTS = 3
 
 
-class PoolError(RuntimeError):
+class PoolError(DiaccError, RuntimeError):
     """Some tasks could not be completed; the message is one line."""
 
 

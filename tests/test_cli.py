@@ -22,8 +22,8 @@ def _error(capsys, argv: list[str]) -> str:
 def test_train_rejects_bad_input(tmp_path, capsys):
     run = ["--run-dir", str(tmp_path / "r"), "--no-progress"]
     assert "unknown map 'nowhere'" in _error(capsys, ["train", "--map", "nowhere", *run])
-    assert "unknown config key 'reward.nope'" in _error(
-        capsys, ["train", "--set", "reward.nope=1", *run]
+    assert "unknown config key 'env.reward.nope'" in _error(
+        capsys, ["train", "--set", "env.reward.nope=1", *run]
     )
     assert "expects KEY=VALUE" in _error(capsys, ["train", "--set", "lr", *run])
     assert "does not exist" in _error(capsys, ["train", "--resume", *run])
@@ -31,8 +31,26 @@ def test_train_rejects_bad_input(tmp_path, capsys):
     bad.write_text("lr = [")
     assert "not valid TOML" in _error(capsys, ["train", "--config", str(bad), *run])
     too_many = tmp_path / "many.toml"
-    too_many.write_text("[scenario]\nn_vehicles = 41\n")
+    too_many.write_text("[env.scenario]\nn_vehicles = 41\n")
     assert "41" in _error(capsys, ["train", "--config", str(too_many), "--steps", "10", *run])
+
+
+def test_only_user_errors_are_one_line(monkeypatch, capsys):
+    """A DiaccError is a one-line error; any other exception is a bug and keeps its traceback."""
+    from diacc import cli
+    from diacc.errors import DiaccError
+
+    def user_mistake(args):
+        raise DiaccError("bad input\nsecond line")
+
+    def bug(args):
+        raise ValueError("a bug")
+
+    monkeypatch.setitem(cli.COMMANDS, "simulate", user_mistake)
+    assert _error(capsys, ["simulate"]) == "diacc: error: bad input"
+    monkeypatch.setitem(cli.COMMANDS, "simulate", bug)
+    with pytest.raises(ValueError, match="a bug"):
+        main(["simulate"])
 
 
 def test_bench_needs_a_target(capsys):
@@ -42,9 +60,9 @@ def test_bench_needs_a_target(capsys):
 def test_train_writes_a_run_directory(tmp_path, capsys):
     config = tmp_path / "small.toml"
     config.write_text(
-        "rollout_steps = 10\nepochs = 1\n[scenario]\nn_vehicles = 8\n"
-        "cav_penetration = 0.25\n[model]\nhidden_dim = 32\ngru_hidden = 32\n"
-        "cross_dim = 32\n"
+        "rollout_steps = 10\nepochs = 1\n[env.scenario]\nn_vehicles = 8\n"
+        "cav_penetration = 0.25\n[env.sim]\nepisode_steps = 10\n[model]\nhidden_dim = 32\n"
+        "gru_hidden = 32\ncross_dim = 32\n"
     )
     run = tmp_path / "run"
     assert (
@@ -76,12 +94,12 @@ def test_train_writes_a_run_directory(tmp_path, capsys):
         "reward/individual",
     } <= set(record)
     stored = json.loads((run / "config.json").read_text())
-    assert stored["scenario"]["n_vehicles"] == 8 and stored["model"]["hidden_dim"] == 32
+    assert stored["env"]["scenario"]["n_vehicles"] == 8 and stored["model"]["hidden_dim"] == 32
     out = capsys.readouterr().out
     assert out.index("resolved config") < out.index("run directory")
     assert re.search(r"total_steps\s+.*20\s+.*3000000", out)  # value and default
-    assert re.search(r"scenario\.n_vehicles\s+.*8\s+.*25", out)  # changed nested field
-    assert "sim.step_s" not in out  # unchanged nested fields: see config.json
+    assert re.search(r"env\.scenario\.n_vehicles\s+.*8\s+.*25", out)  # changed nested field
+    assert "env.sim.step_s" not in out  # unchanged nested fields: see config.json
 
 
 @pytest.mark.parametrize("backend", ["highway", "sumo"])

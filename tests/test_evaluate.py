@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.algo.mappo import make_agent, save_checkpoint
+from diacc.algo.checkpoint import save_checkpoint
+from diacc.algo.mappo import make_agent
 from diacc.cli import main
 from diacc.config import ModelConfig, TrainConfig
+from diacc.env import BottleneckEnv
 from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, evaluate, read_csv
 from diacc.grid import Cell, GridError, load_grid
 from diacc.maps import SEGMENT_KINDS
@@ -192,6 +194,27 @@ def test_checkpoint_policy_greedy_and_deterministic(tmp_path):
     assert row["policy"] == "diacc" and row["psar"] == "True" and int(row["psar_decisions"]) > 0
 
 
+def test_sampled_actions_are_seeded_and_differ_from_greedy(tmp_path):
+    """``--actions sampled``: the same episode seed draws the same actions, and an
+    untrained actor's samples are not its argmax."""
+    from diacc.policies import build_policy
+
+    policy = build_policy(PolicySpec(str(_checkpoint(tmp_path / "run")), sampled=True))
+    greedy = build_policy(PolicySpec(str(tmp_path / "run" / "checkpoint.pt")))
+    assert policy.describe()["actions"] == "sampled" and policy.label == "diacc (sampled)"
+    env = BottleneckEnv(policy.env_config(SMALL, EvalSettings("highway")))
+    obs, _ = env.reset_arrays(3)
+    runs = []
+    for _ in range(2):
+        policy.begin_episode(env.n_cavs, seed=7)
+        runs.append(np.stack([policy.act(obs, t == 0) for t in range(20)]))  # (20, C)
+    env.close()
+    greedy.begin_episode(env.n_cavs, seed=7)
+    argmax = np.stack([greedy.act(obs, t == 0) for t in range(20)])
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert (runs[0] != argmax).any() and len(np.unique(runs[0])) > 1
+
+
 # ----------------------------------------------------------------------------- CLI errors
 def _cli_error(capsys, argv: list[str]) -> str:
     assert main(argv) == 2
@@ -204,6 +227,9 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     out = str(tmp_path / "res")
     assert "unknown policy 'greedy'" in _cli_error(
         capsys, ["eval", "--policy", "greedy", "--out", out]
+    )
+    assert "applies to checkpoints" in _cli_error(
+        capsys, ["eval", "--policy", "pure-hdv", "--actions", "sampled", "--out", out]
     )
     ckpt = _checkpoint(tmp_path / "mappo-run", variant="mappo")
     assert "variant 'mappo', not 'diacc'" in _cli_error(
@@ -255,14 +281,14 @@ def test_cli_eval_writes_results(tmp_path, capsys):
 
 # -------------------------------------------------------------- highway cooperative CAVs
 def test_highway_cooperative_cavs_drive_themselves():
-    from diacc.backends.base import BackendError, CavCommands
-    from diacc.backends.highway import HighwayBackend
-    from diacc.config import SimConfig
+    from diacc.backends.base import CavCommands
+    from diacc.backends.highway.backend import HighwayBackend
+    from diacc.config import ConfigError, SimConfig
     from diacc.maps import load_map
 
     road, sim = load_map("train-50"), SimConfig()
     scenario = SMALL.scenario()
-    coop = [HighwayBackend(road, sim, cav_mode="cooperative") for _ in range(2)]
+    coop = [HighwayBackend(road, SimConfig(cav_mode="cooperative")) for _ in range(2)]
     commanded = HighwayBackend(road, sim)
     states = [b.reset(scenario, 7) for b in (*coop, commanded)]
     cav = states[0].is_cav
@@ -279,5 +305,5 @@ def test_highway_cooperative_cavs_drive_themselves():
     # Commanded CAVs hold their speed when idle; cooperative ones accelerate on their own.
     assert np.allclose(states[2].speed_mps[cav], scenario.insert_speed_mps)
     assert states[0].speed_mps[cav].mean() > scenario.insert_speed_mps + 1.0
-    with pytest.raises(BackendError, match="unknown CAV mode"):
-        HighwayBackend(road, sim, cav_mode="platoon")
+    with pytest.raises(ConfigError, match="cav_mode"):
+        SimConfig(cav_mode="platoon")

@@ -31,9 +31,9 @@ rollout_steps = 10
 epochs = 2
 checkpoint_every = 1
 device = "cpu"
-[sim]
-episode_steps = 15
-[scenario]
+[env.sim]
+episode_steps = 10
+[env.scenario]
 n_vehicles = 8
 cav_penetration = 0.25
 [model]
@@ -224,7 +224,7 @@ def test_case3_nonfinite_gradient_stops_before_the_update(tmp_path, monkeypatch)
     """A NaN gradient in update 2: one-line error naming it; update 1's checkpoint intact."""
     from test_mappo import tiny_config
 
-    from diacc.algo import mappo
+    from diacc.algo import checkpoint, mappo
 
     cfg = tiny_config(tmp_path, checkpoint_every=1, total_steps=80)
     backward_calls = []
@@ -248,7 +248,7 @@ def test_case3_nonfinite_gradient_stops_before_the_update(tmp_path, monkeypatch)
     assert "\n" not in message
     assert message.startswith(f"update 2: non-finite gradient of critic.{backward_calls[0]}")
     assert "still holds update 1" in message
-    payload = mappo.load_checkpoint(tmp_path / "run" / "checkpoint.pt")  # finite, loads
+    payload = checkpoint.load_checkpoint(tmp_path / "run" / "checkpoint.pt")  # finite, loads
     assert payload["update"] == 1
     assert [r["update"] for r in _rows(tmp_path / "run" / "progress.jsonl")] == [1]
 
@@ -350,7 +350,7 @@ def test_case9_sumo_worker_killed_during_eval_reruns_its_episode(files, tmp_path
     proc = _popen(*args, "--out", str(out))
 
     def sumo_worker():
-        return [p for p, cmd in _descendants(proc.pid) if "diacc.backends.sumo_worker" in cmd]
+        return [p for p, cmd in _descendants(proc.pid) if "diacc.backends.sumo.worker" in cmd]
 
     seen: dict[int, float] = {}
 
@@ -374,7 +374,7 @@ def test_case9_sumo_worker_killed_during_eval_reruns_its_episode(files, tmp_path
 
 
 def test_case9_sumo_worker_dead_at_reset_is_restarted_and_logged(caplog):
-    from diacc.backends.sumo import SumoBackend
+    from diacc.backends.sumo.backend import SumoBackend
     from diacc.config import SimConfig
     from diacc.maps import load_map
     from diacc.scenario import Scenario
@@ -418,7 +418,10 @@ LENGTH = "field 'segments[0].length_m' must be a finite positive number, got"
 BAD_INPUT = [
     # case 3: non-finite config values
     (["train", "--set", "value_coef=nan"], "'value_coef' must be a finite number, got nan"),
-    (["train", "--set", "reward.w_ego=nan"], "config key 'reward.w_ego' must be a finite number"),
+    (
+        ["train", "--set", "env.reward.w_ego=nan"],
+        "config key 'env.reward.w_ego' must be a finite number",
+    ),
     (["train", "--set", "lr=inf"], "config key 'lr' must be a finite number, got inf"),
     # case 4 and other out-of-range values
     (["train", "--envs", "0"], "config key 'n_envs' must be >= 1, got 0"),
@@ -426,10 +429,11 @@ BAD_INPUT = [
     (["train", "--set", "gamma=1.5"], "config key 'gamma' must be in [0, 1], got 1.5"),
     (["train", "--set", "lr=-1"], "config key 'lr' must be > 0, got -1.0"),
     (["train", "--set", "rollout_steps=15"], "rollout_steps 15 must be a multiple of chunk_len 10"),
+    (["train", "--set", "env.sim.episode_steps=20"], "rollout_steps 10 must be >= env.sim.episode"),
     (["train", "--set", "vector=threads"], "'vector' must be one of auto, sync, process"),
     # case 6: resume with another config
     (["train", "--resume", "--seed", "2"], "was trained with seed 1, not 2; --resume may change"),
-    (["train", "--resume", "--map", "train-50"], "was trained with map 'train-25', not 'train-50'"),
+    (["train", "--resume", "--map", "train-50"], "trained with env.map 'train-25', not 'train-50'"),
     # case 7: maps
     (["simulate", "--map", "{nan_map}"], "{nan_map}: " + LENGTH + " nan"),
     (["simulate", "--map", "{inf_map}"], "{inf_map}: " + LENGTH + " inf"),

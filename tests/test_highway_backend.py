@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from diacc.backends.base import Backend, CavCommands
-from diacc.backends.highway import HighwayBackend
+from diacc.backends.highway.backend import HighwayBackend
 from diacc.config import AGGRESSIVE, CAUTIOUS, STYLE_PRESETS, SimConfig
 from diacc.maps import load_map
 from diacc.scenario import Scenario
 from diacc.state import validate_state
+from diacc.viewer import Viewer
 
 SIM = SimConfig()
 
@@ -201,12 +202,13 @@ def test_heading_follows_lateral_motion():
 def test_render_non_blank_frame_with_highlight():
     backend, state = _cav_backend()
     for _ in range(3):
-        backend.step(CavCommands.idle(25))
-    frame = backend.render()
+        state = backend.step(CavCommands.idle(25))
+    viewer = Viewer(backend.road, backend.sim)
+    frame = viewer.draw(state)
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
     assert frame.std() > 5  # not a blank or black frame
     colours = {tuple(c) for c in frame.reshape(-1, 3)[::7]}
     assert len(colours) > 5
-    highlighted = backend.render(highlight=state.is_cav)
+    highlighted = viewer.draw(state, highlight=state.is_cav)
     assert not np.array_equal(frame, highlighted)
     backend.close()

@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.algo.mappo import env_config, load_checkpoint, make_agent, restore, train
+from diacc.algo.checkpoint import load_checkpoint, restore
+from diacc.algo.mappo import make_agent, train
 from diacc.config import TrainConfig, override
-from diacc.env import BottleneckEnv
+from diacc.episode import EpisodeDriver
 from diacc.models.inputs import to_tensors
 from diacc.scenario import Scenario
 
@@ -30,43 +31,49 @@ def small_config(run_dir, steps: int) -> TrainConfig:
             "total_steps": steps,
             "n_envs": 4,
             "rollout_steps": 50,
-            "sim.episode_steps": 50,
+            "env.sim.episode_steps": 50,
             "run_dir": str(run_dir),
             "device": "cpu",
             "seed": 3,
         },
     )
-    return override(cfg, {"scenario": Scenario(n_vehicles=12, cav_penetration=0.25)})
+    return override(cfg, {"env.scenario": Scenario(n_vehicles=12, cav_penetration=0.25)})
+
+
+class SampledActor:
+    """The actor's actions sampled (not argmax), from one generator across episodes."""
+
+    def __init__(self, actor: torch.nn.Module) -> None:
+        self.actor, self.generator = actor, torch.Generator().manual_seed(0)
+
+    def begin_episode(self, n_cavs: int, seed: int) -> None:
+        self.hidden = torch.zeros(n_cavs, self.actor.hidden_size)
+
+    def act(self, actor_obs, first_step: bool) -> np.ndarray:
+        start = torch.full((self.hidden.shape[0],), first_step)
+        with torch.no_grad():
+            logits, self.hidden = self.actor(to_tensors(actor_obs), self.hidden, start)
+        probs = torch.softmax(logits, -1)
+        return torch.multinomial(probs, 1, generator=self.generator).squeeze(-1).numpy()
 
 
 def evaluate(cfg: TrainConfig, agent, seeds) -> tuple[float, float]:
     """(collision rate over episodes, mean CAV speed over episodes) with sampled actions."""
-    env = BottleneckEnv(env_config(cfg))
-    generator = torch.Generator().manual_seed(0)
+    driver = EpisodeDriver(SampledActor(agent.actor), cfg.env)
     collided, speeds = [], []
     try:
         for seed in seeds:
-            actor_obs, _ = env.reset_arrays(seed)
-            hidden = torch.zeros(env.n_cavs, agent.actor.hidden_size)
-            start = torch.ones(env.n_cavs, dtype=torch.bool)
+            driver.reset(seed)
             cav_speeds = []
-            for _ in range(cfg.sim.episode_steps):
-                with torch.no_grad():
-                    logits, hidden = agent.actor(to_tensors(actor_obs), hidden, start)
-                probs = torch.softmax(logits, -1)
-                actions = torch.multinomial(probs, 1, generator=generator).squeeze(-1).numpy()
-                start = torch.zeros_like(start)
-                out = env.step_arrays(actions)
-                actor_obs, state = out.actor_obs, out.state
+            while not driver.done:
+                state = driver.step()
                 on_road = state.active & state.is_cav
                 if on_road.any():
                     cav_speeds.append(state.speed_mps[on_road].mean())
-                if out.terminated or out.truncated:
-                    break
             collided.append(float(len(state.collisions) > 0))
             speeds.append(float(np.mean(cav_speeds)))
     finally:
-        env.close()
+        driver.close()
     return float(np.mean(collided)), float(np.mean(speeds))
 
 
@@ -98,7 +105,7 @@ def test_paper_training_scenario_episodes_rarely_collide(tmp_path):
     cfg = override(
         TrainConfig(),
         {
-            "map": "train-50",
+            "env.map": "train-50",
             "total_steps": 2_000,
             "n_envs": 4,
             "run_dir": str(tmp_path / "run"),

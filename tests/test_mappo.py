@@ -8,12 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from diacc.algo.checkpoint import CheckpointError, load_checkpoint
 from diacc.algo.mappo import (
-    CheckpointError,
     collect_rollout,
-    env_config,
     evaluate_batch,
-    load_checkpoint,
     make_agent,
     make_batch,
     ppo_update,
@@ -32,7 +30,7 @@ TINY = {
     "total_steps": 80,
     "device": "cpu",
     "epochs": 2,
-    "sim.episode_steps": 15,
+    "env.sim.episode_steps": 15,
     "model.hidden_dim": 32,
     "model.gru_hidden": 32,
     "model.cross_dim": 32,
@@ -61,9 +59,9 @@ def tiny_config(tmp_path, **extra) -> TrainConfig:
     road = tmp_path / "short.toml"
     road.write_text(SHORT_MAP)
     cfg = override(
-        TrainConfig(), {**TINY, "run_dir": str(tmp_path / "run"), "map": str(road), **extra}
+        TrainConfig(), {**TINY, "run_dir": str(tmp_path / "run"), "env.map": str(road), **extra}
     )
-    return override(cfg, {"scenario": Scenario(n_vehicles=8, cav_penetration=0.5)})
+    return override(cfg, {"env.scenario": Scenario(n_vehicles=8, cav_penetration=0.5)})
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +69,7 @@ def rollout_and_batch(tmp_path_factory):
     cfg = tiny_config(tmp_path_factory.mktemp("r"))
     seed_everything(cfg.seed)
     agent = make_agent(cfg, torch.device("cpu"))
-    envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed)
+    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
         roll, next_value, stats = collect_rollout(agent, envs, cfg, 0)
     finally:

@@ -138,9 +138,9 @@ def test_population_is_seeded():
 
 
 def test_config_override_rejects_unknown_keys():
-    cfg = override(TrainConfig(), {"lr": "0.001", "reward.w_ego": 0.8, "epochs": 3})
-    assert cfg.lr == 0.001 and cfg.reward.w_ego == 0.8 and cfg.epochs == 3
-    with pytest.raises(ConfigError, match="unknown config key 'reward.nope'"):
-        override(cfg, {"reward.nope": 1})
+    cfg = override(TrainConfig(), {"lr": "0.001", "env.reward.w_ego": 0.8, "epochs": 3})
+    assert cfg.lr == 0.001 and cfg.env.reward.w_ego == 0.8 and cfg.epochs == 3
+    with pytest.raises(ConfigError, match="unknown config key 'env.reward.nope'"):
+        override(cfg, {"env.reward.nope": 1})
     with pytest.raises(ConfigError, match="expects int"):
         override(cfg, {"epochs": "many"})

@@ -11,7 +11,7 @@ from helpers import make_state
 
 from diacc.maps import load_map
 from diacc.metrics import EpisodeRecorder, MetricsError
-from diacc.safety import PSARResult
+from diacc.psar import PSARResult
 
 ROAD = load_map("train-25")  # segments: multilane 0-500, reduction25 500-800, multilane
 CAV = [True, True, False, False]

@@ -8,20 +8,19 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.config import VARIANTS, ModelConfig
+from diacc.config import VARIANTS, ModelConfig, ObservationConfig
 from diacc.models.errors import ModelError
 from diacc.models.gat import GraphAttention
 from diacc.models.inputs import to_tensors
 from diacc.models.itdr import ITDR, CIECCritic
 from diacc.models.mlp import MLPActor
 from diacc.models.registry import build_policy
-from diacc.models.spec import ObsSpec
 from diacc.models.synthetic import random_actor_obs, random_critic_state
 from diacc.models.taie import TAIE, DIADMActor
-from diacc.observation import N_ACTIONS
+from diacc.observation import N_ACTIONS, ObservationSpec
 
 CFG = ModelConfig(hidden_dim=32, gat_heads=2, cross_heads=4, cross_dim=16, gru_hidden=24)
-SPEC = ObsSpec()
+SPEC = ObservationSpec.from_config(ObservationConfig())
 ATOL = 1e-5
 
 
@@ -381,7 +380,8 @@ def test_bad_inputs_raise_one_line_errors():
         )
     with pytest.raises(ModelError, match="leading shape"):
         actor(obs, torch.zeros(5, CFG.gru_hidden), torch.zeros(5))
-    small = to_tensors(random_actor_obs(ObsSpec(n_neighbours=4), (4,), np.random.default_rng(0)))
+    spec = ObservationSpec.from_config(ObservationConfig(n_neighbours=4))
+    small = to_tensors(random_actor_obs(spec, (4,), np.random.default_rng(0)))
     with pytest.raises(ModelError, match="built for"):
         actor(small, torch.zeros(4, CFG.gru_hidden), torch.zeros(4))
     with pytest.raises(ModelError, match="multiple of cross_heads"):
@@ -427,7 +427,7 @@ def test_every_variant_runs_on_builder_observations():
     )  # (2, 1, ...), (2, ...)
     obs = {k: v[:, 0] for k, v in obs.items()}  # one CAV slot per env -> (2, ...)
     assert not obs["hdv_mask"][1].any() and not obs["cav_mask"][1].any()
-    spec = ObsSpec.from_config(obs_cfg)
+    spec = ObservationSpec.from_config(obs_cfg)
     for variant in VARIANTS:
         actor, critic = build_policy(variant, CFG, spec)
         logits, _ = actor(obs, torch.zeros(2, CFG.gru_hidden), torch.ones(2))

@@ -18,7 +18,7 @@ from diacc.observation import (
     CriticState,
     ObservationBuilder,
     ObservationError,
-    observation_spec,
+    ObservationSpec,
 )
 from diacc.scenario import Scenario
 from diacc.state import TrafficState
@@ -350,7 +350,7 @@ def test_critic_lane_stats_and_traffic(road):
 # Layout, ranges, errors
 # ---------------------------------------------------------------------------
 def check_layout(obs: ActorObs, crit: CriticState, n_cav: int, cfg=CFG) -> None:
-    spec = observation_spec(cfg)
+    spec = ObservationSpec.from_config(cfg)
     for name, (shape, dtype) in spec.actor_shapes(n_cav).items():
         arr = getattr(obs, name)
         assert arr.shape == shape and arr.dtype == dtype, (name, arr.shape, arr.dtype)
@@ -380,7 +380,7 @@ def test_shapes_dtypes_and_ranges(road, n, n_cav):
         b.push(random_state(road, n, n_cav, seed=100 + t, step=t))
     obs = b.actor(np.arange(n_cav), np.zeros((n_cav, 2), np.int64), np.zeros(n, np.int64))
     check_layout(obs, b.critic(), n_cav)
-    assert b.spec() == observation_spec(CFG)
+    assert b.spec() == ObservationSpec.from_config(CFG)
 
 
 def test_far_neighbours_are_clipped_not_dropped(road):

@@ -134,8 +134,8 @@ def test_gif_has_expected_frames(tmp_path, backend):
 
 
 def test_gif_frames_carry_stamp_and_legend(tmp_path):
-    from diacc.backends.highway_render import CAV_COLOR, CRASHED_COLOR
     from diacc.render import annotate, step_stamp
+    from diacc.viewer import CAV_COLOR, CRASHED_COLOR
 
     render_episode(
         PolicySpec("pure-hdv"), CELL, tmp_path / "ep.gif", steps=2, settings=EvalSettings()

@@ -244,7 +244,7 @@ def test_budget_presets_and_overrides():
     plan = make_plan(resolve_config("tiny", style_preset="paper-congestion")[0])
     cfg = plan.train_config(plan.runs[0])
     assert '"style_preset": "paper-congestion"' in json.dumps(dataclasses.asdict(cfg))
-    assert cfg.total_steps == 200 and cfg.n_envs == 1 and cfg.map == "train-50"
+    assert cfg.total_steps == 200 and cfg.n_envs == 1 and cfg.env.map == "train-50"
 
 
 def test_sumo_training_turns_the_default_transfer_off_and_says_so(capsys):

@@ -1,7 +1,7 @@
 """Collision-free driving is possible: PSAR's physical options, lane ends, HDVs and CAVs.
 
 The literal Algorithm 1 is tested line by line in ``test_safety.py``; this
-file tests what the default options add (see :func:`diacc.safety.psar`) and
+file tests what the default options add (see :func:`diacc.psar.psar`) and
 that both simulators treat CAVs the way PSAR assumes.
 """
 
@@ -11,20 +11,12 @@ import numpy as np
 import pytest
 from helpers import make_state
 
+from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.backends.base import CavCommands, make_backend
 from diacc.config import PSARConfig, SimConfig
 from diacc.kinematics import safe_gap_m
 from diacc.maps import load_map
-from diacc.safety import (
-    ACCELERATE,
-    CANCEL_LC,
-    DECELERATE,
-    FORCE_BRAKE,
-    LANE_LEFT,
-    LANE_RIGHT,
-    REMAIN,
-    psar,
-)
+from diacc.psar import CANCEL_LC, FORCE_BRAKE, psar
 from diacc.scenario import Scenario
 
 ROAD = load_map("train-25")  # lane 3 ends at 500 m

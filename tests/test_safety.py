@@ -1,4 +1,4 @@
-"""Tests of diacc.safety: neighbour search, gap/TTC, PSAR (Algorithm 1), events."""
+"""Tests of diacc.safety (neighbour search, gap/TTC, events) and diacc.psar (Algorithm 1)."""
 
 from __future__ import annotations
 
@@ -8,25 +8,23 @@ import numpy as np
 import pytest
 from helpers import make_state
 
-from diacc.config import EventConfig, PSARConfig
+from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.config import ConfigError, EventConfig, PSARConfig
 from diacc.maps import load_map
-from diacc.safety import (
-    ACCELERATE,
+from diacc.psar import (
     CANCEL_LC,
     DECEL_LC,
-    DECELERATE,
     FORCE_BRAKE,
-    LANE_LEFT,
-    LANE_RIGHT,
-    REMAIN,
     RULE_BITS,
     RULE_NONE,
     SUPPR_ACCEL,
+    psar,
+    rule_counts,
+)
+from diacc.safety import (
     SafetyError,
     lane_leaders_followers,
     pair_kinematics,
-    psar,
-    rule_counts,
     safety_critical_events,
     waiting_events,
 )
@@ -243,8 +241,8 @@ def test_psar_rejects_bad_input():
         psar(state, np.array([0]), np.array([5]), CFG, ROAD)
     with pytest.raises(SafetyError, match="shape"):
         psar(state, np.array([0]), np.array([0, 1]), CFG, ROAD)
-    with pytest.raises(SafetyError, match="d_safe_m"):
-        psar(state, np.array([0]), np.array([0]), PSARConfig(d_safe_m=20.0), ROAD)
+    with pytest.raises(ConfigError, match="d_safe_m"):
+        PSARConfig(d_safe_m=20.0)
 
 
 # ---------------------------------------------------------------- events

@@ -60,14 +60,15 @@ def test_ray_sweep_trains_like_a_local_run(local_ray, tmp_path):
     base = override(
         TrainConfig(),
         {
-            "backend": "highway",
+            "env.backend": "highway",
             "total_steps": 20,
             "n_envs": 1,
             "rollout_steps": 10,
             "epochs": 1,
             "device": "cpu",
-            "scenario.n_vehicles": 8,
-            "scenario.cav_penetration": 0.25,
+            "env.scenario.n_vehicles": 8,
+            "env.scenario.cav_penetration": 0.25,
+            "env.sim.episode_steps": 10,
             "model.hidden_dim": 16,
             "model.gru_hidden": 16,
             "model.cross_dim": 16,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import subprocess
@@ -15,12 +16,13 @@ import pytest
 import sumolib
 
 from diacc.backends.base import Backend, BackendError, CavCommands
-from diacc.backends.sumo import SumoBackend
-from diacc.backends.sumo_net import build_network
-from diacc.config import SimConfig
+from diacc.backends.sumo.backend import SumoBackend
+from diacc.backends.sumo.net import build_network
+from diacc.config import ConfigError, SimConfig
 from diacc.maps import available_maps, load_map
 from diacc.scenario import Scenario, draw_population
 from diacc.state import validate_state
+from diacc.viewer import Viewer
 
 SIM = SimConfig()
 
@@ -81,9 +83,9 @@ def test_episodes_complete_without_collisions(map_name, cav_mode):
     """Pure HDV (commanded mode, no CAVs) and the cooperative baseline finish cleanly."""
     road = load_map(map_name)
     penetration = 0.0 if cav_mode == "commanded" else 0.4
-    with SumoBackend(road, SIM, cav_mode=cav_mode) as backend:
+    with SumoBackend(road, dataclasses.replace(SIM, cav_mode=cav_mode)) as backend:
         assert isinstance(backend, Backend)
-        assert backend.sumo_version.startswith("SUMO")
+        assert backend.version.startswith("SUMO")
         for n in (25, 40):
             scenario = Scenario(n_vehicles=n, cav_penetration=penetration)
             pop = draw_population(scenario, road, seed=5)
@@ -115,7 +117,7 @@ def test_episodes_complete_without_collisions(map_name, cav_mode):
             assert state.arrived.all(), f"{(~state.arrived).sum()} vehicles never arrived"
             assert not state.active.any()
             assert 0.0 < seen_heading < 1.2  # lane changes turn the vehicles, never sideways
-            frame = backend.render()
+            frame = Viewer(road, SIM).draw(state)
             assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
 
 
@@ -173,7 +175,7 @@ def test_no_worker_left_after_close_or_interpreter_exit(tmp_path):
 
     script = textwrap.dedent(
         """
-        from diacc.backends.sumo import SumoBackend
+        from diacc.backends.sumo.backend import SumoBackend
         from diacc.config import SimConfig
         from diacc.maps import load_map
         from diacc.scenario import Scenario
@@ -193,8 +195,8 @@ def test_no_worker_left_after_close_or_interpreter_exit(tmp_path):
 
 def test_bad_inputs_raise_backend_error():
     road = load_map("train-25")
-    with pytest.raises(BackendError, match="cav_mode"):
-        SumoBackend(road, SIM, cav_mode="telepathic")
+    with pytest.raises(ConfigError, match="cav_mode"):
+        dataclasses.replace(SIM, cav_mode="telepathic")
     with SumoBackend(road, SIM) as backend:
         with pytest.raises(BackendError, match="before reset"):
             backend.step(CavCommands.idle(3))

@@ -5,9 +5,9 @@ from __future__ import annotations
 from diacc.cli import main
 
 SMALL = [
-    "--set", "rollout_steps=10", "--set", "epochs=1", "--set", "scenario.n_vehicles=8",
-    "--set", "scenario.cav_penetration=0.25", "--set", "model.hidden_dim=16",
-    "--set", "model.gru_hidden=16", "--set", "model.cross_dim=16",
+    "--set", "rollout_steps=10", "--set", "epochs=1", "--set", "env.scenario.n_vehicles=8",
+    "--set", "env.scenario.cav_penetration=0.25", "--set", "env.sim.episode_steps=10",
+    "--set", "model.hidden_dim=16", "--set", "model.gru_hidden=16", "--set", "model.cross_dim=16",
 ]  # fmt: skip
 
 

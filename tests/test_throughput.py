@@ -11,13 +11,20 @@ import pytest
 import torch
 from test_mappo import tiny_config
 
-from diacc.algo import mappo
-from diacc.config import ConfigError, ModelConfig, TrainConfig, override, validate
+from diacc.algo import checkpoint, mappo
+from diacc.config import (
+    ConfigError,
+    ModelConfig,
+    ObservationConfig,
+    TrainConfig,
+    override,
+    validate,
+)
 from diacc.models.inputs import to_tensors
 from diacc.models.layers import embed_all, embed_present, mlp
 from diacc.models.registry import build_policy
-from diacc.models.spec import ObsSpec
 from diacc.models.synthetic import random_actor_obs, random_critic_state
+from diacc.observation import ObservationSpec
 from diacc.threads import (
     WORKER_THREAD_VARS,
     default_threads,
@@ -89,7 +96,7 @@ def test_embed_all_matches_embed_present_with_gradients():
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-6)
 
 
-def _chunk_inputs(make_obs, net, rng, spec: ObsSpec, rows: int):
+def _chunk_inputs(make_obs, net, rng, spec: ObservationSpec, rows: int):
     """Sequence-replay inputs (L=4, rows, ...) of ``net`` from ``make_obs``."""
     inputs = to_tensors(make_obs(spec, (4, rows), rng))
     return inputs, torch.zeros(rows, net.hidden_size), torch.zeros(4, rows, dtype=torch.bool)
@@ -98,7 +105,7 @@ def _chunk_inputs(make_obs, net, rng, spec: ObsSpec, rows: int):
 @pytest.mark.parametrize("variant", ["diacc", "mappo"])
 def test_sequence_replay_traces_without_graph_breaks(variant):
     """torch.compile sees one graph per network (dynamo tracing only; no code generation)."""
-    spec, rng = ObsSpec(), np.random.default_rng(0)
+    spec, rng = ObservationSpec.from_config(ObservationConfig()), np.random.default_rng(0)
     makers = (random_actor_obs, random_critic_state)
     for net, make_obs in zip(build_policy(variant, SMALL, spec), makers, strict=True):
         torch._dynamo.reset()
@@ -113,7 +120,7 @@ def tiny_batch(tmp_path_factory):
     cfg = tiny_config(tmp_path_factory.mktemp("b"))
     mappo.seed_everything(cfg.seed)
     agent = mappo.make_agent(cfg, torch.device("cpu"))
-    envs = mappo.make_vector_env(mappo.env_config(cfg), cfg.n_envs, cfg.seed)
+    envs = mappo.make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
         roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0)
     finally:
@@ -159,8 +166,8 @@ def test_separate_rollout_networks_train_exactly_like_shared_ones(tmp_path, monk
     assert agent.rollout_actor is not agent.actor
     assert agent.rollout_value_norm is not agent.value_norm
     mappo.train(split, progress=False)
-    a = mappo.load_checkpoint(tmp_path / "shared" / "run" / "checkpoint.pt")
-    b = mappo.load_checkpoint(tmp_path / "split" / "run" / "checkpoint.pt")
+    a = checkpoint.load_checkpoint(tmp_path / "shared" / "run" / "checkpoint.pt")
+    b = checkpoint.load_checkpoint(tmp_path / "split" / "run" / "checkpoint.pt")
     for part in ("actor", "critic", "value_norm"):
         for name, tensor in a[part].items():
             assert torch.equal(tensor, b[part][name]), f"{part}.{name} differs"

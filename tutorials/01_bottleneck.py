@@ -42,6 +42,7 @@ from diacc.console import metric_lines, print_lines
 from diacc.maps import available_maps, load_map
 from diacc.metrics import EpisodeRecorder
 from diacc.scenario import Scenario
+from diacc.viewer import Viewer
 
 OUT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out")) / "01_bottleneck"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -86,6 +87,7 @@ for seg, row in zip(road.segments, exists, strict=True):
 # %%
 scenario = Scenario(n_vehicles=25, cav_penetration=0.0, style_mix="D1")
 backend = make_backend("highway", road)
+viewer = Viewer(road, backend.sim)
 state = backend.reset(scenario, seed=0)
 recorder = EpisodeRecorder(road)
 recorder.record(state)
@@ -100,7 +102,7 @@ for _ in range(120):
     speed_mps.append(state.speed_mps.copy())
     active.append(state.active.copy())
     if state.step == frame_step:
-        frame = backend.render()  # (H, W, 3) uint8, highway-env's own renderer
+        frame = viewer.draw(state)  # (H, W, 3) uint8, highway-env's own renderer
     if not state.active.any():
         break
     state = backend.step(idle)
@@ -170,7 +172,7 @@ print("wrote", speed_png)
 # %% [markdown]
 # ## A rendered frame
 #
-# `backend.render()` draws the current state with highway-env's renderer
+# `Viewer.draw(state)` draws a state of either backend with highway-env's renderer
 # (offscreen, no window). Vehicles are coloured by style: orange aggressive,
 # blue normal, yellow cautious; the green verge marks lanes that do not exist
 # in the bottleneck.

@@ -40,9 +40,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from diacc.actions import ACCELERATE
 from diacc.env import ACTION_NAMES, BottleneckEnv, EnvConfig
 from diacc.observation import COUNT_SCALE, DENSITY_SCALE_VEH_PER_KM, DX_SCALE_M
-from diacc.safety import ACCELERATE
 
 OUT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out")) / "03_what_a_cav_sees"
 OUT.mkdir(parents=True, exist_ok=True)

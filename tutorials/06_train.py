@@ -42,7 +42,8 @@ import matplotlib.pyplot as plt
 import torch
 
 from diacc import cli
-from diacc.algo.mappo import make_agent, save_checkpoint, seed_everything, train
+from diacc.algo.checkpoint import save_checkpoint
+from diacc.algo.mappo import make_agent, seed_everything, train
 from diacc.config import TrainConfig, override
 from diacc.evaluate import evaluate, load_episodes
 from diacc.grid import make_cell
@@ -60,8 +61,8 @@ TRAIN_STEPS = int(os.environ.get("DIACC_TUTORIAL_TRAIN_STEPS", "120"))
 # `override` changes fields by dotted name, exactly like
 # `diacc train --set model.hidden_dim=32`. We shrink the run: one
 # environment, 40-step rollouts (a multiple of the 10-step recurrent chunks),
-# 2 PPO epochs per update instead of 5, smaller networks and 50-decision
-# episodes.
+# 2 PPO epochs per update instead of 5, smaller networks and 40-decision
+# episodes (a rollout must hold whole episodes: every update restarts them).
 
 # %%
 run_dir = OUT / "run"
@@ -69,8 +70,8 @@ cfg = override(
     TrainConfig(),
     {
         "variant": "diacc",
-        "backend": "highway",
-        "map": "train-25",
+        "env.backend": "highway",
+        "env.map": "train-25",
         "total_steps": TRAIN_STEPS,  # environment steps = decisions x environments
         "n_envs": 1,
         "rollout_steps": 40,
@@ -84,11 +85,11 @@ cfg = override(
         "model.cross_dim": 32,
         "model.cross_heads": 4,
         "model.gat_heads": 2,
-        "sim.episode_steps": 50,
+        "env.sim.episode_steps": 40,
     },
 )
 print(
-    f"{cfg.variant} on {cfg.backend}/{cfg.map}: {cfg.total_steps} steps, "
+    f"{cfg.variant} on {cfg.env.backend}/{cfg.env.map}: {cfg.total_steps} steps, "
     f"{cfg.total_steps // (cfg.rollout_steps * cfg.n_envs)} PPO updates"
 )
 

@@ -73,8 +73,8 @@ else:
         TrainConfig(),
         {
             "variant": "diacc",
-            "backend": "highway",
-            "map": "train-25",
+            "env.backend": "highway",
+            "env.map": "train-25",
             "total_steps": 40,
             "n_envs": 1,
             "rollout_steps": 40,
@@ -86,7 +86,7 @@ else:
             "model.cross_dim": 32,
             "model.cross_heads": 4,
             "model.gat_heads": 2,
-            "sim.episode_steps": 50,
+            "env.sim.episode_steps": 40,
         },
     )
     checkpoint = run_dir / "checkpoint.pt"

@@ -39,41 +39,29 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from diacc.algo.buffer import Rollout, compute_gae
+from diacc.algo.checkpoint import (
+    CheckpointError,
+    config_from_checkpoint,
+    flatten_config,
+    load_checkpoint,
+    restore,
+    save_checkpoint,
+    set_rng_state,
+)
 from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig, validate
-from diacc.env import EnvConfig
+from diacc.errors import DiaccError
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_policy
-from diacc.models.spec import ObsSpec
-from diacc.observation import stack
+from diacc.observation import ObservationSpec, stack
+from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
 from diacc.runlog import log, run_log
-from diacc.safety import RULE_NAMES, rule_counts
 from diacc.threads import set_torch_threads
 from diacc.vector import make_vector_env
 
-#: Variants whose actor output goes through PSAR (paper: PSAR is part of D-IADM).
-PSAR_VARIANTS = ("mappo-iadm", "diacc")
 #: Episode-counter stride per update: update u uses episode seeds u*stride, u*stride+1, ...
 EPISODES_PER_UPDATE = 1000
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint is missing, corrupt, or belongs to another run layout."""
-
-
-def env_config(cfg: TrainConfig) -> EnvConfig:
-    """The environment a training config describes."""
-    return EnvConfig(
-        backend=cfg.backend,
-        map=cfg.map,
-        use_psar=cfg.variant in PSAR_VARIANTS,
-        scenario=cfg.scenario,
-        sim=cfg.sim,
-        obs=cfg.obs,
-        psar=cfg.psar,
-        reward=cfg.reward,
-    )
 
 
 def resolve_device(name: str) -> torch.device:
@@ -163,7 +151,7 @@ class Agent:
 
 def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
     """The networks of ``cfg.variant`` with the learner on ``device`` (rollouts on the CPU)."""
-    actor, critic = build_policy(cfg.variant, cfg.model, ObsSpec.from_config(cfg.obs))
+    actor, critic = build_policy(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
     value_norm = ValueNorm()
     extras = {}
     if device != ROLLOUT_DEVICE:
@@ -181,83 +169,10 @@ def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
     return Agent(actor, critic, value_norm, optimizer, **extras)
 
 
-# ----------------------------------------------------------------------------- checkpoints
-def save_checkpoint(
-    path: Path, agent: Agent, cfg: TrainConfig, update: int, global_step: int
-) -> None:
-    payload = {
-        "format": 1,
-        "config": asdict(cfg),
-        "variant": cfg.variant,
-        "obs_spec": asdict(ObsSpec.from_config(cfg.obs)),
-        "update": update,
-        "global_step": global_step,
-        "actor": agent.actor.state_dict(),
-        "critic": agent.critic.state_dict(),
-        "value_norm": agent.value_norm.state_dict(),
-        "optimizer": agent.optimizer.state_dict(),
-        "rng": {
-            "python": random.getstate(),
-            "numpy": np.random.get_state(),
-            "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
-        },
-    }
-    tmp = path.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
-
-
-def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
-    """Read a checkpoint; raise :class:`CheckpointError` (one line) if it is unusable."""
-    path = Path(path)
-    if not path.exists():
-        raise CheckpointError(f"checkpoint {path} does not exist")
-    try:
-        payload = torch.load(path, map_location=device, weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means corrupt
-        raise CheckpointError(f"checkpoint {path} is corrupt ({type(exc).__name__})") from None
-    if not isinstance(payload, dict) or payload.get("format") != 1:
-        raise CheckpointError(f"checkpoint {path} is not a diacc checkpoint")
-    for part in ("actor", "critic"):
-        for name, tensor in payload[part].items():
-            if torch.is_floating_point(tensor) and not torch.isfinite(tensor).all():
-                raise CheckpointError(f"checkpoint {path} has NaN/inf in {part}.{name}")
-    return payload
-
-
-def restore(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
-    """Load a checkpoint's state into ``agent`` after checking it fits ``cfg``."""
-    if payload["variant"] != cfg.variant:
-        raise CheckpointError(
-            f"checkpoint {path} is for variant {payload['variant']!r}, not {cfg.variant!r}"
-        )
-    if payload["obs_spec"] != asdict(ObsSpec.from_config(cfg.obs)):
-        raise CheckpointError(f"checkpoint {path} was trained with another observation layout")
-    try:
-        agent.actor.load_state_dict(payload["actor"])
-        agent.critic.load_state_dict(payload["critic"])
-    except RuntimeError:
-        raise CheckpointError(
-            f"checkpoint {path} does not match the {cfg.variant} networks"
-        ) from None
-    agent.value_norm.load_state_dict(payload["value_norm"])
-    agent.optimizer.load_state_dict(payload["optimizer"])
-
-
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
-
-
-def set_rng_state(rng: dict) -> None:
-    """Restore the RNG states saved by :func:`save_checkpoint`."""
-    random.setstate(rng["python"])
-    np.random.set_state(rng["numpy"])
-    torch.set_rng_state(rng["torch"].cpu())
-    if rng["cuda"] is not None and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(rng["cuda"])
 
 
 # ----------------------------------------------------------------------------- rollout
@@ -530,7 +445,7 @@ def _first_nonfinite(net: torch.nn.Module, part: str, grad: bool = False) -> str
 
 
 # ----------------------------------------------------------------------------- training
-class TrainingError(RuntimeError):
+class TrainingError(DiaccError, RuntimeError):
     """Training cannot go on (a non-finite update); the message is one line."""
 
 
@@ -556,10 +471,10 @@ def check_resume_config(
 
     Raises :class:`CheckpointError` naming the first one unless ``allow_change``.
     """
-    old, new = _flatten(saved), _flatten(asdict(cfg))
+    old, new = flatten_config(saved), flatten_config(asdict(cfg))
     changed = [
         k
-        for k in sorted(set(old) | set(new))
+        for k in sorted(set(old) | set(new), key=lambda k: (k.count("."), k))  # top level first
         if k not in RESUME_FREE_FIELDS and old.get(k) != new.get(k)
     ]
     if changed and not allow_change:
@@ -645,7 +560,8 @@ def train(
     first_update, global_step, changed = 0, 0, []
     if resume:
         payload = load_checkpoint(ckpt_path, device)
-        changed = check_resume_config(payload["config"], cfg, ckpt_path, allow_config_change)
+        saved = asdict(config_from_checkpoint(payload))
+        changed = check_resume_config(saved, cfg, ckpt_path, allow_config_change)
         restore(agent, payload, cfg, ckpt_path)
         first_update, global_step = payload["update"], payload["global_step"]
         set_rng_state(payload["rng"])
@@ -680,7 +596,7 @@ def _train_loop(
     ckpt_path = run_dir / "checkpoint.pt"
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     saved_update = first_update if first_update else None
-    envs = make_vector_env(env_config(cfg), cfg.n_envs, cfg.seed, cfg.vector)
+    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed, cfg.vector)
     # purge_step: TensorBoard drops the events a resumed run logged after its checkpoint.
     # It reads event files in name order, and names start with the creation second:
     # a resumed file must not share its second with the interrupted run's last file.
@@ -703,7 +619,7 @@ def _train_loop(
                 if cfg.lr_decay:
                     for group in agent.optimizer.param_groups:
                         group["lr"] = cfg.lr * (1.0 - update / n_updates)
-                tau = temperature(global_step, cfg.total_steps, cfg.reward)
+                tau = temperature(global_step, cfg.total_steps, cfg.env.reward)
                 envs.set_temperature(tau)
 
                 roll, next_value, rollout = collect_rollout(agent, envs, cfg, update)
@@ -731,40 +647,15 @@ def _train_loop(
                         f"saved and {kept}"
                     ) from None
                 global_step += steps_per_update
-
-                record = {
-                    **losses,
-                    "update": update + 1,
-                    "global_step": global_step,
-                    "tau": tau,
-                    "lr": agent.optimizer.param_groups[0]["lr"],
-                    "explained_variance": explained_variance(roll.values.ravel(), returns.ravel()),
-                    "env_steps_per_s": steps_per_update / rollout.seconds,
-                    "updates_per_s": 1.0 / (time.perf_counter() - t0),
-                    "worker_restarts": rollout.restarts,
-                    "global_reward": float(roll.rewards.mean()),
-                }
-                for key, values in rollout.reward_terms.items():  # ego_softmin, individual, ...
-                    record[f"reward/{key}"] = float(np.mean(values))
-                for name, count in zip(
-                    RULE_NAMES[1:], rollout.psar_counts, strict=True
-                ):  # per CAV decision
-                    record[f"psar/{name}"] = float(count / max(rollout.decisions, 1))
-                if rollout.episodes:
-                    for key, value in rollout.episodes[0].items():
-                        if isinstance(value, (int, float)):
-                            finite = [ep[key] for ep in rollout.episodes if np.isfinite(ep[key])]
-                            record[f"episode/{key}"] = (
-                                float(np.mean(finite)) if finite else float("nan")
-                            )
-                for key, value in record.items():
-                    if key not in ("update", "global_step"):
-                        writer.add_scalar(key if "/" in key else f"train/{key}", value, global_step)
-                with open(run_dir / "progress.jsonl", "a") as fh:
-                    fh.write(json.dumps(record) + "\n")
+                lr = agent.optimizer.param_groups[0]["lr"]
+                stats = UpdateStats(
+                    update + 1, global_step, tau, lr, losses, roll, returns, rollout
+                )
+                record = progress_record(stats, update_s=time.perf_counter() - t0)
+                write_record(record, writer, run_dir / "progress.jsonl")
                 bar.update(steps_per_update)
                 bar.set_postfix(
-                    R=f"{record['global_reward']:.2f}",
+                    R=f"{record['team_reward']:.2f}",
                     speed=f"{record.get('episode/mean_speed_mps', float('nan')):.1f}",
                     sps=f"{record['env_steps_per_s']:.0f}",
                 )
@@ -785,11 +676,63 @@ def _train_loop(
     return run_dir
 
 
-def config_from_checkpoint(payload: dict) -> TrainConfig:
-    """Rebuild the TrainConfig stored in a checkpoint."""
-    from diacc.config import override
+# ----------------------------------------------------------------------------- logging
+@dataclass
+class UpdateStats:
+    """What one finished update logs (:func:`progress_record`)."""
 
-    return override(TrainConfig(), _flatten(payload["config"]))
+    update: int  # 1-based
+    global_step: int  # environment steps after the update
+    tau: float  # softmin temperature of the rollout
+    lr: float
+    losses: dict[str, float]  # ppo_update's means
+    roll: Rollout
+    returns: np.ndarray  # (S, E)
+    rollout: RolloutStats
+
+
+def progress_record(stats: UpdateStats, update_s: float) -> dict:
+    """One ``progress.jsonl`` row: losses, rewards, PSAR rates and episode means.
+
+    ``team_reward`` is R, what PPO maximises (paper eq. reward_all), per step
+    and environment; ``global_reward`` is its part r_g; ``reward/*`` are the
+    other parts (``ego_softmin``, ``individual``, ``completion``, ``tau``);
+    ``psar/*`` the share of CAV decisions on which each rule took effect;
+    ``episode/*`` means over the episodes that ended in the rollout.
+    """
+    roll, rollout = stats.roll, stats.rollout
+    record = {
+        **stats.losses,
+        "update": stats.update,
+        "global_step": stats.global_step,
+        "tau": stats.tau,
+        "lr": stats.lr,
+        "explained_variance": explained_variance(roll.values.ravel(), stats.returns.ravel()),
+        "env_steps_per_s": roll.rewards.size / rollout.seconds,
+        "updates_per_s": 1.0 / update_s,
+        "worker_restarts": rollout.restarts,
+        "team_reward": float(roll.rewards.mean()),
+    }
+    terms = {key: float(np.mean(values)) for key, values in rollout.reward_terms.items()}
+    record["global_reward"] = terms.pop("global")
+    record.update({f"reward/{key}": value for key, value in terms.items()})
+    for name, count in zip(RULE_NAMES[1:], rollout.psar_counts, strict=True):
+        record[f"psar/{name}"] = float(count / max(rollout.decisions, 1))
+    if rollout.episodes:
+        for key, value in rollout.episodes[0].items():
+            if isinstance(value, (int, float)):
+                finite = [ep[key] for ep in rollout.episodes if np.isfinite(ep[key])]
+                record[f"episode/{key}"] = float(np.mean(finite)) if finite else float("nan")
+    return record
+
+
+def write_record(record: dict, writer: SummaryWriter, progress_path: Path) -> None:
+    """Append a record to ``progress.jsonl`` and to TensorBoard (``train/`` unless grouped)."""
+    for key, value in record.items():
+        if key not in ("update", "global_step"):
+            writer.add_scalar(key if "/" in key else f"train/{key}", value, record["global_step"])
+    with open(progress_path, "a") as fh:
+        fh.write(json.dumps(record) + "\n")
 
 
 def _wait_past_event_files(tb_dir: Path) -> None:
@@ -797,13 +740,3 @@ def _wait_past_event_files(tb_dir: Path) -> None:
     stamps = [int(p.name.split(".")[3]) for p in tb_dir.glob("events.out.tfevents.*")]
     while stamps and int(time.time()) <= max(stamps):
         time.sleep(0.05)
-
-
-def _flatten(tree: dict, prefix: str = "") -> dict:
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
-    return flat

@@ -4,6 +4,9 @@ A backend owns one simulation of one :class:`~diacc.maps.Map`. It is reset
 with a :class:`~diacc.scenario.Scenario` and a seed, stepped with commands for
 the CAVs (HDVs drive themselves), and returns a
 :class:`~diacc.state.TrafficState` in the shared coordinate convention.
+Everything past the backend (observations, PSAR, metrics, the viewer
+:mod:`diacc.viewer`) reads only that state, so nothing else needs to know
+which simulator runs. Each backend is a package: ``highway/`` and ``sumo/``.
 
 CAV command semantics, identical on every backend (facts.md "Actions"):
 
@@ -26,17 +29,18 @@ Entries of HDVs in the command arrays are ignored.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
 from diacc.config import BACKENDS, SimConfig
+from diacc.errors import DiaccError
 from diacc.maps import Map
 from diacc.scenario import Scenario
 from diacc.state import TrafficState
 
 
-class BackendError(RuntimeError):
+class BackendError(DiaccError, RuntimeError):
     """A simulator failed (unknown backend, crashed worker...); one-line message."""
 
 
@@ -58,6 +62,10 @@ class Backend(Protocol):
     """A traffic simulator of one map."""
 
     name: str
+    #: Simulator version recorded with results ("" where diacc's own code simulates).
+    version: str
+    #: How a vector of environments on this backend steps best (:mod:`diacc.vector`).
+    vector_mode: Literal["sync", "process"]
     road: Map
     sim: SimConfig
 
@@ -65,32 +73,22 @@ class Backend(Protocol):
 
     def step(self, commands: CavCommands) -> TrafficState: ...
 
-    def render(self) -> np.ndarray:
-        """An RGB frame (H, W, 3) uint8 of the current state."""
-        ...
-
     def close(self) -> None: ...
 
 
-#: How CAVs are driven: by commands (learning policies) or on their own as the
-#: non-learning ``cooperative`` baseline (CACC car following, lcCooperative 1).
-CAV_MODES = ("commanded", "cooperative")
-
-
-def make_backend(
-    name: str, road: Map, sim: SimConfig | None = None, cav_mode: str = "commanded"
-) -> Backend:
-    """Build a backend by name: ``"highway"`` or ``"sumo"``."""
-    sim = sim or SimConfig()
-    if cav_mode not in CAV_MODES:
-        raise BackendError(f"unknown CAV mode {cav_mode!r}; choose one of {', '.join(CAV_MODES)}")
-    options = {} if cav_mode == "commanded" else {"cav_mode": cav_mode}
+def backend_class(name: str) -> type[Backend]:
+    """The class of backend ``name`` (``"highway"`` or ``"sumo"``), imported only when asked."""
     if name == "highway":
-        from diacc.backends.highway import HighwayBackend
+        from diacc.backends.highway.backend import HighwayBackend
 
-        return HighwayBackend(road, sim, **options)
+        return HighwayBackend
     if name == "sumo":
-        from diacc.backends.sumo import SumoBackend
+        from diacc.backends.sumo.backend import SumoBackend
 
-        return SumoBackend(road, sim, **options)
+        return SumoBackend
     raise BackendError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")
+
+
+def make_backend(name: str, road: Map, sim: SimConfig | None = None) -> Backend:
+    """Build a backend by name; ``sim`` (default :class:`SimConfig`) says how, CAV mode included."""
+    return backend_class(name)(road, sim or SimConfig())

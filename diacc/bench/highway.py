@@ -21,7 +21,7 @@ from rich.console import Console
 from rich.table import Table
 
 from diacc.backends.base import CavCommands
-from diacc.backends.highway import HighwayBackend
+from diacc.backends.highway.backend import HighwayBackend
 from diacc.config import SimConfig
 from diacc.maps import load_map
 from diacc.scenario import Scenario

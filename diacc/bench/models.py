@@ -15,11 +15,11 @@ import time
 import numpy as np
 import torch
 
-from diacc.config import VARIANTS, ModelConfig
+from diacc.config import VARIANTS, ModelConfig, ObservationConfig
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_policy, parameter_count
-from diacc.models.spec import ObsSpec
 from diacc.models.synthetic import random_actor_obs, random_critic_state
+from diacc.observation import ObservationSpec
 
 
 def _chunked(tensors: dict[str, torch.Tensor], chunk_len: int) -> dict[str, torch.Tensor]:
@@ -86,7 +86,7 @@ def run(
     chunk_len: int = 10,
     repeats: int = 3,
     cfg: ModelConfig | None = None,
-    spec: ObsSpec | None = None,
+    spec: ObservationSpec | None = None,
     seed: int = 0,
     threads: int | None = None,
 ) -> dict:
@@ -100,7 +100,7 @@ def run(
     from rich.console import Console
     from rich.table import Table
 
-    cfg, spec = cfg or ModelConfig(), spec or ObsSpec()
+    cfg, spec = cfg or ModelConfig(), spec or ObservationSpec.from_config(ObservationConfig())
     if rollout_steps % chunk_len:
         raise ValueError(
             f"rollout_steps {rollout_steps} must be a multiple of chunk_len {chunk_len}"

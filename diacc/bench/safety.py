@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from diacc.config import BACKENDS
-from diacc.evaluate import EpisodeDriver, run_episode
+from diacc.episode import EpisodeDriver
+from diacc.evaluate import run_episode
 from diacc.grid import Cell
 from diacc.maps import available_maps
 from diacc.policies import SCRIPTED, EvalSettings, ScriptedPolicy

@@ -20,9 +20,9 @@ from __future__ import annotations
 import time
 
 from diacc.backends.base import CavCommands
-from diacc.backends.sumo import SumoBackend
-from diacc.backends.sumo_net import ROUTE_ID
-from diacc.backends.sumo_types import HDV_TYPES
+from diacc.backends.sumo.backend import SumoBackend
+from diacc.backends.sumo.net import ROUTE_ID
+from diacc.backends.sumo.vtypes import HDV_TYPES
 from diacc.config import SimConfig
 from diacc.maps import load_map
 from diacc.scenario import Scenario, draw_population
@@ -56,7 +56,7 @@ def _raw_rate(backend: SumoBackend, scenario: Scenario, steps: int, seed: int) -
     import libsumo
     import sumolib
 
-    from diacc.backends.sumo_worker import SumoSim
+    from diacc.backends.sumo.worker import SumoSim
 
     spec = backend._spec  # same network, vTypes and options as the backend's worker
     args = SumoSim(spec)._args(seed)
@@ -111,7 +111,7 @@ def run(steps: int = 500, seed: int = 0) -> dict:
     scenario = Scenario(n_vehicles=N_VEHICLES, cav_penetration=0.0)
     backends = [SumoBackend(road, sim), SumoBackend(road, sim)]
     try:
-        version = backends[0].sumo_version
+        version = backends[0].version
         raw = _raw_rate(backends[0], scenario, steps, seed)
         k1 = _backend_rate(backends[:1], scenario, steps, seed)
         k2 = _backend_rate(backends, scenario, steps, seed)

@@ -41,7 +41,7 @@ from rich.console import Console
 from rich.table import Table
 
 from diacc.algo.mappo import train
-from diacc.config import TrainConfig, override
+from diacc.config import EnvConfig, TrainConfig, override
 
 PAPER_STEPS = 3_000_000
 #: The smaller networks of the learner-cost rows (the paper: hidden sizes "of the order 64-256").
@@ -69,7 +69,9 @@ def measure(
             TrainConfig(),
             {
                 "variant": variant,
-                "backend": backend,
+                "env.backend": backend,
+                # episodes as long as a rollout at most: no rollout cuts an episode (config)
+                "env.sim.episode_steps": min(rollout_steps, EnvConfig().sim.episode_steps),
                 "n_envs": n_envs,
                 "device": device,
                 "rollout_steps": rollout_steps,
@@ -237,13 +239,19 @@ def profile_update(
 
     cfg = override(
         TrainConfig(),
-        {"n_envs": n_envs, "rollout_steps": rollout_steps, "device": "cpu", "epochs": 1},
+        {
+            "n_envs": n_envs,
+            "rollout_steps": rollout_steps,
+            "env.sim.episode_steps": min(rollout_steps, EnvConfig().sim.episode_steps),
+            "device": "cpu",
+            "epochs": 1,
+        },
     )
     cfg = override(cfg, {"update_bf16": bf16})
     mappo.seed_everything(cfg.seed)
     set_torch_threads(cfg.torch_threads)
     agent = mappo.make_agent(cfg, torch.device("cpu"))
-    envs = mappo.make_vector_env(mappo.env_config(cfg), n_envs, cfg.seed)
+    envs = mappo.make_vector_env(cfg.env, n_envs, cfg.seed)
     try:
         roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0)
     finally:

@@ -8,11 +8,9 @@ from diacc.models.errors import ModelError
 from diacc.models.inputs import merge_leading, to_tensors
 from diacc.models.recurrent import RecurrentNet
 from diacc.models.registry import build_policy, parameter_count
-from diacc.models.spec import ObsSpec
 
 __all__ = [
     "ModelError",
-    "ObsSpec",
     "RecurrentNet",
     "build_policy",
     "merge_leading",

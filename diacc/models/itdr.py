@@ -28,25 +28,15 @@ from diacc.models.gat import GraphAttention
 from diacc.models.inputs import TensorDict
 from diacc.models.layers import VALUE_GAIN, embed_present, mlp
 from diacc.models.recurrent import Encoder, RecurrentNet
-from diacc.models.spec import ObsSpec
 from diacc.observation import (
+    CRITIC_KEYS,
     CRITIC_NODE_FEATURES,
     LANE_FEATURES,
     MAX_LANES,
     MAX_SEGMENTS,
     ROAD_FEATURES_PER_SEGMENT,
     TRAFFIC_FEATURES,
-)
-
-CRITIC_KEYS = (
-    "nodes",
-    "node_mask",
-    "neighbours",
-    "neighbour_mask",
-    "lane_stats",
-    "lane_mask",
-    "road",
-    "traffic",
+    ObservationSpec,
 )
 
 
@@ -55,7 +45,7 @@ class ITDR(Encoder):
 
     input_keys = CRITIC_KEYS
 
-    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+    def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
         super().__init__()
         hidden, slope = cfg.hidden_dim, cfg.leaky_slope
         self.road_mlp = mlp(ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS, hidden, hidden, slope)
@@ -107,5 +97,5 @@ class CIECCritic(RecurrentNet):
     ``critic(state (B, ...), hidden (B, H), episode_start (B,)) -> (value (B,), hidden)``.
     """
 
-    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+    def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
         super().__init__(ITDR(cfg, spec), cfg.gru_hidden, 1, VALUE_GAIN, squeeze=True)

@@ -14,12 +14,12 @@ from torch import Tensor
 from diacc.config import ModelConfig
 from diacc.models.errors import ModelError
 from diacc.models.inputs import TensorDict
-from diacc.models.itdr import CRITIC_KEYS
 from diacc.models.layers import POLICY_GAIN, VALUE_GAIN, mlp, one_hot
 from diacc.models.recurrent import Encoder, RecurrentNet
-from diacc.models.spec import ObsSpec
-from diacc.models.taie import ACTOR_KEYS, N_ACTOR_LANES
+from diacc.models.taie import N_ACTOR_LANES
 from diacc.observation import (
+    ACTOR_KEYS,
+    CRITIC_KEYS,
     CRITIC_NODE_FEATURES,
     LANE_FEATURES,
     MAX_LANES,
@@ -29,12 +29,13 @@ from diacc.observation import (
     ROAD_FEATURES_PER_SEGMENT,
     SELF_FEATURES,
     TRAFFIC_FEATURES,
+    ObservationSpec,
 )
 
 ROAD_DIM = ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS
 
 
-def actor_flat_dim(spec: ObsSpec) -> int:
+def actor_flat_dim(spec: ObservationSpec) -> int:
     """Length of a flattened ActorObs row."""
     t, k = spec.history_steps, spec.n_neighbours
     return (
@@ -48,7 +49,7 @@ def actor_flat_dim(spec: ObsSpec) -> int:
     )
 
 
-def critic_flat_dim(spec: ObsSpec) -> int:
+def critic_flat_dim(spec: ObservationSpec) -> int:
     """Length of a flattened CriticState row."""
     n, k = spec.max_vehicles, spec.n_neighbours
     return (
@@ -109,7 +110,7 @@ class _FlatEncoder(Encoder):
         if flat.shape[-1] != self.in_dim:
             raise ModelError(
                 f"flattened input has {flat.shape[-1]} features, the MLP was built for "
-                f"{self.in_dim} (observation sizes differ from the ObsSpec)"
+                f"{self.in_dim} (observation sizes differ from the ObservationSpec)"
             )
         return self.body(flat)
 
@@ -117,7 +118,7 @@ class _FlatEncoder(Encoder):
 class MLPActor(RecurrentNet):
     """MAPPO actor: flattened ActorObs -> MLP -> GRU -> 5 logits."""
 
-    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+    def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
         encoder = _FlatEncoder(actor_flat_dim(spec), cfg, flatten_actor_obs, ACTOR_KEYS)
         super().__init__(encoder, cfg.gru_hidden, N_ACTIONS, POLICY_GAIN)
 
@@ -125,6 +126,6 @@ class MLPActor(RecurrentNet):
 class MLPCritic(RecurrentNet):
     """MAPPO critic: flattened CriticState -> MLP -> GRU -> value."""
 
-    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+    def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
         encoder = _FlatEncoder(critic_flat_dim(spec), cfg, flatten_critic_state, CRITIC_KEYS)
         super().__init__(encoder, cfg.gru_hidden, 1, VALUE_GAIN, squeeze=True)

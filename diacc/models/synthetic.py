@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from diacc.models.spec import ObsSpec
 from diacc.observation import (
     CRITIC_NODE_FEATURES,
     LANE_FEATURES,
@@ -23,6 +22,7 @@ from diacc.observation import (
     TRAFFIC_FEATURES,
     ActorObs,
     CriticState,
+    ObservationSpec,
 )
 
 
@@ -35,7 +35,9 @@ def _first_k_mask(rng: np.random.Generator, batch: tuple[int, ...], k: int) -> n
     return np.arange(k) < counts[..., None]  # (..., K)
 
 
-def random_actor_obs(spec: ObsSpec, batch: tuple[int, ...], rng: np.random.Generator) -> ActorObs:
+def random_actor_obs(
+    spec: ObservationSpec, batch: tuple[int, ...], rng: np.random.Generator
+) -> ActorObs:
     """ActorObs with leading axes ``batch``; each CAV has 0..K HDV and 0..K CAV neighbours."""
     t, k = spec.history_steps, spec.n_neighbours
     hdv_mask = _first_k_mask(rng, batch, k)
@@ -59,7 +61,7 @@ def random_actor_obs(spec: ObsSpec, batch: tuple[int, ...], rng: np.random.Gener
 
 
 def random_critic_state(
-    spec: ObsSpec, batch: tuple[int, ...], rng: np.random.Generator, min_active: int = 1
+    spec: ObservationSpec, batch: tuple[int, ...], rng: np.random.Generator, min_active: int = 1
 ) -> CriticState:
     """CriticState with leading axes ``batch``; ``min_active``..N vehicles in the first slots.
 

@@ -27,29 +27,17 @@ from diacc.models.gat import GraphAttention
 from diacc.models.inputs import TensorDict
 from diacc.models.layers import POLICY_GAIN, embed_present, mlp, one_hot
 from diacc.models.recurrent import Encoder, RecurrentNet
-from diacc.models.spec import ObsSpec
 from diacc.observation import (
+    ACTOR_KEYS,
     LANE_FEATURES,
     MAX_SEGMENTS,
     N_ACTIONS,
     NODE_FEATURES,
     ROAD_FEATURES_PER_SEGMENT,
     SELF_FEATURES,
+    ObservationSpec,
 )
 
-ACTOR_KEYS = (
-    "self_state",
-    "ego_hist",
-    "hdv_nodes",
-    "hdv_mask",
-    "cav_nodes",
-    "cav_mask",
-    "cav_prev_action",
-    "lane_stats",
-    "lane_mask",
-    "road",
-    "action_memory",
-)
 N_ACTOR_LANES = 3  # ego, left, right
 
 
@@ -61,7 +49,7 @@ class TAIE(Encoder):
 
     input_keys = ACTOR_KEYS
 
-    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+    def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
         super().__init__()
         hidden, slope = cfg.hidden_dim, cfg.leaky_slope
         history_in = spec.history_steps * NODE_FEATURES
@@ -135,7 +123,7 @@ class DIADMEncoder(Encoder):
 
     input_keys = ACTOR_KEYS
 
-    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+    def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
         super().__init__()
         self.taie = TAIE(cfg, spec)
         self.out_dim = self.taie.out_dim + 2 * N_ACTIONS
@@ -151,5 +139,5 @@ class DIADMActor(RecurrentNet):
     ``actor(obs (B, ...), hidden (B, H), episode_start (B,)) -> (logits (B, 5), hidden)``.
     """
 
-    def __init__(self, cfg: ModelConfig, spec: ObsSpec) -> None:
+    def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
         super().__init__(DIADMEncoder(cfg, spec), cfg.gru_hidden, N_ACTIONS, POLICY_GAIN)

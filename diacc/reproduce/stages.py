@@ -76,7 +76,8 @@ def check_existing_runs(plan: Plan) -> None:
     """
     from dataclasses import asdict
 
-    from diacc.algo.mappo import check_resume_config, config_from_checkpoint
+    from diacc.algo.checkpoint import config_from_checkpoint
+    from diacc.algo.mappo import check_resume_config
 
     for run in plan.runs:
         path = plan.run_dir(run) / "config.json"

@@ -1,7 +1,7 @@
 """The libsumo simulation that runs inside one worker process.
 
 libsumo holds one simulation per process (facts.md), so every
-:class:`~diacc.backends.sumo.SumoBackend` owns a worker process that runs
+:class:`~diacc.backends.sumo.backend.SumoBackend` owns a worker process that runs
 :func:`worker_main`. The worker owns a :class:`SumoSim` and answers three
 messages over a ``multiprocessing.connection.Connection`` (a socket pair
 whose child end is passed as a file descriptor number on the command line):
@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.backends.sumo_net import ROUTE_ID, edge_ids
-from diacc.backends.sumo_types import CAV_TYPE, HDV_TYPES
+from diacc.backends.sumo.net import ROUTE_ID, edge_ids
+from diacc.backends.sumo.vtypes import CAV_TYPE, HDV_TYPES
 from diacc.config import SimConfig
 from diacc.kinematics import lane_change_reach_m
 from diacc.maps import Map
@@ -54,7 +54,6 @@ class WorkerSpec:
 
     road: Map
     sim: SimConfig
-    cav_mode: str
     net_path: Path
     route_path: Path
     vtypes_path: Path
@@ -134,7 +133,7 @@ class SumoSim:
         self.ids = [f"v{i}" for i in range(n)]
         self.index = {vid: i for i, vid in enumerate(self.ids)}
         self.is_cav = pop.is_cav.copy()
-        self.commanded = pop.is_cav & (self.spec.cav_mode == "commanded")  # (V,)
+        self.commanded = pop.is_cav & (self.spec.sim.cav_mode == "commanded")  # (V,)
         length_m = self.sim.vehicle_length_m
         front_m = pop.x_m + 0.5 * length_m  # (V,) SUMO departPos is the front bumper
         sumo_lane = pop.lane - self.first_lane[0]  # (V,)
@@ -311,6 +310,6 @@ if __name__ == "__main__":  # pragma: no cover - the worker process entry point
     from multiprocessing.connection import Connection
 
     # Import by name so that pickled specs and this code share one module object.
-    from diacc.backends.sumo_worker import worker_main as _main
+    from diacc.backends.sumo.worker import worker_main as _main
 
     _main(Connection(int(sys.argv[1])))

@@ -22,28 +22,15 @@ from __future__ import annotations
 import hashlib
 from xml.sax.saxutils import quoteattr
 
-from diacc.backends.base import BackendError
 from diacc.config import STYLE_NAMES, STYLE_PRESETS, SimConfig
 
-CAV_MODES = ("commanded", "cooperative")
 #: vType id per style code (index = ``TrafficState.style``), CAVs use ``CAV_TYPE``.
 HDV_TYPES = tuple(f"hdv_{name}" for name in STYLE_NAMES)
 CAV_TYPE = "cav"
 
 
-def check_cav_mode(cav_mode: str) -> None:
-    """Raise :class:`BackendError` for an unknown CAV mode."""
-    if cav_mode not in CAV_MODES:
-        raise BackendError(f"unknown cav_mode {cav_mode!r}; choose one of {', '.join(CAV_MODES)}")
-
-
-def vtypes_xml(sim: SimConfig, cav_mode: str) -> str:
-    """Additional-file text with the three HDV types and the CAV type."""
-    check_cav_mode(cav_mode)
-    if sim.style_preset not in STYLE_PRESETS:
-        raise BackendError(
-            f"unknown style_preset {sim.style_preset!r}; known: {', '.join(STYLE_PRESETS)}"
-        )
+def vtypes_xml(sim: SimConfig) -> str:
+    """Additional-file text with the three HDV types and the CAV type (``sim.cav_mode``)."""
     common = (
         f'length="{sim.vehicle_length_m}" width="{sim.vehicle_width_m}" '
         'speedFactor="1" speedDev="0" sigma="0" maxSpeed="70"'
@@ -58,7 +45,7 @@ def vtypes_xml(sim: SimConfig, cav_mode: str) -> str:
             f'lcSpeedGain="{style.lc_speed_gain}" lcStrategic="{style.lc_strategic}"/>'
         )
     cav = sim.cav
-    if cav_mode == "commanded":
+    if sim.cav_mode == "commanded":
         # The commanded CAV's own motion ignores its vType (speedMode 0, laneChangeMode 0):
         # decel and tau only tell the HDVs' LC2013 which gap a CAV needs behind a
         # vehicle cutting in, so they are the braking and reaction PSAR plans with
@@ -80,6 +67,6 @@ def vtypes_xml(sim: SimConfig, cav_mode: str) -> str:
     return "<additional>\n" + "\n".join(rows) + "\n</additional>\n"
 
 
-def vtypes_key(sim: SimConfig, cav_mode: str) -> str:
+def vtypes_key(sim: SimConfig) -> str:
     """Short hash naming a vType file in the cache."""
-    return hashlib.sha256(vtypes_xml(sim, cav_mode).encode()).hexdigest()[:16]
+    return hashlib.sha256(vtypes_xml(sim).encode()).hexdigest()[:16]

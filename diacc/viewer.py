@@ -1,7 +1,10 @@
-"""Offscreen frames of the highway backend, drawn by highway-env's own renderer.
+"""Offscreen frames of any backend's TrafficState, drawn by highway-env's own renderer.
 
-highway-env's viewer opens a display; with SDL's dummy driver its frames come
-out black (facts.md). Here we set the dummy driver, draw into a plain
+The viewer reads only the :class:`~diacc.state.TrafficState` and the map, so
+an episode looks the same whichever simulator produced it (``diacc render``,
+``BottleneckEnv.render``). highway-env's viewer opens a display; with SDL's
+dummy driver its frames come out black (facts.md). Here we set the dummy
+driver, draw into a plain
 ``pygame.Surface`` wrapped as highway-env's ``WorldSurface``, and let
 ``RoadGraphics`` / ``VehicleGraphics`` paint lanes and vehicles. Lightweight
 highway-env ``Vehicle`` objects are synced from the arrays only when a frame
@@ -19,11 +22,11 @@ os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 from highway_env.road.graphics import LaneGraphics, RoadGraphics, WorldSurface  # noqa: E402
-from highway_env.road.road import Road, RoadNetwork  # noqa: E402
+from highway_env.road.road import Road  # noqa: E402
 from highway_env.vehicle.graphics import VehicleGraphics  # noqa: E402
 from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
 
-from diacc.backends.highway_road import to_highway_env_y  # noqa: E402
+from diacc.backends.highway.road import build_road_network, to_highway_env_y  # noqa: E402
 from diacc.config import AGGRESSIVE, CAUTIOUS, NORMAL, SimConfig  # noqa: E402
 from diacc.maps import Map  # noqa: E402
 from diacc.state import TrafficState  # noqa: E402
@@ -40,13 +43,12 @@ HIGHLIGHT_COLOR = (255, 0, 255)
 OFFROAD_COLOR = (60, 120, 60)
 
 
-class HighwayRenderer:
+class Viewer:
     """Draws a :class:`TrafficState` of one map; one pygame surface reused per frame."""
 
     def __init__(
         self,
         road: Map,
-        network: RoadNetwork,
         sim: SimConfig,
         width_px: int = 1200,
         height_px: int = 160,
@@ -54,7 +56,7 @@ class HighwayRenderer:
     ) -> None:
         self.road_map = road
         self.sim = sim
-        self.road = Road(network=network, vehicles=[], record_history=False)
+        self.road = Road(network=build_road_network(road), vehicles=[], record_history=False)
         self.surface = WorldSurface((width_px, height_px), 0, pygame.Surface((width_px, height_px)))
         self.surface.scaling = scaling_px_per_m
         self._vehicles: list[Vehicle] = []

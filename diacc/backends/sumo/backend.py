@@ -3,15 +3,15 @@
 libsumo keeps one simulation per process, so each :class:`SumoBackend` starts
 its own worker process and talks to it over a socket pair wrapped in a
 ``multiprocessing.connection.Connection`` (pickled messages). The worker is a
-fresh interpreter (``python -m diacc.backends.sumo_worker``), never a fork, so
+fresh interpreter (``python -m diacc.backends.sumo.worker``), never a fork, so
 it is safe after torch or libsumo were imported here. It is started with
 ``subprocess`` rather than a ``multiprocessing`` ``spawn`` context because
 ``spawn`` re-runs the caller's main script in the child, which breaks every
 user script without an ``if __name__ == "__main__"`` guard; see
-:mod:`diacc.backends.sumo_worker` for what runs there, :mod:`.sumo_net` for
-the network built from the map and :mod:`.sumo_types` for the vehicle types.
+:mod:`.worker` for what runs there, :mod:`.net` for the network built from
+the map and :mod:`.vtypes` for the vehicle types.
 
-CAV modes (constructor flag ``cav_mode``):
+CAV modes (``SimConfig.cav_mode``):
 
 * ``"commanded"`` (default): CAVs follow :class:`CavCommands` (speedMode 0,
   laneChangeMode 0: lane changes only on command; at a lane end the CAV
@@ -40,10 +40,9 @@ from pathlib import Path
 import numpy as np
 
 from diacc.backends.base import BackendError, CavCommands
-from diacc.backends.sumo_net import atomic_write, build_network, cache_dir
-from diacc.backends.sumo_render import render_topdown
-from diacc.backends.sumo_types import check_cav_mode, vtypes_key, vtypes_xml
-from diacc.backends.sumo_worker import WorkerSpec
+from diacc.backends.sumo.net import atomic_write, build_network, cache_dir
+from diacc.backends.sumo.vtypes import vtypes_key, vtypes_xml
+from diacc.backends.sumo.worker import WorkerSpec
 from diacc.config import SimConfig
 from diacc.maps import Map
 from diacc.runlog import log
@@ -64,27 +63,25 @@ class SumoBackend:
     """SUMO (libsumo) simulation of one map; see the module docstring."""
 
     name = "sumo"
+    #: libsumo holds one simulation per process: environments step in worker processes.
+    vector_mode = "process"
 
-    def __init__(self, road: Map, sim: SimConfig, cav_mode: str = "commanded") -> None:
-        check_cav_mode(cav_mode)
-        if sim.substeps < 1 or sim.step_s <= 0:
-            raise BackendError(f"SimConfig needs step_s > 0 and substeps >= 1, got {sim}")
+    def __init__(self, road: Map, sim: SimConfig) -> None:
         self.road = road
         self.sim = sim
-        self.cav_mode = cav_mode
         net_path, route_path = build_network(road)
-        vtypes_path = cache_dir() / f"vtypes-{vtypes_key(sim, cav_mode)}.add.xml"
+        vtypes_path = cache_dir() / f"vtypes-{vtypes_key(sim)}.add.xml"
         if not vtypes_path.exists():
             vtypes_path.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write(vtypes_path, vtypes_xml(sim, cav_mode))
-        self._spec = WorkerSpec(road, sim, cav_mode, net_path, route_path, vtypes_path)
+            atomic_write(vtypes_path, vtypes_xml(sim))
+        self._spec = WorkerSpec(road, sim, net_path, route_path, vtypes_path)
         self._proc: subprocess.Popen | None = None
         self._conn = None
         self._finalizer: weakref.finalize | None = None
         self._seed: int | None = None
         self._state: TrafficState | None = None
         self._pending = False
-        self.sumo_version = ""
+        self.version = ""  # "SUMO 1.x", once the worker has started
         self._start_worker()
 
     # ---- worker lifecycle ---------------------------------------------------
@@ -97,7 +94,7 @@ class SumoBackend:
         )
         try:
             proc = subprocess.Popen(
-                [sys.executable, "-m", "diacc.backends.sumo_worker", str(child_fd)],
+                [sys.executable, "-m", "diacc.backends.sumo.worker", str(child_fd)],
                 pass_fds=(child_fd,),
                 stdin=subprocess.DEVNULL,
                 env=env,
@@ -113,7 +110,7 @@ class SumoBackend:
         self._proc, self._conn = proc, conn
         self._finalizer = weakref.finalize(self, _stop_worker, proc, conn)
         self._send(("spec", self._spec), "starting SUMO")
-        self.sumo_version = self._receive(START_TIMEOUT_S, "starting SUMO")
+        self.version = self._receive(START_TIMEOUT_S, "starting SUMO")
 
     def _worker_alive(self) -> bool:
         return self._proc is not None and self._proc.poll() is None
@@ -221,12 +218,6 @@ class SumoBackend:
         """Apply CAV commands (ignored in ``cooperative`` mode) and advance ``sim.step_s``."""
         self.step_async(commands)
         return self.step_wait()
-
-    def render(self) -> np.ndarray:
-        """Top-down RGB frame (H, W, 3) uint8 of the current state."""
-        if self._state is None:
-            raise BackendError(f"render() before reset() on SUMO map {self.road.name!r}")
-        return render_topdown(self.road, self._state)
 
     def close(self) -> None:
         """Stop the worker process (idempotent)."""

@@ -93,37 +93,6 @@ def idm_accel(
     return params.accel_mps2 * (free - interaction)
 
 
-def nearest_in_lane(
-    dx_m: np.ndarray,
-    in_lane: np.ndarray,
-    length_m: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Nearest vehicle ahead and behind each vehicle among candidates.
-
-    Args:
-        dx_m: (V, V) ``x[j] - x[i]``.
-        in_lane: (V, V) bool, j is a candidate neighbour of i (self excluded).
-        length_m: vehicle length, to turn centre distances into bumper gaps.
-
-    Returns:
-        (leader, leader_gap_m, follower, follower_gap_m), each (V,). A missing
-        neighbour has gap ``inf`` (its index is then meaningless). A vehicle
-        exactly alongside counts as a leader with a negative gap, so that a
-        lane change next to it is never "safe".
-    """
-    rows = np.arange(dx_m.shape[0])
-    ahead = np.where(in_lane & (dx_m >= 0.0), dx_m, np.inf)  # (V, V)
-    behind = np.where(in_lane & (dx_m < 0.0), -dx_m, np.inf)  # (V, V)
-    leader = ahead.argmin(axis=1)
-    follower = behind.argmin(axis=1)
-    return (
-        leader,
-        ahead[rows, leader] - length_m,
-        follower,
-        behind[rows, follower] - length_m,
-    )
-
-
 def box_contacts(
     x_m: np.ndarray,
     y_m: np.ndarray,

@@ -1,9 +1,8 @@
 """The fast ``highway`` backend: highway-env geometry, vectorised IDM/MOBIL traffic.
 
-Road geometry is a highway-env ``RoadNetwork`` (:mod:`highway_road`) and
-frames are drawn by highway-env's renderer (:mod:`highway_render`), but the
+Road geometry is a highway-env ``RoadNetwork`` (:mod:`.road`), but the
 traffic itself lives in (V,) NumPy arrays and every sub-step updates all
-vehicles at once (:mod:`highway_models`): no Python loop over vehicles in
+vehicles at once (:mod:`.models`): no Python loop over vehicles in
 ``step``. This is what makes the backend 100x+ faster than stock multi-agent
 ``highway-v0`` (``diacc.bench.highway``).
 
@@ -21,7 +20,7 @@ Modelling choices (documented here because both backends must agree on them):
 * **HDVs** follow IDM (style parameters, braking clipped at
   ``max_brake_mps2``), reconsider lanes every ``decision_period_s`` with
   MOBIL, and in a lane that ends are forced to merge (see
-  :mod:`highway_models`), except drivers whose style has ``lc_strategic < 0``
+  :mod:`.models`), except drivers whose style has ``lc_strategic < 0``
   (the ``paper`` presets' cautious drivers): like LC2013 on SUMO they make no
   lane change for the lane end and stop at it. A last-resort guard keeps an HDV behind its HDV
   leader; its use is counted in ``stats["guard_events"]`` (0 in practice).
@@ -36,7 +35,7 @@ Modelling choices (documented here because both backends must agree on them):
   step and then braking at ``cav.safe_decel_mps2``, stays ``cav.min_gap_m`` behind
   (:func:`diacc.kinematics.safe_gap_m`, the margin PSAR uses); IDM's view
   of the follower would assume it brakes at once.
-* **Cooperative CAVs** (``cav_mode="cooperative"``, the paper's non-learning
+* **Cooperative CAVs** (``SimConfig.cav_mode="cooperative"``, the paper's non-learning
   "cooperative" baseline; SUMO uses CACC with ``lcCooperative = 1``): CAVs
   ignore the commands and are driven by the same vectorised IDM / MOBIL /
   forced-merge code as HDVs, with a CACC-like parameter set
@@ -57,14 +56,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.backends.base import CAV_MODES, BackendError, CavCommands
-from diacc.backends.highway_models import (
+from diacc.backends.base import BackendError, CavCommands
+from diacc.backends.highway.models import (
     HighwayModel,
     IdmParams,
     box_contacts,
     idm_accel,
 )
-from diacc.backends.highway_road import LaneTables, build_road_network
+from diacc.backends.highway.road import LaneTables, build_road_network
 from diacc.config import STYLE_PRESETS, SimConfig
 from diacc.kinematics import lane_change_reach_m, safe_gap_m
 from diacc.maps import Map
@@ -95,29 +94,20 @@ class HighwayBackend:
     """Vectorised highway traffic on a highway-env road (see module docstring)."""
 
     name = "highway"
+    #: diacc's own NumPy dynamics, versioned with diacc (results record "").
+    version = ""
+    #: NumPy steps fast in one process; worker processes would only add pickling.
+    vector_mode = "sync"
 
     def __init__(
         self,
         road: Map,
         sim: SimConfig,
         model: HighwayModel | None = None,
-        cav_mode: str = "commanded",
         cooperative: CooperativeCavParams | None = None,
     ) -> None:
-        if cav_mode not in CAV_MODES:
-            raise BackendError(
-                f"unknown CAV mode {cav_mode!r}; choose one of {', '.join(CAV_MODES)}"
-            )
-        self.cav_mode = cav_mode
+        self.cav_mode = sim.cav_mode
         self.cooperative = cooperative or CooperativeCavParams()
-        if sim.style_preset not in STYLE_PRESETS:
-            raise BackendError(
-                f"unknown style preset {sim.style_preset!r}; known: {', '.join(STYLE_PRESETS)}"
-            )
-        if sim.substeps < 1 or sim.step_s <= 0:
-            raise BackendError(
-                f"need substeps >= 1 and step_s > 0, got {sim.substeps} and {sim.step_s}"
-            )
         self.road = road
         self.sim = sim
         self.model = model or HighwayModel()
@@ -125,7 +115,6 @@ class HighwayBackend:
         self.tables = LaneTables.from_map(road)
         self.dt_s = sim.step_s / sim.substeps
         self._decide_every = max(1, int(round(self.model.decision_period_s / self.dt_s)))
-        self._renderer = None
         self._state: TrafficState | None = None
         self.stats: dict[str, int] = {}
 
@@ -233,25 +222,8 @@ class HighwayBackend:
         self._state = self._make_state(accel, pairs, arrivals)
         return self._state
 
-    def render(self, highlight: np.ndarray | None = None) -> np.ndarray:
-        """RGB frame (H, W, 3) uint8 drawn by highway-env's renderer, offscreen.
-
-        Args:
-            highlight: optional (V,) bool; those vehicles get an outline
-                (e.g. PSAR interventions).
-        """
-        if self._state is None:
-            raise BackendError("render() called before reset()")
-        if self._renderer is None:
-            from diacc.backends.highway_render import HighwayRenderer
-
-            self._renderer = HighwayRenderer(self.road, self.network, self.sim)
-        return self._renderer.draw(self._state, highlight)
-
     def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        """Nothing to release: the simulation is arrays in this process."""
 
     # ------------------------------------------------------------ internals
     def _segment(self) -> np.ndarray:

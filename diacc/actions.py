@@ -1,0 +1,39 @@
+"""The CAV action set (facts.md "Actions") and what each action asks of a backend.
+
+One small module because the environment, PSAR, the baselines and the
+renderer all speak in these codes; the environment turns them into
+:class:`~diacc.backends.base.CavCommands`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from diacc.config import SimConfig
+from diacc.kinematics import lane_change_reach_m
+from diacc.maps import Map
+from diacc.state import TrafficState
+
+REMAIN, LANE_LEFT, LANE_RIGHT, ACCELERATE, DECELERATE = 0, 1, 2, 3, 4
+ACTION_NAMES = ("remain", "left", "right", "accelerate", "decelerate")
+#: Lane offset of each action (+1 = one lane to the left), indexed by action.
+ACTION_LANE_OFFSET = np.array([0, +1, -1, 0, 0], dtype=np.int64)
+
+
+def action_speed_change_mps(action: np.ndarray, step_mps: float) -> np.ndarray:
+    """(C,) speed change of each action: +-``step_mps`` for accelerate/decelerate, else 0."""
+    action = np.asarray(action)
+    return np.select([action == ACCELERATE, action == DECELERATE], [step_mps, -step_mps], 0.0)
+
+
+def lane_change_allowed(
+    state: TrafficState, cav_index: np.ndarray, action: np.ndarray, road: Map, sim: SimConfig
+) -> np.ndarray:
+    """(C,) bool: the action is a lane change the road allows (:meth:`Map.lane_change_allowed`)."""
+    return road.lane_change_allowed(
+        state.segment[cav_index],
+        state.lane[cav_index],
+        ACTION_LANE_OFFSET[action],
+        state.x_m[cav_index],
+        lane_change_reach_m(state.speed_mps[cav_index], sim.step_s, state.length_m[cav_index]),
+    )

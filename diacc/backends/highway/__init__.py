@@ -1,0 +1,6 @@
+"""The ``highway`` backend: highway-env road geometry, traffic as NumPy arrays.
+
+``backend`` (the :class:`HighwayBackend`), ``models`` (IDM, MOBIL and
+collision tests on arrays) and ``road`` (the map as a highway-env
+``RoadNetwork`` and lane tables).
+"""

@@ -1,0 +1,80 @@
+"""Single episodes, played the one way every command plays them: through the environment.
+
+Evaluation, the non-learning baselines, ``diacc simulate``, ``diacc render``,
+the safety benchmark and the tests drive :class:`EpisodeDriver`; training
+steps the same environment in vectors (:mod:`diacc.vector`). So an episode
+always ends by the environment's rule (:meth:`BottleneckEnv.step_arrays`:
+a collision, every vehicle gone, or ``episode_steps``), written once.
+
+Policies that send no commands (the baselines, whose CAVs do not exist or
+drive themselves) answer ``remain`` for every CAV, which the backends turn
+into the idle command.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from diacc.config import EnvConfig
+from diacc.env import BottleneckEnv
+from diacc.metrics import EpisodeRecorder
+from diacc.observation import ActorObs
+from diacc.psar import PSARResult
+from diacc.state import TrafficState
+
+
+class CavPolicy(Protocol):
+    """What drives the CAVs of an episode (:class:`diacc.policies.Policy` and test doubles)."""
+
+    def begin_episode(self, n_cavs: int, seed: int) -> None: ...
+
+    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray: ...
+
+
+class EpisodeDriver:
+    """Runs episodes of one policy in one environment configuration."""
+
+    def __init__(self, policy: CavPolicy, cfg: EnvConfig) -> None:
+        self.policy, self.cfg = policy, cfg
+        self.env = BottleneckEnv(cfg)
+        self.road, self.backend = self.env.road, self.env.backend
+        self.state: TrafficState | None = None
+
+    def reset(self, seed: int) -> TrafficState:
+        """Start the episode of ``seed`` (traffic and, for scripted policies, their draws)."""
+        self.steps, self.done = 0, False
+        self._obs, _ = self.env.reset_arrays(seed)
+        self.state = self.env.state_
+        self.policy.begin_episode(self.env.n_cavs, seed)
+        self.psar_rule = np.zeros(self.state.n_vehicles, np.int8)  # (V,) 0 for HDVs
+        self.psar: PSARResult | None = None
+        return self.state
+
+    def step(self) -> TrafficState:
+        """Advance one decision step; sets :attr:`done`, :attr:`psar_rule` and :attr:`psar`."""
+        assert self.state is not None and not self.done, "reset() before step()"
+        actions = self.policy.act(self._obs, first_step=self.steps == 0)
+        alive_before = self._obs.alive.copy()  # (C,)
+        out = self.env.step_arrays(actions)
+        self._obs = out.actor_obs
+        self.psar_rule = np.zeros(out.state.n_vehicles, np.int8)
+        self.psar_rule[self.env.cav_index] = np.where(alive_before, out.psar_rule, 0)
+        self.psar = out.psar
+        self.steps += 1
+        self.state, self.done = out.state, out.terminated or out.truncated
+        return self.state
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def play_episode(driver: EpisodeDriver, seed: int) -> EpisodeRecorder:
+    """Play one seeded episode to its end; the recorder holds every state (the metrics' input)."""
+    recorder = EpisodeRecorder(driver.road, driver.cfg.events)
+    recorder.record(driver.reset(seed))
+    while not driver.done:
+        state = driver.step()
+        recorder.record(state, psar=driver.psar)
+    return recorder
