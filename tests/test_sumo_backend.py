@@ -14,8 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sumolib
+from helpers import make_state
 
 from diacc.backends.base import Backend, BackendError, CavCommands
+from diacc.backends.sumo import wire
 from diacc.backends.sumo.backend import SumoBackend
 from diacc.backends.sumo.net import build_network
 from diacc.config import ConfigError, SimConfig
@@ -100,8 +102,14 @@ def test_episodes_complete_without_collisions(map_name, cav_mode):
             np.testing.assert_array_equal(state.style, pop.style)
             seen_heading = 0.0
             for _ in range(2 * SIM.episode_steps):
+                before = state
                 state = backend.step(CavCommands.idle(n))
                 validate_state(state)
+                # Arrivals: exactly the vehicles that left this step, from the route's end.
+                np.testing.assert_array_equal(
+                    state.arrivals, np.flatnonzero(state.arrived & ~before.arrived)
+                )
+                assert np.all(before.x_m[state.arrivals] > road.length_m - 40.0)
                 assert state.collisions.shape == (0, 2), f"collision {state.collisions}"
                 act = state.active
                 assert np.all((state.x_m[act] > 0) & (state.x_m[act] < road.length_m))
@@ -145,6 +153,32 @@ def test_two_backends_concurrently_and_determinism():
     finally:
         a.close()
         b.close()
+
+
+def test_wire_round_trip_is_exact():
+    """The per-step encoding loses nothing: values, dtypes, shapes, writable aligned arrays."""
+    state = make_state(
+        [10.0, 30.5, 52.25], [0, 1, 1], [20.0, 0.5, 12.125], is_cav=[True, False, True],
+        active=[True, True, False], arrived=[False, False, True], segment=[0, 0, 1],
+        collisions=[(0, 1)], arrivals=[2], time_s=7.0, step=7,
+    )  # fmt: skip
+    for original in (state, make_state([5.0], [2])):  # with and without events
+        copy = wire.decode_state(wire.encode_state(original))
+        assert (copy.time_s, copy.step) == (original.time_s, original.step)
+        for field in dataclasses.fields(original):
+            got, want = getattr(copy, field.name), getattr(original, field.name)
+            if isinstance(want, np.ndarray):
+                assert got.dtype == want.dtype and got.shape == want.shape, field.name
+                np.testing.assert_array_equal(got, want, err_msg=field.name)
+                assert got.flags.writeable and got.flags.aligned, field.name
+        validate_state(copy)
+    with pytest.raises(ValueError, match="bytes"):
+        wire.decode_state(wire.encode_state(state)[:-1])
+    lane_change, speed = wire.decode_step_request(
+        wire.encode_step_request(np.array([-1, 0, 1]), np.array([2.0, -0.5, 0.0]))
+    )
+    np.testing.assert_array_equal(lane_change, np.array([-1, 0, 1], np.int8))
+    np.testing.assert_array_equal(speed, [2.0, -0.5, 0.0])
 
 
 def test_killed_worker_gives_clear_error_and_reset_recovers():

@@ -2,12 +2,18 @@
 
 Both sides run in the same invocation on the same generated network with the
 same SUMO options, the same population (N = 25 HDVs, ``train-50``), the same
-sub-stepping and the same per-step reads (one subscription read of road, lane,
-position, lateral offset, speed and angle for every vehicle per decision step;
-collisions and arrivals after every sub-step). Episodes restart when every
-vehicle has left or after ``SimConfig.episode_steps``; restarts are timed on
-both sides. The ratio (raw rate / backend rate) is the overhead of the worker
-process, the pipe and the TrafficState arrays; the target is <= 2x.
+sub-stepping and the same libsumo calls a TrafficState needs
+(:mod:`diacc.backends.sumo.worker`): one subscription read of road, lane,
+position, lateral offset, speed and angle for every vehicle per decision step
+(vehicles missing from it have arrived) and the collision list after every
+sub-step. Episodes restart when every vehicle has left or after
+``SimConfig.episode_steps``; restarts are timed on both sides. The raw loop
+keeps SUMO's answers as they come, so the ratio (raw rate / backend rate) is
+the overhead of the worker process, the pipe (one round trip per decision
+step) and building the TrafficState arrays; the target is <= 2x. The
+population has no CAVs, so neither side sends per-vehicle commands. The ratio
+grows with the machine's load: each backend step waits twice for the
+scheduler to wake a process, the raw loop never.
 
 Then K = 1 and K = 2 backends step concurrently (``step_async`` /
 ``step_wait``), reporting environment steps per second summed over the K.
@@ -85,18 +91,17 @@ def _raw_rate(backend: SumoBackend, scenario: Scenario, steps: int, seed: int) -
 
     reset(first=True)
     try:
-        age, arrived = 0, 0
+        age = 0
         start = time.perf_counter()
         for _ in range(steps):
             for _ in range(sim.substeps):
-                libsumo.simulationStep()
+                libsumo.simulation.step()
                 libsumo.simulation.getCollisions()
-                arrived += len(libsumo.simulation.getArrivedIDList())
-            libsumo.vehicle.getAllSubscriptionResults()
+            on_road = libsumo.vehicle.getAllSubscriptionResults()
             age += 1
-            if arrived >= len(ids) or age >= sim.episode_steps:
+            if not on_road or age >= sim.episode_steps:
                 reset(first=False)
-                age, arrived = 0, 0
+                age = 0
         return steps / (time.perf_counter() - start)
     finally:
         libsumo.close()

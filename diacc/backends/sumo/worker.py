@@ -3,27 +3,30 @@
 libsumo holds one simulation per process (facts.md), so every
 :class:`~diacc.backends.sumo.backend.SumoBackend` owns a worker process that runs
 :func:`worker_main`. The worker owns a :class:`SumoSim` and answers three
-messages over a ``multiprocessing.connection.Connection`` (a socket pair
+requests over a ``multiprocessing.connection.Connection`` (a socket pair
 whose child end is passed as a file descriptor number on the command line):
-``("reset", seed, population)``,
-``("step", lane_change, speed_change_mps)`` and ``("close",)``. Replies are
-``("ok", TrafficState)`` or ``("err", one-line message)``.
+pickled ``("reset", seed, population)`` and ``("close",)``, and the step
+request of :mod:`.wire` (lane and speed changes as raw bytes). Replies are
+states in :mod:`.wire`'s encoding or a pickled ``("err", one-line message)``.
 
 Time: SUMO runs at ``step_s / substeps`` seconds per simulation step (0.1 s
 with the defaults), the same integration step as the highway backend, so
 that car following, lane-change manoeuvres (``--lanechange.duration`` =
 0.8 decision steps) and collisions are resolved within a decision step.
 State is read once per decision step through libsumo subscriptions (one call
-for all vehicles); collisions and arrivals are gathered after every substep.
+for all vehicles), arrivals with it (:meth:`SumoSim._read_state`); collisions
+are gathered after every substep, since SUMO reports only the last one's.
 """
 
 from __future__ import annotations
 
+import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from diacc.backends.sumo import wire
 from diacc.backends.sumo.net import ROUTE_ID, edge_ids
 from diacc.backends.sumo.vtypes import CAV_TYPE, HDV_TYPES
 from diacc.config import SimConfig
@@ -185,7 +188,7 @@ class SumoSim:
         )
         self._read_state()
         self.state.accel_mps2[:] = 0.0
-        return self.state.copy()
+        return self.state
 
     # ---- step ----------------------------------------------------------
     def step(self, lane_change: np.ndarray, speed_change_mps: np.ndarray) -> TrafficState:
@@ -194,26 +197,25 @@ class SumoSim:
         if st is None:
             raise SimulationError("step() called before reset()")
         self._command(lane_change, speed_change_mps)
-        pairs: set[tuple[int, int]] = set()
-        arrived: list[int] = []
+        # Colliding pairs stay in contact for several substeps: collect the ids
+        # once per pair and map them to indices after the loop.
+        contacts: set[tuple[str, str]] = set()
         sim = self.ls.simulation
         for _ in range(self.sim.substeps):
-            self.ls.simulationStep()
-            for c in sim.getCollisions():
-                a, b = self.index.get(c.collider), self.index.get(c.victim)
-                if a is not None and b is not None:
-                    pairs.add((min(a, b), max(a, b)))
-            arrived += [self.index[v] for v in sim.getArrivedIDList()]
-        prev_speed = st.speed_mps.copy()
-        st.arrivals = np.array(sorted(arrived), np.int32)
-        st.active[st.arrivals] = False
-        st.arrived[st.arrivals] = True
+            sim.step()
+            contacts.update((c.collider, c.victim) for c in sim.getCollisions())
+        pairs = set()
+        for collider, victim in contacts:
+            a, b = self.index.get(collider), self.index.get(victim)
+            if a is not None and b is not None:
+                pairs.add((min(a, b), max(a, b)))
         st.collisions = np.array(sorted(pairs), np.int32).reshape(-1, 2)
+        prev_speed = st.speed_mps.copy()
         st.step += 1
         st.time_s = st.step * self.sim.step_s
         self._read_state()
         st.accel_mps2 = np.where(st.active, (st.speed_mps - prev_speed) / self.sim.step_s, 0.0)
-        return st.copy()
+        return st
 
     def _command(self, lane_change: np.ndarray, speed_change_mps: np.ndarray) -> None:
         st = self.state
@@ -243,9 +245,20 @@ class SumoSim:
 
     # ---- state ---------------------------------------------------------
     def _read_state(self) -> None:
-        """Copy every active vehicle's subscribed variables into the state arrays."""
+        """Copy every active vehicle's subscribed variables into the state arrays.
+
+        Vehicles leave the road only at the route end (no teleports, collisions
+        only warn), and a vehicle's subscription ends when it leaves: so the
+        active vehicles missing from the results are this step's arrivals,
+        without asking SUMO for its arrived list after every substep.
+        """
         st = self.state
         results = self.ls.vehicle.getAllSubscriptionResults()  # {id: {var: value}}
+        present = np.zeros(st.n_vehicles, bool)
+        present[[self.index[vid] for vid in results]] = True
+        st.arrivals = np.flatnonzero(st.active & ~present).astype(np.int32)
+        st.active[st.arrivals] = False
+        st.arrived[st.arrivals] = True
         if not results:
             return
         road, lane, pos, lat, speed, angle = self.vars
@@ -285,14 +298,16 @@ def worker_main(conn) -> None:  # pragma: no cover - runs in a child process
             return
         conn.send(("ok", sim.version))
         while True:
-            msg = conn.recv()
-            if msg[0] == "close":
-                break
+            message = conn.recv_bytes()
             try:
+                if wire.is_step_request(message):
+                    conn.send_bytes(wire.encode_state(sim.step(*wire.decode_step_request(message))))
+                    continue
+                msg = pickle.loads(message)
+                if msg[0] == "close":
+                    break
                 if msg[0] == "reset":
-                    conn.send(("ok", sim.reset(msg[1], msg[2])))
-                elif msg[0] == "step":
-                    conn.send(("ok", sim.step(msg[1], msg[2])))
+                    conn.send_bytes(wire.encode_state(sim.reset(msg[1], msg[2])))
                 else:
                     conn.send(("err", f"unknown request {msg[0]!r}"))
             except Exception as exc:  # noqa: BLE001 - reported to the parent as one line
