@@ -19,7 +19,7 @@ from helpers import make_state
 from diacc.backends.base import Backend, BackendError, CavCommands
 from diacc.backends.sumo import wire
 from diacc.backends.sumo.backend import SumoBackend
-from diacc.backends.sumo.net import build_network
+from diacc.backends.sumo.net import build_network, lane_ids
 from diacc.config import ConfigError, SimConfig
 from diacc.maps import available_maps, load_map
 from diacc.scenario import Scenario, draw_population
@@ -69,11 +69,14 @@ def test_network_matches_map(map_name, tmp_path):
                     ]
                 else:
                     assert targets == []
-        # Lane centre lines sit where the map puts absolute lanes (y relative to the right edge).
+        # Lane centre lines sit where the map puts absolute lanes (y relative to the right edge),
+        # and the worker's lane table names each lane's segment and absolute lane.
         for lane in edge.getLanes():
             y = lane.getShape()[0][1] + road.max_lanes * road.lane_width_m
             absolute = road.first_lane(s) + lane.getIndex()
             assert y == pytest.approx(float(road.lane_center_y_m(absolute)))
+            assert lane_ids(road)[lane.getID()] == (s, absolute)
+    assert len(lane_ids(road)) == sum(seg.lanes for seg in road.segments)
     assert (
         f'edges="{" ".join(f"e{s}" for s in range(len(road.segments)))}"' in route_path.read_text()
     )

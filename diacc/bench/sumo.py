@@ -3,10 +3,10 @@
 Both sides run in the same invocation on the same generated network with the
 same SUMO options, the same population (N = 25 HDVs, ``train-50``), the same
 sub-stepping and the same libsumo calls a TrafficState needs
-(:mod:`diacc.backends.sumo.worker`): one subscription read of road, lane,
-position, lateral offset, speed and angle for every vehicle per decision step
-(vehicles missing from it have arrived) and the collision list after every
-sub-step. Episodes restart when every vehicle has left or after
+(:mod:`diacc.backends.sumo.worker`): one subscription read of the worker's
+``STATE_VARIABLES`` (lane, lane position, lateral offset, speed and angle) for
+every vehicle per decision step (vehicles missing from it have arrived) and
+the collision list after every sub-step. Episodes restart when every vehicle has left or after
 ``SimConfig.episode_steps``; restarts are timed on both sides. The raw loop
 keeps SUMO's answers as they come, so the ratio (raw rate / backend rate) is
 the overhead of the worker process, the pipe (one round trip per decision
@@ -62,15 +62,13 @@ def _raw_rate(backend: SumoBackend, scenario: Scenario, steps: int, seed: int) -
     import libsumo
     import sumolib
 
-    from diacc.backends.sumo.worker import SumoSim
+    from diacc.backends.sumo.worker import STATE_VARIABLES, SumoSim
 
     spec = backend._spec  # same network, vTypes and options as the backend's worker
     args = SumoSim(spec)._args(seed)
     sim: SimConfig = spec.sim
     pop = draw_population(scenario, spec.road, seed)
-    tc = libsumo.constants
-    variables = [tc.VAR_ROAD_ID, tc.VAR_LANE_INDEX, tc.VAR_LANEPOSITION,
-                 tc.VAR_LANEPOSITION_LAT, tc.VAR_SPEED, tc.VAR_ANGLE]  # fmt: skip
+    variables = [getattr(libsumo.constants, name) for name in STATE_VARIABLES]
     ids = [f"v{i}" for i in range(pop.n_vehicles)]
 
     def reset(first: bool) -> None:
