@@ -299,9 +299,15 @@ def test_benchmark_runs_and_reports_rates():
     from diacc.bench.sumo import run
 
     result = run(steps=20, seed=0)
-    for key in ("raw_libsumo_steps_per_s", "k1_env_steps_per_s", "k2_env_steps_per_s"):
+    for key in (
+        "raw_libsumo_steps_per_s", "k1_env_steps_per_s", "k2_env_steps_per_s",
+        "raw_cpu_ms_per_step", "backend_cpu_ms_per_step",
+    ):  # fmt: skip
         assert np.isfinite(result[key]) and result[key] > 0, key
     assert result["overhead_ratio"] == pytest.approx(
         result["raw_libsumo_steps_per_s"] / result["k1_env_steps_per_s"]
+    )
+    assert result["cpu_overhead_ratio"] == pytest.approx(
+        result["backend_cpu_ms_per_step"] / result["raw_cpu_ms_per_step"]
     )
     assert result["sumo_version"].startswith("SUMO")
