@@ -258,22 +258,25 @@ class SumoSim:
         """
         st = self.state
         results = self.ls.vehicle.getAllSubscriptionResults()  # {id: {var: value}}
+        lane_id, pos, lat, speed, angle = self.state_vars
+        index, lane_at = self.index, self.lane_at
+        try:
+            rows = [
+                (index[vid], *lane_at[r[lane_id]], r[pos], r[lat], r[speed], r[angle])
+                for vid, r in results.items()
+            ]
+        except KeyError as exc:  # the network has no junction-internal lanes (net.py)
+            raise SimulationError(
+                f"a vehicle is on SUMO lane {exc.args[0]!r}, which is not a lane of map "
+                f"{self.road.name!r}"
+            ) from None
+        data = np.array(rows, dtype=np.float64).reshape(-1, 7)  # (A, 7)
+        idx = data[:, 0].astype(np.int64)
         present = np.zeros(st.n_vehicles, bool)
-        present[[self.index[vid] for vid in results]] = True
+        present[idx] = True
         st.arrivals = np.flatnonzero(st.active & ~present).astype(np.int32)
         st.active[st.arrivals] = False
         st.arrived[st.arrivals] = True
-        if not results:
-            return
-        lane_id, pos, lat, speed, angle = self.state_vars
-        index, lane_at = self.index, self.lane_at
-        rows = [
-            (index[vid], *lane_at[r[lane_id]], r[pos], r[lat], r[speed], r[angle])
-            for vid, r in results.items()
-            if r[lane_id] in lane_at
-        ]
-        data = np.array(rows, dtype=np.float64)  # (A, 7)
-        idx = data[:, 0].astype(np.int64)
         seg = data[:, 1].astype(np.int16)
         abs_lane = data[:, 2].astype(np.int16)
         st.segment[idx] = seg
