@@ -135,7 +135,11 @@ class SumoSim:
 
     # ---- reset ---------------------------------------------------------
     def reset(self, seed: int, pop: Population) -> TrafficState:
-        """Insert exactly ``pop`` at t = 0 and check that every vehicle is on the road."""
+        """Insert exactly ``pop`` at t = 0 and check that every vehicle is on the road.
+
+        Returns the simulation's own state, which the next step updates in
+        place (the worker encodes it before that; other callers copy it).
+        """
         self.load(seed)
         n = pop.n_vehicles
         self.ids = [f"v{i}" for i in range(n)]
@@ -192,7 +196,7 @@ class SumoSim:
 
     # ---- step ----------------------------------------------------------
     def step(self, lane_change: np.ndarray, speed_change_mps: np.ndarray) -> TrafficState:
-        """Apply CAV commands, advance one decision step, return the new state."""
+        """Apply CAV commands, advance one decision step, return the state (as :meth:`reset`)."""
         st = self.state
         if st is None:
             raise SimulationError("step() called before reset()")
