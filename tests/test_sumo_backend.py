@@ -241,6 +241,11 @@ def test_bad_inputs_raise_backend_error():
         backend.reset(Scenario(n_vehicles=4), seed=0)
         with pytest.raises(BackendError, match="shape"):
             backend.step(CavCommands.idle(3))
+        # An error inside the worker comes back as one line, and the worker serves on.
+        overlapping = Scenario(n_vehicles=8, insert_spacing_m=0.5)
+        with pytest.raises(BackendError, match=r"SUMO error while resetting.*did not insert"):
+            backend.reset(overlapping, seed=0)
+        assert backend.reset(Scenario(n_vehicles=4), seed=0).active.all()
 
 
 # ---- CAV commands ------------------------------------------------------------
