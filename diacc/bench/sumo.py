@@ -48,8 +48,14 @@ ROUNDS = 5
 
 
 def _process_cpu_s(pid: int) -> float:
-    """CPU seconds (user + system) a process has used so far, from ``/proc`` (Linux)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    """CPU seconds (user + system) a process has used so far, from ``/proc``.
+
+    NaN without ``/proc`` (not Linux): the table then shows "nan" CPU figures.
+    """
+    stat = Path(f"/proc/{pid}/stat")
+    if not stat.parent.parent.joinpath("self").exists():
+        return float("nan")
+    fields = stat.read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
 
 
