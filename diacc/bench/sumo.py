@@ -52,10 +52,9 @@ def _process_cpu_s(pid: int) -> float:
 
     NaN without ``/proc`` (not Linux): the table then shows "nan" CPU figures.
     """
-    stat = Path(f"/proc/{pid}/stat")
-    if not stat.parent.parent.joinpath("self").exists():
+    if not Path("/proc/self/stat").exists():
         return float("nan")
-    fields = stat.read_text().rsplit(")", 1)[1].split()
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
 
 
