@@ -21,7 +21,10 @@ never revived.
 
 Two APIs share the same code path: the PettingZoo dict API (``reset`` /
 ``step``) for users and API tests, and the batched API (:meth:`reset_arrays` /
-:meth:`step_arrays`) that the trainer uses to avoid per-agent dicts.
+:meth:`step_arrays`) that the trainer uses to avoid per-agent dicts. A step is
+:meth:`decide` (steps 1-3), the backend's step, then :meth:`advance` (step 4):
+a vector of envs over one batched backend (:mod:`diacc.vector`) calls the two
+halves around a single batched backend step.
 """
 
 from __future__ import annotations
@@ -54,6 +57,18 @@ __all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult", "aec_env"
 
 
 @dataclass
+class Decision:
+    """What :meth:`BottleneckEnv.decide` made of the proposed actions (C = CAV slots)."""
+
+    proposed: np.ndarray  # (C,) int64 actor's actions
+    refined: np.ndarray  # (C,) int64 actions to execute
+    rule: np.ndarray  # (C,) int8 last PSAR rule that took effect (0 none)
+    rule_mask: np.ndarray  # (C,) int8 bitmask of the rules that took effect
+    psar: PSARResult | None  # full PSAR result (None when PSAR is off)
+    commands: CavCommands  # what the backend is asked to do, (V,) arrays
+
+
+@dataclass
 class StepResult:
     """What :meth:`BottleneckEnv.step_arrays` returns (C = CAV slots)."""
 
@@ -80,11 +95,21 @@ class BottleneckEnv(ParallelEnv):
         "is_parallelizable": True,
     }
 
-    def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None) -> None:
+    def __init__(
+        self,
+        config: EnvConfig | None = None,
+        render_mode: str | None = None,
+        backend: Backend | None = None,
+    ) -> None:
+        """``backend``: the simulator to run on (e.g. one env of a batch), by default a new
+        one of ``config.backend`` on ``config.map``."""
         self.config = config or EnvConfig()
         self.render_mode = render_mode
-        self.road: Map = preset_road(load_map(self.config.map), self.config.sim.style_preset)
-        self.backend: Backend = make_backend(self.config.backend, self.road, self.config.sim)
+        if backend is None:
+            road = preset_road(load_map(self.config.map), self.config.sim.style_preset)
+            backend = make_backend(self.config.backend, road, self.config.sim)
+        self.backend: Backend = backend
+        self.road: Map = backend.road
         self.builder = ObservationBuilder(self.road, self.config.obs, self.config.sim.episode_steps)
         self.n_cavs = self.config.scenario.n_cavs
         self.possible_agents = [f"cav_{i}" for i in range(self.n_cavs)]
@@ -115,6 +140,11 @@ class BottleneckEnv(ParallelEnv):
 
     def step_arrays(self, actions: np.ndarray) -> StepResult:
         """Advance one decision step with proposed actions (C,) for every CAV slot."""
+        decision = self.decide(actions)
+        return self.advance(decision, self.backend.step(decision.commands))
+
+    def decide(self, actions: np.ndarray) -> Decision:
+        """PSAR's refinement of the proposed actions (C,) and the backend commands they make."""
         state = self.state_
         assert state is not None, "call reset before step"
         proposed = np.asarray(actions, dtype=np.int64).reshape(self.n_cavs)
@@ -136,12 +166,16 @@ class BottleneckEnv(ParallelEnv):
             rule, rule_mask = no_rule, no_rule
             speed_change_mps = action_speed_change_mps(refined, sim.speed_change_mps)
 
-        state = self.backend.step(self._commands(state.n_vehicles, refined, speed_change_mps))
+        commands = self._commands(state.n_vehicles, refined, speed_change_mps)
+        return Decision(proposed, refined, rule, rule_mask, result, commands)
+
+    def advance(self, decision: Decision, state: TrafficState) -> StepResult:
+        """Observations, reward and episode end once the backend has executed ``decision``."""
         self.steps += 1
         self.state_ = state
         self.builder.push(state)
-        self.action_memory = np.stack([proposed, refined], axis=1)
-        self.last_refined[self.cav_index] = refined
+        self.action_memory = np.stack([decision.proposed, decision.refined], axis=1)
+        self.last_refined[self.cav_index] = decision.refined
 
         terms = reward(state, self.cav_index, self.road, self.temperature, self.config.reward)
         terminated = bool(len(state.collisions) > 0 or not state.active.any())
@@ -154,10 +188,10 @@ class BottleneckEnv(ParallelEnv):
             terminated=terminated,
             truncated=truncated,
             alive=state.active[self.cav_index].copy(),
-            refined_action=refined,
-            psar_rule=rule,
-            psar_rule_mask=rule_mask,
-            psar=result,
+            refined_action=decision.refined,
+            psar_rule=decision.rule,
+            psar_rule_mask=decision.rule_mask,
+            psar=decision.psar,
             state=state,
             reward_terms={
                 "ego_softmin": terms.ego_softmin,

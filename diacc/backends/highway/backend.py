@@ -123,8 +123,9 @@ class HighwayBackend:
     name = "highway"
     #: diacc's own NumPy dynamics, versioned with diacc (results record "").
     version = ""
-    #: NumPy steps fast in one process; worker processes would only add pickling.
-    vector_mode = "sync"
+    #: Many envs step fastest as rows of one batch (:class:`diacc.vector.BatchedVectorEnv`);
+    #: worker processes would only add pickling.
+    vector_mode = "batched"
 
     def __init__(
         self,
@@ -752,3 +753,30 @@ class HighwayBackend:
             collisions=collisions.astype(np.int32).reshape(-1, 2),
             arrivals=arrivals.astype(np.int32),
         )
+
+
+class BatchSlot:
+    """One env of a :class:`HighwayBackend` batch, seen through the Backend protocol.
+
+    Lets a :class:`~diacc.env.BottleneckEnv` run on its row of a batch: it
+    resets its own env, while the batch is stepped as a whole by whoever owns
+    it (:class:`diacc.vector.BatchedVectorEnv`) and the env is handed the
+    resulting state (:meth:`BottleneckEnv.advance`).
+    """
+
+    name = HighwayBackend.name
+    version = HighwayBackend.version
+    vector_mode = HighwayBackend.vector_mode
+
+    def __init__(self, batch: HighwayBackend, env: int) -> None:
+        self.batch, self.env = batch, env
+        self.road, self.sim = batch.road, batch.sim
+
+    def reset(self, scenario: Scenario, seed: int) -> TrafficState:
+        return self.batch.reset_env(self.env, scenario, seed)
+
+    def step(self, commands: CavCommands) -> TrafficState:
+        raise BackendError(f"env {self.env} of a batch is stepped with HighwayBackend.step_batch")
+
+    def close(self) -> None:
+        """The batch is closed by its owner."""
