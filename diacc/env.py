@@ -51,14 +51,14 @@ from diacc.maps import Map, load_map
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.psar import PSARResult, psar
 from diacc.reward import reward
-from diacc.state import TrafficState
+from diacc.state import TrafficState, take
 
 __all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult", "aec_env"]
 
 
 @dataclass
 class Decision:
-    """What :meth:`BottleneckEnv.decide` made of the proposed actions (C = CAV slots)."""
+    """What :func:`decide` made of the proposed actions (C = CAV slots; (E, ...) in a batch)."""
 
     proposed: np.ndarray  # (C,) int64 actor's actions
     refined: np.ndarray  # (C,) int64 actions to execute
@@ -66,6 +66,54 @@ class Decision:
     rule_mask: np.ndarray  # (C,) int8 bitmask of the rules that took effect
     psar: PSARResult | None  # full PSAR result (None when PSAR is off)
     commands: CavCommands  # what the backend is asked to do, (V,) arrays
+
+    def env(self, e: int) -> Decision:
+        """Env ``e``'s decision out of a batch's."""
+        psar = None
+        if self.psar is not None:
+            psar = PSARResult(*(getattr(self.psar, f.name)[e] for f in fields(PSARResult)))
+        commands = CavCommands(self.commands.lane_change[e], self.commands.speed_change_mps[e])
+        return Decision(
+            self.proposed[e], self.refined[e], self.rule[e], self.rule_mask[e], psar, commands
+        )
+
+
+def decide(
+    state: TrafficState,
+    cav_index: np.ndarray,
+    actions: np.ndarray,
+    config: EnvConfig,
+    road: Map,
+) -> Decision:
+    """PSAR's refinement of the proposed actions and the backend commands they make.
+
+    Steps 1-3 of the module docstring, for one state with (C,) ``cav_index`` and
+    ``actions``, or for a batch of states with (E, C) ones (:mod:`diacc.state`).
+    """
+    proposed = np.asarray(actions, dtype=np.int64).reshape(cav_index.shape)
+    alive = take(state.active, cav_index)  # (..., C)
+    no_rule = np.zeros(cav_index.shape, np.int8)
+    sim = config.sim
+    if config.use_psar:
+        result = psar(state, cav_index, proposed, config.psar, road, sim)
+        refined = np.where(alive, result.action, REMAIN)
+        rule = np.where(alive, result.rule, 0).astype(np.int8)
+        rule_mask = np.where(alive, result.rule_mask, 0).astype(np.int8)
+        speed_change_mps = np.where(alive, result.speed_change_mps, 0.0)
+    else:
+        # Without PSAR a lane change the road does not allow is still not made
+        # (the same rule as PSAR and the backends), so the executed action is honest.
+        allowed = lane_change_allowed(state, cav_index, proposed, road, sim)
+        is_lc = ACTION_LANE_OFFSET[proposed] != 0
+        result, refined = None, np.where(alive & (allowed | ~is_lc), proposed, REMAIN)
+        rule, rule_mask = no_rule, no_rule
+        speed_change_mps = action_speed_change_mps(refined, sim.speed_change_mps)
+    lane_change = np.zeros(state.x_m.shape, np.int8)  # (..., V)
+    speed_change = np.zeros(state.x_m.shape, np.float64)
+    np.put_along_axis(lane_change, cav_index, ACTION_LANE_OFFSET[refined], axis=-1)
+    np.put_along_axis(speed_change, cav_index, speed_change_mps, axis=-1)
+    commands = CavCommands(lane_change, speed_change)
+    return Decision(proposed, refined, rule, rule_mask, result, commands)
 
 
 @dataclass
@@ -144,30 +192,9 @@ class BottleneckEnv(ParallelEnv):
         return self.advance(decision, self.backend.step(decision.commands))
 
     def decide(self, actions: np.ndarray) -> Decision:
-        """PSAR's refinement of the proposed actions (C,) and the backend commands they make."""
-        state = self.state_
-        assert state is not None, "call reset before step"
-        proposed = np.asarray(actions, dtype=np.int64).reshape(self.n_cavs)
-        alive = state.active[self.cav_index]
-        no_rule = np.zeros(self.n_cavs, np.int8)
-        sim = self.config.sim
-        if self.config.use_psar:
-            result = psar(state, self.cav_index, proposed, self.config.psar, self.road, sim)
-            refined = np.where(alive, result.action, REMAIN)
-            rule = np.where(alive, result.rule, 0).astype(np.int8)
-            rule_mask = np.where(alive, result.rule_mask, 0).astype(np.int8)
-            speed_change_mps = np.where(alive, result.speed_change_mps, 0.0)
-        else:
-            # Without PSAR a lane change the road does not allow is still not made
-            # (the same rule as PSAR and the backends), so the executed action is honest.
-            allowed = lane_change_allowed(state, self.cav_index, proposed, self.road, sim)
-            is_lc = ACTION_LANE_OFFSET[proposed] != 0
-            result, refined = None, np.where(alive & (allowed | ~is_lc), proposed, REMAIN)
-            rule, rule_mask = no_rule, no_rule
-            speed_change_mps = action_speed_change_mps(refined, sim.speed_change_mps)
-
-        commands = self._commands(state.n_vehicles, refined, speed_change_mps)
-        return Decision(proposed, refined, rule, rule_mask, result, commands)
+        """:func:`decide` for this env's current state and proposed actions (C,)."""
+        assert self.state_ is not None, "call reset before step"
+        return decide(self.state_, self.cav_index, actions, self.config, self.road)
 
     def advance(self, decision: Decision, state: TrafficState) -> StepResult:
         """Observations, reward and episode end once the backend has executed ``decision``."""
@@ -201,14 +228,6 @@ class BottleneckEnv(ParallelEnv):
                 "tau": terms.tau,
             },
         )
-
-    def _commands(
-        self, n_vehicles: int, refined: np.ndarray, speed_change_mps: np.ndarray
-    ) -> CavCommands:
-        commands = CavCommands.idle(n_vehicles)
-        commands.lane_change[self.cav_index] = ACTION_LANE_OFFSET[refined]
-        commands.speed_change_mps[self.cav_index] = speed_change_mps
-        return commands
 
     def _observe(self) -> tuple[ActorObs, CriticState]:
         actor = self.builder.actor(self.cav_index, self.action_memory, self.last_refined)

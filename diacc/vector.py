@@ -33,13 +33,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.backends.base import Backend, BackendError, CavCommands, backend_class
+from diacc.backends.base import Backend, BackendError, backend_class
 from diacc.config import preset_road
-from diacc.env import BottleneckEnv, EnvConfig, StepResult
+from diacc.env import BottleneckEnv, EnvConfig, StepResult, decide
 from diacc.maps import load_map
 from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, stack
 from diacc.runlog import join_parent_log, log
+from diacc.state import TrafficState
 from diacc.threads import worker_environment
 
 #: Restarts of one worker in a row (within one call) before the vector env gives up.
@@ -241,7 +242,8 @@ class SyncVectorEnv:
 class BatchedVectorEnv(SyncVectorEnv):
     """Environments whose simulations are rows of one batched ``highway`` backend.
 
-    Each step: every env turns its actions into commands (PSAR), one
+    Each step: one :func:`~diacc.env.decide` call turns all envs' actions into
+    commands (PSAR on the batch of their states), one
     :meth:`~diacc.backends.highway.backend.HighwayBackend.step_batch` call
     simulates all envs, and every env builds its observation and reward from
     its own state. Results are the same as :class:`SyncVectorEnv`'s.
@@ -257,18 +259,17 @@ class BatchedVectorEnv(SyncVectorEnv):
         self.runners = [
             EnvRunner(config, run_seed, e, BatchSlot(self.batch, e)) for e in range(n_envs)
         ]
-        self.n_envs, self.n_cavs = n_envs, config.scenario.n_cavs
+        self.config, self.n_envs, self.n_cavs = config, n_envs, config.scenario.n_cavs
 
     def step_list(self, actions: np.ndarray) -> list[EnvStep]:  # actions (E, C)
-        decisions = [r.env.decide(a) for r, a in zip(self.runners, actions, strict=True)]
-        commands = CavCommands(
-            np.stack([d.commands.lane_change for d in decisions]),  # (E, V)
-            np.stack([d.commands.speed_change_mps for d in decisions]),
-        )
-        states = self.batch.step_batch(commands)
+        envs = [r.env for r in self.runners]
+        state = TrafficState.stack([env.state_ for env in envs])  # (E, V) arrays
+        cav_index = np.stack([env.cav_index for env in envs])  # (E, C)
+        decision = decide(state, cav_index, actions, self.config, self.batch.road)
+        states = self.batch.step_batch(decision.commands)
         return [
-            r.finish(r.env.advance(d, s))
-            for r, d, s in zip(self.runners, decisions, states, strict=True)
+            r.finish(r.env.advance(decision.env(e), s))
+            for e, (r, s) in enumerate(zip(self.runners, states, strict=True))
         ]
 
 
