@@ -198,16 +198,29 @@ class BottleneckEnv(ParallelEnv):
 
     def advance(self, decision: Decision, state: TrafficState) -> StepResult:
         """Observations, reward and episode end once the backend has executed ``decision``."""
+        self.enter(decision, state)
+        return self.conclude(decision, state, *self._observe())
+
+    def enter(self, decision: Decision, state: TrafficState) -> None:
+        """Make ``state``, reached by executing ``decision``, the current one."""
         self.steps += 1
         self.state_ = state
         self.builder.push(state)
         self.action_memory = np.stack([decision.proposed, decision.refined], axis=1)
         self.last_refined[self.cav_index] = decision.refined
 
+    def conclude(
+        self,
+        decision: Decision,
+        state: TrafficState,
+        actor_obs: ActorObs,
+        critic_state: CriticState,
+    ) -> StepResult:
+        """The step's result, given the observations of the state :meth:`enter` entered
+        (:meth:`ObservationBuilder.observe_batch` builds them for many envs at once)."""
         terms = reward(state, self.cav_index, self.road, self.temperature, self.config.reward)
         terminated = bool(len(state.collisions) > 0 or not state.active.any())
         truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
-        actor_obs, critic_state = self._observe()
         return StepResult(
             actor_obs=actor_obs,
             critic_state=critic_state,

@@ -38,7 +38,7 @@ from diacc.config import preset_road
 from diacc.env import BottleneckEnv, EnvConfig, StepResult, decide
 from diacc.maps import load_map
 from diacc.metrics import EpisodeRecorder
-from diacc.observation import ActorObs, CriticState, stack
+from diacc.observation import ActorObs, CriticState, ObservationBuilder, stack, unstack
 from diacc.runlog import join_parent_log, log
 from diacc.state import TrafficState
 from diacc.threads import worker_environment
@@ -245,8 +245,9 @@ class BatchedVectorEnv(SyncVectorEnv):
     Each step: one :func:`~diacc.env.decide` call turns all envs' actions into
     commands (PSAR on the batch of their states), one
     :meth:`~diacc.backends.highway.backend.HighwayBackend.step_batch` call
-    simulates all envs, and every env builds its observation and reward from
-    its own state. Results are the same as :class:`SyncVectorEnv`'s.
+    simulates all envs, one :meth:`ObservationBuilder.observe_batch` call
+    builds every env's observations, and every env computes its reward and
+    episode end. Results are the same as :class:`SyncVectorEnv`'s.
     """
 
     def __init__(self, config: EnvConfig, n_envs: int, run_seed: int) -> None:
@@ -267,9 +268,18 @@ class BatchedVectorEnv(SyncVectorEnv):
         cav_index = np.stack([env.cav_index for env in envs])  # (E, C)
         decision = decide(state, cav_index, actions, self.config, self.batch.road)
         states = self.batch.step_batch(decision.commands)
+        decisions = [decision.env(e) for e in range(self.n_envs)]
+        for env, d, s in zip(envs, decisions, states, strict=True):
+            env.enter(d, s)
+        actor, critic = ObservationBuilder.observe_batch(
+            [env.builder for env in envs],
+            cav_index,
+            np.stack([env.action_memory for env in envs]),  # (E, C, 2)
+            np.stack([env.last_refined for env in envs]),  # (E, V)
+        )
         return [
-            r.finish(r.env.advance(decision.env(e), s))
-            for e, (r, s) in enumerate(zip(self.runners, states, strict=True))
+            r.finish(r.env.conclude(d, s, unstack(actor, e), unstack(critic, e)))
+            for e, (r, d, s) in enumerate(zip(self.runners, decisions, states, strict=True))
         ]
 
 
