@@ -50,7 +50,7 @@ from diacc.config import EnvConfig, preset_road
 from diacc.maps import Map, load_map
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.psar import PSARResult, psar
-from diacc.reward import reward
+from diacc.reward import RewardTerms, reward
 from diacc.state import TrafficState, take
 
 __all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult", "aec_env"]
@@ -199,7 +199,8 @@ class BottleneckEnv(ParallelEnv):
     def advance(self, decision: Decision, state: TrafficState) -> StepResult:
         """Observations, reward and episode end once the backend has executed ``decision``."""
         self.enter(decision, state)
-        return self.conclude(decision, state, *self._observe())
+        terms = reward(state, self.cav_index, self.road, self.temperature, self.config.reward)
+        return self.conclude(decision, state, *self._observe(), terms)
 
     def enter(self, decision: Decision, state: TrafficState) -> None:
         """Make ``state``, reached by executing ``decision``, the current one."""
@@ -215,10 +216,11 @@ class BottleneckEnv(ParallelEnv):
         state: TrafficState,
         actor_obs: ActorObs,
         critic_state: CriticState,
+        terms: RewardTerms,
     ) -> StepResult:
-        """The step's result, given the observations of the state :meth:`enter` entered
-        (:meth:`ObservationBuilder.observe_batch` builds them for many envs at once)."""
-        terms = reward(state, self.cav_index, self.road, self.temperature, self.config.reward)
+        """The step's result, given the observations and the reward of the state
+        :meth:`enter` entered (which :meth:`ObservationBuilder.observe_batch` and
+        :func:`~diacc.reward.reward` compute for many envs at once)."""
         terminated = bool(len(state.collisions) > 0 or not state.active.any())
         truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
         return StepResult(

@@ -113,6 +113,27 @@ class TrafficState:
             **per_vehicle,
         )
 
+    @property
+    def collided_with(self) -> np.ndarray:
+        """(..., V, V) bool, symmetric: vehicles i and j collided with each other this step."""
+        out = np.zeros(self.vehicle_id.shape + self.vehicle_id.shape[-1:], dtype=bool)
+        pairs = self.collisions  # (K, 2), or (K, 3) rows (env, i, j) in a batch
+        env = (pairs[:, 0],) if pairs.shape[1] == 3 else ()
+        i, j = pairs[:, -2], pairs[:, -1]
+        out[(*env, i, j)] = True
+        out[(*env, j, i)] = True
+        return out
+
+    @property
+    def arrived_now(self) -> np.ndarray:
+        """(..., V) bool: vehicle arrived at the route end this step (``arrivals``)."""
+        out = np.zeros(self.vehicle_id.shape, dtype=bool)
+        if self.arrivals.ndim == 2:  # a batch: rows (env, i)
+            out[self.arrivals[:, 0], self.arrivals[:, 1]] = True
+        else:
+            out[self.arrivals] = True
+        return out
+
     def copy(self) -> TrafficState:
         return TrafficState(
             **{
@@ -129,6 +150,8 @@ def take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     ``idx`` has the same leading (env) axes as ``values`` and any shape after
     them; with no leading axes this is plain ``values[idx]``.
     """
+    if values.ndim == 1:
+        return values[idx]
     lead = values.shape[:-1]
     flat = np.reshape(idx, lead + (-1,))
     return np.take_along_axis(values, flat, axis=-1).reshape(np.shape(idx))

@@ -39,7 +39,9 @@ from diacc.env import BottleneckEnv, EnvConfig, StepResult, decide
 from diacc.maps import load_map
 from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, ObservationBuilder, stack, unstack
+from diacc.reward import reward
 from diacc.runlog import join_parent_log, log
+from diacc.safety import safety_critical_events
 from diacc.state import TrafficState
 from diacc.threads import worker_environment
 
@@ -125,10 +127,14 @@ class EnvRunner:
             return _cut_episode(*self.reset(), self.env.n_cavs, final)
         return self.finish(out)
 
-    def finish(self, out: StepResult) -> EnvStep:
-        """Book one step's result; a new episode starts if this one ended."""
+    def finish(self, out: StepResult, critical: np.ndarray | None = None) -> EnvStep:
+        """Book one step's result; a new episode starts if this one ended.
+
+        ``critical``: the state's safety-critical events if already detected
+        (:meth:`EpisodeRecorder.record`).
+        """
         self.return_ += out.reward
-        self.recorder.record(out.state, psar=out.psar)
+        self.recorder.record(out.state, psar=out.psar, critical=critical)
         final, episode = None, None
         actor, critic = out.actor_obs, out.critic_state
         if out.terminated or out.truncated:
@@ -245,9 +251,11 @@ class BatchedVectorEnv(SyncVectorEnv):
     Each step: one :func:`~diacc.env.decide` call turns all envs' actions into
     commands (PSAR on the batch of their states), one
     :meth:`~diacc.backends.highway.backend.HighwayBackend.step_batch` call
-    simulates all envs, one :meth:`ObservationBuilder.observe_batch` call
-    builds every env's observations, and every env computes its reward and
-    episode end. Results are the same as :class:`SyncVectorEnv`'s.
+    simulates all envs, and one call each builds every env's observations
+    (:meth:`ObservationBuilder.observe_batch`), rewards
+    (:func:`~diacc.reward.reward`) and safety events for the metrics; each env
+    then decides whether its episode ended. Results are the same as
+    :class:`SyncVectorEnv`'s.
     """
 
     def __init__(self, config: EnvConfig, n_envs: int, run_seed: int) -> None:
@@ -277,8 +285,16 @@ class BatchedVectorEnv(SyncVectorEnv):
             np.stack([env.action_memory for env in envs]),  # (E, C, 2)
             np.stack([env.last_refined for env in envs]),  # (E, V)
         )
+        after = TrafficState.stack(states)  # (E, V) arrays
+        taus = {env.temperature for env in envs}
+        assert len(taus) == 1, "the envs of a batch share the reward temperature"
+        terms = reward(after, cav_index, self.batch.road, taus.pop(), self.config.reward)
+        critical = safety_critical_events(after, self.config.events).any  # (E, V)
         return [
-            r.finish(r.env.conclude(d, s, unstack(actor, e), unstack(critic, e)))
+            r.finish(
+                r.env.conclude(d, s, unstack(actor, e), unstack(critic, e), terms.env(e)),
+                critical[e],
+            )
             for e, (r, d, s) in enumerate(zip(self.runners, decisions, states, strict=True))
         ]
 
