@@ -141,3 +141,12 @@ def test_sumo_crash_inside_a_rollout_is_a_truncation():
         assert out.restarts == 0
     finally:
         envs.close()
+
+
+def test_env_batch_bench_reports_both_paths():
+    from diacc.bench import envbatch
+
+    (row,) = envbatch.run(envs=(2,), steps=2)
+    assert row["envs"] == 2
+    for key in ("env_sync", "env_batched", "sim_sync", "sim_batched"):
+        assert row[f"{key}_steps_per_s"] > 0.0
