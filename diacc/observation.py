@@ -264,25 +264,16 @@ class _History:
 @dataclass
 class _Frame:
     """What the observations of one instant are built from: the state, its history
-    and its neighbour sets; every array with the state's leading (env) axes."""
+    and its neighbour sets; every array with the state's leading (env) axes.
+
+    The neighbour sets are searched when first needed (None until then), so
+    that :meth:`ObservationBuilder.observe_batch` searches a batch's in one call.
+    """
 
     state: TrafficState
     hist: _History  # fields (..., T, V)
-    nbr: np.ndarray  # (..., V, K) int64
-    nbr_mask: np.ndarray  # (..., V, K) bool
-
-    @classmethod
-    def stack(cls, frames: list[_Frame]) -> _Frame:
-        """One frame of a batch of E environments' frames."""
-        hist = _History(
-            *(np.stack([getattr(f.hist, g.name) for f in frames]) for g in fields(_History))
-        )
-        return cls(
-            TrafficState.stack([f.state for f in frames]),
-            hist,
-            np.stack([f.nbr for f in frames]),
-            np.stack([f.nbr_mask for f in frames]),
-        )
+    nbr: np.ndarray | None = None  # (..., V, K) int64
+    nbr_mask: np.ndarray | None = None  # (..., V, K) bool
 
 
 class ObservationBuilder:
@@ -354,8 +345,7 @@ class ObservationBuilder:
         """Start an episode: the whole history holds copies of ``state``."""
         self._check_state(state, expect_vehicles=None)
         state = state.copy()
-        hist = _History.filled(state, self.cfg.history_steps)
-        self._frame = _Frame(state, hist, *self._neighbours(state))
+        self._frame = _Frame(state, _History.filled(state, self.cfg.history_steps))
 
     def push(self, state: TrafficState) -> None:
         """Append the state of a new step; the oldest history entry drops out."""
@@ -364,7 +354,7 @@ class ObservationBuilder:
         self._check_state(state, expect_vehicles=self._frame.state.n_vehicles)
         state = state.copy()
         self._frame.hist.push(state)
-        self._frame = _Frame(state, self._frame.hist, *self._neighbours(state))
+        self._frame = _Frame(state, self._frame.hist)
 
     @property
     def neighbours(self) -> tuple[np.ndarray, np.ndarray]:
@@ -408,8 +398,16 @@ class ObservationBuilder:
         Arguments are those of :meth:`actor` with a leading env axis: (E, C),
         (E, C, 2), (E, V); the results have one too.
         """
-        frame = _Frame.stack([b._require_frame() for b in builders])
-        first = builders[0]
+        first, frames = builders[0], [b._current() for b in builders]
+        state = TrafficState.stack([f.state for f in frames])  # (E, V) arrays
+        nbr, nbr_mask = first._neighbours(state)  # (E, V, K): one search for all envs
+        for f, env_nbr, env_mask in zip(frames, nbr, nbr_mask, strict=True):
+            if f.nbr is None:  # each builder keeps its env's sets (critic(), neighbours)
+                f.nbr, f.nbr_mask = env_nbr, env_mask
+        hist = _History(
+            *(np.stack([getattr(f.hist, g.name) for f in frames]) for g in fields(_History))
+        )
+        frame = _Frame(state, hist, nbr, nbr_mask)
         actor = first._actor(frame, cav_index, action_memory, last_refined_action)
         return actor, first._critic(frame)
 
@@ -588,10 +586,17 @@ class ObservationBuilder:
             traffic=_f32(traffic),
         )
 
-    def _require_frame(self) -> _Frame:
+    def _current(self) -> _Frame:
         if self._frame is None:
             raise ObservationError("no state yet; call reset() with the first state")
         return self._frame
+
+    def _require_frame(self) -> _Frame:
+        """The current frame with its neighbour sets."""
+        frame = self._current()
+        if frame.nbr is None:
+            frame.nbr, frame.nbr_mask = self._neighbours(frame.state)
+        return frame
 
     def _check_state(self, state: TrafficState, expect_vehicles: int | None) -> None:
         n_veh = state.n_vehicles
@@ -616,17 +621,18 @@ class ObservationBuilder:
             )
 
     def _neighbours(self, state: TrafficState) -> tuple[np.ndarray, np.ndarray]:
-        """K nearest active vehicles in same/adjacent lanes for every vehicle, (V, K) each."""
+        """K nearest active vehicles in same/adjacent lanes for every vehicle, (..., V, K) each."""
         k, n_veh = self.cfg.n_neighbours, state.n_vehicles
         x, lane, act = state.x_m, state.lane.astype(np.int64), state.active
-        dist = np.abs(x[None, :] - x[:, None])  # (V, V) ego i, other j
-        ok = (np.abs(lane[None, :] - lane[:, None]) <= 1) & act[None, :] & act[:, None]
-        np.fill_diagonal(ok, False)
+        i_, j_ = (Ellipsis, slice(None), None), (Ellipsis, None, slice(None))  # [..., i, j]
+        dist = np.abs(x[j_] - x[i_])  # (..., V, V) ego i, other j
+        ok = (np.abs(lane[j_] - lane[i_]) <= 1) & act[j_] & act[i_] & ~np.eye(n_veh, dtype=bool)
         dist = np.where(ok, dist, np.inf)
         if n_veh < k:  # fewer candidates than slots: pad with never-chosen columns
-            dist = np.pad(dist, ((0, 0), (0, k - n_veh)), constant_values=np.inf)
-        order = np.argsort(dist, axis=1, kind="stable")[:, :k]  # (V, K)
-        mask = np.isfinite(np.take_along_axis(dist, order, axis=1))  # (V, K)
+            pad = [(0, 0)] * (dist.ndim - 1) + [(0, k - n_veh)]
+            dist = np.pad(dist, pad, constant_values=np.inf)
+        order = np.argsort(dist, axis=-1, kind="stable")[..., :k]  # (..., V, K)
+        mask = np.isfinite(np.take_along_axis(dist, order, axis=-1))  # (..., V, K)
         return np.where(mask, order, 0).astype(np.int64), mask
 
     def _relative_nodes(

@@ -145,16 +145,14 @@ class TrafficState:
 
 
 def take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``values[..., idx]`` per env: (..., V) per-vehicle values, (..., *Q) vehicle indices.
+    """``values[idx]`` of one state's (V,) values, or per env of a batch's (E, V) ones.
 
-    ``idx`` has the same leading (env) axes as ``values`` and any shape after
-    them; with no leading axes this is plain ``values[idx]``.
+    For a batch ``idx`` is (E, ...): entry ``[e, ...]`` indexes env ``e``'s row.
     """
     if values.ndim == 1:
         return values[idx]
-    lead = values.shape[:-1]
-    flat = np.reshape(idx, lead + (-1,))
-    return np.take_along_axis(values, flat, axis=-1).reshape(np.shape(idx))
+    env = np.arange(values.shape[0]).reshape((-1,) + (1,) * (np.ndim(idx) - 1))
+    return values[env, idx]
 
 
 #: dtype of every array field; backends must produce exactly these.
