@@ -392,14 +392,17 @@ class ObservationBuilder:
         cav_index: np.ndarray,
         action_memory: np.ndarray,
         last_refined_action: np.ndarray,
+        state: TrafficState | None = None,
     ) -> tuple[ActorObs, CriticState]:
         """:meth:`actor` and :meth:`critic` of E builders (same map and config) in one call.
 
         Arguments are those of :meth:`actor` with a leading env axis: (E, C),
-        (E, C, 2), (E, V); the results have one too.
+        (E, C, 2), (E, V); the results have one too. ``state``: the builders'
+        current states as one batch, if the caller has it (else stacked here).
         """
         first, frames = builders[0], [b._current() for b in builders]
-        state = TrafficState.stack([f.state for f in frames])  # (E, V) arrays
+        if state is None:
+            state = TrafficState.stack([f.state for f in frames])  # (E, V) arrays
         nbr, nbr_mask = first._neighbours(state)  # (E, V, K): one search for all envs
         for f, env_nbr, env_mask in zip(frames, nbr, nbr_mask, strict=True):
             if f.nbr is None:  # each builder keeps its env's sets (critic(), neighbours)

@@ -279,13 +279,14 @@ class BatchedVectorEnv(SyncVectorEnv):
         decisions = [decision.env(e) for e in range(self.n_envs)]
         for env, d, s in zip(envs, decisions, states, strict=True):
             env.enter(d, s)
+        after = TrafficState.stack(states)  # (E, V) arrays
         actor, critic = ObservationBuilder.observe_batch(
             [env.builder for env in envs],
             cav_index,
             np.stack([env.action_memory for env in envs]),  # (E, C, 2)
             np.stack([env.last_refined for env in envs]),  # (E, V)
+            after,
         )
-        after = TrafficState.stack(states)  # (E, V) arrays
         taus = {env.temperature for env in envs}
         assert len(taus) == 1, "the envs of a batch share the reward temperature"
         terms = reward(after, cav_index, self.batch.road, taus.pop(), self.config.reward)
