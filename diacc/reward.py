@@ -83,7 +83,7 @@ def softmin_weights(ego_reward: np.ndarray, alive: np.ndarray, tau: float) -> np
     alive = np.asarray(alive, dtype=bool)
     logits = np.where(alive, -np.asarray(ego_reward, dtype=np.float64) / tau, -np.inf)
     any_alive = alive.any(axis=-1, keepdims=True)  # (..., 1)
-    shift = np.where(any_alive, logits.max(axis=-1, keepdims=True), 0.0)
+    shift = np.where(any_alive, logits.max(axis=-1, keepdims=True, initial=-np.inf), 0.0)
     expd = np.exp(logits - shift)  # (..., C), 0 for dead
     total = expd.sum(axis=-1, keepdims=True)
     return np.where(any_alive, expd / np.where(any_alive, total, 1.0), 0.0)
