@@ -91,12 +91,6 @@ class CooperativeCavParams:
     lc_gain_threshold_mps2: float = 0.1
 
 
-def _gather(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``values[e, idx[e, ...]]`` for every env e: (E, V) values, (E, ...) vehicle indices."""
-    env = np.arange(idx.shape[0]).reshape((-1,) + (1,) * (idx.ndim - 1))
-    return values[env, idx]
-
-
 def _rows_where(mask: np.ndarray, new: np.ndarray, old: np.ndarray) -> np.ndarray:
     """``new`` in the envs of the (E,) ``mask``, ``old`` elsewhere (any trailing shape)."""
     return np.where(mask.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
@@ -305,11 +299,19 @@ class HighwayBackend:
         self._not_self = ~np.eye(n, dtype=bool)  # (V, V)
         self._rows = np.broadcast_to(np.arange(n), shape)  # (E, V) own vehicle index
         self._sides = np.array([-1, 0, 1])
+        # Env index arrays that broadcast against (E, ...) vehicle indices of each rank.
+        self._env_index = {
+            rank: np.arange(n_envs).reshape((-1,) + (1,) * (rank - 1)) for rank in range(1, 5)
+        }
         self._min_accel = -self.model.max_brake_mps2
         self._leaders_dirty = np.ones(n_envs, dtype=bool)
         self._heading_nonzero = False
         self.time_s = np.zeros(n_envs)
         self.step_count = np.zeros(n_envs, np.int64)
+
+    def _at(self, values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """``values[e, idx[e, ...]]`` for every env e: (E, V) values, (E, ...) vehicle indices."""
+        return values[self._env_index[idx.ndim], idx]
 
     def _segment(self) -> np.ndarray:
         return self.tables.segment_of(self.x_m)
@@ -403,16 +405,16 @@ class HighwayBackend:
         lanes3 = lane[:, None, :] + self._sides[None, :, None]  # (E, 3, V)
         lanes3_c = np.clip(lanes3, 0, n_lanes - 1)
         occ = self._occupancy()  # (E, V, L+2)
-        env4 = np.arange(n_envs)[:, None, None, None]
-        in_lane = occ[env4, np.arange(n)[None, None, None, :], (lanes3 + 1)[..., None]]
-        in_lane &= self._peers()[:, None]  # (E, 3, V, V) [e, side, i, j]
+        lane_members = occ.transpose(0, 2, 1)  # (E, L+2, V): vehicles in each lane
+        in_lane = lane_members[self._env_index[3], lanes3 + 1]  # (E, 3, V, V) [e, side, i, j]
+        in_lane &= self._peers()[:, None]
         dx = x[:, None, :] - x[:, :, None]  # (E, V, V) x_j - x_i
         ahead = np.where(in_lane & (dx >= 0.0)[:, None], dx[:, None], np.inf)  # (E, 3, V, V)
         behind = np.where(in_lane & (dx < 0.0)[:, None], -dx[:, None], np.inf)
         lead = ahead.argmin(axis=3)  # (E, 3, V)
         foll = behind.argmin(axis=3)
-        lead_gap = np.take_along_axis(ahead, lead[..., None], 3)[..., 0] - length
-        foll_gap = np.take_along_axis(behind, foll[..., None], 3)[..., 0] - length
+        lead_gap = ahead.min(axis=3) - length  # the gap to ``lead`` (inf: none)
+        foll_gap = behind.min(axis=3) - length
         has_foll = np.isfinite(foll_gap)
 
         # Every IDM acceleration MOBIL needs, in one call: (E, 4, 3, V) =
@@ -422,10 +424,10 @@ class HighwayBackend:
         ego = np.stack([me, me, foll, foll], axis=1)  # (E, 4, 3, V)
         end_gap = tab.end_m[seg[:, None, :], lanes3_c] - x[:, None, :] - 0.5 * length
         gaps = np.stack([lead_gap, end_gap, foll_gap, foll_gap + lead_gap + length], axis=1)
-        lead_v = _gather(v, lead)  # (E, 3, V)
+        lead_v = self._at(v, lead)  # (E, 3, V)
         v3 = np.broadcast_to(v[:, None, :], (n_envs, 3, n))
         lead_v = np.stack([lead_v, np.zeros_like(lead_v), v3, lead_v], axis=1)
-        acc = idm_accel(_gather(v, ego), _gather(desired, ego), self.idm.take(ego), gaps, lead_v)
+        acc = idm_accel(self._at(v, ego), self._at(desired, ego), self.idm.take(ego), gaps, lead_v)
         self_acc = np.minimum(acc[:, 0], acc[:, 1])  # (E, 3, V)
         foll_with_me = np.where(has_foll, acc[:, 2], 0.0)
         foll_without = np.where(has_foll, acc[:, 3], 0.0)
@@ -442,9 +444,12 @@ class HighwayBackend:
         # A CAV follower holds its commanded speed for the rest of the step and only
         # then brakes (at most at its decel limit): the gap must cover that, not IDM.
         foll2 = foll[:, side]  # (E, 2, V)
-        cav_foll = _gather(self.is_cav, foll2) & has_foll[:, side]
+        cav_foll = self._at(self.is_cav, foll2) & has_foll[:, side]
         cav_gap_m = sim.cav.min_gap_m + safe_gap_m(
-            _gather(self._cav_target_mps, foll2), v[:, None, :], sim.step_s, sim.cav.safe_decel_mps2
+            self._at(self._cav_target_mps, foll2),
+            v[:, None, :],
+            sim.step_s,
+            sim.cav.safe_decel_mps2,
         )
         gaps_ok &= ~cav_foll | (foll_gap[:, side] >= cav_gap_m)
         nf_after = foll_with_me[:, side]
@@ -477,9 +482,8 @@ class HighwayBackend:
             & (self_acc[:, side] >= -accept_brake2)
         )
         score = np.where(forced_ok, np.inf, np.where(mobil_ok, gain, -np.inf))  # (E, 2, V)
-        pick = score.argmax(axis=1)[:, None, :]  # (E, 1, V)
-        start = np.take_along_axis(score, pick, 1)[:, 0] > -np.inf  # (E, V)
-        target = np.take_along_axis(dest_c, pick, 1)[:, 0]
+        start = score.max(axis=1) > -np.inf  # (E, V)
+        target = np.where(score.argmax(axis=1) == 0, dest_c[:, 0], dest_c[:, 1])
 
         # Two vehicles entering the same lane side by side in the same instant
         # would not see each other: keep the front one.
@@ -502,20 +506,20 @@ class HighwayBackend:
         self._start_changes(start, target, m.hdv_lane_change_s)
 
         # Yielding: the nearest follower in the merge lane treats a waiting merger as leader.
-        merge_row = np.where(merge_dir > 0, 2, 0)[:, None, :]  # (E, 1, V)
-        nf = np.take_along_axis(foll, merge_row, 1)[:, 0]  # (E, V)
-        nf_gap = np.take_along_axis(foll_gap, merge_row, 1)[:, 0]
-        nf_acc = np.take_along_axis(foll_with_me, merge_row, 1)[:, 0]
-        polite = (_gather(self.politeness, nf) > 0.0) | (v < m.yield_speed_mps)
+        left = merge_dir > 0  # merging into the left lane (row 2), else the right (row 0)
+        nf = np.where(left, foll[:, 2], foll[:, 0])  # (E, V)
+        nf_gap = np.where(left, foll_gap[:, 2], foll_gap[:, 0])
+        nf_acc = np.where(left, foll_with_me[:, 2], foll_with_me[:, 0])
+        polite = (self._at(self.politeness, nf) > 0.0) | (v < m.yield_speed_mps)
         waiting = (
             forced
             & ~start
             & (dist_end < m.yield_zone_m)
             & (nf_gap > 0.0)
             & np.isfinite(nf_gap)
-            & ~_gather(self.is_cav, nf)
+            & ~self._at(self.is_cav, nf)
             & polite
-            & (nf_acc >= -_gather(self.idm.decel_mps2, nf))
+            & (nf_acc >= -self._at(self.idm.decel_mps2, nf))
         )
         yield_to = np.full_like(self.yield_to, -1)
         for e in np.flatnonzero(waiting.any(axis=1)):  # rare: a merger waits
@@ -589,15 +593,15 @@ class HighwayBackend:
         dx = x[b] - x[a]  # (E, V, V) x_j - x_i
         ahead = np.where(shares_lane & (dx > 0.0) & self.active[b], dx, np.inf)
         leader = ahead.argmin(axis=2)  # (E, V)
-        has_leader = np.isfinite(np.take_along_axis(ahead, leader[..., None], 2)[..., 0])
+        has_leader = np.isfinite(ahead.min(axis=2))
         hdv = self.active & ~self.is_cav & ~self.crashed
-        guarded = hdv & has_leader & ~_gather(self.is_cav, leader)
+        guarded = hdv & has_leader & ~self._at(self.is_cav, leader)
         # Pairs that can still start a contact: both on the road, not both wrecked.
         pairs_active = (
             self.active[a] & self.active[b] & self._not_self & ~(self.crashed[a] & self.crashed[b])
         )
         moving = self.active & ~self.crashed & (lf != lt)
-        screen = has_leader & ~(self.crashed & _gather(self.crashed, leader))
+        screen = has_leader & ~(self.crashed & self._at(self.crashed, leader))
         self._leader = _rows_where(dirty, leader, self._leader)
         self._has_leader = _rows_where(dirty, has_leader, self._has_leader)
         self._guarded = _rows_where(dirty, guarded, self._guarded)
@@ -616,17 +620,17 @@ class HighwayBackend:
 
         # HDV longitudinal: IDM towards the nearer of the leader and the end of the
         # destination lane (a standing obstacle; a leader before it stops for it too).
-        gap = np.where(self._has_leader, _gather(x, leader) - x, np.inf)  # (E, V)
+        gap = np.where(self._has_leader, self._at(x, leader) - x, np.inf)  # (E, V)
         end_closer = self._end_x_m - x < gap
         gap = np.where(end_closer, self._end_x_m - x, gap) - length
-        lead_v = np.where(end_closer, 0.0, _gather(v, leader))
+        lead_v = np.where(end_closer, 0.0, self._at(v, leader))
         acc = self._idm_fast(v, gap, lead_v)
         # A yielding follower brakes for the merger *and* for its own leader, whichever
         # asks more: the merger may be alongside the real leader, not in front of it.
         yielding = self.yield_to >= 0
         if yielding.any():
             merger = np.where(yielding, self.yield_to, self._rows)
-            acc_merge = self._idm_fast(v, _gather(x, merger) - x - length, _gather(v, merger))
+            acc_merge = self._idm_fast(v, self._at(x, merger) - x - length, self._at(v, merger))
             acc = np.where(yielding, np.minimum(acc, acc_merge), acc)
         # CAVs: constant acceleration towards the commanded target speed.
         acc = np.where(self.is_cav, self._cav_accel_mps2, np.maximum(acc, self._min_accel))
@@ -641,14 +645,14 @@ class HighwayBackend:
             v_new = np.where(at_wall, 0.0, v_new)
 
         # Last-resort guard: an HDV never runs into the HDV it follows.
-        leader_x = _gather(x_new, leader)
+        leader_x = self._at(x_new, leader)
         limit_x = leader_x - length - m.guard_gap_m
         guard = self._guarded & (x_new > limit_x)
         if guard.any():
             self.stats["guard_events"] += guard.sum(axis=1)
             x_new = np.where(guard, limit_x, x_new)
-            v_new = np.where(guard, np.minimum(v_new, _gather(v_new, leader)), v_new)
-            leader_x = _gather(x_new, leader)
+            v_new = np.where(guard, np.minimum(v_new, self._at(v_new, leader)), v_new)
+            leader_x = self._at(x_new, leader)
         self.x_m, self.speed_mps = x_new, v_new
 
         # Lateral motion; the manoeuvre completes when the destination centre is reached.
