@@ -71,11 +71,19 @@ def assert_same(a, b, where: str) -> None:
         assert a == b or (a != a and b != b), where  # NaN metrics of empty episodes
 
 
-@pytest.mark.parametrize("use_psar", [True, False])
-def test_batched_simulator_matches_envs_stepped_alone(use_psar):
+@pytest.mark.parametrize(
+    ("map_name", "n_vehicles", "use_psar"),
+    [("train-25", 25, True), ("train-25", 25, False), ("test-50", 40, True)],
+)
+def test_batched_simulator_matches_envs_stepped_alone(map_name, n_vehicles, use_psar):
     """Same seeds and actions: every field of every step is identical, through
     collisions, time limits and the automatic resets that follow."""
-    config = EnvConfig(sim=SimConfig(episode_steps=25), use_psar=use_psar)
+    config = EnvConfig(
+        map=map_name,
+        scenario=Scenario(n_vehicles=n_vehicles),
+        sim=SimConfig(episode_steps=25),
+        use_psar=use_psar,
+    )
     n_envs, steps = 4, 80
     alone, batched = SyncVectorEnv(config, n_envs, run_seed=7), BatchedVectorEnv(config, n_envs, 7)
     try:
