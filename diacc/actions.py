@@ -12,7 +12,7 @@ import numpy as np
 from diacc.config import SimConfig
 from diacc.kinematics import lane_change_reach_m
 from diacc.maps import Map
-from diacc.state import TrafficState
+from diacc.state import TrafficState, take
 
 REMAIN, LANE_LEFT, LANE_RIGHT, ACCELERATE, DECELERATE = 0, 1, 2, 3, 4
 ACTION_NAMES = ("remain", "left", "right", "accelerate", "decelerate")
@@ -29,11 +29,13 @@ def action_speed_change_mps(action: np.ndarray, step_mps: float) -> np.ndarray:
 def lane_change_allowed(
     state: TrafficState, cav_index: np.ndarray, action: np.ndarray, road: Map, sim: SimConfig
 ) -> np.ndarray:
-    """(C,) bool: the action is a lane change the road allows (:meth:`Map.lane_change_allowed`)."""
+    """(..., C) bool: the action is a lane change the road allows (``Map.lane_change_allowed``)."""
     return road.lane_change_allowed(
-        state.segment[cav_index],
-        state.lane[cav_index],
+        take(state.segment, cav_index),
+        take(state.lane, cav_index),
         ACTION_LANE_OFFSET[action],
-        state.x_m[cav_index],
-        lane_change_reach_m(state.speed_mps[cav_index], sim.step_s, state.length_m[cav_index]),
+        take(state.x_m, cav_index),
+        lane_change_reach_m(
+            take(state.speed_mps, cav_index), sim.step_s, take(state.length_m, cav_index)
+        ),
     )

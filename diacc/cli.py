@@ -179,11 +179,16 @@ def _bench_parser(sub) -> None:
         sub,
         "bench",
         "speed benchmarks, measured side by side in one run",
-        "Choose at least one of --backend, --models, --training.",
+        "Choose at least one of --backend, --models, --training, --env-batch.",
     )
     p.add_argument("--backend", choices=BACKENDS, help="backend vs its reference simulator loop")
     p.add_argument("--models", action="store_true", help="network sizes and forward/update times")
     p.add_argument("--training", action="store_true", help="end-to-end training env-steps/s")
+    p.add_argument(
+        "--env-batch",
+        action="store_true",
+        help="env stepping per core: E envs one after another vs one batched call (highway)",
+    )
     p.add_argument(
         "--safety",
         action="store_true",
@@ -226,9 +231,15 @@ def cmd_bench(args: argparse.Namespace) -> None:
 
         training.run(device=args.device)
         ran = True
+    if args.env_batch:
+        from diacc.bench import envbatch
+
+        envbatch.run(**({"steps": args.steps} if args.steps else {}))
+        ran = True
     if not ran:
         raise ConfigError(
-            "choose what to benchmark: --backend highway|sumo, --models, --training or --safety"
+            "choose what to benchmark: --backend highway|sumo, --models, --training, "
+            "--env-batch or --safety"
         )
 
 

@@ -338,7 +338,9 @@ class TrainConfig:
     variant: str = "diacc"
     total_steps: int = 3_000_000  # environment steps (decisions x envs)
     n_envs: int = 20
-    vector: str = "auto"  # sync (in process), process (one worker each), auto (by backend)
+    # sync (in process), batched (one highway simulator for all envs), process (worker
+    # processes), auto (by backend: batched for highway, process for sumo)
+    vector: str = "auto"
     rollout_steps: int = 100
     seed: int = 1
     device: str = "auto"  # of the PPO update; rollout forwards always run on the CPU
@@ -472,7 +474,7 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "model.leaky_slope": (0, None, False),
 }
 _CHOICES: dict[str, tuple[str, ...]] = {
-    "vector": ("auto", "sync", "process"),
+    "vector": ("auto", "sync", "batched", "process"),
     "device": ("auto", "cpu", "cuda"),
 }
 

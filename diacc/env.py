@@ -21,7 +21,10 @@ never revived.
 
 Two APIs share the same code path: the PettingZoo dict API (``reset`` /
 ``step``) for users and API tests, and the batched API (:meth:`reset_arrays` /
-:meth:`step_arrays`) that the trainer uses to avoid per-agent dicts.
+:meth:`step_arrays`) that the trainer uses to avoid per-agent dicts. A step is
+:meth:`decide` (steps 1-3), the backend's step, then :meth:`advance` (step 4):
+a vector of envs over one batched backend (:mod:`diacc.vector`) calls the two
+halves around a single batched backend step.
 """
 
 from __future__ import annotations
@@ -47,10 +50,70 @@ from diacc.config import EnvConfig, preset_road
 from diacc.maps import Map, load_map
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.psar import PSARResult, psar
-from diacc.reward import reward
-from diacc.state import TrafficState
+from diacc.reward import RewardTerms, reward
+from diacc.state import TrafficState, take
 
 __all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult", "aec_env"]
+
+
+@dataclass
+class Decision:
+    """What :func:`decide` made of the proposed actions (C = CAV slots; (E, ...) in a batch)."""
+
+    proposed: np.ndarray  # (C,) int64 actor's actions
+    refined: np.ndarray  # (C,) int64 actions to execute
+    rule: np.ndarray  # (C,) int8 last PSAR rule that took effect (0 none)
+    rule_mask: np.ndarray  # (C,) int8 bitmask of the rules that took effect
+    psar: PSARResult | None  # full PSAR result (None when PSAR is off)
+    commands: CavCommands  # what the backend is asked to do, (V,) arrays
+
+    def env(self, e: int) -> Decision:
+        """Env ``e``'s decision out of a batch's."""
+        psar = None
+        if self.psar is not None:
+            psar = PSARResult(*(getattr(self.psar, f.name)[e] for f in fields(PSARResult)))
+        commands = CavCommands(self.commands.lane_change[e], self.commands.speed_change_mps[e])
+        return Decision(
+            self.proposed[e], self.refined[e], self.rule[e], self.rule_mask[e], psar, commands
+        )
+
+
+def decide(
+    state: TrafficState,
+    cav_index: np.ndarray,
+    actions: np.ndarray,
+    config: EnvConfig,
+    road: Map,
+) -> Decision:
+    """PSAR's refinement of the proposed actions and the backend commands they make.
+
+    Steps 1-3 of the module docstring, for one state with (C,) ``cav_index`` and
+    ``actions``, or for a batch of states with (E, C) ones (:mod:`diacc.state`).
+    """
+    proposed = np.asarray(actions, dtype=np.int64).reshape(cav_index.shape)
+    alive = take(state.active, cav_index)  # (..., C)
+    no_rule = np.zeros(cav_index.shape, np.int8)
+    sim = config.sim
+    if config.use_psar:
+        result = psar(state, cav_index, proposed, config.psar, road, sim)
+        refined = np.where(alive, result.action, REMAIN)
+        rule = np.where(alive, result.rule, 0).astype(np.int8)
+        rule_mask = np.where(alive, result.rule_mask, 0).astype(np.int8)
+        speed_change_mps = np.where(alive, result.speed_change_mps, 0.0)
+    else:
+        # Without PSAR a lane change the road does not allow is still not made
+        # (the same rule as PSAR and the backends), so the executed action is honest.
+        allowed = lane_change_allowed(state, cav_index, proposed, road, sim)
+        is_lc = ACTION_LANE_OFFSET[proposed] != 0
+        result, refined = None, np.where(alive & (allowed | ~is_lc), proposed, REMAIN)
+        rule, rule_mask = no_rule, no_rule
+        speed_change_mps = action_speed_change_mps(refined, sim.speed_change_mps)
+    lane_change = np.zeros(state.x_m.shape, np.int8)  # (..., V)
+    speed_change = np.zeros(state.x_m.shape, np.float64)
+    np.put_along_axis(lane_change, cav_index, ACTION_LANE_OFFSET[refined], axis=-1)
+    np.put_along_axis(speed_change, cav_index, speed_change_mps, axis=-1)
+    commands = CavCommands(lane_change, speed_change)
+    return Decision(proposed, refined, rule, rule_mask, result, commands)
 
 
 @dataclass
@@ -80,11 +143,21 @@ class BottleneckEnv(ParallelEnv):
         "is_parallelizable": True,
     }
 
-    def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None) -> None:
+    def __init__(
+        self,
+        config: EnvConfig | None = None,
+        render_mode: str | None = None,
+        backend: Backend | None = None,
+    ) -> None:
+        """``backend``: the simulator to run on (e.g. one env of a batch), by default a new
+        one of ``config.backend`` on ``config.map``."""
         self.config = config or EnvConfig()
         self.render_mode = render_mode
-        self.road: Map = preset_road(load_map(self.config.map), self.config.sim.style_preset)
-        self.backend: Backend = make_backend(self.config.backend, self.road, self.config.sim)
+        if backend is None:
+            road = preset_road(load_map(self.config.map), self.config.sim.style_preset)
+            backend = make_backend(self.config.backend, road, self.config.sim)
+        self.backend: Backend = backend
+        self.road: Map = backend.road
         self.builder = ObservationBuilder(self.road, self.config.obs, self.config.sim.episode_steps)
         self.n_cavs = self.config.scenario.n_cavs
         self.possible_agents = [f"cav_{i}" for i in range(self.n_cavs)]
@@ -115,38 +188,41 @@ class BottleneckEnv(ParallelEnv):
 
     def step_arrays(self, actions: np.ndarray) -> StepResult:
         """Advance one decision step with proposed actions (C,) for every CAV slot."""
-        state = self.state_
-        assert state is not None, "call reset before step"
-        proposed = np.asarray(actions, dtype=np.int64).reshape(self.n_cavs)
-        alive = state.active[self.cav_index]
-        no_rule = np.zeros(self.n_cavs, np.int8)
-        sim = self.config.sim
-        if self.config.use_psar:
-            result = psar(state, self.cav_index, proposed, self.config.psar, self.road, sim)
-            refined = np.where(alive, result.action, REMAIN)
-            rule = np.where(alive, result.rule, 0).astype(np.int8)
-            rule_mask = np.where(alive, result.rule_mask, 0).astype(np.int8)
-            speed_change_mps = np.where(alive, result.speed_change_mps, 0.0)
-        else:
-            # Without PSAR a lane change the road does not allow is still not made
-            # (the same rule as PSAR and the backends), so the executed action is honest.
-            allowed = lane_change_allowed(state, self.cav_index, proposed, self.road, sim)
-            is_lc = ACTION_LANE_OFFSET[proposed] != 0
-            result, refined = None, np.where(alive & (allowed | ~is_lc), proposed, REMAIN)
-            rule, rule_mask = no_rule, no_rule
-            speed_change_mps = action_speed_change_mps(refined, sim.speed_change_mps)
+        decision = self.decide(actions)
+        return self.advance(decision, self.backend.step(decision.commands))
 
-        state = self.backend.step(self._commands(state.n_vehicles, refined, speed_change_mps))
+    def decide(self, actions: np.ndarray) -> Decision:
+        """:func:`decide` for this env's current state and proposed actions (C,)."""
+        assert self.state_ is not None, "call reset before step"
+        return decide(self.state_, self.cav_index, actions, self.config, self.road)
+
+    def advance(self, decision: Decision, state: TrafficState) -> StepResult:
+        """Observations, reward and episode end once the backend has executed ``decision``."""
+        self.enter(decision, state)
+        terms = reward(state, self.cav_index, self.road, self.temperature, self.config.reward)
+        return self.conclude(decision, state, *self._observe(), terms)
+
+    def enter(self, decision: Decision, state: TrafficState) -> None:
+        """Make ``state``, reached by executing ``decision``, the current one."""
         self.steps += 1
         self.state_ = state
         self.builder.push(state)
-        self.action_memory = np.stack([proposed, refined], axis=1)
-        self.last_refined[self.cav_index] = refined
+        self.action_memory = np.stack([decision.proposed, decision.refined], axis=1)
+        self.last_refined[self.cav_index] = decision.refined
 
-        terms = reward(state, self.cav_index, self.road, self.temperature, self.config.reward)
+    def conclude(
+        self,
+        decision: Decision,
+        state: TrafficState,
+        actor_obs: ActorObs,
+        critic_state: CriticState,
+        terms: RewardTerms,
+    ) -> StepResult:
+        """The step's result, given the observations and the reward of the state
+        :meth:`enter` entered (which :meth:`ObservationBuilder.observe_batch` and
+        :func:`~diacc.reward.reward` compute for many envs at once)."""
         terminated = bool(len(state.collisions) > 0 or not state.active.any())
         truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
-        actor_obs, critic_state = self._observe()
         return StepResult(
             actor_obs=actor_obs,
             critic_state=critic_state,
@@ -154,10 +230,10 @@ class BottleneckEnv(ParallelEnv):
             terminated=terminated,
             truncated=truncated,
             alive=state.active[self.cav_index].copy(),
-            refined_action=refined,
-            psar_rule=rule,
-            psar_rule_mask=rule_mask,
-            psar=result,
+            refined_action=decision.refined,
+            psar_rule=decision.rule,
+            psar_rule_mask=decision.rule_mask,
+            psar=decision.psar,
             state=state,
             reward_terms={
                 "ego_softmin": terms.ego_softmin,
@@ -167,14 +243,6 @@ class BottleneckEnv(ParallelEnv):
                 "tau": terms.tau,
             },
         )
-
-    def _commands(
-        self, n_vehicles: int, refined: np.ndarray, speed_change_mps: np.ndarray
-    ) -> CavCommands:
-        commands = CavCommands.idle(n_vehicles)
-        commands.lane_change[self.cav_index] = ACTION_LANE_OFFSET[refined]
-        commands.speed_change_mps[self.cav_index] = speed_change_mps
-        return commands
 
     def _observe(self) -> tuple[ActorObs, CriticState]:
         actor = self.builder.actor(self.cav_index, self.action_memory, self.last_refined)

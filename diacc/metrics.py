@@ -135,8 +135,17 @@ class EpisodeRecorder:
         self._first_time_s = np.full(n, np.nan)  # (V,)
         self._arrival_time_s = np.full(n, np.nan)  # (V,)
 
-    def record(self, state: TrafficState, psar: PSARResult | None = None) -> None:
-        """Add one state (and the PSAR result of the step that led to it, if any)."""
+    def record(
+        self,
+        state: TrafficState,
+        psar: PSARResult | None = None,
+        critical: np.ndarray | None = None,
+    ) -> None:
+        """Add one state (and the PSAR result of the step that led to it, if any).
+
+        ``critical``: (V,) bool, ``safety_critical_events(state, events).any`` if the
+        caller has it already (a batch of envs detects them in one call).
+        """
         if self._n is None:
             self._init_vehicles(state.n_vehicles)
         elif state.n_vehicles != self._n:
@@ -167,7 +176,9 @@ class EpisodeRecorder:
         self._first_time_s[new] = state.time_s
         self._seen |= state.active
         self._waited |= waiting_events(state, self.events)
-        self._sce |= safety_critical_events(state, self.events).any
+        if critical is None:
+            critical = safety_critical_events(state, self.events).any
+        self._sce |= critical
         newly_arrived = state.arrived & ~self._arrived
         self._arrival_time_s[newly_arrived] = state.time_s
         self._arrived |= state.arrived

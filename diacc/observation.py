@@ -74,7 +74,7 @@ import numpy as np
 from diacc.config import ObservationConfig
 from diacc.errors import DiaccError
 from diacc.maps import Map
-from diacc.state import TrafficState
+from diacc.state import TrafficState, take
 
 NODE_FEATURES = 6
 SELF_FEATURES = 6
@@ -143,6 +143,11 @@ def stack(items: list) -> ActorObs | CriticState:
     """Stack containers of the same type along a new leading axis."""
     cls = type(items[0])
     return cls(**{f.name: np.stack([getattr(i, f.name) for i in items]) for f in fields(cls)})
+
+
+def unstack(batch: ActorObs | CriticState, e: int) -> ActorObs | CriticState:
+    """Entry ``e`` of a container whose fields have a leading (env) axis."""
+    return type(batch)(**{f.name: getattr(batch, f.name)[e] for f in fields(batch)})
 
 
 # --------------------------------------------------------------------------
@@ -228,7 +233,7 @@ class ObservationSpec:
 # --------------------------------------------------------------------------
 @dataclass
 class _History:
-    """The last T states' per-vehicle fields, oldest first: arrays (T, V)."""
+    """The last T states' per-vehicle fields, oldest first: arrays (..., T, V)."""
 
     x_m: np.ndarray
     y_m: np.ndarray
@@ -256,6 +261,21 @@ class _History:
             arr[-1] = getattr(state, f.name)
 
 
+@dataclass
+class _Frame:
+    """What the observations of one instant are built from: the state, its history
+    and its neighbour sets; every array with the state's leading (env) axes.
+
+    The neighbour sets are searched when first needed (None until then), so
+    that :meth:`ObservationBuilder.observe_batch` searches a batch's in one call.
+    """
+
+    state: TrafficState
+    hist: _History  # fields (..., T, V)
+    nbr: np.ndarray | None = None  # (..., V, K) int64
+    nbr_mask: np.ndarray | None = None  # (..., V, K) bool
+
+
 class ObservationBuilder:
     """Turns the stream of TrafficStates of one episode into actor/critic inputs.
 
@@ -264,6 +284,8 @@ class ObservationBuilder:
     current (last pushed) state. Per-step work is vectorised over vehicles:
     one (V, V) distance table per step serves both the actor's and the
     critic's neighbour sets, which keeps the two consistent by construction.
+    :meth:`observe_batch` builds the observations of E environments' builders
+    in one call, with the same code and the same results.
     """
 
     def __init__(self, road: Map, cfg: ObservationConfig, episode_steps: int) -> None:
@@ -311,10 +333,7 @@ class ObservationBuilder:
         table[:n_seg, 3] = 1.0
         self._road_table = table.reshape(-1)  # (4 S_max,)
 
-        self._state: TrafficState | None = None
-        self._hist: _History | None = None
-        self._nbr: np.ndarray | None = None  # (V, K) int64
-        self._nbr_mask: np.ndarray | None = None  # (V, K) bool
+        self._frame: _Frame | None = None
 
     # ---- sizes -----------------------------------------------------------
     def spec(self) -> ObservationSpec:
@@ -325,24 +344,23 @@ class ObservationBuilder:
     def reset(self, state: TrafficState) -> None:
         """Start an episode: the whole history holds copies of ``state``."""
         self._check_state(state, expect_vehicles=None)
-        self._state = state.copy()
-        self._hist = _History.filled(self._state, self.cfg.history_steps)
-        self._update_neighbours()
+        state = state.copy()
+        self._frame = _Frame(state, _History.filled(state, self.cfg.history_steps))
 
     def push(self, state: TrafficState) -> None:
         """Append the state of a new step; the oldest history entry drops out."""
-        if self._state is None or self._hist is None:
+        if self._frame is None:
             raise ObservationError("push() called before reset(); start the episode first")
-        self._check_state(state, expect_vehicles=self._state.n_vehicles)
-        self._state = state.copy()
-        self._hist.push(self._state)
-        self._update_neighbours()
+        self._check_state(state, expect_vehicles=self._frame.state.n_vehicles)
+        state = state.copy()
+        self._frame.hist.push(state)
+        self._frame = _Frame(state, self._frame.hist)
 
     @property
     def neighbours(self) -> tuple[np.ndarray, np.ndarray]:
         """(V, K) int64 neighbour indices and (V, K) bool mask of the current state."""
-        self._require_state()
-        return self._nbr, self._nbr_mask  # type: ignore[return-value]
+        frame = self._require_frame()
+        return frame.nbr, frame.nbr_mask
 
     # ---- actor -------------------------------------------------------------
     def actor(
@@ -360,84 +378,134 @@ class ObservationBuilder:
             last_refined_action: (V,) int64 refined action each vehicle executed at
                 the previous step (only CAV entries are read).
         """
-        state = self._require_state()
-        hist = self._hist
-        assert hist is not None and self._nbr is not None and self._nbr_mask is not None
+        return self._actor(self._require_frame(), cav_index, action_memory, last_refined_action)
+
+    # ---- critic ------------------------------------------------------------
+    def critic(self) -> CriticState:
+        """Global state of the current step, padded to ``max_vehicles``."""
+        return self._critic(self._require_frame())
+
+    # ---- batch -------------------------------------------------------------
+    @staticmethod
+    def observe_batch(
+        builders: list[ObservationBuilder],
+        cav_index: np.ndarray,
+        action_memory: np.ndarray,
+        last_refined_action: np.ndarray,
+        state: TrafficState | None = None,
+    ) -> tuple[ActorObs, CriticState]:
+        """:meth:`actor` and :meth:`critic` of E builders (same map and config) in one call.
+
+        Arguments are those of :meth:`actor` with a leading env axis: (E, C),
+        (E, C, 2), (E, V); the results have one too. ``state``: the builders'
+        current states as one batch, if the caller has it (else stacked here).
+        """
+        first, frames = builders[0], [b._current() for b in builders]
+        if state is None:
+            state = TrafficState.stack([f.state for f in frames])  # (E, V) arrays
+        nbr, nbr_mask = first._neighbours(state)  # (E, V, K): one search for all envs
+        for f, env_nbr, env_mask in zip(frames, nbr, nbr_mask, strict=True):
+            if f.nbr is None:  # each builder keeps its env's sets (critic(), neighbours)
+                f.nbr, f.nbr_mask = env_nbr, env_mask
+        hist = _History(
+            *(np.stack([getattr(f.hist, g.name) for f in frames]) for g in fields(_History))
+        )
+        frame = _Frame(state, hist, nbr, nbr_mask)
+        actor = first._actor(frame, cav_index, action_memory, last_refined_action)
+        return actor, first._critic(frame)
+
+    # ---- internals -----------------------------------------------------------
+    def _actor(
+        self,
+        frame: _Frame,
+        cav_index: np.ndarray,
+        action_memory: np.ndarray,
+        last_refined_action: np.ndarray,
+    ) -> ActorObs:
+        """:meth:`actor` of a frame with any leading (env) axes ``...``."""
+        state, hist = frame.state, frame.hist
+        lead = state.x_m.shape[:-1]
         n_veh, k = state.n_vehicles, self.cfg.n_neighbours
         cav_index = np.asarray(cav_index)
-        if cav_index.ndim != 1 or not np.issubdtype(cav_index.dtype, np.integer):
+        if (
+            cav_index.ndim != len(lead) + 1
+            or cav_index.shape[:-1] != lead
+            or not np.issubdtype(cav_index.dtype, np.integer)
+        ):
             raise ObservationError(f"cav_index must be a 1-D integer array, got {cav_index!r}")
         if cav_index.size and (cav_index.min() < 0 or cav_index.max() >= n_veh):
             raise ObservationError(f"cav_index {cav_index.tolist()} out of range [0, {n_veh})")
-        n_cav = cav_index.shape[0]
         action_memory = np.asarray(action_memory)
-        if action_memory.shape != (n_cav, 2):
+        if action_memory.shape != cav_index.shape + (2,):
             raise ObservationError(
-                f"action_memory must have shape ({n_cav}, 2), got {action_memory.shape}"
+                f"action_memory must have shape {cav_index.shape + (2,)}, got {action_memory.shape}"
             )
         last_refined_action = np.asarray(last_refined_action)
-        if last_refined_action.shape != (n_veh,):
+        if last_refined_action.shape != state.x_m.shape:
             raise ObservationError(
-                f"last_refined_action must have shape ({n_veh},), got {last_refined_action.shape}"
+                f"last_refined_action must have shape {state.x_m.shape}, "
+                f"got {last_refined_action.shape}"
             )
 
-        alive = state.active[cav_index]  # (C,)
-        ego_x = state.x_m[cav_index]  # (C,)
-        ego_y = state.y_m[cav_index]
-        ego_v = state.speed_mps[cav_index]
-        ego_lane = state.lane[cav_index].astype(np.int64)
-        ego_seg = state.segment[cav_index].astype(np.int64)
+        alive = take(state.active, cav_index)  # (..., C)
+        ego_x = take(state.x_m, cav_index)  # (..., C)
+        ego_y = take(state.y_m, cav_index)
+        ego_v = take(state.speed_mps, cav_index)
+        ego_lane = take(state.lane, cav_index).astype(np.int64)
+        ego_seg = take(state.segment, cav_index).astype(np.int64)
 
         # Self features.
         lane_clip = np.clip(ego_lane, 0, self.road.max_lanes - 1)
         seg_clip = np.clip(ego_seg, 0, len(self.road.segments) - 1)
-        to_end_m = self._lane_end_m[seg_clip, lane_clip] - ego_x  # (C,)
+        to_end_m = self._lane_end_m[seg_clip, lane_clip] - ego_x  # (..., C)
         self_state = np.stack(
             [
                 ego_x / self._route_m,
                 ego_y / self._road_w_m,
                 ego_v / self._v_max_mps,
-                state.heading_rad[cav_index],
+                take(state.heading_rad, cav_index),
                 ego_lane / self._lane_norm,
                 np.clip(to_end_m / LANE_END_SCALE_M, 0.0, 1.0),
             ],
             axis=-1,
-        )  # (C, 6)
+        )  # (..., C, 6)
 
         # Neighbour sets: the current K nearest, split by type, each compacted nearest first.
-        sel = self._nbr[cav_index]  # (C, K)
-        sel_mask = self._nbr_mask[cav_index]  # (C, K)
-        sel_cav = sel_mask & state.is_cav[sel]  # (C, K)
-        hdv_idx, hdv_mask = _compact(sel, sel_mask & ~sel_cav)  # (C, K) each
+        rows = cav_index[..., None]  # (..., C, 1)
+        sel = np.take_along_axis(frame.nbr, rows, axis=-2)  # (..., C, K)
+        sel_mask = np.take_along_axis(frame.nbr_mask, rows, axis=-2)  # (..., C, K)
+        sel_cav = sel_mask & take(state.is_cav, sel)  # (..., C, K)
+        hdv_idx, hdv_mask = _compact(sel, sel_mask & ~sel_cav)  # (..., C, K) each
         cav_idx, cav_mask = _compact(sel, sel_cav)
 
         # Node histories in the ego's current frame, all sets in one gather.
-        idx = np.concatenate([cav_index[:, None], hdv_idx, cav_idx], axis=1)  # (C, 1+2K)
-        valid = np.concatenate([alive[:, None], hdv_mask, cav_mask], axis=1)  # (C, 1+2K)
-        nodes = self._relative_nodes(hist, state, idx, ego_x, ego_y, ego_v)  # (C, 1+2K, T, F)
-        nodes *= valid[:, :, None, None]
-        ego_hist = nodes[:, 0]  # (C, T, F)
-        hdv_nodes = nodes[:, 1 : 1 + k]  # (C, K, T, F)
-        cav_nodes = nodes[:, 1 + k :]
+        idx = np.concatenate([rows, hdv_idx, cav_idx], axis=-1)  # (..., C, 1+2K)
+        valid = np.concatenate([alive[..., None], hdv_mask, cav_mask], axis=-1)
+        nodes = self._relative_nodes(hist, state, idx, ego_x, ego_y, ego_v)  # (..., C, M, T, F)
+        nodes *= valid[..., None, None]
+        ego_hist = nodes[..., 0, :, :]  # (..., C, T, F)
+        hdv_nodes = nodes[..., 1 : 1 + k, :, :]  # (..., C, K, T, F)
+        cav_nodes = nodes[..., 1 + k :, :, :]
 
-        cav_prev_action = np.where(cav_mask, last_refined_action[cav_idx], 0).astype(np.int64)
+        cav_prev_action = np.where(cav_mask, take(last_refined_action, cav_idx), 0)
+        cav_prev_action = cav_prev_action.astype(np.int64)
 
         lane_stats, lane_mask = self._ego_lane_stats(state, cav_index, ego_lane, ego_seg)
-        lane_mask &= alive[:, None]
-        lane_stats *= lane_mask[:, :, None]
+        lane_mask &= alive[..., None]
+        lane_stats *= lane_mask[..., None]
 
-        road = np.broadcast_to(self._road_table, (n_cav, self._road_table.shape[0]))
-        road = road * alive[:, None]  # (C, 4S)
-        self_state = self_state * alive[:, None]
+        road = np.broadcast_to(self._road_table, cav_index.shape + self._road_table.shape)
+        road = road * alive[..., None]  # (..., C, 4S)
+        self_state = self_state * alive[..., None]
 
         return ActorObs(
             self_state=_f32(self_state),
             ego_hist=_f32(ego_hist),
             hdv_nodes=_f32(hdv_nodes),
-            hdv_mask=hdv_mask & alive[:, None],
+            hdv_mask=hdv_mask & alive[..., None],
             cav_nodes=_f32(cav_nodes),
-            cav_mask=cav_mask & alive[:, None],
-            cav_prev_action=cav_prev_action * alive[:, None],
+            cav_mask=cav_mask & alive[..., None],
+            cav_prev_action=cav_prev_action * alive[..., None],
             lane_stats=_f32(lane_stats),
             lane_mask=lane_mask,
             road=_f32(road),
@@ -445,16 +513,15 @@ class ObservationBuilder:
             alive=alive.copy(),
         )
 
-    # ---- critic ------------------------------------------------------------
-    def critic(self) -> CriticState:
-        """Global state of the current step, padded to ``max_vehicles``."""
-        state = self._require_state()
-        assert self._nbr is not None and self._nbr_mask is not None
-        n_veh, n_max = state.n_vehicles, self.cfg.max_vehicles
-        active = state.active  # (V,)
+    def _critic(self, frame: _Frame) -> CriticState:
+        """:meth:`critic` of a frame with any leading (env) axes ``...``."""
+        state = frame.state
+        lead = state.x_m.shape[:-1]
+        n_veh, n_max, k = state.n_vehicles, self.cfg.max_vehicles, self.cfg.n_neighbours
+        active = state.active  # (..., V)
 
-        nodes = np.zeros((n_max, CRITIC_NODE_FEATURES), np.float64)  # (N, 6)
-        nodes[:n_veh] = (
+        nodes = np.zeros(lead + (n_max, CRITIC_NODE_FEATURES), np.float64)  # (..., N, 6)
+        nodes[..., :n_veh, :] = (
             np.stack(
                 [
                     state.x_m / self._route_m,
@@ -466,25 +533,26 @@ class ObservationBuilder:
                 ],
                 axis=-1,
             )
-            * active[:, None]
+            * active[..., None]
         )
-        node_mask = np.zeros(n_max, bool)
-        node_mask[:n_veh] = active
-        neighbours = np.zeros((n_max, self.cfg.n_neighbours), np.int64)  # (N, K)
-        neighbour_mask = np.zeros((n_max, self.cfg.n_neighbours), bool)
-        neighbours[:n_veh] = self._nbr
-        neighbour_mask[:n_veh] = self._nbr_mask
+        node_mask = np.zeros(lead + (n_max,), bool)
+        node_mask[..., :n_veh] = active
+        neighbours = np.zeros(lead + (n_max, k), np.int64)  # (..., N, K)
+        neighbour_mask = np.zeros(lead + (n_max, k), bool)
+        neighbours[..., :n_veh, :] = frame.nbr
+        neighbour_mask[..., :n_veh, :] = frame.nbr_mask
 
-        # Per absolute lane over the whole route.
-        lane = np.where(active, state.lane, MAX_LANES).astype(np.int64)  # inactive -> spare bin
+        # Per absolute lane over the whole route: sums over vehicles, in vehicle order.
+        lane = np.where(active, state.lane, MAX_LANES).astype(np.int64)  # inactive: spare bin
+        in_lane = lane[..., None] == np.arange(MAX_LANES)  # (..., V, L)
 
-        def per_lane(weights: np.ndarray) -> np.ndarray:  # (V,) -> (L,) sums per lane
-            return np.bincount(lane, weights=weights, minlength=MAX_LANES + 1)[:MAX_LANES]
+        def per_lane(weights: np.ndarray) -> np.ndarray:  # (..., V) -> (..., L)
+            return np.where(in_lane, weights[..., None], 0.0).sum(axis=-2)
 
-        count = per_lane(np.ones(n_veh))
+        count = per_lane(np.ones(state.x_m.shape))
         n_cav = per_lane(state.is_cav.astype(np.float64))
         speed_sum = per_lane(state.speed_mps)
-        lane_mask = np.arange(MAX_LANES) < self.road.max_lanes  # (L,)
+        lane_mask = np.broadcast_to(np.arange(MAX_LANES) < self.road.max_lanes, lead + (MAX_LANES,))
         safe = np.maximum(count, 1.0)
         lane_stats = (
             np.stack(
@@ -496,18 +564,19 @@ class ObservationBuilder:
                 ],
                 axis=-1,
             )
-            * lane_mask[:, None]
-        )  # (L, 4)
+            * lane_mask[..., None]
+        )  # (..., L, 4)
 
-        n_active = int(active.sum())
-        safe_active = max(n_active, 1)
-        traffic = np.array(
+        n_active = active.sum(axis=-1)  # (...,)
+        safe_active = np.maximum(n_active, 1)
+        traffic = np.stack(
             [
                 n_active / n_max,
-                state.speed_mps[active].sum() / safe_active / self._v_max_mps,
-                state.is_cav[active].sum() / safe_active,
-                state.step / self.episode_steps,
-            ]
+                np.where(active, state.speed_mps, 0.0).sum(axis=-1) / safe_active / self._v_max_mps,
+                (state.is_cav & active).sum(axis=-1) / safe_active,
+                np.asarray(state.step) / self.episode_steps,
+            ],
+            axis=-1,
         )
         return CriticState(
             nodes=_f32(nodes),
@@ -515,16 +584,22 @@ class ObservationBuilder:
             neighbours=neighbours,
             neighbour_mask=neighbour_mask,
             lane_stats=_f32(lane_stats),
-            lane_mask=lane_mask,
-            road=self._road_table.copy(),
+            lane_mask=lane_mask.copy(),
+            road=np.broadcast_to(self._road_table, lead + self._road_table.shape).copy(),
             traffic=_f32(traffic),
         )
 
-    # ---- internals -----------------------------------------------------------
-    def _require_state(self) -> TrafficState:
-        if self._state is None:
+    def _current(self) -> _Frame:
+        if self._frame is None:
             raise ObservationError("no state yet; call reset() with the first state")
-        return self._state
+        return self._frame
+
+    def _require_frame(self) -> _Frame:
+        """The current frame with its neighbour sets."""
+        frame = self._current()
+        if frame.nbr is None:
+            frame.nbr, frame.nbr_mask = self._neighbours(frame.state)
+        return frame
 
     def _check_state(self, state: TrafficState, expect_vehicles: int | None) -> None:
         n_veh = state.n_vehicles
@@ -548,22 +623,20 @@ class ObservationBuilder:
                 f"{len(self.road.segments)} segments)"
             )
 
-    def _update_neighbours(self) -> None:
-        """K nearest active vehicles in same/adjacent lanes for every vehicle, (V, K)."""
-        state = self._state
-        assert state is not None
+    def _neighbours(self, state: TrafficState) -> tuple[np.ndarray, np.ndarray]:
+        """K nearest active vehicles in same/adjacent lanes for every vehicle, (..., V, K) each."""
         k, n_veh = self.cfg.n_neighbours, state.n_vehicles
         x, lane, act = state.x_m, state.lane.astype(np.int64), state.active
-        dist = np.abs(x[None, :] - x[:, None])  # (V, V) ego i, other j
-        ok = (np.abs(lane[None, :] - lane[:, None]) <= 1) & act[None, :] & act[:, None]
-        np.fill_diagonal(ok, False)
+        i_, j_ = (Ellipsis, slice(None), None), (Ellipsis, None, slice(None))  # [..., i, j]
+        dist = np.abs(x[j_] - x[i_])  # (..., V, V) ego i, other j
+        ok = (np.abs(lane[j_] - lane[i_]) <= 1) & act[j_] & act[i_] & ~np.eye(n_veh, dtype=bool)
         dist = np.where(ok, dist, np.inf)
         if n_veh < k:  # fewer candidates than slots: pad with never-chosen columns
-            dist = np.pad(dist, ((0, 0), (0, k - n_veh)), constant_values=np.inf)
-        order = np.argsort(dist, axis=1, kind="stable")[:, :k]  # (V, K)
-        mask = np.isfinite(np.take_along_axis(dist, order, axis=1))  # (V, K)
-        self._nbr = np.where(mask, order, 0).astype(np.int64)
-        self._nbr_mask = mask
+            pad = [(0, 0)] * (dist.ndim - 1) + [(0, k - n_veh)]
+            dist = np.pad(dist, pad, constant_values=np.inf)
+        order = np.argsort(dist, axis=-1, kind="stable")[..., :k]  # (..., V, K)
+        mask = np.isfinite(np.take_along_axis(dist, order, axis=-1))  # (..., V, K)
+        return np.where(mask, order, 0).astype(np.int64), mask
 
     def _relative_nodes(
         self,
@@ -574,31 +647,32 @@ class ObservationBuilder:
         ego_y: np.ndarray,
         ego_v: np.ndarray,
     ) -> np.ndarray:
-        """Node features (C, M, T, F) of vehicles ``idx`` (C, M) in each ego's current frame."""
-        steps = self.cfg.history_steps
+        """Node features (..., C, M, T, F) of vehicles ``idx`` (..., C, M) in each ego's frame."""
+        steps, n_veh = self.cfg.history_steps, state.n_vehicles
         # Vehicles only leave, so an inactive past entry means "not yet on the
         # road": use the earliest step at which the vehicle was active instead.
-        first = np.argmax(hist.active, axis=0)  # (V,) 0 if never active
-        t_src = np.maximum(np.arange(steps)[:, None], first[None, :])  # (T, V)
-        t_of = t_src[:, idx]  # (T, C, M)
+        first = np.argmax(hist.active, axis=-2)  # (..., V) 0 if never active
+        t_of = np.maximum(np.arange(steps), take(first, idx)[..., None])  # (..., C, M, T)
+        flat = t_of * n_veh + idx[..., None]  # into (..., T * V)
+        lead = state.x_m.shape[:-1]
 
-        def gather(a: np.ndarray) -> np.ndarray:  # (T, V) -> (C, M, T)
-            return np.moveaxis(a[t_of, idx[None]], 0, -1)
+        def gather(a: np.ndarray) -> np.ndarray:  # (..., T, V) -> (..., C, M, T)
+            return take(a.reshape(lead + (steps * n_veh,)), flat)
 
         x, y = gather(hist.x_m), gather(hist.y_m)
         v, heading = gather(hist.speed_mps), gather(hist.heading_rad)
-        is_cav = np.broadcast_to(state.is_cav[idx][:, :, None], x.shape)
+        is_cav = np.broadcast_to(take(state.is_cav, idx)[..., None], x.shape)
         feats = np.stack(
             [
-                (x - ego_x[:, None, None]) / DX_SCALE_M,
-                (y - ego_y[:, None, None]) / self._lane_w_m,
-                (v - ego_v[:, None, None]) / self._v_max_mps,
+                (x - ego_x[..., None, None]) / DX_SCALE_M,
+                (y - ego_y[..., None, None]) / self._lane_w_m,
+                (v - ego_v[..., None, None]) / self._v_max_mps,
                 heading,
                 v / self._v_max_mps,
                 is_cav.astype(np.float64),
             ],
             axis=-1,
-        )  # (C, M, T, F)
+        )  # (..., C, M, T, F)
         return feats
 
     def _ego_lane_stats(
@@ -608,29 +682,33 @@ class ObservationBuilder:
         ego_lane: np.ndarray,
         ego_seg: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Ego / left / right lane statistics (C, 3, 4) and existence mask (C, 3)."""
+        """Ego / left / right lane statistics (..., C, 3, 4) and existence mask (..., C, 3)."""
         w_m = self.cfg.lane_window_m
-        target = ego_lane[:, None] + np.array([0, 1, -1])  # (C, 3) absolute lanes
+        target = ego_lane[..., None] + np.array([0, 1, -1])  # (..., C, 3) absolute lanes
         seg = np.clip(ego_seg, 0, len(self.road.segments) - 1)
-        exists = self._exists_pad[seg[:, None], np.clip(target + 1, 0, self.road.max_lanes + 1)]
-        ego_x = state.x_m[cav_index]  # (C,)
-        in_win = (np.abs(state.x_m[None, :] - ego_x[:, None]) <= w_m) & state.active[None, :]
-        in_win[np.arange(cav_index.shape[0]), cav_index] = False  # (C, V), ego excluded
-        hit = in_win[:, None, :] & (state.lane[None, None, :] == target[:, :, None])  # (C, 3, V)
-        count = hit.sum(axis=-1).astype(np.float64)  # (C, 3)
-        n_cav = (hit & state.is_cav[None, None, :]).sum(axis=-1)
-        speed_sum = (hit * state.speed_mps[None, None, :]).sum(axis=-1)
+        exists = self._exists_pad[seg[..., None], np.clip(target + 1, 0, self.road.max_lanes + 1)]
+        ego_x = take(state.x_m, cav_index)  # (..., C)
+        in_win = (np.abs(state.x_m[..., None, :] - ego_x[..., None]) <= w_m) & state.active[
+            ..., None, :
+        ]  # (..., C, V)
+        np.put_along_axis(in_win, cav_index[..., None], False, axis=-1)  # ego excluded
+        hit = in_win[..., None, :] & (
+            state.lane[..., None, None, :] == target[..., None]
+        )  # (..., C, 3, V)
+        count = hit.sum(axis=-1).astype(np.float64)  # (..., C, 3)
+        n_cav = (hit & state.is_cav[..., None, None, :]).sum(axis=-1)
+        speed_sum = (hit * state.speed_mps[..., None, None, :]).sum(axis=-1)
         win_km = (np.minimum(ego_x + w_m, self._route_m) - np.maximum(ego_x - w_m, 0.0)) / 1000.0
         safe = np.maximum(count, 1.0)
         stats = np.stack(
             [
                 count / COUNT_SCALE,
-                count / np.maximum(win_km, 1e-9)[:, None] / DENSITY_SCALE_VEH_PER_KM,
+                count / np.maximum(win_km, 1e-9)[..., None] / DENSITY_SCALE_VEH_PER_KM,
                 speed_sum / safe / self._v_max_mps,
                 n_cav / safe,
             ],
             axis=-1,
-        )  # (C, 3, 4)
+        )  # (..., C, 3, 4)
         return stats, exists
 
 
@@ -638,14 +716,14 @@ def _compact(idx: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     """Move kept entries of each row to the front, order preserved; pad with 0 / False.
 
     Args:
-        idx: (R, K) int indices.
-        keep: (R, K) bool which entries belong to the set.
+        idx: (..., R, K) int indices.
+        keep: (..., R, K) bool which entries belong to the set.
     """
-    k = idx.shape[1]
+    k = idx.shape[-1]
     key = np.where(keep, 0, k) + np.arange(k)  # kept first, then the rest, each in order
-    order = np.argsort(key, axis=1)  # (R, K)
-    mask = np.take_along_axis(keep, order, axis=1)
-    out = np.where(mask, np.take_along_axis(idx, order, axis=1), 0).astype(np.int64)
+    order = np.argsort(key, axis=-1)  # (..., R, K)
+    mask = np.take_along_axis(keep, order, axis=-1)
+    out = np.where(mask, np.take_along_axis(idx, order, axis=-1), 0).astype(np.int64)
     return out, mask
 
 

@@ -36,7 +36,7 @@ from diacc.safety import (
     lane_leaders_followers,
     pair_kinematics,
 )
-from diacc.state import TrafficState
+from diacc.state import TrafficState, take
 
 #: Rule codes of :attr:`PSARResult.rule`.
 RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
@@ -135,10 +135,14 @@ def psar(
       thresholds.
     * Inactive CAVs keep their proposed action with rule NONE.
 
+    A batch of states ((E, V) arrays, :class:`~diacc.state.TrafficState`) is
+    filtered in one call with (E, C) slots and actions; every CAV only ever
+    meets vehicles of its own env, and the results are those of E calls.
+
     Args:
-        state: Traffic state the actions will be applied to.
-        cav_index: (C,) vehicle indices of the CAV slots.
-        proposed_action: (C,) int actions in 0..4.
+        state: Traffic state the actions will be applied to (or a batch).
+        cav_index: (..., C) vehicle indices of the CAV slots.
+        proposed_action: (..., C) int actions in 0..4.
         cfg: PSAR thresholds and options.
         road: the :class:`~diacc.maps.Map`.
         sim: step length, action size and CAV braking limit (default
@@ -160,22 +164,24 @@ def psar(
         raise SafetyError(f"proposed_action must be in 0..{len(ACTION_NAMES) - 1}")
     if not isinstance(road, Map):
         raise SafetyError(f"road must be a Map, got {type(road).__name__}")
-    seg = state.segment[cav_index].astype(np.int64)
+    seg = take(state.segment, cav_index).astype(np.int64)
     if np.any(seg >= len(road.segments)) or np.any(seg < 0):
         raise SafetyError(f"segment index outside the road's {len(road.segments)} segments")
 
-    c = cav_index.shape[0]
+    shape = cav_index.shape  # (..., C)
     step_s, dv_action = sim.step_s, sim.speed_change_mps
     safe_decel = sim.cav.safe_decel_mps2
     max_brake_mps = safe_decel * step_s  # largest planned speed drop within one step
     stopping = cfg.horizon == "stopping"
-    active = state.active[cav_index]  # (C,)
+    active = take(state.active, cav_index)  # (..., C)
     proposed = action.astype(np.int64)
     a = proposed.copy()
-    mask = np.zeros(c, dtype=np.int8)
-    neighbours = lane_leaders_followers(state, cav_index)  # (C, 3)
+    mask = np.zeros(shape, dtype=np.int8)
+    neighbours = lane_leaders_followers(state, cav_index)  # (..., C, 3)
 
-    ego_speed_mps = state.speed_mps[cav_index] * np.abs(np.cos(state.heading_rad[cav_index]))
+    ego_speed_mps = take(state.speed_mps, cav_index) * np.abs(
+        np.cos(take(state.heading_rad, cav_index))
+    )
 
     def front_margin_m(kin: PairKinematics, action: np.ndarray) -> np.ndarray:
         """Extra distance of the "stopping" horizon behind a front obstacle, 0 for "paper".
@@ -184,7 +190,7 @@ def psar(
         it accelerates as proposed (braking proposals are judged at the current speed).
         """
         if not stopping:
-            return np.zeros(c)
+            return np.zeros(shape)
         lead_speed_mps = ego_speed_mps - np.nan_to_num(kin.dv_long_mps)  # 0 for a wall
         end_speed_mps = ego_speed_mps + np.maximum(action_speed_change_mps(action, dv_action), 0)
         gap_m = safe_gap_m(ego_speed_mps, lead_speed_mps, step_s, safe_decel, end_speed_mps)
@@ -195,17 +201,20 @@ def psar(
     invalid_lc = is_lc & ~lane_change_allowed(state, cav_index, a, road, sim)
     a = np.where(invalid_lc, REMAIN, a)
     is_lc &= ~invalid_lc
-    offset = ACTION_LANE_OFFSET[a]  # (C,)
-    lane = state.lane[cav_index].astype(np.int64)
+    offset = ACTION_LANE_OFFSET[a]  # (..., C)
+    lane = take(state.lane, cav_index).astype(np.int64)
 
     # ---- lines 2-16: lane-change checks on the target lane ----------------
-    col = offset + 1  # (C,) column of the target lane in LaneNeighbours
-    rows = np.arange(c)
+    col = (offset + 1)[..., None]  # (..., C, 1) column of the target lane in LaneNeighbours
     pairs = np.stack(
-        [neighbours.front[rows, col], neighbours.rear[rows, col], neighbours.front[:, SAME_COL]],
-        axis=1,
-    )  # (C, 3): target-lane front j, target-lane rear k, same-lane front j
-    kin = pair_kinematics(state, np.broadcast_to(cav_index[:, None], pairs.shape), pairs)
+        [
+            np.take_along_axis(neighbours.front, col, -1)[..., 0],
+            np.take_along_axis(neighbours.rear, col, -1)[..., 0],
+            neighbours.front[..., SAME_COL],
+        ],
+        axis=-1,
+    )  # (..., C, 3): target-lane front j, target-lane rear k, same-lane front j
+    kin = pair_kinematics(state, np.broadcast_to(cav_index[..., None], pairs.shape), pairs)
     tf_vehicle, tr, sf_vehicle = (kin.column(k) for k in range(3))
     # Front obstacles: the leader, and the end of the lane (with its queue) as a wall.
     target_fronts = [
@@ -214,8 +223,8 @@ def psar(
     ]
     own_fronts = [sf_vehicle, lane_end_kinematics(state, cav_index, lane, road, cfg.queue_gap_m)]
 
-    cancel_front = np.zeros(c, dtype=bool)
-    b_lc_mps2 = np.zeros(c)
+    cancel_front = np.zeros(shape, dtype=bool)
+    b_lc_mps2 = np.zeros(shape)
     for tf in target_fronts:
         has_front = is_lc & tf.valid
         cancel = has_front & (
@@ -239,10 +248,10 @@ def psar(
     rear_gap_m = -tr.d_long_m  # bumper gap to the rear vehicle (< 0: overlapping)
     rear_margin_m = 0.0
     if stopping:  # the rear vehicle must be able to brake for the CAV (a CAV rear reacts late)
-        rear = np.maximum(pairs[:, 1], 0)
-        rear_speed_mps = state.speed_mps[rear] * np.abs(np.cos(state.heading_rad[rear]))
+        rear = np.maximum(pairs[..., 1], 0)
+        rear_speed_mps = take(state.speed_mps, rear) * np.abs(np.cos(take(state.heading_rad, rear)))
         # A rear CAV reacts after a step and may accelerate during it.
-        rear_cav = state.is_cav[rear]
+        rear_cav = take(state.is_cav, rear)
         reaction_s = np.where(rear_cav, step_s, 0.0)
         rear_end_mps = rear_speed_mps + np.where(rear_cav, dv_action, 0.0)
         rear_margin_m = safe_gap_m(
@@ -261,32 +270,35 @@ def psar(
     # other into adjacent lanes, side by side (neither sees the other as a target-lane
     # neighbour yet), only the front one goes.
     moving = still_lc & ~cancel_rear
-    target_lane = lane + offset  # (C,)
-    dx_m = state.x_m[cav_index][None, :] - state.x_m[cav_index][:, None]  # (C, C) x_j - x_i
-    half_lengths_m = 0.5 * (state.length_m[cav_index][:, None] + state.length_m[cav_index][None, :])
+    target_lane = lane + offset  # (..., C)
+    i_, j_ = (Ellipsis, slice(None), None), (Ellipsis, None, slice(None))  # [..., i, j] axes
+    cav_x_m, cav_length_m = take(state.x_m, cav_index), take(state.length_m, cav_index)
+    dx_m = cav_x_m[j_] - cav_x_m[i_]  # (..., C, C) x_j - x_i
+    half_lengths_m = 0.5 * (cav_length_m[i_] + cav_length_m[j_])
     pair_gap_m = np.abs(dx_m) - half_lengths_m
-    speed_j = np.broadcast_to(ego_speed_mps[None, :], (c, c))
+    speed_j = np.broadcast_to(ego_speed_mps[j_], dx_m.shape)
     need_m = cfg.d_safe_m + (
-        safe_gap_m(ego_speed_mps[:, None], speed_j, step_s, safe_decel) if stopping else 0.0
+        safe_gap_m(ego_speed_mps[i_], speed_j, step_s, safe_decel) if stopping else 0.0
     )
-    lanes_apart_after = np.abs(target_lane[:, None] - target_lane[None, :])  # (C, C)
-    lanes_apart_now = np.abs(lane[:, None] - lane[None, :])
+    lanes_apart_after = np.abs(target_lane[i_] - target_lane[j_])  # (..., C, C)
+    lanes_apart_now = np.abs(lane[i_] - lane[j_])
     converging = (lanes_apart_after == 0) | (
         (lanes_apart_after == 1) & (lanes_apart_now > lanes_apart_after)
     )
+    rows = np.arange(shape[-1])
     j_first = (dx_m > 0) | ((dx_m == 0) & (rows[None, :] < rows[:, None]))  # j ahead of i
-    clash = (moving[:, None] & moving[None, :] & converging & j_first & (pair_gap_m <= need_m)).any(
-        axis=1
-    )  # (C,) i yields to a CAV ahead entering the same lane
+    clash = (moving[i_] & moving[j_] & converging & j_first & (pair_gap_m <= need_m)).any(
+        axis=-1
+    )  # (..., C) i yields to a CAV ahead entering the same lane
     # Nor does a CAV change next to an HDV alongside beyond the target lane: that
     # one may move into the same lane in the same instant, and its intent is unknown.
-    dx_all_m = state.x_m[None, :] - state.x_m[cav_index][:, None]  # (C, V)
-    half_all_m = 0.5 * (state.length_m[None, :] + state.length_m[cav_index][:, None])
+    dx_all_m = state.x_m[..., None, :] - cav_x_m[..., None]  # (..., C, V)
+    half_all_m = 0.5 * (state.length_m[..., None, :] + cav_length_m[..., None])
     beyond = (
-        (state.active & ~state.is_cav)[None, :]  # a CAV's intent is known (above)
-        & (state.lane[None, :] == (lane + 2 * offset)[:, None])
+        (state.active & ~state.is_cav)[..., None, :]  # a CAV's intent is known (above)
+        & (state.lane[..., None, :] == (lane + 2 * offset)[..., None])
         & (np.abs(dx_all_m) - half_all_m <= cfg.d_safe_m)
-    ).any(axis=1)  # (C,)
+    ).any(axis=-1)  # (..., C)
     clash |= moving & (offset != 0) & beyond
     cancel |= clash & cfg.coordinate_lane_changes
     a = np.where(cancel, REMAIN, a)
@@ -297,16 +309,16 @@ def psar(
     # ---- lines 17-27: car following in the current lane -------------------
     # Evaluated against each front obstacle; the most demanding outcome wins.
     longitudinal = active & ((a == REMAIN) | (a == ACCELERATE) | (a == DECELERATE))
-    fires_brake = np.zeros(c, dtype=bool)  # branch 1 or 3 fired for some obstacle
-    fires_suppress = np.zeros(c, dtype=bool)  # branch 2 or 4 fired for some obstacle
-    need_mps = np.zeros(c)  # "cancel" braking the fired branches ask for
+    fires_brake = np.zeros(shape, dtype=bool)  # branch 1 or 3 fired for some obstacle
+    fires_suppress = np.zeros(shape, dtype=bool)  # branch 2 or 4 fired for some obstacle
+    need_mps = np.zeros(shape)  # "cancel" braking the fired branches ask for
     for sf in own_fronts:
         has_leader = longitudinal & sf.valid
         with np.errstate(invalid="ignore"):
             d_m = np.where(sf.valid, sf.d_long_m, np.inf)
-        closing_mps, ttc_s = np.nan_to_num(sf.dv_long_mps), sf.ttc_s  # (C,)
+        closing_mps, ttc_s = np.nan_to_num(sf.dv_long_mps), sf.ttc_s  # (..., C)
         extra_m = front_margin_m(sf, a)
-        d_warn_m, d_att_m = cfg.d_warn_m + extra_m, cfg.d_att_m + extra_m  # (C,)
+        d_warn_m, d_att_m = cfg.d_warn_m + extra_m, cfg.d_att_m + extra_m  # (..., C)
         closing = ttc_s < np.inf  # paper's TTC > 0
         br1 = has_leader & (d_m <= d_warn_m) & closing
         br2 = has_leader & ~br1 & ((d_m <= cfg.d_safe_m) | ((d_m <= d_warn_m) & (a == ACCELERATE)))
@@ -318,12 +330,12 @@ def psar(
         fires_brake |= br1 | br3
         fires_suppress |= br2 | br4
 
-    speed_change = action_speed_change_mps(a, dv_action) - b_lc_mps2 * step_s  # (C,)
+    speed_change = action_speed_change_mps(a, dv_action) - b_lc_mps2 * step_s  # (..., C)
     if cfg.force_brake == "cancel":
         brake_mps = np.minimum(np.maximum(need_mps, dv_action), max_brake_mps)
         brake = fires_brake & (-brake_mps < speed_change)
     else:  # "paper": Force-Brake = the decelerate action
-        brake_mps = np.full(c, dv_action)
+        brake_mps = np.full(shape, dv_action)
         brake = fires_brake & (a != DECELERATE)
     suppress = fires_suppress & ~fires_brake & (a != REMAIN)
     a = np.where(fires_brake, np.where(brake, DECELERATE, a), np.where(suppress, REMAIN, a))
@@ -331,7 +343,7 @@ def psar(
     mask |= np.where(brake, RULE_BITS[FORCE_BRAKE], 0).astype(np.int8)
     mask |= np.where(suppress, RULE_BITS[SUPPR_ACCEL], 0).astype(np.int8)
 
-    rule = np.full(c, RULE_NONE, dtype=np.int8)
+    rule = np.full(shape, RULE_NONE, dtype=np.int8)
     for code in (CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL):  # application order
         rule = np.where(mask & RULE_BITS[code], code, rule).astype(np.int8)
     return PSARResult(

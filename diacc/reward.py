@@ -26,17 +26,21 @@
   normalised by the number of CAVs (authors' "CAV exit bonus 20"); an episode
   in which all C CAVs leave thus earns ``C * exit_bonus`` in total.
 * With no CAV on the road the ego and global terms are 0 (nothing to score).
+
+:func:`reward` also scores a batch of E states ((E, V) arrays,
+:mod:`diacc.state`) in one call: every per-CAV array then has a leading env
+axis and every scalar is an (E,) array; entry ``e`` is env ``e``'s reward.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
 from diacc.config import RewardConfig
 from diacc.maps import Map
-from diacc.state import TrafficState
+from diacc.state import TrafficState, take
 
 
 class RewardError(ValueError):
@@ -67,21 +71,22 @@ def softmin_weights(ego_reward: np.ndarray, alive: np.ndarray, tau: float) -> np
     not overflow. Dead agents get weight 0; with no alive agent all are 0.
 
     Args:
-        ego_reward: (C,) ego rewards (values of dead agents are ignored).
-        alive: (C,) bool.
+        ego_reward: (..., C) ego rewards (values of dead agents are ignored).
+        alive: (..., C) bool.
         tau: temperature > 0.
 
     Returns:
-        (C,) float64 weights summing to 1 over alive agents.
+        (..., C) float64 weights summing to 1 over alive agents.
     """
     if not tau > 0.0:
         raise RewardError(f"softmin temperature must be > 0, got {tau}")
     alive = np.asarray(alive, dtype=bool)
-    logits = np.where(alive, -np.asarray(ego_reward, dtype=np.float64) / tau, -np.inf)  # (C,)
-    if not alive.any():
-        return np.zeros(alive.shape, dtype=np.float64)
-    expd = np.exp(logits - logits.max())  # (C,), 0 for dead
-    return expd / expd.sum()
+    logits = np.where(alive, -np.asarray(ego_reward, dtype=np.float64) / tau, -np.inf)
+    any_alive = alive.any(axis=-1, keepdims=True)  # (..., 1)
+    shift = np.where(any_alive, logits.max(axis=-1, keepdims=True, initial=-np.inf), 0.0)
+    expd = np.exp(logits - shift)  # (..., C), 0 for dead
+    total = expd.sum(axis=-1, keepdims=True)
+    return np.where(any_alive, expd / np.where(any_alive, total, 1.0), 0.0)
 
 
 @dataclass
@@ -89,7 +94,8 @@ class RewardTerms:
     """Reward of one step and its parts (for logging), one entry per CAV slot.
 
     Per-CAV arrays hold the *unweighted* sub-terms; ``ego`` is their weighted
-    sum r_e. Entries of CAVs that are not on the road are 0.
+    sum r_e. Entries of CAVs that are not on the road are 0. For a batch every
+    field has a leading env axis (the floats are (E,) arrays; :meth:`env`).
     """
 
     speed: np.ndarray  # (C,) -|v - v_max|/v_max + p_ev
@@ -104,6 +110,16 @@ class RewardTerms:
     global_reward: float  # r_g
     completion: float  # r_done
     total: float  # R
+
+    def env(self, e: int) -> RewardTerms:
+        """Env ``e``'s terms out of a batch's."""
+        return RewardTerms(
+            *(
+                (value if f.name == "tau" else float(value[e]) if value.ndim == 1 else value[e])
+                for f in fields(self)
+                for value in [getattr(self, f.name)]
+            )
+        )
 
 
 def reward(
@@ -127,7 +143,12 @@ def reward(
     """
     _check_config(cfg)
     cav_index = np.asarray(cav_index)
-    if cav_index.ndim != 1 or (cav_index.size and not np.issubdtype(cav_index.dtype, np.integer)):
+    lead = state.x_m.shape[:-1]
+    if (
+        cav_index.ndim != len(lead) + 1
+        or cav_index.shape[:-1] != lead
+        or (cav_index.size and not np.issubdtype(cav_index.dtype, np.integer))
+    ):
         raise RewardError(f"cav_index must be a 1-D integer array, got shape {cav_index.shape}")
     if np.any((cav_index < 0) | (cav_index >= state.n_vehicles)):
         raise RewardError(f"cav_index holds indices outside [0, {state.n_vehicles})")
@@ -135,30 +156,29 @@ def reward(
     if np.any(state.segment >= limits_mps.shape[0]):
         raise RewardError(f"segment index outside the map's {limits_mps.shape[0]} segments")
 
-    alive = state.active[cav_index]  # (C,)
-    speed_mps = state.speed_mps[cav_index]  # (C,)
-    v_max_mps = limits_mps[state.segment[cav_index]]  # (C,)
+    alive = take(state.active, cav_index)  # (..., C)
+    speed_mps = take(state.speed_mps, cav_index)  # (..., C)
+    v_max_mps = limits_mps[take(state.segment, cav_index)]  # (..., C)
 
     # ---- distances to every other active vehicle ---------------------------
-    dx_m = state.x_m[None, :] - state.x_m[cav_index][:, None]  # (C, V)
-    dy_m = state.y_m[None, :] - state.y_m[cav_index][:, None]  # (C, V)
-    dist_m = np.hypot(dx_m, dy_m)  # (C, V)
-    not_self = np.arange(state.n_vehicles)[None, :] != cav_index[:, None]  # (C, V)
-    others = not_self & state.active[None, :]  # (C, V)
-    collided_with = np.zeros((state.n_vehicles, state.n_vehicles), dtype=bool)  # (V, V)
-    pairs = state.collisions
-    collided_with[pairs[:, 0], pairs[:, 1]] = True
-    collided_with[pairs[:, 1], pairs[:, 0]] = True
+    dx_m = state.x_m[..., None, :] - take(state.x_m, cav_index)[..., None]  # (..., C, V)
+    dy_m = state.y_m[..., None, :] - take(state.y_m, cav_index)[..., None]  # (..., C, V)
+    dist_m = np.hypot(dx_m, dy_m)  # (..., C, V)
+    not_self = np.arange(state.n_vehicles) != cav_index[..., None]  # (..., C, V)
+    others = not_self & state.active[..., None, :]  # (..., C, V)
+    collided_with = np.take_along_axis(
+        state.collided_with, cav_index[..., None], axis=-2
+    )  # (..., C, V)
 
     d_w, d_c = cfg.warning_distance_m, cfg.collision_distance_m
-    in_warning = others & (dist_m <= d_w)  # (C, V)
-    in_collision = (others & (dist_m <= d_c)) | (collided_with[cav_index] & not_self)  # (C, V)
+    in_warning = others & (dist_m <= d_w)  # (..., C, V)
+    in_collision = (others & (dist_m <= d_c)) | (collided_with & not_self)  # (..., C, V)
 
     speed = -np.abs(speed_mps - v_max_mps) / v_max_mps + cfg.speed_offset
-    warning = np.where(in_warning, -(d_w - dist_m) / (d_w - d_c), 0.0).sum(axis=1)
+    warning = np.where(in_warning, -(d_w - dist_m) / (d_w - d_c), 0.0).sum(axis=-1)
     collision = np.where(
         in_collision, -np.maximum(d_c - dist_m, 0.0) / d_c + cfg.collision_offset, 0.0
-    ).sum(axis=1)
+    ).sum(axis=-1)
     time_penalty = 1.0 / (1.0 + np.exp(-(speed_mps - cfg.time_penalty_speed_mps))) - 1.0
     ego = (
         cfg.speed_weight * speed
@@ -171,16 +191,20 @@ def reward(
         np.where(alive, term, zero) for term in (speed, warning, collision, time_penalty, ego)
     )
 
-    weights = softmin_weights(ego, alive, tau)  # (C,)
-    ego_softmin = float(np.sum(weights * ego))
-    if alive.any():
-        v_max_g = float(v_max_mps[alive].mean())
-        global_reward = -abs(float(speed_mps[alive].mean()) - v_max_g) / v_max_g + cfg.global_offset
-    else:
-        global_reward = 0.0
-    n_cav_arrivals = int(np.count_nonzero(state.is_cav[state.arrivals]))
+    weights = softmin_weights(ego, alive, tau)  # (..., C)
+    ego_softmin = np.sum(weights * ego, axis=-1)  # (...,)
+    n_alive = alive.sum(axis=-1)
+    any_alive = n_alive > 0
+    safe_n = np.maximum(n_alive, 1)
+    v_max_g = np.where(alive, v_max_mps, 0.0).sum(axis=-1) / safe_n  # mean over alive CAVs
+    mean_speed_mps = np.where(alive, speed_mps, 0.0).sum(axis=-1) / safe_n
+    global_reward = np.where(
+        any_alive, -np.abs(mean_speed_mps - v_max_g) / v_max_g + cfg.global_offset, 0.0
+    )
+    n_cav_arrivals = (state.is_cav & state.arrived_now).sum(axis=-1)
     completion = cfg.exit_bonus * n_cav_arrivals
     total = cfg.w_ego * ego_softmin + cfg.w_global * global_reward + completion
+    scalar = float if not lead else np.asarray
     return RewardTerms(
         speed=speed,
         warning=warning,
@@ -190,10 +214,10 @@ def reward(
         alive=alive,
         softmin_weight=weights,
         tau=float(tau),
-        ego_softmin=ego_softmin,
-        global_reward=float(global_reward),
-        completion=float(completion),
-        total=float(total),
+        ego_softmin=scalar(ego_softmin),
+        global_reward=scalar(global_reward),
+        completion=scalar(completion),
+        total=scalar(total),
     )
 
 

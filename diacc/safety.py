@@ -5,7 +5,9 @@ with these functions, so a "risk" means the same to the filter and to the
 metrics. Everything here reads :class:`~diacc.state.TrafficState` arrays
 only, so it works the same for every backend, and is vectorised over
 vehicles (a ``(Q, 3, V)`` masked matrix for the neighbour search), never a
-Python loop over vehicles.
+Python loop over vehicles. A batch of states ((E, V) arrays) is handled by
+the same code: index arrays then carry the leading env axis too, and all
+pairwise work stays within each env.
 
 Gap and TTC (paper, PSAR section; facts.md)
 -------------------------------------------
@@ -40,7 +42,7 @@ import numpy as np
 
 from diacc.config import EventConfig
 from diacc.maps import Map
-from diacc.state import TrafficState
+from diacc.state import TrafficState, take
 
 
 class SafetyError(ValueError):
@@ -62,8 +64,8 @@ class LaneNeighbours:
     Columns follow :data:`LANE_OFFSETS` (right, same, left). ``-1`` = none.
     """
 
-    front: np.ndarray  # (Q, 3) int64, vehicle index of the nearest vehicle ahead
-    rear: np.ndarray  # (Q, 3) int64, vehicle index of the nearest vehicle behind
+    front: np.ndarray  # (..., Q, 3) int64, vehicle index of the nearest vehicle ahead
+    rear: np.ndarray  # (..., Q, 3) int64, vehicle index of the nearest vehicle behind
 
 
 def lane_leaders_followers(state: TrafficState, query: np.ndarray) -> LaneNeighbours:
@@ -78,24 +80,26 @@ def lane_leaders_followers(state: TrafficState, query: np.ndarray) -> LaneNeighb
     (their neighbours are still found); callers mask them.
 
     Args:
-        state: Traffic state.
-        query: (Q,) vehicle indices.
+        state: Traffic state (or a batch).
+        query: (..., Q) vehicle indices.
 
     Returns:
-        :class:`LaneNeighbours` with (Q, 3) index arrays.
+        :class:`LaneNeighbours` with (..., Q, 3) index arrays.
     """
     query = check_indices(state, query, "query")
     offsets = np.asarray(LANE_OFFSETS, dtype=np.int64)  # (3,)
-    lane = state.lane.astype(np.int64)  # (V,)
-    target_lane = lane[query][:, None] + offsets[None, :]  # (Q, 3)
-    dx_m = state.x_m[None, :] - state.x_m[query][:, None]  # (Q, V)
-    others = state.active[None, :] & (
-        np.arange(state.n_vehicles)[None, :] != query[:, None]
-    )  # (Q, V)
-    in_lane = (lane[None, None, :] == target_lane[:, :, None]) & others[:, None, :]  # (Q, 3, V)
-    ahead = (dx_m >= 0.0)[:, None, :]  # (Q, 1, V)
-    front_dist = np.where(in_lane & ahead, dx_m[:, None, :], np.inf)  # (Q, 3, V)
-    rear_dist = np.where(in_lane & ~ahead, -dx_m[:, None, :], np.inf)  # (Q, 3, V)
+    lane = state.lane.astype(np.int64)  # (..., V)
+    target_lane = take(lane, query)[..., None] + offsets  # (..., Q, 3)
+    dx_m = state.x_m[..., None, :] - take(state.x_m, query)[..., None]  # (..., Q, V)
+    others = state.active[..., None, :] & (
+        np.arange(state.n_vehicles) != query[..., None]
+    )  # (..., Q, V)
+    in_lane = (lane[..., None, None, :] == target_lane[..., None]) & others[
+        ..., None, :
+    ]  # (..., Q, 3, V)
+    ahead = (dx_m >= 0.0)[..., None, :]  # (..., Q, 1, V)
+    front_dist = np.where(in_lane & ahead, dx_m[..., None, :], np.inf)  # (..., Q, 3, V)
+    rear_dist = np.where(in_lane & ~ahead, -dx_m[..., None, :], np.inf)  # (..., Q, 3, V)
     return LaneNeighbours(front=_argmin_or_none(front_dist), rear=_argmin_or_none(rear_dist))
 
 
@@ -121,9 +125,9 @@ class PairKinematics:
     ttc_s: np.ndarray  # (...) float64, > 0 when closing, +inf otherwise or if not valid
 
     def column(self, k: int) -> PairKinematics:
-        """The pairs in column ``k`` of 2-D arrays."""
+        """The pairs in column ``k`` (last axis)."""
         return PairKinematics(
-            self.valid[:, k], self.d_long_m[:, k], self.dv_long_mps[:, k], self.ttc_s[:, k]
+            self.valid[..., k], self.d_long_m[..., k], self.dv_long_mps[..., k], self.ttc_s[..., k]
         )
 
     def nearer(self, other: PairKinematics) -> PairKinematics:
@@ -158,21 +162,24 @@ def lane_end_kinematics(
     leader slowing down for the lane end is otherwise seen too late: its
     braking grows as it nears the end.)
     """
-    ego = np.asarray(ego, dtype=np.int64)
+    ego = np.asarray(ego, dtype=np.int64)  # (..., C)
     lane = np.clip(np.asarray(lane, dtype=np.int64), 0, road.max_lanes - 1)
-    end_x_m = road.lane_end_m()[state.segment[ego].astype(np.int64), lane]  # (C,) inf if none
+    ego_x_m = take(state.x_m, ego)
+    end_x_m = road.lane_end_m()[take(state.segment, ego).astype(np.int64), lane]  # inf if none
     queued = (
-        state.active[None, :]
-        & (state.lane[None, :] == lane[:, None])
-        & (state.x_m[None, :] > state.x_m[ego][:, None])
-        & (state.x_m[None, :] < end_x_m[:, None])
-    )  # (C, V)
-    end_x_m = end_x_m - queued @ (state.length_m + queue_gap_m)  # (C,)
+        state.active[..., None, :]
+        & (state.lane[..., None, :] == lane[..., None])
+        & (state.x_m[..., None, :] > ego_x_m[..., None])
+        & (state.x_m[..., None, :] < end_x_m[..., None])
+    )  # (..., C, V)
+    queue_m = np.where(queued, (state.length_m + queue_gap_m)[..., None, :], 0.0).sum(-1)
+    end_x_m = end_x_m - queue_m  # (..., C)
     valid = np.isfinite(end_x_m)
-    cos_i = np.cos(state.heading_rad[ego])
-    side_i_m = 0.5 * state.width_m[ego] * np.abs(np.sin(state.heading_rad[ego]))
-    gap_m = (end_x_m - state.x_m[ego] - 0.5 * state.length_m[ego]) * cos_i - side_i_m
-    dv_long_mps = state.speed_mps[ego] * np.abs(cos_i)
+    heading_i = take(state.heading_rad, ego)
+    cos_i = np.cos(heading_i)
+    side_i_m = 0.5 * take(state.width_m, ego) * np.abs(np.sin(heading_i))
+    gap_m = (end_x_m - ego_x_m - 0.5 * take(state.length_m, ego)) * cos_i - side_i_m
+    dv_long_mps = take(state.speed_mps, ego) * np.abs(cos_i)
     with np.errstate(divide="ignore", invalid="ignore"):
         ttc_raw_s = gap_m / dv_long_mps
     closing = valid & (dv_long_mps > 0.0) & (ttc_raw_s > 0.0)
@@ -188,8 +195,8 @@ def pair_kinematics(state: TrafficState, ego: np.ndarray, other: np.ndarray) -> 
     """Paper's ``d_long``, ``dv_long`` and TTC for pairs (ego[k], other[k]).
 
     Args:
-        state: Traffic state.
-        ego: vehicle indices (any shape), all valid.
+        state: Traffic state (or a batch).
+        ego: vehicle indices (leading env axes of a batch, then any shape), all valid.
         other: vehicle indices of the same shape; ``-1`` marks "no vehicle".
 
     Returns:
@@ -199,20 +206,22 @@ def pair_kinematics(state: TrafficState, ego: np.ndarray, other: np.ndarray) -> 
     other = np.asarray(other, dtype=np.int64)
     if ego.shape != other.shape:
         raise SafetyError(f"ego shape {ego.shape} differs from other shape {other.shape}")
-    check_indices(state, ego.reshape(-1), "ego")
+    lead = state.x_m.shape[:-1]
+    check_indices(state, ego.reshape(lead + (-1,)), "ego")
     if np.any((other < -1) | (other >= state.n_vehicles)):
         raise SafetyError(f"other indices must be -1 or in [0, {state.n_vehicles})")
     valid = other >= 0
     j = np.where(valid, other, 0)  # safe gather index
-    cos_i = np.cos(state.heading_rad[ego])
-    side_i_m = 0.5 * state.width_m[ego] * np.abs(np.sin(state.heading_rad[ego]))
-    half_lengths_m = 0.5 * (state.length_m[ego] + state.length_m[j])  # L_veh
-    dx_m = state.x_m[j] - state.x_m[ego]
+    heading_i = take(state.heading_rad, ego)
+    cos_i = np.cos(heading_i)
+    side_i_m = 0.5 * take(state.width_m, ego) * np.abs(np.sin(heading_i))
+    half_lengths_m = 0.5 * (take(state.length_m, ego) + take(state.length_m, j))  # L_veh
+    dx_m = take(state.x_m, j) - take(state.x_m, ego)
     ahead = dx_m >= 0.0
     gap_m = (np.abs(dx_m) - half_lengths_m) * cos_i - side_i_m  # bumper gap, ego frame
     d_long_m = np.where(ahead, gap_m, -gap_m)
-    dv_long_mps = state.speed_mps[ego] * np.abs(cos_i) - state.speed_mps[j] * np.abs(
-        np.cos(state.heading_rad[j])
+    dv_long_mps = take(state.speed_mps, ego) * np.abs(cos_i) - take(state.speed_mps, j) * np.abs(
+        np.cos(take(state.heading_rad, j))
     )
     with np.errstate(divide="ignore", invalid="ignore"):
         ttc_raw_s = d_long_m / dv_long_mps
@@ -258,8 +267,8 @@ def safety_critical_events(state: TrafficState, cfg: EventConfig) -> SafetyEvent
     ``d_long`` is the bumper gap when headings are 0). A collision counts
     even if the backend removed the vehicle in the same step.
     """
-    everyone = np.arange(state.n_vehicles)
-    leader = lane_leaders_followers(state, everyone).front[:, SAME_COL]  # (V,)
+    everyone = np.broadcast_to(np.arange(state.n_vehicles), state.x_m.shape)  # (..., V)
+    leader = lane_leaders_followers(state, everyone).front[..., SAME_COL]  # (..., V)
     kin = pair_kinematics(state, everyone, leader)
     active = state.active
     with np.errstate(invalid="ignore"):
@@ -276,10 +285,14 @@ def safety_critical_events(state: TrafficState, cfg: EventConfig) -> SafetyEvent
 # Input checks
 # --------------------------------------------------------------------------
 def check_indices(state: TrafficState, idx: np.ndarray, name: str) -> np.ndarray:
-    """``idx`` as int64 vehicle indices of ``state``; :class:`SafetyError` if it is not one."""
+    """``idx`` as int64 vehicle indices of ``state``; :class:`SafetyError` if it is not one.
+
+    One index axis after the state's leading (env) axes: (Q,), or (E, Q) for a batch.
+    """
     arr = np.asarray(idx)
-    if arr.ndim != 1:
-        raise SafetyError(f"{name} must be a 1-D index array, got shape {arr.shape}")
+    lead = state.x_m.shape[:-1]
+    if arr.ndim != len(lead) + 1 or arr.shape[:-1] != lead:
+        raise SafetyError(f"{name} must be a 1-D index array per env, got shape {arr.shape}")
     if arr.size and not np.issubdtype(arr.dtype, np.integer):
         raise SafetyError(f"{name} must hold integer vehicle indices, got dtype {arr.dtype}")
     arr = arr.astype(np.int64)

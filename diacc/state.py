@@ -17,6 +17,16 @@ Coordinate convention (identical for all backends)
 A vehicle is ``active`` while it is on the road. It becomes ``arrived`` when
 its centre passes the route end, and is then inactive for ever; its other
 fields keep their last values. Inactive entries must be masked by consumers.
+
+Batches
+-------
+A batch of E environments of the same scenario is one TrafficState whose
+per-vehicle arrays carry a leading env axis, (E, V), each env its own block
+(:meth:`TrafficState.stack`, :meth:`TrafficState.env`). Its ``time_s`` and
+``step`` are (E,) arrays, ``collisions`` rows are (env, i, j) and
+``arrivals`` rows (env, i). Functions that read states index vehicles with
+:func:`take` and broadcast over leading axes, so the same code serves one
+state and a batch.
 """
 
 from __future__ import annotations
@@ -30,9 +40,9 @@ import numpy as np
 class TrafficState:
     """Arrays describing every vehicle of one simulation at one instant."""
 
-    time_s: float
+    time_s: float  # (E,) float64 array in a batch, as is ``step``
     step: int
-    vehicle_id: np.ndarray  # (V,) int32, == arange(V)
+    vehicle_id: np.ndarray  # (V,) int32, == arange(V); every array (E, V) in a batch
     x_m: np.ndarray  # (V,) float64 centre, along the route
     y_m: np.ndarray  # (V,) float64 centre, left of the right road edge
     speed_mps: np.ndarray  # (V,) float64
@@ -46,18 +56,82 @@ class TrafficState:
     style: np.ndarray  # (V,) int8: 0 aggressive, 1 normal, 2 cautious, -1 CAV
     active: np.ndarray  # (V,) bool, on the road now
     arrived: np.ndarray  # (V,) bool, has left at the route end
-    collisions: np.ndarray  # (K, 2) int32 vehicle index pairs that collided this step
-    arrivals: np.ndarray  # (A,) int32 vehicles that arrived this step
+    collisions: np.ndarray  # (K, 2) int32 vehicle index pairs that collided this step; (K, 3)
+    arrivals: np.ndarray  # (A,) int32 vehicles that arrived this step; (A, 2) in a batch
 
     @property
     def n_vehicles(self) -> int:
-        return int(self.vehicle_id.shape[0])
+        return int(self.vehicle_id.shape[-1])
 
     @property
     def collided(self) -> np.ndarray:
-        """(V,) bool: vehicle took part in a collision this step."""
-        out = np.zeros(self.n_vehicles, dtype=bool)
-        out[self.collisions.reshape(-1)] = True
+        """(..., V) bool: vehicle took part in a collision this step."""
+        out = np.zeros(self.vehicle_id.shape, dtype=bool)
+        if self.collisions.shape[1] == 3:  # a batch: rows (env, i, j)
+            out[self.collisions[:, 0], self.collisions[:, 1]] = True
+            out[self.collisions[:, 0], self.collisions[:, 2]] = True
+        else:
+            out[self.collisions.reshape(-1)] = True
+        return out
+
+    @classmethod
+    def stack(cls, states: list[TrafficState]) -> TrafficState:
+        """One batch of the E single-env ``states`` (same vehicle count): (E, V) arrays."""
+        collisions = [
+            np.concatenate([np.full((len(s.collisions), 1), e, np.int32), s.collisions], axis=1)
+            for e, s in enumerate(states)
+        ]
+        arrivals = [
+            np.stack([np.full(len(s.arrivals), e, np.int32), s.arrivals], axis=1)
+            for e, s in enumerate(states)
+        ]
+        per_vehicle = {
+            name: np.stack([getattr(s, name) for s in states])
+            for name in FIELD_DTYPES
+            if name not in ("collisions", "arrivals")
+        }
+        return cls(
+            time_s=np.array([s.time_s for s in states]),
+            step=np.array([s.step for s in states]),
+            collisions=np.concatenate(collisions).reshape(-1, 3),
+            arrivals=np.concatenate(arrivals).reshape(-1, 2),
+            **per_vehicle,
+        )
+
+    def env(self, e: int) -> TrafficState:
+        """Env ``e`` of a batch as a single-env state (copies)."""
+        per_vehicle = {
+            name: getattr(self, name)[e].copy()
+            for name in FIELD_DTYPES
+            if name not in ("collisions", "arrivals")
+        }
+        return TrafficState(
+            time_s=float(self.time_s[e]),
+            step=int(self.step[e]),
+            collisions=self.collisions[self.collisions[:, 0] == e, 1:].copy(),
+            arrivals=self.arrivals[self.arrivals[:, 0] == e, 1].copy(),
+            **per_vehicle,
+        )
+
+    @property
+    def collided_with(self) -> np.ndarray:
+        """(..., V, V) bool, symmetric: vehicles i and j collided with each other this step."""
+        out = np.zeros(self.vehicle_id.shape + self.vehicle_id.shape[-1:], dtype=bool)
+        pairs = self.collisions  # (K, 2), or (K, 3) rows (env, i, j) in a batch
+        env = (pairs[:, 0],) if pairs.shape[1] == 3 else ()
+        i, j = pairs[:, -2], pairs[:, -1]
+        out[(*env, i, j)] = True
+        out[(*env, j, i)] = True
+        return out
+
+    @property
+    def arrived_now(self) -> np.ndarray:
+        """(..., V) bool: vehicle arrived at the route end this step (``arrivals``)."""
+        out = np.zeros(self.vehicle_id.shape, dtype=bool)
+        if self.arrivals.ndim == 2:  # a batch: rows (env, i)
+            out[self.arrivals[:, 0], self.arrivals[:, 1]] = True
+        else:
+            out[self.arrivals] = True
         return out
 
     def copy(self) -> TrafficState:
@@ -68,6 +142,17 @@ class TrafficState:
                 for v in [getattr(self, f.name)]
             }
         )
+
+
+def take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``values[idx]`` of one state's (V,) values, or per env of a batch's (E, V) ones.
+
+    For a batch ``idx`` is (E, ...): entry ``[e, ...]`` indexes env ``e``'s row.
+    """
+    if values.ndim == 1:
+        return values[idx]
+    env = np.arange(values.shape[0]).reshape((-1,) + (1,) * (np.ndim(idx) - 1))
+    return values[env, idx]
 
 
 #: dtype of every array field; backends must produce exactly these.

@@ -1,14 +1,19 @@
 """Many environments stepped as one batch: in-process or in worker processes.
 
-Both flavours run the same :class:`EnvRunner` per environment, which adds
+All flavours run the same :class:`EnvRunner` per environment, which adds
 what the trainer needs around :class:`~diacc.env.BottleneckEnv`: automatic
 reset with per-episode seeds derived from the run seed, the final critic
 state of each finished episode (to bootstrap truncated episodes), episode
 metrics, and recovery from a crashed simulator.
 
 * :class:`SyncVectorEnv` steps environments one after another in this
-  process. Best for the ``highway`` backend, whose step is a few hundred
-  microseconds: pipes would cost more than they save.
+  process.
+* :class:`BatchedVectorEnv` (``highway`` only, its default) is the same with
+  one batched simulator for all environments: PSAR, observations and rewards
+  are still per environment, but the simulation of all E envs is one
+  :meth:`~diacc.backends.highway.backend.HighwayBackend.step_batch` call,
+  with the same results per env as E simulators
+  (``tests/test_vector.py``). Pipes would cost more than they save here.
 * :class:`ProcessVectorEnv` splits the environments into one group per
   worker process (``spawn`` start method; each SUMO environment still runs
   libsumo in a worker of its own), so groups step in parallel. A worker that
@@ -28,11 +33,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.backends.base import BackendError, backend_class
-from diacc.env import BottleneckEnv, EnvConfig
+from diacc.backends.base import Backend, BackendError, backend_class
+from diacc.config import preset_road
+from diacc.env import BottleneckEnv, EnvConfig, StepResult, decide
+from diacc.maps import load_map
 from diacc.metrics import EpisodeRecorder
-from diacc.observation import ActorObs, CriticState, stack
+from diacc.observation import ActorObs, CriticState, ObservationBuilder, stack, unstack
+from diacc.reward import reward
 from diacc.runlog import join_parent_log, log
+from diacc.safety import safety_critical_events
+from diacc.state import TrafficState
 from diacc.threads import worker_environment
 
 #: Restarts of one worker in a row (within one call) before the vector env gives up.
@@ -84,9 +94,12 @@ class VectorStep:
 class EnvRunner:
     """One environment with auto-reset, seeding, metrics and crash recovery."""
 
-    def __init__(self, config: EnvConfig, run_seed: int, env_index: int) -> None:
+    def __init__(
+        self, config: EnvConfig, run_seed: int, env_index: int, backend: Backend | None = None
+    ) -> None:
+        """``backend``: the env's simulator (one env of a batch), by default its own."""
         self.config, self.run_seed, self.env_index = config, run_seed, env_index
-        self.env = BottleneckEnv(config)
+        self.env = BottleneckEnv(config, backend=backend)
         self.episode = 0
         self.return_ = 0.0
 
@@ -112,8 +125,16 @@ class EnvRunner:
             # The step never happened: bootstrap from the last state that did.
             final = self.env.builder.critic()
             return _cut_episode(*self.reset(), self.env.n_cavs, final)
+        return self.finish(out)
+
+    def finish(self, out: StepResult, critical: np.ndarray | None = None) -> EnvStep:
+        """Book one step's result; a new episode starts if this one ended.
+
+        ``critical``: the state's safety-critical events if already detected
+        (:meth:`EpisodeRecorder.record`).
+        """
         self.return_ += out.reward
-        self.recorder.record(out.state, psar=out.psar)
+        self.recorder.record(out.state, psar=out.psar, critical=critical)
         final, episode = None, None
         actor, critic = out.actor_obs, out.critic_state
         if out.terminated or out.truncated:
@@ -222,6 +243,61 @@ class SyncVectorEnv:
     def close(self) -> None:
         for r in self.runners:
             r.close()
+
+
+class BatchedVectorEnv(SyncVectorEnv):
+    """Environments whose simulations are rows of one batched ``highway`` backend.
+
+    Each step: one :func:`~diacc.env.decide` call turns all envs' actions into
+    commands (PSAR on the batch of their states), one
+    :meth:`~diacc.backends.highway.backend.HighwayBackend.step_batch` call
+    simulates all envs, and one call each builds every env's observations
+    (:meth:`ObservationBuilder.observe_batch`), rewards
+    (:func:`~diacc.reward.reward`) and safety events for the metrics; each env
+    then decides whether its episode ended. Results are the same as
+    :class:`SyncVectorEnv`'s.
+    """
+
+    def __init__(self, config: EnvConfig, n_envs: int, run_seed: int) -> None:
+        from diacc.backends.highway.backend import BatchSlot, HighwayBackend
+
+        if config.backend != "highway":
+            raise ValueError(f"vector mode batched needs the highway backend, not {config.backend}")
+        road = preset_road(load_map(config.map), config.sim.style_preset)
+        self.batch = HighwayBackend(road, config.sim, n_envs=n_envs)
+        self.runners = [
+            EnvRunner(config, run_seed, e, BatchSlot(self.batch, e)) for e in range(n_envs)
+        ]
+        self.config, self.n_envs, self.n_cavs = config, n_envs, config.scenario.n_cavs
+
+    def step_list(self, actions: np.ndarray) -> list[EnvStep]:  # actions (E, C)
+        envs = [r.env for r in self.runners]
+        state = TrafficState.stack([env.state_ for env in envs])  # (E, V) arrays
+        cav_index = np.stack([env.cav_index for env in envs])  # (E, C)
+        decision = decide(state, cav_index, actions, self.config, self.batch.road)
+        states = self.batch.step_batch(decision.commands)
+        decisions = [decision.env(e) for e in range(self.n_envs)]
+        for env, d, s in zip(envs, decisions, states, strict=True):
+            env.enter(d, s)
+        after = TrafficState.stack(states)  # (E, V) arrays
+        actor, critic = ObservationBuilder.observe_batch(
+            [env.builder for env in envs],
+            cav_index,
+            np.stack([env.action_memory for env in envs]),  # (E, C, 2)
+            np.stack([env.last_refined for env in envs]),  # (E, V)
+            after,
+        )
+        taus = {env.temperature for env in envs}
+        assert len(taus) == 1, "the envs of a batch share the reward temperature"
+        terms = reward(after, cav_index, self.batch.road, taus.pop(), self.config.reward)
+        critical = safety_critical_events(after, self.config.events).any  # (E, V)
+        return [
+            r.finish(
+                r.env.conclude(d, s, unstack(actor, e), unstack(critic, e), terms.env(e)),
+                critical[e],
+            )
+            for e, (r, d, s) in enumerate(zip(self.runners, decisions, states, strict=True))
+        ]
 
 
 def _stack_pairs(pairs: list[tuple[ActorObs, CriticState]]) -> tuple[ActorObs, CriticState]:
@@ -390,11 +466,13 @@ class ProcessVectorEnv:
 
 
 def make_vector_env(config: EnvConfig, n_envs: int, run_seed: int, mode: str = "auto"):
-    """``mode``: ``sync``, ``process`` or ``auto`` (the backend's ``vector_mode``)."""
+    """``mode``: ``sync``, ``batched``, ``process`` or ``auto`` (the backend's ``vector_mode``)."""
     if mode == "auto":
         mode = backend_class(config.backend).vector_mode
     if mode == "sync":
         return SyncVectorEnv(config, n_envs, run_seed)
+    if mode == "batched":
+        return BatchedVectorEnv(config, n_envs, run_seed)
     if mode == "process":
         return ProcessVectorEnv(config, n_envs, run_seed)
-    raise ValueError(f"unknown vector mode {mode!r}; choose sync, process or auto")
+    raise ValueError(f"unknown vector mode {mode!r}; choose sync, batched, process or auto")

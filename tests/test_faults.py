@@ -430,7 +430,7 @@ BAD_INPUT = [
     (["train", "--set", "lr=-1"], "config key 'lr' must be > 0, got -1.0"),
     (["train", "--set", "rollout_steps=15"], "rollout_steps 15 must be a multiple of chunk_len 10"),
     (["train", "--set", "env.sim.episode_steps=20"], "rollout_steps 10 must be >= env.sim.episode"),
-    (["train", "--set", "vector=threads"], "'vector' must be one of auto, sync, process"),
+    (["train", "--set", "vector=threads"], "'vector' must be one of auto, sync, batched, process"),
     # case 6: resume with another config
     (["train", "--resume", "--seed", "2"], "was trained with seed 1, not 2; --resume may change"),
     (["train", "--resume", "--map", "train-50"], "trained with env.map 'train-25', not 'train-50'"),

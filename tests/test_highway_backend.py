@@ -41,13 +41,14 @@ def single_lane_backend(n: int, x_m: list[float], speed_mps: list[float], styles
     backend = make()
     backend.model = dataclasses.replace(backend.model, min_lane_change_speed_mps=1e9)
     backend.reset(Scenario.with_cavs(n, 0), 0)
-    backend.x_m = np.array(x_m, dtype=float)
-    backend.speed_mps = np.array(speed_mps, dtype=float)
-    backend.lane_from = np.zeros(n, dtype=np.intp)
-    backend.lane_to = np.zeros(n, dtype=np.intp)
+    # The backend's arrays are (E, V) with E = 1 environment.
+    backend.x_m = np.array([x_m], dtype=float)
+    backend.speed_mps = np.array([speed_mps], dtype=float)
+    backend.lane_from = np.zeros((1, n), dtype=np.intp)
+    backend.lane_to = np.zeros((1, n), dtype=np.intp)
     backend.y_m = backend.road.lane_center_y_m(backend.lane_from).astype(float)
-    backend._leaders_dirty = True
-    backend._refresh_road_facts()
+    backend._leaders_dirty[:] = True
+    backend._refresh_road_facts(np.ones(1, bool))
     backend._refresh_speed_bounds()
     return backend
 
@@ -78,9 +79,9 @@ def test_follower_keeps_min_gap_behind_stopping_leader(style):
     preset = STYLE_PRESETS[SIM.style_preset][style]
     backend.idm.min_gap_m[:] = preset.min_gap_m
     backend.idm.headway_s[:] = preset.time_headway_s
-    backend.crashed[0] = True
+    backend.crashed[0, 0] = True
     backend._refresh_speed_bounds()
-    backend._leaders_dirty = True
+    backend._leaders_dirty[:] = True
     gaps = []
     for _ in range(30):
         s = backend.step(CavCommands.idle(2))
@@ -98,12 +99,12 @@ def _steady_headway(style: int) -> float:
         (backend.idm.accel_mps2, preset.accel_mps2),
         (backend.idm.decel_mps2, preset.decel_mps2),
     ):
-        arr[1] = val
+        arr[0, 1] = val
     backend._inv_2_sqrt_ab = 0.5 / np.sqrt(backend.idm.accel_mps2 * backend.idm.decel_mps2)
     # Leader: a CAV-like constant 15 m/s (hold the speed window fixed).
-    backend.is_cav[0] = True
-    backend._cav_accel_mps2[0] = 0.0
-    backend._cav_target_mps[0] = 15.0
+    backend.is_cav[0, 0] = True
+    backend._cav_accel_mps2[0, 0] = 0.0
+    backend._cav_target_mps[0, 0] = 15.0
     backend._refresh_speed_bounds()
     for _ in range(40):
         s = backend.step(CavCommands.idle(2))
@@ -177,7 +178,7 @@ def test_cav_speed_change_and_clip():
 
 def test_cav_driving_into_leader_collides():
     backend = single_lane_backend(2, [40.0, 20.0], [0.0, 20.0])
-    backend.is_cav[1] = True
+    backend.is_cav[0, 1] = True
     cmd = CavCommands.idle(2)
     pairs = []
     for _ in range(3):

@@ -51,6 +51,11 @@ def test_softmin_becomes_uniform_as_tau_grows():
 
 def test_softmin_without_alive_agents_and_bad_tau():
     assert softmin_weights(np.array([1.0, 2.0]), np.zeros(2, bool), 1.0).tolist() == [0.0, 0.0]
+    assert softmin_weights(np.zeros(0), np.zeros(0, bool), 1.0).shape == (0,)  # no CAV slots
+    batch = softmin_weights(
+        np.array([[1.0, 2.0], [1.0, 2.0]]), np.array([[True, True], [False] * 2]), 1.0
+    )
+    assert batch[0].sum() == pytest.approx(1.0) and batch[1].tolist() == [0.0, 0.0]
     with pytest.raises(RewardError, match="temperature"):
         softmin_weights(np.array([1.0]), np.ones(1, bool), 0.0)
 

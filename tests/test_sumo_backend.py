@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 import signal
 import subprocess
@@ -14,10 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sumolib
+from helpers import make_state
 
 from diacc.backends.base import Backend, BackendError, CavCommands
+from diacc.backends.sumo import wire
 from diacc.backends.sumo.backend import SumoBackend
-from diacc.backends.sumo.net import build_network
+from diacc.backends.sumo.net import build_network, lane_ids
 from diacc.config import ConfigError, SimConfig
 from diacc.maps import available_maps, load_map
 from diacc.scenario import Scenario, draw_population
@@ -67,11 +70,14 @@ def test_network_matches_map(map_name, tmp_path):
                     ]
                 else:
                     assert targets == []
-        # Lane centre lines sit where the map puts absolute lanes (y relative to the right edge).
+        # Lane centre lines sit where the map puts absolute lanes (y relative to the right edge),
+        # and the worker's lane table names each lane's segment and absolute lane.
         for lane in edge.getLanes():
             y = lane.getShape()[0][1] + road.max_lanes * road.lane_width_m
             absolute = road.first_lane(s) + lane.getIndex()
             assert y == pytest.approx(float(road.lane_center_y_m(absolute)))
+            assert lane_ids(road)[lane.getID()] == (s, absolute)
+    assert len(lane_ids(road)) == sum(seg.lanes for seg in road.segments)
     assert (
         f'edges="{" ".join(f"e{s}" for s in range(len(road.segments)))}"' in route_path.read_text()
     )
@@ -100,8 +106,14 @@ def test_episodes_complete_without_collisions(map_name, cav_mode):
             np.testing.assert_array_equal(state.style, pop.style)
             seen_heading = 0.0
             for _ in range(2 * SIM.episode_steps):
+                before = state
                 state = backend.step(CavCommands.idle(n))
                 validate_state(state)
+                # Arrivals: exactly the vehicles that left this step, from the route's end.
+                np.testing.assert_array_equal(
+                    state.arrivals, np.flatnonzero(state.arrived & ~before.arrived)
+                )
+                assert np.all(before.x_m[state.arrivals] > road.length_m - 40.0)
                 assert state.collisions.shape == (0, 2), f"collision {state.collisions}"
                 act = state.active
                 assert np.all((state.x_m[act] > 0) & (state.x_m[act] < road.length_m))
@@ -145,6 +157,32 @@ def test_two_backends_concurrently_and_determinism():
     finally:
         a.close()
         b.close()
+
+
+def test_wire_round_trip_is_exact():
+    """The per-step encoding loses nothing: values, dtypes, shapes, writable aligned arrays."""
+    state = make_state(
+        [10.0, 30.5, 52.25], [0, 1, 1], [20.0, 0.5, 12.125], is_cav=[True, False, True],
+        active=[True, True, False], arrived=[False, False, True], segment=[0, 0, 1],
+        collisions=[(0, 1)], arrivals=[2], time_s=7.0, step=7,
+    )  # fmt: skip
+    for original in (state, make_state([5.0], [2])):  # with and without events
+        copy = wire.decode_state(wire.encode_state(original))
+        assert (copy.time_s, copy.step) == (original.time_s, original.step)
+        for field in dataclasses.fields(original):
+            got, want = getattr(copy, field.name), getattr(original, field.name)
+            if isinstance(want, np.ndarray):
+                assert got.dtype == want.dtype and got.shape == want.shape, field.name
+                np.testing.assert_array_equal(got, want, err_msg=field.name)
+                assert got.flags.writeable and got.flags.aligned, field.name
+        validate_state(copy)
+    with pytest.raises(ValueError, match="bytes"):
+        wire.decode_state(wire.encode_state(state)[:-1])
+    lane_change, speed = wire.decode_step_request(
+        wire.encode_step_request(np.array([-1, 0, 1]), np.array([2.0, -0.5, 0.0]))
+    )
+    np.testing.assert_array_equal(lane_change, np.array([-1, 0, 1], np.int8))
+    np.testing.assert_array_equal(speed, [2.0, -0.5, 0.0])
 
 
 def test_killed_worker_gives_clear_error_and_reset_recovers():
@@ -203,6 +241,11 @@ def test_bad_inputs_raise_backend_error():
         backend.reset(Scenario(n_vehicles=4), seed=0)
         with pytest.raises(BackendError, match="shape"):
             backend.step(CavCommands.idle(3))
+        # An error inside the worker comes back as one line, and the worker serves on.
+        overlapping = Scenario(n_vehicles=8, insert_spacing_m=0.5)
+        with pytest.raises(BackendError, match=r"SUMO error while resetting.*did not insert"):
+            backend.reset(overlapping, seed=0)
+        assert backend.reset(Scenario(n_vehicles=4), seed=0).active.all()
 
 
 # ---- CAV commands ------------------------------------------------------------
@@ -262,9 +305,60 @@ def test_benchmark_runs_and_reports_rates():
     from diacc.bench.sumo import run
 
     result = run(steps=20, seed=0)
-    for key in ("raw_libsumo_steps_per_s", "k1_env_steps_per_s", "k2_env_steps_per_s"):
+    for key in (
+        "raw_libsumo_steps_per_s", "k1_env_steps_per_s", "k2_env_steps_per_s",
+        "raw_cpu_ms_per_step", "backend_cpu_ms_per_step",
+    ):  # fmt: skip
         assert np.isfinite(result[key]) and result[key] > 0, key
     assert result["overhead_ratio"] == pytest.approx(
         result["raw_libsumo_steps_per_s"] / result["k1_env_steps_per_s"]
     )
+    assert result["cpu_overhead_ratio"] == pytest.approx(
+        result["backend_cpu_ms_per_step"] / result["raw_cpu_ms_per_step"]
+    )
     assert result["sumo_version"].startswith("SUMO")
+
+
+# ---- behaviour pinned across refactors ---------------------------------------
+#: sha256 of every TrafficState array of the episodes of :func:`_episode_digest`,
+#: recorded on SUMO 1.28.0 with the worker as it was before issue 14 (commit
+#: f1673a2: pickled states, per-substep arrival lists, road id + lane index).
+#: A change means the backend's trajectories changed; update it only on purpose.
+PINNED_DIGESTS = {
+    "SUMO 1.28.0": "38626c7d5635b3b22228db1957df2e2b5cdaa4d2f753777d7813f1e89e93dab7 "
+    "00d3d0c493eb0268c51a04470a412c319d5a018ee02006035c5094a2f3db7500",
+}
+
+
+def _episode_digest(backend: SumoBackend, scenario: Scenario, seed: int) -> str:
+    """Hash of one episode driven by seeded random commands (lane changes, speed changes)."""
+    rng = np.random.default_rng(seed)
+    digest = hashlib.sha256()
+    state = backend.reset(scenario, seed)
+    for _ in range(backend.sim.episode_steps):
+        n = state.n_vehicles
+        lane_change = rng.integers(-1, 2, n).astype(np.int8) * (rng.random(n) < 0.3)
+        state = backend.step(CavCommands(lane_change, rng.normal(0.0, 2.0, n)))
+        digest.update(repr((state.time_s, state.step)).encode())
+        for field in dataclasses.fields(state):
+            value = getattr(state, field.name)
+            if isinstance(value, np.ndarray):
+                digest.update(f"{field.name} {value.dtype} {value.shape}".encode())
+                digest.update(np.ascontiguousarray(value).tobytes())
+        if state.arrived.all():
+            break
+    return digest.hexdigest()
+
+
+def test_trajectories_match_the_pinned_recording():
+    """Same seed, same arrays, bit for bit: commanded CAVs (collisions included) and cooperative."""
+    road = load_map("train-50")
+    digests = []
+    for cav_mode, n_vehicles, seed in (("commanded", 25, 0), ("cooperative", 30, 3)):
+        with SumoBackend(road, dataclasses.replace(SIM, cav_mode=cav_mode)) as backend:
+            version = backend.version
+            scenario = Scenario(n_vehicles=n_vehicles, cav_penetration=0.4)
+            digests.append(_episode_digest(backend, scenario, seed))
+    if version not in PINNED_DIGESTS:
+        pytest.skip(f"trajectories pinned for {sorted(PINNED_DIGESTS)} only, not {version}")
+    assert " ".join(digests) == PINNED_DIGESTS[version]

@@ -65,7 +65,7 @@ class Backend(Protocol):
     #: Simulator version recorded with results ("" where diacc's own code simulates).
     version: str
     #: How a vector of environments on this backend steps best (:mod:`diacc.vector`).
-    vector_mode: Literal["sync", "process"]
+    vector_mode: Literal["sync", "batched", "process"]
     road: Map
     sim: SimConfig
 

@@ -4,6 +4,10 @@ Runs a few real updates of :func:`diacc.algo.mappo.train` per configuration,
 in this process, one configuration after another in one run, and projects the
 wall time of the paper's 3 M-step run from the measured rate:
 
+* ``per-env envs``: the environments stepped one after another, each with
+  its own simulator (``vector = "sync"``, the path before batching), next to
+  ``thread policy``, where ``highway`` runs all envs on one batched simulator
+  (``vector = "auto"`` = ``"batched"``; :class:`diacc.vector.BatchedVectorEnv`);
 * ``torch default threads``: one intra-op thread per core (torch's own
   default, what diacc did before it had a thread policy);
 * ``thread policy``: :func:`diacc.threads.default_threads`;
@@ -20,7 +24,8 @@ learner share per update is the update's time minus its rollout's (GAE,
 batching and ``epochs`` PPO passes). ``--device cuda`` puts the learner on
 CUDA (rollouts stay on the CPU).
 
-``python -m diacc.bench.training --device cuda --envs 4 --updates 3``
+``python -m diacc.bench.training --device cuda --envs 4 --updates 3``;
+``--vector-only`` measures the first two rows alone (per-env vs batched envs).
 """
 
 from __future__ import annotations
@@ -124,12 +129,22 @@ def compile_available(device: str) -> bool:
     return device.startswith("cuda") or shutil.which(os.environ.get("CXX", "g++")) is not None
 
 
-def configurations(device: str, with_compile: bool) -> list[tuple[str, dict, bool]]:
+#: Label of the row whose envs step one after another (compared with "thread policy").
+PER_ENV = "per-env envs (vector sync), thread policy"
+
+
+def configurations(
+    device: str, with_compile: bool, vector_only: bool = False
+) -> list[tuple[str, dict, bool]]:
     """(label, config overrides, with a competing process) in the order they are run."""
+    vector_rows = [(PER_ENV, {"vector": "sync"}, False), ("thread policy", {}, False)]
+    if vector_only:
+        return vector_rows
     torch_default = {"torch_threads": os.cpu_count() or 1}
     rows = [
         (f"torch default threads ({torch_default['torch_threads']})", torch_default, False),
         ("thread policy", {}, False),
+        vector_rows[0],
         ("thread policy + bf16 update", {"update_bf16": True}, False),
     ]
     if with_compile and compile_available(device):
@@ -161,6 +176,7 @@ def run(
     updates: int = 3,
     rollout_steps: int = 50,
     with_compile: bool = True,
+    vector_only: bool = False,
 ) -> list[dict]:
     """Measure every configuration (:func:`configurations`) per env count; print one table.
 
@@ -170,7 +186,7 @@ def run(
         raise ValueError(f"updates must be >= 2 (the first one is not timed), got {updates}")
     rows = []
     for n_envs in envs:
-        for label, options, busy in configurations(device, with_compile):
+        for label, options, busy in configurations(device, with_compile, vector_only):
             with competing_process() if busy else _nothing():
                 row = measure(
                     variant, backend, n_envs, updates, device, rollout_steps, "auto", options
@@ -206,7 +222,7 @@ def _print(rows, variant, backend, device, updates, rollout_steps) -> None:
         "env-steps/s (rollout only)",
         "learner s / update",
         "3 M steps (h)",
-        "vs. torch default",
+        "vs. first row",
     ):
         table.add_column(col, justify="right")
     for r in rows:
@@ -222,6 +238,13 @@ def _print(rows, variant, backend, device, updates, rollout_steps) -> None:
         )
     Console(width=160).print(table)
     for n_envs in sorted({r["envs"] for r in rows}):
+        train = _ratio(rows, n_envs, "steps_per_s", "thread policy", PER_ENV)
+        rollout = _ratio(rows, n_envs, "rollout_steps_per_s", "thread policy", PER_ENV)
+        if train:
+            print(
+                f"{n_envs} envs: env-steps/s of the default vector env over per-env envs: "
+                f"{train} (train), {rollout} (rollout only)"
+            )
         for option in LEARNER_OPTIONS:
             ratio = _ratio(rows, n_envs, "learner_s", f"thread policy + {option}", "thread policy")
             if ratio:
@@ -273,6 +296,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--rollout-steps", type=int, default=50)
     p.add_argument("--no-compile", action="store_true", help="skip the compiled-update row")
     p.add_argument(
+        "--vector-only", action="store_true", help="only per-env vs batched envs (two rows)"
+    )
+    p.add_argument(
         "--profile", action="store_true", help="profile one PPO pass (fp32, then bf16) instead"
     )
     args = p.parse_args(argv)
@@ -292,6 +318,7 @@ def main(argv: list[str] | None = None) -> None:
         args.updates,
         args.rollout_steps,
         not args.no_compile,
+        args.vector_only,
     )
 
 

@@ -1,8 +1,9 @@
 """The fast ``highway`` backend: highway-env geometry, vectorised IDM/MOBIL traffic.
 
 Road geometry is a highway-env ``RoadNetwork`` (:mod:`.road`), but the
-traffic itself lives in (V,) NumPy arrays and every sub-step updates all
-vehicles at once (:mod:`.models`): no Python loop over vehicles in
+traffic itself lives in (E, V) NumPy arrays, one row per environment of a
+batch (E = 1 for a single env), and every sub-step updates all vehicles of
+all envs at once (:mod:`.models`): no Python loop over vehicles or envs in
 ``step``. This is what makes the backend 100x+ faster than stock multi-agent
 ``highway-v0`` (``diacc.bench.highway``).
 
@@ -90,14 +91,35 @@ class CooperativeCavParams:
     lc_gain_threshold_mps2: float = 0.1
 
 
+def _rows_where(mask: np.ndarray, new: np.ndarray, old: np.ndarray) -> np.ndarray:
+    """``new`` in the envs of the (E,) ``mask``, ``old`` elsewhere (any trailing shape)."""
+    return np.where(mask.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
+
+
 class HighwayBackend:
-    """Vectorised highway traffic on a highway-env road (see module docstring)."""
+    """Vectorised highway traffic on a highway-env road (see module docstring).
+
+    One object simulates ``n_envs`` environments of the same map and
+    scenario, each its own block of (V,) rows in (E, V) arrays: every sub-step
+    updates all vehicles of all envs at once, and nothing couples two envs.
+    The :class:`~diacc.backends.base.Backend` methods :meth:`reset` and
+    :meth:`step` are the E = 1 case; a batch is reset env by env
+    (:meth:`reset_env`) and stepped together (:meth:`step_batch`), with the
+    same results per env as E separate backends (``tests/test_highway_batch.py``).
+
+    Work that the single-env simulator skips when nothing happened (leader
+    search, lane-change decisions, the exact box test) is skipped only when
+    it is a no-op for every env; where some envs need it, its results are
+    kept for those envs alone (:func:`_rows_where`), so skipping stays
+    invisible in the results.
+    """
 
     name = "highway"
     #: diacc's own NumPy dynamics, versioned with diacc (results record "").
     version = ""
-    #: NumPy steps fast in one process; worker processes would only add pickling.
-    vector_mode = "sync"
+    #: Many envs step fastest as rows of one batch (:class:`diacc.vector.BatchedVectorEnv`);
+    #: worker processes would only add pickling.
+    vector_mode = "batched"
 
     def __init__(
         self,
@@ -105,24 +127,54 @@ class HighwayBackend:
         sim: SimConfig,
         model: HighwayModel | None = None,
         cooperative: CooperativeCavParams | None = None,
+        n_envs: int = 1,
     ) -> None:
         self.cav_mode = sim.cav_mode
         self.cooperative = cooperative or CooperativeCavParams()
         self.road = road
         self.sim = sim
         self.model = model or HighwayModel()
+        self.n_envs = n_envs
         self.network = build_road_network(road)
         self.tables = LaneTables.from_map(road)
         self.dt_s = sim.step_s / sim.substeps
         self._decide_every = max(1, int(round(self.model.decision_period_s / self.dt_s)))
-        self._state: TrafficState | None = None
-        self.stats: dict[str, int] = {}
+        self._ready = np.zeros(n_envs, dtype=bool)  # (E,) env has been reset
+        #: Per-env event counters, each (E,) int64.
+        self.stats: dict[str, np.ndarray] = {
+            key: np.zeros(n_envs, np.int64)
+            for key in ("guard_events", "forced_merges", "mobil_changes", "cav_lane_end_stops")
+        }
 
     # ------------------------------------------------------------------ API
     def reset(self, scenario: Scenario, seed: int) -> TrafficState:
-        """Insert ``draw_population(scenario, road, seed)`` and return the t = 0 state."""
+        """Insert ``draw_population(scenario, road, seed)`` and return the t = 0 state (E = 1)."""
+        self._check_single()
+        return self.reset_env(0, scenario, seed)
+
+    def step(self, commands: CavCommands) -> TrafficState:
+        """Advance one decision step (``sim.substeps`` integration sub-steps); E = 1."""
+        self._check_single()
+        batch = CavCommands(
+            np.asarray(commands.lane_change)[None], np.asarray(commands.speed_change_mps)[None]
+        )
+        return self.step_batch(batch)[0]
+
+    def close(self) -> None:
+        """Nothing to release: the simulation is arrays in this process."""
+
+    def reset_env(self, env: int, scenario: Scenario, seed: int) -> TrafficState:
+        """Start env ``env`` of the batch anew with ``draw_population(scenario, road, seed)``.
+
+        The other envs are untouched. Every env must be reset once before the
+        first :meth:`step_batch`; all envs carry the same number of vehicles.
+        """
         pop = draw_population(scenario, self.road, seed)
         n = pop.n_vehicles
+        if not self._ready.any():
+            self._allocate(n)
+        elif n != self.x_m.shape[1]:
+            raise BackendError(f"env {env} has {n} vehicles, the batch {self.x_m.shape[1]}")
         styles = STYLE_PRESETS[self.sim.style_preset]
         cav = self.sim.cav
         coop = self.cav_mode == "cooperative"
@@ -134,80 +186,62 @@ class HighwayBackend:
             table = np.array([getattr(s, attr) for s in styles])
             return np.where(pop.is_cav, cav_value, table[hdv_style])
 
-        self.idm = IdmParams(
-            headway_s=per_vehicle("time_headway_s", headway_s),
-            min_gap_m=per_vehicle("min_gap_m", min_gap_m),
-            accel_mps2=per_vehicle("accel_mps2", cav.accel_mps2),
-            decel_mps2=per_vehicle("decel_mps2", cav.decel_mps2),
-            delta=self.sim.idm_delta,
-        )
-        self.politeness = per_vehicle("politeness", self.cooperative.politeness if coop else 0.0)
-        self.gain_threshold_mps2 = per_vehicle(
+        e = env
+        self.idm.headway_s[e] = per_vehicle("time_headway_s", headway_s)
+        self.idm.min_gap_m[e] = per_vehicle("min_gap_m", min_gap_m)
+        self.idm.accel_mps2[e] = per_vehicle("accel_mps2", cav.accel_mps2)
+        self.idm.decel_mps2[e] = per_vehicle("decel_mps2", cav.decel_mps2)
+        self.politeness[e] = per_vehicle("politeness", self.cooperative.politeness if coop else 0.0)
+        self.gain_threshold_mps2[e] = per_vehicle(
             "lc_gain_threshold_mps2", self.cooperative.lc_gain_threshold_mps2 if coop else 0.0
         )
         # LC2013's lcStrategic < 0 (the authors' cautious drivers): no lane change
         # because a lane ends, so such a driver stops at the end of its lane.
-        self.strategic = per_vehicle("lc_strategic", 0.0) >= 0.0
+        self.strategic[e] = per_vehicle("lc_strategic", 0.0) >= 0.0
 
         # is_cav: vehicles driven by commands; cooperative CAVs drive like HDVs.
-        self.is_cav = np.zeros(n, dtype=bool) if coop else pop.is_cav.copy()
-        self._reported_cav = pop.is_cav.copy()  # TrafficState.is_cav
-        self.style = pop.style.astype(np.int8)
-        self.x_m = pop.x_m.astype(np.float64).copy()
-        self.lane_from = pop.lane.astype(np.intp)
-        self.lane_to = self.lane_from.copy()
-        self.y_m = self.road.lane_center_y_m(self.lane_from).astype(np.float64)
-        self.speed_mps = pop.speed_mps.astype(np.float64).copy()
-        self.lat_speed_mps = np.zeros(n)
-        self.heading_rad = np.zeros(n)
-        self.cooldown_s = np.zeros(n)
-        self.active = np.ones(n, dtype=bool)
-        self.arrived = np.zeros(n, dtype=bool)
-        self.crashed = np.zeros(n, dtype=bool)
-        self.yield_to = np.full(n, -1, dtype=np.intp)
-        self._contact = np.zeros((n, n), dtype=bool)
-        self._rows = np.arange(n)
-        self._not_self = ~np.eye(n, dtype=bool)
-        self._inv_2_sqrt_ab = 0.5 / np.sqrt(self.idm.accel_mps2 * self.idm.decel_mps2)
-        self._zeros = np.zeros(n)
-        self._zeros3 = np.zeros((3, n))
-        self._sides = np.array([-1, 0, 1])
-        self._min_accel = -self.model.max_brake_mps2
-        self._route_end_m = np.full(n, self.road.length_m)
-        self._no_contact = np.zeros((n, n), dtype=bool)
-        self._heading_nonzero = False
-        self._leaders_dirty = True
-        self._cav_target_mps = self.speed_mps.copy()
-        self._cav_accel_mps2 = np.zeros(n)
-        self._update_reach()
-        self._refresh_road_facts()
+        self.is_cav[e] = False if coop else pop.is_cav
+        self._reported_cav[e] = pop.is_cav  # TrafficState.is_cav
+        self.style[e] = pop.style
+        self.x_m[e] = pop.x_m
+        self.lane_from[e] = pop.lane
+        self.lane_to[e] = pop.lane
+        self.y_m[e] = self.road.lane_center_y_m(pop.lane)
+        self.speed_mps[e] = pop.speed_mps
+        for name in ("lat_speed_mps", "heading_rad", "cooldown_s", "_cav_accel_mps2"):
+            getattr(self, name)[e] = 0.0
+        self.active[e], self.arrived[e], self.crashed[e] = True, False, False
+        self.yield_to[e] = -1
+        self._contact[e] = False
+        self._route_end_m[e] = self.road.length_m
+        self._cav_target_mps[e] = self.speed_mps[e]
+        self._inv_2_sqrt_ab[e] = 0.5 / np.sqrt(self.idm.accel_mps2[e] * self.idm.decel_mps2[e])
+        self.time_s[e], self.step_count[e] = 0.0, 0
+        for counts in self.stats.values():
+            counts[e] = 0
+        self._ready[e] = True
+        only = np.arange(self.n_envs) == e  # (E,)
+        self._leaders_dirty[e] = True
+        self._refresh_road_facts(only)
         self._refresh_speed_bounds()
-        self.time_s = 0.0
-        self.step_count = 0
-        self.stats = {
-            "guard_events": 0,
-            "forced_merges": 0,
-            "mobil_changes": 0,
-            "cav_lane_end_stops": 0,
-        }
-        self._state = self._make_state(np.zeros(n), _EMPTY_PAIRS, np.zeros(0, np.int32))
-        return self._state
+        lane = self._lane()
+        return self._make_state(e, lane, np.zeros(n), _EMPTY_PAIRS, np.zeros(0, np.int32))
 
-    def step(self, commands: CavCommands) -> TrafficState:
-        """Advance one decision step (``sim.substeps`` integration sub-steps)."""
-        if self._state is None:
-            raise BackendError("step() called before reset()")
-        n = self.is_cav.shape[0]
+    def step_batch(self, commands: CavCommands) -> list[TrafficState]:
+        """Advance every env one decision step; ``commands`` arrays are (E, V); a state per env."""
+        if not self._ready.all():
+            raise BackendError("step before every env of the batch was reset")
+        shape = self.x_m.shape
         lane_cmd = np.asarray(commands.lane_change)
         dv_cmd = np.asarray(commands.speed_change_mps, dtype=np.float64)
-        if lane_cmd.shape != (n,) or dv_cmd.shape != (n,):
+        if lane_cmd.shape != shape or dv_cmd.shape != shape:
             raise BackendError(
-                f"commands must have shape ({n},), got {lane_cmd.shape} and {dv_cmd.shape}"
+                f"commands must have shape {shape}, got {lane_cmd.shape} and {dv_cmd.shape}"
             )
         speed_start = self.speed_mps.copy()
         self._apply_cav_commands(lane_cmd.astype(np.intp), dv_cmd)
         arrived_before = self.arrived.copy()
-        new_contacts = np.zeros((n, n), dtype=bool)
+        new_contacts = np.zeros_like(self._contact)  # (E, V, V)
         for k in range(self.sim.substeps):
             if k % self._decide_every == 0:
                 self._decide_lane_changes()
@@ -216,16 +250,69 @@ class HighwayBackend:
             self._contact = contact
         self.time_s += self.sim.step_s
         self.step_count += 1
-        pairs = np.argwhere(new_contacts).astype(np.int32).reshape(-1, 2)
-        arrivals = np.flatnonzero(self.arrived & ~arrived_before).astype(np.int32)
-        accel = (self.speed_mps - speed_start) / self.sim.step_s
-        self._state = self._make_state(accel, pairs, arrivals)
-        return self._state
-
-    def close(self) -> None:
-        """Nothing to release: the simulation is arrays in this process."""
+        accel = (self.speed_mps - speed_start) / self.sim.step_s  # (E, V)
+        new_arrivals = self.arrived & ~arrived_before  # (E, V)
+        lane = self._lane()
+        return [
+            self._make_state(
+                e,
+                lane,
+                accel[e],
+                np.argwhere(new_contacts[e]).astype(np.int32).reshape(-1, 2),
+                np.flatnonzero(new_arrivals[e]).astype(np.int32),
+            )
+            for e in range(self.n_envs)
+        ]
 
     # ------------------------------------------------------------ internals
+    def _check_single(self) -> None:
+        if self.n_envs != 1:
+            raise BackendError(
+                f"a batch of {self.n_envs} envs is reset with reset_env and stepped with step_batch"
+            )
+
+    def _allocate(self, n: int) -> None:
+        """The (E, V) arrays of the batch; every row is written by :meth:`reset_env`."""
+        shape, n_envs = (self.n_envs, n), self.n_envs
+        self.idm = IdmParams(
+            np.zeros(shape), np.zeros(shape), np.ones(shape), np.ones(shape), self.sim.idm_delta
+        )
+        for name in (
+            "politeness", "gain_threshold_mps2", "x_m", "y_m", "speed_mps", "lat_speed_mps",
+            "heading_rad", "cooldown_s", "_route_end_m", "_cav_target_mps", "_cav_accel_mps2",
+            "_inv_2_sqrt_ab", "_desired_mps", "_end_x_m", "_inv_desired",
+        ):  # fmt: skip
+            setattr(self, name, np.zeros(shape))
+        for name in (
+            "strategic", "is_cav", "_reported_cav", "active", "arrived", "crashed",
+            "_has_leader", "_guarded", "_moving", "_screen",
+        ):  # fmt: skip
+            setattr(self, name, np.zeros(shape, dtype=bool))
+        self.style = np.zeros(shape, dtype=np.int8)
+        self.lane_from = np.zeros(shape, dtype=np.intp)
+        self.lane_to = np.zeros(shape, dtype=np.intp)
+        self.yield_to = np.full(shape, -1, dtype=np.intp)
+        self._leader = np.zeros(shape, dtype=np.intp)
+        self._contact = np.zeros((n_envs, n, n), dtype=bool)
+        self._pairs_active = np.zeros((n_envs, n, n), dtype=bool)
+        self._no_contact = np.zeros((n_envs, n, n), dtype=bool)
+        self._not_self = ~np.eye(n, dtype=bool)  # (V, V)
+        self._rows = np.broadcast_to(np.arange(n), shape)  # (E, V) own vehicle index
+        self._sides = np.array([-1, 0, 1])
+        # Env index arrays that broadcast against (E, ...) vehicle indices of each rank.
+        self._env_index = {
+            rank: np.arange(n_envs).reshape((-1,) + (1,) * (rank - 1)) for rank in range(1, 5)
+        }
+        self._min_accel = -self.model.max_brake_mps2
+        self._leaders_dirty = np.ones(n_envs, dtype=bool)
+        self._heading_nonzero = False
+        self.time_s = np.zeros(n_envs)
+        self.step_count = np.zeros(n_envs, np.int64)
+
+    def _at(self, values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """``values[e, idx[e, ...]]`` for every env e: (E, V) values, (E, ...) vehicle indices."""
+        return values[self._env_index[idx.ndim], idx]
+
     def _segment(self) -> np.ndarray:
         return self.tables.segment_of(self.x_m)
 
@@ -259,37 +346,42 @@ class HighwayBackend:
         direction = np.sign(dest - self.lane_from)
         self.lane_to = np.where(start, dest, self.lane_to)
         self.lat_speed_mps = np.where(start, direction * width / duration_s, self.lat_speed_mps)
-        if start.any():
-            self._leaders_dirty = True
-            self._refresh_road_facts()
-            self._moving = self.active & ~self.crashed & (self.lane_from != self.lane_to)
+        started = start.any(axis=1)  # (E,)
+        if started.any():
+            self._leaders_dirty |= started
+            self._refresh_road_facts(started)
+            moving = self.active & ~self.crashed & (self.lane_from != self.lane_to)
+            self._moving = _rows_where(started, moving, self._moving)
 
     def _occupancy(self) -> np.ndarray:
-        """(V, L + 2) bool: lanes each active vehicle occupies, padded by one lane per side."""
-        n, n_lanes = self.is_cav.shape[0], self.road.max_lanes
-        occ = np.zeros((n, n_lanes + 2), dtype=bool)
-        occ[self._rows, self.lane_from + 1] = True
-        occ[self._rows, self.lane_to + 1] = True
-        occ &= self.active[:, None]
+        """(E, V, L + 2) bool: lanes each active vehicle occupies, padded by one lane per side."""
+        n_envs, n = self.x_m.shape
+        occ = np.zeros((n_envs, n, self.road.max_lanes + 2), dtype=bool)
+        env = np.arange(n_envs)[:, None]
+        occ[env, self._rows, self.lane_from + 1] = True
+        occ[env, self._rows, self.lane_to + 1] = True
+        occ &= self.active[:, :, None]
         return occ
 
     def _decide_lane_changes(self) -> None:
         """MOBIL for HDVs, forced merges for vehicles in ending lanes, yielding followers.
 
         All vehicles and all three lanes (right, own, left) are evaluated at
-        once: one (3, V, V) neighbour search and a single IDM call over every
-        acceleration MOBIL needs, stacked as (4, 3, V).
+        once: one (E, 3, V, V) neighbour search and a single IDM call over every
+        acceleration MOBIL needs, stacked as (E, 4, 3, V). An env where no
+        vehicle may change lanes gets no change and no yielding from it, as if skipped.
         """
         m, sim, tab = self.model, self.sim, self.tables
         x, v, length = self.x_m, self.speed_mps, sim.vehicle_length_m
-        n, n_lanes = x.shape[0], self.road.max_lanes
-        self._refresh_road_facts()
+        n_envs, n = x.shape
+        n_lanes = self.road.max_lanes
+        self._refresh_road_facts(np.ones(n_envs, dtype=bool))
         seg = self._segment()
         desired = self._desired_mps
 
         idle = self.active & ~self.crashed & (self.lane_from == self.lane_to)
         lane = self.lane_from
-        dist_end = tab.end_m[seg, lane] - x
+        dist_end = tab.end_m[seg, lane] - x  # (E, V)
         merge_dir = tab.merge_dir[seg, lane].astype(np.intp)
         # Only HDVs are forced to merge (a CAV that stays in an ending lane stops at its
         # end), and only drivers with a strategic lane-change term (lcStrategic >= 0).
@@ -303,140 +395,167 @@ class HighwayBackend:
             & (v >= m.min_lane_change_speed_mps)
         )
         if not (forced.any() or discretionary.any()):
-            if (self.yield_to >= 0).any():
+            yielded = (self.yield_to >= 0).any(axis=1)  # (E,)
+            if yielded.any():
                 self.yield_to[:] = -1
-                self._leaders_dirty = True
+                self._leaders_dirty |= yielded
             return
 
-        # Neighbours in the right / own / left lane: (3, V) each.
-        lanes3 = lane[None, :] + self._sides[:, None]  # (3, V)
+        # Neighbours in the right / own / left lane: (E, 3, V) each.
+        lanes3 = lane[:, None, :] + self._sides[None, :, None]  # (E, 3, V)
         lanes3_c = np.clip(lanes3, 0, n_lanes - 1)
-        occ = self._occupancy()  # (V, L+2)
-        in_lane = occ[:, lanes3 + 1].transpose(1, 2, 0) & self._peers()  # (3, V, V)
-        dx = x[None, :] - x[:, None]  # (V, V) x_j - x_i
-        ahead = np.where(in_lane & (dx >= 0.0), dx, np.inf)  # (3, V, V)
-        behind = np.where(in_lane & (dx < 0.0), -dx, np.inf)
-        lead = ahead.argmin(axis=2)  # (3, V)
-        foll = behind.argmin(axis=2)
-        lead_gap = np.take_along_axis(ahead, lead[..., None], 2)[..., 0] - length
-        foll_gap = np.take_along_axis(behind, foll[..., None], 2)[..., 0] - length
+        occ = self._occupancy()  # (E, V, L+2)
+        lane_members = occ.transpose(0, 2, 1)  # (E, L+2, V): vehicles in each lane
+        in_lane = lane_members[self._env_index[3], lanes3 + 1]  # (E, 3, V, V) [e, side, i, j]
+        in_lane &= self._peers()[:, None]
+        dx = x[:, None, :] - x[:, :, None]  # (E, V, V) x_j - x_i
+        ahead = np.where(in_lane & (dx >= 0.0)[:, None], dx[:, None], np.inf)  # (E, 3, V, V)
+        behind = np.where(in_lane & (dx < 0.0)[:, None], -dx[:, None], np.inf)
+        lead = ahead.argmin(axis=3)  # (E, 3, V)
+        foll = behind.argmin(axis=3)
+        lead_gap = ahead.min(axis=3) - length  # the gap to ``lead`` (inf: none)
+        foll_gap = behind.min(axis=3) - length
         has_foll = np.isfinite(foll_gap)
 
-        # Every IDM acceleration MOBIL needs, in one call: (4, 3, V) =
+        # Every IDM acceleration MOBIL needs, in one call: (E, 4, 3, V) =
         # [ego behind lane leader, ego before lane end, follower behind ego,
         #  follower behind lane leader].
-        me = np.broadcast_to(self._rows, (3, n))
-        ego = np.stack([me, me, foll, foll])  # (4, 3, V)
-        end_gap = tab.end_m[seg, lanes3_c] - x - 0.5 * length
-        gaps = np.stack([lead_gap, end_gap, foll_gap, foll_gap + lead_gap + length])
-        lead_v = np.stack([v[lead], self._zeros3, np.broadcast_to(v, (3, n)), v[lead]])
-        acc = idm_accel(v[ego], desired[ego], self.idm.take(ego), gaps, lead_v)
-        self_acc = np.minimum(acc[0], acc[1])  # (3, V)
-        foll_with_me = np.where(has_foll, acc[2], 0.0)
-        foll_without = np.where(has_foll, acc[3], 0.0)
+        me = np.broadcast_to(self._rows[:, None, :], (n_envs, 3, n))
+        ego = np.stack([me, me, foll, foll], axis=1)  # (E, 4, 3, V)
+        end_gap = tab.end_m[seg[:, None, :], lanes3_c] - x[:, None, :] - 0.5 * length
+        gaps = np.stack([lead_gap, end_gap, foll_gap, foll_gap + lead_gap + length], axis=1)
+        lead_v = self._at(v, lead)  # (E, 3, V)
+        v3 = np.broadcast_to(v[:, None, :], (n_envs, 3, n))
+        lead_v = np.stack([lead_v, np.zeros_like(lead_v), v3, lead_v], axis=1)
+        acc = idm_accel(self._at(v, ego), self._at(desired, ego), self.idm.take(ego), gaps, lead_v)
+        self_acc = np.minimum(acc[:, 0], acc[:, 1])  # (E, 3, V)
+        foll_with_me = np.where(has_foll, acc[:, 2], 0.0)
+        foll_without = np.where(has_foll, acc[:, 3], 0.0)
 
         side = [0, 2]  # rows of the right and left lanes
-        dest = lanes3[side]  # (2, V)
-        dest_c = lanes3_c[side]
-        valid = (dest >= 0) & (dest < n_lanes) & tab.exists[seg, dest_c]
-        gaps_ok = (lead_gap[side] >= m.min_accept_gap_m) & (foll_gap[side] >= m.min_accept_gap_m)
+        dest = lanes3[:, side]  # (E, 2, V)
+        dest_c = lanes3_c[:, side]
+        seg2 = seg[:, None, :]
+        x2 = x[:, None, :]
+        valid = (dest >= 0) & (dest < n_lanes) & tab.exists[seg2, dest_c]
+        gaps_ok = (lead_gap[:, side] >= m.min_accept_gap_m) & (
+            foll_gap[:, side] >= m.min_accept_gap_m
+        )
         # A CAV follower holds its commanded speed for the rest of the step and only
         # then brakes (at most at its decel limit): the gap must cover that, not IDM.
-        cav_foll = self.is_cav[foll[side]] & has_foll[side]  # (2, V)
+        foll2 = foll[:, side]  # (E, 2, V)
+        cav_foll = self._at(self.is_cav, foll2) & has_foll[:, side]
         cav_gap_m = sim.cav.min_gap_m + safe_gap_m(
-            self._cav_target_mps[foll[side]], v[None, :], sim.step_s, sim.cav.safe_decel_mps2
+            self._at(self._cav_target_mps, foll2),
+            v[:, None, :],
+            sim.step_s,
+            sim.cav.safe_decel_mps2,
         )
-        gaps_ok &= ~cav_foll | (foll_gap[side] >= cav_gap_m)
-        nf_after = foll_with_me[side]
+        gaps_ok &= ~cav_foll | (foll_gap[:, side] >= cav_gap_m)
+        nf_after = foll_with_me[:, side]
         gain = (
-            self_acc[side]
-            - self_acc[1]
-            + self.politeness * (nf_after - foll_without[side] + foll_without[1] - foll_with_me[1])
+            self_acc[:, side]
+            - self_acc[:, 1:2]
+            + self.politeness[:, None, :]
+            * (nf_after - foll_without[:, side] + foll_without[:, 1:2] - foll_with_me[:, 1:2])
         )
         mobil_ok = (
-            discretionary
+            discretionary[:, None, :]
             & valid
-            & (tab.end_m[seg, dest_c] - x > m.merge_zone_m + m.merge_lookahead_m)
+            & (tab.end_m[seg2, dest_c] - x2 > m.merge_zone_m + m.merge_lookahead_m)
             & gaps_ok
             & (nf_after >= -m.mobil_max_imposed_brake_mps2)
-            & (gain >= self.gain_threshold_mps2)
+            & (gain >= self.gain_threshold_mps2[:, None, :])
         )
-        urgency = np.clip(1.0 - dist_end / m.merge_zone_m, 0.0, 1.0)
+        urgency = np.clip(1.0 - dist_end / m.merge_zone_m, 0.0, 1.0)  # (E, V)
         accept_brake = m.mobil_max_imposed_brake_mps2 + urgency * (
             m.forced_max_imposed_brake_mps2 - m.mobil_max_imposed_brake_mps2
         )
-        is_merge = forced & valid & (merge_dir == self._sides[side, None])  # (2, V)
+        accept_brake2 = accept_brake[:, None, :]
+        is_merge = (
+            forced[:, None, :] & valid & (merge_dir[:, None, :] == self._sides[side][None, :, None])
+        )  # (E, 2, V)
         forced_ok = (
-            is_merge & gaps_ok & (nf_after >= -accept_brake) & (self_acc[side] >= -accept_brake)
+            is_merge
+            & gaps_ok
+            & (nf_after >= -accept_brake2)
+            & (self_acc[:, side] >= -accept_brake2)
         )
-        score = np.where(forced_ok, np.inf, np.where(mobil_ok, gain, -np.inf))  # (2, V)
-        pick = score.argmax(axis=0)  # (V,)
-        start = score[pick, self._rows] > -np.inf
-        target = dest_c[pick, self._rows]
+        score = np.where(forced_ok, np.inf, np.where(mobil_ok, gain, -np.inf))  # (E, 2, V)
+        start = score.max(axis=1) > -np.inf  # (E, V)
+        target = np.where(score.argmax(axis=1) == 0, dest_c[:, 0], dest_c[:, 1])
 
         # Two vehicles entering the same lane side by side in the same instant
         # would not see each other: keep the front one.
-        priority = x
-        rear_gap_need = self.idm.min_gap_m + v * self.idm.headway_s  # (V,)
+        rear_gap_need = self.idm.min_gap_m + v * self.idm.headway_s  # (E, V)
         clash = (
-            start[:, None]
-            & start[None, :]
-            & (target[:, None] == target[None, :])
+            start[:, :, None]
+            & start[:, None, :]
+            & (target[:, :, None] == target[:, None, :])
             & self._not_self
-            & (np.abs(dx) - length < np.maximum(rear_gap_need[:, None], rear_gap_need[None, :]))
-            & (priority[None, :] > priority[:, None])
-        )
-        start &= ~clash.any(axis=1)
+            & (
+                np.abs(dx) - length
+                < np.maximum(rear_gap_need[:, :, None], rear_gap_need[:, None, :])
+            )
+            & (x[:, None, :] > x[:, :, None])
+        )  # (E, V, V)
+        start &= ~clash.any(axis=2)
 
-        self.stats["forced_merges"] += int((start & forced).sum())
-        self.stats["mobil_changes"] += int((start & ~forced).sum())
+        self.stats["forced_merges"] += (start & forced).sum(axis=1)
+        self.stats["mobil_changes"] += (start & ~forced).sum(axis=1)
         self._start_changes(start, target, m.hdv_lane_change_s)
 
         # Yielding: the nearest follower in the merge lane treats a waiting merger as leader.
-        merge_row = np.where(merge_dir > 0, 2, 0)
-        nf = foll[merge_row, self._rows]
-        nf_gap = foll_gap[merge_row, self._rows]
-        nf_acc = foll_with_me[merge_row, self._rows]
-        polite = (self.politeness[nf] > 0.0) | (v < m.yield_speed_mps)
+        left = merge_dir > 0  # merging into the left lane (row 2), else the right (row 0)
+        nf = np.where(left, foll[:, 2], foll[:, 0])  # (E, V)
+        nf_gap = np.where(left, foll_gap[:, 2], foll_gap[:, 0])
+        nf_acc = np.where(left, foll_with_me[:, 2], foll_with_me[:, 0])
+        polite = (self._at(self.politeness, nf) > 0.0) | (v < m.yield_speed_mps)
         waiting = (
             forced
             & ~start
             & (dist_end < m.yield_zone_m)
             & (nf_gap > 0.0)
             & np.isfinite(nf_gap)
-            & ~self.is_cav[nf]
+            & ~self._at(self.is_cav, nf)
             & polite
-            & (nf_acc >= -self.idm.decel_mps2[nf])
+            & (nf_acc >= -self._at(self.idm.decel_mps2, nf))
         )
         yield_to = np.full_like(self.yield_to, -1)
-        mergers = np.flatnonzero(waiting)
-        if mergers.size:
-            order = mergers[np.argsort(-x[mergers], kind="stable")]  # nearest merger written last
-            yield_to[nf[order]] = order
-        if not np.array_equal(yield_to, self.yield_to):
-            self.yield_to = yield_to
-            self._leaders_dirty = True
+        for e in np.flatnonzero(waiting.any(axis=1)):  # rare: a merger waits
+            mergers = np.flatnonzero(waiting[e])
+            order = mergers[np.argsort(-x[e, mergers], kind="stable")]  # nearest written last
+            yield_to[e, nf[e, order]] = order
+        changed = (yield_to != self.yield_to).any(axis=1)  # (E,)
+        self.yield_to = yield_to
+        self._leaders_dirty |= changed
 
     def _peers(self) -> np.ndarray:
-        """(V, V) bool: j is another vehicle on the road."""
-        return self._not_self & self.active[None, :]
+        """(E, V, V) bool: j is another vehicle on the road."""
+        return self._not_self & self.active[:, None, :]
 
-    def _refresh_road_facts(self) -> None:
-        """Per-vehicle desired speed and end of the destination lane.
+    def _refresh_road_facts(self, envs: np.ndarray) -> None:
+        """Per-vehicle desired speed and end of the destination lane, in the (E,) ``envs``.
 
         Refreshed at every decision and lane-change start rather than every
         sub-step: both only change at segment boundaries, so a new speed
         limit takes effect at the next decision (<= ``decision_period_s``).
         """
         seg = self._segment()
-        self._desired_mps = self.tables.speed_limit_mps[seg]
+        desired = self.tables.speed_limit_mps[seg]
         # Lane end as a centre position: the obstacle's rear is at the end itself.
-        self._end_x_m = self.tables.end_m[seg, self.lane_to] + 0.5 * self.sim.vehicle_length_m
+        end_x = self.tables.end_m[seg, self.lane_to] + 0.5 * self.sim.vehicle_length_m
+        self._desired_mps = _rows_where(envs, desired, self._desired_mps)
+        self._end_x_m = _rows_where(envs, end_x, self._end_x_m)
         self._inv_desired = 1.0 / np.maximum(self._desired_mps, 1e-3)
 
     def _refresh_speed_bounds(self) -> None:
         """Per-vehicle speed window of a sub-step: [0, inf) for HDVs, up to / down to
-        the commanded target for CAVs, frozen for wrecked and arrived vehicles."""
+        the commanded target for CAVs, frozen for wrecked and arrived vehicles.
+
+        Idempotent between commands (a frozen vehicle keeps its speed), so
+        refreshing every env when one needs it changes nothing for the others.
+        """
         driving = self.active & ~self.crashed
         up = self._cav_accel_mps2 >= 0.0
         lo = np.where(self.is_cav & ~up, self._cav_target_mps, 0.0)
@@ -455,7 +574,8 @@ class HighwayBackend:
         return p.accel_mps2 * (1.0 - free - ratio * ratio)
 
     def _refresh_leaders(self) -> None:
-        """Leader of every vehicle: nearest active vehicle ahead sharing a lane.
+        """Leader of every vehicle in the envs marked dirty: nearest active vehicle
+        ahead sharing a lane.
 
         (A merger a vehicle yields to is a second leader, handled in the sub-step.)
 
@@ -464,61 +584,53 @@ class HighwayBackend:
         cannot pass each other without a collision), so the (V, V) search runs
         on those events only and sub-steps reuse the result.
         """
+        dirty = self._leaders_dirty
         x, lf, lt = self.x_m, self.lane_from, self.lane_to
+        a, b = (slice(None), slice(None), None), (slice(None), None, slice(None))
         shares_lane = (
-            (lf[:, None] == lf[None, :])
-            | (lf[:, None] == lt[None, :])
-            | (lt[:, None] == lf[None, :])
-            | (lt[:, None] == lt[None, :])
-        )  # (V, V)
-        dx = x[None, :] - x[:, None]  # (V, V)
-        ahead = np.where(shares_lane & (dx > 0.0) & self.active[None, :], dx, np.inf)
-        self._leader = ahead.argmin(axis=1)
-        self._has_leader = np.isfinite(ahead[self._rows, self._leader])
+            (lf[a] == lf[b]) | (lf[a] == lt[b]) | (lt[a] == lf[b]) | (lt[a] == lt[b])
+        )  # (E, V, V)
+        dx = x[b] - x[a]  # (E, V, V) x_j - x_i
+        ahead = np.where(shares_lane & (dx > 0.0) & self.active[b], dx, np.inf)
+        leader = ahead.argmin(axis=2)  # (E, V)
+        has_leader = np.isfinite(ahead.min(axis=2))
         hdv = self.active & ~self.is_cav & ~self.crashed
-        self._guarded = hdv & self._has_leader & ~self.is_cav[self._leader]
+        guarded = hdv & has_leader & ~self._at(self.is_cav, leader)
         # Pairs that can still start a contact: both on the road, not both wrecked.
-        self._pairs_active = (
-            self.active[:, None]
-            & self.active[None, :]
-            & self._not_self
-            & ~(self.crashed[:, None] & self.crashed[None, :])
+        pairs_active = (
+            self.active[a] & self.active[b] & self._not_self & ~(self.crashed[a] & self.crashed[b])
         )
-        self._moving = self.active & ~self.crashed & (lf != lt)
-        self._screen = self._has_leader & ~(self.crashed & self.crashed[self._leader])
-        self._leaders_dirty = False
-
-    def _update_reach(self) -> None:
-        """(V, V) centre distances below which two boxes *may* touch (from headings)."""
-        length, width = self.sim.vehicle_length_m, self.sim.vehicle_width_m
-        cos_h, sin_h = np.abs(np.cos(self.heading_rad)), np.abs(np.sin(self.heading_rad))
-        ext_x = 0.5 * (length * cos_h + width * sin_h)  # (V,)
-        ext_y = 0.5 * (length * sin_h + width * cos_h)
-        self._reach_x_m = ext_x[:, None] + ext_x[None, :]  # (V, V)
-        self._reach_y_m = ext_y[:, None] + ext_y[None, :]
+        moving = self.active & ~self.crashed & (lf != lt)
+        screen = has_leader & ~(self.crashed & self._at(self.crashed, leader))
+        self._leader = _rows_where(dirty, leader, self._leader)
+        self._has_leader = _rows_where(dirty, has_leader, self._has_leader)
+        self._guarded = _rows_where(dirty, guarded, self._guarded)
+        self._pairs_active = _rows_where(dirty, pairs_active, self._pairs_active)
+        self._moving = _rows_where(dirty, moving, self._moving)
+        self._screen = _rows_where(dirty, screen, self._screen)
+        self._leaders_dirty = np.zeros_like(dirty)
 
     def _substep(self) -> np.ndarray:
-        """Integrate one sub-step for all vehicles; return the (V, V) contact matrix."""
+        """Integrate one sub-step for all vehicles; return the (E, V, V) contact matrix."""
         m, sim, dt = self.model, self.sim, self.dt_s
         x, v, length = self.x_m, self.speed_mps, sim.vehicle_length_m
-        if self._leaders_dirty:
+        if self._leaders_dirty.any():
             self._refresh_leaders()
         leader = self._leader
-        n = x.shape[0]
 
         # HDV longitudinal: IDM towards the nearer of the leader and the end of the
         # destination lane (a standing obstacle; a leader before it stops for it too).
-        gap = np.where(self._has_leader, x[leader] - x, np.inf)
+        gap = np.where(self._has_leader, self._at(x, leader) - x, np.inf)  # (E, V)
         end_closer = self._end_x_m - x < gap
         gap = np.where(end_closer, self._end_x_m - x, gap) - length
-        lead_v = np.where(end_closer, 0.0, v[leader])
+        lead_v = np.where(end_closer, 0.0, self._at(v, leader))
         acc = self._idm_fast(v, gap, lead_v)
         # A yielding follower brakes for the merger *and* for its own leader, whichever
         # asks more: the merger may be alongside the real leader, not in front of it.
         yielding = self.yield_to >= 0
         if yielding.any():
             merger = np.where(yielding, self.yield_to, self._rows)
-            acc_merge = self._idm_fast(v, x[merger] - x - length, v[merger])
+            acc_merge = self._idm_fast(v, self._at(x, merger) - x - length, self._at(v, merger))
             acc = np.where(yielding, np.minimum(acc, acc_merge), acc)
         # CAVs: constant acceleration towards the commanded target speed.
         acc = np.where(self.is_cav, self._cav_accel_mps2, np.maximum(acc, self._min_accel))
@@ -528,23 +640,25 @@ class HighwayBackend:
         wall_x = self._end_x_m - length
         at_wall = self.is_cav & (x_new > wall_x)
         if at_wall.any():
-            self.stats["cav_lane_end_stops"] += int((at_wall & (v_new > 0.0)).sum())
+            self.stats["cav_lane_end_stops"] += (at_wall & (v_new > 0.0)).sum(axis=1)
             x_new = np.where(at_wall, wall_x, x_new)
             v_new = np.where(at_wall, 0.0, v_new)
 
         # Last-resort guard: an HDV never runs into the HDV it follows.
-        leader_x = x_new[leader]
+        leader_x = self._at(x_new, leader)
         limit_x = leader_x - length - m.guard_gap_m
         guard = self._guarded & (x_new > limit_x)
         if guard.any():
-            self.stats["guard_events"] += int(guard.sum())
+            self.stats["guard_events"] += guard.sum(axis=1)
             x_new = np.where(guard, limit_x, x_new)
-            v_new = np.where(guard, np.minimum(v_new, v_new[leader]), v_new)
-            leader_x = x_new[leader]
+            v_new = np.where(guard, np.minimum(v_new, self._at(v_new, leader)), v_new)
+            leader_x = self._at(x_new, leader)
         self.x_m, self.speed_mps = x_new, v_new
 
         # Lateral motion; the manoeuvre completes when the destination centre is reached.
-        any_moving = self._moving.any()
+        # Vehicles not changing lanes get lat = 0, y unchanged and heading 0.
+        env_moving = self._moving.any(axis=1)  # (E,)
+        any_moving = env_moving.any()
         if any_moving:
             lat = np.where(self._moving, self.lat_speed_mps, 0.0)
             y_goal = (self.lane_to + 0.5) * self.road.lane_width_m
@@ -555,40 +669,45 @@ class HighwayBackend:
             self.heading_rad = np.minimum(
                 np.maximum(heading, -m.max_heading_rad), m.max_heading_rad
             )
-            self._update_reach()
             if done.any():
                 self.lane_from = np.where(done, self.lane_to, self.lane_from)
                 self.lat_speed_mps = np.where(done, 0.0, self.lat_speed_mps)
                 self.cooldown_s = np.where(done, m.lane_change_cooldown_s, self.cooldown_s)
-                self._leaders_dirty = True
+                self._leaders_dirty |= done.any(axis=1)
         elif self._heading_nonzero:
-            self.heading_rad = np.zeros(n)
-            self._update_reach()
+            self.heading_rad = np.zeros_like(self.heading_rad)
         self._heading_nonzero = any_moving
 
         # Collisions: a cheap screen first, the exact box test only if it fires. Without
-        # lateral motion every vehicle is straight in one lane and cannot skip over its
-        # leader within a sub-step, so only leader pairs can touch; otherwise screen all
-        # pairs by bounding boxes.
+        # lateral motion every vehicle of an env is straight in one lane and cannot skip
+        # over its leader within a sub-step, so only leader pairs can touch; otherwise
+        # screen all the env's pairs by bounding boxes.
+        maybe = (self._screen & (leader_x - x_new < length)).any(axis=1)  # (E,)
         if any_moving:
-            near = (np.abs(x_new[:, None] - x_new[None, :]) < self._reach_x_m) & (
-                np.abs(self.y_m[:, None] - self.y_m[None, :]) < self._reach_y_m
-            )
-            maybe = (near & self._pairs_active).any()
-        else:
-            maybe = (self._screen & (leader_x - x_new < length)).any()
-        if maybe:
+            length_m, width_m = sim.vehicle_length_m, sim.vehicle_width_m
+            cos_h, sin_h = np.abs(np.cos(self.heading_rad)), np.abs(np.sin(self.heading_rad))
+            ext_x = 0.5 * (length_m * cos_h + width_m * sin_h)  # (E, V)
+            ext_y = 0.5 * (length_m * sin_h + width_m * cos_h)
+            near = (
+                np.abs(x_new[:, :, None] - x_new[:, None, :])
+                < ext_x[:, :, None] + ext_x[:, None, :]
+            ) & (
+                np.abs(self.y_m[:, :, None] - self.y_m[:, None, :])
+                < ext_y[:, :, None] + ext_y[:, None, :]
+            )  # (E, V, V)
+            maybe = np.where(env_moving, (near & self._pairs_active).any(axis=(1, 2)), maybe)
+        if maybe.any():
             contact = box_contacts(
                 self.x_m, self.y_m, self.heading_rad, length, sim.vehicle_width_m, self.active
             )
-            contact &= self._pairs_active
+            contact &= self._pairs_active & maybe[:, None, None]
             if contact.any():
-                hit = contact.any(axis=0) | contact.any(axis=1)
+                hit = contact.any(axis=1) | contact.any(axis=2)  # (E, V)
                 self.crashed |= hit
                 self.speed_mps = np.where(hit, 0.0, self.speed_mps)
                 self.lat_speed_mps = np.where(hit, 0.0, self.lat_speed_mps)
                 self._refresh_speed_bounds()
-                self._leaders_dirty = True
+                self._leaders_dirty |= hit.any(axis=1)
         else:
             contact = self._no_contact
 
@@ -599,34 +718,69 @@ class HighwayBackend:
             self.arrived |= done_route
             self._refresh_speed_bounds()
             self._route_end_m = np.where(done_route, np.inf, self._route_end_m)
-            self._leaders_dirty = True
+            self._leaders_dirty |= done_route.any(axis=1)
         return contact
 
-    def _make_state(
-        self, accel_mps2: np.ndarray, collisions: np.ndarray, arrivals: np.ndarray
-    ) -> TrafficState:
-        n = self.is_cav.shape[0]
-        width = self.road.lane_width_m
+    def _lane(self) -> np.ndarray:
+        """(E, V) reported lane: the one the centre is in, within the manoeuvre's two."""
         lo = np.minimum(self.lane_from, self.lane_to)
         hi = np.maximum(self.lane_from, self.lane_to)
-        lane = np.clip(np.floor(self.y_m / width), lo, hi)
+        return np.clip(np.floor(self.y_m / self.road.lane_width_m), lo, hi)
+
+    def _make_state(
+        self,
+        e: int,
+        lane: np.ndarray,
+        accel_mps2: np.ndarray,
+        collisions: np.ndarray,
+        arrivals: np.ndarray,
+    ) -> TrafficState:
+        """Env ``e``'s TrafficState (copies of its rows); ``lane`` is :meth:`_lane`."""
+        n = self.x_m.shape[1]
         return TrafficState(
-            time_s=float(self.time_s),
-            step=int(self.step_count),
+            time_s=float(self.time_s[e]),
+            step=int(self.step_count[e]),
             vehicle_id=np.arange(n, dtype=np.int32),
-            x_m=self.x_m.copy(),
-            y_m=self.y_m.copy(),
-            speed_mps=self.speed_mps.copy(),
+            x_m=self.x_m[e].copy(),
+            y_m=self.y_m[e].copy(),
+            speed_mps=self.speed_mps[e].copy(),
             accel_mps2=np.asarray(accel_mps2, dtype=np.float64).copy(),
-            heading_rad=self.heading_rad.copy(),
-            lane=lane.astype(np.int16),
-            segment=self._segment().astype(np.int16),
+            heading_rad=self.heading_rad[e].copy(),
+            lane=lane[e].astype(np.int16),
+            segment=self.tables.segment_of(self.x_m[e]).astype(np.int16),
             length_m=np.full(n, self.sim.vehicle_length_m),
             width_m=np.full(n, self.sim.vehicle_width_m),
-            is_cav=self._reported_cav.copy(),
-            style=self.style.copy(),
-            active=self.active.copy(),
-            arrived=self.arrived.copy(),
+            is_cav=self._reported_cav[e].copy(),
+            style=self.style[e].copy(),
+            active=self.active[e].copy(),
+            arrived=self.arrived[e].copy(),
             collisions=collisions.astype(np.int32).reshape(-1, 2),
             arrivals=arrivals.astype(np.int32),
         )
+
+
+class BatchSlot:
+    """One env of a :class:`HighwayBackend` batch, seen through the Backend protocol.
+
+    Lets a :class:`~diacc.env.BottleneckEnv` run on its row of a batch: it
+    resets its own env, while the batch is stepped as a whole by whoever owns
+    it (:class:`diacc.vector.BatchedVectorEnv`) and the env is handed the
+    resulting state (:meth:`BottleneckEnv.advance`).
+    """
+
+    name = HighwayBackend.name
+    version = HighwayBackend.version
+    vector_mode = HighwayBackend.vector_mode
+
+    def __init__(self, batch: HighwayBackend, env: int) -> None:
+        self.batch, self.env = batch, env
+        self.road, self.sim = batch.road, batch.sim
+
+    def reset(self, scenario: Scenario, seed: int) -> TrafficState:
+        return self.batch.reset_env(self.env, scenario, seed)
+
+    def step(self, commands: CavCommands) -> TrafficState:
+        raise BackendError(f"env {self.env} of a batch is stepped with HighwayBackend.step_batch")
+
+    def close(self) -> None:
+        """The batch is closed by its owner."""

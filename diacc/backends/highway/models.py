@@ -3,9 +3,10 @@
 highway-env's ``IDMVehicle`` evaluates IDM and MOBIL one Python object at a
 time (``highway_env/vehicle/behavior.py``), which is why the stock simulator
 runs at ~10 steps/s with 25 vehicles. The functions here keep the *meaning*
-of those models but evaluate every vehicle at once on (V,) and (V, V) arrays
-(V <= 60, so an all-pairs masked matrix is cheaper than per-lane sorting in
-NumPy). Differences from the stock models, each deliberate:
+of those models but evaluate every vehicle at once on (E, V) and (E, V, V)
+arrays, one block per environment of a batch (V <= 60, so an all-pairs masked
+matrix is cheaper than per-lane sorting in NumPy). Differences from the stock
+models, each deliberate:
 
 * IDM uses the bumper gap and a per-vehicle style (T, s0, a, b) instead of
   highway-env's class constants, and the standard ``max(0, .)`` on the
@@ -51,7 +52,7 @@ class HighwayModel:
 
 @dataclass(frozen=True)
 class IdmParams:
-    """Per-vehicle IDM parameters, each (V,)."""
+    """Per-vehicle IDM parameters, each (E, V): one row per environment of a batch."""
 
     headway_s: np.ndarray
     min_gap_m: np.ndarray
@@ -60,12 +61,13 @@ class IdmParams:
     delta: float
 
     def take(self, idx: np.ndarray) -> IdmParams:
-        """Parameters of the vehicles ``idx`` (used to evaluate followers)."""
+        """Parameters of the vehicles ``idx`` (E, ...), each indexing its own env's row."""
+        env = np.arange(idx.shape[0]).reshape((-1,) + (1,) * (idx.ndim - 1))
         return IdmParams(
-            self.headway_s[idx],
-            self.min_gap_m[idx],
-            self.accel_mps2[idx],
-            self.decel_mps2[idx],
+            self.headway_s[env, idx],
+            self.min_gap_m[env, idx],
+            self.accel_mps2[env, idx],
+            self.decel_mps2[env, idx],
             self.delta,
         )
 
@@ -101,33 +103,34 @@ def box_contacts(
     width_m: float,
     active: np.ndarray,
 ) -> np.ndarray:
-    """(V, V) bool, strictly upper triangular: oriented vehicle rectangles overlap.
+    """(E, V, V) bool, strictly upper triangular per env: oriented vehicle rectangles overlap.
 
-    An axis-aligned bounding-box test over all pairs prunes, then the
+    Inputs are (E, V), one row per environment; vehicles of different envs never
+    meet. An axis-aligned bounding-box test over all pairs prunes, then the
     separating-axis theorem (4 axes per pair) decides the few candidates
     exactly, all vectorised.
     """
-    cos_h, sin_h = np.cos(heading_rad), np.sin(heading_rad)
+    cos_h, sin_h = np.cos(heading_rad), np.sin(heading_rad)  # (E, V)
     half_l, half_w = 0.5 * length_m, 0.5 * width_m
-    ext_x = half_l * np.abs(cos_h) + half_w * np.abs(sin_h)  # (V,)
+    ext_x = half_l * np.abs(cos_h) + half_w * np.abs(sin_h)  # (E, V)
     ext_y = half_l * np.abs(sin_h) + half_w * np.abs(cos_h)
-    dx = x_m[None, :] - x_m[:, None]  # (V, V)
-    dy = y_m[None, :] - y_m[:, None]
-    cand = (np.abs(dx) < ext_x[:, None] + ext_x[None, :]) & (
-        np.abs(dy) < ext_y[:, None] + ext_y[None, :]
+    dx = x_m[:, None, :] - x_m[:, :, None]  # (E, V, V) x_j - x_i
+    dy = y_m[:, None, :] - y_m[:, :, None]
+    cand = (np.abs(dx) < ext_x[:, :, None] + ext_x[:, None, :]) & (
+        np.abs(dy) < ext_y[:, :, None] + ext_y[:, None, :]
     )
-    cand &= active[:, None] & active[None, :]
+    cand &= active[:, :, None] & active[:, None, :]
     cand = np.triu(cand, 1)
     if not cand.any():
         return cand
-    i, j = np.nonzero(cand)  # (K,)
+    e, i, j = np.nonzero(cand)  # (K,)
     # Axes: each box's long and lateral unit vectors -> (K, 4, 2).
-    u_i = np.stack([cos_h[i], sin_h[i]], -1)
-    n_i = np.stack([-sin_h[i], cos_h[i]], -1)
-    u_j = np.stack([cos_h[j], sin_h[j]], -1)
-    n_j = np.stack([-sin_h[j], cos_h[j]], -1)
+    u_i = np.stack([cos_h[e, i], sin_h[e, i]], -1)
+    n_i = np.stack([-sin_h[e, i], cos_h[e, i]], -1)
+    u_j = np.stack([cos_h[e, j], sin_h[e, j]], -1)
+    n_j = np.stack([-sin_h[e, j], cos_h[e, j]], -1)
     axes = np.stack([u_i, n_i, u_j, n_j], 1)
-    centre = np.stack([dx[i, j], dy[i, j]], -1)[:, None, :]  # (K, 1, 2)
+    centre = np.stack([dx[e, i, j], dy[e, i, j]], -1)[:, None, :]  # (K, 1, 2)
 
     def radius(u: np.ndarray, n: np.ndarray) -> np.ndarray:  # (K, 4)
         return half_l * np.abs((axes * u[:, None, :]).sum(-1)) + half_w * np.abs(
@@ -137,5 +140,5 @@ def box_contacts(
     separated = np.abs((axes * centre).sum(-1)) >= radius(u_i, n_i) + radius(u_j, n_j)
     overlap = ~separated.any(axis=1)  # (K,)
     out = np.zeros_like(cand)
-    out[i[overlap], j[overlap]] = True
+    out[e[overlap], i[overlap], j[overlap]] = True
     return out

@@ -2,7 +2,8 @@
 
 libsumo keeps one simulation per process, so each :class:`SumoBackend` starts
 its own worker process and talks to it over a socket pair wrapped in a
-``multiprocessing.connection.Connection`` (pickled messages). The worker is a
+``multiprocessing.connection.Connection`` (pickled messages; each step in the
+compact encoding of :mod:`.wire`). The worker is a
 fresh interpreter (``python -m diacc.backends.sumo.worker``), never a fork, so
 it is safe after torch or libsumo were imported here. It is started with
 ``subprocess`` rather than a ``multiprocessing`` ``spawn`` context because
@@ -30,6 +31,7 @@ its owner.
 from __future__ import annotations
 
 import os
+import pickle
 import socket
 import subprocess
 import sys
@@ -40,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from diacc.backends.base import BackendError, CavCommands
+from diacc.backends.sumo import wire
 from diacc.backends.sumo.net import atomic_write, build_network, cache_dir
 from diacc.backends.sumo.vtypes import vtypes_key, vtypes_xml
 from diacc.backends.sumo.worker import WorkerSpec
@@ -129,7 +132,7 @@ class SumoBackend:
                 waited += 0.2
                 if proc.poll() is not None or waited > timeout_s:
                     raise EOFError
-            status, payload = conn.recv()
+            message = conn.recv_bytes()
         except (EOFError, OSError, BrokenPipeError):
             code = proc.poll()
             self._discard_worker()
@@ -137,6 +140,9 @@ class SumoBackend:
                 f"SUMO worker died while {doing} (map {self.road.name!r}, seed {self._seed}, "
                 f"exit code {code}); the next reset() starts a new worker"
             ) from None
+        if wire.is_state_reply(message):
+            return wire.decode_state(message)
+        status, payload = pickle.loads(message)
         if status != "ok":
             raise BackendError(f"SUMO error while {doing} (map {self.road.name!r}, "
                                f"seed {self._seed}): {payload}")  # fmt: skip
@@ -148,7 +154,8 @@ class SumoBackend:
         self._proc, self._conn, self._finalizer = None, None, None
         self._pending = False
 
-    def _send(self, msg: tuple, doing: str) -> None:
+    def _send(self, msg: tuple | bytes, doing: str) -> None:
+        """Send a pickled request, or a :mod:`.wire` step request as it is."""
         if not self._worker_alive():
             code = self._proc.poll() if self._proc is not None else None
             self._discard_worker()
@@ -157,7 +164,10 @@ class SumoBackend:
                 f"seed {self._seed}, exit code {code}); call reset() to start a new worker"
             )
         try:
-            self._conn.send(msg)
+            if isinstance(msg, bytes):
+                self._conn.send_bytes(msg)
+            else:
+                self._conn.send(msg)
         except (OSError, BrokenPipeError):
             self._discard_worker()
             raise BackendError(
@@ -203,7 +213,7 @@ class SumoBackend:
                 f"CavCommands arrays must have shape ({n},), got {lane_change.shape} and "
                 f"{speed_change.shape}"
             )
-        self._send(("step", lane_change.astype(np.int8), speed_change), "stepping")
+        self._send(wire.encode_step_request(lane_change, speed_change), "stepping")
         self._pending = True
 
     def step_wait(self) -> TrafficState:

@@ -55,6 +55,19 @@ def edge_ids(road: Map) -> list[str]:
     return [edge_id(s) for s in range(len(road.segments))]
 
 
+def lane_ids(road: Map) -> dict[str, tuple[int, int]]:
+    """``{SUMO lane id: (segment, absolute lane)}`` of every lane of the route.
+
+    SUMO names lane ``k`` of edge ``e`` ``"e_k"``; it is absolute lane
+    ``Map.first_lane(segment) + k`` (module docstring).
+    """
+    return {
+        f"{edge_id(s)}_{k}": (s, road.first_lane(s) + k)
+        for s, seg in enumerate(road.segments)
+        for k in range(seg.lanes)
+    }
+
+
 def nodes_xml(road: Map) -> str:
     """Node file: one node per segment boundary on the x axis."""
     xs = [0.0, *road.segment_ends_m.tolist()]

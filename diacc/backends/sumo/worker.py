@@ -3,28 +3,31 @@
 libsumo holds one simulation per process (facts.md), so every
 :class:`~diacc.backends.sumo.backend.SumoBackend` owns a worker process that runs
 :func:`worker_main`. The worker owns a :class:`SumoSim` and answers three
-messages over a ``multiprocessing.connection.Connection`` (a socket pair
+requests over a ``multiprocessing.connection.Connection`` (a socket pair
 whose child end is passed as a file descriptor number on the command line):
-``("reset", seed, population)``,
-``("step", lane_change, speed_change_mps)`` and ``("close",)``. Replies are
-``("ok", TrafficState)`` or ``("err", one-line message)``.
+pickled ``("reset", seed, population)`` and ``("close",)``, and the step
+request of :mod:`.wire` (lane and speed changes as raw bytes). Replies are
+states in :mod:`.wire`'s encoding or a pickled ``("err", one-line message)``.
 
 Time: SUMO runs at ``step_s / substeps`` seconds per simulation step (0.1 s
 with the defaults), the same integration step as the highway backend, so
 that car following, lane-change manoeuvres (``--lanechange.duration`` =
 0.8 decision steps) and collisions are resolved within a decision step.
 State is read once per decision step through libsumo subscriptions (one call
-for all vehicles); collisions and arrivals are gathered after every substep.
+for all vehicles), arrivals with it (:meth:`SumoSim._read_state`); collisions
+are gathered after every substep, since SUMO reports only the last one's.
 """
 
 from __future__ import annotations
 
+import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from diacc.backends.sumo.net import ROUTE_ID, edge_ids
+from diacc.backends.sumo import wire
+from diacc.backends.sumo.net import ROUTE_ID, lane_ids
 from diacc.backends.sumo.vtypes import CAV_TYPE, HDV_TYPES
 from diacc.config import SimConfig
 from diacc.kinematics import lane_change_reach_m
@@ -46,6 +49,11 @@ CAV_SPEED_MODE = 0
 #: a readable heading (SUMO keeps heading 0 for instant changes), short enough
 #: that a change commanded at the start of a step ends within it (base.py).
 LANE_CHANGE_FRACTION = 0.8
+#: libsumo.constants names of the vehicle variables a TrafficState is built
+#: from, subscribed for every vehicle and read in one call per decision step.
+STATE_VARIABLES = (
+    "VAR_LANE_ID", "VAR_LANEPOSITION", "VAR_LANEPOSITION_LAT", "VAR_SPEED", "VAR_ANGLE",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -70,13 +78,13 @@ class SumoSim:
         import libsumo  # imported here: only worker processes may load libsumo
 
         self.ls = libsumo
-        self.tc = libsumo.constants
+        self.state_vars = [getattr(libsumo.constants, name) for name in STATE_VARIABLES]
         self.spec = spec
         self.road = spec.road
         self.sim = spec.sim
         self.dt_s = spec.sim.step_s / spec.sim.substeps
         self.started = False
-        self.edge_index = {e: i for i, e in enumerate(edge_ids(self.road))}
+        self.lane_at = lane_ids(self.road)  # {SUMO lane id: (segment, absolute lane)}
         self.edge_start_m = self.road.segment_starts_m  # (S,)
         self.first_lane = np.array(
             [self.road.first_lane(s) for s in range(len(self.road.segments))], np.int16
@@ -127,7 +135,11 @@ class SumoSim:
 
     # ---- reset ---------------------------------------------------------
     def reset(self, seed: int, pop: Population) -> TrafficState:
-        """Insert exactly ``pop`` at t = 0 and check that every vehicle is on the road."""
+        """Insert exactly ``pop`` at t = 0 and check that every vehicle is on the road.
+
+        Returns the simulation's own state, which the next step updates in
+        place (the worker encodes it before that; other callers copy it).
+        """
         self.load(seed)
         n = pop.n_vehicles
         self.ids = [f"v{i}" for i in range(n)]
@@ -153,13 +165,8 @@ class SumoSim:
                 f"{'...' if len(missing) > 5 else ''}) on map {self.road.name!r}: "
                 "the starting slots are too tight for the vehicle types"
             )
-        tc = self.tc
-        self.vars = [
-            tc.VAR_ROAD_ID, tc.VAR_LANE_INDEX, tc.VAR_LANEPOSITION,
-            tc.VAR_LANEPOSITION_LAT, tc.VAR_SPEED, tc.VAR_ANGLE,
-        ]  # fmt: skip
         for i, vid in enumerate(self.ids):
-            veh.subscribe(vid, self.vars)
+            veh.subscribe(vid, self.state_vars)
             if self.commanded[i]:
                 veh.setSpeedMode(vid, CAV_SPEED_MODE)
                 veh.setLaneChangeMode(vid, CAV_LANE_CHANGE_MODE)
@@ -185,79 +192,97 @@ class SumoSim:
         )
         self._read_state()
         self.state.accel_mps2[:] = 0.0
-        return self.state.copy()
+        return self.state
 
     # ---- step ----------------------------------------------------------
     def step(self, lane_change: np.ndarray, speed_change_mps: np.ndarray) -> TrafficState:
-        """Apply CAV commands, advance one decision step, return the new state."""
+        """Apply CAV commands, advance one decision step, return the state (as :meth:`reset`)."""
         st = self.state
         if st is None:
             raise SimulationError("step() called before reset()")
         self._command(lane_change, speed_change_mps)
-        pairs: set[tuple[int, int]] = set()
-        arrived: list[int] = []
+        # Colliding pairs stay in contact for several substeps: collect the ids
+        # once per pair and map them to indices after the loop.
+        contacts: set[tuple[str, str]] = set()
         sim = self.ls.simulation
         for _ in range(self.sim.substeps):
-            self.ls.simulationStep()
-            for c in sim.getCollisions():
-                a, b = self.index.get(c.collider), self.index.get(c.victim)
-                if a is not None and b is not None:
-                    pairs.add((min(a, b), max(a, b)))
-            arrived += [self.index[v] for v in sim.getArrivedIDList()]
-        prev_speed = st.speed_mps.copy()
-        st.arrivals = np.array(sorted(arrived), np.int32)
-        st.active[st.arrivals] = False
-        st.arrived[st.arrivals] = True
+            sim.step()
+            contacts.update((c.collider, c.victim) for c in sim.getCollisions())
+        pairs = set()
+        for collider, victim in contacts:
+            a, b = self.index.get(collider), self.index.get(victim)
+            if a is not None and b is not None:
+                pairs.add((min(a, b), max(a, b)))
         st.collisions = np.array(sorted(pairs), np.int32).reshape(-1, 2)
+        prev_speed = st.speed_mps.copy()
         st.step += 1
         st.time_s = st.step * self.sim.step_s
         self._read_state()
         st.accel_mps2 = np.where(st.active, (st.speed_mps - prev_speed) / self.sim.step_s, 0.0)
-        return st.copy()
+        return st
 
     def _command(self, lane_change: np.ndarray, speed_change_mps: np.ndarray) -> None:
+        """Send each active commanded CAV its step's speed, and its lane change if any.
+
+        np.minimum/np.maximum instead of np.clip, which costs several
+        microseconds per call on arrays this small (same values).
+        """
         st = self.state
         cav = np.flatnonzero(self.commanded & st.active)  # (C,)
         if cav.size == 0:
             return
         seg = st.segment[cav]
-        sumo_lane = st.lane[cav] - self.first_lane[seg]  # (C,)
-        # Lane changes: only those the road allows (the rule PSAR and highway apply).
-        offset = np.clip(lane_change[cav], -1, 1).astype(np.int16)  # (C,)
-        reach_m = lane_change_reach_m(st.speed_mps[cav], self.sim.step_s, st.length_m[cav])
-        valid = self.road.lane_change_allowed(seg, st.lane[cav], offset, st.x_m[cav], reach_m)
-        target = sumo_lane + offset
         # Speed: target at the end of the step, within the CAV's limits.
-        cav_p, v = self.sim.cav, st.speed_mps[cav]
-        goal = np.clip(v + speed_change_mps[cav], 0.0, self.speed_limit[seg])
-        goal = np.clip(
-            goal, v - cav_p.decel_mps2 * self.sim.step_s, v + cav_p.accel_mps2 * self.sim.step_s
+        cav_p, v, step_s = self.sim.cav, st.speed_mps[cav], self.sim.step_s
+        goal = np.minimum(np.maximum(v + speed_change_mps[cav], 0.0), self.speed_limit[seg])
+        goal = np.minimum(
+            np.maximum(goal, v - cav_p.decel_mps2 * step_s), v + cav_p.accel_mps2 * step_s
         )  # (C,)
-        veh = self.ls.vehicle
-        step_s = self.sim.step_s
-        for k, i in enumerate(cav.tolist()):
-            vid = self.ids[i]
-            veh.slowDown(vid, float(goal[k]), step_s)
-            if valid[k]:
-                veh.changeLane(vid, int(target[k]), step_s)
+        veh, ids = self.ls.vehicle, self.ids
+        for i, goal_mps in zip(cav.tolist(), goal.tolist(), strict=True):
+            veh.slowDown(ids[i], goal_mps, step_s)
+        # Lane changes: only those the road allows (the rule PSAR and highway apply).
+        offset = np.minimum(np.maximum(lane_change[cav], -1), 1).astype(np.int16)  # (C,)
+        if not offset.any():
+            return
+        reach_m = lane_change_reach_m(v, step_s, st.length_m[cav])
+        valid = self.road.lane_change_allowed(seg, st.lane[cav], offset, st.x_m[cav], reach_m)
+        target = st.lane[cav] - self.first_lane[seg] + offset  # (C,) SUMO lane index
+        for i, lane in zip(cav[valid].tolist(), target[valid].tolist(), strict=True):
+            veh.changeLane(ids[i], lane, step_s)
 
     # ---- state ---------------------------------------------------------
     def _read_state(self) -> None:
-        """Copy every active vehicle's subscribed variables into the state arrays."""
+        """Copy every active vehicle's subscribed variables into the state arrays.
+
+        Vehicles leave the road only at the route end (no teleports, collisions
+        only warn), and a vehicle's subscription ends when it leaves: so the
+        active vehicles missing from the results are this step's arrivals,
+        without asking SUMO for its arrived list after every substep.
+        """
         st = self.state
         results = self.ls.vehicle.getAllSubscriptionResults()  # {id: {var: value}}
-        if not results:
-            return
-        road, lane, pos, lat, speed, angle = self.vars
-        rows = [
-            (self.index[vid], self.edge_index[r[road]], r[lane], r[pos], r[lat], r[speed], r[angle])
-            for vid, r in results.items()
-            if r[road] in self.edge_index
-        ]
-        data = np.array(rows, dtype=np.float64)  # (A, 7)
+        lane_id, pos, lat, speed, angle = self.state_vars
+        index, lane_at = self.index, self.lane_at
+        try:
+            rows = [
+                (index[vid], *lane_at[r[lane_id]], r[pos], r[lat], r[speed], r[angle])
+                for vid, r in results.items()
+            ]
+        except KeyError as exc:  # the network has no junction-internal lanes (net.py)
+            raise SimulationError(
+                f"a vehicle is on SUMO lane {exc.args[0]!r}, which is not a lane of map "
+                f"{self.road.name!r}"
+            ) from None
+        data = np.array(rows, dtype=np.float64).reshape(-1, 7)  # (A, 7)
         idx = data[:, 0].astype(np.int64)
+        present = np.zeros(st.n_vehicles, bool)
+        present[idx] = True
+        st.arrivals = np.flatnonzero(st.active & ~present).astype(np.int32)
+        st.active[st.arrivals] = False
+        st.arrived[st.arrivals] = True
         seg = data[:, 1].astype(np.int16)
-        abs_lane = (self.first_lane[seg] + data[:, 2]).astype(np.int16)
+        abs_lane = data[:, 2].astype(np.int16)
         st.segment[idx] = seg
         st.lane[idx] = abs_lane
         st.x_m[idx] = self.edge_start_m[seg] + data[:, 3] - 0.5 * st.length_m[idx]
@@ -285,14 +310,16 @@ def worker_main(conn) -> None:  # pragma: no cover - runs in a child process
             return
         conn.send(("ok", sim.version))
         while True:
-            msg = conn.recv()
-            if msg[0] == "close":
-                break
+            message = conn.recv_bytes()
             try:
+                if wire.is_step_request(message):
+                    conn.send_bytes(wire.encode_state(sim.step(*wire.decode_step_request(message))))
+                    continue
+                msg = pickle.loads(message)
+                if msg[0] == "close":
+                    break
                 if msg[0] == "reset":
-                    conn.send(("ok", sim.reset(msg[1], msg[2])))
-                elif msg[0] == "step":
-                    conn.send(("ok", sim.step(msg[1], msg[2])))
+                    conn.send_bytes(wire.encode_state(sim.reset(msg[1], msg[2])))
                 else:
                     conn.send(("err", f"unknown request {msg[0]!r}"))
             except Exception as exc:  # noqa: BLE001 - reported to the parent as one line

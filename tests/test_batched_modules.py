@@ -1,0 +1,96 @@
+"""PSAR, reward, safety events and observations of a batch equal those of each env alone.
+
+The vector env test (``tests/test_vector.py``) checks the whole batched step;
+these pin a difference down to the module that makes it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+
+import numpy as np
+import pytest
+
+from diacc.backends.base import CavCommands
+from diacc.backends.highway.backend import HighwayBackend
+from diacc.config import EnvConfig, preset_road
+from diacc.maps import load_map
+from diacc.observation import ObservationBuilder, unstack
+from diacc.psar import psar
+from diacc.reward import reward
+from diacc.safety import safety_critical_events
+from diacc.scenario import Scenario
+from diacc.state import TrafficState
+
+N_ENVS, N_VEHICLES, N_CAVS = 3, 25, 10
+
+
+def assert_fields_equal(batch, singles) -> None:
+    for e, single in enumerate(singles):
+        for f in fields(single):
+            a, b = getattr(single, f.name), getattr(batch, f.name)
+            b = b if f.name == "tau" else b[e]
+            assert np.array_equal(a, b) and np.asarray(a).dtype == np.asarray(b).dtype, (e, f.name)
+
+
+@pytest.fixture(scope="module")
+def episode():
+    """States of N_ENVS envs over 12 random steps, their builders and CAV slots."""
+    config = EnvConfig()
+    road = preset_road(load_map(config.map), config.sim.style_preset)
+    batch = HighwayBackend(road, config.sim, n_envs=N_ENVS)
+    scenario = Scenario.with_cavs(N_VEHICLES, N_CAVS)
+    states = [batch.reset_env(e, scenario, 100 + e) for e in range(N_ENVS)]
+    builders = [ObservationBuilder(road, config.obs, config.sim.episode_steps) for _ in states]
+    for b, s in zip(builders, states, strict=True):
+        b.reset(s)
+    rng = np.random.default_rng(3)
+    history = [states]
+    for _ in range(12):
+        lane = rng.integers(-1, 2, (N_ENVS, N_VEHICLES)).astype(np.int8)
+        states = batch.step_batch(CavCommands(lane, rng.normal(0, 2, (N_ENVS, N_VEHICLES))))
+        for b, s in zip(builders, states, strict=True):
+            b.push(s)
+        history.append(states)
+    cav_index = np.stack([np.flatnonzero(s.is_cav) for s in states])  # (E, C)
+    return config, road, history, builders, cav_index
+
+
+def test_psar_reward_and_events_of_a_batch(episode):
+    config, road, history, _, cav_index = episode
+    rng = np.random.default_rng(4)
+    for states in history:
+        batch = TrafficState.stack(states)
+        actions = rng.integers(0, 5, cav_index.shape)
+        singles = [
+            psar(s, c, a, config.psar, road, config.sim)
+            for s, c, a in zip(states, cav_index, actions, strict=True)
+        ]
+        assert_fields_equal(psar(batch, cav_index, actions, config.psar, road, config.sim), singles)
+        singles = [
+            reward(s, c, road, 0.3, config.reward) for s, c in zip(states, cav_index, strict=True)
+        ]
+        assert_fields_equal(reward(batch, cav_index, road, 0.3, config.reward), singles)
+        events = safety_critical_events(batch, config.events)
+        singles = [safety_critical_events(s, config.events) for s in states]
+        assert_fields_equal(events, singles)
+        for e, s in enumerate(states):  # the batch's states are the envs' states
+            single = batch.env(e)
+            for f in fields(TrafficState):
+                assert np.array_equal(getattr(single, f.name), getattr(s, f.name)), f.name
+
+
+def test_observations_of_a_batch(episode):
+    _, _, _, builders, cav_index = episode
+    rng = np.random.default_rng(5)
+    memory = rng.integers(0, 5, cav_index.shape + (2,))  # (E, C, 2)
+    last = rng.integers(0, 5, (N_ENVS, N_VEHICLES))  # (E, V)
+    actor, critic = ObservationBuilder.observe_batch(builders, cav_index, memory, last)
+    for e, b in enumerate(builders):
+        for batch, single in (
+            (unstack(actor, e), b.actor(cav_index[e], memory[e], last[e])),
+            (unstack(critic, e), b.critic()),
+        ):
+            for f in fields(single):
+                a, c = getattr(single, f.name), getattr(batch, f.name)
+                assert a.dtype == c.dtype and np.array_equal(a, c), (e, f.name)
