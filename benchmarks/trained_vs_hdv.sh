@@ -19,7 +19,7 @@ for backend in highway sumo; do
   for run in "$@"; do
     for actions in sampled greedy; do
       diacc eval --policy "$run" --actions "$actions" --backend "$backend" "${common[@]}" \
-        --out "$out/$backend/$(basename "$run")-$actions"
+        --out "$out/$backend/$(basename "$run" .pt)-$actions"
     done
   done
   diacc table "$out/$backend"/* --rows speed,p_we,p_sce,collision,arrived --out "$out/table-$backend.md"

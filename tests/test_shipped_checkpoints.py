@@ -1,0 +1,40 @@
+"""The shipped trained checkpoints (checkpoints/*.pt) load and drive both backends.
+
+They are the "Trained agent" of README: a refactor that cannot read them, or
+a backend change that makes them crash, must fail here rather than in a
+newcomer's first command.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from diacc.episode import EpisodeDriver
+from diacc.grid import Cell
+from diacc.policies import EvalSettings, PolicySpec, build_policy
+
+CHECKPOINTS = sorted((Path(__file__).resolve().parent.parent / "checkpoints").glob("*.pt"))
+
+
+def test_checkpoints_are_shipped():
+    assert CHECKPOINTS, "checkpoints/ holds no .pt file"
+
+
+@pytest.mark.parametrize("backend", ["highway", "sumo"])
+@pytest.mark.parametrize("path", CHECKPOINTS[:1], ids=lambda p: p.name)
+def test_checkpoint_drives_the_training_cell(path, backend):
+    policy = build_policy(PolicySpec(str(path), "diacc", sampled=True))
+    assert policy.base.sim.style_preset == "paper-congestion" and policy.base.use_psar
+    cfg = policy.env_config(Cell("train-50", 25, 0.4, "D1"), EvalSettings(backend, episode_steps=20))
+    driver = EpisodeDriver(policy, cfg)
+    try:
+        state = driver.reset(seed=0)
+        start_m = state.x_m[state.is_cav].copy()
+        while not driver.done:
+            state = driver.step()
+    finally:
+        driver.close()
+    assert len(state.collisions) == 0 and driver.steps == 20
+    assert (state.x_m[state.is_cav] > start_m + 100.0).all()  # every CAV drove on
