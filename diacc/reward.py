@@ -196,7 +196,8 @@ def reward(
     n_alive = alive.sum(axis=-1)
     any_alive = n_alive > 0
     safe_n = np.maximum(n_alive, 1)
-    v_max_g = np.where(alive, v_max_mps, 0.0).sum(axis=-1) / safe_n  # mean over alive CAVs
+    # Means over alive CAVs; with none alive, v_max_g = 1 keeps the unused branch finite.
+    v_max_g = np.where(any_alive, np.where(alive, v_max_mps, 0.0).sum(axis=-1) / safe_n, 1.0)
     mean_speed_mps = np.where(alive, speed_mps, 0.0).sum(axis=-1) / safe_n
     global_reward = np.where(
         any_alive, -np.abs(mean_speed_mps - v_max_g) / v_max_g + cfg.global_offset, 0.0
