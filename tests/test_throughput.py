@@ -5,6 +5,8 @@ from __future__ import annotations
 import copy
 import multiprocessing as mp
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -189,3 +191,18 @@ def test_compiled_update_matches_eager(tiny_batch):
         mappo.ppo_update(a, batch, c, 4)
         results.append(torch.cat([p.detach().ravel() for p in a.actor.parameters()]))
     torch.testing.assert_close(results[0], results[1], rtol=1e-3, atol=1e-5)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_without_a_gpu_is_a_one_line_error():
+    """``diacc train/bench --device cuda`` on a CPU-only machine: one line, exit 2, no traceback."""
+    for argv in (
+        ["train", "--steps", "100", "--device", "cuda"],
+        ["bench", "--training", "--device", "cuda"],
+    ):
+        done = subprocess.run(
+            [sys.executable, "-m", "diacc.cli", *argv], capture_output=True, text=True, timeout=120
+        )
+        assert done.returncode == 2, done.stderr
+        assert "Traceback" not in done.stderr
+        assert "no CUDA device" in done.stderr.strip().splitlines()[-1]

@@ -68,7 +68,10 @@ def resolve_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError("--device cuda requested but no CUDA device is available")
+        raise TrainingError(
+            "--device cuda requested but this machine has no CUDA device "
+            f"(torch {torch.__version__}); use --device cpu or auto"
+        )
     return torch.device(name)
 
 
@@ -446,7 +449,7 @@ def _first_nonfinite(net: torch.nn.Module, part: str, grad: bool = False) -> str
 
 # ----------------------------------------------------------------------------- training
 class TrainingError(DiaccError, RuntimeError):
-    """Training cannot go on (a non-finite update); the message is one line."""
+    """Training cannot go on (a non-finite update, a missing device); the message is one line."""
 
 
 class TrainingInterrupted(KeyboardInterrupt):

@@ -45,7 +45,9 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
+from diacc.algo import mappo
 from diacc.algo.mappo import train
+from diacc.errors import DiaccError
 from diacc.config import EnvConfig, TrainConfig, override
 
 PAPER_STEPS = 3_000_000
@@ -302,6 +304,7 @@ def main(argv: list[str] | None = None) -> None:
         "--profile", action="store_true", help="profile one PPO pass (fp32, then bf16) instead"
     )
     args = p.parse_args(argv)
+    mappo.resolve_device(args.device)  # a missing CUDA device fails before any row runs
     if args.profile:
         for bf16 in (False, True):
             print(
@@ -323,4 +326,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except DiaccError as exc:
+        sys.exit(f"diacc bench: error: {exc}")
