@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from diacc import cli_scale
-from diacc.config import BACKENDS, STYLE_PRESETS
+from diacc.config import ACTION_MODES, BACKENDS, STYLE_PRESETS
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.report`, kept here so
 #: that ``--help`` does not import the evaluation stack).
@@ -45,7 +45,7 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--actions",
-        choices=("greedy", "sampled"),
+        choices=ACTION_MODES,
         default="greedy",
         help="a checkpoint's actions: argmax, or sampled from its distribution (seeded)",
     )

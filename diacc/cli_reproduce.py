@@ -12,7 +12,7 @@ import functools
 from pathlib import Path
 
 from diacc import cli_scale
-from diacc.config import BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError
+from diacc.config import ACTION_MODES, BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError
 from diacc.grid import GRID_NAMES
 
 
@@ -93,6 +93,13 @@ def add_parsers(sub) -> None:
         help="decisions per evaluation episode (default: the policy's own, 100)",
     )
     p.add_argument(
+        "--actions",
+        choices=ACTION_MODES,
+        default="greedy",
+        help="checkpoints' evaluation actions: argmax, or sampled from their distribution "
+        "(seeded per episode)",
+    )
+    p.add_argument(
         "--device", choices=("cpu", "cuda", "auto"), default="cpu", help="torch device of updates"
     )
     p.add_argument(
@@ -143,6 +150,7 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
         grids=_names(args.grids),
         style_preset=args.style_preset,
         episode_steps=args.episode_steps,
+        actions=args.actions,
         device=args.device,
         train_sets=tuple(args.set),
     )

@@ -329,6 +329,9 @@ VARIANT_TABLE: dict[str, Variant] = {
     )
 }
 VARIANTS = tuple(VARIANT_TABLE)
+#: How a checkpoint picks its evaluation actions: argmax, or drawn from its
+#: distribution with a generator seeded by the episode (``--actions``).
+ACTION_MODES = ("greedy", "sampled")
 
 
 @dataclass(frozen=True)

@@ -199,6 +199,31 @@ def test_other_settings_into_the_same_folder_are_refused(tiny, capsys):
     assert "\n" not in err and (out / "manifest.json").read_text() == before
 
 
+def test_sampled_actions_evaluate_the_same_checkpoints(tiny, tmp_path, capsys):
+    """``--actions sampled`` on copied runs: nothing retrained, learned columns sampled.
+
+    Into the greedy reproduction's own folder it is refused (its evaluations
+    hold greedy results).
+    """
+    import shutil
+
+    out, _ = tiny
+    assert main([*TINY, "--out", str(out), "--actions", "sampled"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("diacc: error: ") and "another actions ('greedy'" in err and "\n" not in err
+    assert main([*TINY, "--out", str(out), "--episode-steps", "50"]) == 2
+    assert "another settings" in capsys.readouterr().err
+    sampled = tmp_path / "sampled"
+    shutil.copytree(out / "runs", sampled / "runs")
+    assert main([*TINY, "--out", str(sampled), "--actions", "sampled"]) == 0
+    stdout = capsys.readouterr().out
+    assert "checkpoints act sampled" in stdout and "] trained " not in stdout
+    for meta_path in (sampled / "eval").glob("*/*/meta.json"):
+        meta = json.loads(meta_path.read_text())
+        assert meta.get("actions", "none") == ("sampled" if "checkpoint" in meta else "none")
+    assert "sampled actions" in (sampled / "tables" / "table2.md").read_text()
+
+
 @pytest.mark.parametrize(
     ("extra", "message"),
     [

@@ -116,7 +116,7 @@ def _pool_note(plan: Plan) -> str:
     return (
         f"learned columns pool {len(b.seeds)} seed(s) x {b.episodes_per_cell} episode(s) per "
         f"cell, from checkpoints trained on {plan.config.train_backend} on the map with the "
-        f"cell's lane reduction ({', '.join(b.maps)})"
+        f"cell's lane reduction ({', '.join(b.maps)}), {plan.config.actions} actions"
     )
 
 

@@ -17,7 +17,13 @@ from pathlib import Path
 from diacc.reproduce.manifest import MANIFEST_FILE, Manifest
 from diacc.reproduce.outputs import inputs_fingerprint, write_outputs
 from diacc.reproduce.plan import Execution, Plan
-from diacc.reproduce.stages import Say, check_existing_runs, evaluate_all, train_all
+from diacc.reproduce.stages import (
+    Say,
+    check_existing_evaluations,
+    check_existing_runs,
+    evaluate_all,
+    train_all,
+)
 
 
 @dataclass(frozen=True)
@@ -53,6 +59,7 @@ class Produced:
 def reproduce(plan: Plan, execution: Execution, argv: list[str], say: Say = print) -> Produced:
     """Run (or continue) a reproduction; returns where its outputs are."""
     check_existing_runs(plan)
+    check_existing_evaluations(plan)
     manifest = Manifest(plan, argv)
     status = "interrupted"
     try:

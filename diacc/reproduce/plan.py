@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from diacc.config import (
+    ACTION_MODES,
     BACKENDS,
     STYLE_PRESETS,
     VARIANTS,
@@ -110,6 +111,7 @@ class ReproduceConfig:
     grids: tuple[str, ...] = GRID_NAMES
     style_preset: str = SimConfig.style_preset  # HDV styles, training and evaluation
     episode_steps: int | None = None  # evaluation episode length; None: the policy's own
+    actions: str = "greedy"  # checkpoints' evaluation actions: argmax, or "sampled" (seeded)
     device: str = "cpu"  # torch device of the PPO updates
     train_sets: tuple[str, ...] = ()  # KEY=VALUE training overrides, as `diacc train --set`
 
@@ -301,6 +303,7 @@ def check_config(config: ReproduceConfig) -> None:
     _unknown("training backend", (config.train_backend,), BACKENDS)
     _unknown("grid", config.grids, GRID_NAMES)
     _unknown("style preset", (config.style_preset,), tuple(STYLE_PRESETS))
+    _unknown("--actions", (config.actions,), ACTION_MODES)
     for map_name in b.maps:
         load_map(map_name)  # one-line MapError for an unknown map
 
@@ -418,7 +421,7 @@ def describe_plan(plan: Plan) -> list[str]:
         "decision steps)",
         f"  HDV style preset {cfg.style_preset}; evaluation episodes of "
         + (f"{cfg.episode_steps} steps" if cfg.episode_steps else "the policy's own length")
-        + f"; transfer {'on' if plan.transfer_pairs else 'off'}",
+        + f"; checkpoints act {cfg.actions}; transfer {'on' if plan.transfer_pairs else 'off'}",
     ]
     if b.zero_shot_cells_per_map is not None and "zero-shot" in cfg.grids:
         lines.append(

@@ -93,6 +93,38 @@ def check_existing_runs(plan: Plan) -> None:
             )
 
 
+def check_existing_evaluations(plan: Plan) -> None:
+    """One-line :class:`ConfigError` if an evaluation directory holds other settings.
+
+    The counterpart of :func:`check_existing_runs` for what only evaluation
+    reads (``--episode-steps``, ``--actions``): a complete job is skipped
+    without running :func:`~diacc.evaluate.evaluate`, whose own check would
+    never see the change, so the tables would report greedy results as
+    sampled ones.
+    """
+    from diacc.evaluate import META_FILE
+
+    cfg = plan.config
+    for job in plan.jobs:
+        path = plan.eval_dir(job) / META_FILE
+        if not path.exists():
+            continue
+        meta = json.loads(path.read_text())
+        wanted = {
+            "backend": job.backend,
+            "settings": {"episode_steps": cfg.episode_steps, "style_preset": cfg.style_preset},
+        }
+        if job.run is not None:
+            wanted["actions"] = cfg.actions
+        for key, value in wanted.items():
+            if meta.get(key) != value:
+                raise ConfigError(
+                    f"{path.parent} holds evaluations with another {key} ({meta.get(key)!r}, "
+                    f"this command asks for {value!r}); repeat the options it was started with, "
+                    "or choose another --out"
+                )
+
+
 def train_all(
     plan: Plan, execution: Execution, say: Say, on_run: Callable[[SweepRun], None]
 ) -> dict[str, int]:
@@ -186,7 +218,11 @@ def job_spec(plan: Plan, job: EvalJob) -> PolicySpec:
     """The policy an evaluation job runs (checkpoints checked against their variant)."""
     if job.run is None:
         return PolicySpec(job.policy)
-    return PolicySpec(str(plan.run_dir(job.run) / "checkpoint.pt"), job.run.variant)
+    return PolicySpec(
+        str(plan.run_dir(job.run) / "checkpoint.pt"),
+        job.run.variant,
+        sampled=plan.config.actions == "sampled",
+    )
 
 
 @dataclass(frozen=True)
