@@ -128,7 +128,9 @@ def _run_group(run_dir: Path) -> str:
     if not config.exists():
         return run_dir.name
     data = json.loads(config.read_text())
-    return f"{data.get('variant', run_dir.name)} ({data.get('backend', '?')})"
+    # ``env.backend`` since the config tree was nested; top-level in older runs
+    backend = data.get("env", {}).get("backend", data.get("backend", "?"))
+    return f"{data.get('variant', run_dir.name)} ({backend})"
 
 
 def _smooth(values: np.ndarray, window: int) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import imageio.v2 as imageio
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from diacc.cli import main
+from diacc.config import TrainConfig, override
 from diacc.evaluate import evaluate
 from diacc.grid import Cell
 from diacc.plots import PlotError, gaussian_kde, group_curves, read_progress
@@ -18,11 +20,11 @@ from diacc.render import RenderError, render_episode
 CELL = Cell("train-50", 10, 0.4, "D1")
 
 
-def _run(path, variant: str, seed: int, offset: float) -> None:
+def _run(path, variant: str, seed: int, offset: float, backend: str = "highway") -> None:
+    """A run directory as ``diacc train`` writes it (config.json, progress.jsonl)."""
     path.mkdir(parents=True)
-    (path / "config.json").write_text(
-        json.dumps({"variant": variant, "backend": "highway", "seed": seed})
-    )
+    cfg = override(TrainConfig(), {"variant": variant, "seed": seed, "env.backend": backend})
+    (path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
     with open(path / "progress.jsonl", "w") as fh:
         for u in range(1, 11):
             fh.write(
@@ -54,6 +56,17 @@ def test_curves_mean_and_band_over_seeds(tmp_path):
     assert np.array_equal(steps, 2000.0 * np.arange(1, 11))
     assert np.allclose(mean, np.arange(1, 11) + 1.0) and np.allclose(std, 1.0)
     assert np.allclose(curves["mappo (highway)"][2], 0.0)
+    # a run on another backend is its own curve (reproduce's transfer runs), also in
+    # a config written before the tree was nested (backend at the top level)
+    _run(tmp_path / "s1", "diacc", 1, 9.0, backend="sumo")
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "config.json").write_text(json.dumps({"variant": "diacc", "backend": "sumo"}))
+    (old / "progress.jsonl").write_text((tmp_path / "s1" / "progress.jsonl").read_text())
+    curves = group_curves([tmp_path / d for d in ("a1", "a2", "s1", "old")], ("global_reward",))
+    assert set(curves) == {"diacc (highway)", "diacc (sumo)"}
+    assert np.allclose(curves["diacc (highway)"][1], np.arange(1, 11) + 1.0)
+    assert np.allclose(curves["diacc (sumo)"][1], np.arange(1, 11) + 9.0)
     assert (
         main(
             [

@@ -27,7 +27,9 @@ def test_checkpoints_are_shipped():
 def test_checkpoint_drives_the_training_cell(path, backend):
     policy = build_policy(PolicySpec(str(path), "diacc", sampled=True))
     assert policy.base.sim.style_preset == "paper-congestion" and policy.base.use_psar
-    cfg = policy.env_config(Cell("train-50", 25, 0.4, "D1"), EvalSettings(backend, episode_steps=20))
+    cfg = policy.env_config(
+        Cell("train-50", 25, 0.4, "D1"), EvalSettings(backend, episode_steps=20)
+    )
     driver = EpisodeDriver(policy, cfg)
     try:
         state = driver.reset(seed=0)

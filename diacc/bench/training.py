@@ -47,8 +47,8 @@ from rich.table import Table
 
 from diacc.algo import mappo
 from diacc.algo.mappo import train
-from diacc.errors import DiaccError
 from diacc.config import EnvConfig, TrainConfig, override
+from diacc.errors import DiaccError
 
 PAPER_STEPS = 3_000_000
 #: The smaller networks of the learner-cost rows (the paper: hidden sizes "of the order 64-256").
