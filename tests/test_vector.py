@@ -109,6 +109,11 @@ def test_auto_mode_batches_highway_only():
         assert isinstance(envs, BatchedVectorEnv)
     finally:
         envs.close()
+    lone = make_vector_env(CONFIG, 1, run_seed=1)  # nothing to batch: stepped on its own
+    try:
+        assert type(lone) is SyncVectorEnv
+    finally:
+        lone.close()
     with pytest.raises(ValueError, match="highway"):
         BatchedVectorEnv(EnvConfig(backend="sumo"), 2, run_seed=1)
 
