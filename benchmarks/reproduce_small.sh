@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The committed `diacc reproduce` result (README "Reproducing the paper", "Committed
-# result"): all four variants on train-25 and train-50, seeds 1 and 2, 50k env steps
+# result"): all four variants on train-25 and train-50, seeds 1-3, 50k env steps
 # each (4 envs, the small learner of configs/small-learner.toml), diacc also trained
 # on SUMO for the transfer, evaluated with the paper-congestion preset and 330-step
 # episodes on both backends, 4 episodes per cell, 4 zero-shot cells per test map;
@@ -15,7 +15,7 @@
 set -euo pipefail
 work=$1
 dest=$2
-common=(--budget small --steps 50000 --seeds 1,2 --envs 4 --episodes 4 --zero-shot-cells 4
+common=(--budget small --steps 50000 --seeds "${SEEDS:-1,2,3}" --envs 4 --episodes 4 --zero-shot-cells 4
   --style-preset paper-congestion --episode-steps 330 --jobs "${JOBS:-2}" --no-progress
   --set minibatches=4 --set model.hidden_dim=64 --set model.gru_hidden=64)
 diacc reproduce "${common[@]}" --out "$work/greedy"
