@@ -456,14 +456,7 @@ def evaluate(
     policy = build_policy(spec)  # fail fast on a bad checkpoint, in this process
     for cell in cells:
         policy.env_config(cell, settings)  # fail fast on cells the policy cannot run
-    meta = {
-        **policy.describe(),
-        "backend": settings.backend,
-        "settings": {
-            "episode_steps": settings.episode_steps,
-            "style_preset": settings.style_preset,
-        },
-    }
+    meta = {**policy.describe(), **settings.describe()}
     _check_meta(out_dir, meta)
     with run_log(out_dir / LOG_FILE):
         done = [_drop_if_damaged(out_dir, c.key) == list(range(episodes)) for c in cells]

@@ -65,6 +65,18 @@ class EvalSettings:
             changes["style_preset"] = self.style_preset
         return dataclasses.replace(sim, **changes)
 
+    def describe(self) -> dict:
+        """What an evaluation's ``meta.json`` records of these settings (and checks on reuse)."""
+        return {
+            "backend": self.backend,
+            "settings": {"episode_steps": self.episode_steps, "style_preset": self.style_preset},
+        }
+
+
+def action_mode(sampled: bool) -> str:
+    """The ``--actions`` name (:data:`~diacc.config.ACTION_MODES`) of a checkpoint's mode."""
+    return "sampled" if sampled else "greedy"
+
 
 @dataclass(frozen=True)
 class PolicySpec:
@@ -239,7 +251,7 @@ class CheckpointPolicy(Policy):
             "policy": self.label,
             "checkpoint": str(self.path.resolve()),
             "update": self.update,
-            "actions": "sampled" if self.sampled else "greedy",
+            "actions": action_mode(self.sampled),
             "trained_on": self.train_config.env.backend,
             "trained_steps": self.global_step,  # budget, shown in table captions
             "total_steps": self.train_config.total_steps,

@@ -34,7 +34,7 @@ from diacc.evaluate import (
     read_csv,
 )
 from diacc.grid import Cell
-from diacc.policies import EvalSettings, PolicySpec
+from diacc.policies import EvalSettings, PolicySpec, action_mode
 from diacc.reproduce.plan import EvalJob, Execution, Plan
 from diacc.scaleout import SweepRun, planned_steps, run_state, run_sweep, train_run
 from diacc.threads import worker_environment
@@ -104,18 +104,14 @@ def check_existing_evaluations(plan: Plan) -> None:
     """
     from diacc.evaluate import META_FILE
 
-    cfg = plan.config
     for job in plan.jobs:
         path = plan.eval_dir(job) / META_FILE
         if not path.exists():
             continue
         meta = json.loads(path.read_text())
-        wanted = {
-            "backend": job.backend,
-            "settings": {"episode_steps": cfg.episode_steps, "style_preset": cfg.style_preset},
-        }
+        wanted = job_settings(plan, job).describe()
         if job.run is not None:
-            wanted["actions"] = cfg.actions
+            wanted["actions"] = action_mode(job_spec(plan, job).sampled)
         for key, value in wanted.items():
             if meta.get(key) != value:
                 raise ConfigError(
@@ -225,6 +221,14 @@ def job_spec(plan: Plan, job: EvalJob) -> PolicySpec:
     )
 
 
+def job_settings(plan: Plan, job: EvalJob) -> EvalSettings:
+    """The evaluation settings of a job: its backend, the command's episode length and preset."""
+    cfg = plan.config
+    return EvalSettings(
+        backend=job.backend, episode_steps=cfg.episode_steps, style_preset=cfg.style_preset
+    )
+
+
 @dataclass(frozen=True)
 class _JobTask:
     """One evaluation job as a picklable task (what a pool worker runs)."""
@@ -249,16 +253,12 @@ def _unfinished(plan: Plan, job: EvalJob) -> list[Cell]:
 def run_job(task: _JobTask, say: Say = _say) -> int:
     """Evaluate one job's unfinished cells (a line per cell); returns how many it ran."""
     plan, job = task.plan, task.job
-    cfg = plan.config
-    settings = EvalSettings(
-        backend=job.backend, episode_steps=cfg.episode_steps, style_preset=cfg.style_preset
-    )
     summary = evaluate(
         job_spec(plan, job),
         list(job.cells),
-        cfg.budget.episodes_per_cell,
+        plan.config.budget.episodes_per_cell,
         plan.eval_dir(job),
-        settings,
+        job_settings(plan, job),
         workers=task.workers,
         progress=task.progress,
         engine=task.engine,
