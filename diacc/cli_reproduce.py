@@ -14,6 +14,7 @@ from pathlib import Path
 from diacc import cli_scale
 from diacc.config import ACTION_MODES, BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError
 from diacc.grid import GRID_NAMES
+from diacc.reproduce.plan import DEFAULT_GRIDS
 
 
 def _epilog() -> str:
@@ -65,7 +66,7 @@ def add_parsers(sub) -> None:
         "--zero-shot-cells",
         type=int,
         default=None,
-        help="zero-shot cells kept per test map, evenly spread (0: all 16)",
+        help="zero-shot cells kept per test map, evenly spread (0: all)",
     )
     p.add_argument(
         "--transfer",
@@ -80,7 +81,11 @@ def add_parsers(sub) -> None:
         "--backends", default=",".join(BACKENDS), help="comma-separated backends to evaluate on"
     )
     p.add_argument("--train-backend", default="highway", help="backend the variants train on")
-    p.add_argument("--grids", default=",".join(GRID_NAMES), help="comma-separated grids")
+    p.add_argument(
+        "--grids",
+        default=",".join(DEFAULT_GRIDS),
+        help=f"comma-separated, of {', '.join(GRID_NAMES)} (zero-shot: the paper's rows)",
+    )
     p.add_argument(
         "--style-preset",
         default="realistic",

@@ -31,11 +31,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from diacc.config import TrainConfig, override
+from diacc.config import ConfigError, TrainConfig, override
 from diacc.errors import DiaccError
 from diacc.evaluate import CellTask, CellTaskResult, run_tasks_here
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec
+from diacc.sweepaxes import Setting
 
 ENGINES = ("local", "ray")
 RAY_MISSING = 'Ray is not installed: pip install -e ".[ray]" (or use --engine local)'
@@ -144,15 +145,56 @@ class SweepRun:
 
 
 def sweep_configs(
-    base: TrainConfig, variants: list[str], maps: list[str], seeds: list[int], out_dir: str | Path
+    base: TrainConfig,
+    variants: list[str],
+    maps: list[str],
+    seeds: list[int],
+    out_dir: str | Path,
+    settings: list[Setting] | None = None,
 ) -> list[TrainConfig]:
-    """The configs of variants x maps x seeds, each with its own run directory."""
+    """The configs of variants x maps x settings x seeds, each with its own run directory.
+
+    A setting's name ends the directory name
+    (``<variant>-<backend>-<map>-s<seed>-tau_init2-tau_final0.05``), so runs
+    that differ only in a setting never share a directory.
+    """
     configs = []
-    for variant, map_name, seed in itertools.product(variants, maps, seeds):
-        run_dir = Path(out_dir) / f"{variant}-{base.env.backend}-{Path(map_name).stem}-s{seed}"
+    for variant, map_name, setting, seed in itertools.product(
+        variants, maps, settings or [Setting()], seeds
+    ):
+        name = f"{variant}-{base.env.backend}-{Path(map_name).stem}-s{seed}"
+        run_dir = Path(out_dir) / (f"{name}-{setting.name}" if setting.values else name)
         changes = {"variant": variant, "env.map": map_name, "seed": seed, "run_dir": str(run_dir)}
-        configs.append(override(base, changes))
+        configs.append(override(base, {**setting.changes, **changes}))
     return configs
+
+
+def check_run_dirs(configs: list[TrainConfig]) -> None:
+    """One-line :class:`ConfigError` if a run directory holds a run with other settings.
+
+    Without it, a finished run trained with, say, another ``--set`` value
+    would be skipped (its step count is reached) and reported as if it had
+    this command's settings. Only the step budget may change (the run
+    resumes). Fields added to the config after the run was trained count as
+    their defaults, as when its checkpoint is evaluated.
+    """
+    from dataclasses import asdict
+
+    from diacc.algo.checkpoint import config_from_checkpoint
+    from diacc.algo.mappo import check_resume_config
+
+    for cfg in configs:
+        path = Path(cfg.run_dir) / "config.json"
+        if not path.exists():
+            continue
+        saved = asdict(config_from_checkpoint({"config": json.loads(path.read_text())}))
+        changed = check_resume_config(saved, cfg, path, allow_change=True)
+        if changed:
+            raise ConfigError(
+                f"{path.parent} was trained with another {changed[0]} than this command asks "
+                "for (see its config.json); repeat the options it was started with, or choose "
+                "another output directory"
+            )
 
 
 def _last_record(run_dir: Path) -> dict:

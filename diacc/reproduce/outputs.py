@@ -10,7 +10,9 @@ over in memory from the stages, so the outputs can be rebuilt at any time.
   :mod:`diacc.report`'s (:func:`~diacc.report.table_from_results`), so
   emphasis, reference column and captions follow ``diacc table``.
 * **Tables**: Table II = the ``train`` grid, Table III = the ``zero-shot``
-  grid, one table per evaluation backend, Markdown and LaTeX.
+  grid (the paper's five zero-shot rows per test map; ``table3-product`` for
+  the ``zero-shot-product`` grid when asked for), one table per evaluation
+  backend, Markdown and LaTeX.
 * **Figures**: training curves per training map (mean and +-1 std band over
   seeds, :func:`diacc.plots.plot_curves`) and per-segment speed box plots and
   KDEs per backend and map (:func:`diacc.plots.draw_speeds`).
@@ -46,8 +48,12 @@ from diacc.reproduce.stages import row_cell_key
 
 #: Table rows: the paper's three, plus the share of episodes ending in a collision.
 TABLE_ROWS = ("speed", "p_we", "p_sce", "collision")
-TABLES = {"train": "table2", "zero-shot": "table3"}
-TABLE_TITLES = {"train": "Table II (training grid)", "zero-shot": "Table III (zero-shot grid)"}
+TABLES = {"train": "table2", "zero-shot": "table3", "zero-shot-product": "table3-product"}
+TABLE_TITLES = {
+    "train": "Table II (training grid)",
+    "zero-shot": "Table III (the paper's zero-shot rows)",
+    "zero-shot-product": "Table III, product grid (zero-shot-product)",
+}
 TRANSFER_MD = "transfer.md"
 TRANSFER_CSV = "transfer.csv"
 

@@ -44,6 +44,9 @@ TRANSFER_BACKEND = "sumo"
 #: The backend whose runs carry no ``-<backend>`` suffix in their names.
 DEFAULT_TRAIN_BACKEND = "highway"
 DEFAULT_OUT_DIR = Path("results/reproduce")
+#: Grids evaluated unless ``--grids`` says otherwise: the paper's training cells
+#: (Table II) and its zero-shot rows (Table III); ``zero-shot-product`` on request.
+DEFAULT_GRIDS = ("train", "zero-shot")
 
 
 @dataclass(frozen=True)
@@ -56,7 +59,7 @@ class Budget:
     n_envs: int  # environments stepped in parallel by each run
     episodes_per_cell: int  # seeded evaluation episodes per grid cell
     maps: tuple[str, ...]  # training maps
-    zero_shot_cells_per_map: int | None  # zero-shot cells kept per test map; None: all 16
+    zero_shot_cells_per_map: int | None  # zero-shot cells kept per test map; None: all
     transfer: bool  # also train diacc on sumo and compare on sumo
 
 
@@ -108,7 +111,7 @@ class ReproduceConfig:
     variants: tuple[str, ...] = VARIANTS
     backends: tuple[str, ...] = BACKENDS  # evaluated on
     train_backend: str = DEFAULT_TRAIN_BACKEND
-    grids: tuple[str, ...] = GRID_NAMES
+    grids: tuple[str, ...] = DEFAULT_GRIDS
     style_preset: str = SimConfig.style_preset  # HDV styles, training and evaluation
     episode_steps: int | None = None  # evaluation episode length; None: the policy's own
     actions: str = "greedy"  # checkpoints' evaluation actions: argmax, or "sampled" (seeded)
@@ -356,7 +359,7 @@ def make_plan(config: ReproduceConfig, notes: tuple[str, ...] = ()) -> Plan:
         runs += [r for pair in pairs for r in pair]
     runs = list(dict.fromkeys(runs))
     cells_of = {
-        g: tuple(grid_cells(g, b.maps, b.zero_shot_cells_per_map if g == "zero-shot" else None))
+        g: tuple(grid_cells(g, b.maps, b.zero_shot_cells_per_map if g != "train" else None))
         for g in config.grids
     }
     for grid, cells in cells_of.items():
@@ -423,10 +426,12 @@ def describe_plan(plan: Plan) -> list[str]:
         + (f"{cfg.episode_steps} steps" if cfg.episode_steps else "the policy's own length")
         + f"; checkpoints act {cfg.actions}; transfer {'on' if plan.transfer_pairs else 'off'}",
     ]
-    if b.zero_shot_cells_per_map is not None and "zero-shot" in cfg.grids:
-        lines.append(
-            f"  zero-shot grid: {b.zero_shot_cells_per_map} of 16 cells per test map "
-            "(--zero-shot-cells 0 for all)"
-        )
+    for grid in cfg.grids:
+        if b.zero_shot_cells_per_map is not None and grid != "train":
+            per_map = len(load_grid(grid)) // 2
+            lines.append(
+                f"  {grid} grid: {b.zero_shot_cells_per_map} of {per_map} cells per test map "
+                "(--zero-shot-cells 0 for all)"
+            )
     lines += [f"  {note}" for note in plan.notes]
     return lines

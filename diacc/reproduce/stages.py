@@ -36,7 +36,14 @@ from diacc.evaluate import (
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec, action_mode
 from diacc.reproduce.plan import EvalJob, Execution, Plan
-from diacc.scaleout import SweepRun, planned_steps, run_state, run_sweep, train_run
+from diacc.scaleout import (
+    SweepRun,
+    check_run_dirs,
+    planned_steps,
+    run_state,
+    run_sweep,
+    train_run,
+)
 from diacc.threads import worker_environment
 from diacc.workpool import map_resilient
 
@@ -66,31 +73,9 @@ def _train_pool(configs: list[TrainConfig], jobs: int) -> Iterator[SweepRun]:
 
 
 def check_existing_runs(plan: Plan) -> None:
-    """One-line :class:`ConfigError` if a run directory holds a run with other settings.
-
-    Without it, a finished run trained with, say, other ``--envs`` would be
-    skipped (its step count is reached) and reported as if it had this
-    command's settings. Only the step budget may change (it resumes). Fields
-    added to the config after the run was trained count as their defaults,
-    as when its checkpoint is evaluated.
-    """
-    from dataclasses import asdict
-
-    from diacc.algo.checkpoint import config_from_checkpoint
-    from diacc.algo.mappo import check_resume_config
-
-    for run in plan.runs:
-        path = plan.run_dir(run) / "config.json"
-        if not path.exists():
-            continue
-        saved = asdict(config_from_checkpoint({"config": json.loads(path.read_text())}))
-        changed = check_resume_config(saved, plan.train_config(run), path, allow_change=True)
-        if changed:
-            raise ConfigError(
-                f"{path.parent} was trained with another {changed[0]} than this command asks "
-                "for (see its config.json); repeat the options it was started with, or choose "
-                "another --out"
-            )
+    """One-line :class:`ConfigError` if a run directory holds a run with other settings
+    (:func:`diacc.scaleout.check_run_dirs`)."""
+    check_run_dirs([plan.train_config(run) for run in plan.runs])
 
 
 def check_existing_evaluations(plan: Plan) -> None:
