@@ -8,6 +8,7 @@ not by argparse ``choices``, so that a bad item gives one line, not a usage).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from diacc import cli_scale
 from diacc.config import ACTION_MODES, BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError
 from diacc.grid import GRID_NAMES
 from diacc.reproduce.plan import DEFAULT_GRIDS
+from diacc.sweepaxes import STUDIES
 
 
 def _epilog() -> str:
@@ -116,6 +118,20 @@ def add_parsers(sub) -> None:
         "torch_threads=2 when --jobs runs share a machine",
     )
     p.add_argument(
+        "--sweep",
+        action="append",
+        default=[],
+        metavar="KEY=V1,V2",
+        help="train every variant with each of these config values, as in 'diacc sweep' "
+        "(repeatable: the product); one table column and curve per setting",
+    )
+    p.add_argument(
+        "--study",
+        default=None,
+        help=f"one of the paper's selection studies as a --sweep axis: {', '.join(STUDIES)} "
+        "(see 'diacc sweep --help')",
+    )
+    p.add_argument(
         "--jobs",
         type=int,
         default=1,
@@ -134,6 +150,7 @@ def _names(text: str) -> tuple[str, ...]:
 def cmd_reproduce(args: argparse.Namespace) -> None:
     from diacc.reproduce.pipeline import reproduce
     from diacc.reproduce.plan import Execution, describe_plan, make_plan, resolve_config
+    from diacc.sweepaxes import axis_texts, sweep_settings
 
     if args.jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
@@ -160,8 +177,12 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
         train_sets=tuple(args.set),
     )
     plan = make_plan(config, notes)
-    for run in plan.runs[:1]:
-        plan.train_config(run)  # one-line error for a bad --set before anything runs
+    # one-line error for a bad --set or --sweep before anything runs
+    base = plan.train_config(plan.runs[0])
+    axes = axis_texts(args.sweep, args.study)
+    if axes:
+        settings = tuple(sweep_settings(base, axes))
+        plan = make_plan(dataclasses.replace(config, settings=settings), notes)
     say = functools.partial(print, flush=True)
     for line in describe_plan(plan):
         say(line)
