@@ -147,8 +147,8 @@ def cmd_sweep(args: argparse.Namespace) -> None:
     print_config(
         base,
         f"diacc sweep: {len(configs)} runs ({len(variants)} variants x {len(maps)} maps x "
-        f"{plural(len(settings), 'setting')} x {len(seeds)} seeds) on engine {args.engine}; "
-        "shared config",
+        + (f"{plural(len(settings), 'setting')} x " if settings[0].values else "")
+        + f"{len(seeds)} seeds) on engine {args.engine}; shared config",
         "variant, map, setting, seed and run_dir vary per run",
     )
     for setting in settings:
