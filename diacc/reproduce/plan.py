@@ -428,8 +428,9 @@ def describe_plan(plan: Plan) -> list[str]:
     lines = [
         f"diacc reproduce: budget {b.name}, results in {cfg.out_dir}",
         f"  training: {plural(len(plan.runs), 'run')} = {plural(len(cfg.variants), 'variant')} "
-        f"x {plural(len(b.maps), 'map')} x {plural(n_settings, 'setting')} "
-        f"x {plural(len(b.seeds), 'seed')} on {cfg.train_backend}"
+        f"x {plural(len(b.maps), 'map')} "
+        + (f"x {plural(n_settings, 'setting')} " if cfg.settings else "")
+        + f"x {plural(len(b.seeds), 'seed')} on {cfg.train_backend}"
         + (f" + {extra} for the transfer" if extra else "")
         + f"; {b.steps_per_run:,} env steps each with {plural(b.n_envs, 'env')}; "
         f"{steps:,} env steps in all",
