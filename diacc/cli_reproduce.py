@@ -33,9 +33,10 @@ def _epilog() -> str:
 
 LAYOUT_HELP = """\
 layout of --out:
-  runs/<variant>-<map>-s<seed>[-<backend>]/   training runs
+  runs/<variant>-<map>-s<seed>[-<backend>][-<setting>]/   training runs
   eval/<backend>/<policy>/                    evaluation results
-  tables/table2.{md,tex} table3.{md,tex}      Tables II (training grid), III (zero-shot)
+  tables/table2.{md,tex} table3.{md,tex}      Tables II (training grid), III (the paper's
+                                              zero-shot rows; table3-product: the product grid)
   figures/curves-<map>.png  speeds-<backend>-<map>.png   (and .pdf)
   transfer.md transfer.csv                    sim-to-sim transfer
   manifest.json                               invocations, versions, plan, stages

@@ -168,12 +168,14 @@ def run_groups(run_dirs: list[Path]) -> dict[Path, str]:
         for d in run_dirs
         if (d / "config.json").exists()
     }
-    shared = set.intersection(*(set(c) for c in configs.values())) if configs else set()
-    differing = sorted(
+    first = next(iter(configs.values()), {})  # its key order is the config's field order
+    differing = [
         k
-        for k in shared - CURVE_POOLED_KEYS
-        if len({json.dumps(c[k], default=str) for c in configs.values()}) > 1
-    )
+        for k in first
+        if k not in CURVE_POOLED_KEYS
+        and all(k in c for c in configs.values())
+        and len({json.dumps(c[k], default=str) for c in configs.values()}) > 1
+    ]
     short = short_keys(differing)
     labels = {}
     for run_dir in run_dirs:
