@@ -142,16 +142,6 @@ CURVE_POOLED_KEYS = frozenset(
 )
 
 
-def _flat(tree: dict, prefix: str = "") -> dict[str, object]:
-    flat: dict[str, object] = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flat(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
-    return flat
-
-
 def run_groups(run_dirs: list[Path]) -> dict[Path, str]:
     """Run dir -> curve label: ``variant (backend)``, plus every config value that
     differs between the runs given (a sweep's setting, e.g. ``tau_final=0.05``).
@@ -161,10 +151,11 @@ def run_groups(run_dirs: list[Path]) -> dict[Path, str]:
     never are. Keys missing from some run's ``config.json`` (it predates them)
     are not compared.
     """
+    from diacc.algo.checkpoint import flatten_config
     from diacc.sweepaxes import format_value, short_keys
 
     configs = {
-        d: _flat(json.loads((d / "config.json").read_text()))
+        d: flatten_config(json.loads((d / "config.json").read_text()))
         for d in run_dirs
         if (d / "config.json").exists()
     }

@@ -8,7 +8,7 @@ sweep``) do the same work on one machine. With ``--engine ray``:
   seeded episodes (:func:`diacc.evaluate.run_tasks_here`) and sends the results back; the
   driver writes the files, so results need no shared filesystem. Seeds depend
   on (cell, episode) only, so the files are identical to a local run's.
-* ``diacc sweep``: every (variant, map, seed) run is one Ray task that calls
+* ``diacc sweep``: every (variant, map, setting, seed) run is one Ray task that calls
   the trainer. Run directories are written where the task runs: on a cluster,
   put ``--out-dir`` on a filesystem all machines share (NFS), or collect the
   directories from the machines each run reports.
