@@ -319,6 +319,13 @@ def test_sweep_gives_each_setting_its_runs_columns_and_curves(tmp_path, capsys):
     assert [r.column for r in plan.runs] == ["diacc tau_final=0.05", "diacc tau_final=0.5"]
     assert [plan.train_config(r).env.reward.tau_final for r in plan.runs] == [0.05, 0.5]
     assert {j.policy for j in plan.jobs} >= {r.name for r in plan.runs}
+    from diacc.reproduce.outputs import _learned_columns
+
+    columns = _learned_columns(plan)  # one table column per setting, never pooled
+    assert {label: [n for n, _ in members] for label, members in columns.items()} == {
+        "diacc tau_final=0.05": ["diacc-train-50-s1-tau_final0.05"],
+        "diacc tau_final=0.5": ["diacc-train-50-s1-tau_final0.5"],
+    }
 
 
 @pytest.mark.slow
