@@ -14,7 +14,13 @@ is asked for, so rendering costs nothing during training.
 from __future__ import annotations
 
 import os
+import sys
 
+#: Whether a display could show a window, read before the dummy driver below is set.
+_DISPLAY = sys.platform in ("darwin", "win32") or bool(
+    os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+)
+_DUMMY_SET_HERE = "SDL_VIDEODRIVER" not in os.environ
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
@@ -148,3 +154,36 @@ class Viewer:
     def close(self) -> None:
         self._vehicles.clear()
         self.road.vehicles = []
+
+
+def display_available() -> bool:
+    """Whether a window can be shown (a display, and no video driver forced to ``dummy``)."""
+    return _DISPLAY and (_DUMMY_SET_HERE or os.environ.get("SDL_VIDEODRIVER") != "dummy")
+
+
+class Window:
+    """A pygame window showing the viewer's frames (``render_mode="human"``).
+
+    Frames are drawn offscreen (:class:`Viewer`) and blitted here, so the
+    window shows exactly what ``rgb_array`` returns. The dummy video driver
+    this module sets for offscreen drawing is lifted before the display starts.
+    """
+
+    def __init__(self, title: str) -> None:
+        if _DUMMY_SET_HERE and os.environ.get("SDL_VIDEODRIVER") == "dummy":
+            del os.environ["SDL_VIDEODRIVER"]
+        pygame.display.init()
+        pygame.display.set_caption(title)
+        self._screen: pygame.Surface | None = None
+
+    def show(self, frame: np.ndarray) -> None:
+        """Show one (H, W, 3) uint8 frame; keeps the window responsive."""
+        height_px, width_px = frame.shape[:2]
+        if self._screen is None or self._screen.get_size() != (width_px, height_px):
+            self._screen = pygame.display.set_mode((width_px, height_px))
+        pygame.surfarray.blit_array(self._screen, np.transpose(frame, (1, 0, 2)))
+        pygame.display.flip()
+        pygame.event.pump()
+
+    def close(self) -> None:
+        pygame.display.quit()
