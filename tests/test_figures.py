@@ -1,4 +1,4 @@
-"""``diacc plot timespace``: one episode's time-space diagram, from the command line."""
+"""Publishable figures: ``diacc plot timespace`` and speed figures that never pool maps."""
 
 from __future__ import annotations
 
@@ -6,6 +6,10 @@ import matplotlib.image as mpimg
 import numpy as np
 
 from diacc.cli import main
+from diacc.evaluate import evaluate
+from diacc.grid import Cell
+from diacc.plots import plot_speeds
+from diacc.policies import EvalSettings, PolicySpec
 from diacc.timespace import Trajectories, speed_profile
 
 
@@ -36,3 +40,39 @@ def test_plot_timespace_command_writes_a_figure(tmp_path, capsys):
 def test_plot_timespace_rejects_zero_steps(capsys):
     assert main(["plot", "timespace", "--policy", "pure-hdv", "--steps", "0"]) == 2
     assert "diacc: error: --steps must be >= 1, got 0" in capsys.readouterr().err
+
+
+def test_speed_figures_one_per_map_with_a_caption(tmp_path, monkeypatch):
+    cells = [Cell("train-25", 8, 0.25, "D1"), Cell("train-50", 8, 0.25, "D1")]
+    evaluate(
+        PolicySpec("pure-hdv"),
+        cells,
+        1,
+        tmp_path / "hdv",
+        EvalSettings("highway", 20),
+        progress=False,
+    )
+    captions = []
+    import diacc.plots
+
+    real_save = diacc.plots._save
+
+    def spy(fig, out):
+        captions.append(fig.texts[-1].get_text())
+        for ax in fig.axes[1:]:  # density panels: labelled, with a legend
+            assert ax.get_ylabel() == "density (per m/s)" and ax.get_legend() is not None
+        return real_save(fig, out)
+
+    monkeypatch.setattr(diacc.plots, "_save", spy)
+    paths = plot_speeds([tmp_path / "hdv"], tmp_path / "speeds")
+    assert [p.name for p in paths] == [
+        "speeds-train-25.png",
+        "speeds-train-25.pdf",
+        "speeds-train-50.png",
+        "speeds-train-50.pdf",
+    ]
+    assert captions[0].startswith(
+        "Backend highway, map train-25. Episodes per policy: pure-hdv: 1."
+    )
+    only = plot_speeds([tmp_path / "hdv"], tmp_path / "one", map_name="train-50")
+    assert [p.name for p in only] == ["one.png", "one.pdf"]
