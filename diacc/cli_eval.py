@@ -159,6 +159,12 @@ def add_parsers(sub) -> None:
     _policy_args(p)
     _episode_args(p, "decisions to render at most")
     p.add_argument("--fps", type=float, default=5.0, help="GIF frames per second")
+    p.add_argument(
+        "--view",
+        choices=("traffic", "bottleneck"),
+        default="traffic",
+        help="camera: follow the traffic (4 px/m), or stay on the lane drop (8 px/m)",
+    )
     p.add_argument("--out", type=Path, default=Path("episode.gif"), help="output .gif")
 
 
@@ -246,7 +252,14 @@ def cmd_render(args: argparse.Namespace) -> None:
     spec = parse_policy(args.policy, args.variant, args.actions == "sampled")
     cell = _episode_cell(args)
     result = render_episode(
-        spec, cell, args.out, args.steps, _settings(args), seed=args.seed, fps=args.fps
+        spec,
+        cell,
+        args.out,
+        args.steps,
+        _settings(args),
+        seed=args.seed,
+        fps=args.fps,
+        view=args.view,
     )
     print(
         f"wrote {result.path}: {result.n_frames} frames, PSAR highlighted in {result.psar_frames}"

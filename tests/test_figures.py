@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import matplotlib.image as mpimg
 import numpy as np
+import pytest
 
 from diacc.cli import main
 from diacc.evaluate import evaluate
 from diacc.grid import Cell
 from diacc.plots import plot_speeds
 from diacc.policies import EvalSettings, PolicySpec
+from diacc.render import tick_step_m
 from diacc.timespace import Trajectories, speed_profile
 
 
@@ -76,3 +78,36 @@ def test_speed_figures_one_per_map_with_a_caption(tmp_path, monkeypatch):
     )
     only = plot_speeds([tmp_path / "hdv"], tmp_path / "one", map_name="train-50")
     assert [p.name for p in only] == ["one.png", "one.pdf"]
+
+
+def test_tick_step_gives_round_readable_scales():
+    assert [tick_step_m(s) for s in (60.0, 150.0, 300.0, 1300.0)] == [10.0, 25.0, 50.0, 250.0]
+
+
+def test_bottleneck_view_zooms_on_the_lane_drop(tmp_path):
+    import diacc
+    from diacc.render import VIEW_SCALE_PX_PER_M, RenderError, render_episode
+    from diacc.viewer import Viewer
+
+    env = diacc.parallel_env(map="train-50", scenario={"n_vehicles": 8})
+    try:
+        env.reset(seed=0)
+        road = env.road
+        viewer = Viewer(road, env.config.sim, scaling_px_per_m=8.0, view="bottleneck")
+        frame = viewer.draw(env.state_)  # (H, W, 3)
+    finally:
+        env.close()
+    left_m, right_m = viewer.window_m
+    assert right_m - left_m == pytest.approx(frame.shape[1] / 8.0)
+    drop_m = road.segment_starts_m[1]  # train-50: the first reduction starts segment 1
+    assert road.segments[1].kind != "multilane"
+    assert (drop_m - left_m) / (right_m - left_m) == pytest.approx(0.4)
+
+    cell = Cell("train-50", 8, 0.25, "D1")
+    settings = EvalSettings("highway", episode_steps=4)
+    spec = PolicySpec("pure-hdv")
+    result = render_episode(spec, cell, tmp_path / "b.gif", 4, settings, seed=0, view="bottleneck")
+    road_px = (road.max_lanes * road.lane_width_m + 10.0) * VIEW_SCALE_PX_PER_M["bottleneck"]
+    assert result.frame_shape[0] > road_px + 60 and result.frame_shape[1] == 1200  # + ruler, text
+    with pytest.raises(RenderError, match="unknown --view 'sky'"):
+        render_episode(spec, cell, tmp_path / "x.gif", 4, settings, view="sky")
