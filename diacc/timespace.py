@@ -42,8 +42,9 @@ class Trajectories:
 
 def record_trajectories(
     spec: PolicySpec, cell: Cell, steps: int, settings: EvalSettings, seed: int
-) -> tuple[Trajectories, Map, str]:
-    """Play one episode of ``spec`` (at most ``steps`` decisions); (trajectories, map, label)."""
+) -> tuple[Trajectories, Map, str, str]:
+    """Play one episode of ``spec`` (at most ``steps`` decisions); (trajectories, map,
+    policy label, HDV style preset the episode ran with)."""
     if steps < 1:
         raise PlotError(f"--steps must be >= 1, got {steps}")
     policy = build_policy(spec)
@@ -66,7 +67,7 @@ def record_trajectories(
         active=np.stack([s.active for s in frames]),
         is_cav=frames[0].is_cav.copy(),
     )
-    return trajectories, driver.road, policy.describe()["policy"]
+    return trajectories, driver.road, policy.describe()["policy"], cfg.sim.style_preset
 
 
 def speed_profile(traj: Trajectories, length_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -148,10 +149,11 @@ def plot_timespace(
     """Play one episode and draw its time-space diagram; the caption names policy,
     backend, map, traffic and seed (the seed defaults to that of eval episode 0)."""
     seed = cell.seed(0) if seed is None else seed
-    traj, road, label = record_trajectories(spec, cell, steps, settings, seed)
+    traj, road, label, preset = record_trajectories(spec, cell, steps, settings, seed)
     caption = (
-        f"{label} on {settings.backend}, map {road.name}: {cell.n_vehicles} vehicles, "
-        f"CAV share {cell.cav_penetration:g}, mix {cell.style_mix}, seed {seed}, "
+        f"{label} on {settings.backend}, map {road.name}: {cell.n_vehicles} vehicles "
+        f"({int(traj.is_cav.sum())} CAVs), mix {cell.style_mix}, style preset {preset}, "
+        f"seed {seed}, "
         f"{len(traj.time_s) - 1} decision steps ({traj.time_s[-1]:.0f} s). "
         "Dots: one per vehicle and step, coloured by speed; shaded: lane reduction."
     )
