@@ -3,7 +3,7 @@
 The viewer reads only the :class:`~diacc.state.TrafficState` and the map, so
 an episode looks the same whichever simulator produced it (``diacc render``,
 ``BottleneckEnv.render``). highway-env's viewer opens a display; with SDL's
-dummy driver its frames come out black (facts.md). Here we set the dummy
+dummy driver its frames come out black. Here we set the dummy
 driver, draw into a plain
 ``pygame.Surface`` wrapped as highway-env's ``WorldSurface``, and let
 ``RoadGraphics`` / ``VehicleGraphics`` paint lanes and vehicles. Lightweight
