@@ -24,7 +24,7 @@ import numpy as np
 from diacc.episode import EpisodeDriver
 from diacc.errors import DiaccError
 from diacc.grid import Cell
-from diacc.policies import EvalSettings, PolicySpec, build_policy
+from diacc.policies import EvalSettings, Policy, PolicySpec, build_policy
 from diacc.state import TrafficState
 
 #: Pixels per metre of each view: the bottleneck view zooms in (cars ~40 x 16 px).
@@ -130,6 +130,18 @@ def annotate(
     return np.asarray(image)
 
 
+def episode_driver(
+    spec: PolicySpec, cell: Cell, steps: int, settings: EvalSettings
+) -> tuple[Policy, EpisodeDriver]:
+    """(policy, driver) of one shown episode of ``cell``: the policy's own environment
+    for that cell, ended after at most ``steps`` decisions (GIFs, time-space diagrams)."""
+    policy = build_policy(spec)
+    cfg = policy.env_config(cell, settings)
+    max_steps = min(steps, cfg.sim.episode_steps)
+    cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, episode_steps=max_steps))
+    return policy, EpisodeDriver(policy, cfg)
+
+
 def render_episode(
     spec: PolicySpec,
     cell: Cell,
@@ -159,11 +171,8 @@ def render_episode(
         raise RenderError(f"unknown --view {view!r}; use one of: {', '.join(VIEW_SCALE_PX_PER_M)}")
     from diacc.viewer import Viewer
 
-    policy = build_policy(spec)
-    cfg = policy.env_config(cell, settings)
-    max_steps = min(steps, cfg.sim.episode_steps)  # the GIF's episode ends there
-    cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, episode_steps=max_steps))
-    driver = EpisodeDriver(policy, cfg)
+    _, driver = episode_driver(spec, cell, steps, settings)
+    max_steps = driver.cfg.sim.episode_steps  # the GIF's episode ends there
     source = None
     try:
         state = driver.reset(cell.seed(0) if seed is None else seed)

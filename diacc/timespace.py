@@ -11,17 +11,16 @@ agent alike. Tutorial 1 builds the same figure by hand.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from diacc.episode import EpisodeDriver
 from diacc.grid import Cell
 from diacc.maps import Map
 from diacc.plots import PlotError, _pyplot, _save
-from diacc.policies import EvalSettings, PolicySpec, build_policy
+from diacc.policies import EvalSettings, PolicySpec
+from diacc.render import episode_driver
 
 #: Width of the speed-profile bins along the road.
 BIN_M = 25.0
@@ -47,12 +46,7 @@ def record_trajectories(
     policy label, HDV style preset the episode ran with)."""
     if steps < 1:
         raise PlotError(f"--steps must be >= 1, got {steps}")
-    policy = build_policy(spec)
-    cfg = policy.env_config(cell, settings)
-    cfg = dataclasses.replace(
-        cfg, sim=dataclasses.replace(cfg.sim, episode_steps=min(steps, cfg.sim.episode_steps))
-    )
-    driver = EpisodeDriver(policy, cfg)
+    policy, driver = episode_driver(spec, cell, steps, settings)
     try:
         state = driver.reset(seed)
         frames = [state]
@@ -67,7 +61,7 @@ def record_trajectories(
         active=np.stack([s.active for s in frames]),
         is_cav=frames[0].is_cav.copy(),
     )
-    return trajectories, driver.road, policy.describe()["policy"], cfg.sim.style_preset
+    return trajectories, driver.road, policy.describe()["policy"], driver.cfg.sim.style_preset
 
 
 def speed_profile(traj: Trajectories, length_m: float) -> tuple[np.ndarray, np.ndarray]:
