@@ -153,3 +153,22 @@ def test_load_policy_refuses_a_baseline_and_a_missing_file():
         diacc.load_policy("pure-hdv")
     with pytest.raises(PolicyError, match="does not exist"):
         diacc.load_policy("nowhere/checkpoint.pt")
+
+
+def test_load_policy_forgets_agents_that_left_and_keeps_the_others():
+    policy = diacc.load_policy(CHECKPOINT)
+    env = policy.make_env()
+    try:
+        observations, _ = env.reset(seed=1)
+        first, second = env.possible_agents[:2]
+        both = {first: observations[first], second: observations[second]}
+        policy.reset()
+        policy.act(both)
+        alone = policy.act({second: observations[second]})  # `first` has left
+        assert set(policy._hidden) == {second}
+        policy.reset()
+        policy.act(both)
+        together = policy.act(both)
+        assert alone[second] == together[second]  # agents' memories do not mix
+    finally:
+        env.close()
