@@ -49,6 +49,13 @@ Modelling choices (documented here because both backends must agree on them):
   highway-env); the environment ends the episode anyway.
 * **Arrival**: a vehicle whose centre passes ``Map.length_m`` becomes
   inactive and is listed in ``arrivals`` of that step.
+* **Departure** (``demand`` scenarios): a pending vehicle enters at its
+  population slot at the first sub-step at or after its departure time at
+  which its entry is free: no vehicle of its lane closer ahead than the
+  gap IDM wants at its insertion speed behind that vehicle (s* = s0 + vT +
+  v dv / 2 sqrt(ab)), and no earlier vehicle of its lane still waiting
+  (first come, first served per lane). SUMO's default insertion checks make
+  the same decision with its own car-following model.
 """
 
 from __future__ import annotations
@@ -210,7 +217,9 @@ class HighwayBackend:
         self.speed_mps[e] = pop.speed_mps
         for name in ("lat_speed_mps", "heading_rad", "cooldown_s", "_cav_accel_mps2"):
             getattr(self, name)[e] = 0.0
-        self.active[e], self.arrived[e], self.crashed[e] = True, False, False
+        self._depart_s[e] = pop.depart_s
+        self._pending[e] = pop.depart_s > 0.0
+        self.active[e], self.arrived[e], self.crashed[e] = ~self._pending[e], False, False
         self.yield_to[e] = -1
         self._contact[e] = False
         self._route_end_m[e] = self.road.length_m
@@ -227,6 +236,46 @@ class HighwayBackend:
         lane = self._lane()
         return self._make_state(e, lane, np.zeros(n), _EMPTY_PAIRS, np.zeros(0, np.int32))
 
+    def _insert_due(self, now_s: np.ndarray) -> None:
+        """Let pending vehicles whose departure time ``now_s`` (E,) has come enter where
+        their lane's entry is free (module docstring, "Departure")."""
+        due = self._pending & (self._depart_s <= now_s[:, None] + 1e-9)  # (E, V)
+        if not due.any():
+            return
+        length_m = self.sim.vehicle_length_m
+        entered = np.zeros_like(due)
+        for e in np.flatnonzero(due.any(axis=1)):
+            waiting = self._pending[e]
+            for lane in np.unique(self.lane_to[e, due[e]]):
+                first = np.flatnonzero(waiting & (self.lane_to[e] == lane))[0]  # FIFO per lane
+                if not due[e, first]:
+                    continue
+                x0, v0 = self.x_m[e, first], self.speed_mps[e, first]
+                in_lane = self.active[e] & (
+                    (self.lane_from[e] == lane) | (self.lane_to[e] == lane)
+                )
+                ahead = in_lane & (self.x_m[e] > x0 - length_m)
+                if ahead.any():
+                    j = np.flatnonzero(ahead)[np.argmin(self.x_m[e, ahead])]
+                    gap_m = self.x_m[e, j] - x0 - length_m
+                    need_m = self.idm.min_gap_m[e, first] + max(
+                        0.0,
+                        v0 * self.idm.headway_s[e, first]
+                        + v0 * (v0 - self.speed_mps[e, j]) * self._inv_2_sqrt_ab[e, first],
+                    )
+                    if gap_m < need_m:
+                        continue
+                entered[e, first] = True
+        if not entered.any():
+            return
+        self._pending &= ~entered
+        self.active |= entered
+        self._cav_target_mps = np.where(entered, self.speed_mps, self._cav_target_mps)
+        envs = entered.any(axis=1)
+        self._leaders_dirty |= envs
+        self._refresh_road_facts(envs)
+        self._refresh_speed_bounds()
+
     def step_batch(self, commands: CavCommands) -> list[TrafficState]:
         """Advance every env one decision step; ``commands`` arrays are (E, V); a state per env."""
         if not self._ready.all():
@@ -242,7 +291,10 @@ class HighwayBackend:
         self._apply_cav_commands(lane_cmd.astype(np.intp), dv_cmd)
         arrived_before = self.arrived.copy()
         new_contacts = np.zeros_like(self._contact)  # (E, V, V)
+        demand = self._pending.any()
         for k in range(self.sim.substeps):
+            if demand:
+                self._insert_due(self.time_s + k * self.dt_s)
             if k % self._decide_every == 0:
                 self._decide_lane_changes()
             contact = self._substep()
@@ -280,12 +332,12 @@ class HighwayBackend:
         for name in (
             "politeness", "gain_threshold_mps2", "x_m", "y_m", "speed_mps", "lat_speed_mps",
             "heading_rad", "cooldown_s", "_route_end_m", "_cav_target_mps", "_cav_accel_mps2",
-            "_inv_2_sqrt_ab", "_desired_mps", "_end_x_m", "_inv_desired",
+            "_inv_2_sqrt_ab", "_desired_mps", "_end_x_m", "_inv_desired", "_depart_s",
         ):  # fmt: skip
             setattr(self, name, np.zeros(shape))
         for name in (
             "strategic", "is_cav", "_reported_cav", "active", "arrived", "crashed",
-            "_has_leader", "_guarded", "_moving", "_screen",
+            "_has_leader", "_guarded", "_moving", "_screen", "_pending",
         ):  # fmt: skip
             setattr(self, name, np.zeros(shape, dtype=bool))
         self.style = np.zeros(shape, dtype=np.int8)
