@@ -78,7 +78,8 @@ class Scenario:
         if self.kind == "demand":
             if not 0 < self.inflow_vph <= MAX_INFLOW_VPH:
                 raise ScenarioError(
-                    f"inflow_vph must be in (0, {MAX_INFLOW_VPH:.0f}] veh/h, got {self.inflow_vph!r}"
+                    f"inflow_vph must be in (0, {MAX_INFLOW_VPH:.0f}] veh/h, "
+                    f"got {self.inflow_vph!r}"
                 )
             if not self.demand_s > 0 or self.warmup_s >= self.demand_s:
                 raise ScenarioError(
@@ -88,7 +89,8 @@ class Scenario:
             if not isinstance(self.cav_slots, int) or self.cav_slots < 1:
                 raise ScenarioError(f"cav_slots must be a positive integer, got {self.cav_slots!r}")
             # N follows from the demand: one vehicle per 3600 / inflow seconds.
-            object.__setattr__(self, "n_vehicles", max(1, int(self.inflow_vph * self.demand_s / 3600.0)))
+            n_total = max(1, int(self.inflow_vph * self.demand_s / 3600.0))
+            object.__setattr__(self, "n_vehicles", n_total)
         if not isinstance(self.n_vehicles, int) or self.n_vehicles < 1:
             raise ScenarioError(f"n_vehicles must be a positive integer, got {self.n_vehicles!r}")
         if not 0.0 <= self.cav_penetration <= 1.0:
@@ -128,8 +130,9 @@ class Scenario:
 
     @property
     def n_slots(self) -> int:
-        """Agent slots C: every CAV has its own in a release; at most ``cav_slots`` at once
-        in a demand scenario, a slot reused when its CAV leaves (:class:`diacc.env.BottleneckEnv`)."""
+        """Agent slots C: every CAV has its own in a release; in a demand scenario at
+        most ``cav_slots`` CAVs at once, a slot reused when its CAV leaves
+        (:class:`diacc.env.BottleneckEnv`)."""
         if self.kind == "demand":
             return min(self.cav_slots, self.n_cavs)
         return self.n_cavs
@@ -144,7 +147,7 @@ class Population:
     x_m: np.ndarray  # (V,) float64 initial centre position
     lane: np.ndarray  # (V,) int16 initial absolute lane
     speed_mps: np.ndarray  # (V,) float64 initial speed
-    depart_s: np.ndarray  # (V,) float64 departure time (all 0 in a release), non-decreasing in demand
+    depart_s: np.ndarray  # (V,) float64 departure time: all 0 in a release, increasing in demand
 
     @property
     def n_vehicles(self) -> int:

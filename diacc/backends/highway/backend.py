@@ -251,9 +251,7 @@ class HighwayBackend:
                 if not due[e, first]:
                     continue
                 x0, v0 = self.x_m[e, first], self.speed_mps[e, first]
-                in_lane = self.active[e] & (
-                    (self.lane_from[e] == lane) | (self.lane_to[e] == lane)
-                )
+                in_lane = self.active[e] & ((self.lane_from[e] == lane) | (self.lane_to[e] == lane))
                 ahead = in_lane & (self.x_m[e] > x0 - length_m)
                 if ahead.any():
                     j = np.flatnonzero(ahead)[np.argmin(self.x_m[e, ahead])]
