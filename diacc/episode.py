@@ -30,7 +30,7 @@ class CavPolicy(Protocol):
 
     def begin_episode(self, n_cavs: int, seed: int) -> None: ...
 
-    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray: ...
+    def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray: ...
 
 
 class EpisodeDriver:
@@ -55,7 +55,9 @@ class EpisodeDriver:
     def step(self) -> TrafficState:
         """Advance one decision step; sets :attr:`done`, :attr:`psar_rule` and :attr:`psar`."""
         assert self.state is not None and not self.done, "reset() before step()"
-        actions = self.policy.act(self._obs, first_step=self.steps == 0)
+        # (C,) slots whose CAV acts first now: all at the start, refilled ones later (demand).
+        first_step = (self.steps == 0) | self.env.slot_start
+        actions = self.policy.act(self._obs, first_step=first_step)
         alive_before = self._obs.alive.copy()  # (C,)
         out = self.env.step_arrays(actions)
         self._obs = out.actor_obs

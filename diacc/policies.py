@@ -129,8 +129,12 @@ class Policy:
     def begin_episode(self, n_cavs: int, seed: int) -> None:
         """Forget any recurrent state (called before the first :meth:`act`)."""
 
-    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
-        """(C,) int64 actions for every CAV slot; here ``remain``, i.e. no command."""
+    def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
+        """(C,) int64 actions for every CAV slot; here ``remain``, i.e. no command.
+
+        ``first_step``: True at the episode's first step, or a (C,) mask of the slots
+        whose CAV acts for the first time (slots refilled in a demand scenario).
+        """
         return np.full(actor_obs.alive.shape[0], REMAIN, np.int64)
 
     def describe(self) -> dict:
@@ -187,7 +191,7 @@ class ScriptedPolicy(Policy):
     def begin_episode(self, n_cavs: int, seed: int) -> None:
         self._rng = np.random.default_rng([int(seed), 0x5C21])
 
-    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
+    def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
         n_cavs = actor_obs.alive.shape[0]
         if self.script == "random":
             return self._rng.integers(0, len(ACTION_NAMES), n_cavs).astype(np.int64)
@@ -230,13 +234,13 @@ class CheckpointPolicy(Policy):
         self._hidden = torch.zeros(n_cavs, self.hidden_size)
         self._generator.manual_seed(seed)
 
-    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
+    def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
         import torch
 
         from diacc.models.inputs import to_tensors
 
         n_cavs = actor_obs.alive.shape[0]
-        start = torch.full((n_cavs,), bool(first_step))
+        start = torch.as_tensor(np.broadcast_to(first_step, (n_cavs,)).copy())  # (C,) bool
         with torch.no_grad():
             logits, self._hidden = self.actor(to_tensors(actor_obs), self._hidden, start)
             if self.sampled:
