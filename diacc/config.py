@@ -288,6 +288,12 @@ class EnvConfig:
 
     def __post_init__(self) -> None:
         _check_choice("backend", self.backend, BACKENDS)
+        episode_s = self.sim.episode_steps * self.sim.step_s
+        if self.scenario.warmup_s >= episode_s:
+            raise ConfigError(
+                f"scenario.warmup_s {self.scenario.warmup_s:g} s is not shorter than the episode "
+                f"({self.sim.episode_steps} steps of {self.sim.step_s:g} s = {episode_s:g} s)"
+            )
 
 
 # --------------------------------------------------------------------------

@@ -29,7 +29,8 @@ arrival) and is free from the next step on. A refilled slot is flagged in
 afresh. An empty slot points at a vehicle that is not on the road, so every
 consumer of ``cav_index`` sees it dead (``alive`` False) without knowing
 about slots. CAVs that find no free slot (more than ``cav_slots`` at once)
-get the idle command and are counted in :attr:`BottleneckEnv.unserved_cavs`.
+drive themselves meanwhile (no command, :mod:`diacc.backends.base`) and are
+counted in :attr:`BottleneckEnv.unserved_cavs`.
 PettingZoo names agents by CAV, not slot: ``possible_agents`` are
 ``cav_0 .. cav_{K-1}`` for the K CAVs of the episode in order of entry, and
 ``agents`` are those on the road and in a slot now.
@@ -129,6 +130,11 @@ def decide(
     where = (*np.indices(cav_index.shape)[:-1], cav_index)
     np.add.at(lane_change, where, ACTION_LANE_OFFSET[refined].astype(np.int8))
     np.add.at(speed_change, where, speed_change_mps)
+    # CAVs on the road without a slot (demand: more than cav_slots at once) drive
+    # themselves: NaN is "no command" (diacc.backends.base).
+    driven = np.zeros(state.x_m.shape, bool)  # (..., V)
+    np.logical_or.at(driven, where, alive)
+    speed_change[state.is_cav & state.active & ~driven] = np.nan
     commands = CavCommands(lane_change, speed_change)
     return Decision(proposed, refined, rule, rule_mask, result, commands)
 

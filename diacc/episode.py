@@ -74,7 +74,7 @@ class EpisodeDriver:
 
 def play_episode(driver: EpisodeDriver, seed: int) -> EpisodeRecorder:
     """Play one seeded episode to its end; the recorder holds every state (the metrics' input)."""
-    recorder = EpisodeRecorder(driver.road, driver.cfg.events)
+    recorder = EpisodeRecorder(driver.road, driver.cfg.events, driver.cfg.scenario.warmup_s)
     recorder.record(driver.reset(seed))
     while not driver.done:
         state = driver.step()

@@ -21,6 +21,10 @@ Definitions:
   time of the first state it was seen active in.
 * PSAR fire rate per rule: CAV decisions where the rule took effect
   (:attr:`diacc.psar.PSARResult.rule_mask`) / decisions of active CAVs.
+* Warm-up (``warmup_s``, demand scenarios): states before it add no speed
+  sample, event, collision or PSAR count, and vehicles count as seen only
+  once on the road after it; travel times are those of vehicles that entered
+  after it (so none is cut short). 0 (the default) measures everything.
 """
 
 from __future__ import annotations
@@ -111,9 +115,10 @@ class EpisodeRecorder:
         events: thresholds of the waiting / safety-critical event detectors.
     """
 
-    def __init__(self, road: Map, events: EventConfig | None = None) -> None:
+    def __init__(self, road: Map, events: EventConfig | None = None, warmup_s: float = 0.0) -> None:
         self.road = road
         self.events = events or EventConfig()
+        self.warmup_s = warmup_s
         self._kind_of_segment = np.array(
             [SEGMENT_KINDS.index(s.kind) for s in road.segments], dtype=np.int8
         )  # (S,)
@@ -132,6 +137,7 @@ class EpisodeRecorder:
         self._waited = np.zeros(n, dtype=bool)  # (V,)
         self._sce = np.zeros(n, dtype=bool)  # (V,)
         self._arrived = np.zeros(n, dtype=bool)  # (V,)
+        self._entered = np.zeros(n, dtype=bool)  # (V,) on the road at some recorded state
         self._first_time_s = np.full(n, np.nan)  # (V,)
         self._arrival_time_s = np.full(n, np.nan)  # (V,)
 
@@ -160,6 +166,11 @@ class EpisodeRecorder:
             self._first_step = state.step
             self._is_cav = state.is_cav.copy()
         self._last_step = state.step
+        new = state.active & ~self._entered
+        self._first_time_s[new] = state.time_s
+        self._entered |= state.active
+        if state.time_s < self.warmup_s - 1e-9:
+            return
 
         idx = np.flatnonzero(state.active)  # (A,)
         self._chunks.append(
@@ -172,8 +183,6 @@ class EpisodeRecorder:
                 state.is_cav[idx].copy(),
             )
         )
-        new = state.active & ~self._seen
-        self._first_time_s[new] = state.time_s
         self._seen |= state.active
         self._waited |= waiting_events(state, self.events)
         if critical is None:
@@ -209,6 +218,7 @@ class EpisodeRecorder:
         n_collisions = int(pairs.shape[0])
         n_hdv_collisions = int(np.count_nonzero(~self._is_cav[pairs].any(axis=1)))
         travel_s = self._arrival_time_s - self._first_time_s  # (V,) nan if not both
+        travel_s[self._first_time_s < self.warmup_s - 1e-9] = np.nan  # entered in the warm-up
         decisions = self._psar_decisions
         fire = {
             name: (float(count) / decisions if decisions else float("nan"))

@@ -14,8 +14,8 @@ Two kinds of scenario (``Scenario.kind``):
 * ``"demand"``: vehicles enter at ``insert_start_m`` over ``demand_s``
   seconds at ``inflow_vph`` (one per 3600 / inflow s, each at a uniformly
   drawn instant within its own interval, so the arrival rate is exact and
-  the sequence still irregular), same round-robin lanes, same CAV share and
-  style mix. ``n_vehicles`` is then derived: inflow x duration. A vehicle is
+  the sequence still irregular; the first vehicle is a CAV at t = 0), same
+  round-robin lanes, same CAV share and style mix. ``n_vehicles`` is then derived: inflow x duration. A vehicle is
   *pending* (neither active nor arrived) until it departs; a backend inserts
   it at its departure time once its lane's entry is free, so a queue at the
   entry delays it but never drops it.
@@ -181,6 +181,13 @@ def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
         # rate, irregular sequence; everyone enters at the route start, lanes round-robin.
         headway_s = 3600.0 / scenario.inflow_vph
         depart_s = (np.arange(n) + rng.uniform(0.0, 1.0, n)) * headway_s
+        # The first vehicle is a CAV entering at t = 0, so that every episode starts
+        # with an agent (PettingZoo); the draw stays as it was otherwise.
+        depart_s[0] = 0.0
+        if n_cav:
+            first_cav = int(np.argmax(is_cav))
+            for arr in (is_cav, style):
+                arr[[0, first_cav]] = arr[[first_cav, 0]]
         return Population(
             is_cav=is_cav,
             style=style,

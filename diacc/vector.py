@@ -113,7 +113,9 @@ class EnvRunner:
         self.episode += 1
         self.return_ = 0.0
         actor, critic = self.env.reset_arrays(seed)
-        self.recorder = EpisodeRecorder(self.env.road, self.config.events)
+        self.recorder = EpisodeRecorder(
+            self.env.road, self.config.events, self.config.scenario.warmup_s
+        )
         self.recorder.record(self.env.state_)
         return actor, critic
 

@@ -25,7 +25,9 @@ Modelling choices (documented here because both backends must agree on them):
   (the ``paper`` presets' cautious drivers): like LC2013 on SUMO they make no
   lane change for the lane end and stop at it. A last-resort guard keeps an HDV behind its HDV
   leader; its use is counted in ``stats["guard_events"]`` (0 in practice).
-* **CAVs** follow their commands exactly (see :mod:`diacc.backends.base`).
+* **CAVs** follow their commands exactly (see :mod:`diacc.backends.base`);
+  one without a command (NaN) drives itself for the step like a cooperative
+  CAV (below), and so does a CAV that has just entered, until its first step.
   A commanded change is made only if :meth:`Map.lane_change_allowed` says
   so (the rule PSAR applies too). A CAV is never moved by the simulator: in
   a lane that ends it stops with its front at the end (counted in
@@ -198,9 +200,11 @@ class HighwayBackend:
         self.idm.min_gap_m[e] = per_vehicle("min_gap_m", min_gap_m)
         self.idm.accel_mps2[e] = per_vehicle("accel_mps2", cav.accel_mps2)
         self.idm.decel_mps2[e] = per_vehicle("decel_mps2", cav.decel_mps2)
-        self.politeness[e] = per_vehicle("politeness", self.cooperative.politeness if coop else 0.0)
+        # CAVs that drive themselves (cooperative mode, or no command) change lanes
+        # cooperatively; commanded CAVs never run MOBIL.
+        self.politeness[e] = per_vehicle("politeness", self.cooperative.politeness)
         self.gain_threshold_mps2[e] = per_vehicle(
-            "lc_gain_threshold_mps2", self.cooperative.lc_gain_threshold_mps2 if coop else 0.0
+            "lc_gain_threshold_mps2", self.cooperative.lc_gain_threshold_mps2
         )
         # LC2013's lcStrategic < 0 (the authors' cautious drivers): no lane change
         # because a lane ends, so such a driver stops at the end of its lane.
@@ -268,6 +272,7 @@ class HighwayBackend:
             return
         self._pending &= ~entered
         self.active |= entered
+        self.is_cav &= ~entered  # a CAV drives itself until its first command
         self._cav_target_mps = np.where(entered, self.speed_mps, self._cav_target_mps)
         envs = entered.any(axis=1)
         self._leaders_dirty |= envs
@@ -286,6 +291,12 @@ class HighwayBackend:
                 f"commands must have shape {shape}, got {lane_cmd.shape} and {dv_cmd.shape}"
             )
         speed_start = self.speed_mps.copy()
+        if self.cav_mode == "commanded":
+            # NaN: no command, the CAV drives itself this step (diacc.backends.base).
+            commanded = self._reported_cav & ~np.isnan(dv_cmd)  # (E, V)
+            self._leaders_dirty |= (commanded != self.is_cav).any(axis=1)
+            self.is_cav = commanded
+            dv_cmd = np.where(commanded, dv_cmd, 0.0)
         self._apply_cav_commands(lane_cmd.astype(np.intp), dv_cmd)
         arrived_before = self.arrived.copy()
         new_contacts = np.zeros_like(self._contact)  # (E, V, V)

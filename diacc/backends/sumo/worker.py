@@ -45,6 +45,9 @@ from diacc.state import TrafficState
 CAV_LANE_CHANGE_MODE = 0
 #: speedMode of commanded CAVs: no safe-speed, acceleration or right-of-way checks.
 CAV_SPEED_MODE = 0
+#: SUMO's own modes, for a CAV that drives itself (no command this step).
+SUMO_DEFAULT_SPEED_MODE = 31
+SUMO_DEFAULT_LANE_CHANGE_MODE = 1621
 #: Lane-change manoeuvre time as a fraction of a decision step: long enough for
 #: a readable heading (SUMO keeps heading 0 for instant changes), short enough
 #: that a change commanded at the start of a step ends within it (base.py).
@@ -151,6 +154,7 @@ class SumoSim:
         self.index = {vid: i for i, vid in enumerate(self.ids)}
         self.is_cav = pop.is_cav.copy()
         self.commanded = pop.is_cav & (self.spec.sim.cav_mode == "commanded")  # (V,)
+        self.self_driving = np.zeros(n, bool)  # (V,) commanded CAVs now without a command
         length_m = self.sim.vehicle_length_m
         front_m = pop.x_m + 0.5 * length_m  # (V,) SUMO departPos is the front bumper
         sumo_lane = pop.lane - self.first_lane[0]  # (V,)
@@ -226,13 +230,16 @@ class SumoSim:
         return st
 
     def _subscribe(self, vids) -> None:
-        """Subscribe vehicles that just entered and hand their CAVs to the commands."""
+        """Subscribe vehicles that just entered. A release's CAVs are handed to the
+        commands at once; a CAV entering later drives itself until its first command."""
         veh = self.ls.vehicle
         for vid in vids:
             veh.subscribe(vid, self.state_vars)
-            if self.commanded[self.index[vid]]:
+            i = self.index[vid]
+            if self.commanded[i] and not self.demand:
                 veh.setSpeedMode(vid, CAV_SPEED_MODE)
                 veh.setLaneChangeMode(vid, CAV_LANE_CHANGE_MODE)
+            self.self_driving[i] = self.commanded[i] and self.demand
 
     def _command(self, lane_change: np.ndarray, speed_change_mps: np.ndarray) -> None:
         """Send each active commanded CAV its step's speed, and its lane change if any.
@@ -241,7 +248,17 @@ class SumoSim:
         microseconds per call on arrays this small (same values).
         """
         st = self.state
-        cav = np.flatnonzero(self.commanded & st.active)  # (C,)
+        # NaN: no command, the CAV drives itself with SUMO's own models (base.py).
+        free = self.commanded & st.active & np.isnan(speed_change_mps)  # (V,)
+        veh = self.ls.vehicle
+        for i in np.flatnonzero(free & ~self.self_driving).tolist():
+            veh.setSpeedMode(self.ids[i], SUMO_DEFAULT_SPEED_MODE)
+            veh.setLaneChangeMode(self.ids[i], SUMO_DEFAULT_LANE_CHANGE_MODE)
+        for i in np.flatnonzero(~free & self.self_driving & st.active).tolist():
+            veh.setSpeedMode(self.ids[i], CAV_SPEED_MODE)
+            veh.setLaneChangeMode(self.ids[i], CAV_LANE_CHANGE_MODE)
+        self.self_driving = free
+        cav = np.flatnonzero(self.commanded & st.active & ~free)  # (C,)
         if cav.size == 0:
             return
         seg = st.segment[cav]
