@@ -209,6 +209,7 @@ class HighwayBackend:
         # LC2013's lcStrategic < 0 (the authors' cautious drivers): no lane change
         # because a lane ends, so such a driver stops at the end of its lane.
         self.strategic[e] = per_vehicle("lc_strategic", 0.0) >= 0.0
+        self.zipper[e] = per_vehicle("zipper", False).astype(bool)
 
         # is_cav: vehicles driven by commands; cooperative CAVs drive like HDVs.
         self.is_cav[e] = False if coop else pop.is_cav
@@ -346,7 +347,7 @@ class HighwayBackend:
             setattr(self, name, np.zeros(shape))
         for name in (
             "strategic", "is_cav", "_reported_cav", "active", "arrived", "crashed",
-            "_has_leader", "_guarded", "_moving", "_screen", "_pending",
+            "_has_leader", "_guarded", "_moving", "_screen", "_pending", "zipper",
         ):  # fmt: skip
             setattr(self, name, np.zeros(shape, dtype=bool))
         self.style = np.zeros(shape, dtype=np.int8)
@@ -571,7 +572,11 @@ class HighwayBackend:
         nf = np.where(left, foll[:, 2], foll[:, 0])  # (E, V)
         nf_gap = np.where(left, foll_gap[:, 2], foll_gap[:, 0])
         nf_acc = np.where(left, foll_with_me[:, 2], foll_with_me[:, 0])
-        polite = (self._at(self.politeness, nf) > 0.0) | (v < m.yield_speed_mps)
+        zipper = self._at(self.zipper, nf)  # (E, V) follower lets a merger in (zipper preset)
+        polite = (self._at(self.politeness, nf) > 0.0) | (v < m.yield_speed_mps) | zipper
+        can_brake = np.where(
+            zipper, m.forced_max_imposed_brake_mps2, self._at(self.idm.decel_mps2, nf)
+        )
         waiting = (
             forced
             & ~start
@@ -580,7 +585,7 @@ class HighwayBackend:
             & np.isfinite(nf_gap)
             & ~self._at(self.is_cav, nf)
             & polite
-            & (nf_acc >= -self._at(self.idm.decel_mps2, nf))
+            & (nf_acc >= -can_brake)
         )
         yield_to = np.full_like(self.yield_to, -1)
         for e in np.flatnonzero(waiting.any(axis=1)):  # rare: a merger waits
