@@ -17,8 +17,9 @@ Two kinds of scenario (``Scenario.kind``):
   the sequence still irregular; the first vehicle is a CAV at t = 0), same
   round-robin lanes, same CAV share and style mix. ``n_vehicles`` is then
   derived: inflow x duration. A vehicle is *pending* (neither active nor
-  arrived) until it departs; a backend inserts it at its departure time once its lane's entry is free, so a queue at the
-  entry delays it but never drops it.
+  arrived) until it departs; a backend inserts it at its departure time
+  once its lane's entry is free, so a queue at the entry delays it but
+  never drops it.
 """
 
 from __future__ import annotations
