@@ -101,6 +101,7 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResul
         "sumo_version": driver.backend.version,
         "style_preset": driver.cfg.sim.style_preset,
         **cell.as_row(),
+        "inflow_vph": cell.inflow_vph,
         "episode": episode,
         "seed": seed,
         "n_cavs": driver.cfg.scenario.n_cavs,

@@ -117,13 +117,14 @@ class Policy:
         refuses larger cells).
         """
         obs = self.base.obs
+        scenario = cell.scenario(base=self.base.scenario)
         return dataclasses.replace(
             self.base,
             backend=settings.backend,
             map=cell.map,
-            scenario=cell.scenario(base=self.base.scenario),
+            scenario=scenario,
             sim=settings.apply(self.base.sim),
-            obs=dataclasses.replace(obs, max_vehicles=max(obs.max_vehicles, cell.n_vehicles)),
+            obs=dataclasses.replace(obs, max_vehicles=max(obs.max_vehicles, scenario.n_vehicles)),
         )
 
     def begin_episode(self, n_cavs: int, seed: int) -> None:
@@ -221,9 +222,10 @@ class CheckpointPolicy(Policy):
         self._generator = torch.Generator()
 
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
-        if cell.n_vehicles > self.base.obs.max_vehicles:
+        n_vehicles = cell.scenario(base=self.base.scenario).n_vehicles
+        if n_vehicles > self.base.obs.max_vehicles:
             raise PolicyError(
-                f"cell {cell.key} has {cell.n_vehicles} vehicles but checkpoint {self.path} "
+                f"cell {cell.key} has {n_vehicles} vehicles but checkpoint {self.path} "
                 f"observes at most {self.base.obs.max_vehicles}"
             )
         return super().env_config(cell, settings)

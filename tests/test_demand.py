@@ -245,3 +245,28 @@ def test_warmup_longer_than_the_episode_is_an_error():
         EnvConfig(scenario=Scenario(kind="demand", warmup_s=200), sim=SimConfig(episode_steps=100))
     with pytest.raises(ScenarioError, match="unknown scenario kind"):
         Scenario(kind="flood")
+
+
+def test_grid_sweeps_inflow(tmp_path):
+    from diacc.grid import GridError, load_grid
+
+    grid = tmp_path / "demand.toml"
+    grid.write_text(
+        '[product]\nmap = ["train-50"]\ninflow_vph = [1600, 3600]\ncav_penetration = [0.4]\n'
+    )
+    cells = load_grid(grid)
+    assert [c.inflow_vph for c in cells] == [1600.0, 3600.0]
+    assert cells[0].key == "train-50_Q1600_rho0.40_D1"
+    base = Scenario(kind="demand", demand_s=600, warmup_s=120, cav_slots=8)
+    scenario = cells[1].scenario(base=base)
+    assert (scenario.kind, scenario.inflow_vph, scenario.n_vehicles) == ("demand", 3600, 600)
+    assert (scenario.warmup_s, scenario.cav_slots) == (120, 8)
+    assert load_grid("train")[0].inflow_vph == 0.0  # the paper's cells stay releases
+    grid.write_text('[[cells]]\nmap = "train-50"\ninflow_vph = -5\ncav_penetration = 0.4\n'
+                    'style_mix = "D1"\n')  # fmt: skip
+    with pytest.raises(GridError, match="inflow_vph must be a positive number"):
+        load_grid(grid)
+    grid.write_text('[[cells]]\nmap = "train-50"\ninflow_vph = 90000\ncav_penetration = 0.4\n'
+                    'style_mix = "D1"\n')  # fmt: skip
+    with pytest.raises(GridError, match="inflow_vph must be in"):
+        load_grid(grid)

@@ -294,7 +294,7 @@ class HighwayBackend:
         speed_start = self.speed_mps.copy()
         if self.cav_mode == "commanded":
             # NaN: no command, the CAV drives itself this step (diacc.backends.base).
-            commanded = self._reported_cav & ~np.isnan(dv_cmd)  # (E, V)
+            commanded = (self.is_cav | self._reported_cav) & ~np.isnan(dv_cmd)  # (E, V)
             self._leaders_dirty |= (commanded != self.is_cav).any(axis=1)
             self.is_cav = commanded
             dv_cmd = np.where(commanded, dv_cmd, 0.0)
