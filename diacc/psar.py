@@ -43,6 +43,10 @@ RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
 RULE_NAMES = ("none", "cancel_lc", "decel_lc", "force_brake", "suppr_accel")
 #: Bit of each rule code in :attr:`PSARResult.rule_mask` (``1 << (code - 1)``).
 RULE_BITS = {code: 1 << (code - 1) for code in range(1, len(RULE_NAMES))}
+#: Lateral drift (m) off its lane's centre line towards the ego lane from which a
+#: neighbouring-lane vehicle counts as cutting in (both backends keep vehicles on the
+#: centre line exactly unless they change lanes).
+CUT_IN_DRIFT_M = 0.05
 
 
 @dataclass
@@ -133,6 +137,16 @@ def psar(
       about 60 m to brake for a standing queue, and a leader that brakes
       hard needs about one second of headway. ``"paper"`` uses the fixed
       thresholds.
+    * Cut-ins: the nearest vehicle ahead in each neighbouring lane whose
+      centre has left its lane's centre line towards the ego lane by more
+      than :data:`CUT_IN_DRIFT_M` (a lane change into the ego lane under
+      way) is a front obstacle of the car-following block too. Without it
+      the CAV sees the merging vehicle only once its centre crosses the lane
+      boundary; on SUMO, where an LC2013 driver may start a merge from
+      standstill a few metres ahead of a CAV (its gap check assumes the CAV
+      keeps its speed), the CAV would meanwhile accelerate into a gap it can
+      no longer brake for (``bench --safety``: the heuristic on train-50,
+      ``paper-congestion``, 330 steps).
     * Inactive CAVs keep their proposed action with rule NONE.
 
     A batch of states ((E, V) arrays, :class:`~diacc.state.TrafficState`) is
@@ -222,6 +236,14 @@ def psar(
         lane_end_kinematics(state, cav_index, lane + offset, road, cfg.queue_gap_m),
     ]
     own_fronts = [sf_vehicle, lane_end_kinematics(state, cav_index, lane, road, cfg.queue_gap_m)]
+    for side, toward in ((0, 1.0), (2, -1.0)):  # right lane drifts to +y, left lane to -y
+        j = neighbours.front[..., side]  # (..., C)
+        j_safe = np.maximum(j, 0)
+        drift_m = toward * (
+            take(state.y_m, j_safe) - road.lane_center_y_m(take(state.lane, j_safe))
+        )
+        cut_in = np.where((j >= 0) & (drift_m > CUT_IN_DRIFT_M), j, -1)
+        own_fronts.append(pair_kinematics(state, cav_index, cut_in))
 
     cancel_front = np.zeros(shape, dtype=bool)
     b_lc_mps2 = np.zeros(shape)

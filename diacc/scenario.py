@@ -68,6 +68,11 @@ class Scenario:
     demand_s: float = 300.0  # demand: vehicles enter during [0, demand_s)
     warmup_s: float = 0.0  # metrics ignore states before this time (traffic settles)
     cav_slots: int = 16  # demand: agent slots, the most CAVs driven by the policy at once
+    #: ``""``: the CAV slots hold CAVs. A style name (:data:`STYLE_NAMES`): the
+    #: same slots hold HDVs of that style instead (the ``same-mix`` baseline),
+    #: so the draw keeps every other vehicle's style and every vehicle's slot and
+    #: a comparison isolates what the CAVs' control changes.
+    cav_slot_style: str = ""
 
     def __post_init__(self) -> None:
         if self.kind not in SCENARIO_KINDS:
@@ -102,6 +107,11 @@ class Scenario:
                 f"style_mix must be 3 non-negative shares (aggressive, normal, cautious) "
                 f"summing to 1, got {self.style_mix!r}"
             )
+        if self.cav_slot_style and self.cav_slot_style not in STYLE_NAMES:
+            raise ScenarioError(
+                f"unknown driving style {self.cav_slot_style!r} for the CAV slots; "
+                f"known: {', '.join(STYLE_NAMES)}"
+            )
         if self.insert_spacing_m <= 0 or self.insert_speed_mps < 0:
             raise ScenarioError("insert_spacing_m must be > 0 and insert_speed_mps >= 0")
 
@@ -125,9 +135,14 @@ class Scenario:
         return tuple(float(p) for p in self.style_mix)  # type: ignore[return-value]
 
     @property
-    def n_cavs(self) -> int:
-        """CAVs over the whole episode."""
+    def n_cav_slots(self) -> int:
+        """Vehicles drawn into CAV slots (CAVs, or HDVs of ``cav_slot_style``)."""
         return int(round(self.cav_penetration * self.n_vehicles))
+
+    @property
+    def n_cavs(self) -> int:
+        """CAVs on the road over the whole episode (0 when the slots hold humans)."""
+        return 0 if self.cav_slot_style else self.n_cav_slots
 
     @property
     def n_slots(self) -> int:
@@ -158,7 +173,7 @@ class Population:
 def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
     """Draw types, styles and starting slots for every vehicle, reproducibly."""
     rng = np.random.default_rng(seed)
-    n, n_cav = scenario.n_vehicles, scenario.n_cavs
+    n, n_cav = scenario.n_vehicles, scenario.n_cav_slots
     lanes = list(road.lane_range(0))
     if not lanes:  # pragma: no cover - maps always have >= 1 lane
         raise ScenarioError(f"map {road.name!r} has no lane at its start")
@@ -174,6 +189,15 @@ def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
     is_cav = np.arange(n) < n_cav
     order = rng.permutation(n)
     style, is_cav = style[order], is_cav[order]
+    if scenario.kind == "demand" and is_cav.any():
+        # The first vehicle to enter is a CAV (slot), so that every episode starts
+        # with an agent (PettingZoo); the draw stays as it was otherwise.
+        first_cav = int(np.argmax(is_cav))
+        for arr in (is_cav, style):
+            arr[[0, first_cav]] = arr[[first_cav, 0]]
+    if scenario.cav_slot_style:  # same draws, the slots driven by humans
+        style[is_cav] = STYLE_NAMES.index(scenario.cav_slot_style)
+        is_cav[:] = False
 
     lane_order = rng.permutation(lanes)
     lane = lane_order[np.arange(n) % len(lanes)].astype(np.int16)
@@ -182,13 +206,7 @@ def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
         # rate, irregular sequence; everyone enters at the route start, lanes round-robin.
         headway_s = 3600.0 / scenario.inflow_vph
         depart_s = (np.arange(n) + rng.uniform(0.0, 1.0, n)) * headway_s
-        # The first vehicle is a CAV entering at t = 0, so that every episode starts
-        # with an agent (PettingZoo); the draw stays as it was otherwise.
-        depart_s[0] = 0.0
-        if n_cav:
-            first_cav = int(np.argmax(is_cav))
-            for arr in (is_cav, style):
-                arr[[0, first_cav]] = arr[[first_cav, 0]]
+        depart_s[0] = 0.0  # the first vehicle (a CAV, above) enters at t = 0
         return Population(
             is_cav=is_cav,
             style=style,
