@@ -1,8 +1,11 @@
-"""Pure-HDV traffic of the ``demand`` scenario kind: outflow, capacity drop, lane-end waits.
+"""Human traffic of the ``demand`` scenario kind: outflow, capacity drop, lane-end waits.
 
 Runs the backends directly (no agents: every vehicle an HDV), one seeded
-episode per (backend, inflow, seed), and prints one JSON line each plus a
-table. What it measures, after ``--warmup-s``:
+episode per (traffic, backend, inflow, seed), and prints one JSON line each.
+Traffic ``pure-hdv``: every vehicle drawn as an HDV of the mix; ``same-mix``:
+the draw of a 40 % CAV cell with its CAV slots driven by normal human drivers
+(:attr:`diacc.scenario.Scenario.cav_slot_style`). What it measures, after
+``--warmup-s``:
 
 * ``outflow_vph``: vehicles crossing the end of the reduction segment, per hour.
 * ``pre_breakdown_vph`` / ``discharge_vph``: the highest 30 s outflow before the
@@ -12,11 +15,14 @@ table. What it measures, after ``--warmup-s``:
   ``discharge_vph < pre_breakdown_vph``.
 * ``max_lane_end_wait_s``: longest a vehicle stood (< 0.5 m/s) within 50 m of
   the end of its lane.
-* speed, p(WE), arrived share, travel time: :class:`diacc.metrics.EpisodeRecorder`.
+* speed, p(WE), throughput past the reduction, delay per vehicle, arrived share:
+  :class:`diacc.metrics.EpisodeRecorder` (its ``throughput_vph`` is ``outflow_vph``
+  counted by the recorder).
 
-Example (the committed results/demand/pure-hdv.jsonl):
-    python benchmarks/demand_bottleneck.py --backend highway sumo \
-        --inflow 1600 2400 3200 3600 --seeds 3 --demand-s 600 --warmup-s 180
+The committed results/demand/humans.jsonl (benchmarks/README.md):
+    python benchmarks/demand_bottleneck.py --traffic pure-hdv same-mix --inflow 2000 4400 \
+        --seeds 2 --demand-s 480 --warmup-s 120 --preset zipper \
+        --out benchmarks/results/demand/humans.jsonl
 """
 
 from __future__ import annotations
@@ -38,10 +44,14 @@ STANDING_MPS = 0.5
 LANE_END_ZONE_M = 50.0
 
 
-def run(backend: str, map_name: str, inflow_vph: float, seed: int, args) -> dict:
+def run(traffic: str, backend: str, map_name: str, inflow_vph: float, seed: int, args) -> dict:
+    humans = {
+        "pure-hdv": {"cav_penetration": 0.0},
+        "same-mix": {"cav_penetration": 0.4, "cav_slot_style": "normal"},
+    }[traffic]
     scenario = Scenario(
         kind="demand", inflow_vph=inflow_vph, demand_s=args.demand_s, warmup_s=args.warmup_s,
-        cav_penetration=0.0, style_mix=args.mix,
+        style_mix=args.mix, **humans,
     )  # fmt: skip
     sim = SimConfig(episode_steps=int(args.demand_s), style_preset=args.preset)
     road = preset_road(load_map(map_name), sim.style_preset)
@@ -94,6 +104,8 @@ def run(backend: str, map_name: str, inflow_vph: float, seed: int, args) -> dict
     else:
         pre, discharge = None, None
     return {
+        "traffic": traffic,
+        "preset": args.preset,
         "backend": backend,
         "map": map_name,
         "inflow_vph": inflow_vph,
@@ -107,6 +119,8 @@ def run(backend: str, map_name: str, inflow_vph: float, seed: int, args) -> dict
         "max_lane_end_wait_s": float(longest_s.max()),
         "mean_speed_mps": m.mean_speed_mps,
         "p_we": m.p_we,
+        "throughput_vph": m.throughput_vph,
+        "delay_per_vehicle_s": m.delay_per_vehicle_s,
         "arrived_fraction": m.arrived_fraction,
         "mean_travel_time_s": m.mean_travel_time_s,
         "n_collisions": m.n_collisions,
@@ -116,6 +130,9 @@ def run(backend: str, map_name: str, inflow_vph: float, seed: int, args) -> dict
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--traffic", nargs="+", default=["pure-hdv"], choices=["pure-hdv", "same-mix"]
+    )
     parser.add_argument("--backend", nargs="+", default=["highway", "sumo"])
     parser.add_argument("--map", default="train-50")
     parser.add_argument("--inflow", nargs="+", type=float, default=[1600, 2400, 3200, 3600])
@@ -128,14 +145,14 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="append JSON lines here")
     args = parser.parse_args()
     for inflow in args.inflow:
-        for backend in args.backend:
-            for seed in range(args.seeds):
-                row = run(backend, args.map, inflow, seed, args)
-                line = json.dumps(row)
-                print(line, flush=True)
-                if args.out:
-                    with open(args.out, "a") as fh:
-                        fh.write(line + "\n")
+        for traffic in args.traffic:
+            for backend in args.backend:
+                for seed in range(args.seeds):
+                    line = json.dumps(run(traffic, backend, args.map, inflow, seed, args))
+                    print(line, flush=True)
+                    if args.out:
+                        with open(args.out, "a") as fh:
+                            fh.write(line + "\n")
 
 
 if __name__ == "__main__":
