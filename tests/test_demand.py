@@ -270,3 +270,23 @@ def test_grid_sweeps_inflow(tmp_path):
                     'style_mix = "D1"\n')  # fmt: skip
     with pytest.raises(GridError, match="inflow_vph must be in"):
         load_grid(grid)
+
+
+@pytest.mark.parametrize(
+    "settings, match",
+    [
+        (["env.scenario.inflow_vph=-5"], "inflow_vph must be in"),
+        (["env.scenario.inflow_vph=1e6"], "inflow_vph must be in"),
+        (["env.scenario.warmup_s=500"], "longer than warmup_s"),
+        (["env.scenario.demand_s=600", "env.scenario.warmup_s=200"], "not shorter than the"),
+    ],
+)
+def test_cli_bad_demand_is_a_one_line_error(tmp_path, capsys, settings, match):
+    from diacc.cli import main
+
+    argv = ["train", "--run-dir", str(tmp_path / "run"), "--no-progress"]
+    for setting in ["env.scenario.kind=demand", *settings]:
+        argv += ["--set", setting]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("diacc: error: ") and "\n" not in err and match in err, err
