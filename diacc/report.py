@@ -256,7 +256,11 @@ def table_from_results(
         by_cell: dict[Cell, list[dict[str, str]]] = {}
         for row in episode_rows:
             cell = Cell(
-                row["map"], int(row["n_vehicles"]), float(row["cav_penetration"]), row["style_mix"]
+                row["map"],
+                int(row["n_vehicles"]),
+                float(row["cav_penetration"]),
+                row["style_mix"],
+                float(row.get("inflow_vph") or 0.0),  # demand cells (older files: none)
             )
             by_cell.setdefault(cell, []).append(row)
         for cell, cell_rows in by_cell.items():
