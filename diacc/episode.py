@@ -62,10 +62,11 @@ class EpisodeDriver:
         first_step = (self.steps == 0) | self.env.slot_start
         actions = self.policy.act(self._obs, first_step=first_step)
         alive_before = self._obs.alive.copy()  # (C,)
+        acting = self.env.cav_index.copy()  # (C,) before slots are refilled (demand)
         out = self.env.step_arrays(actions)
         self._obs = out.actor_obs
         self.psar_rule = np.zeros(out.state.n_vehicles, np.int8)
-        self.psar_rule[self.env.cav_index] = np.where(alive_before, out.psar_rule, 0)
+        self.psar_rule[acting] = np.where(alive_before, out.psar_rule, 0)
         self.psar = out.psar
         self.steps += 1
         self.state, self.done = out.state, out.terminated or out.truncated
