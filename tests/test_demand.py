@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -290,3 +292,28 @@ def test_cli_bad_demand_is_a_one_line_error(tmp_path, capsys, settings, match):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("diacc: error: ") and "\n" not in err and match in err, err
+
+
+def test_flows_count_the_window_after_the_warm_up():
+    """Vehicle 0 passed the bottleneck during the warm-up; vehicle 2 enters after it."""
+    from helpers import make_state
+
+    from diacc.config import preset_road
+    from diacc.maps import load_map
+    from diacc.metrics import EpisodeRecorder
+
+    road = preset_road(load_map("train-50"), "realistic")  # reduction ends at 800 m
+    recorder = EpisodeRecorder(road, warmup_s=10.0)
+    pending = dict(active=[True, True, False], speed_mps=25.0)
+    recorder.record(make_state([850, 700, 10], [0, 0, 1], segment=[2, 1, 0], **pending))
+    recorder.record(
+        make_state([900, 790, 10], [0, 0, 1], segment=[2, 1, 0], time_s=10, step=10, **pending)
+    )
+    recorder.record(make_state([950, 810, 60], [0, 0, 1], segment=[2, 2, 0], time_s=20, step=20))
+    m = recorder.summary()
+    assert m.throughput_vph == pytest.approx(3600.0 / 10.0)  # vehicle 1 alone, in 10 s
+    assert m.n_vehicles == 3
+    # Delay inside the window (from t = 10): 10 s minus 50 m and 20 m at 25 m/s for
+    # vehicles 0 and 1; vehicle 2 entered at t = 20, the window's last state.
+    assert m.total_delay_s == pytest.approx((10 - 50 / 25) + (10 - 20 / 25))
+    assert math.isnan(m.mean_travel_time_s)  # nobody entered after the warm-up and arrived
