@@ -379,3 +379,14 @@ def test_a_vehicle_starting_to_cut_in_is_a_front_obstacle(other_lane, drift_m):
         state = make_state(x, lane, speed, is_cav=[True, False], y_m=y)
         res = psar(state, np.array([0]), np.array([ACCELERATE]), PSARConfig(), ROAD)
         assert res.action.tolist() == [expected], drift
+
+
+def test_the_cut_in_behind_a_vehicle_alongside_is_seen():
+    """The merging vehicle need not be the nearest one of its lane (test-50 crash)."""
+    centre_m = ROAD.lane_center_y_m(np.array([1, 2, 2]))
+    y = [float(centre_m[0]), float(centre_m[1]), float(centre_m[2]) - 0.1]
+    state = make_state(
+        [806.6, 810.0, 832.4], [1, 2, 2], [9.5, 9.0, 0.0], is_cav=[True, False, False], y_m=y
+    )
+    res = psar(state, np.array([0]), np.array([ACCELERATE]), PSARConfig(), ROAD)
+    assert res.action.tolist() == [DECELERATE]
