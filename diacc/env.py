@@ -19,6 +19,22 @@ The episode terminates on a collision or when every vehicle has left, and is
 truncated at ``episode_steps``. A CAV that has left the route is done and is
 never revived.
 
+**Agent slots.** The arrays have C = ``Scenario.n_slots`` agent slots. In a
+release every CAV has its own slot for the whole episode (slot k = the k-th
+CAV). In a ``demand`` scenario CAVs enter and leave: a CAV that enters takes
+the first free slot (CAVs in order of entry), keeps it until it leaves, and
+its slot stays pointed at it for the step it arrives (so the reward sees the
+arrival) and is free from the next step on. A refilled slot is flagged in
+``StepResult.slot_start``: the policy starts that slot's recurrent state
+afresh. An empty slot points at a vehicle that is not on the road, so every
+consumer of ``cav_index`` sees it dead (``alive`` False) without knowing
+about slots. CAVs that find no free slot (more than ``cav_slots`` at once)
+drive themselves meanwhile (no command, :mod:`diacc.backends.base`) and are
+counted in :attr:`BottleneckEnv.unserved_cavs`.
+PettingZoo names agents by CAV, not slot: ``possible_agents`` are
+``cav_0 .. cav_{K-1}`` for the K CAVs of the episode in order of entry, and
+``agents`` are those on the road and in a slot now.
+
 Two APIs share the same code path: the PettingZoo dict API (``reset`` /
 ``step``) for users and API tests, and the batched API (:meth:`reset_arrays` /
 :meth:`step_arrays`) that the trainer uses to avoid per-agent dicts. A step is
@@ -132,8 +148,15 @@ def decide(
         speed_change_mps = action_speed_change_mps(refined, sim.speed_change_mps)
     lane_change = np.zeros(state.x_m.shape, np.int8)  # (..., V)
     speed_change = np.zeros(state.x_m.shape, np.float64)
-    np.put_along_axis(lane_change, cav_index, ACTION_LANE_OFFSET[refined], axis=-1)
-    np.put_along_axis(speed_change, cav_index, speed_change_mps, axis=-1)
+    # Added, not put: empty slots may share a vehicle (not on the road) and add 0 there.
+    where = (*np.indices(cav_index.shape)[:-1], cav_index)
+    np.add.at(lane_change, where, ACTION_LANE_OFFSET[refined].astype(np.int8))
+    np.add.at(speed_change, where, speed_change_mps)
+    # CAVs on the road without a slot (demand: more than cav_slots at once) drive
+    # themselves: NaN is "no command" (diacc.backends.base).
+    driven = np.zeros(state.x_m.shape, bool)  # (..., V)
+    np.logical_or.at(driven, where, alive)
+    speed_change[state.is_cav & state.active & ~driven] = np.nan
     commands = CavCommands(lane_change, speed_change)
     return Decision(proposed, refined, rule, rule_mask, result, commands)
 
@@ -154,6 +177,7 @@ class StepResult:
     psar: PSARResult | None  # full PSAR result (None when PSAR is off)
     state: TrafficState
     reward_terms: dict[str, float]
+    slot_start: np.ndarray  # (C,) bool: a new CAV took the slot; its next action starts afresh
 
 
 class BottleneckEnv(ParallelEnv):
@@ -187,8 +211,8 @@ class BottleneckEnv(ParallelEnv):
         self.backend: Backend = backend
         self.road: Map = backend.road
         self.builder = ObservationBuilder(self.road, self.config.obs, self.config.sim.episode_steps)
-        self.n_cavs = self.config.scenario.n_cavs
-        self.possible_agents = [f"cav_{i}" for i in range(self.n_cavs)]
+        self.n_cavs = self.config.scenario.n_slots  # C agent slots
+        self.possible_agents = [f"cav_{k}" for k in range(self.config.scenario.n_cavs)]
         self.agents: list[str] = []
         self.temperature = self.config.reward.tau_init
         self.state_: TrafficState | None = None
@@ -210,15 +234,51 @@ class BottleneckEnv(ParallelEnv):
             seed = 0 if self._seed is None else self._seed + 1
         self._seed = seed
         state = self.backend.reset(self.config.scenario, seed)
-        self.cav_index = np.flatnonzero(state.is_cav)  # (C,) vehicle index of each agent
+        self.cav_ordinal = np.cumsum(state.is_cav) - 1  # (V,) k of the k-th CAV (agent cav_k)
+        self.slot_vehicle = np.full(self.n_cavs, -1, np.int64)  # (C,) occupant, -1 none
+        self._last_vehicle = np.full(self.n_cavs, -1, np.int64)  # (C,) latest occupant
         self.action_memory = np.zeros((self.n_cavs, 2), np.int64)  # proposed, refined
         self.last_refined = np.zeros(state.n_vehicles, np.int64)
         self.steps = 0
         self.state_ = state
         self.builder.reset(state)
-        self.agents = list(self.possible_agents)
+        self.slot_start = self._fill_slots(state)
+        self.agents = self._live_agents(state)
         self._recorder = None  # the dict API's reset() starts one; the batched API needs none
         return self._observe()
+
+    def _fill_slots(self, state: TrafficState) -> np.ndarray:
+        """Free the slots of CAVs gone before this step, give CAVs on the road without
+        a slot the free ones (module docstring); sets :attr:`cav_index`, returns the
+        (C,) refilled slots."""
+        occupant = self.slot_vehicle
+        held = np.maximum(occupant, 0)
+        stays = (occupant >= 0) & (state.active[held] | state.arrived_now[held])  # (C,)
+        waiting = np.flatnonzero(state.active & state.is_cav)  # in order of entry
+        waiting = waiting[~np.isin(waiting, occupant[stays])]
+        free = np.flatnonzero(~stays)
+        n_new = min(len(free), len(waiting))
+        occupant = np.where(stays, occupant, -1)
+        occupant[free[:n_new]] = waiting[:n_new]
+        refilled = np.zeros(self.n_cavs, bool)
+        refilled[free[:n_new]] = True
+        self.unserved_cavs = len(waiting) - n_new  # CAVs on the road without a slot
+        self.slot_vehicle = occupant
+        self._last_vehicle = np.where(occupant >= 0, occupant, self._last_vehicle)
+        # An empty slot points at its last occupant (gone for good) or, never used, at
+        # any vehicle off the road: one exists, since then some CAV is not on the road.
+        index = self._last_vehicle
+        if (index < 0).any():
+            index = np.where(index < 0, np.flatnonzero(~state.active)[0], index)
+        self.cav_index = index.copy()  # (C,) vehicle index of each slot
+        self.action_memory[refilled] = 0
+        return refilled
+
+    def _live_agents(self, state: TrafficState) -> list[str]:
+        """PettingZoo names of the CAVs on the road that hold a slot."""
+        live = self.slot_vehicle[self.slot_vehicle >= 0]
+        live = np.sort(live[state.active[live]])
+        return [f"cav_{k}" for k in self.cav_ordinal[live]]
 
     def step_arrays(self, actions: np.ndarray) -> StepResult:
         """Advance one decision step with proposed actions (C,) for every CAV slot."""
@@ -243,6 +303,7 @@ class BottleneckEnv(ParallelEnv):
         self.builder.push(state)
         self.action_memory = np.stack([decision.proposed, decision.refined], axis=1)
         self.last_refined[self.cav_index] = decision.refined
+        self.slot_start = self._fill_slots(state)
 
     def conclude(
         self,
@@ -255,7 +316,8 @@ class BottleneckEnv(ParallelEnv):
         """The step's result, given the observations and the reward of the state
         :meth:`enter` entered (which :meth:`ObservationBuilder.observe_batch` and
         :func:`~diacc.reward.reward` compute for many envs at once)."""
-        terminated = bool(len(state.collisions) > 0 or not state.active.any())
+        # Every vehicle gone: none on the road and none still to enter (demand).
+        terminated = bool(len(state.collisions) > 0 or state.arrived.all())
         truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
         return StepResult(
             actor_obs=actor_obs,
@@ -276,6 +338,7 @@ class BottleneckEnv(ParallelEnv):
                 "completion": terms.completion,
                 "tau": terms.tau,
             },
+            slot_start=self.slot_start.copy(),
         )
 
     def _observe(self) -> tuple[ActorObs, CriticState]:
@@ -302,26 +365,39 @@ class BottleneckEnv(ParallelEnv):
     def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
         return self._action_space
 
+    def _agent_slots(self) -> dict[str, int]:
+        """Slot of each agent (CAV) that holds one now."""
+        held = np.flatnonzero(self.slot_vehicle >= 0)
+        return {f"cav_{self.cav_ordinal[self.slot_vehicle[i]]}": int(i) for i in held}
+
     def reset(self, seed: int | None = None, options: dict | None = None):
         actor_obs, _ = self.reset_arrays(seed)
-        self._recorder = EpisodeRecorder(self.road, self.config.events)
+        self._recorder = EpisodeRecorder(
+            self.road, self.config.events, self.config.scenario.warmup_s
+        )
         self._recorder.record(self.state_)
-        observations = {a: self._agent_obs(actor_obs, i) for i, a in enumerate(self.agents)}
+        slots = self._agent_slots()
+        observations = {a: self._agent_obs(actor_obs, slots[a]) for a in self.agents}
         if self.render_mode == "human":
             self.render()
         return observations, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, int]):
-        index = {a: i for i, a in enumerate(self.possible_agents)}
+        index = self._agent_slots()
         batch = np.zeros(self.n_cavs, np.int64)
         for agent, action in actions.items():
-            batch[index[agent]] = action
+            if agent in index:
+                batch[index[agent]] = action
         out = self.step_arrays(batch)
         if self._recorder is not None:
             self._recorder.record(out.state, psar=out.psar)
         acting = list(self.agents)
+        ended = out.terminated or out.truncated
+        # CAVs that took a slot in this step join (PettingZoo lets agents appear).
+        index.update(self._agent_slots())
+        joining = [] if ended else [a for a in self._live_agents(out.state) if a not in acting]
         observations, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
-        for agent in acting:
+        for agent in acting + joining:
             i = index[agent]
             observations[agent] = self._agent_obs(out.actor_obs, i)
             rewards[agent] = out.reward
@@ -333,11 +409,11 @@ class BottleneckEnv(ParallelEnv):
                 "collisions": out.state.collisions.copy(),
                 "arrivals": out.state.arrivals.copy(),
             }
-        self.agents = [a for a in acting if not (terms[a] or truncs[a])]
+        self.agents = [] if ended else self._live_agents(out.state)
         if not self.agents and acting and self._recorder is not None:
             summary = self._recorder.summary()
             metrics = {key: getattr(summary, key) for key in INFO_METRICS}
-            for agent in acting:
+            for agent in acting + joining:
                 infos[agent]["episode_metrics"] = dict(metrics)
         if self.render_mode == "human":
             self.render()

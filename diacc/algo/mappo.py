@@ -14,6 +14,11 @@ then ``epochs`` passes of PPO over it:
   episode starts inside a chunk.
 * **Death masking**: CAVs that have left (or were never on the road) add
   nothing to any actor loss.
+* **Agent slots refill** (``demand`` scenarios, :mod:`diacc.env`): a slot
+  that a new CAV takes starts from a zero actor hidden state, in the rollout
+  and in the chunked replay (``agent_start``), as at an episode start. The
+  advantage is the team's, per environment, so the previous occupant needs no
+  GAE cut of its own: its steps end where its slot went dead (masked).
 * Every update starts all environments afresh with seeds derived from
   (run seed, env, update); with the RNG states in the checkpoint this makes
   ``--resume`` reproduce an uninterrupted run exactly.
@@ -210,16 +215,19 @@ def collect_rollout(
     h_actor = torch.zeros(E * C, H_a, device=device)  # (E*C, H)
     h_critic = torch.zeros(E, H_c, device=device)  # (E, H)
     start = np.ones(E, bool)
+    slot_start = np.zeros((E, C), bool)  # (E, C) new CAV in the slot since the last action
     stats = RolloutStats([], np.zeros(len(RULE_NAMES) - 1, np.int64), 0, 0, {}, 0.0)
     for t in range(cfg.rollout_steps):
         roll.actor_obs[t], roll.critic_state[t] = actor_obs, critic_state
         roll.episode_start[t], roll.alive[t] = start, actor_obs.alive
+        roll.agent_start[t] = start[:, None] | slot_start
         roll.actor_hidden[t] = h_actor.view(E, C, H_a).cpu().numpy()
         roll.critic_hidden[t] = h_critic.cpu().numpy()
         with torch.no_grad():
             start_t = torch.as_tensor(start, device=device)
+            agent_start_t = torch.as_tensor(roll.agent_start[t].reshape(-1), device=device)
             logits, h_actor = actor(
-                to_tensors(flatten_agents(actor_obs), device), h_actor, start_t.repeat_interleave(C)
+                to_tensors(flatten_agents(actor_obs), device), h_actor, agent_start_t
             )
             dist = torch.distributions.Categorical(logits=logits)
             action = dist.sample()  # (E*C,)
@@ -251,6 +259,7 @@ def collect_rollout(
             stats.reward_terms.setdefault(key, []).append(float(values.mean()))
         actor_obs, critic_state = out.actor_obs, out.critic_state
         start = out.terminated | out.truncated
+        slot_start = out.slot_start
     with torch.no_grad():
         next_value, _ = critic(
             to_tensors(critic_state, device), h_critic, torch.as_tensor(start, device=device)
@@ -314,7 +323,7 @@ def make_batch(
     alive_adv = adv[roll.alive]
     if alive_adv.size > 1:
         adv = (adv - alive_adv.mean()) / (alive_adv.std() + 1e-8)
-    starts = np.repeat(roll.episode_start[:, :, None], C, axis=2)
+    starts = roll.agent_start  # (S, E, C): episode starts and refilled slots
     return Batch(
         actor_obs=to_tensors(
             {f.name: per_agent(getattr(actor, f.name)) for f in fields(actor)}, device

@@ -23,6 +23,12 @@ CAV command semantics, identical on every backend:
   only where :meth:`diacc.maps.Map.lane_change_allowed` allows it (the rule
   PSAR applies too).
 
+* ``speed_change_mps[i] = NaN``: no command: the CAV drives itself this step
+  (car following and lane changes of its vType with the simulator's own
+  safety, like the cooperative baseline's CAVs). A CAV of a ``demand``
+  scenario drives itself from its entry until the step it first gets a
+  command, and while it holds no agent slot (:mod:`diacc.env`).
+
 Entries of HDVs in the command arrays are ignored.
 """
 
