@@ -304,6 +304,31 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     print_lines(metric_lines(recorder.summary(), kinds))
 
 
+def _convert_parser(sub) -> None:
+    p = add_command(
+        sub,
+        "convert-checkpoint",
+        "rewrite old (format 1) checkpoints in today's format",
+        "Format 1 kept numpy's RNG state as a pickled array, which a safe load\n"
+        "(torch weights_only) refuses. Converting reads numpy arrays besides tensors\n"
+        "and plain values, nothing else; the networks are copied bit for bit.",
+    )
+    p.add_argument("paths", nargs="+", type=Path, metavar="FILE", help="checkpoints to convert")
+    p.add_argument(
+        "--suffix",
+        default="",
+        help="write FILE with this suffix added to the stem (e.g. -v2) instead of in place",
+    )
+
+
+def cmd_convert(args: argparse.Namespace) -> None:
+    from diacc.algo.checkpoint import convert_checkpoint
+
+    for path in args.paths:
+        dst = path.with_name(f"{path.stem}{args.suffix}{path.suffix}")
+        print(f"converted {path} -> {convert_checkpoint(path, dst)}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="diacc", description=DESCRIPTION)
     parser.add_argument("--version", action="version", version=f"diacc {__version__}")
@@ -311,6 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     _train_parser(sub)
     _bench_parser(sub)
     _simulate_parser(sub)
+    _convert_parser(sub)
     cli_eval.add_parsers(sub)
     cli_scale.add_parsers(sub)
     cli_reproduce.add_parsers(sub)
@@ -321,6 +347,7 @@ COMMANDS = {
     "train": cmd_train,
     "bench": cmd_bench,
     "simulate": cmd_simulate,
+    "convert-checkpoint": cmd_convert,
     **cli_eval.COMMANDS,
     **cli_scale.COMMANDS,
     **cli_reproduce.COMMANDS,

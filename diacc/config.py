@@ -409,6 +409,10 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
             changes[head] = _replace(current, value, f"{full_key}.")
         elif isinstance(value, dict):
             raise ConfigError(f"unknown config key {full_key + '.' + next(iter(value), '')!r}")
+        elif dataclasses.is_dataclass(current):
+            raise ConfigError(
+                f"config key {full_key!r} is a section; set its fields ({full_key}.NAME=VALUE)"
+            )
         else:
             changes[head] = _coerce(current, value, full_key)
     return dataclasses.replace(obj, **changes)
