@@ -118,6 +118,11 @@ def _train_parser(sub) -> None:
     )
     p.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoint.pt")
     p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run that <run-dir> holds (without it, such a directory is refused)",
+    )
+    p.add_argument(
         "--allow-config-change",
         action="store_true",
         help="with --resume: accept settings other than --steps that differ from the checkpoint's",
@@ -127,13 +132,15 @@ def _train_parser(sub) -> None:
 
 def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
     """Defaults <- config file <- named flags <- --set overrides."""
+    from diacc.maps import map_tag
+
     cfg = TrainConfig()
     if args.config:
         if not args.config.exists():
             raise ConfigError(f"config file {args.config} does not exist")
         cfg = override(cfg, read_toml(args.config, ConfigError))
     run_dir = (
-        args.run_dir or f"runs/{args.variant}-{args.backend}-{Path(args.map).stem}-s{args.seed}"
+        args.run_dir or f"runs/{args.variant}-{args.backend}-{map_tag(args.map)}-s{args.seed}"
     )
     cfg = override(
         cfg,
@@ -164,12 +171,15 @@ def cmd_train(args: argparse.Namespace) -> None:
 
     cfg = train_config_from_args(args)
     load_map(cfg.env.map)  # fail fast on a bad map name
+    if args.resume and args.overwrite:
+        raise ConfigError("--resume continues the run that --overwrite would replace: choose one")
     print_config(cfg, "diacc train: resolved config", f"full config: {cfg.run_dir}/config.json")
     run_dir = train(
         cfg,
         resume=args.resume,
         progress=not args.no_progress,
         allow_config_change=args.allow_config_change,
+        overwrite=args.overwrite,
     )
     print(f"run directory: {run_dir}  (checkpoint: {run_dir / 'checkpoint.pt'})")
 

@@ -118,16 +118,17 @@ class Map:
         return _cached(self, "_ends", self._compute_lane_end_m)
 
     def _compute_lane_end_m(self) -> np.ndarray:
-        exists = self.lane_exists()
-        ends = self.segment_ends_m
-        out = np.full(exists.shape, np.inf)
-        n_seg = len(self.segments)
-        for s in range(n_seg):
-            for lane in range(self.max_lanes):
-                for t in range(s, n_seg):
-                    if not exists[t, lane]:
-                        out[s, lane] = ends[t - 1] if t > 0 else 0.0
-                        break
+        # One backward sweep over segments, O(S * L): a lane that exists in
+        # segment s ends where it ends from s + 1; one that does not ends at
+        # s's start. (A search forward from every segment was quadratic: a
+        # 60,000-segment map never loaded.)
+        exists = self.lane_exists()  # (S, L)
+        starts = self.segment_starts_m  # (S,)
+        out = np.full(exists.shape, np.inf)  # (S, L)
+        later = np.full(exists.shape[1], np.inf)  # (L,) the answer for segment s + 1
+        for s in range(len(self.segments) - 1, -1, -1):
+            later = np.where(exists[s], later, starts[s])
+            out[s] = later
         return out
 
     def lane_change_allowed(
@@ -180,6 +181,30 @@ def _cached(road: Map, name: str, compute) -> np.ndarray:
         table.setflags(write=False)
         object.__setattr__(road, name, table)
     return table
+
+
+def map_tag(name_or_path: str | Path) -> str:
+    """A file-name-safe name of a map for run directories: identity by content.
+
+    A shipped map keeps its name (``train-25``); a map file adds the hash of
+    its content to its stem (``mymap-3f2a1b0c``), so that two files of one
+    name in different folders, or one file edited between runs, never share
+    a run directory.
+    """
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        return _safe_name(str(name_or_path))
+    try:
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()[:8]
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read the map file ({exc.strerror})") from None
+    return f"{_safe_name(path.stem)}-{digest}"
+
+
+def _safe_name(text: str) -> str:
+    """``text`` with all but letters, digits, ``-``, ``_`` and ``.`` replaced by ``_``."""
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in text).lstrip(".")
+    return safe[:64] or "map"
 
 
 def available_maps() -> list[str]:

@@ -31,10 +31,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from diacc.config import TrainConfig, override
+from diacc.config import ConfigError, TrainConfig, override
 from diacc.errors import DiaccError
 from diacc.evaluate import CellTask, CellTaskResult, run_tasks_here
 from diacc.grid import Cell
+from diacc.maps import map_tag
 from diacc.policies import EvalSettings, PolicySpec
 
 ENGINES = ("local", "ray")
@@ -149,7 +150,7 @@ def sweep_configs(
     """The configs of variants x maps x seeds, each with its own run directory."""
     configs = []
     for variant, map_name, seed in itertools.product(variants, maps, seeds):
-        run_dir = Path(out_dir) / f"{variant}-{base.env.backend}-{Path(map_name).stem}-s{seed}"
+        run_dir = Path(out_dir) / f"{variant}-{base.env.backend}-{map_tag(map_name)}-s{seed}"
         changes = {"variant": variant, "env.map": map_name, "seed": seed, "run_dir": str(run_dir)}
         configs.append(override(base, changes))
     return configs
@@ -181,6 +182,29 @@ def run_state(cfg: TrainConfig) -> str:
     return "checkpointed" if (run_dir / "checkpoint.pt").exists() else "new"
 
 
+def stored_config_changes(cfg: TrainConfig) -> list[str]:
+    """Fields (but the step budget) where ``cfg`` differs from its run directory's config.json.
+
+    A run found finished is skipped and one found checkpointed is resumed:
+    both only under the settings it was trained with, or the results would be
+    reported under settings they were not made with. Fields added to the
+    config after the run was trained count as their defaults.
+    """
+    from diacc.algo.checkpoint import config_from_checkpoint
+    from diacc.algo.mappo import check_resume_config
+
+    path = Path(cfg.run_dir) / "config.json"
+    if not path.exists():
+        return []
+    try:
+        saved = dataclasses.asdict(config_from_checkpoint({"config": json.loads(path.read_text())}))
+    except (ValueError, TypeError, AttributeError, OSError):
+        raise ConfigError(
+            f"{path} is damaged (not a diacc config); move the run directory away"
+        ) from None
+    return check_resume_config(saved, cfg, path, allow_change=True)
+
+
 def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
     """Train one sweep run: skipped if finished, resumed if it has a checkpoint.
 
@@ -191,6 +215,13 @@ def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
     run_dir = Path(cfg.run_dir)
     base = {"variant": cfg.variant, "map": cfg.env.map, "seed": cfg.seed, "run_dir": cfg.run_dir}
     state = run_state(cfg)
+    changed = stored_config_changes(cfg)
+    if changed:
+        raise ConfigError(
+            f"{run_dir} holds a run trained with another {changed[0]} than this command asks "
+            "for (see its config.json); repeat the options it was started with, or choose "
+            "another --out"
+        )
     if state == "finished":
         return SweepRun(
             **base, status="skipped", host=socket.gethostname(), last=_last_record(run_dir)

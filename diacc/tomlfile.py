@@ -22,3 +22,7 @@ def read_toml(path: Path, error: type[Exception]) -> dict:
         raise error(f"{path}: not valid TOML ({str(exc).splitlines()[0]})") from None
     except IsADirectoryError:
         raise error(f"{path}: is a directory, not a TOML file") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot be read ({exc.strerror or type(exc).__name__})") from None
+    except RecursionError:  # a file of thousands of nested arrays or tables
+        raise error(f"{path}: not valid TOML (nested too deeply)") from None

@@ -34,7 +34,7 @@ from diacc.config import (
     TrainConfig,
 )
 from diacc.grid import GRID_NAMES, Cell, load_grid
-from diacc.maps import load_map
+from diacc.maps import load_map, map_tag
 
 #: Non-learning columns of every table (see :mod:`diacc.policies`).
 BASELINE_POLICIES = ("pure-hdv", "cooperative")
@@ -140,7 +140,7 @@ class RunSpec:
     @property
     def name(self) -> str:
         suffix = "" if self.backend == DEFAULT_TRAIN_BACKEND else f"-{self.backend}"
-        return f"{self.variant}-{Path(self.map).stem}-s{self.seed}{suffix}"
+        return f"{self.variant}-{map_tag(self.map)}-s{self.seed}{suffix}"
 
 
 @dataclass(frozen=True)

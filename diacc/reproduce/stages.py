@@ -74,17 +74,11 @@ def check_existing_runs(plan: Plan) -> None:
     added to the config after the run was trained count as their defaults,
     as when its checkpoint is evaluated.
     """
-    from dataclasses import asdict
-
-    from diacc.algo.checkpoint import config_from_checkpoint
-    from diacc.algo.mappo import check_resume_config
+    from diacc.scaleout import stored_config_changes
 
     for run in plan.runs:
         path = plan.run_dir(run) / "config.json"
-        if not path.exists():
-            continue
-        saved = asdict(config_from_checkpoint({"config": json.loads(path.read_text())}))
-        changed = check_resume_config(saved, plan.train_config(run), path, allow_change=True)
+        changed = stored_config_changes(plan.train_config(run))
         if changed:
             raise ConfigError(
                 f"{path.parent} was trained with another {changed[0]} than this command asks "
