@@ -139,9 +139,7 @@ def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
         if not args.config.exists():
             raise ConfigError(f"config file {args.config} does not exist")
         cfg = override(cfg, read_toml(args.config, ConfigError))
-    run_dir = (
-        args.run_dir or f"runs/{args.variant}-{args.backend}-{map_tag(args.map)}-s{args.seed}"
-    )
+    run_dir = args.run_dir or f"runs/{args.variant}-{args.backend}-{map_tag(args.map)}-s{args.seed}"
     cfg = override(
         cfg,
         {

@@ -409,7 +409,7 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
             changes[head] = _replace(current, value, f"{full_key}.")
         elif isinstance(value, dict):
             raise ConfigError(f"unknown config key {full_key + '.' + next(iter(value), '')!r}")
-        elif dataclasses.is_dataclass(current):
+        elif dataclasses.is_dataclass(current) and not isinstance(value, type(current)):
             raise ConfigError(
                 f"config key {full_key!r} is a section; set its fields ({full_key}.NAME=VALUE)"
             )

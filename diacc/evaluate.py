@@ -318,10 +318,11 @@ def write_cell(out_dir: Path, cell: Cell, results: list[EpisodeResult]) -> None:
     cells_dir = out_dir / CELLS_DIR
     cells_dir.mkdir(parents=True, exist_ok=True)
     speeds = [row for r in results for row in speed_rows(r)]
-    _atomic_write(cells_dir / f"{cell.key}.speeds.csv.gz", _gzip(_csv_bytes(SPEED_COLUMNS, speeds)))
+    speeds_bytes = _gzip(_csv_bytes(SPEED_COLUMNS, speeds))
+    _atomic_write(cells_dir / f"{cell.file_key}.speeds.csv.gz", speeds_bytes)
     columns = list(results[0].row)
     _atomic_write(
-        cells_dir / f"{cell.key}.episodes.csv",
+        cells_dir / f"{cell.file_key}.episodes.csv",
         _csv_bytes(columns, [[r.row[c] for c in columns] for r in results]),
     )
 
@@ -459,7 +460,7 @@ def evaluate(
     meta = {**policy.describe(), **settings.describe()}
     _check_meta(out_dir, meta)
     with run_log(out_dir / LOG_FILE):
-        done = [_drop_if_damaged(out_dir, c.key) == list(range(episodes)) for c in cells]
+        done = [_drop_if_damaged(out_dir, c.file_key) == list(range(episodes)) for c in cells]
         todo = [c for c, d in zip(cells, done, strict=True) if not d]
         skipped = [c for c, d in zip(cells, done, strict=True) if d]
         pending: dict[str, list[EpisodeResult]] = {c.key: [] for c in todo}

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from diacc.errors import DiaccError
-from diacc.maps import MapError, load_map
+from diacc.maps import MapError, load_map, map_tag
 from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError
 from diacc.tomlfile import read_toml
 
@@ -65,6 +65,20 @@ class Cell:
     def key(self) -> str:
         """Stable, file-name-safe identifier, e.g. ``train-25_N25_rho0.40_D1``."""
         return f"{self.map}_N{self.n_vehicles}_rho{self.cav_penetration:.2f}_{self.style_mix}"
+
+    @property
+    def file_key(self) -> str:
+        """:attr:`key` made safe as a file name inside ``--out``.
+
+        A shipped map's cell keeps its key; a map file's path is replaced by
+        its stem and content hash (:func:`~diacc.maps.map_tag`): an absolute
+        path once wrote the results next to the map file, a relative one
+        crashed after the episodes ran. (:attr:`key` itself stays the cell's
+        identity, from which its seeds are drawn.)
+        """
+        if Path(self.map).suffix != ".toml":
+            return self.key
+        return self.key.replace(self.map, map_tag(self.map), 1)
 
     def scenario(
         self, cav_penetration: float | None = None, base: Scenario | None = None

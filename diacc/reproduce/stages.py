@@ -169,7 +169,7 @@ def is_complete(out_dir: Path, cells: tuple[Cell, ...], episodes: int) -> bool:
         return False
     if speeds.stat().st_mtime_ns < merged.stat().st_mtime_ns:
         return False
-    if any(check_cell_files(out_dir, c.key) != (list(range(episodes)), None) for c in cells):
+    if any(check_cell_files(out_dir, c.file_key) != (list(range(episodes)), None) for c in cells):
         return False
     have = {(row_cell_key(r), int(r["episode"])) for r in read_csv(merged)}
     return all((c.key, e) in have for c in cells for e in range(episodes))
@@ -241,7 +241,7 @@ def _say(line: str) -> None:
 
 def _unfinished(plan: Plan, job: EvalJob) -> list[Cell]:
     episodes = list(range(plan.config.budget.episodes_per_cell))
-    return [c for c in job.cells if check_cell_files(plan.eval_dir(job), c.key)[0] != episodes]
+    return [c for c in job.cells if check_cell_files(plan.eval_dir(job), c.file_key)[0] != episodes]
 
 
 def run_job(task: _JobTask, say: Say = _say) -> int:
