@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from diacc import __version__, cli_eval, cli_reproduce, cli_scale
@@ -362,6 +364,19 @@ COMMANDS = {
 }
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like SIGINT's KeyboardInterrupt."""
+
+    signum = signal.SIGTERM
+
+    def __str__(self) -> str:
+        return "terminated (SIGTERM)"
+
+
+def _terminated(signum: int, frame) -> None:
+    raise Terminated
+
+
 def main(argv: list[str] | None = None) -> int:
     from diacc.runlog import enable_stderr
 
@@ -369,6 +384,18 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded by `reproduce`
     enable_stderr()
+    main_thread = threading.current_thread() is threading.main_thread()
+    # SIGTERM as SIGINT: an exception, so that every `finally` ends its children
+    # (pool and vector-env workers, SUMO, a local Ray) instead of orphaning them.
+    previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
+    try:
+        return _run(args)
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         COMMANDS[args.command](args)
         sys.stdout.flush()  # here, so that a closed pipe is caught below
