@@ -220,7 +220,7 @@ def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
         raise ConfigError(
             f"{run_dir} holds a run trained with another {changed[0]} than this command asks "
             "for (see its config.json); repeat the options it was started with, or choose "
-            "another --out"
+            "another output directory"
         )
     if state == "finished":
         return SweepRun(
