@@ -28,6 +28,7 @@ Unknown keys, maps or mixes raise :class:`GridError` with a one-line message.
 from __future__ import annotations
 
 import itertools
+import math
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +42,8 @@ from diacc.tomlfile import read_toml
 
 #: Named grids (see module docstring).
 GRID_NAMES = ("train", "zero-shot")
+#: Most cells of one grid file (a product of long lists must be an error, not a hang).
+MAX_CELLS = 10_000
 #: Columns that identify a cell in every results file, in this order.
 CELL_KEYS = ("map", "n_vehicles", "cav_penetration", "style_mix")
 #: First word of every evaluation seed's entropy; training seeds start with the
@@ -116,6 +119,8 @@ class Cell:
 
 def make_cell(values: dict, source: str = "<grid>") -> Cell:
     """Validate one cell mapping (as read from TOML or CSV) into a :class:`Cell`."""
+    if not isinstance(values, dict):
+        raise GridError(f"{source}: a grid cell must be a table of {', '.join(CELL_KEYS)}")
     unknown = set(values) - set(CELL_KEYS)
     if unknown:
         raise GridError(
@@ -125,6 +130,8 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
     missing = [k for k in CELL_KEYS if k not in values]
     if missing:
         raise GridError(f"{source}: grid cell is missing key {missing[0]!r}")
+    if not isinstance(values["map"], str):
+        raise GridError(f"{source}: map must be a map name or .toml path, got {values['map']!r}")
     try:
         load_map(values["map"])
     except MapError as exc:
@@ -134,7 +141,7 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
         raise GridError(f"{source}: n_vehicles must be a positive integer, got {n!r}")
     if not isinstance(rho, (int, float)) or isinstance(rho, bool) or not 0 <= rho <= 1:
         raise GridError(f"{source}: cav_penetration must be a number in [0, 1], got {rho!r}")
-    if mix not in STYLE_MIXES:
+    if not isinstance(mix, str) or mix not in STYLE_MIXES:
         raise GridError(f"{source}: unknown style mix {mix!r}; known: {', '.join(STYLE_MIXES)}")
     cell = Cell(str(values["map"]), int(n), float(rho), str(mix))
     try:
@@ -151,6 +158,8 @@ def _product(values: dict, source: str) -> list[Cell]:
         "cav_penetration": [0.4],
         "style_mix": ["D1"],
     }
+    if not isinstance(values, dict):
+        raise GridError(f"{source}: [product] must be a table of value lists")
     unknown = set(values) - set(CELL_KEYS)
     if unknown:
         raise GridError(
@@ -161,6 +170,9 @@ def _product(values: dict, source: str) -> list[Cell]:
     for key, value in lists.items():
         if not isinstance(value, list) or not value:
             raise GridError(f"{source}: product key {key!r} must be a non-empty list")
+    size = math.prod(len(v) for v in lists.values())
+    if size > MAX_CELLS:
+        raise GridError(f"{source}: the product has {size} cells; at most {MAX_CELLS}")
     return [
         make_cell(dict(zip(CELL_KEYS, combo, strict=True)), source)
         for combo in itertools.product(*(lists[k] for k in CELL_KEYS))
@@ -195,7 +207,10 @@ def load_grid(name_or_path: str | Path) -> list[Cell]:
             f"{path}: unknown top-level key {sorted(unknown)[0]!r}; "
             "use [[cells]] tables or one [product] table"
         )
-    cells = [make_cell(c, f"{path} cells[{i}]") for i, c in enumerate(data.get("cells", []))]
+    listed = data.get("cells", [])
+    if not isinstance(listed, list) or len(listed) > MAX_CELLS:
+        raise GridError(f"{path}: 'cells' must be a list of at most {MAX_CELLS} [[cells]] tables")
+    cells = [make_cell(c, f"{path} cells[{i}]") for i, c in enumerate(listed)]
     if "product" in data:
         cells += _product(data["product"], f"{path} [product]")
     if not cells:

@@ -36,6 +36,9 @@ SEGMENT_KINDS = ("multilane", "reduction25", "reduction50")
 DROP_SIDES = ("left", "right")
 #: The largest change in lane count allowed between two consecutive segments.
 MAX_LANE_JUMP = 2
+#: Most lanes of a segment (per-lane tables are (segments, lanes): a typo such as
+#: ``lanes = 40000000`` must be an error, not an out-of-memory).
+MAX_LANES = 16
 
 _TOP_KEYS = {"name", "description", "lane_width_m", "drop_side", "segments"}
 _SEGMENT_KEYS = {"kind", "length_m", "lanes", "speed_limit_mps"}
@@ -237,9 +240,14 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
     def fail(field: str, why: str) -> MapError:
         return MapError(f"{source}: field '{field}' {why}")
 
+    if not isinstance(data, dict):
+        raise MapError(f"{source}: a map must be a table, got {type(data).__name__}")
     unknown = set(data) - _TOP_KEYS
     if unknown:
         raise fail(sorted(unknown)[0], "is not a known key")
+    for key in ("name", "description"):
+        if key in data and not isinstance(data[key], str):
+            raise fail(key, f"must be a string, got {data[key]!r}")
     for key in ("name", "lane_width_m", "segments"):
         if key not in data:
             raise fail(key, "is missing")
@@ -247,7 +255,7 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
     if not _is_number(width) or not 2.0 <= width <= 5.0:
         raise fail("lane_width_m", f"must be a number in [2, 5] m, got {width!r}")
     drop_side = data.get("drop_side", "left")
-    if drop_side not in DROP_SIDES:
+    if not isinstance(drop_side, str) or drop_side not in DROP_SIDES:
         raise fail("drop_side", f"must be one of {DROP_SIDES}, got {drop_side!r}")
     raw_segments = data["segments"]
     if not isinstance(raw_segments, list) or not raw_segments:
@@ -256,20 +264,22 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
     segments = []
     for i, seg in enumerate(raw_segments):
         where = f"segments[{i}]"
+        if not isinstance(seg, dict):
+            raise fail(where, f"must be a table of {', '.join(sorted(_SEGMENT_KEYS))}")
         unknown = set(seg) - _SEGMENT_KEYS
         if unknown:
             raise fail(f"{where}.{sorted(unknown)[0]}", "is not a known key")
         for key in sorted(_SEGMENT_KEYS):
             if key not in seg:
                 raise fail(f"{where}.{key}", "is missing")
-        if seg["kind"] not in SEGMENT_KINDS:
+        if not isinstance(seg["kind"], str) or seg["kind"] not in SEGMENT_KINDS:
             raise fail(f"{where}.kind", f"must be one of {SEGMENT_KINDS}, got {seg['kind']!r}")
         length = seg["length_m"]
         if not _is_number(length) or not 0 < length < math.inf:
             raise fail(f"{where}.length_m", f"must be a finite positive number, got {length!r}")
         lanes = seg["lanes"]
-        if not isinstance(lanes, int) or isinstance(lanes, bool) or lanes < 1:
-            raise fail(f"{where}.lanes", f"must be an integer >= 1, got {lanes!r}")
+        if not isinstance(lanes, int) or isinstance(lanes, bool) or not 1 <= lanes <= MAX_LANES:
+            raise fail(f"{where}.lanes", f"must be an integer in [1, {MAX_LANES}], got {lanes!r}")
         speed = seg["speed_limit_mps"]
         if not _is_number(speed) or not 0 < speed <= 70:
             raise fail(f"{where}.speed_limit_mps", f"must be in (0, 70] m/s, got {speed!r}")
