@@ -1,5 +1,5 @@
 """Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | simulate |
-bench``.
+bench | convert-checkpoint``.
 
 Every command turns known failures (bad map, backend, config key, checkpoint,
 crashed simulator: a :class:`~diacc.errors.DiaccError`) into a one-line

@@ -27,6 +27,7 @@ import numpy as np
 from diacc.errors import DiaccError
 from diacc.evaluate import SPEEDS_FILE, load_episodes, read_csv
 from diacc.maps import SEGMENT_KINDS
+from diacc.tomlfile import read_json_object
 
 #: Panel title -> progress keys tried in order (first one a run has is used).
 CURVE_PANELS: dict[str, tuple[str, ...]] = {
@@ -92,6 +93,8 @@ def read_progress(run_dir: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray
                 record = json.loads(line)
             except json.JSONDecodeError:
                 raise PlotError(f"{progress}:{line_no} is not valid JSON") from None
+            if not isinstance(record, dict):
+                raise PlotError(f"{progress}:{line_no} is not a JSON object")
             step = record.get("global_step")
             for key, value in record.items():
                 if isinstance(value, (int, float)) and step is not None:
@@ -127,7 +130,10 @@ def _run_group(run_dir: Path) -> str:
     config = run_dir / "config.json"
     if not config.exists():
         return run_dir.name
-    data = json.loads(config.read_text())
+    try:
+        data = read_json_object(config, PlotError)
+    except PlotError:  # a damaged config.json: the curves can still be drawn
+        return run_dir.name
     # ``env.backend`` since the config tree was nested; top-level in older runs
     backend = data.get("env", {}).get("backend", data.get("backend", "?"))
     return f"{data.get('variant', run_dir.name)} ({backend})"

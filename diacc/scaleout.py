@@ -37,6 +37,7 @@ from diacc.evaluate import CellTask, CellTaskResult, run_tasks_here
 from diacc.grid import Cell
 from diacc.maps import map_tag
 from diacc.policies import EvalSettings, PolicySpec
+from diacc.tomlfile import read_json_object
 
 ENGINES = ("local", "ray")
 RAY_MISSING = 'Ray is not installed: pip install -e ".[ray]" (or use --engine local)'
@@ -160,11 +161,12 @@ def _last_record(run_dir: Path) -> dict:
     path = run_dir / "progress.jsonl"
     if not path.exists():
         return {}
-    lines = [line for line in path.read_text().splitlines() if line.strip()]
+    lines = [line for line in path.read_text(errors="replace").splitlines() if line.strip()]
     try:
-        return json.loads(lines[-1]) if lines else {}
-    except json.JSONDecodeError:
+        record = json.loads(lines[-1]) if lines else {}
+    except (json.JSONDecodeError, RecursionError):
         return {}
+    return record if isinstance(record, dict) else {}  # a damaged row: the run is not finished
 
 
 def planned_steps(cfg: TrainConfig) -> int:
@@ -196,12 +198,11 @@ def stored_config_changes(cfg: TrainConfig) -> list[str]:
     path = Path(cfg.run_dir) / "config.json"
     if not path.exists():
         return []
+    stored = read_json_object(path, ConfigError)
     try:
-        saved = dataclasses.asdict(config_from_checkpoint({"config": json.loads(path.read_text())}))
-    except (ValueError, TypeError, AttributeError, OSError):
-        raise ConfigError(
-            f"{path} is damaged (not a diacc config); move the run directory away"
-        ) from None
+        saved = dataclasses.asdict(config_from_checkpoint({"config": stored}))
+    except ValueError as exc:
+        raise ConfigError(f"{path}: not a usable diacc config ({exc})") from None
     return check_resume_config(saved, cfg, path, allow_change=True)
 
 

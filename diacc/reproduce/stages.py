@@ -16,7 +16,6 @@
 
 from __future__ import annotations
 
-import json
 import shutil
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -38,6 +37,7 @@ from diacc.policies import EvalSettings, PolicySpec, action_mode
 from diacc.reproduce.plan import EvalJob, Execution, Plan
 from diacc.scaleout import SweepRun, planned_steps, run_state, run_sweep, train_run
 from diacc.threads import worker_environment
+from diacc.tomlfile import read_json_object
 from diacc.workpool import map_resilient
 
 #: Where a stage's one-line progress messages go (``print`` in the CLI).
@@ -102,7 +102,7 @@ def check_existing_evaluations(plan: Plan) -> None:
         path = plan.eval_dir(job) / META_FILE
         if not path.exists():
             continue
-        meta = json.loads(path.read_text())
+        meta = read_json_object(path, ConfigError)
         wanted = job_settings(plan, job).describe()
         if job.run is not None:
             wanted["actions"] = action_mode(job_spec(plan, job).sampled)
@@ -180,7 +180,10 @@ def _drop_stale(out_dir: Path, trained_steps: int, say: Say) -> None:
     meta_path = out_dir / META_FILE
     if not meta_path.exists():
         return
-    evaluated = json.loads(meta_path.read_text()).get("trained_steps")
+    try:
+        evaluated = read_json_object(meta_path, ConfigError).get("trained_steps")
+    except ConfigError:  # damaged: the results are recomputed like stale ones
+        evaluated = None
     if evaluated != trained_steps:
         say(
             f"  {out_dir}: results of the checkpoint at {evaluated} steps removed; "
