@@ -273,3 +273,47 @@ def test_lane_end_is_linear_in_segments():
     for side in ("left", "right"):
         small = Map("small", "", 3.2, side, segments[:200])
         assert np.array_equal(small.lane_end_m(), _naive_lane_end_m(small))
+
+
+# ----------------------------------------------------------------------------- 7: one line
+def test_damaged_results_and_logs_are_one_line(tmp_path, capsys):
+    grid = tmp_path / "grid.toml"
+    grid.write_text('[[cells]]\nmap = "train-25"\nn_vehicles = 6\ncav_penetration = 0.5\n'
+                    'style_mix = "D1"\n')  # fmt: skip
+    out = tmp_path / "out"
+    argv = ["eval", "--policy", "cooperative", "--grid", str(grid), "--episodes", "1"]
+    argv += ["--episode-steps", "3", "--no-progress", "--out"]
+    assert main([*argv, str(out)]) == 0
+    # An --out that is a file
+    err = _one_line_error(capsys, [*argv, str(grid)])
+    assert f"cannot use {grid} as the eval directory" in err
+    # A garbled meta.json
+    (out / "meta.json").write_text("{garbled")
+    assert "meta.json: damaged (not valid JSON)" in _one_line_error(capsys, [*argv, str(out)])
+    assert "meta.json: damaged" in _one_line_error(capsys, ["table", str(out)])
+    # A non-numeric field in episodes.csv
+    episodes = out / "episodes.csv"
+    header, row = episodes.read_text().splitlines()[:2]
+    column = header.split(",").index("mean_speed_mps")
+    fields = row.split(",")
+    fields[column] = "fast"
+    episodes.write_text(header + "\n" + ",".join(fields) + "\n")
+    err = _one_line_error(capsys, ["table", str(out)])
+    assert "episodes.csv:2: field 'mean_speed_mps' is not a number ('fast')" in err
+    # A row of progress.jsonl that is not a record
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "progress.jsonl").write_text('{"update": 1, "global_step": 20}\n[1, 2]\n')
+    err = _one_line_error(capsys, ["plot", "curves", str(run), "--out", str(tmp_path / "c")])
+    assert "progress.jsonl:2 is not a JSON object" in err
+
+
+def test_a_locked_results_directory_is_refused(tmp_path, capsys):
+    from diacc.runlog import locked_dir
+
+    out = tmp_path / "out"
+    with locked_dir(out, "eval"):
+        err = _one_line_error(
+            capsys, ["eval", "--policy", "pure-hdv", "--episodes", "1", "--out", str(out)]
+        )
+    assert "is in use by another diacc eval" in err
