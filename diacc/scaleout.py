@@ -228,7 +228,9 @@ def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
             **base, status="skipped", host=socket.gethostname(), last=_last_record(run_dir)
         )
     start = time.perf_counter()
-    train(cfg, resume=state == "checkpointed", progress=progress)
+    # A "new" run may hold the files of one killed before its first checkpoint, with
+    # this very config (checked above): nothing to keep, so it starts again.
+    train(cfg, resume=state == "checkpointed", overwrite=state == "new", progress=progress)
     return SweepRun(
         **base,
         status="resumed" if state == "checkpointed" else "trained",
