@@ -560,22 +560,24 @@ def train(
     # The first vehicles' placement checks that the scenario fits the map, before anything
     # is written (it used to fail in the first reset, after config.json and tb/ existed).
     draw_population(cfg.env.scenario, load_map(cfg.env.map), cfg.seed)
+    device = resolve_device(cfg.device)
     run_dir = Path(cfg.run_dir)
     with locked_dir(run_dir, "train"):
         claim_run_dir(run_dir, resume, overwrite)
-        return _start(cfg, run_dir, resume, progress, stop_after_updates, allow_config_change)
+        return _start(cfg, run_dir, device, resume, progress, stop_after_updates, allow_config_change)
 
 
 def _start(
     cfg: TrainConfig,
     run_dir: Path,
+    device: torch.device,
     resume: bool,
     progress: bool,
     stop_after_updates: int | None,
     allow_config_change: bool,
 ) -> Path:
+    """:func:`train` once the inputs are checked and ``run_dir`` is locked and claimed."""
     ckpt_path = run_dir / "checkpoint.pt"
-    device = resolve_device(cfg.device)
     seed_everything(cfg.seed)
     set_torch_threads(cfg.torch_threads)
     agent = make_agent(cfg, device)
