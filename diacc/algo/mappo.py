@@ -564,7 +564,9 @@ def train(
     run_dir = Path(cfg.run_dir)
     with locked_dir(run_dir, "train"):
         claim_run_dir(run_dir, resume, overwrite)
-        return _start(cfg, run_dir, device, resume, progress, stop_after_updates, allow_config_change)
+        return _start(
+            cfg, run_dir, device, resume, progress, stop_after_updates, allow_config_change
+        )
 
 
 def _start(
