@@ -14,7 +14,7 @@ import math
 import tempfile
 from pathlib import Path
 
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from diacc.config import TrainConfig, _leaves, override, validate
@@ -99,6 +99,9 @@ map_table = st.fixed_dictionaries(
 
 @SETTINGS
 @given(map_table)
+@example({"name": "x", "lane_width_m": 3.2, "segments": [1]})  # a segment that is not a table
+@example({"name": "x", "lane_width_m": 3.2, "segments": [{"kind": "multilane", "length_m": 9.0,
+          "lanes": 40_000_000, "speed_limit_mps": 20.0}]})  # fmt: skip
 def test_any_map_table_gives_a_map_or_one_line(table):
     result = _load(load_map, _toml(table))
     if isinstance(result, Map):
