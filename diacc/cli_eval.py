@@ -78,7 +78,8 @@ def add_parsers(sub) -> None:
     p.add_argument(
         "--grid",
         default="train",
-        help="train (paper training cells), zero-shot (test maps), or a grid .toml file",
+        help="train (paper training cells), zero-shot (the paper's zero-shot rows), "
+        "zero-shot-product (32 test-map cells of our own), or a grid .toml file",
     )
     p.add_argument("--episodes", type=int, default=10, help="seeded episodes per cell")
     p.add_argument("--out", required=True, type=Path, help="results directory (required)")

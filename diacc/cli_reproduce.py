@@ -8,12 +8,15 @@ not by argparse ``choices``, so that a bad item gives one line, not a usage).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 from pathlib import Path
 
 from diacc import cli_scale
 from diacc.config import ACTION_MODES, BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError
 from diacc.grid import GRID_NAMES
+from diacc.reproduce.plan import DEFAULT_GRIDS
+from diacc.sweepaxes import STUDIES
 
 
 def _epilog() -> str:
@@ -30,9 +33,10 @@ def _epilog() -> str:
 
 LAYOUT_HELP = """\
 layout of --out:
-  runs/<variant>-<map>-s<seed>[-<backend>]/   training runs
+  runs/<variant>-<map>-s<seed>[-<backend>][-<setting>]/   training runs
   eval/<backend>/<policy>/                    evaluation results
-  tables/table2.{md,tex} table3.{md,tex}      Tables II (training grid), III (zero-shot)
+  tables/table2.{md,tex} table3.{md,tex}      Tables II (training grid), III (the paper's
+                                              zero-shot rows; table3-product: the product grid)
   figures/curves-<map>.png  speeds-<backend>-<map>.png   (and .pdf)
   transfer.md transfer.csv                    sim-to-sim transfer
   manifest.json                               invocations, versions, plan, stages
@@ -65,7 +69,7 @@ def add_parsers(sub) -> None:
         "--zero-shot-cells",
         type=int,
         default=None,
-        help="zero-shot cells kept per test map, evenly spread (0: all 16)",
+        help="zero-shot cells kept per test map, evenly spread (0: all)",
     )
     p.add_argument(
         "--transfer",
@@ -80,7 +84,11 @@ def add_parsers(sub) -> None:
         "--backends", default=",".join(BACKENDS), help="comma-separated backends to evaluate on"
     )
     p.add_argument("--train-backend", default="highway", help="backend the variants train on")
-    p.add_argument("--grids", default=",".join(GRID_NAMES), help="comma-separated grids")
+    p.add_argument(
+        "--grids",
+        default=",".join(DEFAULT_GRIDS),
+        help=f"comma-separated, of {', '.join(GRID_NAMES)} (zero-shot: the paper's rows)",
+    )
     p.add_argument(
         "--style-preset",
         default="realistic",
@@ -111,6 +119,20 @@ def add_parsers(sub) -> None:
         "torch_threads=2 when --jobs runs share a machine",
     )
     p.add_argument(
+        "--sweep",
+        action="append",
+        default=[],
+        metavar="KEY=V1,V2",
+        help="train every variant with each of these config values, as in 'diacc sweep' "
+        "(repeatable: the product); one table column and curve per setting",
+    )
+    p.add_argument(
+        "--study",
+        default=None,
+        help=f"one of the paper's selection studies as a --sweep axis: {', '.join(STUDIES)} "
+        "(see 'diacc sweep --help')",
+    )
+    p.add_argument(
         "--jobs",
         type=int,
         default=1,
@@ -129,6 +151,7 @@ def _names(text: str) -> tuple[str, ...]:
 def cmd_reproduce(args: argparse.Namespace) -> None:
     from diacc.reproduce.pipeline import reproduce
     from diacc.reproduce.plan import Execution, describe_plan, make_plan, resolve_config
+    from diacc.sweepaxes import axis_texts, sweep_settings
 
     if args.jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
@@ -155,8 +178,12 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
         train_sets=tuple(args.set),
     )
     plan = make_plan(config, notes)
-    for run in plan.runs[:1]:
-        plan.train_config(run)  # one-line error for a bad --set before anything runs
+    # one-line error for a bad --set or --sweep before anything runs
+    base = plan.train_config(plan.runs[0])
+    axes = axis_texts(args.sweep, args.study)
+    if axes:
+        settings = tuple(sweep_settings(base, axes))
+        plan = make_plan(dataclasses.replace(config, settings=settings), notes)
     say = functools.partial(print, flush=True)
     for line in describe_plan(plan):
         say(line)

@@ -249,7 +249,14 @@ class EventConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Reward of paper eq. (reward_all..reward_global) with the authors' magnitudes."""
+    """Reward of paper eq. (reward_all..reward_global) with the authors' magnitudes.
+
+    ``w_global`` is not derived from ``w_ego``: each is its own field. The paper
+    ties them as w_g = 1 - w_e in its w_e-selection study (a larger w_e means
+    "the reduced weight on the global reward"; its best w_e = 0.6 goes with
+    the default w_g = 0.4), so ``--study w_e`` (:data:`diacc.sweepaxes.STUDIES`)
+    moves both together; ``--sweep env.reward.w_ego=...`` alone keeps w_g.
+    """
 
     w_ego: float = 0.6
     w_global: float = 0.4
@@ -470,6 +477,8 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "env.obs.n_neighbours": (1, None, False),
     "env.obs.max_vehicles": (1, None, False),
     "env.obs.lane_window_m": (0, None, True),
+    "env.reward.w_ego": (0, None, False),
+    "env.reward.w_global": (0, None, False),
     "env.reward.tau_init": (0, None, True),
     "env.reward.tau_final": (0, None, True),
     "env.reward.tau_anneal_fraction": (0, 1, True),

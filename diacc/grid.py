@@ -4,8 +4,14 @@ A :class:`Cell` is one traffic condition of paper Tables II-III. Grids:
 
 * ``train``: the paper's training cells, ``train-25`` and ``train-50`` with
   N = 25, rho = 0.4, mix D1.
-* ``zero-shot``: the test maps ``test-25`` / ``test-50`` x N in {20, 25, 30, 40}
-  x rho in {0.2, 0.3} x mixes {D2, D3} (paper, Experimental Setup).
+* ``zero-shot``: the paper's zero-shot rows (Tables III and IV), five per
+  test map: N=25 rho=0.4 D2; N=25 rho=0.4 D3; N=20 rho=0.4 D1; N=30 rho=0.3
+  D1; N=40 rho=0.2 D1, on ``test-25`` and on ``test-50``.
+* ``zero-shot-product``: a wider grid of our own, the product of the values
+  the paper's Experimental Setup lists, ``test-25`` / ``test-50`` x N in
+  {20, 25, 30, 40} x rho in {0.2, 0.3} x mixes {D2, D3} (32 cells). It holds
+  none of the paper's five rows (they keep rho = 0.4 or mix D1), which is why
+  it is not the paper's grid.
 * a TOML file, either listing cells explicitly::
 
       [[cells]]
@@ -41,7 +47,16 @@ from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError
 from diacc.tomlfile import read_toml
 
 #: Named grids (see module docstring).
-GRID_NAMES = ("train", "zero-shot")
+GRID_NAMES = ("train", "zero-shot", "zero-shot-product")
+#: The paper's zero-shot rows (n_vehicles, cav_penetration, style_mix), in its
+#: order; Tables III (25 % reduction) and IV (50 %) run each on the test map.
+PAPER_ZERO_SHOT_ROWS = (
+    (25, 0.4, "D2"),
+    (25, 0.4, "D3"),
+    (20, 0.4, "D1"),
+    (30, 0.3, "D1"),
+    (40, 0.2, "D1"),
+)
 #: Most cells of one grid file (a product of long lists must be an error, not a hang).
 MAX_CELLS = 10_000
 #: Columns that identify a cell in every results file, in this order.
@@ -180,10 +195,16 @@ def _product(values: dict, source: str) -> list[Cell]:
 
 
 def load_grid(name_or_path: str | Path) -> list[Cell]:
-    """Cells of a named grid (``train``, ``zero-shot``) or of a TOML grid file."""
+    """Cells of a named grid (:data:`GRID_NAMES`) or of a TOML grid file."""
     if str(name_or_path) == "train":
         return _product({}, "train")
     if str(name_or_path) == "zero-shot":
+        return [
+            make_cell(dict(zip(CELL_KEYS, (map_name, *row), strict=True)), "zero-shot")
+            for map_name in ("test-25", "test-50")
+            for row in PAPER_ZERO_SHOT_ROWS
+        ]
+    if str(name_or_path) == "zero-shot-product":
         return _product(
             {
                 "map": ["test-25", "test-50"],
@@ -191,7 +212,7 @@ def load_grid(name_or_path: str | Path) -> list[Cell]:
                 "cav_penetration": [0.2, 0.3],
                 "style_mix": ["D2", "D3"],
             },
-            "zero-shot",
+            "zero-shot-product",
         )
     path = Path(name_or_path)
     if path.suffix != ".toml":

@@ -1,14 +1,16 @@
 """Figures: training curves over seeds, and per-segment speed distributions.
 
 * :func:`plot_curves`: collision rate, global reward and individual reward
-  against environment steps, one line per variant (mean over the runs/seeds
-  of that variant) with a shaded +-1 std band over seeds (a single seed has
+  (the mean ego reward of the CAVs) against environment steps, one line per
+  variant and setting (mean over the seeds of runs that differ only in their
+  seed, :func:`run_groups`) with a shaded +-1 std band over seeds (a single seed has
   no band, and its legend says so). Every panel has its own legend; the
   collision rate keeps its [0, 1] axis, and a nearly flat reward curve gets
   an axis of at least +-5 % of its level instead of a magnified noise band.
   Each run is read from its
   ``progress.jsonl`` (written by the trainer), else from its TensorBoard
-  event files; runs are grouped by ``config.json`` (variant, backend).
+  event files; runs are grouped by ``config.json`` (variant, backend, and
+  every other value that differs between the runs given).
 * :func:`plot_speeds`: box plots of the per-vehicle speed samples by segment
   kind (multi-lane, 25 % and 50 % reduction), one box per policy, plus one
   Gaussian KDE panel per segment kind.
@@ -38,13 +40,10 @@ CURVE_PANELS: dict[str, tuple[str, ...]] = {
         "episode/global_reward",
         "global_reward",
     ),
-    "Individual reward": (
-        "reward/ego",
-        "reward/ego_softmin",
-        "reward/individual",
-        "episode/individual_reward",
-        "individual_reward",
-    ),
+    # The mean ego reward r_e over the CAVs on the road (``reward/individual``), not
+    # ``reward/ego_softmin``: the softmin-weighted sum follows the worst CAV ever
+    # more closely as tau anneals, so it falls even while every CAV improves.
+    "Individual reward": ("reward/individual",),
 }
 #: Colours per policy / variant, stable across figures.
 PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2")
@@ -126,17 +125,65 @@ def read_progress(run_dir: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray
     return out
 
 
-def _run_group(run_dir: Path) -> str:
-    config = run_dir / "config.json"
-    if not config.exists():
-        return run_dir.name
-    try:
-        data = read_json_object(config, PlotError)
-    except PlotError:  # a damaged config.json: the curves can still be drawn
-        return run_dir.name
-    # ``env.backend`` since the config tree was nested; top-level in older runs
-    backend = data.get("env", {}).get("backend", data.get("backend", "?"))
-    return f"{data.get('variant', run_dir.name)} ({backend})"
+#: Config keys that never split curves: seeds are what a curve pools, the rest
+#: decide where and how fast a run trains, not what it learns (a longer
+#: ``total_steps`` is the same run trained further), or are in the name already.
+CURVE_POOLED_KEYS = frozenset(
+    {
+        "seed",
+        "run_dir",
+        "total_steps",
+        "device",
+        "torch_threads",
+        "vector",
+        "checkpoint_every",
+        "variant",
+        "backend",
+        "env.backend",
+        "env.use_psar",
+    }
+)
+
+
+def run_groups(run_dirs: list[Path]) -> dict[Path, str]:
+    """Run dir -> curve label: ``variant (backend)``, plus every config value that
+    differs between the runs given (a sweep's setting, e.g. ``tau_final=0.05``).
+
+    Runs that differ only in their seed (or in :data:`CURVE_POOLED_KEYS`) share a
+    label and are pooled into one mean +- std curve; runs of different settings
+    never are. Keys missing from some run's ``config.json`` (it predates them)
+    are not compared.
+    """
+    from diacc.algo.checkpoint import flatten_config
+    from diacc.sweepaxes import format_value, short_keys
+
+    configs = {}
+    for d in run_dirs:
+        try:
+            configs[d] = flatten_config(read_json_object(d / "config.json", PlotError))
+        except PlotError:  # no or a damaged config.json: labelled by its name
+            continue
+    first = next(iter(configs.values()), {})  # its key order is the config's field order
+    differing = [
+        k
+        for k in first
+        if k not in CURVE_POOLED_KEYS
+        and all(k in c for c in configs.values())
+        and len({json.dumps(c[k], default=str) for c in configs.values()}) > 1
+    ]
+    short = short_keys(differing)
+    labels = {}
+    for run_dir in run_dirs:
+        if run_dir not in configs:
+            labels[run_dir] = run_dir.name
+            continue
+        flat = configs[run_dir]
+        # ``env.backend`` since the config tree was nested; top-level in older runs
+        backend = flat.get("env.backend", flat.get("backend", "?"))
+        label = f"{flat.get('variant', run_dir.name)} ({backend})"
+        setting = ", ".join(f"{short[k]}={format_value(flat[k])}" for k in differing)
+        labels[run_dir] = f"{label} {setting}" if setting else label
+    return labels
 
 
 def _smooth(values: np.ndarray, window: int) -> np.ndarray:
@@ -163,13 +210,14 @@ def _group_curves(
     points, inside the range that all runs cover.
     """
     runs: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
-    for run_dir in map(Path, run_dirs):
+    groups = run_groups([Path(d) for d in run_dirs])
+    for run_dir, group in groups.items():
         series = read_progress(run_dir)
         key = next((k for k in key_options if k in series), None)
         if key is None:
             continue
         steps, values = series[key]
-        runs.setdefault(_run_group(run_dir), []).append((steps, _smooth(values, smooth)))
+        runs.setdefault(group, []).append((steps, _smooth(values, smooth)))
     out = {}
     for group, members in runs.items():
         end = min(s[-1] for s, _ in members)

@@ -8,7 +8,7 @@ sweep``) do the same work on one machine. With ``--engine ray``:
   seeded episodes (:func:`diacc.evaluate.run_tasks_here`) and sends the results back; the
   driver writes the files, so results need no shared filesystem. Seeds depend
   on (cell, episode) only, so the files are identical to a local run's.
-* ``diacc sweep``: every (variant, map, seed) run is one Ray task that calls
+* ``diacc sweep``: every (variant, map, setting, seed) run is one Ray task that calls
   the trainer. Run directories are written where the task runs: on a cluster,
   put ``--out-dir`` on a filesystem all machines share (NFS), or collect the
   directories from the machines each run reports.
@@ -37,6 +37,7 @@ from diacc.evaluate import CellTask, CellTaskResult, run_tasks_here
 from diacc.grid import Cell
 from diacc.maps import map_tag
 from diacc.policies import EvalSettings, PolicySpec
+from diacc.sweepaxes import Setting
 from diacc.tomlfile import read_json_object
 
 ENGINES = ("local", "ray")
@@ -146,15 +147,48 @@ class SweepRun:
 
 
 def sweep_configs(
-    base: TrainConfig, variants: list[str], maps: list[str], seeds: list[int], out_dir: str | Path
+    base: TrainConfig,
+    variants: list[str],
+    maps: list[str],
+    seeds: list[int],
+    out_dir: str | Path,
+    settings: list[Setting] | None = None,
 ) -> list[TrainConfig]:
-    """The configs of variants x maps x seeds, each with its own run directory."""
+    """The configs of variants x maps x settings x seeds, each with its own run directory.
+
+    A setting's name ends the directory name
+    (``<variant>-<backend>-<map>-s<seed>-tau_init2-tau_final0.05``), so runs
+    that differ only in a setting never share a directory.
+    """
     configs = []
-    for variant, map_name, seed in itertools.product(variants, maps, seeds):
-        run_dir = Path(out_dir) / f"{variant}-{base.env.backend}-{map_tag(map_name)}-s{seed}"
+    for variant, map_name, setting, seed in itertools.product(
+        variants, maps, settings or [Setting()], seeds
+    ):
+        name = f"{variant}-{base.env.backend}-{map_tag(map_name)}-s{seed}"
+        run_dir = Path(out_dir) / (f"{name}-{setting.name}" if setting.values else name)
         changes = {"variant": variant, "env.map": map_name, "seed": seed, "run_dir": str(run_dir)}
-        configs.append(override(base, changes))
+        configs.append(override(base, {**setting.changes, **changes}))
     return configs
+
+
+def check_run_dirs(configs: list[TrainConfig]) -> None:
+    """One-line :class:`ConfigError` if a run directory holds a run with other settings.
+
+    Without it, a finished run trained with, say, another ``--set`` value
+    would be skipped (its step count is reached) and reported as if it had
+    this command's settings. Only the step budget may change (the run
+    resumes). Fields added to the config after the run was trained count as
+    their defaults, as when its checkpoint is evaluated.
+    """
+    for cfg in configs:
+        path = Path(cfg.run_dir) / "config.json"
+        changed = stored_config_changes(cfg)
+        if changed:
+            raise ConfigError(
+                f"{path.parent} was trained with another {changed[0]} than this command asks "
+                "for (see its config.json); repeat the options it was started with, or choose "
+                "another output directory"
+            )
 
 
 def _last_record(run_dir: Path) -> dict:
@@ -216,13 +250,7 @@ def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
     run_dir = Path(cfg.run_dir)
     base = {"variant": cfg.variant, "map": cfg.env.map, "seed": cfg.seed, "run_dir": cfg.run_dir}
     state = run_state(cfg)
-    changed = stored_config_changes(cfg)
-    if changed:
-        raise ConfigError(
-            f"{run_dir} holds a run trained with another {changed[0]} than this command asks "
-            "for (see its config.json); repeat the options it was started with, or choose "
-            "another output directory"
-        )
+    check_run_dirs([cfg])  # also here: a Ray task may find a run another command started
     if state == "finished":
         return SweepRun(
             **base, status="skipped", host=socket.gethostname(), last=_last_record(run_dir)

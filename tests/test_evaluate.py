@@ -52,12 +52,19 @@ def test_named_grids_match_the_paper():
         ("train-25", 25, 0.4, "D1"),
         ("train-50", 25, 0.4, "D1"),
     ]
+    # the paper's five zero-shot rows (its Tables III and IV), on each test map
+    rows = [(25, 0.4, "D2"), (25, 0.4, "D3"), (20, 0.4, "D1"), (30, 0.3, "D1"), (40, 0.2, "D1")]
     zero = load_grid("zero-shot")
-    assert len(zero) == 2 * 4 * 2 * 2
-    assert {c.map for c in zero} == {"test-25", "test-50"}
-    assert {c.n_vehicles for c in zero} == {20, 25, 30, 40}
-    assert {c.cav_penetration for c in zero} == {0.2, 0.3}
-    assert {c.style_mix for c in zero} == {"D2", "D3"}
+    assert [(c.map, c.n_vehicles, c.cav_penetration, c.style_mix) for c in zero] == [
+        (m, *row) for m in ("test-25", "test-50") for row in rows
+    ]
+    product = load_grid("zero-shot-product")
+    assert len(product) == 2 * 4 * 2 * 2
+    assert {c.map for c in product} == {"test-25", "test-50"}
+    assert {c.n_vehicles for c in product} == {20, 25, 30, 40}
+    assert {c.cav_penetration for c in product} == {0.2, 0.3}
+    assert {c.style_mix for c in product} == {"D2", "D3"}
+    assert not set(zero) & set(product)  # why the product grid is not the paper's
 
 
 def test_grid_file_and_seeds(tmp_path):

@@ -524,4 +524,4 @@ def test_sweep_compares_the_config_of_a_run_it_would_skip(tmp_path, capsys):
     capsys.readouterr()
     assert main([*argv, "--set", "epochs=2"]) == 2
     err = capsys.readouterr().err.strip()
-    assert "holds a run trained with another epochs than this command asks for" in err, err
+    assert "was trained with another epochs than this command asks for" in err, err

@@ -20,10 +20,13 @@ from diacc.render import RenderError, render_episode
 CELL = Cell("train-50", 10, 0.4, "D1")
 
 
-def _run(path, variant: str, seed: int, offset: float, backend: str = "highway") -> None:
+def _run(
+    path, variant: str, seed: int, offset: float, backend: str = "highway", **settings
+) -> None:
     """A run directory as ``diacc train`` writes it (config.json, progress.jsonl)."""
     path.mkdir(parents=True)
-    cfg = override(TrainConfig(), {"variant": variant, "seed": seed, "env.backend": backend})
+    values = {"variant": variant, "seed": seed, "env.backend": backend, "run_dir": str(path)}
+    cfg = override(TrainConfig(), {**values, **settings})
     (path / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
     with open(path / "progress.jsonl", "w") as fh:
         for u in range(1, 11):
@@ -34,7 +37,8 @@ def _run(path, variant: str, seed: int, offset: float, backend: str = "highway")
                         "global_step": 2000 * u,
                         "global_reward": offset + u,
                         "episode/collision": 1.0 / u,
-                        "reward/ego": -offset,
+                        "reward/individual": -offset,
+                        "reward/ego_softmin": -offset - u,  # falls as tau anneals
                     }
                 )
                 + "\n"
@@ -83,6 +87,23 @@ def test_curves_mean_and_band_over_seeds(tmp_path):
     )
     _assert_png(tmp_path / "fig" / "curves.png")
     assert (tmp_path / "fig" / "curves.pdf").stat().st_size > 1000
+
+
+def test_curves_keep_settings_apart_and_plot_the_mean_ego_reward(tmp_path):
+    """Runs that differ only in a setting are separate curves (a sweep's); seeds pool."""
+    from diacc.plots import CURVE_PANELS
+
+    dirs = []
+    for tau, offset in ((0.05, 0.0), (0.5, 4.0)):
+        for seed in (1, 2):
+            dirs.append(tmp_path / f"t{tau}-s{seed}")
+            _run(dirs[-1], "diacc", seed, offset + seed, **{"env.reward.tau_final": tau})
+    curves = group_curves(dirs, CURVE_PANELS["Individual reward"])
+    assert set(curves) == {"diacc (highway) tau_final=0.05", "diacc (highway) tau_final=0.5"}
+    # the mean ego reward (-offset), not the softmin sum (which falls with every update)
+    assert np.allclose(curves["diacc (highway) tau_final=0.05"][1], -1.5)
+    assert np.allclose(curves["diacc (highway) tau_final=0.5"][1], -5.5)
+    assert np.allclose(curves["diacc (highway) tau_final=0.5"][2], 0.5)  # std over 2 seeds
 
 
 def test_curves_from_tensorboard(tmp_path):

@@ -241,6 +241,11 @@ def test_sampled_actions_evaluate_the_same_checkpoints(tiny, tmp_path, capsys):
         (["--jobs", "0"], "--jobs must be >= 1"),
         (["--set", "nope=1"], "nope"),
         (["--transfer", "--train-backend", "sumo"], "needs --train-backend highway"),
+        (["--sweep", "env.reward.nope=1,2"], "unknown config key 'env.reward.nope'"),
+        (["--sweep", "env.reward.tau_final="], "the value list is empty"),
+        (["--sweep", "env.reward.tau_final=0.1,abc"], "expects float, got 'abc'"),
+        (["--sweep", "env.reward.tau_final=0.1,-1"], "must be > 0, got -1.0"),
+        (["--study", "lambda"], "unknown study 'lambda'"),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, extra, message):
@@ -260,12 +265,15 @@ def test_budget_presets_and_overrides():
     assert BUDGETS["paper"].steps_per_run == 3_000_000 and BUDGETS["paper"].seeds == (1, 2, 3)
     plan = make_plan(resolve_config("paper")[0])
     assert len(plan.runs) == 4 * 2 * 3 + 2 * 3  # + diacc on sumo per map and seed
-    assert len(plan.grid_cells["zero-shot"]) == 32 and len(plan.grid_cells["train"]) == 2
+    assert set(plan.grid_cells) == {"train", "zero-shot"}  # the paper's cells by default
+    assert len(plan.grid_cells["zero-shot"]) == 10 and len(plan.grid_cells["train"]) == 2
     # a checkpoint plays the cells of its map's lane reduction only
     job = next(j for j in plan.jobs if j.policy == "mappo-train-25-s1" and j.backend == "sumo")
-    assert {c.map for c in job.cells} == {"train-25", "test-25"} and len(job.cells) == 17
+    assert {c.map for c in job.cells} == {"train-25", "test-25"} and len(job.cells) == 6
     baseline = next(j for j in plan.jobs if j.policy == "pure-hdv" and j.backend == "highway")
-    assert len(baseline.cells) == 34
+    assert len(baseline.cells) == 12
+    plan = make_plan(resolve_config("paper", grids=("train", "zero-shot-product"))[0])
+    assert len(plan.grid_cells["zero-shot-product"]) == 32
     # the style preset reaches the training config (and, through EvalSettings, evaluation)
     plan = make_plan(resolve_config("tiny", style_preset="paper-congestion")[0])
     cfg = plan.train_config(plan.runs[0])
@@ -284,7 +292,40 @@ def test_zero_shot_cells_are_spread_over_each_test_map():
     cells = grid_cells("zero-shot", ("train-25", "train-50"), 2)
     assert [c.map for c in cells] == ["test-25", "test-25", "test-50", "test-50"]
     every = grid_cells("zero-shot", ("train-25", "train-50"))
+    assert cells[1] == every[2] and len(every) == 10
+    cells = grid_cells("zero-shot-product", ("train-25", "train-50"), 2)
+    every = grid_cells("zero-shot-product", ("train-25", "train-50"))
     assert cells[1] == every[8] and len(every) == 32
+
+
+def test_sweep_gives_each_setting_its_runs_columns_and_curves(tmp_path, capsys):
+    """--study tau in the plan (dry run): one run per setting and seed, named by the setting;
+    no transfer (it would compare settings with a default run)."""
+    argv = ["reproduce", "--budget", "tiny", "--variants", "diacc", "--study", "tau"]
+    assert main([*argv, "--out", str(tmp_path / "r"), "--dry-run"]) == 0
+    stdout = capsys.readouterr().out
+    assert "training: 4 runs = 1 variant x 1 map x 4 settings x 1 seed" in stdout
+    assert "setting tau_init=10, tau_final=10" in stdout and "transfer off" in stdout
+    config, notes = resolve_config("tiny", variants=("diacc",))
+    from diacc.sweepaxes import sweep_settings
+
+    plan = make_plan(config, notes)
+    settings = sweep_settings(plan.train_config(plan.runs[0]), ["env.reward.tau_final=0.05,0.5"])
+    plan = make_plan(dataclasses.replace(config, settings=tuple(settings)), notes)
+    assert [r.name for r in plan.runs] == [
+        "diacc-train-50-s1-tau_final0.05",
+        "diacc-train-50-s1-tau_final0.5",
+    ]
+    assert [r.column for r in plan.runs] == ["diacc tau_final=0.05", "diacc tau_final=0.5"]
+    assert [plan.train_config(r).env.reward.tau_final for r in plan.runs] == [0.05, 0.5]
+    assert {j.policy for j in plan.jobs} >= {r.name for r in plan.runs}
+    from diacc.reproduce.outputs import _learned_columns
+
+    columns = _learned_columns(plan)  # one table column per setting, never pooled
+    assert {label: [n for n, _ in members] for label, members in columns.items()} == {
+        "diacc tau_final=0.05": ["diacc-train-50-s1-tau_final0.05"],
+        "diacc tau_final=0.5": ["diacc-train-50-s1-tau_final0.5"],
+    }
 
 
 @pytest.mark.slow

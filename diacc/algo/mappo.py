@@ -724,6 +724,9 @@ def progress_record(stats: UpdateStats, update_s: float) -> dict:
     ``team_reward`` is R, what PPO maximises (paper eq. reward_all), per step
     and environment; ``global_reward`` is its part r_g; ``reward/*`` are the
     other parts (``ego_softmin``, ``individual``, ``completion``, ``tau``);
+    ``individual`` is the mean ego reward r_e over the CAVs on the road, what
+    the training curves' individual-reward panel plots (``ego_softmin``, its
+    softmin-weighted sum, falls as tau anneals whatever the policy does);
     ``psar/*`` the share of CAV decisions on which each rule took effect;
     ``episode/*`` means over the episodes that ended in the rollout.
     """

@@ -4,13 +4,16 @@ Every number comes from the evaluation files (``eval/<backend>/<policy>/episodes
 and ``speeds.csv.gz``) and the runs' ``progress.jsonl``; nothing is carried
 over in memory from the stages, so the outputs can be rebuilt at any time.
 
-* **Columns**: the two baselines, then one column per variant that pools the
+* **Columns**: the two baselines, then one column per variant (and per
+  ``--sweep`` setting, labelled with its values) that pools the
   episodes of all its seeds (and, per cell, of the checkpoints trained on a
   map with that cell's lane reduction). The table code is
   :mod:`diacc.report`'s (:func:`~diacc.report.table_from_results`), so
   emphasis, reference column and captions follow ``diacc table``.
 * **Tables**: Table II = the ``train`` grid, Table III = the ``zero-shot``
-  grid, one table per evaluation backend, Markdown and LaTeX.
+  grid (the paper's five zero-shot rows per test map; ``table3-product`` for
+  the ``zero-shot-product`` grid when asked for), one table per evaluation
+  backend, Markdown and LaTeX.
 * **Figures**: training curves per training map (mean and +-1 std band over
   seeds, :func:`diacc.plots.plot_curves`) and per-segment speed box plots and
   KDEs per backend and map (:func:`diacc.plots.draw_speeds`).
@@ -46,8 +49,12 @@ from diacc.reproduce.stages import row_cell_key
 
 #: Table rows: the paper's three, plus the share of episodes ending in a collision.
 TABLE_ROWS = ("speed", "p_we", "p_sce", "collision")
-TABLES = {"train": "table2", "zero-shot": "table3"}
-TABLE_TITLES = {"train": "Table II (training grid)", "zero-shot": "Table III (zero-shot grid)"}
+TABLES = {"train": "table2", "zero-shot": "table3", "zero-shot-product": "table3-product"}
+TABLE_TITLES = {
+    "train": "Table II (training grid)",
+    "zero-shot": "Table III (the paper's zero-shot rows)",
+    "zero-shot-product": "Table III, product grid (zero-shot-product)",
+}
 TRANSFER_MD = "transfer.md"
 TRANSFER_CSV = "transfer.csv"
 
@@ -99,15 +106,20 @@ class _Results:
 
 
 def _columns(plan: Plan, results: _Results, backend: str, cells) -> list:
-    cfg = plan.config
     columns = [results.column(backend, p, [(p, None)], cells) for p in BASELINE_POLICIES]
-    for variant in cfg.variants:
-        members = [
-            (r.name, r)
-            for r in plan.runs
-            if r.variant == variant and r.backend == cfg.train_backend
-        ]
-        columns.append(results.column(backend, variant, members, cells))
+    for label, members in _learned_columns(plan).items():
+        columns.append(results.column(backend, label, members, cells))
+    return columns
+
+
+def _learned_columns(plan: Plan) -> dict[str, list[tuple[str, RunSpec]]]:
+    """Column label -> its (run name, run) members: one column per variant and setting,
+    pooling seeds (and the training maps, each on the cells of its lane reduction)."""
+    columns: dict[str, list[tuple[str, RunSpec]]] = {}
+    for variant in plan.config.variants:
+        for run in plan.runs:
+            if run.variant == variant and run.backend == plan.config.train_backend:
+                columns.setdefault(run.column, []).append((run.name, run))
     return columns
 
 
@@ -179,13 +191,8 @@ def write_figures(plan: Plan, results: _Results | None = None) -> list[Path]:
                 (p, _pooled_speeds(results, backend, [(p, None)], map_name))
                 for p in BASELINE_POLICIES
             ]
-            for variant in cfg.variants:
-                members = [
-                    (r.name, r)
-                    for r in plan.runs
-                    if r.variant == variant and r.backend == cfg.train_backend
-                ]
-                columns.append((variant, _pooled_speeds(results, backend, members, map_name)))
+            for label, members in _learned_columns(plan).items():
+                columns.append((label, _pooled_speeds(results, backend, members, map_name)))
             title = f"{map_name} on {backend}: {plural(len(cfg.budget.seeds), 'seed')} pooled"
             written += draw_speeds(columns, out / f"speeds-{backend}-{map_name}", title)
     return written

@@ -32,9 +32,11 @@ from diacc.config import (
     ConfigError,
     SimConfig,
     TrainConfig,
+    override,
 )
 from diacc.grid import GRID_NAMES, Cell, load_grid
 from diacc.maps import load_map, map_tag
+from diacc.sweepaxes import Setting
 
 #: Non-learning columns of every table (see :mod:`diacc.policies`).
 BASELINE_POLICIES = ("pure-hdv", "cooperative")
@@ -44,6 +46,9 @@ TRANSFER_BACKEND = "sumo"
 #: The backend whose runs carry no ``-<backend>`` suffix in their names.
 DEFAULT_TRAIN_BACKEND = "highway"
 DEFAULT_OUT_DIR = Path("results/reproduce")
+#: Grids evaluated unless ``--grids`` says otherwise: the paper's training cells
+#: (Table II) and its zero-shot rows (Table III); ``zero-shot-product`` on request.
+DEFAULT_GRIDS = ("train", "zero-shot")
 
 
 @dataclass(frozen=True)
@@ -56,7 +61,7 @@ class Budget:
     n_envs: int  # environments stepped in parallel by each run
     episodes_per_cell: int  # seeded evaluation episodes per grid cell
     maps: tuple[str, ...]  # training maps
-    zero_shot_cells_per_map: int | None  # zero-shot cells kept per test map; None: all 16
+    zero_shot_cells_per_map: int | None  # zero-shot cells kept per test map; None: all
     transfer: bool  # also train diacc on sumo and compare on sumo
 
 
@@ -108,12 +113,14 @@ class ReproduceConfig:
     variants: tuple[str, ...] = VARIANTS
     backends: tuple[str, ...] = BACKENDS  # evaluated on
     train_backend: str = DEFAULT_TRAIN_BACKEND
-    grids: tuple[str, ...] = GRID_NAMES
+    grids: tuple[str, ...] = DEFAULT_GRIDS
     style_preset: str = SimConfig.style_preset  # HDV styles, training and evaluation
     episode_steps: int | None = None  # evaluation episode length; None: the policy's own
     actions: str = "greedy"  # checkpoints' evaluation actions: argmax, or "sampled" (seeded)
     device: str = "cpu"  # torch device of the PPO updates
     train_sets: tuple[str, ...] = ()  # KEY=VALUE training overrides, as `diacc train --set`
+    # config settings each variant is trained with (--sweep/--study); () = one, the defaults
+    settings: tuple[Setting, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -136,11 +143,18 @@ class RunSpec:
     map: str
     seed: int
     backend: str
+    setting: Setting = Setting()  # --sweep values; its name ends the run name
 
     @property
     def name(self) -> str:
         suffix = "" if self.backend == DEFAULT_TRAIN_BACKEND else f"-{self.backend}"
-        return f"{self.variant}-{map_tag(self.map)}-s{self.seed}{suffix}"
+        setting = f"-{self.setting.name}" if self.setting.values else ""
+        return f"{self.variant}-{map_tag(self.map)}-s{self.seed}{suffix}{setting}"
+
+    @property
+    def column(self) -> str:
+        """Its table column and figure label: the variant, with the setting if any."""
+        return f"{self.variant} {self.setting.label}" if self.setting.values else self.variant
 
 
 @dataclass(frozen=True)
@@ -176,7 +190,8 @@ class Plan:
         return self.config.out_dir / job.rel_dir
 
     def train_config(self, run: RunSpec) -> TrainConfig:
-        """The full training config of a run: defaults, budget, preset, --set, then the run."""
+        """The full training config of a run: defaults, budget, preset, --set, the run, then
+        its --sweep setting."""
         from diacc.cli import train_config_from_args
 
         cfg = self.config
@@ -192,7 +207,7 @@ class Plan:
             device=cfg.device,
             run_dir=str(self.run_dir(run)),
         )
-        return train_config_from_args(args)
+        return override(train_config_from_args(args), run.setting.changes)
 
     def planned_steps(self, run: RunSpec) -> int:
         """Environment steps the run will have taken when done (whole updates)."""
@@ -338,13 +353,16 @@ def make_plan(config: ReproduceConfig, notes: tuple[str, ...] = ()) -> Plan:
     """Runs, evaluation jobs and cells of a config (see the module docstring)."""
     b = config.budget
     runs = [
-        RunSpec(v, m, s, config.train_backend)
+        RunSpec(v, m, s, config.train_backend, setting)
         for v in config.variants
         for m in b.maps
+        for setting in config.settings or (Setting(),)
         for s in b.seeds
     ]
     pairs = []
-    if b.transfer:
+    if b.transfer and config.settings:
+        notes = (*notes, "transfer: off (a --sweep/--study reproduction compares settings)")
+    elif b.transfer:
         for m in b.maps:
             for s in b.seeds:
                 pairs.append(
@@ -356,7 +374,7 @@ def make_plan(config: ReproduceConfig, notes: tuple[str, ...] = ()) -> Plan:
         runs += [r for pair in pairs for r in pair]
     runs = list(dict.fromkeys(runs))
     cells_of = {
-        g: tuple(grid_cells(g, b.maps, b.zero_shot_cells_per_map if g == "zero-shot" else None))
+        g: tuple(grid_cells(g, b.maps, b.zero_shot_cells_per_map if g != "train" else None))
         for g in config.grids
     }
     for grid, cells in cells_of.items():
@@ -398,7 +416,8 @@ def describe_plan(plan: Plan) -> list[str]:
     from diacc.console import plural
 
     cfg, b = plan.config, plan.config.budget
-    main = len(cfg.variants) * len(b.maps) * len(b.seeds)
+    n_settings = max(len(cfg.settings), 1)
+    main = len(cfg.variants) * len(b.maps) * n_settings * len(b.seeds)
     extra = len(plan.runs) - main
     steps = sum(plan.planned_steps(r) for r in plan.runs)
     episodes = sum(len(j.cells) for j in plan.jobs) * b.episodes_per_cell
@@ -409,7 +428,9 @@ def describe_plan(plan: Plan) -> list[str]:
     lines = [
         f"diacc reproduce: budget {b.name}, results in {cfg.out_dir}",
         f"  training: {plural(len(plan.runs), 'run')} = {plural(len(cfg.variants), 'variant')} "
-        f"x {plural(len(b.maps), 'map')} x {plural(len(b.seeds), 'seed')} on {cfg.train_backend}"
+        f"x {plural(len(b.maps), 'map')} "
+        + (f"x {plural(n_settings, 'setting')} " if cfg.settings else "")
+        + f"x {plural(len(b.seeds), 'seed')} on {cfg.train_backend}"
         + (f" + {extra} for the transfer" if extra else "")
         + f"; {b.steps_per_run:,} env steps each with {plural(b.n_envs, 'env')}; "
         f"{steps:,} env steps in all",
@@ -423,10 +444,13 @@ def describe_plan(plan: Plan) -> list[str]:
         + (f"{cfg.episode_steps} steps" if cfg.episode_steps else "the policy's own length")
         + f"; checkpoints act {cfg.actions}; transfer {'on' if plan.transfer_pairs else 'off'}",
     ]
-    if b.zero_shot_cells_per_map is not None and "zero-shot" in cfg.grids:
-        lines.append(
-            f"  zero-shot grid: {b.zero_shot_cells_per_map} of 16 cells per test map "
-            "(--zero-shot-cells 0 for all)"
-        )
+    for grid in cfg.grids:
+        if b.zero_shot_cells_per_map is not None and grid != "train":
+            per_map = len(load_grid(grid)) // 2
+            lines.append(
+                f"  {grid} grid: {b.zero_shot_cells_per_map} of {per_map} cells per test map "
+                "(--zero-shot-cells 0 for all)"
+            )
+    lines += [f"  setting {s.label}" for s in cfg.settings]
     lines += [f"  {note}" for note in plan.notes]
     return lines

@@ -35,7 +35,14 @@ from diacc.evaluate import (
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec, action_mode
 from diacc.reproduce.plan import EvalJob, Execution, Plan
-from diacc.scaleout import SweepRun, planned_steps, run_state, run_sweep, train_run
+from diacc.scaleout import (
+    SweepRun,
+    check_run_dirs,
+    planned_steps,
+    run_state,
+    run_sweep,
+    train_run,
+)
 from diacc.threads import worker_environment
 from diacc.tomlfile import read_json_object
 from diacc.workpool import map_resilient
@@ -66,25 +73,9 @@ def _train_pool(configs: list[TrainConfig], jobs: int) -> Iterator[SweepRun]:
 
 
 def check_existing_runs(plan: Plan) -> None:
-    """One-line :class:`ConfigError` if a run directory holds a run with other settings.
-
-    Without it, a finished run trained with, say, other ``--envs`` would be
-    skipped (its step count is reached) and reported as if it had this
-    command's settings. Only the step budget may change (it resumes). Fields
-    added to the config after the run was trained count as their defaults,
-    as when its checkpoint is evaluated.
-    """
-    from diacc.scaleout import stored_config_changes
-
-    for run in plan.runs:
-        path = plan.run_dir(run) / "config.json"
-        changed = stored_config_changes(plan.train_config(run))
-        if changed:
-            raise ConfigError(
-                f"{path.parent} was trained with another {changed[0]} than this command asks "
-                "for (see its config.json); repeat the options it was started with, or choose "
-                "another --out"
-            )
+    """One-line :class:`ConfigError` if a run directory holds a run with other settings
+    (:func:`diacc.scaleout.check_run_dirs`)."""
+    check_run_dirs([plan.train_config(run) for run in plan.runs])
 
 
 def check_existing_evaluations(plan: Plan) -> None:
