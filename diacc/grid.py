@@ -43,7 +43,7 @@ import numpy as np
 
 from diacc.errors import DiaccError
 from diacc.maps import MapError, load_map, map_tag
-from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError
+from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError, draw_population
 from diacc.tomlfile import read_toml
 
 #: Named grids (see module docstring).
@@ -148,7 +148,7 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
     if not isinstance(values["map"], str):
         raise GridError(f"{source}: map must be a map name or .toml path, got {values['map']!r}")
     try:
-        load_map(values["map"])
+        road = load_map(values["map"])
     except MapError as exc:
         raise GridError(f"{source}: {exc}") from None
     n, rho, mix = values["n_vehicles"], values["cav_penetration"], values["style_mix"]
@@ -160,7 +160,9 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
         raise GridError(f"{source}: unknown style mix {mix!r}; known: {', '.join(STYLE_MIXES)}")
     cell = Cell(str(values["map"]), int(n), float(rho), str(mix))
     try:
-        cell.scenario()
+        # Placing the vehicles checks that they fit the map (once found in the first
+        # episode, after the results directory was written).
+        draw_population(cell.scenario(), road, seed=0)
     except ScenarioError as exc:
         raise GridError(f"{source}: {exc}") from None
     return cell

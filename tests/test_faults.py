@@ -139,7 +139,11 @@ def files(tmp_path_factory) -> dict[str, Path]:
         "latin1_map": root / "latin1.toml",
         "grid4": root / "grid4.toml",
         "sumo_grid": root / "sumo_grid.toml",
+        "crowded_grid": root / "crowded_grid.toml",
     }
+    paths["crowded_grid"].write_text(
+        '[[cells]]\nmap = "train-25"\nn_vehicles = 500\ncav_penetration = 0.4\nstyle_mix = "D1"\n'
+    )
     paths["tiny"].write_text(TINY_TOML)
     paths["nan_map"].write_text(ROAD_TOML.format(name="nan", length="nan"))
     paths["inf_map"].write_text(ROAD_TOML.format(name="inf", length="inf"))
@@ -456,6 +460,7 @@ BAD_INPUT = [
     (["train", "--steps", "10"], "total_steps 10 is less than one update (rollout_steps 10 x n"),
     (["train", "--run-dir", "{tiny}"], "cannot use {tiny} as the train directory (File exists)"),
     (["train", "--resume", "--overwrite"], "--resume continues the run that --overwrite would"),
+    (["eval", "--policy", "pure-hdv", "--grid", "{crowded_grid}"], "500 vehicles do not fit"),
 ]  # fmt: skip
 
 
@@ -470,11 +475,16 @@ def test_bad_input_gives_one_line_error(files, trained_run, tmp_path, capsys, ar
         before = (run / "config.json").read_bytes() if resume else None
         # Valid, tiny settings first: the entry's own flags override them.
         argv = _train_args(files, run, *argv[1:])
+    if argv[0] == "eval":  # results directory: nothing may be written before the check
+        out = tmp_path / "out"
+        argv = [*argv, "--out", str(out)]
     capsys.readouterr()
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("diacc: error: ") and "\n" not in err, err
     assert expected.format(**names) in err
+    if argv[0] == "eval":
+        assert not out.exists(), "the results directory was written before validation"
     if argv[0] == "train":
         if resume:
             assert (run / "config.json").read_bytes() == before, "resume rewrote config.json"
