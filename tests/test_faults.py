@@ -535,3 +535,35 @@ def test_sweep_compares_the_config_of_a_run_it_would_skip(tmp_path, capsys):
     assert main([*argv, "--set", "epochs=2"]) == 2
     err = capsys.readouterr().err.strip()
     assert "was trained with another epochs than this command asks for" in err, err
+
+
+def test_sigterm_to_train_with_process_envs_ends_every_child(files, tmp_path):
+    """SIGTERM to ``train --set vector=process``: checkpoint, exit 143, no worker left (by pid)."""
+    run = tmp_path / "run"
+    steps = str(STEPS_PER_UPDATE * 200)
+    proc = _popen(*_train_args(files, run, "--steps", steps, "--set", "vector=process"))
+    children = _wait_for(
+        lambda: [pid for pid, cmd in _descendants(proc.pid) if "resource_tracker" not in cmd][1:],
+        proc,
+        "the vector-env workers",
+    )
+    _wait_for(lambda: (run / "progress.jsonl").exists(), proc, "the first update")
+    proc.send_signal(signal.SIGTERM)
+    code, err = _finish(proc)
+    assert code == 128 + signal.SIGTERM, err
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and set(children) & _live_pids():
+        time.sleep(0.1)
+    assert not set(children) & _live_pids(), "vector-env workers outlived train"
+
+
+def _live_pids() -> set[int]:
+    """Pids of every process that is not a zombie."""
+    live = set()
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and (entry / "stat").read_text().rsplit(")", 1)[1][1] != "Z":
+                live.add(int(entry.name))
+        except OSError:
+            continue
+    return live
