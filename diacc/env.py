@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import sys
 import types
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 from typing import Any
 
 import gymnasium
@@ -47,13 +47,35 @@ from diacc.actions import (
 )
 from diacc.backends.base import Backend, CavCommands, make_backend
 from diacc.config import EnvConfig, preset_road
+from diacc.errors import DiaccError
 from diacc.maps import Map, load_map
+from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.psar import PSARResult, psar
 from diacc.reward import RewardTerms, reward
+from diacc.spaces import agent_observation, check_format, observation_space, state_space
 from diacc.state import TrafficState, take
 
-__all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult", "aec_env"]
+__all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "RenderModeError", "StepResult", "aec_env"]
+
+#: The episode-end metrics every agent's ``infos`` carries on the last step (see
+#: :meth:`BottleneckEnv.step`), a subset of :class:`diacc.metrics.EpisodeMetrics`.
+INFO_METRICS = (
+    "mean_speed_mps",
+    "mean_cav_speed_mps",
+    "mean_hdv_speed_mps",
+    "p_we",
+    "p_sce",
+    "n_collisions",
+    "arrived_fraction",
+    "mean_travel_time_s",
+    "episode_steps",
+    "n_vehicles",
+)
+
+
+class RenderModeError(DiaccError, ValueError):
+    """A render mode this environment cannot honour here; one line."""
 
 
 @dataclass
@@ -139,7 +161,8 @@ class BottleneckEnv(ParallelEnv):
 
     metadata = {
         "name": "diacc_bottleneck_v0",
-        "render_modes": ["rgb_array"],
+        "render_modes": ["human", "rgb_array"],
+        "render_fps": 10,
         "is_parallelizable": True,
     }
 
@@ -148,11 +171,16 @@ class BottleneckEnv(ParallelEnv):
         config: EnvConfig | None = None,
         render_mode: str | None = None,
         backend: Backend | None = None,
+        observation_format: str = "dict",
     ) -> None:
         """``backend``: the simulator to run on (e.g. one env of a batch), by default a new
-        one of ``config.backend`` on ``config.map``."""
+        one of ``config.backend`` on ``config.map``. ``render_mode``: ``None``,
+        ``"rgb_array"`` (:meth:`render` returns a frame) or ``"human"`` (a window,
+        refreshed every step; refused without a display). ``observation_format``:
+        ``"dict"`` or ``"flat"`` (:mod:`diacc.spaces`)."""
         self.config = config or EnvConfig()
-        self.render_mode = render_mode
+        self.render_mode = check_render_mode(render_mode)
+        self.observation_format = check_format(observation_format)
         if backend is None:
             road = preset_road(load_map(self.config.map), self.config.sim.style_preset)
             backend = make_backend(self.config.backend, road, self.config.sim)
@@ -165,10 +193,15 @@ class BottleneckEnv(ParallelEnv):
         self.temperature = self.config.reward.tau_init
         self.state_: TrafficState | None = None
         self._viewer = None  # diacc.viewer.Viewer, made by the first render()
+        self._window = None  # diacc.viewer.Window of render_mode "human"
+        self._recorder: EpisodeRecorder | None = None  # episode metrics of the dict API
         self._seed: int | None = None
         # Spaces are the same for every agent: built once, returned as the same object.
-        self._observation_space: gymnasium.spaces.Dict | None = None
+        spec = self.builder.spec()
+        self._dict_space = observation_space(spec, "dict")
+        self._observation_space = observation_space(spec, self.observation_format)
         self._action_space = gymnasium.spaces.Discrete(len(ACTION_NAMES))
+        self.state_space = state_space(spec)
 
     # ------------------------------------------------------------------ batched API
     def reset_arrays(self, seed: int | None = None) -> tuple[ActorObs, CriticState]:
@@ -184,6 +217,7 @@ class BottleneckEnv(ParallelEnv):
         self.state_ = state
         self.builder.reset(state)
         self.agents = list(self.possible_agents)
+        self._recorder = None  # the dict API's reset() starts one; the batched API needs none
         return self._observe()
 
     def step_arrays(self, actions: np.ndarray) -> StepResult:
@@ -249,10 +283,9 @@ class BottleneckEnv(ParallelEnv):
         return actor, self.builder.critic()
 
     # ------------------------------------------------------------------ PettingZoo API
-    def observation_space(self, agent: str) -> gymnasium.spaces.Dict:
-        """One agent's row of :class:`ActorObs`, from the observation spec (no reset needed)."""
-        if self._observation_space is not None:
-            return self._observation_space
+    def observation_space(self, agent: str) -> gymnasium.spaces.Space:
+        """One agent's observation space (:mod:`diacc.spaces`; no reset needed)."""
+        return self._observation_space
         spec = self.builder.spec()
         spaces = {}
         for name, (shape, dtype) in spec.actor_shapes(n_cavs=1).items():
@@ -271,7 +304,11 @@ class BottleneckEnv(ParallelEnv):
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         actor_obs, _ = self.reset_arrays(seed)
+        self._recorder = EpisodeRecorder(self.road, self.config.events)
+        self._recorder.record(self.state_)
         observations = {a: self._agent_obs(actor_obs, i) for i, a in enumerate(self.agents)}
+        if self.render_mode == "human":
+            self.render()
         return observations, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, int]):
@@ -280,6 +317,8 @@ class BottleneckEnv(ParallelEnv):
         for agent, action in actions.items():
             batch[index[agent]] = action
         out = self.step_arrays(batch)
+        if self._recorder is not None:
+            self._recorder.record(out.state, psar=out.psar)
         acting = list(self.agents)
         observations, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
         for agent in acting:
@@ -295,6 +334,13 @@ class BottleneckEnv(ParallelEnv):
                 "arrivals": out.state.arrivals.copy(),
             }
         self.agents = [a for a in acting if not (terms[a] or truncs[a])]
+        if not self.agents and acting and self._recorder is not None:
+            summary = self._recorder.summary()
+            metrics = {key: getattr(summary, key) for key in INFO_METRICS}
+            for agent in acting:
+                infos[agent]["episode_metrics"] = dict(metrics)
+        if self.render_mode == "human":
+            self.render()
         return observations, rewards, terms, truncs, infos
 
     def state(self) -> np.ndarray:
@@ -305,35 +351,76 @@ class BottleneckEnv(ParallelEnv):
         )
 
     def render(self) -> np.ndarray | None:
-        """An RGB frame (H, W, 3) uint8 of the current state (:class:`diacc.viewer.Viewer`)."""
+        """What ``render_mode`` asks for: ``"rgb_array"`` returns an RGB frame (H, W, 3)
+        uint8 of the current state (:class:`diacc.viewer.Viewer`), ``"human"`` shows
+        it in a window and returns ``None``. Without a render mode there is nothing
+        to render: a one-line :class:`RenderModeError` (Gymnasium only warns, which
+        hides the mistake)."""
+        if self.render_mode is None:
+            raise RenderModeError(
+                "render() needs a render_mode; make the env with render_mode='rgb_array' "
+                "(frames) or 'human' (a window)"
+            )
         if self.state_ is None:
             return None
         if self._viewer is None:
             from diacc.viewer import Viewer
 
             self._viewer = Viewer(self.road, self.config.sim)
-        return self._viewer.draw(self.state_)
+        frame = self._viewer.draw(self.state_)
+        if self.render_mode == "rgb_array":
+            return frame
+        if self._window is None:
+            from diacc.viewer import Window
+
+            self._window = Window(f"diacc {self.config.map} ({self.config.backend})")
+        self._window.show(frame)
+        return None
 
     def close(self) -> None:
         if self._viewer is not None:
             self._viewer.close()
+        if self._window is not None:
+            self._window.close()
+            self._window = None
         self.backend.close()
 
     # ------------------------------------------------------------------ helpers
-    @staticmethod
-    def _agent_obs(actor_obs: ActorObs, i: int) -> dict[str, np.ndarray]:
-        # np.asarray: a per-agent scalar (``alive``) stays a 0-d array, as its space expects
-        return {name: np.asarray(value[i]) for name, value in asdict(actor_obs).items()}
+    def _agent_obs(self, actor_obs: ActorObs, i: int) -> dict[str, np.ndarray] | np.ndarray:
+        return agent_observation(actor_obs, i, self._dict_space, self.observation_format)
+
+
+def check_render_mode(render_mode: str | None) -> str | None:
+    """``render_mode`` if this machine can honour it, else a one-line :class:`RenderModeError`.
+
+    ``"human"`` needs a display (``DISPLAY`` or ``WAYLAND_DISPLAY`` on Linux);
+    refusing it here beats a window that never appears.
+    """
+    modes = BottleneckEnv.metadata["render_modes"]
+    if render_mode is not None and render_mode not in modes:
+        raise RenderModeError(
+            f"unknown render_mode {render_mode!r}; use one of: {', '.join(modes)} (or None)"
+        )
+    if render_mode == "human":
+        from diacc.viewer import display_available
+
+        if not display_available():
+            raise RenderModeError(
+                "render_mode 'human' needs a display and none was found (DISPLAY is unset); "
+                "use render_mode='rgb_array' and save the frames"
+            )
+    return render_mode
 
 
 # ---------------------------------------------------------------------- AEC entry point
-def aec_env(render_mode: str | None = None, **config: Any):
+def aec_env(render_mode: str | None = None, observation_format: str = "dict", **config: Any):
     """The environment as a PettingZoo ``AECEnv``, by PettingZoo's own parallel->AEC wrapper."""
     from pettingzoo.utils.conversions import parallel_to_aec
 
     from diacc import parallel_env
 
-    return parallel_to_aec(parallel_env(render_mode=render_mode, **config))
+    env = parallel_env(render_mode=render_mode, observation_format=observation_format, **config)
+    return parallel_to_aec(env)
 
 
 class CallableEnvModule(types.ModuleType):
@@ -344,8 +431,10 @@ class CallableEnvModule(types.ModuleType):
     ``from diacc.env import EnvConfig`` and ``diacc.env(map="train-50")`` working.
     """
 
-    def __call__(self, render_mode: str | None = None, **config: Any):
-        return aec_env(render_mode=render_mode, **config)
+    def __call__(
+        self, render_mode: str | None = None, observation_format: str = "dict", **config: Any
+    ):
+        return aec_env(render_mode=render_mode, observation_format=observation_format, **config)
 
 
 sys.modules[__name__].__class__ = CallableEnvModule

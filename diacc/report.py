@@ -12,15 +12,19 @@ grid cell the paper's three rows, plus two optional ones (``rows``):
 * optional **Collision (%)**: share of episodes that ended in a collision;
   **Arrived (%)**: mean share of vehicles that reached the route end.
 
-Each entry also shows its relative change against the ``pure-hdv`` column
-(when one is given), ``(mean - mean_ref) / mean_ref``.
+Each entry also shows its change against the ``pure-hdv`` column of the
+same backend (when one is given): relative for speed, ``(mean - mean_ref) /
+mean_ref`` in %, and a difference in percentage points (pp) for shares, since
+"-100 %" for a share going from 14 % to 0 % reads worse than "-14.0 pp".
 
 Emphasis follows the paper's Tables II/III: per row, the best value is bold
 and the second best underlined (italic in Markdown), compared at the printed
-precision (higher speed / arrived share, lower shares). Unlike the paper, a
-column is ranked in a cell only when the ranking means something there
-(:data:`RANKING_RULE`): it is no slower than the pure-HDV column of the same
-backend and its collision rate is no higher. A policy that is slower or
+precision (higher speed / arrived share, lower shares). Columns are ranked
+only against columns of the same backend: the two simulators' traffic is not
+the same, so a highway column is never "better" than a sumo one. Unlike the
+paper, a column is ranked in a cell only when the ranking means something
+there (:data:`RANKING_RULE`): it is no slower than the pure-HDV column of the
+same backend and its collision rate is no higher. A policy that is slower or
 crashes more than human traffic is never bold for one metric out of context.
 Output as Markdown, LaTeX (booktabs, multirow: :data:`LATEX_PREAMBLE`) or a
 tidy CSV.
@@ -52,8 +56,13 @@ DEFAULT_ROWS = ("speed", "p_we", "p_sce")
 REFERENCE = "pure-hdv"
 FORMATS = ("markdown", "latex", "csv")
 RANKING_RULE = (
-    "bold: best, underlined (Markdown: italic): second best of a row, as in the paper; "
-    "ranked only columns no slower and with no more collisions than pure HDV"
+    "bold: best, underlined (Markdown: italic): second best of a row among the columns of "
+    "one backend, as in the paper; ranked only columns no slower and with no more "
+    "collisions than pure HDV on that backend"
+)
+CHANGE_RULE = (
+    "in brackets: change against pure HDV on the same backend, in % for speed and in "
+    "percentage points (pp) for shares"
 )
 #: What a LaTeX document needs for :func:`to_latex`'s output.
 LATEX_PREAMBLE = "\\usepackage{booktabs}\n\\usepackage{multirow}"
@@ -81,20 +90,26 @@ class Table:
     caption: str = ""
 
     def reference(self, column: str) -> str | None:
-        """The pure-HDV column a column is compared with: same backend first."""
-        refs = [c for c in self.columns if self.policy[c] == REFERENCE]
-        same = [c for c in refs if self.backend[c] == self.backend[column]]
-        return (same or refs or [None])[0]
+        """The pure-HDV column of the same backend a column is compared with, if any."""
+        same = [
+            c
+            for c in self.columns
+            if self.policy[c] == REFERENCE and self.backend[c] == self.backend[column]
+        ]
+        return (same or [None])[0]
 
-    def relative_change(self, cell: Cell, metric: str, column: str) -> float | None:
-        """Percent change of the mean against the pure-HDV column (None if undefined)."""
+    def change(self, cell: Cell, metric: str, column: str) -> float | None:
+        """Change of the mean against the pure-HDV column (None if undefined): percent for
+        speed, percentage points for shares (:func:`change_unit`)."""
         ref = self.reference(column)
         if ref is None or self.policy[column] == REFERENCE:
             return None
         a, b = self.stats.get((cell.key, metric, column)), self.stats.get((cell.key, metric, ref))
-        if a is None or b is None or b.mean == 0 or not math.isfinite(b.mean):
+        if a is None or b is None or not math.isfinite(b.mean):
             return None
-        return 100.0 * (a.mean - b.mean) / b.mean
+        if change_unit(metric) == "pp":
+            return a.mean - b.mean  # shares are stored in percent already
+        return None if b.mean == 0 else 100.0 * (a.mean - b.mean) / b.mean
 
     def _rounded(self, cell: Cell, metric: str, column: str) -> float | None:
         stat = self.stats.get((cell.key, metric, column))
@@ -116,22 +131,25 @@ class Table:
         return True
 
     def marks(self, cell: Cell, metric: str) -> tuple[set[str], set[str]]:
-        """(best, second-best) columns of a row; second best only with 3+ ranked columns."""
+        """(best, second-best) columns of a row, ranked within each backend; second best
+        only where a backend has 3+ ranked columns."""
         higher = next(m[2] for m in METRICS if m[0] == metric)
-        values = {
-            c: v
-            for c in self.columns
-            if self.ranked(cell, c) and (v := self._rounded(cell, metric, c)) is not None
-        }
-        if len(values) < 2:
-            return set(), set()
-        order = sorted(set(values.values()), reverse=higher)
-        best = {c for c, v in values.items() if v == order[0]}
-        second = (
-            {c for c, v in values.items() if v == order[1]}
-            if len(values) >= 3 and len(order) > 1
-            else set()
-        )
+        best: set[str] = set()
+        second: set[str] = set()
+        for backend in dict.fromkeys(self.backend[c] for c in self.columns):
+            values = {
+                c: v
+                for c in self.columns
+                if self.backend[c] == backend
+                and self.ranked(cell, c)
+                and (v := self._rounded(cell, metric, c)) is not None
+            }
+            if len(values) < 2:
+                continue
+            order = sorted(set(values.values()), reverse=higher)
+            best |= {c for c, v in values.items() if v == order[0]}
+            if len(values) >= 3 and len(order) > 1:
+                second |= {c for c, v in values.items() if v == order[1]}
         return best, second
 
     def best(self, cell: Cell, metric: str) -> set[str]:
@@ -256,6 +274,7 @@ def table_from_results(
     )
     notes.append(f"{speed_note}; shares: mean ± std over episodes")
     notes.append(RANKING_RULE)
+    notes.append(CHANGE_RULE)
     ordered = sorted(
         cells.values(), key=lambda c: (c.map, -c.cav_penetration, c.n_vehicles, c.style_mix)
     )
@@ -288,6 +307,11 @@ def table_from_results(
     )
 
 
+def change_unit(metric: str) -> str:
+    """``"%"`` for speed (a relative change), ``"pp"`` for shares (percentage points)."""
+    return "%" if metric == "speed" else "pp"
+
+
 # ----------------------------------------------------------------------------- rendering
 def _scenario(cell: Cell) -> str:
     return f"N={cell.n_vehicles}, rho={cell.cav_penetration:.1f}, {cell.style_mix}"
@@ -315,9 +339,10 @@ def _entry(
         text = f"{marks[0]}{text}{marks[1]}"
     elif column in second:
         text = f"{marks[2]}{text}{marks[3]}"
-    change = table.relative_change(cell, metric, column)
+    change = table.change(cell, metric, column)
     if change is not None:
-        text += f" ({change:+.1f}{percent})"
+        unit = percent if change_unit(metric) == "%" else "pp"
+        text += f" ({change:+.1f} {unit})"
     return text
 
 
@@ -400,7 +425,8 @@ def to_latex(table: Table) -> str:
 
 
 def to_csv(table: Table) -> str:
-    """Tidy CSV: one line per (cell, metric, policy); ``best`` 1 best, 2 second best."""
+    """Tidy CSV: one line per (cell, metric, policy); ``change`` in ``change_unit``
+    (% or pp, :func:`change_unit`); ``best`` 1 best, 2 second best (within a backend)."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(
@@ -414,7 +440,8 @@ def to_csv(table: Table) -> str:
             "mean",
             "std",
             "n_episodes",
-            "rel_change_pct",
+            "change",
+            "change_unit",
             "best",
         ]
     )
@@ -425,7 +452,7 @@ def to_csv(table: Table) -> str:
                 stat = table.stats.get((cell.key, metric, col))
                 if stat is None:
                     continue
-                change = table.relative_change(cell, metric, col)
+                change = table.change(cell, metric, col)
                 writer.writerow(
                     [
                         cell.map,
@@ -438,6 +465,7 @@ def to_csv(table: Table) -> str:
                         repr(stat.std),
                         stat.n_episodes,
                         "" if change is None else repr(change),
+                        "" if change is None else change_unit(metric),
                         1 if col in best else 2 if col in second else 0,
                     ]
                 )

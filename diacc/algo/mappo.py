@@ -36,7 +36,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch.utils.tensorboard import SummaryWriter
-from tqdm import tqdm
 
 from diacc.algo.buffer import Rollout, compute_gae
 from diacc.algo.checkpoint import (
@@ -50,6 +49,7 @@ from diacc.algo.checkpoint import (
 )
 from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig, validate
+from diacc.console import TrainProgress
 from diacc.errors import DiaccError
 from diacc.maps import load_map
 from diacc.models.inputs import to_tensors
@@ -57,7 +57,7 @@ from diacc.models.registry import build_policy
 from diacc.observation import ObservationSpec, stack
 from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
-from diacc.runlog import claim_run_dir, locked_dir, log, run_log
+from diacc.runlog import claim_run_dir, config_digest, locked_dir, log, run_log
 from diacc.scenario import draw_population
 from diacc.threads import set_torch_threads
 from diacc.vector import make_vector_env
@@ -632,13 +632,18 @@ def _train_loop(
     writer = SummaryWriter(
         str(run_dir / "tb"), purge_step=global_step + 1 if first_update else None
     )
-    bar = tqdm(
-        total=n_updates * steps_per_update,
-        initial=global_step,
-        unit="step",
-        disable=not progress,
-        desc=f"train {cfg.variant}",
+    bar = TrainProgress(n_updates * steps_per_update, global_step, f"train {cfg.variant}", progress)
+    log.info(
+        "start: %s in %s, updates %d-%d of %d (%d env steps each), config %s",
+        cfg.variant,
+        run_dir,
+        first_update + 1,
+        last_update,
+        n_updates,
+        steps_per_update,
+        config_digest(cfg),
     )
+    started_s = time.perf_counter()
     try:
         with _StopOnSignal() as stop:
             for update in range(first_update, last_update):
@@ -680,12 +685,7 @@ def _train_loop(
                 )
                 record = progress_record(stats, update_s=time.perf_counter() - t0)
                 write_record(record, writer, run_dir / "progress.jsonl")
-                bar.update(steps_per_update)
-                bar.set_postfix(
-                    R=f"{record['team_reward']:.2f}",
-                    speed=f"{record.get('episode/mean_speed_mps', float('nan')):.1f}",
-                    sps=f"{record['env_steps_per_s']:.0f}",
-                )
+                bar.update(steps_per_update, record["team_reward"], rollout.episodes)
                 if (
                     (update + 1) % cfg.checkpoint_every == 0
                     or update + 1 == last_update
@@ -693,6 +693,7 @@ def _train_loop(
                 ):
                     save_checkpoint(ckpt_path, agent, cfg, update + 1, global_step)
                     saved_update = update + 1
+                    log.info("checkpoint: update %d, env step %d", update + 1, global_step)
                 if stop.signum is not None and update + 1 < last_update:
                     log.warning("stopped after update %d; checkpoint saved", update + 1)
                     raise TrainingInterrupted(stop.signum, update + 1, ckpt_path)
@@ -700,6 +701,13 @@ def _train_loop(
         bar.close()
         writer.close()
         envs.close()
+    log.info(
+        "end: after update %d of %d, env step %d, %.1f s",
+        last_update,
+        n_updates,
+        global_step,
+        time.perf_counter() - started_s,
+    )
     return run_dir
 
 

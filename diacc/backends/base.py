@@ -8,7 +8,7 @@ Everything past the backend (observations, PSAR, metrics, the viewer
 :mod:`diacc.viewer`) reads only that state, so nothing else needs to know
 which simulator runs. Each backend is a package: ``highway/`` and ``sumo/``.
 
-CAV command semantics, identical on every backend (facts.md "Actions"):
+CAV command semantics, identical on every backend:
 
 * ``lane_change[i]`` in {-1, 0, +1}: move one lane to the right (-1) or left
   (+1); the change completes within the step. A change towards a lane that
