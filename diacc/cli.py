@@ -1,5 +1,5 @@
 """Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | simulate |
-bench``.
+bench | convert-checkpoint``.
 
 Every command turns known failures (bad map, backend, config key, checkpoint,
 crashed simulator: a :class:`~diacc.errors.DiaccError`) into a one-line
@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from diacc import __version__, cli_eval, cli_reproduce, cli_scale
@@ -118,6 +120,11 @@ def _train_parser(sub) -> None:
     )
     p.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoint.pt")
     p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run that <run-dir> holds (without it, such a directory is refused)",
+    )
+    p.add_argument(
         "--allow-config-change",
         action="store_true",
         help="with --resume: accept settings other than --steps that differ from the checkpoint's",
@@ -127,14 +134,14 @@ def _train_parser(sub) -> None:
 
 def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
     """Defaults <- config file <- named flags <- --set overrides."""
+    from diacc.maps import map_tag
+
     cfg = TrainConfig()
     if args.config:
         if not args.config.exists():
             raise ConfigError(f"config file {args.config} does not exist")
         cfg = override(cfg, read_toml(args.config, ConfigError))
-    run_dir = (
-        args.run_dir or f"runs/{args.variant}-{args.backend}-{Path(args.map).stem}-s{args.seed}"
-    )
+    run_dir = args.run_dir or f"runs/{args.variant}-{args.backend}-{map_tag(args.map)}-s{args.seed}"
     cfg = override(
         cfg,
         {
@@ -164,12 +171,15 @@ def cmd_train(args: argparse.Namespace) -> None:
 
     cfg = train_config_from_args(args)
     load_map(cfg.env.map)  # fail fast on a bad map name
+    if args.resume and args.overwrite:
+        raise ConfigError("--resume continues the run that --overwrite would replace: choose one")
     print_config(cfg, "diacc train: resolved config", f"full config: {cfg.run_dir}/config.json")
     run_dir = train(
         cfg,
         resume=args.resume,
         progress=not args.no_progress,
         allow_config_change=args.allow_config_change,
+        overwrite=args.overwrite,
     )
     print(f"run directory: {run_dir}  (checkpoint: {run_dir / 'checkpoint.pt'})")
 
@@ -338,6 +348,31 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     print_lines(metric_lines(recorder.summary(), kinds))
 
 
+def _convert_parser(sub) -> None:
+    p = add_command(
+        sub,
+        "convert-checkpoint",
+        "rewrite old (format 1) checkpoints in today's format",
+        "Format 1 kept numpy's RNG state as a pickled array, which a safe load\n"
+        "(torch weights_only) refuses. Converting reads numpy arrays besides tensors\n"
+        "and plain values, nothing else; the networks are copied bit for bit.",
+    )
+    p.add_argument("paths", nargs="+", type=Path, metavar="FILE", help="checkpoints to convert")
+    p.add_argument(
+        "--suffix",
+        default="",
+        help="write FILE with this suffix added to the stem (e.g. -v2) instead of in place",
+    )
+
+
+def cmd_convert(args: argparse.Namespace) -> None:
+    from diacc.algo.checkpoint import convert_checkpoint
+
+    for path in args.paths:
+        dst = path.with_name(f"{path.stem}{args.suffix}{path.suffix}")
+        print(f"converted {path} -> {convert_checkpoint(path, dst)}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="diacc", description=DESCRIPTION)
     parser.add_argument("--version", action="version", version=f"diacc {__version__}")
@@ -345,6 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
     _train_parser(sub)
     _bench_parser(sub)
     _simulate_parser(sub)
+    _convert_parser(sub)
     cli_eval.add_parsers(sub)
     cli_scale.add_parsers(sub)
     cli_reproduce.add_parsers(sub)
@@ -355,10 +391,24 @@ COMMANDS = {
     "train": cmd_train,
     "bench": cmd_bench,
     "simulate": cmd_simulate,
+    "convert-checkpoint": cmd_convert,
     **cli_eval.COMMANDS,
     **cli_scale.COMMANDS,
     **cli_reproduce.COMMANDS,
 }
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like SIGINT's KeyboardInterrupt."""
+
+    signum = signal.SIGTERM
+
+    def __str__(self) -> str:
+        return "terminated (SIGTERM)"
+
+
+def _terminated(signum: int, frame) -> None:
+    raise Terminated
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -368,6 +418,18 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded by `reproduce`
     enable_stderr()
+    main_thread = threading.current_thread() is threading.main_thread()
+    # SIGTERM as SIGINT: an exception, so that every `finally` ends its children
+    # (pool and vector-env workers, SUMO, a local Ray) instead of orphaning them.
+    previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
+    try:
+        return _run(args)
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         COMMANDS[args.command](args)
         sys.stdout.flush()  # here, so that a closed pipe is caught below

@@ -434,6 +434,10 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
             changes[head] = _replace(current, value, f"{full_key}.")
         elif isinstance(value, dict):
             raise ConfigError(f"unknown config key {full_key + '.' + next(iter(value), '')!r}")
+        elif dataclasses.is_dataclass(current) and not isinstance(value, type(current)):
+            raise ConfigError(
+                f"config key {full_key!r} is a section; set its fields ({full_key}.NAME=VALUE)"
+            )
         else:
             changes[head] = _coerce(current, value, full_key)
     return dataclasses.replace(obj, **changes)
@@ -529,6 +533,21 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             raise ConfigError(
                 f"config key {key!r} must be one of {', '.join(_CHOICES[key])}, got {value!r}"
             )
+    if not 0 <= cfg.seed < 2**32:
+        raise ConfigError(f"seed must be in [0, 2**32 - 1], got {cfg.seed}")
+    if cfg.env.scenario.n_cavs < 1:
+        raise ConfigError(
+            f"env.scenario: {cfg.env.scenario.n_vehicles} vehicles at cav_penetration "
+            f"{cfg.env.scenario.cav_penetration} make 0 CAVs; training needs at least one"
+        )
+    if cfg.total_steps < cfg.rollout_steps * cfg.n_envs:
+        # An update collects rollout_steps x n_envs steps: a smaller budget would
+        # run one update far past it.
+        raise ConfigError(
+            f"total_steps {cfg.total_steps} is less than one update "
+            f"(rollout_steps {cfg.rollout_steps} x n_envs {cfg.n_envs} = "
+            f"{cfg.rollout_steps * cfg.n_envs} steps)"
+        )
     if cfg.rollout_steps % cfg.chunk_len:
         raise ConfigError(
             f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}"

@@ -48,8 +48,9 @@ from diacc.maps import SEGMENT_KINDS
 from diacc.metrics import SpeedSamples
 from diacc.policies import EvalSettings, PolicySpec, build_policy
 from diacc.psar import RULE_NAMES
-from diacc.runlog import log, run_log
+from diacc.runlog import locked_dir, log, run_log
 from diacc.threads import default_threads, worker_environment
+from diacc.tomlfile import read_json_object
 from diacc.workpool import map_resilient
 
 META_FILE = "meta.json"
@@ -324,10 +325,11 @@ def write_cell(out_dir: Path, cell: Cell, results: list[EpisodeResult]) -> None:
     cells_dir = out_dir / CELLS_DIR
     cells_dir.mkdir(parents=True, exist_ok=True)
     speeds = [row for r in results for row in speed_rows(r)]
-    _atomic_write(cells_dir / f"{cell.key}.speeds.csv.gz", _gzip(_csv_bytes(SPEED_COLUMNS, speeds)))
+    speeds_bytes = _gzip(_csv_bytes(SPEED_COLUMNS, speeds))
+    _atomic_write(cells_dir / f"{cell.file_key}.speeds.csv.gz", speeds_bytes)
     columns = list(results[0].row)
     _atomic_write(
-        cells_dir / f"{cell.key}.episodes.csv",
+        cells_dir / f"{cell.file_key}.episodes.csv",
         _csv_bytes(columns, [[r.row[c] for c in columns] for r in results]),
     )
 
@@ -415,7 +417,7 @@ def merge_cells(out_dir: Path) -> None:
 def _check_meta(out_dir: Path, meta: dict) -> None:
     path = out_dir / META_FILE
     if path.exists():
-        old = json.loads(path.read_text())
+        old = read_json_object(path, EvaluationError)
         for key in ("policy", "checkpoint", "backend", "settings"):
             if old.get(key) != meta.get(key):
                 raise EvaluationError(
@@ -463,9 +465,28 @@ def evaluate(
     for cell in cells:
         policy.env_config(cell, settings)  # fail fast on cells the policy cannot run
     meta = {**policy.describe(), **settings.describe()}
-    _check_meta(out_dir, meta)
+    with locked_dir(out_dir, "eval"):  # one writer; an unusable --out is one line
+        _check_meta(out_dir, meta)
+        return _evaluate(
+            spec, cells, episodes, out_dir, settings, workers, progress, engine, on_cell, policy
+        )
+
+
+def _evaluate(
+    spec: PolicySpec,
+    cells: list[Cell],
+    episodes: int,
+    out_dir: Path,
+    settings: EvalSettings,
+    workers: int,
+    progress: bool,
+    engine: Engine | None,
+    on_cell: Callable[[Cell, list[EpisodeResult]], None] | None,
+    policy,
+) -> EvalSummary:
+    """:func:`evaluate` once its inputs are checked and ``out_dir`` is locked."""
     with run_log(out_dir / LOG_FILE):
-        done = [_drop_if_damaged(out_dir, c.key) == list(range(episodes)) for c in cells]
+        done = [_drop_if_damaged(out_dir, c.file_key) == list(range(episodes)) for c in cells]
         todo = [c for c, d in zip(cells, done, strict=True) if not d]
         skipped = [c for c, d in zip(cells, done, strict=True) if d]
         pending: dict[str, list[EpisodeResult]] = {c.key: [] for c in todo}
@@ -512,7 +533,27 @@ def load_episodes(out_dir: str | Path) -> tuple[dict, list[dict[str, str]]]:
         raise EvaluationError(f"results directory {out_dir} has an empty {EPISODES_FILE}")
     for row in rows[:1]:
         make_cell({k: _parse_cell_value(k, row[k]) for k in CELL_KEYS}, str(path))
-    return json.loads((out_dir / META_FILE).read_text()), rows
+    _check_numbers(path, rows)
+    return read_json_object(out_dir / META_FILE, EvaluationError), rows
+
+
+#: Columns of episodes.csv that hold text; every other one holds a number (or is empty).
+_TEXT_COLUMNS = {"policy", "backend", "sumo_version", "style_preset", "map", "style_mix", "psar"}
+
+
+def _check_numbers(path: Path, rows: list[dict[str, str]]) -> None:
+    """One-line :class:`EvaluationError` naming the first field that is not a number."""
+    for line, row in enumerate(rows, start=2):
+        for column, text in row.items():
+            if column in _TEXT_COLUMNS or not text:
+                continue
+            try:
+                float(text)
+            except (TypeError, ValueError):
+                raise EvaluationError(
+                    f"{path}:{line}: field {column!r} is not a number ({text!r}); the file is "
+                    "damaged: run `diacc eval` again into a fresh --out"
+                ) from None
 
 
 def _parse_cell_value(key: str, text: str):

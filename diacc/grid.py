@@ -40,6 +40,7 @@ Unknown keys, maps or mixes raise :class:`GridError` with a one-line message.
 from __future__ import annotations
 
 import itertools
+import math
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,8 +48,8 @@ from pathlib import Path
 import numpy as np
 
 from diacc.errors import DiaccError
-from diacc.maps import MapError, load_map
-from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError
+from diacc.maps import MapError, load_map, map_tag
+from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError, draw_population
 from diacc.tomlfile import read_toml
 
 #: Named grids (see module docstring).
@@ -62,6 +63,8 @@ PAPER_ZERO_SHOT_ROWS = (
     (30, 0.3, "D1"),
     (40, 0.2, "D1"),
 )
+#: Most cells of one grid file (a product of long lists must be an error, not a hang).
+MAX_CELLS = 10_000
 #: Columns that identify a cell in every results file, in this order.
 CELL_KEYS = ("map", "n_vehicles", "cav_penetration", "style_mix")
 #: Cell keys that may be left out: a demand cell's inflow (0: the paper's release).
@@ -91,6 +94,20 @@ class Cell:
         (``train-50_Q3200_rho0.40_D1`` for a demand cell)."""
         size = f"Q{self.inflow_vph:.0f}" if self.inflow_vph else f"N{self.n_vehicles}"
         return f"{self.map}_{size}_rho{self.cav_penetration:.2f}_{self.style_mix}"
+
+    @property
+    def file_key(self) -> str:
+        """:attr:`key` made safe as a file name inside ``--out``.
+
+        A shipped map's cell keeps its key; a map file's path is replaced by
+        its stem and content hash (:func:`~diacc.maps.map_tag`): an absolute
+        path once wrote the results next to the map file, a relative one
+        crashed after the episodes ran. (:attr:`key` itself stays the cell's
+        identity, from which its seeds are drawn.)
+        """
+        if Path(self.map).suffix != ".toml":
+            return self.key
+        return self.key.replace(self.map, map_tag(self.map), 1)
 
     def scenario(
         self, cav_penetration: float | None = None, base: Scenario | None = None
@@ -139,6 +156,8 @@ class Cell:
 
 def make_cell(values: dict, source: str = "<grid>") -> Cell:
     """Validate one cell mapping (as read from TOML or CSV) into a :class:`Cell`."""
+    if not isinstance(values, dict):
+        raise GridError(f"{source}: a grid cell must be a table of {', '.join(CELL_KEYS)}")
     unknown = set(values) - set(CELL_KEYS) - set(OPTIONAL_CELL_KEYS)
     if unknown:
         raise GridError(
@@ -153,8 +172,10 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
     missing = [k for k in CELL_KEYS if k not in values]
     if missing:
         raise GridError(f"{source}: grid cell is missing key {missing[0]!r}")
+    if not isinstance(values["map"], str):
+        raise GridError(f"{source}: map must be a map name or .toml path, got {values['map']!r}")
     try:
-        load_map(values["map"])
+        road = load_map(values["map"])
     except MapError as exc:
         raise GridError(f"{source}: {exc}") from None
     n, rho, mix = values["n_vehicles"], values["cav_penetration"], values["style_mix"]
@@ -162,11 +183,14 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
         raise GridError(f"{source}: n_vehicles must be a positive integer, got {n!r}")
     if not isinstance(rho, (int, float)) or isinstance(rho, bool) or not 0 <= rho <= 1:
         raise GridError(f"{source}: cav_penetration must be a number in [0, 1], got {rho!r}")
-    if mix not in STYLE_MIXES:
+    if not isinstance(mix, str) or mix not in STYLE_MIXES:
         raise GridError(f"{source}: unknown style mix {mix!r}; known: {', '.join(STYLE_MIXES)}")
     cell = Cell(str(values["map"]), int(n), float(rho), str(mix), float(inflow))
     try:
         scenario = cell.scenario()
+        # Placing the vehicles checks that they fit the map (once found in the first
+        # episode, after the results directory was written).
+        draw_population(scenario, road, seed=0)
     except ScenarioError as exc:
         raise GridError(f"{source}: {exc}") from None
     if inflow:  # N follows from the inflow (at the default demand_s)
@@ -181,6 +205,8 @@ def _product(values: dict, source: str) -> list[Cell]:
         "cav_penetration": [0.4],
         "style_mix": ["D1"],
     }
+    if not isinstance(values, dict):
+        raise GridError(f"{source}: [product] must be a table of value lists")
     unknown = set(values) - set(CELL_KEYS) - set(OPTIONAL_CELL_KEYS)
     if unknown:
         raise GridError(
@@ -192,6 +218,9 @@ def _product(values: dict, source: str) -> list[Cell]:
     for key, value in lists.items():
         if not isinstance(value, list) or not value:
             raise GridError(f"{source}: product key {key!r} must be a non-empty list")
+    size = math.prod(len(v) for v in lists.values())
+    if size > MAX_CELLS:
+        raise GridError(f"{source}: the product has {size} cells; at most {MAX_CELLS}")
     cells = [
         make_cell(dict(zip(keys, combo, strict=True)), source)
         for combo in itertools.product(*(lists[k] for k in keys))
@@ -233,7 +262,10 @@ def load_grid(name_or_path: str | Path) -> list[Cell]:
             f"{path}: unknown top-level key {sorted(unknown)[0]!r}; "
             "use [[cells]] tables or one [product] table"
         )
-    cells = [make_cell(c, f"{path} cells[{i}]") for i, c in enumerate(data.get("cells", []))]
+    listed = data.get("cells", [])
+    if not isinstance(listed, list) or len(listed) > MAX_CELLS:
+        raise GridError(f"{path}: 'cells' must be a list of at most {MAX_CELLS} [[cells]] tables")
+    cells = [make_cell(c, f"{path} cells[{i}]") for i, c in enumerate(listed)]
     if "product" in data:
         cells += _product(data["product"], f"{path} [product]")
     if not cells:

@@ -36,6 +36,9 @@ SEGMENT_KINDS = ("multilane", "reduction25", "reduction50")
 DROP_SIDES = ("left", "right")
 #: The largest change in lane count allowed between two consecutive segments.
 MAX_LANE_JUMP = 2
+#: Most lanes of a segment (per-lane tables are (segments, lanes): a typo such as
+#: ``lanes = 40000000`` must be an error, not an out-of-memory).
+MAX_LANES = 16
 
 _TOP_KEYS = {"name", "description", "lane_width_m", "drop_side", "segments"}
 _SEGMENT_KEYS = {"kind", "length_m", "lanes", "speed_limit_mps"}
@@ -118,16 +121,17 @@ class Map:
         return _cached(self, "_ends", self._compute_lane_end_m)
 
     def _compute_lane_end_m(self) -> np.ndarray:
-        exists = self.lane_exists()
-        ends = self.segment_ends_m
-        out = np.full(exists.shape, np.inf)
-        n_seg = len(self.segments)
-        for s in range(n_seg):
-            for lane in range(self.max_lanes):
-                for t in range(s, n_seg):
-                    if not exists[t, lane]:
-                        out[s, lane] = ends[t - 1] if t > 0 else 0.0
-                        break
+        # One backward sweep over segments, O(S * L): a lane that exists in
+        # segment s ends where it ends from s + 1; one that does not ends at
+        # s's start. (A search forward from every segment was quadratic: a
+        # 60,000-segment map never loaded.)
+        exists = self.lane_exists()  # (S, L)
+        starts = self.segment_starts_m  # (S,)
+        out = np.full(exists.shape, np.inf)  # (S, L)
+        later = np.full(exists.shape[1], np.inf)  # (L,) the answer for segment s + 1
+        for s in range(len(self.segments) - 1, -1, -1):
+            later = np.where(exists[s], later, starts[s])
+            out[s] = later
         return out
 
     def lane_change_allowed(
@@ -182,6 +186,30 @@ def _cached(road: Map, name: str, compute) -> np.ndarray:
     return table
 
 
+def map_tag(name_or_path: str | Path) -> str:
+    """A file-name-safe name of a map for run directories: identity by content.
+
+    A shipped map keeps its name (``train-25``); a map file adds the hash of
+    its content to its stem (``mymap-3f2a1b0c``), so that two files of one
+    name in different folders, or one file edited between runs, never share
+    a run directory.
+    """
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        return _safe_name(str(name_or_path))
+    try:
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()[:8]
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read the map file ({exc.strerror})") from None
+    return f"{_safe_name(path.stem)}-{digest}"
+
+
+def _safe_name(text: str) -> str:
+    """``text`` with all but letters, digits, ``-``, ``_`` and ``.`` replaced by ``_``."""
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in text).lstrip(".")
+    return safe[:64] or "map"
+
+
 def available_maps() -> list[str]:
     """Names of the maps shipped in ``maps/``."""
     return sorted(p.stem for p in MAPS_DIR.glob("*.toml"))
@@ -212,9 +240,14 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
     def fail(field: str, why: str) -> MapError:
         return MapError(f"{source}: field '{field}' {why}")
 
+    if not isinstance(data, dict):
+        raise MapError(f"{source}: a map must be a table, got {type(data).__name__}")
     unknown = set(data) - _TOP_KEYS
     if unknown:
         raise fail(sorted(unknown)[0], "is not a known key")
+    for key in ("name", "description"):
+        if key in data and not isinstance(data[key], str):
+            raise fail(key, f"must be a string, got {data[key]!r}")
     for key in ("name", "lane_width_m", "segments"):
         if key not in data:
             raise fail(key, "is missing")
@@ -222,7 +255,7 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
     if not _is_number(width) or not 2.0 <= width <= 5.0:
         raise fail("lane_width_m", f"must be a number in [2, 5] m, got {width!r}")
     drop_side = data.get("drop_side", "left")
-    if drop_side not in DROP_SIDES:
+    if not isinstance(drop_side, str) or drop_side not in DROP_SIDES:
         raise fail("drop_side", f"must be one of {DROP_SIDES}, got {drop_side!r}")
     raw_segments = data["segments"]
     if not isinstance(raw_segments, list) or not raw_segments:
@@ -231,20 +264,22 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
     segments = []
     for i, seg in enumerate(raw_segments):
         where = f"segments[{i}]"
+        if not isinstance(seg, dict):
+            raise fail(where, f"must be a table of {', '.join(sorted(_SEGMENT_KEYS))}")
         unknown = set(seg) - _SEGMENT_KEYS
         if unknown:
             raise fail(f"{where}.{sorted(unknown)[0]}", "is not a known key")
         for key in sorted(_SEGMENT_KEYS):
             if key not in seg:
                 raise fail(f"{where}.{key}", "is missing")
-        if seg["kind"] not in SEGMENT_KINDS:
+        if not isinstance(seg["kind"], str) or seg["kind"] not in SEGMENT_KINDS:
             raise fail(f"{where}.kind", f"must be one of {SEGMENT_KINDS}, got {seg['kind']!r}")
         length = seg["length_m"]
         if not _is_number(length) or not 0 < length < math.inf:
             raise fail(f"{where}.length_m", f"must be a finite positive number, got {length!r}")
         lanes = seg["lanes"]
-        if not isinstance(lanes, int) or isinstance(lanes, bool) or lanes < 1:
-            raise fail(f"{where}.lanes", f"must be an integer >= 1, got {lanes!r}")
+        if not isinstance(lanes, int) or isinstance(lanes, bool) or not 1 <= lanes <= MAX_LANES:
+            raise fail(f"{where}.lanes", f"must be an integer in [1, {MAX_LANES}], got {lanes!r}")
         speed = seg["speed_limit_mps"]
         if not _is_number(speed) or not 0 < speed <= 70:
             raise fail(f"{where}.speed_limit_mps", f"must be in (0, 70] m/s, got {speed!r}")

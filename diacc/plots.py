@@ -29,6 +29,7 @@ import numpy as np
 from diacc.errors import DiaccError
 from diacc.evaluate import SPEEDS_FILE, load_episodes, read_csv
 from diacc.maps import SEGMENT_KINDS
+from diacc.tomlfile import read_json_object
 
 #: Panel title -> progress keys tried in order (first one a run has is used).
 CURVE_PANELS: dict[str, tuple[str, ...]] = {
@@ -91,6 +92,8 @@ def read_progress(run_dir: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray
                 record = json.loads(line)
             except json.JSONDecodeError:
                 raise PlotError(f"{progress}:{line_no} is not valid JSON") from None
+            if not isinstance(record, dict):
+                raise PlotError(f"{progress}:{line_no} is not a JSON object")
             step = record.get("global_step")
             for key, value in record.items():
                 if isinstance(value, (int, float)) and step is not None:
@@ -154,11 +157,12 @@ def run_groups(run_dirs: list[Path]) -> dict[Path, str]:
     from diacc.algo.checkpoint import flatten_config
     from diacc.sweepaxes import format_value, short_keys
 
-    configs = {
-        d: flatten_config(json.loads((d / "config.json").read_text()))
-        for d in run_dirs
-        if (d / "config.json").exists()
-    }
+    configs = {}
+    for d in run_dirs:
+        try:
+            configs[d] = flatten_config(read_json_object(d / "config.json", PlotError))
+        except PlotError:  # no or a damaged config.json: labelled by its name
+            continue
     first = next(iter(configs.values()), {})  # its key order is the config's field order
     differing = [
         k

@@ -15,16 +15,20 @@ environment (:data:`ENV_VAR`) and append to it too (:func:`join_parent_log`).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import logging
 import os
+import shutil
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
+
+from diacc.errors import DiaccError
 
 log = logging.getLogger("diacc")
 log.setLevel(logging.INFO)
@@ -102,3 +106,94 @@ def config_digest(config: Any) -> str:
     """
     text = json.dumps(asdict(config), sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+# --------------------------------------------------------------------------
+# Run directories: one writer at a time, nothing replaced unasked
+# --------------------------------------------------------------------------
+#: Files whose presence means a directory holds a training run.
+RUN_FILES = ("checkpoint.pt", "progress.jsonl", "config.json")
+#: What ``--overwrite`` removes: a run's files, nothing else of the directory.
+_RUN_OUTPUTS = (*RUN_FILES, "train.log", "tb")
+LOCK_FILE = ".lock"
+
+
+class RunDirError(DiaccError, RuntimeError):
+    """A run or output directory cannot be used (in use, holds a run, not writable)."""
+
+
+@contextmanager
+def locked_dir(directory: Path, command: str) -> Iterator[None]:
+    """Create ``directory`` if needed and hold its lock while the block runs.
+
+    An ``flock`` on ``<directory>/.lock`` (holding the owner's pid, for the
+    message): a second process gets a one-line :class:`RunDirError` instead of
+    interleaving its files with the first's. The kernel drops the lock when
+    its holder dies, so a lock file left by a killed run is simply taken over.
+    A directory this call created is removed again if the block leaves it
+    empty (a run refused before it wrote anything leaves no trace).
+    """
+    directory = Path(directory)
+    created = not directory.exists()
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        fd = _lock(directory / LOCK_FILE, directory, command)
+    except OSError as exc:
+        raise RunDirError(
+            f"cannot use {directory} as the {command} directory "
+            f"({exc.strerror or type(exc).__name__})"
+        ) from None
+    try:
+        yield
+    finally:
+        (directory / LOCK_FILE).unlink(missing_ok=True)
+        os.close(fd)  # releases the flock
+        if created and not any(directory.iterdir()):
+            directory.rmdir()
+
+
+def _lock(path: Path, directory: Path, command: str) -> int:
+    """Open and flock ``path``; retry if it was replaced meanwhile (its holder just released it)."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise RunDirError(
+                f"{directory} is in use by another diacc {command} (process {holder}); "
+                "wait for it to end or choose another directory"
+            ) from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+            return fd
+        os.close(fd)
+
+
+def claim_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse to start a new run over an existing one unless told to replace it.
+
+    Without this a ``train`` into a finished run's directory replaced its
+    checkpoint and appended to its ``progress.jsonl``. ``overwrite`` removes
+    the previous run's files (only those) first. Call with the lock held.
+    """
+    if resume:
+        return
+    held = [name for name in RUN_FILES if (run_dir / name).exists()]
+    if held and not overwrite:
+        raise RunDirError(
+            f"{run_dir} already holds a run ({', '.join(held)}); continue it with --resume "
+            "or replace it with --overwrite"
+        )
+    for name in _RUN_OUTPUTS if held else ():
+        target = run_dir / name
+        if target.is_dir():
+            shutil.rmtree(target)
+        else:
+            target.unlink(missing_ok=True)

@@ -35,8 +35,10 @@ from diacc.config import ConfigError, TrainConfig, override
 from diacc.errors import DiaccError
 from diacc.evaluate import CellTask, CellTaskResult, run_tasks_here
 from diacc.grid import Cell
+from diacc.maps import map_tag
 from diacc.policies import EvalSettings, PolicySpec
 from diacc.sweepaxes import Setting
+from diacc.tomlfile import read_json_object
 
 ENGINES = ("local", "ray")
 RAY_MISSING = 'Ray is not installed: pip install -e ".[ray]" (or use --engine local)'
@@ -162,7 +164,7 @@ def sweep_configs(
     for variant, map_name, setting, seed in itertools.product(
         variants, maps, settings or [Setting()], seeds
     ):
-        name = f"{variant}-{base.env.backend}-{Path(map_name).stem}-s{seed}"
+        name = f"{variant}-{base.env.backend}-{map_tag(map_name)}-s{seed}"
         run_dir = Path(out_dir) / (f"{name}-{setting.name}" if setting.values else name)
         changes = {"variant": variant, "env.map": map_name, "seed": seed, "run_dir": str(run_dir)}
         configs.append(override(base, {**setting.changes, **changes}))
@@ -178,17 +180,9 @@ def check_run_dirs(configs: list[TrainConfig]) -> None:
     resumes). Fields added to the config after the run was trained count as
     their defaults, as when its checkpoint is evaluated.
     """
-    from dataclasses import asdict
-
-    from diacc.algo.checkpoint import config_from_checkpoint
-    from diacc.algo.mappo import check_resume_config
-
     for cfg in configs:
         path = Path(cfg.run_dir) / "config.json"
-        if not path.exists():
-            continue
-        saved = asdict(config_from_checkpoint({"config": json.loads(path.read_text())}))
-        changed = check_resume_config(saved, cfg, path, allow_change=True)
+        changed = stored_config_changes(cfg)
         if changed:
             raise ConfigError(
                 f"{path.parent} was trained with another {changed[0]} than this command asks "
@@ -201,11 +195,12 @@ def _last_record(run_dir: Path) -> dict:
     path = run_dir / "progress.jsonl"
     if not path.exists():
         return {}
-    lines = [line for line in path.read_text().splitlines() if line.strip()]
+    lines = [line for line in path.read_text(errors="replace").splitlines() if line.strip()]
     try:
-        return json.loads(lines[-1]) if lines else {}
-    except json.JSONDecodeError:
+        record = json.loads(lines[-1]) if lines else {}
+    except (json.JSONDecodeError, RecursionError):
         return {}
+    return record if isinstance(record, dict) else {}  # a damaged row: the run is not finished
 
 
 def planned_steps(cfg: TrainConfig) -> int:
@@ -223,6 +218,28 @@ def run_state(cfg: TrainConfig) -> str:
     return "checkpointed" if (run_dir / "checkpoint.pt").exists() else "new"
 
 
+def stored_config_changes(cfg: TrainConfig) -> list[str]:
+    """Fields (but the step budget) where ``cfg`` differs from its run directory's config.json.
+
+    A run found finished is skipped and one found checkpointed is resumed:
+    both only under the settings it was trained with, or the results would be
+    reported under settings they were not made with. Fields added to the
+    config after the run was trained count as their defaults.
+    """
+    from diacc.algo.checkpoint import config_from_checkpoint
+    from diacc.algo.mappo import check_resume_config
+
+    path = Path(cfg.run_dir) / "config.json"
+    if not path.exists():
+        return []
+    stored = read_json_object(path, ConfigError)
+    try:
+        saved = dataclasses.asdict(config_from_checkpoint({"config": stored}))
+    except ValueError as exc:
+        raise ConfigError(f"{path}: not a usable diacc config ({exc})") from None
+    return check_resume_config(saved, cfg, path, allow_change=True)
+
+
 def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
     """Train one sweep run: skipped if finished, resumed if it has a checkpoint.
 
@@ -233,12 +250,15 @@ def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
     run_dir = Path(cfg.run_dir)
     base = {"variant": cfg.variant, "map": cfg.env.map, "seed": cfg.seed, "run_dir": cfg.run_dir}
     state = run_state(cfg)
+    check_run_dirs([cfg])  # also here: a Ray task may find a run another command started
     if state == "finished":
         return SweepRun(
             **base, status="skipped", host=socket.gethostname(), last=_last_record(run_dir)
         )
     start = time.perf_counter()
-    train(cfg, resume=state == "checkpointed", progress=progress)
+    # A "new" run may hold the files of one killed before its first checkpoint, with
+    # this very config (checked above): nothing to keep, so it starts again.
+    train(cfg, resume=state == "checkpointed", overwrite=state == "new", progress=progress)
     return SweepRun(
         **base,
         status="resumed" if state == "checkpointed" else "trained",

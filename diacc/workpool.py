@@ -12,7 +12,8 @@ At most ``workers`` tasks are in flight, so the tasks charged with an
 attempt when a pool breaks are the ones that were running (the executor
 cannot say which of them killed its worker). A task whose function raises
 is not retried (the error would recur); its error is kept, the other tasks
-go on, and :class:`PoolError` reports every failure once all are done.
+go on, and :class:`PoolError` reports every failure once all are done. An
+interruption (or a consumer that stops early) terminates the workers at once.
 """
 
 from __future__ import annotations
@@ -79,6 +80,12 @@ def map_resilient(
                     yield i, result
                 if broken and not running:
                     break
+        except BaseException:
+            # Interrupted (SIGINT/SIGTERM reach the CLI as KeyboardInterrupt) or the
+            # consumer stopped: end the workers now. A graceful shutdown would wait
+            # for the tasks in flight, and a parent killed meanwhile left them running.
+            _terminate_workers(executor)
+            raise
         finally:
             executor.shutdown(wait=True, cancel_futures=True)
         if broken:
@@ -95,6 +102,19 @@ def map_resilient(
             )
     if failures:
         raise PoolError(f"{len(failures)} of {len(tasks)} tasks failed; first: {failures[0]}")
+
+
+def _terminate_workers(executor: ProcessPoolExecutor, grace_s: float = 5.0) -> None:
+    """SIGTERM every worker of ``executor``, then SIGKILL those still alive after ``grace_s``."""
+    processes = list((getattr(executor, "_processes", None) or {}).values())
+    for proc in processes:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in processes:
+        proc.join(grace_s)
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
 
 
 def _one_line(exc: BaseException) -> str:

@@ -32,7 +32,7 @@ def test_train_rejects_bad_input(tmp_path, capsys):
     assert "not valid TOML" in _error(capsys, ["train", "--config", str(bad), *run])
     too_many = tmp_path / "many.toml"
     too_many.write_text("[env.scenario]\nn_vehicles = 41\n")
-    assert "41" in _error(capsys, ["train", "--config", str(too_many), "--steps", "10", *run])
+    assert "41" in _error(capsys, ["train", "--config", str(too_many), "--steps", "2000", *run])
 
 
 def test_only_user_errors_are_one_line(monkeypatch, capsys):

@@ -242,7 +242,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "variant 'mappo', not 'diacc'" in _cli_error(
         capsys, ["eval", "--policy", str(ckpt), "--variant", "diacc", "--out", out]
     )
-    payload = torch.load(ckpt, weights_only=False)
+    payload = torch.load(ckpt, weights_only=True)
     payload["obs_spec"]["n_neighbours"] = 4
     torch.save(payload, tmp_path / "other.pt")
     assert "another observation layout" in _cli_error(

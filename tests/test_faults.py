@@ -12,6 +12,7 @@ from __future__ import annotations
 import gzip
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -124,7 +125,7 @@ def _rows(path: Path) -> list[dict]:
 def _checkpoint_update(run: Path) -> int:
     import torch
 
-    return torch.load(run / "checkpoint.pt", weights_only=False)["update"]
+    return torch.load(run / "checkpoint.pt", weights_only=True)["update"]
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +139,11 @@ def files(tmp_path_factory) -> dict[str, Path]:
         "latin1_map": root / "latin1.toml",
         "grid4": root / "grid4.toml",
         "sumo_grid": root / "sumo_grid.toml",
+        "crowded_grid": root / "crowded_grid.toml",
     }
+    paths["crowded_grid"].write_text(
+        '[[cells]]\nmap = "train-25"\nn_vehicles = 500\ncav_penetration = 0.4\nstyle_mix = "D1"\n'
+    )
     paths["tiny"].write_text(TINY_TOML)
     paths["nan_map"].write_text(ROAD_TOML.format(name="nan", length="nan"))
     paths["inf_map"].write_text(ROAD_TOML.format(name="inf", length="inf"))
@@ -442,6 +447,20 @@ BAD_INPUT = [
     (["simulate", "--map", "{latin1_map}"], "{latin1_map}: not UTF-8 text (byte 0xdf at offset"),
     # case 9: simulate
     (["simulate", "--steps", "-5"], "--steps must be >= 1, got -5"),
+    # issue 22: everything validated before anything is written
+    (["train", "--set", "env.scenario.n_vehicles=500"], "500 vehicles do not fit in the first seg"),
+    (
+        ["train", "--resume", "--allow-config-change", "--set", "env.scenario.n_vehicles=500"],
+        "500 vehicles do not fit",
+    ),
+    (["train", "--set", "env.sim.cav=3"], "config key 'env.sim.cav' is a section"),
+    (["train", "--set", "env.scenario.cav_penetration=0.05"], "make 0 CAVs; training needs"),
+    (["train", "--seed", "-1"], "seed must be in [0, 2**32 - 1], got -1"),
+    (["train", "--seed", "4294967296"], "seed must be in [0, 2**32 - 1], got 4294967296"),
+    (["train", "--steps", "10"], "total_steps 10 is less than one update (rollout_steps 10 x n"),
+    (["train", "--run-dir", "{tiny}"], "cannot use {tiny} as the train directory (File exists)"),
+    (["train", "--resume", "--overwrite"], "--resume continues the run that --overwrite would"),
+    (["eval", "--policy", "pure-hdv", "--grid", "{crowded_grid}"], "500 vehicles do not fit"),
 ]  # fmt: skip
 
 
@@ -456,13 +475,95 @@ def test_bad_input_gives_one_line_error(files, trained_run, tmp_path, capsys, ar
         before = (run / "config.json").read_bytes() if resume else None
         # Valid, tiny settings first: the entry's own flags override them.
         argv = _train_args(files, run, *argv[1:])
+    if argv[0] == "eval":  # results directory: nothing may be written before the check
+        out = tmp_path / "out"
+        argv = [*argv, "--out", str(out)]
     capsys.readouterr()
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("diacc: error: ") and "\n" not in err, err
     assert expected.format(**names) in err
+    if argv[0] == "eval":
+        assert not out.exists(), "the results directory was written before validation"
     if argv[0] == "train":
         if resume:
             assert (run / "config.json").read_bytes() == before, "resume rewrote config.json"
         else:
             assert not run.exists(), "the run directory was created before validation"
+
+
+# ----------------------------------------------------------------------------- issue 22
+def test_train_refuses_a_directory_holding_a_run(files, trained_run, tmp_path, capsys):
+    """Without --resume a finished run was replaced and its progress.jsonl appended to."""
+    run = tmp_path / "copy"
+    shutil.copytree(trained_run, run)
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    capsys.readouterr()
+    assert main(_train_args(files, run, "--steps", str(STEPS_PER_UPDATE))) == 2
+    err = capsys.readouterr().err.strip()
+    assert "already holds a run (checkpoint.pt, progress.jsonl, config.json)" in err, err
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+    assert main(_train_args(files, run, "--steps", str(STEPS_PER_UPDATE), "--overwrite")) == 0
+    assert [r["update"] for r in _rows(run / "progress.jsonl")] == [1]
+
+
+def test_two_writers_cannot_share_a_run_directory(files, tmp_path, capsys):
+    """A second process on a locked run directory gets one line; a stale lock is taken over."""
+    from diacc.runlog import LOCK_FILE, locked_dir
+
+    run = tmp_path / "run"
+    args = _train_args(files, run, "--steps", str(STEPS_PER_UPDATE))
+    with locked_dir(run, "train"):  # as another process holding it would
+        holder = subprocess.run(_cli(*args), env=ENV, capture_output=True, text=True)
+    assert holder.returncode == 2
+    assert f"is in use by another diacc train (process {os.getpid()})" in holder.stderr
+    assert not run.exists(), "the refused command left files"
+    run.mkdir()
+    (run / LOCK_FILE).write_text("999999999\n")  # left by a killed run: nobody holds it
+    assert main(args) == 0
+    assert not (run / LOCK_FILE).exists()
+
+
+def test_sweep_compares_the_config_of_a_run_it_would_skip(tmp_path, capsys):
+    """A finished run with other settings was skipped and reported under the new ones."""
+    from test_sweep_cli import SMALL
+
+    argv = ["sweep", "--variants", "mappo", "--seeds", "1", "--steps", "10", "--envs", "1"]
+    argv += ["--out-dir", str(tmp_path), *SMALL]
+    assert main(argv) == 0
+    capsys.readouterr()
+    assert main([*argv, "--set", "epochs=2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "was trained with another epochs than this command asks for" in err, err
+
+
+def test_sigterm_to_train_with_process_envs_ends_every_child(files, tmp_path):
+    """SIGTERM to ``train --set vector=process``: checkpoint, exit 143, no worker left (by pid)."""
+    run = tmp_path / "run"
+    steps = str(STEPS_PER_UPDATE * 200)
+    proc = _popen(*_train_args(files, run, "--steps", steps, "--set", "vector=process"))
+    children = _wait_for(
+        lambda: [pid for pid, cmd in _descendants(proc.pid) if "resource_tracker" not in cmd][1:],
+        proc,
+        "the vector-env workers",
+    )
+    _wait_for(lambda: (run / "progress.jsonl").exists(), proc, "the first update")
+    proc.send_signal(signal.SIGTERM)
+    code, err = _finish(proc)
+    assert code == 128 + signal.SIGTERM, err
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and set(children) & _live_pids():
+        time.sleep(0.1)
+    assert not set(children) & _live_pids(), "vector-env workers outlived train"
+
+
+def _live_pids() -> set[int]:
+    """Pids of every process that is not a zombie."""
+    live = set()
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and (entry / "stat").read_text().rsplit(")", 1)[1][1] != "Z":
+                live.add(int(entry.name))
+        except OSError:
+            continue
+    return live

@@ -158,7 +158,7 @@ def test_bad_checkpoints_give_one_line_errors(tmp_path):
     cfg = tiny_config(tmp_path, total_steps=40)
     train(cfg, progress=False)
     path = tmp_path / "run" / "checkpoint.pt"
-    payload = torch.load(path, weights_only=False)
+    payload = torch.load(path, weights_only=True)
 
     corrupt = tmp_path / "corrupt.pt"
     corrupt.write_bytes(path.read_bytes()[:100])

@@ -197,7 +197,7 @@ def test_compiled_update_matches_eager(tiny_batch):
 def test_cuda_without_a_gpu_is_a_one_line_error():
     """``diacc train/bench --device cuda`` on a CPU-only machine: one line, exit 2, no traceback."""
     for argv in (
-        ["train", "--steps", "100", "--device", "cuda"],
+        ["train", "--steps", "2000", "--device", "cuda"],
         ["bench", "--training", "--device", "cuda"],
     ):
         done = subprocess.run(

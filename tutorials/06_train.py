@@ -122,10 +122,8 @@ done = (
     and (run_dir / "progress.jsonl").exists()
     and (read_progress(run_dir)["global_step"][1].max() >= cfg.total_steps)
 )
-if not done:
-    for stale in (run_dir / "progress.jsonl", checkpoint):
-        stale.unlink(missing_ok=True)
-    train(cfg, progress=False)
+if not done:  # overwrite: replace an unfinished run (without it, train refuses the folder)
+    train(cfg, progress=False, overwrite=True)
 print(sorted(p.name for p in run_dir.iterdir()))
 
 # %% [markdown]

@@ -91,7 +91,7 @@ else:
     )
     checkpoint = run_dir / "checkpoint.pt"
     if not checkpoint.exists():
-        train(cfg, progress=False)
+        train(cfg, progress=False, overwrite=True)
     print("trained a tiny agent:", checkpoint)
 spec = parse_policy(str(checkpoint))
 

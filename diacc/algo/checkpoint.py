@@ -4,10 +4,20 @@ One ``checkpoint.pt`` holds the run's config, the networks, the optimiser,
 the value normaliser and the RNG states (so ``--resume`` continues exactly).
 The evaluator needs only the actor and the config (:func:`load_actor`), so
 it reads checkpoints through this module and never imports the trainer.
+
+Checkpoints travel (README invites copying other people's ``runs/``), so a
+checkpoint is data, never code: it is read with ``torch.load(...,
+weights_only=True)``, which unpickles tensors and plain Python values only,
+and every part is then checked for its type and shape (:func:`validate_payload`)
+so that a damaged or hostile file is one :class:`CheckpointError` line.
+Format 2 stores the RNG states as tensors and ints for that reason; format-1
+files (pickled numpy RNG state) are refused with the command that converts
+them (:func:`convert_checkpoint`, ``diacc convert-checkpoint``).
 """
 
 from __future__ import annotations
 
+import pickle
 import random
 from dataclasses import asdict
 from pathlib import Path
@@ -29,12 +39,16 @@ class CheckpointError(DiaccError, RuntimeError):
     """A checkpoint is missing, corrupt, or belongs to another run layout."""
 
 
+#: Version of the checkpoint layout: 2 stores the RNG states as tensors and ints.
+FORMAT = 2
+
+
 def save_checkpoint(
     path: Path, agent: Agent, cfg: TrainConfig, update: int, global_step: int
 ) -> None:
     """Write everything ``--resume`` needs, atomically (a killed run keeps the last file)."""
     payload = {
-        "format": 1,
+        "format": FORMAT,
         "config": asdict(cfg),
         "variant": cfg.variant,
         "obs_spec": asdict(ObservationSpec.from_config(cfg.env.obs)),
@@ -44,34 +58,131 @@ def save_checkpoint(
         "critic": agent.critic.state_dict(),
         "value_norm": agent.value_norm.state_dict(),
         "optimizer": agent.optimizer.state_dict(),
-        "rng": {
-            "python": random.getstate(),
-            "numpy": np.random.get_state(),
-            "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
-        },
+        "rng": rng_state(),
     }
     tmp = path.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
+    try:
+        torch.save(payload, tmp)
+        tmp.replace(path)
+    except OSError as exc:  # disk full, read-only directory: the old checkpoint stays
+        tmp.unlink(missing_ok=True)
+        raise CheckpointError(
+            f"cannot write checkpoint {path} ({exc.strerror or type(exc).__name__}); "
+            "the previous checkpoint is unchanged"
+        ) from None
 
 
 def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
-    """Read a checkpoint; raise :class:`CheckpointError` (one line) if it is unusable."""
+    """Read and check a checkpoint; raise :class:`CheckpointError` (one line) if it is unusable.
+
+    ``weights_only=True``: unpickling builds tensors and plain values only, so
+    a hostile file cannot run code here.
+    """
     path = Path(path)
-    if not path.exists():
+    if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
-        payload = torch.load(path, map_location=device, weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means corrupt
+        payload = torch.load(path, map_location=device, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        if "numpy" in str(exc) and _looks_like_format_1(path):
+            raise CheckpointError(
+                f"checkpoint {path} is in the old format 1 (numpy RNG state); convert it "
+                f"once with: diacc convert-checkpoint {path}"
+            ) from None
+        raise CheckpointError(
+            f"checkpoint {path} holds objects other than tensors and plain values "
+            "(refused: loading it could run code)"
+        ) from None
+    except Exception as exc:  # noqa: BLE001 - any other failure means truncated or garbled
         raise CheckpointError(f"checkpoint {path} is corrupt ({type(exc).__name__})") from None
-    if not isinstance(payload, dict) or payload.get("format") != 1:
+    validate_payload(payload, path)
+    return payload
+
+
+def _looks_like_format_1(path: Path) -> bool:
+    """Whether the file's only non-tensor objects are numpy arrays (an old diacc checkpoint)."""
+    try:
+        unsafe = torch.serialization.get_unsafe_globals_in_checkpoint(path)
+    except Exception:  # noqa: BLE001 - unreadable: not an old checkpoint
+        return False
+    return bool(unsafe) and set(unsafe) <= _NUMPY_ARRAY_GLOBALS
+
+
+#: What a numpy array needs to be unpickled, as torch names the globals.
+_NUMPY_ARRAY_GLOBALS = {f"numpy.{core}.multiarray._reconstruct" for core in ("core", "_core")} | {
+    "numpy.ndarray",
+    "numpy.dtype",
+    "numpy.dtypes.UInt32DType",
+}
+
+
+def validate_payload(payload: object, path: Path) -> None:
+    """One-line :class:`CheckpointError` unless ``payload`` has a format-2 checkpoint's structure.
+
+    Checks types and shapes, not values the training code re-checks (the
+    config goes through :func:`config_from_checkpoint`, the networks through
+    ``load_state_dict``), so that nothing later fails with a KeyError or
+    a TypeError traceback on a damaged file.
+    """
+
+    def bad(what: str) -> CheckpointError:
+        return CheckpointError(f"checkpoint {path} is damaged: {what}")
+
+    if not isinstance(payload, dict) or "format" not in payload:
         raise CheckpointError(f"checkpoint {path} is not a diacc checkpoint")
-    for part in ("actor", "critic"):
+    if payload["format"] != FORMAT:
+        raise CheckpointError(
+            f"checkpoint {path} has format {payload['format']!r}; this diacc reads format {FORMAT}"
+        )
+    types = {
+        "config": dict, "variant": str, "obs_spec": dict, "update": int, "global_step": int,
+        "actor": dict, "critic": dict, "value_norm": dict, "optimizer": dict, "rng": dict,
+    }  # fmt: skip
+    for key, kind in types.items():
+        if key not in payload:
+            raise bad(f"no {key!r}")
+        if not isinstance(payload[key], kind) or isinstance(payload[key], bool):
+            raise bad(f"{key!r} is a {type(payload[key]).__name__}, not a {kind.__name__}")
+    if payload["update"] < 0 or payload["global_step"] < 0:
+        raise bad("negative update or global_step")
+    if not all(isinstance(v, int) for v in payload["obs_spec"].values()):
+        raise bad("'obs_spec' holds a value that is not an integer")
+    for part in ("actor", "critic", "value_norm"):
         for name, tensor in payload[part].items():
+            if not isinstance(tensor, torch.Tensor):
+                raise bad(f"{part}.{name} is not a tensor")
             if torch.is_floating_point(tensor) and not torch.isfinite(tensor).all():
                 raise CheckpointError(f"checkpoint {path} has NaN/inf in {part}.{name}")
-    return payload
+    if not {"state", "param_groups"} <= payload["optimizer"].keys():
+        raise bad("'optimizer' is not an optimiser state")
+    try:
+        _check_rng(payload["rng"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise bad(f"'rng' ({exc})") from None
+    try:
+        config_from_checkpoint(payload)
+    except ValueError as exc:
+        raise CheckpointError(f"checkpoint {path} has an unusable config ({exc})") from None
+
+
+def _check_rng(rng: dict) -> None:
+    """Raise KeyError/TypeError/ValueError unless ``rng`` is what :func:`rng_state` returns."""
+    python, numpy_ = rng["python"], rng["numpy"]
+    if not isinstance(python["version"], int) or not isinstance(python["state"], torch.Tensor):
+        raise TypeError("python state")
+    if python["state"].shape != (625,) or not isinstance(python["gauss"], (float, type(None))):
+        raise ValueError("python state shape")
+    if not isinstance(numpy_["key"], torch.Tensor) or numpy_["key"].shape != (624,):
+        raise ValueError("numpy key")
+    if not all(isinstance(numpy_[k], int) for k in ("pos", "has_gauss")):
+        raise TypeError("numpy position")
+    if not isinstance(numpy_["cached_gaussian"], float):
+        raise TypeError("numpy cached gaussian")
+    if not isinstance(rng["torch"], torch.Tensor) or rng["torch"].dtype != torch.uint8:
+        raise TypeError("torch state")
+    cuda = rng["cuda"]
+    if cuda is not None and not all(isinstance(t, torch.Tensor) for t in cuda):
+        raise TypeError("cuda states")
 
 
 def restore(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
@@ -124,13 +235,106 @@ def _check_fits(payload: dict, cfg: TrainConfig, path: Path) -> None:
         raise CheckpointError(f"checkpoint {path} was trained with another observation layout")
 
 
+def rng_state() -> dict:
+    """The Python, numpy, torch and CUDA RNG states as tensors and plain values.
+
+    Plain types so that the checkpoint loads with ``weights_only=True``
+    (numpy's own state tuple holds an ndarray, which would need unpickling code).
+    """
+    version, words, gauss = random.getstate()
+    _, key, pos, has_gauss, cached = np.random.get_state()
+    return {
+        "python": {
+            "version": version,
+            "state": torch.tensor(words, dtype=torch.int64),
+            "gauss": gauss,
+        },
+        "numpy": {
+            "key": torch.from_numpy(key.astype(np.int64)),  # (624,) uint32 words
+            "pos": int(pos),
+            "has_gauss": int(has_gauss),
+            "cached_gaussian": float(cached),
+        },
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+    }
+
+
 def set_rng_state(rng: dict) -> None:
-    """Restore the RNG states saved by :func:`save_checkpoint`."""
-    random.setstate(rng["python"])
-    np.random.set_state(rng["numpy"])
+    """Restore the RNG states saved by :func:`rng_state`."""
+    python, numpy_ = rng["python"], rng["numpy"]
+    random.setstate((python["version"], tuple(python["state"].tolist()), python["gauss"]))
+    np.random.set_state(
+        (
+            "MT19937",
+            numpy_["key"].numpy().astype(np.uint32),
+            numpy_["pos"],
+            numpy_["has_gauss"],
+            numpy_["cached_gaussian"],
+        )
+    )
     torch.set_rng_state(rng["torch"].cpu())
     if rng["cuda"] is not None and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(rng["cuda"])
+
+
+def convert_checkpoint(src: Path, dst: Path | None = None) -> Path:
+    """Rewrite a format-1 checkpoint (numpy RNG state) as format 2; returns the written path.
+
+    The old file is read with ``weights_only=True`` plus numpy's array
+    reconstruction as the only allowed globals, so converting runs no code
+    from the file either; networks, optimiser and config are copied unchanged
+    (bit-identical tensors). ``dst`` defaults to ``src`` (replaced atomically).
+    """
+    src, dst = Path(src), Path(dst or src)
+    if not src.is_file():
+        raise CheckpointError(f"checkpoint {src} does not exist")
+    allowed = [np.ndarray, np.dtype, type(np.dtype(np.uint32)), _numpy_reconstruct()]
+    try:
+        with torch.serialization.safe_globals(allowed):
+            payload = torch.load(src, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - anything else: not an old diacc checkpoint
+        raise CheckpointError(
+            f"checkpoint {src} cannot be converted ({type(exc).__name__}): it holds objects "
+            "other than tensors, plain values and numpy arrays"
+        ) from None
+    if not isinstance(payload, dict) or payload.get("format") != 1:
+        raise CheckpointError(f"checkpoint {src} is not a format-1 diacc checkpoint")
+    try:
+        version, words, gauss = payload["rng"]["python"]
+        _, key, pos, has_gauss, cached = payload["rng"]["numpy"]
+        payload["rng"] = {
+            "python": {
+                "version": version,
+                "state": torch.tensor(words, dtype=torch.int64),
+                "gauss": gauss,
+            },
+            "numpy": {
+                "key": torch.from_numpy(np.asarray(key, dtype=np.int64)),
+                "pos": int(pos),
+                "has_gauss": int(has_gauss),
+                "cached_gaussian": float(cached),
+            },
+            "torch": payload["rng"]["torch"],
+            "cuda": payload["rng"]["cuda"],
+        }
+    except (KeyError, TypeError, ValueError):
+        raise CheckpointError(f"checkpoint {src} has no readable RNG state") from None
+    payload["format"] = FORMAT
+    validate_payload(payload, src)
+    tmp = dst.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(dst)
+    return dst
+
+
+def _numpy_reconstruct():
+    """numpy's array-unpickling function (moved from ``numpy.core`` to ``numpy._core`` in 2.0)."""
+    try:
+        from numpy._core.multiarray import _reconstruct
+    except ImportError:  # pragma: no cover - numpy < 2
+        from numpy.core.multiarray import _reconstruct
+    return _reconstruct
 
 
 #: Sections a TrainConfig held at its top level before it nested an EnvConfig.

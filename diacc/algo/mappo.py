@@ -56,12 +56,14 @@ from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig, validate
 from diacc.console import TrainProgress
 from diacc.errors import DiaccError
+from diacc.maps import load_map
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_policy
 from diacc.observation import ObservationSpec, stack
 from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
-from diacc.runlog import config_digest, log, run_log
+from diacc.runlog import claim_run_dir, config_digest, locked_dir, log, run_log
+from diacc.scenario import draw_population
 from diacc.threads import set_torch_threads
 from diacc.vector import make_vector_env
 
@@ -551,6 +553,7 @@ def train(
     progress: bool = True,
     stop_after_updates: int | None = None,
     allow_config_change: bool = False,
+    overwrite: bool = False,
 ) -> Path:
     """Train ``cfg.variant``; returns the run directory (config, checkpoints, logs).
 
@@ -559,11 +562,33 @@ def train(
     the same config but for the step budget (unless ``allow_config_change``),
     and cuts ``progress.jsonl`` and TensorBoard back to the checkpoint.
     Nothing is written before the config (and checkpoint) passed their checks.
+    The run directory is locked while training; one that holds a run is
+    refused unless ``resume`` (continue it) or ``overwrite`` (replace it).
     """
     validate(cfg)
-    run_dir = Path(cfg.run_dir)
-    ckpt_path = run_dir / "checkpoint.pt"
+    # The first vehicles' placement checks that the scenario fits the map, before anything
+    # is written (it used to fail in the first reset, after config.json and tb/ existed).
+    draw_population(cfg.env.scenario, load_map(cfg.env.map), cfg.seed)
     device = resolve_device(cfg.device)
+    run_dir = Path(cfg.run_dir)
+    with locked_dir(run_dir, "train"):
+        claim_run_dir(run_dir, resume, overwrite)
+        return _start(
+            cfg, run_dir, device, resume, progress, stop_after_updates, allow_config_change
+        )
+
+
+def _start(
+    cfg: TrainConfig,
+    run_dir: Path,
+    device: torch.device,
+    resume: bool,
+    progress: bool,
+    stop_after_updates: int | None,
+    allow_config_change: bool,
+) -> Path:
+    """:func:`train` once the inputs are checked and ``run_dir`` is locked and claimed."""
+    ckpt_path = run_dir / "checkpoint.pt"
     seed_everything(cfg.seed)
     set_torch_threads(cfg.torch_threads)
     agent = make_agent(cfg, device)
@@ -577,7 +602,6 @@ def train(
         restore(agent, payload, cfg, ckpt_path)
         first_update, global_step = payload["update"], payload["global_step"]
         set_rng_state(payload["rng"])
-    run_dir.mkdir(parents=True, exist_ok=True)
     with run_log(run_dir / "train.log"):
         if changed:
             log.warning("resuming %s with changed config fields: %s", run_dir, ", ".join(changed))

@@ -35,7 +35,7 @@ from diacc.config import (
     override,
 )
 from diacc.grid import GRID_NAMES, Cell, load_grid
-from diacc.maps import load_map
+from diacc.maps import load_map, map_tag
 from diacc.sweepaxes import Setting
 
 #: Non-learning columns of every table (see :mod:`diacc.policies`): pure HDV, the
@@ -151,7 +151,7 @@ class RunSpec:
     def name(self) -> str:
         suffix = "" if self.backend == DEFAULT_TRAIN_BACKEND else f"-{self.backend}"
         setting = f"-{self.setting.name}" if self.setting.values else ""
-        return f"{self.variant}-{Path(self.map).stem}-s{self.seed}{suffix}{setting}"
+        return f"{self.variant}-{map_tag(self.map)}-s{self.seed}{suffix}{setting}"
 
     @property
     def column(self) -> str:

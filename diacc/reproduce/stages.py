@@ -16,7 +16,6 @@
 
 from __future__ import annotations
 
-import json
 import shutil
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -45,6 +44,7 @@ from diacc.scaleout import (
     train_run,
 )
 from diacc.threads import worker_environment
+from diacc.tomlfile import read_json_object
 from diacc.workpool import map_resilient
 
 #: Where a stage's one-line progress messages go (``print`` in the CLI).
@@ -93,7 +93,7 @@ def check_existing_evaluations(plan: Plan) -> None:
         path = plan.eval_dir(job) / META_FILE
         if not path.exists():
             continue
-        meta = json.loads(path.read_text())
+        meta = read_json_object(path, ConfigError)
         wanted = job_settings(plan, job).describe()
         if job.run is not None:
             wanted["actions"] = action_mode(job_spec(plan, job).sampled)
@@ -160,7 +160,7 @@ def is_complete(out_dir: Path, cells: tuple[Cell, ...], episodes: int) -> bool:
         return False
     if speeds.stat().st_mtime_ns < merged.stat().st_mtime_ns:
         return False
-    if any(check_cell_files(out_dir, c.key) != (list(range(episodes)), None) for c in cells):
+    if any(check_cell_files(out_dir, c.file_key) != (list(range(episodes)), None) for c in cells):
         return False
     have = {(row_cell_key(r), int(r["episode"])) for r in read_csv(merged)}
     return all((c.key, e) in have for c in cells for e in range(episodes))
@@ -171,7 +171,10 @@ def _drop_stale(out_dir: Path, trained_steps: int, say: Say) -> None:
     meta_path = out_dir / META_FILE
     if not meta_path.exists():
         return
-    evaluated = json.loads(meta_path.read_text()).get("trained_steps")
+    try:
+        evaluated = read_json_object(meta_path, ConfigError).get("trained_steps")
+    except ConfigError:  # damaged: the results are recomputed like stale ones
+        evaluated = None
     if evaluated != trained_steps:
         say(
             f"  {out_dir}: results of the checkpoint at {evaluated} steps removed; "
@@ -232,7 +235,7 @@ def _say(line: str) -> None:
 
 def _unfinished(plan: Plan, job: EvalJob) -> list[Cell]:
     episodes = list(range(plan.config.budget.episodes_per_cell))
-    return [c for c in job.cells if check_cell_files(plan.eval_dir(job), c.key)[0] != episodes]
+    return [c for c in job.cells if check_cell_files(plan.eval_dir(job), c.file_key)[0] != episodes]
 
 
 def run_job(task: _JobTask, say: Say = _say) -> int:

@@ -43,7 +43,7 @@ import numpy as np
 
 from diacc.backends.base import BackendError, CavCommands
 from diacc.backends.sumo import wire
-from diacc.backends.sumo.net import atomic_write, build_network, cache_dir
+from diacc.backends.sumo.net import atomic_write, build_network
 from diacc.backends.sumo.vtypes import vtypes_key, vtypes_xml
 from diacc.backends.sumo.worker import WorkerSpec
 from diacc.config import SimConfig
@@ -73,10 +73,10 @@ class SumoBackend:
         self.road = road
         self.sim = sim
         net_path, route_path = build_network(road)
-        vtypes_path = cache_dir() / f"vtypes-{vtypes_key(sim)}.add.xml"
-        if not vtypes_path.exists():
-            vtypes_path.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write(vtypes_path, vtypes_xml(sim))
+        vtypes_path = net_path.parent / f"vtypes-{vtypes_key(sim)}.add.xml"  # the usable cache
+        vtypes = vtypes_xml(sim)
+        if not vtypes_path.exists() or vtypes_path.read_text(errors="replace") != vtypes:
+            atomic_write(vtypes_path, vtypes)
         self._spec = WorkerSpec(road, sim, net_path, route_path, vtypes_path)
         self._proc: subprocess.Popen | None = None
         self._conn = None

@@ -20,7 +20,11 @@ reduction are reached by ordinary lane changes.
 
 Networks are cached per ``Map.content_hash()`` in ``$DIACC_CACHE/sumo`` (or
 ``~/.cache/diacc/sumo``) and written atomically, so parallel workers can
-share one file.
+share one file. File names are the hash alone: a map's ``name`` is a user
+string (``"../../x"`` once wrote outside the cache). A cached network that
+does not parse (a truncated file) is rebuilt; a cache folder that cannot be
+created or written is replaced by one in the system's temporary folder, with
+a warning.
 """
 
 from __future__ import annotations
@@ -28,11 +32,13 @@ from __future__ import annotations
 import os
 import subprocess
 import tempfile
+import xml.etree.ElementTree as ET
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 from diacc.backends.base import BackendError
 from diacc.maps import Map
+from diacc.runlog import log
 
 #: Route id used by every vehicle; it covers all edges of the map.
 ROUTE_ID = "route"
@@ -121,15 +127,17 @@ def build_network(road: Map, folder: Path | None = None) -> tuple[Path, Path]:
     Raises:
         BackendError: netconvert is missing or rejects the generated files.
     """
-    folder = folder or cache_dir()
-    folder.mkdir(parents=True, exist_ok=True)
-    stem = f"{road.name}-{road.content_hash()}"
+    folder = usable_cache(folder or cache_dir())
+    stem = f"net-{road.content_hash()}"
     net_path = folder / f"{stem}.net.xml"
     route_path = folder / f"{stem}.rou.xml"
-    if not route_path.exists():
-        atomic_write(route_path, routes_xml(road))
-    if net_path.exists():
+    routes = routes_xml(road)
+    if not route_path.exists() or route_path.read_text(errors="replace") != routes:
+        atomic_write(route_path, routes)
+    if _complete_network(net_path, road):
         return net_path, route_path
+    if net_path.exists():
+        log.warning("cached SUMO network %s is damaged; rebuilding it", net_path)
 
     import sumolib  # local: only needed when a network must be built
 
@@ -162,6 +170,39 @@ def build_network(road: Map, folder: Path | None = None) -> tuple[Path, Path]:
             raise BackendError(f"netconvert failed for map {road.name!r}: {last}")
         atomic_write(net_path, out.read_text())
     return net_path, route_path
+
+
+def _complete_network(path: Path, road: Map) -> bool:
+    """Whether ``path`` is a parseable network holding every edge of ``road``."""
+    if not path.exists():
+        return False
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return False
+    found = {edge.get("id") for edge in root.iter("edge")}
+    return root.tag == "net" and set(edge_ids(road)) <= found
+
+
+def usable_cache(folder: Path) -> Path:
+    """``folder`` if networks can be written there, else a per-user temporary folder (warned)."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        if os.access(folder, os.W_OK | os.X_OK):
+            return folder
+        reason = "not writable"
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+    fallback = Path(tempfile.gettempdir()) / f"diacc-{os.getuid()}" / "sumo"
+    log.warning("SUMO network cache %s is unusable (%s); using %s", folder, reason, fallback)
+    try:
+        fallback.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise BackendError(
+            f"no usable SUMO network cache: {folder} ({reason}), {fallback} ({exc.strerror}); "
+            "set DIACC_CACHE to a writable folder"
+        ) from None
+    return fallback
 
 
 def atomic_write(path: Path, text: str) -> None:
