@@ -195,7 +195,7 @@ class ObservationConfig:
 
 #: Options of :class:`PSARConfig` (see :func:`diacc.psar.psar`).
 FORCE_BRAKE_MODES = ("cancel", "paper")
-HORIZON_MODES = ("stopping", "paper")
+HORIZON_MODES = ("stopping", "headway", "paper")
 
 
 @dataclass(frozen=True)
@@ -225,6 +225,8 @@ class PSARConfig:
     horizon: str = "stopping"
     coordinate_lane_changes: bool = True  # CAVs do not change lanes into each other
     queue_gap_m: float = 2.0  # standstill gap per vehicle queued at a lane end (PSAR's wall)
+    min_gap_m: float = 2.0  # "headway": standstill gap kept behind any front obstacle
+    cav_time_gap_s: float = 0.3  # "headway": time gap behind a CAV whose command is known
 
     def __post_init__(self) -> None:
         if not (self.d_lc_min_m <= self.d_safe_m < self.d_warn_m < self.d_att_m):
@@ -235,6 +237,11 @@ class PSARConfig:
             raise ConfigError(f"PSARConfig.b_max_mps2 must be >= 0, got {self.b_max_mps2}")
         _check_choice("psar.force_brake", self.force_brake, FORCE_BRAKE_MODES)
         _check_choice("psar.horizon", self.horizon, HORIZON_MODES)
+        if self.min_gap_m < 0 or self.cav_time_gap_s < 0:
+            raise ConfigError(
+                f"PSARConfig needs min_gap_m >= 0 and cav_time_gap_s >= 0, got "
+                f"{self.min_gap_m} and {self.cav_time_gap_s}"
+            )
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ from diacc.actions import (
     lane_change_allowed,
 )
 from diacc.config import PSARConfig, SimConfig
-from diacc.kinematics import safe_gap_m
+from diacc.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
 from diacc.maps import Map
 from diacc.safety import (
     SAME_COL,
@@ -172,7 +172,8 @@ def psar(
     step_s, dv_action = sim.step_s, sim.speed_change_mps
     safe_decel = sim.cav.safe_decel_mps2
     max_brake_mps = safe_decel * step_s  # largest planned speed drop within one step
-    stopping = cfg.horizon == "stopping"
+    headway = cfg.horizon == "headway"
+    stopping = cfg.horizon == "stopping" or headway  # both size gaps by braking physics
     active = take(state.active, cav_index)  # (..., C)
     proposed = action.astype(np.int64)
     a = proposed.copy()
@@ -194,6 +195,8 @@ def psar(
         lead_speed_mps = ego_speed_mps - np.nan_to_num(kin.dv_long_mps)  # 0 for a wall
         end_speed_mps = ego_speed_mps + np.maximum(action_speed_change_mps(action, dv_action), 0)
         gap_m = safe_gap_m(ego_speed_mps, lead_speed_mps, step_s, safe_decel, end_speed_mps)
+        if headway:  # the standstill gap car following will keep
+            gap_m = gap_m + max(cfg.min_gap_m - cfg.d_lc_min_m, 0.0)
         return np.where(kin.valid, gap_m, 0.0)
 
     # ---- lane change the road does not allow -> remain ---------------------
@@ -250,11 +253,18 @@ def psar(
     if stopping:  # the rear vehicle must be able to brake for the CAV (a CAV rear reacts late)
         rear = np.maximum(pairs[..., 1], 0)
         rear_speed_mps = take(state.speed_mps, rear) * np.abs(np.cos(take(state.heading_rad, rear)))
-        # A rear CAV reacts after a step and may accelerate during it.
         rear_cav = take(state.is_cav, rear)
-        reaction_s = np.where(rear_cav, step_s, 0.0)
-        rear_end_mps = rear_speed_mps + np.where(rear_cav, dv_action, 0.0)
-        rear_margin_m = safe_gap_m(
+        if headway:
+            # A rear CAV learns of the change in this step (it is refined after the
+            # changer) and keeps the platoon gap behind it.
+            reaction_s, rear_end_mps = 0.0, rear_speed_mps
+            platoon_m = cfg.cav_time_gap_s * rear_speed_mps + max(cfg.min_gap_m - cfg.d_lc_min_m, 0)
+            extra_m = np.where(rear_cav, platoon_m, 0.0)
+        else:  # a rear CAV reacts after a step and may accelerate during it
+            reaction_s = np.where(rear_cav, step_s, 0.0)
+            rear_end_mps = rear_speed_mps + np.where(rear_cav, dv_action, 0.0)
+            extra_m = 0.0
+        rear_margin_m = extra_m + safe_gap_m(
             rear_speed_mps, ego_speed_mps, reaction_s, safe_decel, rear_end_mps
         )
     cancel_rear = has_rear & (
@@ -306,6 +316,23 @@ def psar(
     mask |= np.where(cancel, RULE_BITS[CANCEL_LC], 0).astype(np.int8)
     mask |= np.where(b_lc_mps2 > 0.0, RULE_BITS[DECEL_LC], 0).astype(np.int8)
 
+    if headway:
+        a, speed_change, mask, b_lc_mps2 = _headway_car_following(
+            state,
+            cav_index,
+            a,
+            b_lc_mps2,
+            mask,
+            sf_vehicle,
+            pairs[..., 2],
+            own_fronts[1],
+            ego_speed_mps,
+            cfg,
+            road,
+            sim,
+        )
+        return _result(a, proposed, speed_change, mask, b_lc_mps2, invalid_lc, active, dv_action)
+
     # ---- lines 17-27: car following in the current lane -------------------
     # Evaluated against each front obstacle; the most demanding outcome wins.
     longitudinal = active & ((a == REMAIN) | (a == ACCELERATE) | (a == DECELERATE))
@@ -343,7 +370,21 @@ def psar(
     mask |= np.where(brake, RULE_BITS[FORCE_BRAKE], 0).astype(np.int8)
     mask |= np.where(suppress, RULE_BITS[SUPPR_ACCEL], 0).astype(np.int8)
 
-    rule = np.full(shape, RULE_NONE, dtype=np.int8)
+    return _result(a, proposed, speed_change, mask, b_lc_mps2, invalid_lc, active, dv_action)
+
+
+def _result(
+    a: np.ndarray,
+    proposed: np.ndarray,
+    speed_change: np.ndarray,
+    mask: np.ndarray,
+    b_lc_mps2: np.ndarray,
+    invalid_lc: np.ndarray,
+    active: np.ndarray,
+    dv_action: float,
+) -> PSARResult:
+    """The :class:`PSARResult` of refined actions; inactive CAVs keep their proposal."""
+    rule = np.full(a.shape, RULE_NONE, dtype=np.int8)
     for code in (CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL):  # application order
         rule = np.where(mask & RULE_BITS[code], code, rule).astype(np.int8)
     return PSARResult(
@@ -364,3 +405,191 @@ def rule_counts(rule_mask: np.ndarray) -> np.ndarray:
     rule_mask = np.asarray(rule_mask).astype(np.int64).reshape(-1)
     bits = np.array([RULE_BITS[c] for c in range(1, len(RULE_NAMES))], dtype=np.int64)
     return ((rule_mask[:, None] & bits[None, :]) != 0).sum(axis=0).astype(np.int64)
+
+
+def _headway_car_following(
+    state: TrafficState,
+    cav_index: np.ndarray,
+    a: np.ndarray,
+    b_lc_mps2: np.ndarray,
+    mask: np.ndarray,
+    sf_vehicle: PairKinematics,
+    sf_index: np.ndarray,
+    own_wall: PairKinematics,
+    ego_speed_mps: np.ndarray,
+    cfg: PSARConfig,
+    road: Map,
+    sim: SimConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Car following of the ``"headway"`` horizon, after the lane-change checks.
+
+    Every active CAV (lane changers too: they are behind their current leader
+    during the change) gets the highest safe end-of-step speed
+    (:func:`_headway_bound_mps`). A command above it is lowered: to a smaller
+    acceleration or to ``remain`` (Suppress-Accel, reported as ``remain``),
+    or, where the CAV must slow down, to braking at up to the planned
+    deceleration (Force-Brake, reported as ``decelerate``; a lane change is
+    then cancelled too). Returns ``(action, speed change, rule mask, b_lc)``.
+    """
+    step_s, dv_action = sim.step_s, sim.speed_change_mps
+    max_brake_mps = sim.cav.safe_decel_mps2 * step_s
+    active = take(state.active, cav_index)
+    offset = ACTION_LANE_OFFSET[a]
+    changing = active & (offset != 0)
+    speed_change = action_speed_change_mps(a, dv_action) - b_lc_mps2 * step_s  # (..., C)
+    lane = take(state.lane, cav_index).astype(np.int64)
+    bound_mps = _headway_bound_mps(
+        state,
+        cav_index,
+        lane + offset,
+        changing,
+        speed_change,
+        sf_vehicle,
+        sf_index,
+        own_wall,
+        cfg,
+        road,
+        sim,
+    )
+    end_mps = _end_speed_mps(ego_speed_mps, speed_change, bound_mps, max_brake_mps)
+    limited = active & (end_mps < np.maximum(ego_speed_mps + speed_change, 0.0))
+    brake = limited & (end_mps < ego_speed_mps)
+    suppress = limited & ~brake
+    a = np.where(brake, DECELERATE, np.where(suppress, REMAIN, a))
+    b_lc_mps2 = np.where(brake, 0.0, b_lc_mps2)
+    speed_change = np.where(limited, end_mps - ego_speed_mps, speed_change)
+    mask = mask | np.where(brake & changing, RULE_BITS[CANCEL_LC], 0).astype(np.int8)
+    mask = np.where(brake & changing, mask & ~np.int8(RULE_BITS[DECEL_LC]), mask)
+    mask |= np.where(brake, RULE_BITS[FORCE_BRAKE], 0).astype(np.int8)
+    mask |= np.where(suppress, RULE_BITS[SUPPR_ACCEL], 0).astype(np.int8)
+    return a, speed_change, mask.astype(np.int8), b_lc_mps2
+
+
+def _end_speed_mps(
+    speed_mps: np.ndarray, proposed_mps: np.ndarray, bound_mps: np.ndarray, max_brake_mps: float
+) -> np.ndarray:
+    """End-of-step speed a CAV commands: its proposal, or the bound (braking <= ``max_brake``)."""
+    proposed_end = np.maximum(speed_mps + proposed_mps, 0.0)
+    limited = np.maximum(np.maximum(bound_mps, speed_mps - max_brake_mps), 0.0)
+    return np.where(proposed_end <= np.maximum(bound_mps, 0.0), proposed_end, limited)
+
+
+def _headway_bound_mps(
+    state: TrafficState,
+    cav_index: np.ndarray,
+    target_lane: np.ndarray,
+    changing: np.ndarray,
+    speed_change_mps: np.ndarray,
+    sf_vehicle: PairKinematics,
+    sf_index: np.ndarray,
+    own_wall: PairKinematics,
+    cfg: PSARConfig,
+    road: Map,
+    sim: SimConfig,
+) -> np.ndarray:
+    """(..., C) highest safe end-of-step speed per CAV under the ``"headway"`` horizon.
+
+    Every front obstacle gives a bound (:func:`~diacc.kinematics.safe_end_speed_mps`):
+    the same-lane leader, the end of the own lane (not for a CAV leaving it:
+    the road checked the change's reach) and the nearest CAV ahead that
+    changes into the lane in this step. A leader whose command is unknown (an
+    HDV) may brake at the planned deceleration at once, which asks for about
+    one second of headway (Gipps with one step of reaction). A CAV leader's
+    command of this step is known, so CAVs are refined front to back: a CAV is
+    bounded once every CAV it follows is decided, and then needs only
+    ``cfg.min_gap_m`` plus ``cfg.cav_time_gap_s`` of its speed, because from
+    the next step on it learns of the leader's braking in the step the leader
+    brakes. (A dependency cycle, possible only between CAVs exactly
+    alongside, keeps the unknown-leader bound.)
+
+    Args:
+        target_lane: (..., C) lane of each CAV after its refined lane change.
+        changing: (..., C) bool, the CAV changes lanes in this step.
+        speed_change_mps: (..., C) commands before car following.
+        sf_vehicle, sf_index: same-lane leader kinematics and vehicle index (-1: none).
+        own_wall: the end of the own lane as a standing obstacle.
+    """
+    step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
+    max_brake_mps = decel * step_s
+    limit_mps = np.array([s.speed_limit_mps for s in road.segments])
+
+    def long_speed(vehicles: np.ndarray) -> np.ndarray:
+        return take(state.speed_mps, vehicles) * np.abs(np.cos(take(state.heading_rad, vehicles)))
+
+    ego_mps = long_speed(cav_index)  # (..., C)
+
+    def bound(gap_m, lead_step_m, lead_end_mps, time_gap_s):
+        with np.errstate(invalid="ignore"):
+            out = safe_end_speed_mps(
+                gap_m,
+                ego_mps,
+                lead_step_m,
+                lead_end_mps,
+                step_s,
+                decel,
+                cfg.min_gap_m,
+                time_gap_s,
+            )
+        return np.where(np.isfinite(gap_m), out, np.inf)
+
+    slots = np.broadcast_to(np.arange(cav_index.shape[-1]), cav_index.shape)  # (..., C)
+    slot_of = np.full(state.x_m.shape, -1, np.int64)  # (..., V) CAV slot of a vehicle, -1: HDV
+    np.put_along_axis(slot_of, cav_index, slots, axis=-1)
+    lead = np.maximum(sf_index, 0)
+    lead_slot = np.where(sf_vehicle.valid, take(slot_of, lead), -1)  # (..., C)
+    lead_gap_m = np.where(sf_vehicle.valid, sf_vehicle.d_long_m, np.inf)
+    worst_step_m, worst_end_mps = braking_step(long_speed(lead), step_s, decel)
+    worst_lead_mps = bound(lead_gap_m, worst_step_m, worst_end_mps, 0.0)
+    wall_gap_m = np.where(own_wall.valid & ~changing, own_wall.d_long_m, np.inf)
+    fixed_mps = np.minimum(
+        bound(wall_gap_m, 0.0, 0.0, 0.0), np.where(lead_slot >= 0, np.inf, worst_lead_mps)
+    )
+
+    # The nearest CAV ahead changing into each CAV's lane: (..., C, C) [i, j] = j cuts in.
+    i_, j_ = (Ellipsis, slice(None), None), (Ellipsis, None, slice(None))
+    cav_x_m, cav_length_m = take(state.x_m, cav_index), take(state.length_m, cav_index)
+    lane = take(state.lane, cav_index).astype(np.int64)
+    dx_m = cav_x_m[j_] - cav_x_m[i_]
+    pair_gap_m = dx_m - 0.5 * (cav_length_m[i_] + cav_length_m[j_])
+    cuts = changing[j_] & (target_lane[j_] == lane[i_]) & (dx_m > 0)
+    pair_gap_m = np.where(cuts, pair_gap_m, np.inf)  # (..., C, C)
+    cut_slot = np.where(cuts.any(-1), np.argmin(pair_gap_m, -1), -1)  # (..., C)
+    cut_gap_m = np.min(pair_gap_m, axis=-1)
+
+    def behind_known(slot: np.ndarray, gap_m: np.ndarray, end_mps: np.ndarray) -> np.ndarray:
+        """Bound behind the CAV in ``slot`` (-1: none), which ends the step at ``end_mps``."""
+        s = np.maximum(slot, 0)
+        v0, v1 = np.take_along_axis(ego_mps, s, -1), np.take_along_axis(end_mps, s, -1)
+        gap_m = np.where(slot >= 0, gap_m, np.inf)
+        return bound(gap_m, 0.5 * (v0 + v1) * step_s, v1, cfg.cav_time_gap_s)
+
+    cav_limit_mps = limit_mps[take(state.segment, cav_index).astype(np.int64)]
+    bound_mps = fixed_mps.copy()
+    end_mps = np.zeros(cav_index.shape)  # (..., C) decided end-of-step speed
+    decided = ~take(state.active, cav_index)
+    for _ in range(cav_index.shape[-1] + 1):  # one pass per CAV a chain can hold, at most
+        lead_known = np.take_along_axis(decided, np.maximum(lead_slot, 0), -1)
+        cut_known = np.take_along_axis(decided, np.maximum(cut_slot, 0), -1)
+        ready = ~decided & ((lead_slot < 0) | lead_known) & ((cut_slot < 0) | cut_known)
+        if not ready.any():
+            break
+        now = np.minimum(
+            fixed_mps,
+            np.minimum(
+                behind_known(lead_slot, lead_gap_m, end_mps),
+                behind_known(cut_slot, cut_gap_m, end_mps),
+            ),
+        )
+        bound_mps = np.where(ready, now, bound_mps)
+        # What the backend makes of the command: within the speed limit (lower is safer).
+        end_now = np.minimum(
+            _end_speed_mps(ego_mps, speed_change_mps, now, max_brake_mps), cav_limit_mps
+        )
+        end_mps = np.where(ready, end_now, end_mps)
+        decided |= ready
+    # Left undecided (a cycle): the CAVs ahead are treated as HDVs.
+    cut_mps = np.take_along_axis(ego_mps, np.maximum(cut_slot, 0), -1)
+    worst_cut_mps = bound(cut_gap_m, *braking_step(cut_mps, step_s, decel), 0.0)
+    worst_mps = np.minimum(np.minimum(fixed_mps, worst_lead_mps), worst_cut_mps)
+    bound_mps = np.where(decided, bound_mps, worst_mps)
+    return bound_mps

@@ -18,6 +18,7 @@ backends, and 0 HDV-HDV collisions. Without PSAR collisions are expected.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -44,6 +45,8 @@ class SafetyRow:
     map: str
     policy: str
     episodes: int
+    style_preset: str
+    horizon: str  # PSAR horizon (PSARConfig.horizon) the policy ran with
     collision_free: float  # share of episodes without any collision
     hdv_hdv_collisions: int  # collision pairs of two HDVs, summed over episodes
     mean_speed_mps: float  # mean over episodes of the episode mean speed
@@ -58,11 +61,26 @@ class SafetyRow:
         return self.collision_free >= TARGET_COLLISION_FREE and self.hdv_hdv_collisions == 0
 
 
-def measure(backend: str, map_name: str, policy_name: str, episodes: int) -> SafetyRow:
-    """Run ``episodes`` seeded episodes of one scripted policy; seeds as evaluation's."""
+def measure(
+    backend: str,
+    map_name: str,
+    policy_name: str,
+    episodes: int,
+    style_preset: str | None = None,
+    horizon: str | None = None,
+) -> SafetyRow:
+    """Run ``episodes`` seeded episodes of one scripted policy; seeds as evaluation's.
+
+    ``style_preset`` and ``horizon`` (PSAR's) replace the defaults where given.
+    """
     policy = ScriptedPolicy(policy_name)
+    if horizon is not None:
+        psar_cfg = dataclasses.replace(policy.base.psar, horizon=horizon)
+        policy.base = dataclasses.replace(policy.base, psar=psar_cfg)
     cell = Cell(map_name, 25, 0.4, "D1")
-    driver = EpisodeDriver(policy, policy.env_config(cell, EvalSettings(backend=backend)))
+    settings = EvalSettings(backend=backend, style_preset=style_preset)
+    env_cfg = policy.env_config(cell, settings)
+    driver = EpisodeDriver(policy, env_cfg)
     try:
         rows = [run_episode(driver, cell, k).row for k in range(episodes)]
     finally:
@@ -72,6 +90,8 @@ def measure(backend: str, map_name: str, policy_name: str, episodes: int) -> Saf
         map=map_name,
         policy=policy_name,
         episodes=episodes,
+        style_preset=env_cfg.sim.style_preset,
+        horizon=env_cfg.psar.horizon,
         collision_free=float(np.mean([r["collision"] == 0 for r in rows])),
         hdv_hdv_collisions=int(sum(r["n_hdv_collisions"] for r in rows)),
         mean_speed_mps=float(np.mean([r["mean_speed_mps"] for r in rows])),
@@ -85,32 +105,41 @@ def run(
     maps: tuple[str, ...] | None = None,
     policies: tuple[str, ...] = POLICIES,
     episodes: int = 20,
+    presets: tuple[str | None, ...] = (None,),
+    horizon: str | None = None,
 ) -> list[SafetyRow]:
-    """Measure every combination and print one Markdown table; returns the rows."""
+    """Measure every combination and print one Markdown table; returns the rows.
+
+    ``presets``: style presets to run (None: the default); ``horizon``: PSAR's
+    (None: the default).
+    """
     maps = tuple(maps or available_maps())
     print(
         f"safety benchmark: N = 25, rho = 0.4, D1, {episodes} seeded episodes per row "
         f"(seeds as `diacc eval`)"
     )
     print(
-        "| backend | map | policy | collision-free | HDV-HDV collisions | mean speed m/s "
-        "| p(SCE) | arrived | target |"
+        "| backend | map | preset | PSAR horizon | policy | collision-free | HDV-HDV collisions "
+        "| mean speed m/s | p(SCE) | arrived | target |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     out = []
     start = time.perf_counter()
     for backend in backends:
         for map_name in maps:
-            for policy_name in policies:
-                row = measure(backend, map_name, policy_name, episodes)
-                out.append(row)
-                target = {None: "", True: "met", False: "**missed**"}[row.meets_target]
-                print(
-                    f"| {backend} | {map_name} | {policy_name} | {row.collision_free:.0%} "
-                    f"| {row.hdv_hdv_collisions} | {row.mean_speed_mps:.2f} | {row.p_sce:.0%} "
-                    f"| {row.arrived_fraction:.0%} | {target} |",
-                    flush=True,
-                )
+            for preset in presets:
+                for policy_name in policies:
+                    row = measure(backend, map_name, policy_name, episodes, preset, horizon)
+                    out.append(row)
+                    target = {None: "", True: "met", False: "**missed**"}[row.meets_target]
+                    horizon_cell = row.horizon if not policy_name.endswith("-nopsar") else "-"
+                    print(
+                        f"| {backend} | {map_name} | {row.style_preset} | {horizon_cell} "
+                        f"| {policy_name} | {row.collision_free:.0%} "
+                        f"| {row.hdv_hdv_collisions} | {row.mean_speed_mps:.2f} "
+                        f"| {row.p_sce:.0%} | {row.arrived_fraction:.0%} | {target} |",
+                        flush=True,
+                    )
     checked = [r.meets_target for r in out if r.meets_target is not None]
     print(
         f"target met in {sum(checked)} of {len(checked)} rows ({time.perf_counter() - start:.0f} s)"

@@ -1,0 +1,110 @@
+"""PSAR's ``"headway"`` horizon: human-like gaps behind HDVs, close ones behind known CAVs.
+
+Every case has a gap that can be computed by hand from
+:func:`diacc.kinematics.safe_end_speed_mps` (see the comments): CAVs act
+once per 1 s step, plan braking at 4 m/s^2, keep ``min_gap_m`` = 2 m and,
+behind a CAV whose command is known, ``cav_time_gap_s`` = 0.3 s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from helpers import make_state
+
+from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, REMAIN
+from diacc.config import ConfigError, PSARConfig, SimConfig
+from diacc.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
+from diacc.maps import load_map
+from diacc.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, psar
+
+ROAD = load_map("train-25")
+SIM = SimConfig()
+HEADWAY = PSARConfig(horizon="headway")
+LENGTH_M = 5.0  # make_state's vehicles: centre distance = bumper gap + 5 m
+
+
+def run(x, lane, speed, is_cav, actions, cfg=HEADWAY):
+    """PSAR for every CAV of a hand-built state (slots in vehicle order)."""
+    state = make_state(x, lane, speed, is_cav=is_cav)
+    cav_index = np.flatnonzero(np.asarray(is_cav))
+    return psar(state, cav_index, np.asarray(actions), cfg, ROAD, SIM)
+
+
+def test_unknown_leader_bound_is_gipps_with_one_step_of_reaction():
+    distance_m, end_mps = braking_step(18.0, 1.0, 4.0)
+    assert (distance_m, end_mps) == pytest.approx((16.0, 14.0))  # 18 -> 14 m/s in 1 s
+    u = safe_end_speed_mps(30.0, 20.0, distance_m, end_mps, 1.0, 4.0, 2.0)
+    assert 2.0 + safe_gap_m(20.0, 18.0, 1.0, 4.0, u) == pytest.approx(30.0)
+    # Behind a known leader at 20 m/s holding its speed: 2 m + 0.3 s x 20 m/s = 8 m.
+    assert safe_end_speed_mps(8.0, 20.0, 20.0, 20.0, 1.0, 4.0, 2.0, 0.3) == pytest.approx(20.0)
+
+
+def test_behind_an_hdv_one_second_plus_the_standstill_gap():
+    # Equal speeds 20 m/s: remain needs 2 m + 20 m/s x 1 s = 22 m (1.1 s).
+    res = run([100.0, 100.0 + LENGTH_M + 22.5], [1, 1], 20.0, [True, False], [REMAIN])
+    assert res.rule.tolist() == [0] and res.speed_change_mps[0] == 0.0
+    # Accelerating is cut to the safe end speed: u^2 + 4u - 484 = 0.
+    res = run([100.0, 100.0 + LENGTH_M + 22.5], [1, 1], 20.0, [True, False], [ACCELERATE])
+    assert res.rule.tolist() == [SUPPR_ACCEL] and res.action.tolist() == [REMAIN]
+    assert res.speed_change_mps[0] == pytest.approx(-2.0 + math.sqrt(488.0) - 20.0)
+    # Half a metre short: brake a little (u^2 + 4u - 476 = 0), not by a whole action.
+    res = run([100.0, 100.0 + LENGTH_M + 21.5], [1, 1], 20.0, [True, False], [REMAIN])
+    assert res.rule.tolist() == [FORCE_BRAKE] and res.action.tolist() == [DECELERATE]
+    assert res.speed_change_mps[0] == pytest.approx(-2.0 + math.sqrt(480.0) - 20.0)
+    # The "stopping" horizon wants about twice that gap before it lets a CAV accelerate.
+    stop = run([100.0, 127.5], [1, 1], 20.0, [True, False], [ACCELERATE], PSARConfig())
+    assert stop.action.tolist() == [REMAIN]
+
+
+def test_platoon_follows_a_known_leader_closely_front_to_back():
+    # Slots listed back to front on purpose: PSAR must still decide the leader first.
+    x = [100.0, 100.0 + 1 * (LENGTH_M + 8.0), 100.0 + 2 * (LENGTH_M + 8.0)]
+    res = run(x, [1, 1, 1], 20.0, [True, True, True], [REMAIN, REMAIN, REMAIN])
+    assert res.rule.tolist() == [0, 0, 0]  # 8 m = 2 m + 0.3 s x 20 m/s is enough
+    # Behind an HDV the same 8 m would force braking.
+    res = run(x[1:], [1, 1], 20.0, [True, False], [REMAIN])
+    assert res.rule.tolist() == [FORCE_BRAKE]
+    # The head brakes by one action (20 -> 18 m/s over 19 m); its follower brakes
+    # to u with u^2 / 8 + 0.8u = 8 + 19 - 10 - 2 + 18^2 / 8; the last one brakes for that.
+    res = run(x, [1, 1, 1], 20.0, [True, True, True], [REMAIN, REMAIN, DECELERATE])
+    middle_mps = -3.2 + math.sqrt(3.2**2 + 444.0)
+    assert res.speed_change_mps[2] == pytest.approx(-2.0)
+    assert res.speed_change_mps[1] == pytest.approx(middle_mps - 20.0)
+    assert res.rule.tolist() == [FORCE_BRAKE, FORCE_BRAKE, 0]
+    middle_step_m = 0.5 * (20.0 + middle_mps)
+    behind_mps = safe_end_speed_mps(8.0, 20.0, middle_step_m, middle_mps, 1.0, 4.0, 2.0, 0.3)
+    assert res.speed_change_mps[0] == pytest.approx(behind_mps - 20.0)
+    assert 0.0 > res.speed_change_mps[0] > -4.0  # within the planned braking
+
+
+def test_lane_change_in_front_of_a_cav_leaves_no_wide_hole():
+    # CAV 0 moves into lane 2 between an HDV 23 m ahead and a CAV 9 m behind (20 m/s).
+    # Front: 1 m + (2 - 1) m + Gipps 20 m = 22 m; rear CAV: 2 m + 0.3 s x 20 m/s = 8 m.
+    x = [100.0, 100.0 + LENGTH_M + 23.0, 100.0 - LENGTH_M - 9.0]
+    lanes, cavs = [1, 2, 2], [True, False, True]
+    res = run(x, lanes, 20.0, cavs, [LANE_LEFT, ACCELERATE])
+    assert res.action.tolist() == [LANE_LEFT, REMAIN]  # the rear CAV makes room at once
+    assert res.rule.tolist() == [0, SUPPR_ACCEL]
+    # The "stopping" horizon keeps a rear CAV one reacting, accelerating step away.
+    res = run(x, lanes, 20.0, cavs, [LANE_LEFT, ACCELERATE], PSARConfig())
+    assert res.rule.tolist()[0] == CANCEL_LC
+    # Too close to the front HDV: cancelled under "headway" as well.
+    x_close = [100.0, 100.0 + LENGTH_M + 21.0, 100.0 - LENGTH_M - 9.0]
+    assert run(x_close, lanes, 20.0, cavs, [LANE_LEFT, REMAIN]).rule.tolist()[0] == CANCEL_LC
+
+
+def test_a_standing_cav_at_a_lane_end_may_still_leave_it():
+    # Lane 3 ends at 500 m; a CAV stands at its end and changes to lane 2 (free).
+    res = run([497.5], [3], 0.0, [True], [2])  # 2 = LANE_RIGHT
+    assert res.action.tolist() == [2] and res.rule.tolist() == [0]
+
+
+def test_unknown_horizon_is_a_one_line_error():
+    with pytest.raises(ConfigError, match="psar.horizon") as err:
+        PSARConfig(horizon="tight")
+    assert "\n" not in str(err.value) and "headway" in str(err.value)
+    with pytest.raises(ConfigError, match="cav_time_gap_s"):
+        PSARConfig(cav_time_gap_s=-0.1)
