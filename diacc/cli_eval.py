@@ -36,7 +36,10 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--policy",
         required=True,
-        help="pure-hdv, cooperative, or a checkpoint.pt (or its run directory)",
+        help="pure-hdv, same-mix (CAV slots driven by normal human drivers; same-mix:<style> "
+        "for aggressive or cautious ones), cooperative, heuristic, a scripted probe "
+        "(remain, accelerate, random; <name>-nopsar without PSAR) or a checkpoint.pt "
+        "(or its run directory)",
     )
     p.add_argument(
         "--variant",
@@ -105,7 +108,9 @@ def add_parsers(sub) -> None:
         "--rows",
         default="speed,p_we,p_sce",
         help="comma-separated rows: speed, p_we, p_sce (the paper's) and the optional "
-        "collision (share of episodes ending in a crash), arrived (share of vehicles)",
+        "collision (share of episodes ending in a crash), arrived (share of vehicles) and the "
+        "flow rows throughput, delay, arrived_speed, travel_time, never_arrived "
+        "('flow' stands for all five)",
     )
     p.add_argument("--out", type=Path, default=None, help="write to a file instead of stdout")
 
@@ -179,9 +184,9 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
 
 def cmd_table(args: argparse.Namespace) -> None:
-    from diacc.report import build_table, render_table
+    from diacc.report import build_table, expand_rows, render_table
 
-    rows = tuple(r.strip() for r in args.rows.split(",") if r.strip())
+    rows = expand_rows(args.rows)
     text = render_table(build_table(args.results, args.speed_std, rows), args.format)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -41,6 +41,9 @@ class EpisodeDriver:
         self.env = BottleneckEnv(cfg)
         self.road, self.backend = self.env.road, self.env.backend
         self.state: TrafficState | None = None
+        use_road = getattr(policy, "use_road", None)  # optional: policies that read the map
+        if use_road is not None:
+            use_road(self.road)
 
     def reset(self, seed: int) -> TrafficState:
         """Start the episode of ``seed`` (traffic and, for scripted policies, their draws)."""

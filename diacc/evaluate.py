@@ -120,6 +120,11 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResul
         "arrived_fraction": metrics.arrived_fraction,
         "mean_travel_time_s": metrics.mean_travel_time_s,
         "n_vehicles_seen": metrics.n_vehicles,
+        "throughput_vph": metrics.throughput_vph,
+        "total_delay_s": metrics.total_delay_s,
+        "delay_per_vehicle_s": metrics.delay_per_vehicle_s,
+        "mean_arrived_speed_mps": metrics.mean_arrived_speed_mps,
+        "never_arrived_fraction": metrics.never_arrived_fraction,
         "psar_decisions": metrics.psar_decisions,
         **{f"psar_{name}_rate": metrics.psar_fire_rate[name] for name in RULE_NAMES[1:]},
     }

@@ -10,10 +10,17 @@ grid cell the paper's three rows, plus two optional ones (``rows``):
 * **p(WE) (%)**, **p(SCE) (%)**: mean +- std over episodes of the per-episode
   shares (population std, ddof = 0).
 * optional **Collision (%)**: share of episodes that ended in a collision;
-  **Arrived (%)**: mean share of vehicles that reached the route end.
+  **Arrived (%)**: mean share of vehicles that reached the route end;
+  the flow rows (:data:`FLOW_ROWS`, definitions in :mod:`diacc.metrics`),
+  each mean +- std over episodes: **Throughput (veh/h)**, **Delay (s/veh)**,
+  **Arrived speed (m/s)**, **Travel time (s)** (of arrived vehicles),
+  **Never arrived (%)**.
 
 Each entry also shows its relative change against the ``pure-hdv`` column
-(when one is given), ``(mean - mean_ref) / mean_ref``.
+and against the ``same-mix`` column (when given; :data:`REFERENCES`),
+``(mean - mean_ref) / mean_ref``. Pure HDV redraws every driver, same-mix
+keeps the CAV policy's vehicles and hands its CAV slots to human drivers,
+so only the second change is what the CAVs' control does.
 
 Emphasis follows the paper's Tables II/III: per row, the best value is bold
 and the second best underlined (italic in Markdown), compared at the printed
@@ -39,17 +46,28 @@ import numpy as np
 from diacc.evaluate import EvaluationError, load_episodes
 from diacc.grid import Cell
 
-#: (key, row label, higher is better, episodes.csv column); shares are shown in percent
+#: (key, row label, higher is better, episodes.csv column, display scale); shares
+#: are shown in percent (scale 100). Results written before a column existed lack
+#: its row (older ``episodes.csv`` files have no flow columns).
 METRICS = (
-    ("speed", "Speed (m/s)", True, "mean_speed_mps"),
-    ("p_we", "p(WE) (%)", False, "p_we"),
-    ("p_sce", "p(SCE) (%)", False, "p_sce"),
-    ("collision", "Collision (%)", False, "collision"),
-    ("arrived", "Arrived (%)", True, "arrived_fraction"),
+    ("speed", "Speed (m/s)", True, "mean_speed_mps", 1.0),
+    ("p_we", "p(WE) (%)", False, "p_we", 100.0),
+    ("p_sce", "p(SCE) (%)", False, "p_sce", 100.0),
+    ("collision", "Collision (%)", False, "collision", 100.0),
+    ("arrived", "Arrived (%)", True, "arrived_fraction", 100.0),
+    ("throughput", "Throughput (veh/h)", True, "throughput_vph", 1.0),
+    ("delay", "Delay (s/veh)", False, "delay_per_vehicle_s", 1.0),
+    ("arrived_speed", "Arrived speed (m/s)", True, "mean_arrived_speed_mps", 1.0),
+    ("travel_time", "Travel time (s)", False, "mean_travel_time_s", 1.0),
+    ("never_arrived", "Never arrived (%)", False, "never_arrived_fraction", 100.0),
 )
-#: Rows of the paper's tables; ``collision`` and ``arrived`` are optional.
+#: Rows of the paper's tables; the others are optional.
 DEFAULT_ROWS = ("speed", "p_we", "p_sce")
+#: The flow rows (``--rows`` shorthand ``flow``).
+FLOW_ROWS = ("throughput", "delay", "arrived_speed", "travel_time", "never_arrived")
 REFERENCE = "pure-hdv"
+#: Columns every other column is compared with, in the order shown.
+REFERENCES = (REFERENCE, "same-mix")
 FORMATS = ("markdown", "latex", "csv")
 RANKING_RULE = (
     "bold: best, underlined (Markdown: italic): second best of a row, as in the paper; "
@@ -80,16 +98,20 @@ class Table:
     rows: tuple[str, ...] = DEFAULT_ROWS  # metrics shown, in order
     caption: str = ""
 
-    def reference(self, column: str) -> str | None:
-        """The pure-HDV column a column is compared with: same backend first."""
-        refs = [c for c in self.columns if self.policy[c] == REFERENCE]
+    def reference(self, column: str, policy: str = REFERENCE) -> str | None:
+        """The column of ``policy`` (pure HDV, same-mix) a column is compared with:
+        same backend first."""
+        refs = [c for c in self.columns if self.policy[c] == policy]
         same = [c for c in refs if self.backend[c] == self.backend[column]]
         return (same or refs or [None])[0]
 
-    def relative_change(self, cell: Cell, metric: str, column: str) -> float | None:
-        """Percent change of the mean against the pure-HDV column (None if undefined)."""
-        ref = self.reference(column)
-        if ref is None or self.policy[column] == REFERENCE:
+    def relative_change(
+        self, cell: Cell, metric: str, column: str, policy: str = REFERENCE
+    ) -> float | None:
+        """Percent change of the mean against the ``policy`` column (None if undefined;
+        pure HDV is compared with nothing, same-mix with pure HDV)."""
+        ref = self.reference(column, policy)
+        if ref is None or self.policy[column] in (REFERENCE, policy):
             return None
         a, b = self.stats.get((cell.key, metric, column)), self.stats.get((cell.key, metric, ref))
         if a is None or b is None or b.mean == 0 or not math.isfinite(b.mean):
@@ -155,12 +177,16 @@ def _speed_stat(rows: list[dict[str, str]], speed_std: str) -> Stat:
     return Stat(mean, math.sqrt(max(second_moment - mean**2, 0.0)), len(rows))
 
 
-def _share_stat(rows: list[dict[str, str]], key: str) -> Stat | None:
-    """Mean +- std in percent over episodes; None if the results lack the column."""
+def _episode_stat(rows: list[dict[str, str]], key: str, scale: float) -> Stat | None:
+    """Mean +- std over episodes (times ``scale``, 100 for percent) of the episodes where
+    the value is defined; None if the results lack the column or every value is nan."""
     if key not in rows[0]:
         return None
-    values = 100.0 * np.array([_float(r[key]) for r in rows])  # (K,) percent
-    return Stat(float(values.mean()), float(values.std()), len(rows))
+    values = scale * np.array([_float(r[key]) for r in rows])  # (K,)
+    values = values[np.isfinite(values)]
+    if not values.size:
+        return None
+    return Stat(float(values.mean()), float(values.std()), int(values.size))
 
 
 def _episodes(counts: list[int]) -> str:
@@ -189,6 +215,12 @@ def build_table(
     if not result_dirs:
         raise EvaluationError("give at least one results directory")
     return table_from_results([(Path(d), *load_episodes(d)) for d in result_dirs], speed_std, rows)
+
+
+def expand_rows(text: str) -> tuple[str, ...]:
+    """Row names of a comma-separated ``--rows`` value; ``flow`` stands for :data:`FLOW_ROWS`."""
+    names = [r.strip() for r in text.split(",") if r.strip()]
+    return tuple(n for name in names for n in (FLOW_ROWS if name == "flow" else (name,)))
 
 
 def _check_options(speed_std: str, rows: tuple[str, ...] | list[str]) -> None:
@@ -230,8 +262,8 @@ def table_from_results(
         for cell, cell_rows in by_cell.items():
             cells[cell.key] = cell
             stats[(cell.key, "speed", label)] = _speed_stat(cell_rows, speed_std)
-            for metric, _, _, column in METRICS[1:]:
-                if (stat := _share_stat(cell_rows, column)) is not None:
+            for metric, _, _, column, scale in METRICS[1:]:
+                if (stat := _episode_stat(cell_rows, column, scale)) is not None:
                     stats[(cell.key, metric, label)] = stat
         first = episode_rows[0]
         version = f", {first['sumo_version']}" if first.get("sumo_version") else ""
@@ -254,7 +286,14 @@ def table_from_results(
         if speed_std == "samples"
         else "speed: mean ± std of episode means"
     )
-    notes.append(f"{speed_note}; shares: mean ± std over episodes")
+    notes.append(f"{speed_note}; other rows: mean ± std over episodes")
+    refs = [r for r in REFERENCES if r in {m["policy"] for _, m, _ in loaded}]
+    if refs:
+        notes.append(
+            "in brackets: change of the mean against "
+            + " and ".join({REFERENCE: "pure HDV", "same-mix": "same-mix"}[r] for r in refs)
+            + " (same backend), in that order"
+        )
     notes.append(RANKING_RULE)
     ordered = sorted(
         cells.values(), key=lambda c: (c.map, -c.cav_penetration, c.n_vehicles, c.style_mix)
@@ -315,9 +354,10 @@ def _entry(
         text = f"{marks[0]}{text}{marks[1]}"
     elif column in second:
         text = f"{marks[2]}{text}{marks[3]}"
-    change = table.relative_change(cell, metric, column)
-    if change is not None:
-        text += f" ({change:+.1f}{percent})"
+    changes = [table.relative_change(cell, metric, column, ref) for ref in REFERENCES]
+    shown = [f"{c:+.1f}{percent}" for c in changes if c is not None]
+    if shown:
+        text += f" ({', '.join(shown)})"
     return text
 
 
@@ -415,6 +455,7 @@ def to_csv(table: Table) -> str:
             "std",
             "n_episodes",
             "rel_change_pct",
+            "rel_change_same_mix_pct",
             "best",
         ]
     )
@@ -426,6 +467,7 @@ def to_csv(table: Table) -> str:
                 if stat is None:
                     continue
                 change = table.relative_change(cell, metric, col)
+                change_mix = table.relative_change(cell, metric, col, "same-mix")
                 writer.writerow(
                     [
                         cell.map,
@@ -438,6 +480,7 @@ def to_csv(table: Table) -> str:
                         repr(stat.std),
                         stat.n_episodes,
                         "" if change is None else repr(change),
+                        "" if change_mix is None else repr(change_mix),
                         1 if col in best else 2 if col in second else 0,
                     ]
                 )

@@ -46,6 +46,11 @@ class Scenario:
     insert_start_m: float = 10.0  # x of the rearmost insertion row (facts.md)
     insert_spacing_m: float = 8.0  # between consecutive vehicles (any lane)
     insert_speed_mps: float = 10.0
+    #: ``""``: the CAV slots hold CAVs. A style name (:data:`STYLE_NAMES`): the
+    #: same slots hold HDVs of that style instead (the ``same-mix`` baseline),
+    #: so the draw keeps every other vehicle's style and every vehicle's slot and
+    #: a comparison isolates what the CAVs' control changes.
+    cav_slot_style: str = ""
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_vehicles, int) or self.n_vehicles < 1:
@@ -57,6 +62,11 @@ class Scenario:
             raise ScenarioError(
                 f"style_mix must be 3 non-negative shares (aggressive, normal, cautious) "
                 f"summing to 1, got {self.style_mix!r}"
+            )
+        if self.cav_slot_style and self.cav_slot_style not in STYLE_NAMES:
+            raise ScenarioError(
+                f"unknown driving style {self.cav_slot_style!r} for the CAV slots; "
+                f"known: {', '.join(STYLE_NAMES)}"
             )
         if self.insert_spacing_m <= 0 or self.insert_speed_mps < 0:
             raise ScenarioError("insert_spacing_m must be > 0 and insert_speed_mps >= 0")
@@ -81,8 +91,14 @@ class Scenario:
         return tuple(float(p) for p in self.style_mix)  # type: ignore[return-value]
 
     @property
-    def n_cavs(self) -> int:
+    def n_cav_slots(self) -> int:
+        """Vehicles drawn into CAV slots (CAVs, or HDVs of ``cav_slot_style``)."""
         return int(round(self.cav_penetration * self.n_vehicles))
+
+    @property
+    def n_cavs(self) -> int:
+        """CAVs on the road (0 when the slots hold humans)."""
+        return 0 if self.cav_slot_style else self.n_cav_slots
 
 
 @dataclass(frozen=True)
@@ -103,7 +119,7 @@ class Population:
 def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
     """Draw types, styles and starting slots for every vehicle, reproducibly."""
     rng = np.random.default_rng(seed)
-    n, n_cav = scenario.n_vehicles, scenario.n_cavs
+    n, n_cav = scenario.n_vehicles, scenario.n_cav_slots
     lanes = list(road.lane_range(0))
     if not lanes:  # pragma: no cover - maps always have >= 1 lane
         raise ScenarioError(f"map {road.name!r} has no lane at its start")
@@ -119,6 +135,9 @@ def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
     is_cav = np.arange(n) < n_cav
     order = rng.permutation(n)
     style, is_cav = style[order], is_cav[order]
+    if scenario.cav_slot_style:  # same draws, the slots driven by humans
+        style[is_cav] = STYLE_NAMES.index(scenario.cav_slot_style)
+        is_cav[:] = False
 
     # Slots (facts.md): one vehicle every ``insert_spacing_m``, lanes round-robin,
     # so vehicles in the same lane start n_lanes * spacing apart. The lane order

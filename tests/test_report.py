@@ -198,3 +198,50 @@ def test_table_cli_rows_option(results, capsys):
     assert main(["table", *map(str, results), "--rows", "p_we"]) == 0
     out = capsys.readouterr().out
     assert "p(WE) (%)" in out and "Speed (m/s)" not in out
+
+
+def _flow_results(path: Path, policy: str, speeds: list[float], delays: list[float]) -> Path:
+    """Results of cell train-25 N25 rho0.4 D1 with the flow columns (100 samples, 0 std)."""
+    path.mkdir(parents=True)
+    (path / "meta.json").write_text(json.dumps({"policy": policy, "backend": "sumo"}))
+    columns = [*COLUMNS, "throughput_vph", "delay_per_vehicle_s", "never_arrived_fraction"]
+    with open(path / "episodes.csv", "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(columns)
+        for ep, (speed, delay) in enumerate(zip(speeds, delays, strict=True)):
+            base = [policy, "sumo", "", "paper", "train-25", 25, 0.4, "D1", ep]
+            writer.writerow([*base, speed, 0.0, 100, 0.0, 0.0, 900.0, delay, "nan" if ep else 0.1])
+    return path
+
+
+def test_gains_against_same_mix_and_flow_rows(tmp_path, capsys):
+    hdv = _flow_results(tmp_path / "hdv", "pure-hdv", [10.0, 10.0], [20.0, 20.0])
+    mix = _flow_results(tmp_path / "mix", "same-mix", [12.5, 12.5], [10.0, 10.0])
+    agent = _flow_results(tmp_path / "agent", "diacc", [11.0, 13.0], [8.0, 12.0])
+    old = tmp_path / "old"  # written before the flow columns existed
+    _results(old, "cooperative", [(0, 9.0, 0.0, 100, 0.0, 0.0)])
+    table = build_table([hdv, mix, agent, old], rows=("speed", "throughput", "delay"))
+    (cell,) = table.cells
+    # diacc: speed 12 is +20% against pure HDV (10) and -4% against same-mix (12.5);
+    # delay 10 s is -50% against pure HDV (20 s) and +0% against same-mix.
+    assert table.relative_change(cell, "speed", "diacc") == pytest.approx(20.0)
+    assert table.relative_change(cell, "speed", "diacc", "same-mix") == pytest.approx(-4.0)
+    assert table.relative_change(cell, "delay", "diacc", "same-mix") == pytest.approx(0.0)
+    assert table.relative_change(cell, "speed", "same-mix") == pytest.approx(25.0)
+    assert table.relative_change(cell, "speed", "same-mix", "same-mix") is None
+    assert table.relative_change(cell, "speed", "pure-hdv", "same-mix") is None
+    assert (cell.key, "delay", "cooperative") not in table.stats  # old file: no flow row
+    markdown = render_table(table, "markdown")
+    assert "| _12.00 ± 1.00_ (+20.0%, -4.0%) | 9.00 ± 0.00 (-10.0%, -28.0%) |" in markdown
+    assert "| Delay (s/veh) | _20.00 ± 0.00_ | **10.00 ± 0.00** (-50.0%) |" in markdown
+    assert "| Throughput (veh/h) | **900.00 ± 0.00** |" in markdown
+    assert "against pure HDV and same-mix" in markdown
+    csv_rows = list(csv.DictReader(io.StringIO(render_table(table, "csv"))))
+    speed = {r["policy"]: r for r in csv_rows if r["metric"] == "speed"}
+    assert float(speed["diacc"]["rel_change_same_mix_pct"]) == pytest.approx(-4.0)
+    # never arrived: an episode's nan is left out (1 of 2 episodes defined)
+    table = build_table([hdv], rows=("never_arrived",))
+    stat = table.stats[(cell.key, "never_arrived", "pure-hdv")]
+    assert (stat.mean, stat.n_episodes) == pytest.approx((10.0, 1))
+    assert main(["table", str(hdv), str(agent), "--rows", "speed,flow"]) == 2  # no travel time
+    assert "has the data of row 'arrived_speed'" in capsys.readouterr().err
