@@ -227,6 +227,7 @@ class PSARConfig:
     queue_gap_m: float = 2.0  # standstill gap per vehicle queued at a lane end (PSAR's wall)
     min_gap_m: float = 2.0  # "headway": standstill gap kept behind any front obstacle
     cav_time_gap_s: float = 0.3  # "headway": time gap behind a CAV whose command is known
+    cooperative_merge: bool = True  # "headway": CAVs open a gap for a CAV asking to merge in
 
     def __post_init__(self) -> None:
         if not (self.d_lc_min_m <= self.d_safe_m < self.d_warn_m < self.d_att_m):

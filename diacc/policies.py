@@ -259,21 +259,25 @@ def heuristic_actions(actor_obs: ActorObs, road: Map) -> np.ndarray:
 
     Position and lane come from the observation (``self_state`` x / route
     length and lane / (max_lanes - 1)); the map says where each lane ends
-    (:meth:`Map.lane_end_m`). Of the two neighbours the one that ends later
-    is asked for, left on a tie; a neighbour that does not exist ends at 0.
+    (:meth:`Map.lane_end_m`). The CAV asks for the neighbour on the side of
+    the nearest lane that survives its own lane's end, left on a tie: with
+    two lanes ending together (``train-50``) the outer one must first move
+    into the inner one, which ends as soon.
     """
     lane_norm = max(road.max_lanes - 1, 1)
     x_m = actor_obs.self_state[:, 0].astype(np.float64) * road.length_m  # (C,)
     lane = np.rint(actor_obs.self_state[:, 4] * lane_norm).astype(np.int64)  # (C,)
     lane = np.clip(lane, 0, road.max_lanes - 1)
     segment = road.segment_of(x_m)  # (C,)
-    ends = np.where(road.lane_exists(), road.lane_end_m(), 0.0)  # (S, L) 0 where absent
-    own_end_m = ends[segment, lane]  # (C,)
-    left_end_m = np.where(lane < lane_norm, ends[segment, np.minimum(lane + 1, lane_norm)], 0.0)
-    right_end_m = np.where(lane > 0, ends[segment, np.maximum(lane - 1, 0)], 0.0)  # (C,)
+    ends = np.where(road.lane_exists(), road.lane_end_m(), 0.0)[segment]  # (C, L) 0 where absent
+    own_end_m = np.take_along_axis(ends, lane[:, None], 1)[:, 0]  # (C,)
+    lanes = np.arange(road.max_lanes)
+    lanes_away = np.abs(lanes[None, :] - lane[:, None]) + 0.5 * (lanes[None, :] < lane[:, None])
+    outlasting = ends > own_end_m[:, None]  # (C, L) lanes that survive the own lane's end
+    nearest = np.argmin(np.where(outlasting, lanes_away, np.inf), axis=1)  # (C,)
     leave = own_end_m - x_m < HEURISTIC_LEAVE_M  # (C,)
-    side = np.where(left_end_m >= right_end_m, LANE_LEFT, LANE_RIGHT)  # (C,)
-    better = np.maximum(left_end_m, right_end_m) > own_end_m
+    side = np.where(nearest > lane, LANE_LEFT, LANE_RIGHT)  # (C,)
+    better = outlasting.any(axis=1)
     return np.where(leave & better & actor_obs.alive, side, ACCELERATE).astype(np.int64)
 
 

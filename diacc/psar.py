@@ -204,6 +204,7 @@ def psar(
     invalid_lc = is_lc & ~lane_change_allowed(state, cav_index, a, road, sim)
     a = np.where(invalid_lc, REMAIN, a)
     is_lc &= ~invalid_lc
+    asked_lane = np.where(is_lc, take(state.lane, cav_index) + ACTION_LANE_OFFSET[a], -1)
     offset = ACTION_LANE_OFFSET[a]  # (..., C)
     lane = take(state.lane, cav_index).astype(np.int64)
 
@@ -256,10 +257,9 @@ def psar(
         rear_cav = take(state.is_cav, rear)
         if headway:
             # A rear CAV learns of the change in this step (it is refined after the
-            # changer) and keeps the platoon gap behind it.
+            # changer) and can brake for it at once; it then restores its full gap.
             reaction_s, rear_end_mps = 0.0, rear_speed_mps
-            platoon_m = cfg.cav_time_gap_s * rear_speed_mps + max(cfg.min_gap_m - cfg.d_lc_min_m, 0)
-            extra_m = np.where(rear_cav, platoon_m, 0.0)
+            extra_m = np.where(rear_cav, cfg.cav_time_gap_s * rear_speed_mps, 0.0)
         else:  # a rear CAV reacts after a step and may accelerate during it
             reaction_s = np.where(rear_cav, step_s, 0.0)
             rear_end_mps = rear_speed_mps + np.where(rear_cav, dv_action, 0.0)
@@ -327,6 +327,7 @@ def psar(
             pairs[..., 2],
             own_fronts[1],
             ego_speed_mps,
+            asked_lane if cfg.cooperative_merge else np.full(shape, -1),
             cfg,
             road,
             sim,
@@ -417,6 +418,7 @@ def _headway_car_following(
     sf_index: np.ndarray,
     own_wall: PairKinematics,
     ego_speed_mps: np.ndarray,
+    asked_lane: np.ndarray,
     cfg: PSARConfig,
     road: Map,
     sim: SimConfig,
@@ -429,7 +431,11 @@ def _headway_car_following(
     acceleration or to ``remain`` (Suppress-Accel, reported as ``remain``),
     or, where the CAV must slow down, to braking at up to the planned
     deceleration (Force-Brake, reported as ``decelerate``; a lane change is
-    then cancelled too). Returns ``(action, speed change, rule mask, b_lc)``.
+    then cancelled too). ``asked_lane`` ((..., C), -1: none) is the lane each
+    CAV asked to change into: a CAV whose change was cancelled still counts
+    as entering that lane for the CAVs behind it there, which then open the
+    gap it needs (``cfg.cooperative_merge``; connected CAVs know each
+    other's intent). Returns ``(action, speed change, rule mask, b_lc)``.
     """
     step_s, dv_action = sim.step_s, sim.speed_change_mps
     max_brake_mps = sim.cav.safe_decel_mps2 * step_s
@@ -438,10 +444,11 @@ def _headway_car_following(
     changing = active & (offset != 0)
     speed_change = action_speed_change_mps(a, dv_action) - b_lc_mps2 * step_s  # (..., C)
     lane = take(state.lane, cav_index).astype(np.int64)
+    entering_lane = np.where(changing, lane + offset, asked_lane)  # (..., C) -1: none
     bound_mps = _headway_bound_mps(
         state,
         cav_index,
-        lane + offset,
+        entering_lane,
         changing,
         speed_change,
         sf_vehicle,
@@ -474,10 +481,35 @@ def _end_speed_mps(
     return np.where(proposed_end <= np.maximum(bound_mps, 0.0), proposed_end, limited)
 
 
+def _exit_room_m(state: TrafficState, cav_index: np.ndarray, road: Map) -> np.ndarray:
+    """(..., C) how far before its lane's end a CAV must stop to still be able to leave.
+
+    A lane whose neighbours end no later (the outer lane of a two-lane drop)
+    can only be left into a lane that ends as soon, and a change needs the
+    target lane to last the vehicle's length beyond its centre even from
+    standstill (:meth:`Map.lane_change_allowed`): stopping at the very end
+    would trap the CAV. So its wall moves back to where the change is still
+    allowed, plus half a metre. 0 where a neighbour outlasts the lane.
+    """
+    seg = take(state.segment, cav_index).astype(np.int64)
+    lane = take(state.lane, cav_index).astype(np.int64)
+    ends = np.where(road.lane_exists(), road.lane_end_m(), -np.inf)[seg]  # (..., C, L)
+    own_end_m = np.take_along_axis(ends, lane[..., None], -1)[..., 0]
+    padded = np.pad(ends, [(0, 0)] * (ends.ndim - 1) + [(1, 1)], constant_values=-np.inf)
+    right = np.take_along_axis(padded, lane[..., None], -1)[..., 0]  # lane - 1
+    left = np.take_along_axis(padded, lane[..., None] + 2, -1)[..., 0]  # lane + 1
+    exit_end_m = np.maximum(left, right)
+    length_m = take(state.length_m, cav_index)
+    trapped = np.isfinite(own_end_m) & np.isfinite(exit_end_m) & (exit_end_m <= own_end_m)
+    with np.errstate(invalid="ignore"):  # inf - inf where no lane ends
+        room_m = own_end_m - (exit_end_m - 0.5 * length_m - 0.5)  # front stays behind this
+    return np.where(trapped, np.maximum(room_m, 0.0), 0.0)
+
+
 def _headway_bound_mps(
     state: TrafficState,
     cav_index: np.ndarray,
-    target_lane: np.ndarray,
+    entering_lane: np.ndarray,
     changing: np.ndarray,
     speed_change_mps: np.ndarray,
     sf_vehicle: PairKinematics,
@@ -492,7 +524,7 @@ def _headway_bound_mps(
     Every front obstacle gives a bound (:func:`~diacc.kinematics.safe_end_speed_mps`):
     the same-lane leader, the end of the own lane (not for a CAV leaving it:
     the road checked the change's reach) and the nearest CAV ahead that
-    changes into the lane in this step. A leader whose command is unknown (an
+    changes, or asks to change, into the lane in this step. A leader whose command is unknown (an
     HDV) may brake at the planned deceleration at once, which asks for about
     one second of headway (Gipps with one step of reaction). A CAV leader's
     command of this step is known, so CAVs are refined front to back: a CAV is
@@ -503,7 +535,7 @@ def _headway_bound_mps(
     alongside, keeps the unknown-leader bound.)
 
     Args:
-        target_lane: (..., C) lane of each CAV after its refined lane change.
+        entering_lane: (..., C) lane each CAV changes or asks to change into (-1: none).
         changing: (..., C) bool, the CAV changes lanes in this step.
         speed_change_mps: (..., C) commands before car following.
         sf_vehicle, sf_index: same-lane leader kinematics and vehicle index (-1: none).
@@ -541,6 +573,7 @@ def _headway_bound_mps(
     worst_step_m, worst_end_mps = braking_step(long_speed(lead), step_s, decel)
     worst_lead_mps = bound(lead_gap_m, worst_step_m, worst_end_mps, 0.0)
     wall_gap_m = np.where(own_wall.valid & ~changing, own_wall.d_long_m, np.inf)
+    wall_gap_m = wall_gap_m - _exit_room_m(state, cav_index, road)
     fixed_mps = np.minimum(
         bound(wall_gap_m, 0.0, 0.0, 0.0), np.where(lead_slot >= 0, np.inf, worst_lead_mps)
     )
@@ -551,7 +584,10 @@ def _headway_bound_mps(
     lane = take(state.lane, cav_index).astype(np.int64)
     dx_m = cav_x_m[j_] - cav_x_m[i_]
     pair_gap_m = dx_m - 0.5 * (cav_length_m[i_] + cav_length_m[j_])
-    cuts = changing[j_] & (target_lane[j_] == lane[i_]) & (dx_m > 0)
+    # One asking but not changing is yielded to only from far enough behind for it to
+    # pass the rear check; a CAV closer or alongside drives on and lets it in behind.
+    asking = ~changing[j_] & (pair_gap_m < cfg.d_lc_min_m)
+    cuts = (entering_lane[j_] == lane[i_]) & (entering_lane[j_] >= 0) & (dx_m > 0) & ~asking
     pair_gap_m = np.where(cuts, pair_gap_m, np.inf)  # (..., C, C)
     cut_slot = np.where(cuts.any(-1), np.argmin(pair_gap_m, -1), -1)  # (..., C)
     cut_gap_m = np.min(pair_gap_m, axis=-1)

@@ -89,14 +89,13 @@ def test_heuristic_leaves_an_ending_lane_toward_the_surviving_side():
     x = [lead - 10, lead + 10, lead + 10, lead + 10, 100.0, 600.0]
     lane = [3, 3, 2, 1, 0, 1]
     actions = heuristic_actions(_obs(x, lane, road), road)
-    # Far from the end: accelerate; lane 3 and 2 near the end: go right (lane 3's
-    # right neighbour 2 ends too, but not later, so lane 3 waits: see below);
+    # Far from the end: accelerate; lanes 3 and 2 near the end: go right, towards
+    # lane 1, the nearest lane that survives (lane 3 through lane 2, which ends as
+    # soon: waiting in lane 3 would mean standing at its end for ever);
     # lanes that survive: accelerate.
     assert actions[0] == ACCELERATE
-    assert actions[2] == LANE_RIGHT  # lane 2 -> lane 1, which survives
+    assert actions[1] == LANE_RIGHT and actions[2] == LANE_RIGHT
     assert actions[3] == ACCELERATE and actions[4] == ACCELERATE and actions[5] == ACCELERATE
-    # lane 3: both neighbours end no later (lane 2 at 500 m, lane 4 absent): no request.
-    assert actions[1] == ACCELERATE
     dead = heuristic_actions(_obs(x, lane, road, alive=np.zeros(6, bool)), road)
     assert np.all(dead == ACCELERATE)
 
@@ -107,7 +106,7 @@ def test_heuristic_on_a_right_drop_map_goes_left():
     road = load_map("train-50")
     road = dataclasses.replace(road, drop_side="right")  # lanes 0 and 1 end
     actions = heuristic_actions(_obs([420.0, 420.0], [1, 0], road), road)
-    assert actions[0] == LANE_LEFT and actions[1] == ACCELERATE
+    assert actions[0] == LANE_LEFT and actions[1] == LANE_LEFT  # lane 0 via lane 1
 
 
 def test_heuristic_needs_the_road_and_runs_under_psar():
