@@ -62,6 +62,9 @@ class DriverStyle:
     lc_cooperative: float  # SUMO LC2013 lcCooperative
     lc_speed_gain: float  # SUMO LC2013 lcSpeedGain
     lc_strategic: float  # SUMO LC2013 lcStrategic
+    #: highway: forced merging starts this far before a lane end (None: the model's
+    #: 200 m); the highway image of a small lcStrategic (a driver who merges late).
+    merge_zone_m: float | None = None
 
 
 _AGGRESSIVE = DriverStyle("aggressive", 0.9, 1.0, 3.5, 5.5, 0.0, 0.05, 0.0, 100.0, 100.0)
@@ -81,6 +84,12 @@ _CAUTIOUS_PAPER = DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, -1.0, 0.
 #:   parameters") and the reduction segments' speed limit lowered to
 #:   :data:`PRESET_REDUCTION_SPEED_MPS` (:func:`preset_road`). With 330-step
 #:   episodes it gives the paper's pure-HDV congestion.
+#: * ``merge-congestion``: congestion made by merging, without stuck drivers:
+#:   ``paper-congestion``'s normal drivers and 15 m/s reduction segments, and
+#:   cautious drivers who keep the paper's car following but merge late
+#:   (lcStrategic 0.05 on SUMO, forced merging from 30 m before the lane end
+#:   on highway) and reluctantly (lcCooperative 0, high MOBIL threshold).
+#:   Every driver leaves an ending lane; the queue forms at the drop.
 STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
     "paper": (_AGGRESSIVE, _NORMAL, _CAUTIOUS_PAPER),
     "paper-congestion": (
@@ -93,13 +102,18 @@ STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
         _NORMAL,
         DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, 0.0, 0.0, 0.2),
     ),
+    "merge-congestion": (
+        _AGGRESSIVE,
+        dataclasses.replace(_NORMAL, lc_strategic=1.0),
+        DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, 0.0, 0.0, 0.05, merge_zone_m=30.0),
+    ),
 }
 
 
 #: Speed limit of the reduction segments per preset (presets not listed keep the
 #: map's). 15 m/s is the limit of the authors' predecessor bottleneck (facts.md);
 #: the paper gives the route's *maximum* limit only (25 m/s).
-PRESET_REDUCTION_SPEED_MPS: dict[str, float] = {"paper-congestion": 15.0}
+PRESET_REDUCTION_SPEED_MPS: dict[str, float] = {"paper-congestion": 15.0, "merge-congestion": 15.0}
 
 
 def preset_road(road: Map, style_preset: str) -> Map:

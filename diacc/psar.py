@@ -184,7 +184,9 @@ def psar(
         np.cos(take(state.heading_rad, cav_index))
     )
 
-    def front_margin_m(kin: PairKinematics, action: np.ndarray) -> np.ndarray:
+    def front_margin_m(
+        kin: PairKinematics, action: np.ndarray, front_is_cav: np.ndarray | None = None
+    ) -> np.ndarray:
         """Extra distance of the "stopping" horizon behind a front obstacle, 0 for "paper".
 
         Gipps' safe gap, with the speed the CAV reaches by the end of the step if
@@ -197,6 +199,9 @@ def psar(
         gap_m = safe_gap_m(ego_speed_mps, lead_speed_mps, step_s, safe_decel, end_speed_mps)
         if headway:  # the standstill gap car following will keep
             gap_m = gap_m + max(cfg.min_gap_m - cfg.d_lc_min_m, 0.0)
+            if front_is_cav is not None:  # a CAV's command will be known: the platoon gap
+                platoon_m = cfg.cav_time_gap_s * ego_speed_mps + cfg.min_gap_m - cfg.d_lc_min_m
+                gap_m = np.where(front_is_cav, np.maximum(platoon_m, 0.0), gap_m)
         return np.where(kin.valid, gap_m, 0.0)
 
     # ---- lane change the road does not allow -> remain ---------------------
@@ -229,10 +234,12 @@ def psar(
 
     cancel_front = np.zeros(shape, dtype=bool)
     b_lc_mps2 = np.zeros(shape)
-    for tf in target_fronts:
+    # Under "headway" a CAV in front is followed with its command known (car following).
+    tf_cav = take(state.is_cav, np.maximum(pairs[..., 0], 0)) & tf_vehicle.valid
+    for tf, tf_is_cav in zip(target_fronts, (tf_cav, None), strict=True):
         has_front = is_lc & tf.valid
         cancel = has_front & (
-            (tf.d_long_m <= cfg.d_lc_min_m + front_margin_m(tf, a))
+            (tf.d_long_m <= cfg.d_lc_min_m + front_margin_m(tf, a, tf_is_cav))
             | tf.risk(cfg.d_safe_m, cfg.ttc_safe_s)
         )
         decel = has_front & (
@@ -325,6 +332,8 @@ def psar(
             mask,
             sf_vehicle,
             pairs[..., 2],
+            tf_vehicle,
+            pairs[..., 0],
             own_fronts[1],
             ego_speed_mps,
             asked_lane if cfg.cooperative_merge else np.full(shape, -1),
@@ -416,6 +425,8 @@ def _headway_car_following(
     mask: np.ndarray,
     sf_vehicle: PairKinematics,
     sf_index: np.ndarray,
+    tf_vehicle: PairKinematics,
+    tf_index: np.ndarray,
     own_wall: PairKinematics,
     ego_speed_mps: np.ndarray,
     asked_lane: np.ndarray,
@@ -453,6 +464,8 @@ def _headway_car_following(
         speed_change,
         sf_vehicle,
         sf_index,
+        tf_vehicle,
+        tf_index,
         own_wall,
         cfg,
         road,
@@ -514,6 +527,8 @@ def _headway_bound_mps(
     speed_change_mps: np.ndarray,
     sf_vehicle: PairKinematics,
     sf_index: np.ndarray,
+    tf_vehicle: PairKinematics,
+    tf_index: np.ndarray,
     own_wall: PairKinematics,
     cfg: PSARConfig,
     road: Map,
@@ -539,6 +554,7 @@ def _headway_bound_mps(
         changing: (..., C) bool, the CAV changes lanes in this step.
         speed_change_mps: (..., C) commands before car following.
         sf_vehicle, sf_index: same-lane leader kinematics and vehicle index (-1: none).
+        tf_vehicle, tf_index: the same of the target lane's front vehicle (lane changers).
         own_wall: the end of the own lane as a standing obstacle.
     """
     step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
@@ -592,6 +608,12 @@ def _headway_bound_mps(
     cut_slot = np.where(cuts.any(-1), np.argmin(pair_gap_m, -1), -1)  # (..., C)
     cut_gap_m = np.min(pair_gap_m, axis=-1)
 
+    # A lane changer also follows the front CAV of its target lane (an HDV there was
+    # checked with the unknown-leader gap before the change was allowed).
+    tf_slot = np.where(changing & tf_vehicle.valid, take(slot_of, np.maximum(tf_index, 0)), -1)
+    tf_gap_m = np.where(tf_slot >= 0, tf_vehicle.d_long_m, np.inf)
+    known = ((lead_slot, lead_gap_m), (cut_slot, cut_gap_m), (tf_slot, tf_gap_m))
+
     def behind_known(slot: np.ndarray, gap_m: np.ndarray, end_mps: np.ndarray) -> np.ndarray:
         """Bound behind the CAV in ``slot`` (-1: none), which ends the step at ``end_mps``."""
         s = np.maximum(slot, 0)
@@ -604,18 +626,14 @@ def _headway_bound_mps(
     end_mps = np.zeros(cav_index.shape)  # (..., C) decided end-of-step speed
     decided = ~take(state.active, cav_index)
     for _ in range(cav_index.shape[-1] + 1):  # one pass per CAV a chain can hold, at most
-        lead_known = np.take_along_axis(decided, np.maximum(lead_slot, 0), -1)
-        cut_known = np.take_along_axis(decided, np.maximum(cut_slot, 0), -1)
-        ready = ~decided & ((lead_slot < 0) | lead_known) & ((cut_slot < 0) | cut_known)
+        ready = ~decided
+        for slot, _gap in known:
+            ready &= (slot < 0) | np.take_along_axis(decided, np.maximum(slot, 0), -1)
         if not ready.any():
             break
-        now = np.minimum(
-            fixed_mps,
-            np.minimum(
-                behind_known(lead_slot, lead_gap_m, end_mps),
-                behind_known(cut_slot, cut_gap_m, end_mps),
-            ),
-        )
+        now = fixed_mps
+        for slot, gap_m in known:
+            now = np.minimum(now, behind_known(slot, gap_m, end_mps))
         bound_mps = np.where(ready, now, bound_mps)
         # What the backend makes of the command: within the speed limit (lower is safer).
         end_now = np.minimum(
@@ -624,8 +642,12 @@ def _headway_bound_mps(
         end_mps = np.where(ready, end_now, end_mps)
         decided |= ready
     # Left undecided (a cycle): the CAVs ahead are treated as HDVs.
-    cut_mps = np.take_along_axis(ego_mps, np.maximum(cut_slot, 0), -1)
-    worst_cut_mps = bound(cut_gap_m, *braking_step(cut_mps, step_s, decel), 0.0)
-    worst_mps = np.minimum(np.minimum(fixed_mps, worst_lead_mps), worst_cut_mps)
+    worst_mps = fixed_mps
+    for slot, gap_m in known:
+        speed_mps = np.take_along_axis(ego_mps, np.maximum(slot, 0), -1)
+        gap_m = np.where(slot >= 0, gap_m, np.inf)
+        worst_mps = np.minimum(
+            worst_mps, bound(gap_m, *braking_step(speed_mps, step_s, decel), 0.0)
+        )
     bound_mps = np.where(decided, bound_mps, worst_mps)
     return bound_mps
