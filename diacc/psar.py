@@ -24,7 +24,7 @@ from diacc.actions import (
     action_speed_change_mps,
     lane_change_allowed,
 )
-from diacc.config import PSARConfig, SimConfig
+from diacc.config import STYLE_PRESETS, PSARConfig, SimConfig
 from diacc.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
 from diacc.maps import Map
 from diacc.safety import (
@@ -449,7 +449,9 @@ def _headway_car_following(
     other's intent). Returns ``(action, speed change, rule mask, b_lc)``.
     """
     step_s, dv_action = sim.step_s, sim.speed_change_mps
-    max_brake_mps = sim.cav.safe_decel_mps2 * step_s
+    # Up to the physical limit: beyond the planned rate only when an HDV ahead brakes
+    # harder than that (every other bound plans with the planned rate).
+    max_brake_mps = sim.cav.decel_mps2 * step_s
     active = take(state.active, cav_index)
     offset = ACTION_LANE_OFFSET[a]
     changing = active & (offset != 0)
@@ -539,9 +541,11 @@ def _headway_bound_mps(
     Every front obstacle gives a bound (:func:`~diacc.kinematics.safe_end_speed_mps`):
     the same-lane leader, the end of the own lane (not for a CAV leaving it:
     the road checked the change's reach) and the nearest CAV ahead that
-    changes, or asks to change, into the lane in this step. A leader whose command is unknown (an
-    HDV) may brake at the planned deceleration at once, which asks for about
-    one second of headway (Gipps with one step of reaction). A CAV leader's
+    changes, or asks to change, into the lane in this step. An HDV leader,
+    whose command is unknown, may brake at once as hard as its style's
+    deceleration (at least the planned rate ``sim.cav.safe_decel_mps2``),
+    and the CAV plans to answer with its full braking ``sim.cav.decel_mps2``:
+    about one second of headway (Gipps with one step of reaction). A CAV leader's
     command of this step is known, so CAVs are refined front to back: a CAV is
     bounded once every CAV it follows is decided, and then needs only
     ``cfg.min_gap_m`` plus ``cfg.cav_time_gap_s`` of its speed, because from
@@ -558,7 +562,7 @@ def _headway_bound_mps(
         own_wall: the end of the own lane as a standing obstacle.
     """
     step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
-    max_brake_mps = decel * step_s
+    max_brake_mps = sim.cav.decel_mps2 * step_s  # see _headway_car_following
     limit_mps = np.array([s.speed_limit_mps for s in road.segments])
 
     def long_speed(vehicles: np.ndarray) -> np.ndarray:
@@ -566,7 +570,7 @@ def _headway_bound_mps(
 
     ego_mps = long_speed(cav_index)  # (..., C)
 
-    def bound(gap_m, lead_step_m, lead_end_mps, time_gap_s):
+    def bound(gap_m, lead_step_m, lead_end_mps, time_gap_s, own_decel=decel, lead_decel=None):
         with np.errstate(invalid="ignore"):
             out = safe_end_speed_mps(
                 gap_m,
@@ -574,9 +578,10 @@ def _headway_bound_mps(
                 lead_step_m,
                 lead_end_mps,
                 step_s,
-                decel,
+                own_decel,
                 cfg.min_gap_m,
                 time_gap_s,
+                lead_decel,
             )
         return np.where(np.isfinite(gap_m), out, np.inf)
 
@@ -586,8 +591,17 @@ def _headway_bound_mps(
     lead = np.maximum(sf_index, 0)
     lead_slot = np.where(sf_vehicle.valid, take(slot_of, lead), -1)  # (..., C)
     lead_gap_m = np.where(sf_vehicle.valid, sf_vehicle.d_long_m, np.inf)
-    worst_step_m, worst_end_mps = braking_step(long_speed(lead), step_s, decel)
-    worst_lead_mps = bound(lead_gap_m, worst_step_m, worst_end_mps, 0.0)
+    # An HDV leader may brake as hard as its style does, at least at the CAVs' planned
+    # rate; behind one the CAV is ready to use its full braking (an emergency).
+    style_decel_mps2 = np.array([st.decel_mps2 for st in STYLE_PRESETS[sim.style_preset]])
+    lead_style = take(state.style, lead).astype(np.int64)
+    hdv_decel_mps2 = np.maximum(style_decel_mps2[np.clip(lead_style, 0, None)], decel)
+    lead_decel_mps2 = np.where(lead_slot >= 0, decel, hdv_decel_mps2)  # (..., C)
+    own_decel_mps2 = np.where(lead_slot >= 0, decel, sim.cav.decel_mps2)
+    worst_step_m, worst_end_mps = braking_step(long_speed(lead), step_s, lead_decel_mps2)
+    worst_lead_mps = bound(
+        lead_gap_m, worst_step_m, worst_end_mps, 0.0, own_decel_mps2, lead_decel_mps2
+    )
     wall_gap_m = np.where(own_wall.valid & ~changing, own_wall.d_long_m, np.inf)
     wall_gap_m = wall_gap_m - _exit_room_m(state, cav_index, road)
     fixed_mps = np.minimum(

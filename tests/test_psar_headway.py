@@ -42,19 +42,34 @@ def test_unknown_leader_bound_is_gipps_with_one_step_of_reaction():
     assert safe_end_speed_mps(8.0, 20.0, 20.0, 20.0, 1.0, 4.0, 2.0, 0.3) == pytest.approx(20.0)
 
 
+def root(a: float, b: float, c: float) -> float:
+    """The positive root of a u^2 + b u - c = 0."""
+    return (-b + math.sqrt(b * b + 4 * a * c)) / (2 * a)
+
+
 def test_behind_an_hdv_one_second_plus_the_standstill_gap():
-    # Equal speeds 20 m/s: remain needs 2 m + 20 m/s x 1 s = 22 m (1.1 s).
+    # A normal HDV may brake at 4.5 m/s^2, the CAV answers with its full 5 m/s^2:
+    # at equal speeds 20 m/s, remain needs 2 m + 20 m/s x 1 s = 22 m (1.1 s).
     res = run([100.0, 100.0 + LENGTH_M + 22.5], [1, 1], 20.0, [True, False], [REMAIN])
     assert res.rule.tolist() == [0] and res.speed_change_mps[0] == 0.0
-    # Accelerating is cut to the safe end speed: u^2 + 4u - 484 = 0.
+    # Accelerating is cut to the safe end speed u:
+    # u^2 / (2 x 4.5) + u / 2 = 22.5 - 2 - 20 / 2 + 20^2 / (2 x 4.5).
     res = run([100.0, 100.0 + LENGTH_M + 22.5], [1, 1], 20.0, [True, False], [ACCELERATE])
     assert res.rule.tolist() == [SUPPR_ACCEL] and res.action.tolist() == [REMAIN]
-    assert res.speed_change_mps[0] == pytest.approx(-2.0 + math.sqrt(488.0) - 20.0)
-    # Half a metre short: brake a little (u^2 + 4u - 476 = 0), not by a whole action.
+    u = root(1 / 9, 0.5, 10.5 + 400 / 9)
+    assert res.speed_change_mps[0] == pytest.approx(u - 20.0) and 0 < u - 20 < 0.2
+    # Half a metre short: brake a little, not by a whole action.
     res = run([100.0, 100.0 + LENGTH_M + 21.5], [1, 1], 20.0, [True, False], [REMAIN])
     assert res.rule.tolist() == [FORCE_BRAKE] and res.action.tolist() == [DECELERATE]
-    assert res.speed_change_mps[0] == pytest.approx(-2.0 + math.sqrt(480.0) - 20.0)
-    # The "stopping" horizon wants about twice that gap before it lets a CAV accelerate.
+    assert res.speed_change_mps[0] == pytest.approx(root(1 / 9, 0.5, 9.5 + 400 / 9) - 20.0)
+    # Behind an aggressive HDV (5.5 m/s^2) 22.5 m is too little:
+    # u^2 / (2 x 5) + u / 2 = 22.5 - 2 - 20 / 2 + 20^2 / (2 x 5.5) gives u < 20.
+    aggressive = make_state([100.0, 127.5], [1, 1], 20.0, is_cav=[True, False])
+    aggressive.style[1] = 0
+    res = psar(aggressive, np.array([0]), np.array([REMAIN]), HEADWAY, ROAD, SIM)
+    assert res.speed_change_mps[0] == pytest.approx(root(0.1, 0.5, 10.5 + 400 / 11) - 20.0)
+    assert res.rule.tolist() == [FORCE_BRAKE]
+    # The "stopping" horizon wants about twice the gap before it lets a CAV accelerate.
     stop = run([100.0, 127.5], [1, 1], 20.0, [True, False], [ACCELERATE], PSARConfig())
     assert stop.action.tolist() == [REMAIN]
 
