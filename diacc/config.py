@@ -221,7 +221,10 @@ class PSARConfig:
     ``"paper"`` is Algorithm 1 read literally (Force-Brake = action 4, one
     ``speed_change_mps`` step). ``horizon``: ``"stopping"`` lengthens the
     distance thresholds by a safe stopping gap; ``"paper"`` keeps them
-    fixed. ``coordinate_lane_changes`` stops two connected CAVs from changing
+    fixed; ``"headway"`` follows by braking physics alone (about 1 s behind an
+    HDV, ``min_gap_m`` + ``cav_time_gap_s`` behind a CAV whose command is
+    known; ``cooperative_merge``: CAVs open a gap for a CAV asking to merge).
+    ``coordinate_lane_changes`` stops two connected CAVs from changing
     lanes into each other. ``force_brake="paper", horizon="paper",
     coordinate_lane_changes=False`` is the literal pseudocode (the ablation);
     see :func:`diacc.psar.psar`.

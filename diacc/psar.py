@@ -132,7 +132,14 @@ def psar(
       The authors' distances come from a 15 m/s road; at 25 m/s a CAV needs
       about 60 m to brake for a standing queue, and a leader that brakes
       hard needs about one second of headway. ``"paper"`` uses the fixed
-      thresholds.
+      thresholds. ``"headway"`` (issue 26) replaces the car-following block
+      (lines 17-27) by braking physics alone (:func:`_headway_car_following`):
+      about one second behind an HDV, ``cfg.min_gap_m`` +
+      ``cfg.cav_time_gap_s`` behind a CAV whose refined command of this step
+      is known (CAVs are refined front to back); the lane-change checks keep
+      their structure with these gaps (a rear CAV learns of the change in
+      this step, so it needs no reaction step), and CAVs open a gap for a
+      CAV that asks to merge in front of them (``cfg.cooperative_merge``).
     * Inactive CAVs keep their proposed action with rule NONE.
 
     A batch of states ((E, V) arrays, :class:`~diacc.state.TrafficState`) is

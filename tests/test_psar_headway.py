@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from helpers import make_state
 
-from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, REMAIN
+from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import ConfigError, PSARConfig, SimConfig
 from diacc.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
 from diacc.maps import load_map
-from diacc.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, psar
+from diacc.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, _exit_room_m, psar
 
 ROAD = load_map("train-25")
 SIM = SimConfig()
@@ -97,7 +97,7 @@ def test_platoon_follows_a_known_leader_closely_front_to_back():
 
 def test_lane_change_in_front_of_a_cav_leaves_no_wide_hole():
     # CAV 0 moves into lane 2 between an HDV 23 m ahead and a CAV 9 m behind (20 m/s).
-    # Front: 1 m + (2 - 1) m + Gipps 20 m = 22 m; rear CAV: 2 m + 0.3 s x 20 m/s = 8 m.
+    # Front: 1 m + (2 - 1) m + Gipps 20 m = 22 m; rear CAV: 1 m + 0.3 s x 20 m/s = 7 m.
     x = [100.0, 100.0 + LENGTH_M + 23.0, 100.0 - LENGTH_M - 9.0]
     lanes, cavs = [1, 2, 2], [True, False, True]
     res = run(x, lanes, 20.0, cavs, [LANE_LEFT, ACCELERATE])
@@ -111,10 +111,34 @@ def test_lane_change_in_front_of_a_cav_leaves_no_wide_hole():
     assert run(x_close, lanes, 20.0, cavs, [LANE_LEFT, REMAIN]).rule.tolist()[0] == CANCEL_LC
 
 
+def test_cavs_open_a_gap_for_a_cav_that_asks_to_merge():
+    # CAV 0 (lane 2) asks for lane 1, where CAV 1 drives 3 m behind it: too close
+    # (1 m + 0.3 s x 20 m/s = 7 m), so the change waits and CAV 1 brakes to open the gap.
+    x, lanes = [100.0, 100.0 - LENGTH_M - 3.0], [2, 1]
+    res = run(x, lanes, 20.0, [True, True], [LANE_RIGHT, ACCELERATE])
+    assert res.rule.tolist() == [CANCEL_LC, FORCE_BRAKE]
+    # Without cooperative merging CAV 1 drives on (it has no leader).
+    selfish = PSARConfig(horizon="headway", cooperative_merge=False)
+    res = run(x, lanes, 20.0, [True, True], [LANE_RIGHT, ACCELERATE], selfish)
+    assert res.rule.tolist() == [CANCEL_LC, 0]
+    # Alongside (less than d_LC,min behind its rear), CAV 1 passes instead of braking.
+    res = run([100.0, 100.0 - LENGTH_M], lanes, 20.0, [True, True], [LANE_RIGHT, ACCELERATE])
+    assert res.rule.tolist()[1] == 0
+
+
+def test_outer_lane_of_a_double_drop_is_left_before_its_end():
+    # train-50: lanes 2 and 3 end at 500 m. Lane 3 can only be left into lane 2, which
+    # a standing car may enter only if lane 2 lasts its length beyond its centre, so
+    # lane 3's wall moves back by 2.5 + 0.5 m; lane 2 (lane 1 survives) keeps its end.
+    road = load_map("train-50")
+    state = make_state([400.0, 400.0], [3, 2], 10.0, is_cav=True)
+    assert _exit_room_m(state, np.array([0, 1]), road).tolist() == pytest.approx([3.0, 0.0])
+
+
 def test_a_standing_cav_at_a_lane_end_may_still_leave_it():
     # Lane 3 ends at 500 m; a CAV stands at its end and changes to lane 2 (free).
-    res = run([497.5], [3], 0.0, [True], [2])  # 2 = LANE_RIGHT
-    assert res.action.tolist() == [2] and res.rule.tolist() == [0]
+    res = run([497.5], [3], 0.0, [True], [LANE_RIGHT])
+    assert res.action.tolist() == [LANE_RIGHT] and res.rule.tolist() == [0]
 
 
 def test_unknown_horizon_is_a_one_line_error():
