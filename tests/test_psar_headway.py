@@ -147,3 +147,28 @@ def test_unknown_horizon_is_a_one_line_error():
     assert "\n" not in str(err.value) and "headway" in str(err.value)
     with pytest.raises(ConfigError, match="cav_time_gap_s"):
         PSARConfig(cav_time_gap_s=-0.1)
+
+
+def test_a_batch_of_states_is_refined_as_each_state_alone():
+    from dataclasses import fields
+
+    from diacc.backends.base import CavCommands
+    from diacc.backends.highway.backend import HighwayBackend
+    from diacc.scenario import Scenario
+    from diacc.state import TrafficState
+
+    road = load_map("train-50")
+    backend = HighwayBackend(road, SIM, n_envs=3)
+    states = [backend.reset_env(e, Scenario.with_cavs(25, 10), 7 + e) for e in range(3)]
+    cav_index = np.stack([np.flatnonzero(s.is_cav) for s in states])  # (E, C)
+    rng = np.random.default_rng(5)
+    for _ in range(8):
+        actions = rng.integers(0, 5, cav_index.shape)
+        batch = psar(TrafficState.stack(states), cav_index, actions, HEADWAY, road, SIM)
+        for e, state in enumerate(states):
+            single = psar(state, cav_index[e], actions[e], HEADWAY, road, SIM)
+            for f in fields(single):
+                assert np.array_equal(getattr(single, f.name), getattr(batch, f.name)[e]), f.name
+        speed = np.zeros((3, 25))
+        np.put_along_axis(speed, cav_index, batch.speed_change_mps, axis=-1)
+        states = backend.step_batch(CavCommands(np.zeros((3, 25), np.int8), speed))
