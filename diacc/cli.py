@@ -224,6 +224,17 @@ def _bench_parser(sub) -> None:
         default=None,
         help="seeded episodes per row (--safety 20, --headway and --headroom 4)",
     )
+    p.add_argument(
+        "--episode-steps",
+        type=int,
+        default=None,
+        help="episode length of --safety in decision steps (default: the simulation default)",
+    )
+    p.add_argument(
+        "--policies",
+        default=None,
+        help="comma-separated scripted policies of --safety (default: all, with and without PSAR)",
+    )
     p.add_argument("--device", default="cpu", help="torch device of --models and --training")
     p.add_argument(
         "--steps",
@@ -243,10 +254,23 @@ def cmd_bench(args: argparse.Namespace) -> None:
         from diacc.bench import safety
 
         backends = (args.backend,) if args.backend else BACKENDS
+        if args.episode_steps is not None and args.episode_steps < 1:
+            raise ConfigError(f"--episode-steps must be >= 1, got {args.episode_steps}")
+        policies = safety.POLICIES
+        if args.policies is not None:
+            policies = tuple(p.strip() for p in args.policies.split(",") if p.strip())
+            unknown = [p for p in policies if p not in safety.POLICIES]
+            if unknown or not policies:
+                raise ConfigError(
+                    f"unknown --policies entry {(unknown or [''])[0]!r}; use some of "
+                    f"{', '.join(safety.POLICIES)}"
+                )
         safety.run(
             backends=backends,
+            policies=policies,
             episodes=args.episodes or 20,
-            presets=(args.style_preset,),
+            style_preset=args.style_preset,
+            episode_steps=args.episode_steps,
             horizon=args.horizon,
         )
         return

@@ -263,26 +263,24 @@ def heuristic_actions(actor_obs: ActorObs, road: Map) -> np.ndarray:
 
     Position and lane come from the observation (``self_state`` x / route
     length and lane / (max_lanes - 1)); the map says where each lane ends
-    (:meth:`Map.lane_end_m`). The CAV asks for the neighbour on the side of
-    the nearest lane that survives its own lane's end, left on a tie: with
-    two lanes ending together (``train-50``) the outer one must first move
-    into the inner one, which ends as soon.
+    (:meth:`Map.lane_end_m`) and on which side lanes drop (``drop_side``).
+    A CAV whose lane ends within :data:`HEURISTIC_LEAVE_M` asks for the
+    neighbouring lane away from the drop side, which leads to the surviving
+    lanes even where that neighbour ends at the same point (the outer lane
+    of a 4 -> 2 drop goes over the inner one).
     """
     lane_norm = max(road.max_lanes - 1, 1)
     x_m = actor_obs.self_state[:, 0].astype(np.float64) * road.length_m  # (C,)
     lane = np.rint(actor_obs.self_state[:, 4] * lane_norm).astype(np.int64)  # (C,)
     lane = np.clip(lane, 0, road.max_lanes - 1)
     segment = road.segment_of(x_m)  # (C,)
-    ends = np.where(road.lane_exists(), road.lane_end_m(), 0.0)[segment]  # (C, L) 0 where absent
-    own_end_m = np.take_along_axis(ends, lane[:, None], 1)[:, 0]  # (C,)
-    lanes = np.arange(road.max_lanes)
-    lanes_away = np.abs(lanes[None, :] - lane[:, None]) + 0.5 * (lanes[None, :] < lane[:, None])
-    outlasting = ends > own_end_m[:, None]  # (C, L) lanes that survive the own lane's end
-    nearest = np.argmin(np.where(outlasting, lanes_away, np.inf), axis=1)  # (C,)
-    leave = own_end_m - x_m < HEURISTIC_LEAVE_M  # (C,)
-    side = np.where(nearest > lane, LANE_LEFT, LANE_RIGHT)  # (C,)
-    better = outlasting.any(axis=1)
-    return np.where(leave & better & actor_obs.alive, side, ACCELERATE).astype(np.int64)
+    leave = road.lane_end_m()[segment, lane] - x_m < HEURISTIC_LEAVE_M  # (C,)
+    offset = -1 if road.drop_side == "left" else +1  # towards the surviving lanes
+    target = lane + offset  # (C,)
+    in_range = (target >= 0) & (target < road.max_lanes)
+    exists = in_range & road.lane_exists()[segment, np.clip(target, 0, road.max_lanes - 1)]
+    side = LANE_RIGHT if offset < 0 else LANE_LEFT
+    return np.where(leave & exists & actor_obs.alive, side, ACCELERATE).astype(np.int64)
 
 
 class CheckpointPolicy(Policy):

@@ -43,6 +43,10 @@ RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
 RULE_NAMES = ("none", "cancel_lc", "decel_lc", "force_brake", "suppr_accel")
 #: Bit of each rule code in :attr:`PSARResult.rule_mask` (``1 << (code - 1)``).
 RULE_BITS = {code: 1 << (code - 1) for code in range(1, len(RULE_NAMES))}
+#: Lateral drift (m) off its lane's centre line towards the ego lane from which a
+#: neighbouring-lane vehicle counts as cutting in (both backends keep vehicles on the
+#: centre line exactly unless they change lanes).
+CUT_IN_DRIFT_M = 0.05
 
 
 @dataclass
@@ -139,7 +143,19 @@ def psar(
       is known (CAVs are refined front to back); the lane-change checks keep
       their structure with these gaps (a rear CAV learns of the change in
       this step, so it needs no reaction step), and CAVs open a gap for a
-      CAV that asks to merge in front of them (``cfg.cooperative_merge``).
+      CAV that asks to merge in front of them (``cfg.cooperative_merge``);
+      a vehicle cutting in (below) is an HDV leader there.
+    * Cut-ins: the nearest vehicle ahead in a neighbouring lane whose
+      centre has left its lane's centre line towards the ego lane by more
+      than :data:`CUT_IN_DRIFT_M` (a lane change into the ego lane under
+      way, :func:`_cut_in_front`) is a front obstacle of the car-following
+      block too. Without it
+      the CAV sees the merging vehicle only once its centre crosses the lane
+      boundary; on SUMO, where an LC2013 driver may start a merge from
+      standstill a few metres ahead of a CAV (its gap check assumes the CAV
+      keeps its speed), the CAV would meanwhile accelerate into a gap it can
+      no longer brake for (``bench --safety``: the heuristic on train-50,
+      ``paper-congestion``, 330 steps).
     * Inactive CAVs keep their proposed action with rule NONE.
 
     A batch of states ((E, V) arrays, :class:`~diacc.state.TrafficState`) is
@@ -238,6 +254,8 @@ def psar(
         lane_end_kinematics(state, cav_index, lane + offset, road, cfg.queue_gap_m),
     ]
     own_fronts = [sf_vehicle, lane_end_kinematics(state, cav_index, lane, road, cfg.queue_gap_m)]
+    cut_in = _cut_in_front(state, cav_index, road)  # (..., C)
+    own_fronts.append(pair_kinematics(state, cav_index, cut_in))
 
     cancel_front = np.zeros(shape, dtype=bool)
     b_lc_mps2 = np.zeros(shape)
@@ -342,6 +360,8 @@ def psar(
             tf_vehicle,
             pairs[..., 0],
             own_fronts[1],
+            own_fronts[2],
+            cut_in,
             ego_speed_mps,
             asked_lane if cfg.cooperative_merge else np.full(shape, -1),
             cfg,
@@ -417,6 +437,25 @@ def _result(
     )
 
 
+def _cut_in_front(state: TrafficState, cav_index: np.ndarray, road: Map) -> np.ndarray:
+    """(..., C) the nearest vehicle ahead of each CAV that is moving across into its
+    lane from a neighbouring one (drift > :data:`CUT_IN_DRIFT_M`), -1 if none.
+
+    Every vehicle is a candidate, not only the nearest one of each neighbouring
+    lane: a merging HDV is often a queue's head with others alongside the CAV.
+    """
+    drift_m = state.y_m - road.lane_center_y_m(state.lane)  # (..., V) + = to the left
+    side = state.lane[..., None, :] - take(state.lane, cav_index)[..., None]  # (..., C, V)
+    toward = ((side == 1) & (drift_m[..., None, :] < -CUT_IN_DRIFT_M)) | (
+        (side == -1) & (drift_m[..., None, :] > CUT_IN_DRIFT_M)
+    )
+    dx_m = state.x_m[..., None, :] - take(state.x_m, cav_index)[..., None]  # (..., C, V)
+    candidate = toward & (dx_m >= 0) & state.active[..., None, :]
+    dx_m = np.where(candidate, dx_m, np.inf)
+    nearest = np.argmin(dx_m, axis=-1)  # (..., C)
+    return np.where(np.isfinite(np.min(dx_m, axis=-1)), nearest, -1)
+
+
 def rule_counts(rule_mask: np.ndarray) -> np.ndarray:
     """(4,) int64: how many entries of a bitmask array have each rule 1..4 set."""
     rule_mask = np.asarray(rule_mask).astype(np.int64).reshape(-1)
@@ -435,6 +474,8 @@ def _headway_car_following(
     tf_vehicle: PairKinematics,
     tf_index: np.ndarray,
     own_wall: PairKinematics,
+    merging: PairKinematics,
+    merging_index: np.ndarray,
     ego_speed_mps: np.ndarray,
     asked_lane: np.ndarray,
     cfg: PSARConfig,
@@ -476,6 +517,8 @@ def _headway_car_following(
         tf_vehicle,
         tf_index,
         own_wall,
+        merging,
+        merging_index,
         cfg,
         road,
         sim,
@@ -539,6 +582,8 @@ def _headway_bound_mps(
     tf_vehicle: PairKinematics,
     tf_index: np.ndarray,
     own_wall: PairKinematics,
+    merging: PairKinematics,
+    merging_index: np.ndarray,
     cfg: PSARConfig,
     road: Map,
     sim: SimConfig,
@@ -567,6 +612,8 @@ def _headway_bound_mps(
         sf_vehicle, sf_index: same-lane leader kinematics and vehicle index (-1: none).
         tf_vehicle, tf_index: the same of the target lane's front vehicle (lane changers).
         own_wall: the end of the own lane as a standing obstacle.
+        merging, merging_index: a vehicle ahead already moving across into the
+            lane (:func:`_cut_in_front`), followed like an HDV leader.
     """
     step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
     max_brake_mps = sim.cav.decel_mps2 * step_s  # see _headway_car_following
@@ -601,19 +648,22 @@ def _headway_bound_mps(
     # An HDV leader may brake as hard as its style does, at least at the CAVs' planned
     # rate; behind one the CAV is ready to use its full braking (an emergency).
     style_decel_mps2 = np.array([st.decel_mps2 for st in STYLE_PRESETS[sim.style_preset]])
-    lead_style = take(state.style, lead).astype(np.int64)
-    hdv_decel_mps2 = np.maximum(style_decel_mps2[np.clip(lead_style, 0, None)], decel)
-    lead_decel_mps2 = np.where(lead_slot >= 0, decel, hdv_decel_mps2)  # (..., C)
-    own_decel_mps2 = np.where(lead_slot >= 0, decel, sim.cav.decel_mps2)
-    worst_step_m, worst_end_mps = braking_step(long_speed(lead), step_s, lead_decel_mps2)
-    worst_lead_mps = bound(
-        lead_gap_m, worst_step_m, worst_end_mps, 0.0, own_decel_mps2, lead_decel_mps2
-    )
+
+    def behind_hdv(gap_m: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
+        style = np.clip(take(state.style, vehicle).astype(np.int64), 0, None)  # CAV: strictest
+        hdv_decel_mps2 = np.maximum(style_decel_mps2[style], decel)  # (..., C)
+        step_m, end_mps = braking_step(long_speed(vehicle), step_s, hdv_decel_mps2)
+        return bound(gap_m, step_m, end_mps, 0.0, sim.cav.decel_mps2, hdv_decel_mps2)
+
+    hdv_lead_mps = behind_hdv(lead_gap_m, lead)
+    merging_gap_m = np.where(merging.valid, merging.d_long_m, np.inf)
+    merging_mps = behind_hdv(merging_gap_m, np.maximum(merging_index, 0))
     wall_gap_m = np.where(own_wall.valid & ~changing, own_wall.d_long_m, np.inf)
     wall_gap_m = wall_gap_m - _exit_room_m(state, cav_index, road)
     fixed_mps = np.minimum(
-        bound(wall_gap_m, 0.0, 0.0, 0.0), np.where(lead_slot >= 0, np.inf, worst_lead_mps)
+        bound(wall_gap_m, 0.0, 0.0, 0.0), np.where(lead_slot >= 0, np.inf, hdv_lead_mps)
     )
+    fixed_mps = np.minimum(fixed_mps, merging_mps)
 
     # The nearest CAV ahead changing into each CAV's lane: (..., C, C) [i, j] = j cuts in.
     i_, j_ = (Ellipsis, slice(None), None), (Ellipsis, None, slice(None))

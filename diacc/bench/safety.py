@@ -1,7 +1,8 @@
 """``diacc bench --safety``: can scripted CAVs cross the bottleneck without collisions?
 
 Scripted policies (:class:`~diacc.policies.ScriptedPolicy`: always
-``remain``, always ``accelerate``, uniform ``random``) drive the CAVs of the
+``remain``, always ``accelerate``, uniform ``random``, and the ``heuristic``
+that accelerates and leaves an ending lane early) drive the CAVs of the
 paper's training scenario (N = 25, rho = 0.4, D1) with and without PSAR, on
 every map and backend, through the same episode driver as evaluation
 (:func:`diacc.evaluate.run_episode`). A policy that knows nothing about
@@ -9,11 +10,15 @@ traffic is the hardest test of the safety layer: whatever it proposes, PSAR
 should keep it out of collisions, and HDVs should never collide with each
 other. Per (backend, map, policy) it prints the collision-free share of
 episodes, the number of HDV-HDV collision pairs, the mean speed of all
-vehicles, p(SCE) and the arrived fraction.
+vehicles, p(SCE) and the arrived fraction. The HDV style preset and the
+episode length are the evaluation's (:class:`~diacc.policies.EvalSettings`,
+``--style-preset`` and ``--episode-steps``), so the congested ``paper-congestion``
+runs with 330-step episodes are benchmarked too.
 
-Target (issue "Collision-free bottleneck driving"): with PSAR, ``remain`` and
-``accelerate`` collision-free in >= 95 % of episodes on every map and both
-backends, and 0 HDV-HDV collisions. Without PSAR collisions are expected.
+Target (issue "Collision-free bottleneck driving"): with PSAR, ``remain``,
+``accelerate`` and ``heuristic`` collision-free in >= 95 % of episodes on every
+map and both backends, and 0 HDV-HDV collisions. Without PSAR collisions are
+expected.
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.config import BACKENDS
+from diacc.config import BACKENDS, PSARConfig, SimConfig
 from diacc.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
@@ -33,8 +38,9 @@ from diacc.policies import SCRIPTED, EvalSettings, ScriptedPolicy
 
 #: Policies of the benchmark: each script with PSAR, then without.
 POLICIES = tuple(SCRIPTED) + tuple(f"{name}-nopsar" for name in SCRIPTED)
-#: Target collision-free share for ``remain`` and ``accelerate`` with PSAR.
+#: Target collision-free share for these policies (all with PSAR).
 TARGET_COLLISION_FREE = 0.95
+TARGET_POLICIES = ("remain", "accelerate", "heuristic")
 
 
 @dataclass
@@ -45,8 +51,6 @@ class SafetyRow:
     map: str
     policy: str
     episodes: int
-    style_preset: str
-    horizon: str  # PSAR horizon (PSARConfig.horizon) the policy ran with
     collision_free: float  # share of episodes without any collision
     hdv_hdv_collisions: int  # collision pairs of two HDVs, summed over episodes
     mean_speed_mps: float  # mean over episodes of the episode mean speed
@@ -56,31 +60,29 @@ class SafetyRow:
     @property
     def meets_target(self) -> bool | None:
         """None where the target does not apply (random, no PSAR)."""
-        if self.policy not in ("remain", "accelerate"):
+        if self.policy not in TARGET_POLICIES:
             return None
         return self.collision_free >= TARGET_COLLISION_FREE and self.hdv_hdv_collisions == 0
 
 
 def measure(
-    backend: str,
+    settings: EvalSettings,
     map_name: str,
     policy_name: str,
     episodes: int,
-    style_preset: str | None = None,
     horizon: str | None = None,
 ) -> SafetyRow:
     """Run ``episodes`` seeded episodes of one scripted policy; seeds as evaluation's.
 
-    ``style_preset`` and ``horizon`` (PSAR's) replace the defaults where given.
+    ``horizon``: PSAR's (:attr:`~diacc.config.PSARConfig.horizon`; None keeps the default).
     """
     policy = ScriptedPolicy(policy_name)
     if horizon is not None:
         psar_cfg = dataclasses.replace(policy.base.psar, horizon=horizon)
         policy.base = dataclasses.replace(policy.base, psar=psar_cfg)
     cell = Cell(map_name, 25, 0.4, "D1")
-    settings = EvalSettings(backend=backend, style_preset=style_preset)
-    env_cfg = policy.env_config(cell, settings)
-    driver = EpisodeDriver(policy, env_cfg)
+    backend = settings.backend
+    driver = EpisodeDriver(policy, policy.env_config(cell, settings))
     try:
         rows = [run_episode(driver, cell, k).row for k in range(episodes)]
     finally:
@@ -90,8 +92,6 @@ def measure(
         map=map_name,
         policy=policy_name,
         episodes=episodes,
-        style_preset=env_cfg.sim.style_preset,
-        horizon=env_cfg.psar.horizon,
         collision_free=float(np.mean([r["collision"] == 0 for r in rows])),
         hdv_hdv_collisions=int(sum(r["n_hdv_collisions"] for r in rows)),
         mean_speed_mps=float(np.mean([r["mean_speed_mps"] for r in rows])),
@@ -105,41 +105,43 @@ def run(
     maps: tuple[str, ...] | None = None,
     policies: tuple[str, ...] = POLICIES,
     episodes: int = 20,
-    presets: tuple[str | None, ...] = (None,),
+    style_preset: str | None = None,
+    episode_steps: int | None = None,
     horizon: str | None = None,
 ) -> list[SafetyRow]:
     """Measure every combination and print one Markdown table; returns the rows.
 
-    ``presets``: style presets to run (None: the default); ``horizon``: PSAR's
-    (None: the default).
+    ``style_preset`` / ``episode_steps`` / ``horizon`` (PSAR's): None keeps the
+    defaults of :class:`~diacc.config.SimConfig` / :class:`~diacc.config.PSARConfig`.
     """
     maps = tuple(maps or available_maps())
+    sim = EvalSettings(style_preset=style_preset, episode_steps=episode_steps).apply(SimConfig())
     print(
-        f"safety benchmark: N = 25, rho = 0.4, D1, {episodes} seeded episodes per row "
+        f"safety benchmark: N = 25, rho = 0.4, D1, style preset {sim.style_preset}, "
+        f"{sim.episode_steps}-step episodes, PSAR horizon {horizon or PSARConfig().horizon}, "
+        f"{episodes} seeded episodes per row "
         f"(seeds as `diacc eval`)"
     )
     print(
-        "| backend | map | preset | PSAR horizon | policy | collision-free | HDV-HDV collisions "
-        "| mean speed m/s | p(SCE) | arrived | target |"
+        "| backend | map | policy | collision-free | HDV-HDV collisions | mean speed m/s "
+        "| p(SCE) | arrived | target |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     out = []
     start = time.perf_counter()
     for backend in backends:
         for map_name in maps:
-            for preset in presets:
-                for policy_name in policies:
-                    row = measure(backend, map_name, policy_name, episodes, preset, horizon)
-                    out.append(row)
-                    target = {None: "", True: "met", False: "**missed**"}[row.meets_target]
-                    horizon_cell = row.horizon if not policy_name.endswith("-nopsar") else "-"
-                    print(
-                        f"| {backend} | {map_name} | {row.style_preset} | {horizon_cell} "
-                        f"| {policy_name} | {row.collision_free:.0%} "
-                        f"| {row.hdv_hdv_collisions} | {row.mean_speed_mps:.2f} "
-                        f"| {row.p_sce:.0%} | {row.arrived_fraction:.0%} | {target} |",
-                        flush=True,
-                    )
+            for policy_name in policies:
+                settings = EvalSettings(backend, episode_steps, style_preset)
+                row = measure(settings, map_name, policy_name, episodes, horizon)
+                out.append(row)
+                target = {None: "", True: "met", False: "**missed**"}[row.meets_target]
+                print(
+                    f"| {backend} | {map_name} | {policy_name} | {row.collision_free:.0%} "
+                    f"| {row.hdv_hdv_collisions} | {row.mean_speed_mps:.2f} | {row.p_sce:.0%} "
+                    f"| {row.arrived_fraction:.0%} | {target} |",
+                    flush=True,
+                )
     checked = [r.meets_target for r in out if r.meets_target is not None]
     print(
         f"target met in {sum(checked)} of {len(checked)} rows ({time.perf_counter() - start:.0f} s)"
