@@ -22,6 +22,7 @@ from pathlib import Path
 from diacc import __version__, cli_eval, cli_reproduce, cli_scale
 from diacc.config import (
     BACKENDS,
+    HORIZON_MODES,
     STYLE_PRESETS,
     VARIANTS,
     ConfigError,
@@ -204,12 +205,34 @@ def _bench_parser(sub) -> None:
         action="store_true",
         help="scripted CAVs with and without PSAR on every map (both backends, or --backend)",
     )
-    p.add_argument("--episodes", type=int, default=20, help="seeded episodes per row of --safety")
+    p.add_argument(
+        "--headway",
+        action="store_true",
+        help="CAV time gaps to their leaders under each PSAR horizon (both backends, or --backend)",
+    )
+    p.add_argument(
+        "--headroom",
+        action="store_true",
+        help="reference delays per training map: free flow, pure HDV, same-mix, heuristic, "
+        "cooperative, 100 %% CAVs (highway, or --backend)",
+    )
+    p.add_argument(
+        "--horizon",
+        choices=HORIZON_MODES,
+        default=None,
+        help="PSAR horizon of --safety / --headroom (default: PSARConfig's)",
+    )
     p.add_argument(
         "--style-preset",
         choices=tuple(STYLE_PRESETS),
         default=None,
-        help="HDV style preset of --safety (default: the simulation default)",
+        help="style preset of --safety / --headway / --headroom (default: each one's)",
+    )
+    p.add_argument(
+        "--episodes",
+        type=int,
+        default=None,
+        help="seeded episodes per row (--safety 20, --headway and --headroom 4)",
     )
     p.add_argument(
         "--episode-steps",
@@ -224,17 +247,22 @@ def _bench_parser(sub) -> None:
     )
     p.add_argument("--device", default="cpu", help="torch device of --models and --training")
     p.add_argument(
-        "--steps", type=int, default=None, help="steps to time (benchmark default if unset)"
+        "--steps",
+        type=int,
+        default=None,
+        help="steps to time, or episode steps of --headway / --headroom (default 330)",
     )
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
     ran = False
+    if args.episodes is not None and args.episodes < 1:
+        raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.steps is not None and args.steps < 1:
+        raise ConfigError(f"--steps must be >= 1, got {args.steps}")
     if args.safety:
         from diacc.bench import safety
 
-        if args.episodes < 1:
-            raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
         backends = (args.backend,) if args.backend else BACKENDS
         if args.episode_steps is not None and args.episode_steps < 1:
             raise ConfigError(f"--episode-steps must be >= 1, got {args.episode_steps}")
@@ -250,9 +278,31 @@ def cmd_bench(args: argparse.Namespace) -> None:
         safety.run(
             backends=backends,
             policies=policies,
-            episodes=args.episodes,
+            episodes=args.episodes or 20,
             style_preset=args.style_preset,
             episode_steps=args.episode_steps,
+            horizon=args.horizon,
+        )
+        return
+    if args.headway:
+        from diacc.bench import headway
+
+        headway.run(
+            backends=(args.backend,) if args.backend else BACKENDS,
+            episodes=args.episodes or 4,
+            style_preset=args.style_preset or "paper-congestion",
+            steps=args.steps or 330,
+        )
+        return
+    if args.headroom:
+        from diacc.bench import headroom
+
+        headroom.run(
+            backends=(args.backend,) if args.backend else ("highway",),
+            episodes=args.episodes or 4,
+            style_preset=args.style_preset or "realistic",
+            steps=args.steps or 330,
+            horizon=args.horizon,
         )
         return
     if args.backend == "highway":
@@ -283,7 +333,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
     if not ran:
         raise ConfigError(
             "choose what to benchmark: --backend highway|sumo, --models, --training, "
-            "--env-batch or --safety"
+            "--env-batch, --safety, --headway or --headroom"
         )
 
 

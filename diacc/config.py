@@ -66,6 +66,9 @@ class DriverStyle:
     #: need be (SUMO lcCooperativeSpeed 1; highway: yields up to the forced-merge
     #: braking). Off in the paper's presets; the ``zipper`` preset turns it on.
     zipper: bool = False
+    #: highway: forced merging starts this far before a lane end (None: the model's
+    #: 200 m); the highway image of a small lcStrategic (a driver who merges late).
+    merge_zone_m: float | None = None
 
 
 _AGGRESSIVE = DriverStyle("aggressive", 0.9, 1.0, 3.5, 5.5, 0.0, 0.05, 0.0, 100.0, 100.0)
@@ -86,6 +89,12 @@ _CAUTIOUS_PAPER = DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, -1.0, 0.
 #:   parameters") and the reduction segments' speed limit lowered to
 #:   :data:`PRESET_REDUCTION_SPEED_MPS` (:func:`preset_road`). With 330-step
 #:   episodes it gives the paper's pure-HDV congestion.
+#: * ``merge-congestion``: congestion made by merging, without stuck drivers:
+#:   ``paper-congestion``'s normal drivers and 15 m/s reduction segments, and
+#:   cautious drivers who keep the paper's car following but merge late
+#:   (lcStrategic 0.05 on SUMO, forced merging from 30 m before the lane end
+#:   on highway) and reluctantly (lcCooperative 0, high MOBIL threshold).
+#:   Every driver leaves an ending lane; the queue forms at the drop.
 STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
     "paper": (_AGGRESSIVE, _NORMAL, _CAUTIOUS_PAPER),
     "paper-congestion": (
@@ -97,6 +106,11 @@ STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
         _AGGRESSIVE,
         _NORMAL,
         DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, 0.0, 0.0, 0.2),
+    ),
+    "merge-congestion": (
+        _AGGRESSIVE,
+        dataclasses.replace(_NORMAL, lc_strategic=1.0),
+        DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, 0.0, 0.0, 0.05, merge_zone_m=30.0),
     ),
 }
 #: ``zipper``: ``realistic`` drivers who also let a driver waiting at a lane end in
@@ -111,7 +125,7 @@ STYLE_PRESETS["zipper"] = tuple(
 #: Speed limit of the reduction segments per preset (presets not listed keep the
 #: map's). 15 m/s is the limit of the authors' predecessor bottleneck (facts.md);
 #: the paper gives the route's *maximum* limit only (25 m/s).
-PRESET_REDUCTION_SPEED_MPS: dict[str, float] = {"paper-congestion": 15.0}
+PRESET_REDUCTION_SPEED_MPS: dict[str, float] = {"paper-congestion": 15.0, "merge-congestion": 15.0}
 
 
 def preset_road(road: Map, style_preset: str) -> Map:
@@ -207,7 +221,7 @@ class ObservationConfig:
 
 #: Options of :class:`PSARConfig` (see :func:`diacc.psar.psar`).
 FORCE_BRAKE_MODES = ("cancel", "paper")
-HORIZON_MODES = ("stopping", "paper")
+HORIZON_MODES = ("stopping", "headway", "paper")
 
 
 @dataclass(frozen=True)
@@ -219,7 +233,10 @@ class PSARConfig:
     ``"paper"`` is Algorithm 1 read literally (Force-Brake = action 4, one
     ``speed_change_mps`` step). ``horizon``: ``"stopping"`` lengthens the
     distance thresholds by a safe stopping gap; ``"paper"`` keeps them
-    fixed. ``coordinate_lane_changes`` stops two connected CAVs from changing
+    fixed; ``"headway"`` follows by braking physics alone (about 1 s behind an
+    HDV, ``min_gap_m`` + ``cav_time_gap_s`` behind a CAV whose command is
+    known; ``cooperative_merge``: CAVs open a gap for a CAV asking to merge).
+    ``coordinate_lane_changes`` stops two connected CAVs from changing
     lanes into each other. ``force_brake="paper", horizon="paper",
     coordinate_lane_changes=False`` is the literal pseudocode (the ablation);
     see :func:`diacc.psar.psar`.
@@ -237,6 +254,9 @@ class PSARConfig:
     horizon: str = "stopping"
     coordinate_lane_changes: bool = True  # CAVs do not change lanes into each other
     queue_gap_m: float = 2.0  # standstill gap per vehicle queued at a lane end (PSAR's wall)
+    min_gap_m: float = 2.0  # "headway": standstill gap kept behind any front obstacle
+    cav_time_gap_s: float = 0.3  # "headway": time gap behind a CAV whose command is known
+    cooperative_merge: bool = True  # "headway": CAVs open a gap for a CAV asking to merge in
 
     def __post_init__(self) -> None:
         if not (self.d_lc_min_m <= self.d_safe_m < self.d_warn_m < self.d_att_m):
@@ -247,6 +267,11 @@ class PSARConfig:
             raise ConfigError(f"PSARConfig.b_max_mps2 must be >= 0, got {self.b_max_mps2}")
         _check_choice("psar.force_brake", self.force_brake, FORCE_BRAKE_MODES)
         _check_choice("psar.horizon", self.horizon, HORIZON_MODES)
+        if self.min_gap_m < 0 or self.cav_time_gap_s < 0:
+            raise ConfigError(
+                f"PSARConfig needs min_gap_m >= 0 and cav_time_gap_s >= 0, got "
+                f"{self.min_gap_m} and {self.cav_time_gap_s}"
+            )
 
 
 @dataclass(frozen=True)

@@ -44,3 +44,63 @@ def lane_change_reach_m(speed_mps: np.ndarray, step_s: float, length_m: np.ndarr
     :meth:`diacc.maps.Map.lane_change_allowed` by PSAR and both backends.
     """
     return np.asarray(speed_mps) * step_s + np.asarray(length_m)
+
+
+def safe_end_speed_mps(
+    gap_m: np.ndarray,
+    speed_mps: np.ndarray,
+    lead_step_m: np.ndarray,
+    lead_end_speed_mps: np.ndarray,
+    step_s: float,
+    decel_mps2: np.ndarray | float,
+    min_gap_m: float | np.ndarray,
+    time_gap_s: float | np.ndarray = 0.0,
+    lead_decel_mps2: np.ndarray | float | None = None,
+) -> np.ndarray:
+    """Highest speed a follower may command for the end of a step and still stop in time.
+
+    The follower ramps linearly from ``v = speed_mps`` to ``u`` over the step
+    (how both backends execute a command), while the leader covers
+    ``lead_step_m`` and ends at ``w = lead_end_speed_mps``; from then on the
+    follower can brake at ``b = decel_mps2`` (it decides again at the next
+    step) and the leader may brake at ``b_l = lead_decel_mps2`` (default ``b``).
+    The largest ``u`` with
+
+        gap + lead_step - (v + u) T / 2 >= min_gap + time_gap * u
+                                            + max(0, u^2 / (2 min(b, b_l)) - w^2 / (2 b_l))
+
+    is returned (it can be negative: then no command keeps the gap). The
+    braking term compares stopping points; with ``min(b, b_l)`` it also holds
+    when the follower brakes harder than the leader (then the closest point
+    is not at the stop, so the follower is credited only the leader's rate).
+    For a leader whose command is unknown, pass its worst case
+    (:func:`braking_step`): with equal decelerations the result equals
+    Gipps' :func:`safe_gap_m` with one step of reaction. The left side falls
+    and the right side grows with ``u``, so the root is unique; it is found
+    in closed form on each side of the point where the braking term starts.
+    """
+    v = np.maximum(np.asarray(speed_mps, dtype=np.float64), 0.0)
+    w = np.maximum(np.asarray(lead_end_speed_mps, dtype=np.float64), 0.0)
+    b_lead = np.asarray(decel_mps2 if lead_decel_mps2 is None else lead_decel_mps2, np.float64)
+    b_eff = np.minimum(np.asarray(decel_mps2, dtype=np.float64), b_lead)
+    slope = 0.5 * step_s + np.asarray(time_gap_s, dtype=np.float64)  # d(need)/du below u0
+    room_m = np.asarray(gap_m) + np.asarray(lead_step_m) - 0.5 * v * step_s - min_gap_m
+    u0 = w * np.sqrt(b_eff / b_lead)  # the braking term is 0 up to here
+    below_mps = room_m / slope  # root if it lies at or below u0
+    # Above u0: u^2 / (2 b_eff) + slope u - (room + w^2 / (2 b_lead)) = 0.
+    c = room_m + w * w / (2.0 * b_lead)
+    with np.errstate(invalid="ignore"):
+        above_mps = b_eff * (-slope + np.sqrt(slope * slope + 2.0 * c / b_eff))
+    return np.where(below_mps <= u0, below_mps, np.nan_to_num(above_mps, nan=-np.inf))
+
+
+def braking_step(
+    speed_mps: np.ndarray, step_s: float, decel_mps2: np.ndarray | float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(distance m, end speed m/s) of a vehicle braking at ``decel_mps2`` for one step.
+
+    The worst case PSAR assumes for a leader whose command it does not know.
+    """
+    v = np.maximum(np.asarray(speed_mps, dtype=np.float64), 0.0)
+    end_mps = np.maximum(v - decel_mps2 * step_s, 0.0)
+    return (v * v - end_mps * end_mps) / (2.0 * decel_mps2), end_mps

@@ -24,8 +24,8 @@ from diacc.actions import (
     action_speed_change_mps,
     lane_change_allowed,
 )
-from diacc.config import PSARConfig, SimConfig
-from diacc.kinematics import safe_gap_m
+from diacc.config import STYLE_PRESETS, PSARConfig, SimConfig
+from diacc.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
 from diacc.maps import Map
 from diacc.safety import (
     SAME_COL,
@@ -136,7 +136,15 @@ def psar(
       The authors' distances come from a 15 m/s road; at 25 m/s a CAV needs
       about 60 m to brake for a standing queue, and a leader that brakes
       hard needs about one second of headway. ``"paper"`` uses the fixed
-      thresholds.
+      thresholds. ``"headway"`` (issue 26) replaces the car-following block
+      (lines 17-27) by braking physics alone (:func:`_headway_car_following`):
+      about one second behind an HDV, ``cfg.min_gap_m`` +
+      ``cfg.cav_time_gap_s`` behind a CAV whose refined command of this step
+      is known (CAVs are refined front to back); the lane-change checks keep
+      their structure with these gaps (a rear CAV learns of the change in
+      this step, so it needs no reaction step), and CAVs open a gap for a
+      CAV that asks to merge in front of them (``cfg.cooperative_merge``);
+      a vehicle cutting in (below) is an HDV leader there.
     * Cut-ins: the nearest vehicle ahead in a neighbouring lane whose
       centre has left its lane's centre line towards the ego lane by more
       than :data:`CUT_IN_DRIFT_M` (a lane change into the ego lane under
@@ -187,7 +195,8 @@ def psar(
     step_s, dv_action = sim.step_s, sim.speed_change_mps
     safe_decel = sim.cav.safe_decel_mps2
     max_brake_mps = safe_decel * step_s  # largest planned speed drop within one step
-    stopping = cfg.horizon == "stopping"
+    headway = cfg.horizon == "headway"
+    stopping = cfg.horizon == "stopping" or headway  # both size gaps by braking physics
     active = take(state.active, cav_index)  # (..., C)
     proposed = action.astype(np.int64)
     a = proposed.copy()
@@ -198,7 +207,9 @@ def psar(
         np.cos(take(state.heading_rad, cav_index))
     )
 
-    def front_margin_m(kin: PairKinematics, action: np.ndarray) -> np.ndarray:
+    def front_margin_m(
+        kin: PairKinematics, action: np.ndarray, front_is_cav: np.ndarray | None = None
+    ) -> np.ndarray:
         """Extra distance of the "stopping" horizon behind a front obstacle, 0 for "paper".
 
         Gipps' safe gap, with the speed the CAV reaches by the end of the step if
@@ -209,6 +220,11 @@ def psar(
         lead_speed_mps = ego_speed_mps - np.nan_to_num(kin.dv_long_mps)  # 0 for a wall
         end_speed_mps = ego_speed_mps + np.maximum(action_speed_change_mps(action, dv_action), 0)
         gap_m = safe_gap_m(ego_speed_mps, lead_speed_mps, step_s, safe_decel, end_speed_mps)
+        if headway:  # the standstill gap car following will keep
+            gap_m = gap_m + max(cfg.min_gap_m - cfg.d_lc_min_m, 0.0)
+            if front_is_cav is not None:  # a CAV's command will be known: the platoon gap
+                platoon_m = cfg.cav_time_gap_s * ego_speed_mps + cfg.min_gap_m - cfg.d_lc_min_m
+                gap_m = np.where(front_is_cav, np.maximum(platoon_m, 0.0), gap_m)
         return np.where(kin.valid, gap_m, 0.0)
 
     # ---- lane change the road does not allow -> remain ---------------------
@@ -216,6 +232,7 @@ def psar(
     invalid_lc = is_lc & ~lane_change_allowed(state, cav_index, a, road, sim)
     a = np.where(invalid_lc, REMAIN, a)
     is_lc &= ~invalid_lc
+    asked_lane = np.where(is_lc, take(state.lane, cav_index) + ACTION_LANE_OFFSET[a], -1)
     offset = ACTION_LANE_OFFSET[a]  # (..., C)
     lane = take(state.lane, cav_index).astype(np.int64)
 
@@ -237,14 +254,17 @@ def psar(
         lane_end_kinematics(state, cav_index, lane + offset, road, cfg.queue_gap_m),
     ]
     own_fronts = [sf_vehicle, lane_end_kinematics(state, cav_index, lane, road, cfg.queue_gap_m)]
-    own_fronts.append(pair_kinematics(state, cav_index, _cut_in_front(state, cav_index, road)))
+    cut_in = _cut_in_front(state, cav_index, road)  # (..., C)
+    own_fronts.append(pair_kinematics(state, cav_index, cut_in))
 
     cancel_front = np.zeros(shape, dtype=bool)
     b_lc_mps2 = np.zeros(shape)
-    for tf in target_fronts:
+    # Under "headway" a CAV in front is followed with its command known (car following).
+    tf_cav = take(state.is_cav, np.maximum(pairs[..., 0], 0)) & tf_vehicle.valid
+    for tf, tf_is_cav in zip(target_fronts, (tf_cav, None), strict=True):
         has_front = is_lc & tf.valid
         cancel = has_front & (
-            (tf.d_long_m <= cfg.d_lc_min_m + front_margin_m(tf, a))
+            (tf.d_long_m <= cfg.d_lc_min_m + front_margin_m(tf, a, tf_is_cav))
             | tf.risk(cfg.d_safe_m, cfg.ttc_safe_s)
         )
         decel = has_front & (
@@ -266,11 +286,17 @@ def psar(
     if stopping:  # the rear vehicle must be able to brake for the CAV (a CAV rear reacts late)
         rear = np.maximum(pairs[..., 1], 0)
         rear_speed_mps = take(state.speed_mps, rear) * np.abs(np.cos(take(state.heading_rad, rear)))
-        # A rear CAV reacts after a step and may accelerate during it.
         rear_cav = take(state.is_cav, rear)
-        reaction_s = np.where(rear_cav, step_s, 0.0)
-        rear_end_mps = rear_speed_mps + np.where(rear_cav, dv_action, 0.0)
-        rear_margin_m = safe_gap_m(
+        if headway:
+            # A rear CAV learns of the change in this step (it is refined after the
+            # changer) and can brake for it at once; it then restores its full gap.
+            reaction_s, rear_end_mps = 0.0, rear_speed_mps
+            extra_m = np.where(rear_cav, cfg.cav_time_gap_s * rear_speed_mps, 0.0)
+        else:  # a rear CAV reacts after a step and may accelerate during it
+            reaction_s = np.where(rear_cav, step_s, 0.0)
+            rear_end_mps = rear_speed_mps + np.where(rear_cav, dv_action, 0.0)
+            extra_m = 0.0
+        rear_margin_m = extra_m + safe_gap_m(
             rear_speed_mps, ego_speed_mps, reaction_s, safe_decel, rear_end_mps
         )
     cancel_rear = has_rear & (
@@ -322,6 +348,28 @@ def psar(
     mask |= np.where(cancel, RULE_BITS[CANCEL_LC], 0).astype(np.int8)
     mask |= np.where(b_lc_mps2 > 0.0, RULE_BITS[DECEL_LC], 0).astype(np.int8)
 
+    if headway:
+        a, speed_change, mask, b_lc_mps2 = _headway_car_following(
+            state,
+            cav_index,
+            a,
+            b_lc_mps2,
+            mask,
+            sf_vehicle,
+            pairs[..., 2],
+            tf_vehicle,
+            pairs[..., 0],
+            own_fronts[1],
+            own_fronts[2],
+            cut_in,
+            ego_speed_mps,
+            asked_lane if cfg.cooperative_merge else np.full(shape, -1),
+            cfg,
+            road,
+            sim,
+        )
+        return _result(a, proposed, speed_change, mask, b_lc_mps2, invalid_lc, active, dv_action)
+
     # ---- lines 17-27: car following in the current lane -------------------
     # Evaluated against each front obstacle; the most demanding outcome wins.
     longitudinal = active & ((a == REMAIN) | (a == ACCELERATE) | (a == DECELERATE))
@@ -359,7 +407,21 @@ def psar(
     mask |= np.where(brake, RULE_BITS[FORCE_BRAKE], 0).astype(np.int8)
     mask |= np.where(suppress, RULE_BITS[SUPPR_ACCEL], 0).astype(np.int8)
 
-    rule = np.full(shape, RULE_NONE, dtype=np.int8)
+    return _result(a, proposed, speed_change, mask, b_lc_mps2, invalid_lc, active, dv_action)
+
+
+def _result(
+    a: np.ndarray,
+    proposed: np.ndarray,
+    speed_change: np.ndarray,
+    mask: np.ndarray,
+    b_lc_mps2: np.ndarray,
+    invalid_lc: np.ndarray,
+    active: np.ndarray,
+    dv_action: float,
+) -> PSARResult:
+    """The :class:`PSARResult` of refined actions; inactive CAVs keep their proposal."""
+    rule = np.full(a.shape, RULE_NONE, dtype=np.int8)
     for code in (CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL):  # application order
         rule = np.where(mask & RULE_BITS[code], code, rule).astype(np.int8)
     return PSARResult(
@@ -399,3 +461,264 @@ def rule_counts(rule_mask: np.ndarray) -> np.ndarray:
     rule_mask = np.asarray(rule_mask).astype(np.int64).reshape(-1)
     bits = np.array([RULE_BITS[c] for c in range(1, len(RULE_NAMES))], dtype=np.int64)
     return ((rule_mask[:, None] & bits[None, :]) != 0).sum(axis=0).astype(np.int64)
+
+
+def _headway_car_following(
+    state: TrafficState,
+    cav_index: np.ndarray,
+    a: np.ndarray,
+    b_lc_mps2: np.ndarray,
+    mask: np.ndarray,
+    sf_vehicle: PairKinematics,
+    sf_index: np.ndarray,
+    tf_vehicle: PairKinematics,
+    tf_index: np.ndarray,
+    own_wall: PairKinematics,
+    merging: PairKinematics,
+    merging_index: np.ndarray,
+    ego_speed_mps: np.ndarray,
+    asked_lane: np.ndarray,
+    cfg: PSARConfig,
+    road: Map,
+    sim: SimConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Car following of the ``"headway"`` horizon, after the lane-change checks.
+
+    Every active CAV (lane changers too: they are behind their current leader
+    during the change) gets the highest safe end-of-step speed
+    (:func:`_headway_bound_mps`). A command above it is lowered: to a smaller
+    acceleration or to ``remain`` (Suppress-Accel, reported as ``remain``),
+    or, where the CAV must slow down, to braking at up to the planned
+    deceleration (Force-Brake, reported as ``decelerate``; a lane change is
+    then cancelled too). ``asked_lane`` ((..., C), -1: none) is the lane each
+    CAV asked to change into: a CAV whose change was cancelled still counts
+    as entering that lane for the CAVs behind it there, which then open the
+    gap it needs (``cfg.cooperative_merge``; connected CAVs know each
+    other's intent). Returns ``(action, speed change, rule mask, b_lc)``.
+    """
+    step_s, dv_action = sim.step_s, sim.speed_change_mps
+    # Up to the physical limit: beyond the planned rate only when an HDV ahead brakes
+    # harder than that (every other bound plans with the planned rate).
+    max_brake_mps = sim.cav.decel_mps2 * step_s
+    active = take(state.active, cav_index)
+    offset = ACTION_LANE_OFFSET[a]
+    changing = active & (offset != 0)
+    speed_change = action_speed_change_mps(a, dv_action) - b_lc_mps2 * step_s  # (..., C)
+    lane = take(state.lane, cav_index).astype(np.int64)
+    entering_lane = np.where(changing, lane + offset, asked_lane)  # (..., C) -1: none
+    bound_mps = _headway_bound_mps(
+        state,
+        cav_index,
+        entering_lane,
+        changing,
+        speed_change,
+        sf_vehicle,
+        sf_index,
+        tf_vehicle,
+        tf_index,
+        own_wall,
+        merging,
+        merging_index,
+        cfg,
+        road,
+        sim,
+    )
+    end_mps = _end_speed_mps(ego_speed_mps, speed_change, bound_mps, max_brake_mps)
+    limited = active & (end_mps < np.maximum(ego_speed_mps + speed_change, 0.0))
+    brake = limited & (end_mps < ego_speed_mps)
+    suppress = limited & ~brake
+    a = np.where(brake, DECELERATE, np.where(suppress, REMAIN, a))
+    b_lc_mps2 = np.where(brake, 0.0, b_lc_mps2)
+    speed_change = np.where(limited, end_mps - ego_speed_mps, speed_change)
+    mask = mask | np.where(brake & changing, RULE_BITS[CANCEL_LC], 0).astype(np.int8)
+    mask = np.where(brake & changing, mask & ~np.int8(RULE_BITS[DECEL_LC]), mask)
+    mask |= np.where(brake, RULE_BITS[FORCE_BRAKE], 0).astype(np.int8)
+    mask |= np.where(suppress, RULE_BITS[SUPPR_ACCEL], 0).astype(np.int8)
+    return a, speed_change, mask.astype(np.int8), b_lc_mps2
+
+
+def _end_speed_mps(
+    speed_mps: np.ndarray, proposed_mps: np.ndarray, bound_mps: np.ndarray, max_brake_mps: float
+) -> np.ndarray:
+    """End-of-step speed a CAV commands: its proposal, or the bound (braking <= ``max_brake``)."""
+    proposed_end = np.maximum(speed_mps + proposed_mps, 0.0)
+    limited = np.maximum(np.maximum(bound_mps, speed_mps - max_brake_mps), 0.0)
+    return np.where(proposed_end <= np.maximum(bound_mps, 0.0), proposed_end, limited)
+
+
+def _exit_room_m(state: TrafficState, cav_index: np.ndarray, road: Map) -> np.ndarray:
+    """(..., C) how far before its lane's end a CAV must stop to still be able to leave.
+
+    A lane whose neighbours end no later (the outer lane of a two-lane drop)
+    can only be left into a lane that ends as soon, and a change needs the
+    target lane to last the vehicle's length beyond its centre even from
+    standstill (:meth:`Map.lane_change_allowed`): stopping at the very end
+    would trap the CAV. So its wall moves back to where the change is still
+    allowed, plus half a metre. 0 where a neighbour outlasts the lane.
+    """
+    seg = take(state.segment, cav_index).astype(np.int64)
+    lane = take(state.lane, cav_index).astype(np.int64)
+    ends = np.where(road.lane_exists(), road.lane_end_m(), -np.inf)[seg]  # (..., C, L)
+    own_end_m = np.take_along_axis(ends, lane[..., None], -1)[..., 0]
+    padded = np.pad(ends, [(0, 0)] * (ends.ndim - 1) + [(1, 1)], constant_values=-np.inf)
+    right = np.take_along_axis(padded, lane[..., None], -1)[..., 0]  # lane - 1
+    left = np.take_along_axis(padded, lane[..., None] + 2, -1)[..., 0]  # lane + 1
+    exit_end_m = np.maximum(left, right)
+    length_m = take(state.length_m, cav_index)
+    trapped = np.isfinite(own_end_m) & np.isfinite(exit_end_m) & (exit_end_m <= own_end_m)
+    with np.errstate(invalid="ignore"):  # inf - inf where no lane ends
+        room_m = own_end_m - (exit_end_m - 0.5 * length_m - 0.5)  # front stays behind this
+    return np.where(trapped, np.maximum(room_m, 0.0), 0.0)
+
+
+def _headway_bound_mps(
+    state: TrafficState,
+    cav_index: np.ndarray,
+    entering_lane: np.ndarray,
+    changing: np.ndarray,
+    speed_change_mps: np.ndarray,
+    sf_vehicle: PairKinematics,
+    sf_index: np.ndarray,
+    tf_vehicle: PairKinematics,
+    tf_index: np.ndarray,
+    own_wall: PairKinematics,
+    merging: PairKinematics,
+    merging_index: np.ndarray,
+    cfg: PSARConfig,
+    road: Map,
+    sim: SimConfig,
+) -> np.ndarray:
+    """(..., C) highest safe end-of-step speed per CAV under the ``"headway"`` horizon.
+
+    Every front obstacle gives a bound (:func:`~diacc.kinematics.safe_end_speed_mps`):
+    the same-lane leader, the end of the own lane (not for a CAV leaving it:
+    the road checked the change's reach) and the nearest CAV ahead that
+    changes, or asks to change, into the lane in this step. An HDV leader,
+    whose command is unknown, may brake at once as hard as its style's
+    deceleration (at least the planned rate ``sim.cav.safe_decel_mps2``),
+    and the CAV plans to answer with its full braking ``sim.cav.decel_mps2``:
+    about one second of headway (Gipps with one step of reaction). A CAV leader's
+    command of this step is known, so CAVs are refined front to back: a CAV is
+    bounded once every CAV it follows is decided, and then needs only
+    ``cfg.min_gap_m`` plus ``cfg.cav_time_gap_s`` of its speed, because from
+    the next step on it learns of the leader's braking in the step the leader
+    brakes. (A dependency cycle, possible only between CAVs exactly
+    alongside, keeps the unknown-leader bound.)
+
+    Args:
+        entering_lane: (..., C) lane each CAV changes or asks to change into (-1: none).
+        changing: (..., C) bool, the CAV changes lanes in this step.
+        speed_change_mps: (..., C) commands before car following.
+        sf_vehicle, sf_index: same-lane leader kinematics and vehicle index (-1: none).
+        tf_vehicle, tf_index: the same of the target lane's front vehicle (lane changers).
+        own_wall: the end of the own lane as a standing obstacle.
+        merging, merging_index: a vehicle ahead already moving across into the
+            lane (:func:`_cut_in_front`), followed like an HDV leader.
+    """
+    step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
+    max_brake_mps = sim.cav.decel_mps2 * step_s  # see _headway_car_following
+    limit_mps = np.array([s.speed_limit_mps for s in road.segments])
+
+    def long_speed(vehicles: np.ndarray) -> np.ndarray:
+        return take(state.speed_mps, vehicles) * np.abs(np.cos(take(state.heading_rad, vehicles)))
+
+    ego_mps = long_speed(cav_index)  # (..., C)
+
+    def bound(gap_m, lead_step_m, lead_end_mps, time_gap_s, own_decel=decel, lead_decel=None):
+        with np.errstate(invalid="ignore"):
+            out = safe_end_speed_mps(
+                gap_m,
+                ego_mps,
+                lead_step_m,
+                lead_end_mps,
+                step_s,
+                own_decel,
+                cfg.min_gap_m,
+                time_gap_s,
+                lead_decel,
+            )
+        return np.where(np.isfinite(gap_m), out, np.inf)
+
+    slots = np.broadcast_to(np.arange(cav_index.shape[-1]), cav_index.shape)  # (..., C)
+    slot_of = np.full(state.x_m.shape, -1, np.int64)  # (..., V) CAV slot of a vehicle, -1: HDV
+    np.put_along_axis(slot_of, cav_index, slots, axis=-1)
+    lead = np.maximum(sf_index, 0)
+    lead_slot = np.where(sf_vehicle.valid, take(slot_of, lead), -1)  # (..., C)
+    lead_gap_m = np.where(sf_vehicle.valid, sf_vehicle.d_long_m, np.inf)
+    # An HDV leader may brake as hard as its style does, at least at the CAVs' planned
+    # rate; behind one the CAV is ready to use its full braking (an emergency).
+    style_decel_mps2 = np.array([st.decel_mps2 for st in STYLE_PRESETS[sim.style_preset]])
+
+    def behind_hdv(gap_m: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
+        style = np.clip(take(state.style, vehicle).astype(np.int64), 0, None)  # CAV: strictest
+        hdv_decel_mps2 = np.maximum(style_decel_mps2[style], decel)  # (..., C)
+        step_m, end_mps = braking_step(long_speed(vehicle), step_s, hdv_decel_mps2)
+        return bound(gap_m, step_m, end_mps, 0.0, sim.cav.decel_mps2, hdv_decel_mps2)
+
+    hdv_lead_mps = behind_hdv(lead_gap_m, lead)
+    merging_gap_m = np.where(merging.valid, merging.d_long_m, np.inf)
+    merging_mps = behind_hdv(merging_gap_m, np.maximum(merging_index, 0))
+    wall_gap_m = np.where(own_wall.valid & ~changing, own_wall.d_long_m, np.inf)
+    wall_gap_m = wall_gap_m - _exit_room_m(state, cav_index, road)
+    fixed_mps = np.minimum(
+        bound(wall_gap_m, 0.0, 0.0, 0.0), np.where(lead_slot >= 0, np.inf, hdv_lead_mps)
+    )
+    fixed_mps = np.minimum(fixed_mps, merging_mps)
+
+    # The nearest CAV ahead changing into each CAV's lane: (..., C, C) [i, j] = j cuts in.
+    i_, j_ = (Ellipsis, slice(None), None), (Ellipsis, None, slice(None))
+    cav_x_m, cav_length_m = take(state.x_m, cav_index), take(state.length_m, cav_index)
+    lane = take(state.lane, cav_index).astype(np.int64)
+    dx_m = cav_x_m[j_] - cav_x_m[i_]
+    pair_gap_m = dx_m - 0.5 * (cav_length_m[i_] + cav_length_m[j_])
+    # One asking but not changing is yielded to only from far enough behind for it to
+    # pass the rear check; a CAV closer or alongside drives on and lets it in behind.
+    asking = ~changing[j_] & (pair_gap_m < cfg.d_lc_min_m)
+    cuts = (entering_lane[j_] == lane[i_]) & (entering_lane[j_] >= 0) & (dx_m > 0) & ~asking
+    pair_gap_m = np.where(cuts, pair_gap_m, np.inf)  # (..., C, C)
+    cut_slot = np.where(cuts.any(-1), np.argmin(pair_gap_m, -1), -1)  # (..., C)
+    cut_gap_m = np.min(pair_gap_m, axis=-1)
+
+    # A lane changer also follows the front CAV of its target lane (an HDV there was
+    # checked with the unknown-leader gap before the change was allowed).
+    tf_slot = np.where(changing & tf_vehicle.valid, take(slot_of, np.maximum(tf_index, 0)), -1)
+    tf_gap_m = np.where(tf_slot >= 0, tf_vehicle.d_long_m, np.inf)
+    known = ((lead_slot, lead_gap_m), (cut_slot, cut_gap_m), (tf_slot, tf_gap_m))
+
+    def behind_known(slot: np.ndarray, gap_m: np.ndarray, end_mps: np.ndarray) -> np.ndarray:
+        """Bound behind the CAV in ``slot`` (-1: none), which ends the step at ``end_mps``."""
+        s = np.maximum(slot, 0)
+        v0, v1 = np.take_along_axis(ego_mps, s, -1), np.take_along_axis(end_mps, s, -1)
+        gap_m = np.where(slot >= 0, gap_m, np.inf)
+        return bound(gap_m, 0.5 * (v0 + v1) * step_s, v1, cfg.cav_time_gap_s)
+
+    cav_limit_mps = limit_mps[take(state.segment, cav_index).astype(np.int64)]
+    bound_mps = fixed_mps.copy()
+    end_mps = np.zeros(cav_index.shape)  # (..., C) decided end-of-step speed
+    decided = ~take(state.active, cav_index)
+    for _ in range(cav_index.shape[-1] + 1):  # one pass per CAV a chain can hold, at most
+        ready = ~decided
+        for slot, _gap in known:
+            ready &= (slot < 0) | np.take_along_axis(decided, np.maximum(slot, 0), -1)
+        if not ready.any():
+            break
+        now = fixed_mps
+        for slot, gap_m in known:
+            now = np.minimum(now, behind_known(slot, gap_m, end_mps))
+        bound_mps = np.where(ready, now, bound_mps)
+        # What the backend makes of the command: within the speed limit (lower is safer).
+        end_now = np.minimum(
+            _end_speed_mps(ego_mps, speed_change_mps, now, max_brake_mps), cav_limit_mps
+        )
+        end_mps = np.where(ready, end_now, end_mps)
+        decided |= ready
+    # Left undecided (a cycle): the CAVs ahead are treated as HDVs.
+    worst_mps = fixed_mps
+    for slot, gap_m in known:
+        speed_mps = np.take_along_axis(ego_mps, np.maximum(slot, 0), -1)
+        gap_m = np.where(slot >= 0, gap_m, np.inf)
+        worst_mps = np.minimum(
+            worst_mps, bound(gap_m, *braking_step(speed_mps, step_s, decel), 0.0)
+        )
+    bound_mps = np.where(decided, bound_mps, worst_mps)
+    return bound_mps

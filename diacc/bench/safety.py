@@ -23,12 +23,13 @@ expected.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.config import BACKENDS, SimConfig
+from diacc.config import BACKENDS, PSARConfig, SimConfig
 from diacc.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
@@ -64,9 +65,21 @@ class SafetyRow:
         return self.collision_free >= TARGET_COLLISION_FREE and self.hdv_hdv_collisions == 0
 
 
-def measure(settings: EvalSettings, map_name: str, policy_name: str, episodes: int) -> SafetyRow:
-    """Run ``episodes`` seeded episodes of one scripted policy; seeds as evaluation's."""
+def measure(
+    settings: EvalSettings,
+    map_name: str,
+    policy_name: str,
+    episodes: int,
+    horizon: str | None = None,
+) -> SafetyRow:
+    """Run ``episodes`` seeded episodes of one scripted policy; seeds as evaluation's.
+
+    ``horizon``: PSAR's (:attr:`~diacc.config.PSARConfig.horizon`; None keeps the default).
+    """
     policy = ScriptedPolicy(policy_name)
+    if horizon is not None:
+        psar_cfg = dataclasses.replace(policy.base.psar, horizon=horizon)
+        policy.base = dataclasses.replace(policy.base, psar=psar_cfg)
     cell = Cell(map_name, 25, 0.4, "D1")
     backend = settings.backend
     driver = EpisodeDriver(policy, policy.env_config(cell, settings))
@@ -94,17 +107,19 @@ def run(
     episodes: int = 20,
     style_preset: str | None = None,
     episode_steps: int | None = None,
+    horizon: str | None = None,
 ) -> list[SafetyRow]:
     """Measure every combination and print one Markdown table; returns the rows.
 
-    ``style_preset`` / ``episode_steps``: None keeps the defaults of
-    :class:`~diacc.config.SimConfig`.
+    ``style_preset`` / ``episode_steps`` / ``horizon`` (PSAR's): None keeps the
+    defaults of :class:`~diacc.config.SimConfig` / :class:`~diacc.config.PSARConfig`.
     """
     maps = tuple(maps or available_maps())
     sim = EvalSettings(style_preset=style_preset, episode_steps=episode_steps).apply(SimConfig())
     print(
         f"safety benchmark: N = 25, rho = 0.4, D1, style preset {sim.style_preset}, "
-        f"{sim.episode_steps}-step episodes, {episodes} seeded episodes per row "
+        f"{sim.episode_steps}-step episodes, PSAR horizon {horizon or PSARConfig().horizon}, "
+        f"{episodes} seeded episodes per row "
         f"(seeds as `diacc eval`)"
     )
     print(
@@ -118,7 +133,7 @@ def run(
         for map_name in maps:
             for policy_name in policies:
                 settings = EvalSettings(backend, episode_steps, style_preset)
-                row = measure(settings, map_name, policy_name, episodes)
+                row = measure(settings, map_name, policy_name, episodes, horizon)
                 out.append(row)
                 target = {None: "", True: "met", False: "**missed**"}[row.meets_target]
                 print(

@@ -210,6 +210,13 @@ class HighwayBackend:
         # because a lane ends, so such a driver stops at the end of its lane.
         self.strategic[e] = per_vehicle("lc_strategic", 0.0) >= 0.0
         self.zipper[e] = per_vehicle("zipper", False).astype(bool)
+        # A late merger (DriverStyle.merge_zone_m) is forced to merge only that close to the end.
+        zones = [
+            self.model.merge_zone_m if s.merge_zone_m is None else s.merge_zone_m for s in styles
+        ]
+        self._merge_zone_m[e] = np.where(
+            pop.is_cav, self.model.merge_zone_m, np.array(zones)[hdv_style]
+        )
 
         # is_cav: vehicles driven by commands; cooperative CAVs drive like HDVs.
         self.is_cav[e] = False if coop else pop.is_cav
@@ -343,6 +350,7 @@ class HighwayBackend:
             "politeness", "gain_threshold_mps2", "x_m", "y_m", "speed_mps", "lat_speed_mps",
             "heading_rad", "cooldown_s", "_route_end_m", "_cav_target_mps", "_cav_accel_mps2",
             "_inv_2_sqrt_ab", "_desired_mps", "_end_x_m", "_inv_desired", "_depart_s",
+            "_merge_zone_m",
         ):  # fmt: skip
             setattr(self, name, np.zeros(shape))
         for name in (
@@ -447,7 +455,7 @@ class HighwayBackend:
         merge_dir = tab.merge_dir[seg, lane].astype(np.intp)
         # Only HDVs are forced to merge (a CAV that stays in an ending lane stops at its
         # end), and only drivers with a strategic lane-change term (lcStrategic >= 0).
-        near_end = idle & (merge_dir != 0) & (dist_end < m.merge_zone_m)
+        near_end = idle & (merge_dir != 0) & (dist_end < self._merge_zone_m)
         forced = near_end & self.strategic & ~self.is_cav
         discretionary = (
             idle
@@ -529,7 +537,7 @@ class HighwayBackend:
             & (nf_after >= -m.mobil_max_imposed_brake_mps2)
             & (gain >= self.gain_threshold_mps2[:, None, :])
         )
-        urgency = np.clip(1.0 - dist_end / m.merge_zone_m, 0.0, 1.0)  # (E, V)
+        urgency = np.clip(1.0 - dist_end / self._merge_zone_m, 0.0, 1.0)  # (E, V)
         accept_brake = m.mobil_max_imposed_brake_mps2 + urgency * (
             m.forced_max_imposed_brake_mps2 - m.mobil_max_imposed_brake_mps2
         )

@@ -1,0 +1,174 @@
+"""PSAR's ``"headway"`` horizon: human-like gaps behind HDVs, close ones behind known CAVs.
+
+Every case has a gap that can be computed by hand from
+:func:`diacc.kinematics.safe_end_speed_mps` (see the comments): CAVs act
+once per 1 s step, plan braking at 4 m/s^2, keep ``min_gap_m`` = 2 m and,
+behind a CAV whose command is known, ``cav_time_gap_s`` = 0.3 s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from helpers import make_state
+
+from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.config import ConfigError, PSARConfig, SimConfig
+from diacc.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
+from diacc.maps import load_map
+from diacc.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, _exit_room_m, psar
+
+ROAD = load_map("train-25")
+SIM = SimConfig()
+HEADWAY = PSARConfig(horizon="headway")
+LENGTH_M = 5.0  # make_state's vehicles: centre distance = bumper gap + 5 m
+
+
+def run(x, lane, speed, is_cav, actions, cfg=HEADWAY):
+    """PSAR for every CAV of a hand-built state (slots in vehicle order)."""
+    state = make_state(x, lane, speed, is_cav=is_cav)
+    cav_index = np.flatnonzero(np.asarray(is_cav))
+    return psar(state, cav_index, np.asarray(actions), cfg, ROAD, SIM)
+
+
+def test_unknown_leader_bound_is_gipps_with_one_step_of_reaction():
+    distance_m, end_mps = braking_step(18.0, 1.0, 4.0)
+    assert (distance_m, end_mps) == pytest.approx((16.0, 14.0))  # 18 -> 14 m/s in 1 s
+    u = safe_end_speed_mps(30.0, 20.0, distance_m, end_mps, 1.0, 4.0, 2.0)
+    assert 2.0 + safe_gap_m(20.0, 18.0, 1.0, 4.0, u) == pytest.approx(30.0)
+    # Behind a known leader at 20 m/s holding its speed: 2 m + 0.3 s x 20 m/s = 8 m.
+    assert safe_end_speed_mps(8.0, 20.0, 20.0, 20.0, 1.0, 4.0, 2.0, 0.3) == pytest.approx(20.0)
+
+
+def root(a: float, b: float, c: float) -> float:
+    """The positive root of a u^2 + b u - c = 0."""
+    return (-b + math.sqrt(b * b + 4 * a * c)) / (2 * a)
+
+
+def test_behind_an_hdv_one_second_plus_the_standstill_gap():
+    # A normal HDV may brake at 4.5 m/s^2, the CAV answers with its full 5 m/s^2:
+    # at equal speeds 20 m/s, remain needs 2 m + 20 m/s x 1 s = 22 m (1.1 s).
+    res = run([100.0, 100.0 + LENGTH_M + 22.5], [1, 1], 20.0, [True, False], [REMAIN])
+    assert res.rule.tolist() == [0] and res.speed_change_mps[0] == 0.0
+    # Accelerating is cut to the safe end speed u:
+    # u^2 / (2 x 4.5) + u / 2 = 22.5 - 2 - 20 / 2 + 20^2 / (2 x 4.5).
+    res = run([100.0, 100.0 + LENGTH_M + 22.5], [1, 1], 20.0, [True, False], [ACCELERATE])
+    assert res.rule.tolist() == [SUPPR_ACCEL] and res.action.tolist() == [REMAIN]
+    u = root(1 / 9, 0.5, 10.5 + 400 / 9)
+    assert res.speed_change_mps[0] == pytest.approx(u - 20.0) and 0 < u - 20 < 0.2
+    # Half a metre short: brake a little, not by a whole action.
+    res = run([100.0, 100.0 + LENGTH_M + 21.5], [1, 1], 20.0, [True, False], [REMAIN])
+    assert res.rule.tolist() == [FORCE_BRAKE] and res.action.tolist() == [DECELERATE]
+    assert res.speed_change_mps[0] == pytest.approx(root(1 / 9, 0.5, 9.5 + 400 / 9) - 20.0)
+    # Behind an aggressive HDV (5.5 m/s^2) 22.5 m is too little:
+    # u^2 / (2 x 5) + u / 2 = 22.5 - 2 - 20 / 2 + 20^2 / (2 x 5.5) gives u < 20.
+    aggressive = make_state([100.0, 127.5], [1, 1], 20.0, is_cav=[True, False])
+    aggressive.style[1] = 0
+    res = psar(aggressive, np.array([0]), np.array([REMAIN]), HEADWAY, ROAD, SIM)
+    assert res.speed_change_mps[0] == pytest.approx(root(0.1, 0.5, 10.5 + 400 / 11) - 20.0)
+    assert res.rule.tolist() == [FORCE_BRAKE]
+    # The "stopping" horizon wants about twice the gap before it lets a CAV accelerate.
+    stop = run([100.0, 127.5], [1, 1], 20.0, [True, False], [ACCELERATE], PSARConfig())
+    assert stop.action.tolist() == [REMAIN]
+
+
+def test_platoon_follows_a_known_leader_closely_front_to_back():
+    # Slots listed back to front on purpose: PSAR must still decide the leader first.
+    x = [100.0, 100.0 + 1 * (LENGTH_M + 8.0), 100.0 + 2 * (LENGTH_M + 8.0)]
+    res = run(x, [1, 1, 1], 20.0, [True, True, True], [REMAIN, REMAIN, REMAIN])
+    assert res.rule.tolist() == [0, 0, 0]  # 8 m = 2 m + 0.3 s x 20 m/s is enough
+    # Behind an HDV the same 8 m would force braking.
+    res = run(x[1:], [1, 1], 20.0, [True, False], [REMAIN])
+    assert res.rule.tolist() == [FORCE_BRAKE]
+    # The head brakes by one action (20 -> 18 m/s over 19 m); its follower brakes
+    # to u with u^2 / 8 + 0.8u = 8 + 19 - 10 - 2 + 18^2 / 8; the last one brakes for that.
+    res = run(x, [1, 1, 1], 20.0, [True, True, True], [REMAIN, REMAIN, DECELERATE])
+    middle_mps = -3.2 + math.sqrt(3.2**2 + 444.0)
+    assert res.speed_change_mps[2] == pytest.approx(-2.0)
+    assert res.speed_change_mps[1] == pytest.approx(middle_mps - 20.0)
+    assert res.rule.tolist() == [FORCE_BRAKE, FORCE_BRAKE, 0]
+    middle_step_m = 0.5 * (20.0 + middle_mps)
+    behind_mps = safe_end_speed_mps(8.0, 20.0, middle_step_m, middle_mps, 1.0, 4.0, 2.0, 0.3)
+    assert res.speed_change_mps[0] == pytest.approx(behind_mps - 20.0)
+    assert 0.0 > res.speed_change_mps[0] > -4.0  # within the planned braking
+
+
+def test_lane_change_in_front_of_a_cav_leaves_no_wide_hole():
+    # CAV 0 moves into lane 2 between an HDV 23 m ahead and a CAV 9 m behind (20 m/s).
+    # Front: 1 m + (2 - 1) m + Gipps 20 m = 22 m; rear CAV: 1 m + 0.3 s x 20 m/s = 7 m.
+    x = [100.0, 100.0 + LENGTH_M + 23.0, 100.0 - LENGTH_M - 9.0]
+    lanes, cavs = [1, 2, 2], [True, False, True]
+    res = run(x, lanes, 20.0, cavs, [LANE_LEFT, ACCELERATE])
+    assert res.action.tolist() == [LANE_LEFT, REMAIN]  # the rear CAV makes room at once
+    assert res.rule.tolist() == [0, SUPPR_ACCEL]
+    # The "stopping" horizon keeps a rear CAV one reacting, accelerating step away.
+    res = run(x, lanes, 20.0, cavs, [LANE_LEFT, ACCELERATE], PSARConfig())
+    assert res.rule.tolist()[0] == CANCEL_LC
+    # Too close to the front HDV: cancelled under "headway" as well.
+    x_close = [100.0, 100.0 + LENGTH_M + 21.0, 100.0 - LENGTH_M - 9.0]
+    assert run(x_close, lanes, 20.0, cavs, [LANE_LEFT, REMAIN]).rule.tolist()[0] == CANCEL_LC
+
+
+def test_cavs_open_a_gap_for_a_cav_that_asks_to_merge():
+    # CAV 0 (lane 2) asks for lane 1, where CAV 1 drives 3 m behind it: too close
+    # (1 m + 0.3 s x 20 m/s = 7 m), so the change waits and CAV 1 brakes to open the gap.
+    x, lanes = [100.0, 100.0 - LENGTH_M - 3.0], [2, 1]
+    res = run(x, lanes, 20.0, [True, True], [LANE_RIGHT, ACCELERATE])
+    assert res.rule.tolist() == [CANCEL_LC, FORCE_BRAKE]
+    # Without cooperative merging CAV 1 drives on (it has no leader).
+    selfish = PSARConfig(horizon="headway", cooperative_merge=False)
+    res = run(x, lanes, 20.0, [True, True], [LANE_RIGHT, ACCELERATE], selfish)
+    assert res.rule.tolist() == [CANCEL_LC, 0]
+    # Alongside (less than d_LC,min behind its rear), CAV 1 passes instead of braking.
+    res = run([100.0, 100.0 - LENGTH_M], lanes, 20.0, [True, True], [LANE_RIGHT, ACCELERATE])
+    assert res.rule.tolist()[1] == 0
+
+
+def test_outer_lane_of_a_double_drop_is_left_before_its_end():
+    # train-50: lanes 2 and 3 end at 500 m. Lane 3 can only be left into lane 2, which
+    # a standing car may enter only if lane 2 lasts its length beyond its centre, so
+    # lane 3's wall moves back by 2.5 + 0.5 m; lane 2 (lane 1 survives) keeps its end.
+    road = load_map("train-50")
+    state = make_state([400.0, 400.0], [3, 2], 10.0, is_cav=True)
+    assert _exit_room_m(state, np.array([0, 1]), road).tolist() == pytest.approx([3.0, 0.0])
+
+
+def test_a_standing_cav_at_a_lane_end_may_still_leave_it():
+    # Lane 3 ends at 500 m; a CAV stands at its end and changes to lane 2 (free).
+    res = run([497.5], [3], 0.0, [True], [LANE_RIGHT])
+    assert res.action.tolist() == [LANE_RIGHT] and res.rule.tolist() == [0]
+
+
+def test_unknown_horizon_is_a_one_line_error():
+    with pytest.raises(ConfigError, match="psar.horizon") as err:
+        PSARConfig(horizon="tight")
+    assert "\n" not in str(err.value) and "headway" in str(err.value)
+    with pytest.raises(ConfigError, match="cav_time_gap_s"):
+        PSARConfig(cav_time_gap_s=-0.1)
+
+
+def test_a_batch_of_states_is_refined_as_each_state_alone():
+    from dataclasses import fields
+
+    from diacc.backends.base import CavCommands
+    from diacc.backends.highway.backend import HighwayBackend
+    from diacc.scenario import Scenario
+    from diacc.state import TrafficState
+
+    road = load_map("train-50")
+    backend = HighwayBackend(road, SIM, n_envs=3)
+    states = [backend.reset_env(e, Scenario.with_cavs(25, 10), 7 + e) for e in range(3)]
+    cav_index = np.stack([np.flatnonzero(s.is_cav) for s in states])  # (E, C)
+    rng = np.random.default_rng(5)
+    for _ in range(8):
+        actions = rng.integers(0, 5, cav_index.shape)
+        batch = psar(TrafficState.stack(states), cav_index, actions, HEADWAY, road, SIM)
+        for e, state in enumerate(states):
+            single = psar(state, cav_index[e], actions[e], HEADWAY, road, SIM)
+            for f in fields(single):
+                assert np.array_equal(getattr(single, f.name), getattr(batch, f.name)[e]), f.name
+        speed = np.zeros((3, 25))
+        np.put_along_axis(speed, cav_index, batch.speed_change_mps, axis=-1)
+        states = backend.step_batch(CavCommands(np.zeros((3, 25), np.int8), speed))
