@@ -149,13 +149,12 @@ def psar(
       centre has left its lane's centre line towards the ego lane by more
       than :data:`CUT_IN_DRIFT_M` (a lane change into the ego lane under
       way, :func:`_cut_in_front`) is a front obstacle of the car-following
-      block too. Without it
-      the CAV sees the merging vehicle only once its centre crosses the lane
-      boundary; on SUMO, where an LC2013 driver may start a merge from
-      standstill a few metres ahead of a CAV (its gap check assumes the CAV
-      keeps its speed), the CAV would meanwhile accelerate into a gap it can
-      no longer brake for (``bench --safety``: the heuristic on train-50,
-      ``paper-congestion``, 330 steps).
+      block too. Without it the CAV sees the merging vehicle only once its
+      centre crosses the lane boundary; on SUMO, where an LC2013 driver may
+      start a merge from standstill 15-20 m ahead of a CAV (its gap check
+      assumes the CAV keeps its speed), the CAV would meanwhile accelerate
+      into a gap it can no longer brake for (``bench --safety``: the
+      heuristic on train-50 and test-50, ``paper-congestion``, 330 steps).
     * Inactive CAVs keep their proposed action with rule NONE.
 
     A batch of states ((E, V) arrays, :class:`~diacc.state.TrafficState`) is
