@@ -247,6 +247,11 @@ class EventConfig:
     emergency_decel_mps2: float = 4.5
 
 
+#: Options of :class:`RewardConfig` (see :mod:`diacc.reward`); the first is the paper's.
+CLOSENESS_MODES = ("centre", "bumper")
+EXIT_BONUS_SCALES = ("per_cav", "fleet")
+
+
 @dataclass(frozen=True)
 class RewardConfig:
     """Reward of paper eq. (reward_all..reward_global) with the authors' magnitudes.
@@ -274,6 +279,15 @@ class RewardConfig:
     tau_init: float = 2.0
     tau_final: float = 0.05
     tau_anneal_fraction: float = 0.5  # of the training steps
+    # ---- options (diacc.reward; README "Learning options"); defaults = the paper read literally
+    closeness: str = "centre"  # "centre" (paper) or "bumper": gap and TTC to lane leader/follower
+    warning_ttc_s: float = 3.0  # "bumper": TTC to the same-lane leader that starts the warning
+    exit_bonus_scale: str = "per_cav"  # "per_cav" (paper) or "fleet": bonus / CAV slots
+    delay_weight: float = 0.0  # weight of the delay term (vehicle-seconds lost / s / vehicle)
+
+    def __post_init__(self) -> None:
+        _check_choice("env.reward.closeness", self.closeness, CLOSENESS_MODES)
+        _check_choice("env.reward.exit_bonus_scale", self.exit_bonus_scale, EXIT_BONUS_SCALES)
 
 
 BACKENDS = ("highway", "sumo")
@@ -478,6 +492,8 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "env.reward.tau_init": (0, None, True),
     "env.reward.tau_final": (0, None, True),
     "env.reward.tau_anneal_fraction": (0, 1, True),
+    "env.reward.warning_ttc_s": (0, None, True),
+    "env.reward.delay_weight": (0, None, False),
     "model.hidden_dim": (1, None, False),
     "model.gat_heads": (1, None, False),
     "model.cross_heads": (1, None, False),
