@@ -291,6 +291,11 @@ class RewardConfig:
 
 
 BACKENDS = ("highway", "sumo")
+#: How the actor's actions meet PSAR (:mod:`diacc.action_mask`, README "Learning
+#: options"): "proposed" trains on the proposed action (the paper read
+#: literally), "executed" on the action PSAR executed, "masked" samples only
+#: actions PSAR would execute unchanged.
+PSAR_ACTION_MODES = ("proposed", "executed", "masked")
 
 
 @dataclass(frozen=True)
@@ -300,6 +305,7 @@ class EnvConfig:
     backend: str = "highway"
     map: str = "train-25"
     use_psar: bool = True  # in a TrainConfig, set by its variant
+    psar_actions: str = "proposed"  # PSAR_ACTION_MODES; not "proposed" needs use_psar
     scenario: Scenario = field(default_factory=Scenario)
     sim: SimConfig = field(default_factory=SimConfig)
     obs: ObservationConfig = field(default_factory=ObservationConfig)
@@ -309,6 +315,7 @@ class EnvConfig:
 
     def __post_init__(self) -> None:
         _check_choice("backend", self.backend, BACKENDS)
+        _check_choice("env.psar_actions", self.psar_actions, PSAR_ACTION_MODES)
 
 
 # --------------------------------------------------------------------------
@@ -527,6 +534,11 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             raise ConfigError(
                 f"config key {key!r} must be one of {', '.join(_CHOICES[key])}, got {value!r}"
             )
+    if cfg.env.psar_actions != "proposed" and not cfg.env.use_psar:
+        raise ConfigError(
+            f"env.psar_actions {cfg.env.psar_actions!r} needs PSAR, which variant "
+            f"{cfg.variant!r} does not use"
+        )
     if cfg.rollout_steps % cfg.chunk_len:
         raise ConfigError(
             f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}"

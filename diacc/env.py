@@ -38,6 +38,7 @@ import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
+from diacc.action_mask import with_action_mask
 from diacc.actions import (
     ACTION_LANE_OFFSET,
     ACTION_NAMES,
@@ -246,6 +247,7 @@ class BottleneckEnv(ParallelEnv):
 
     def _observe(self) -> tuple[ActorObs, CriticState]:
         actor = self.builder.actor(self.cav_index, self.action_memory, self.last_refined)
+        actor = with_action_mask(actor, self.state_, self.cav_index, self.config, self.road)
         return actor, self.builder.critic()
 
     # ------------------------------------------------------------------ PettingZoo API

@@ -42,6 +42,10 @@ Actor (:class:`ActorObs`, one row per CAV slot):
   (start / route length, end / route length, lanes / max_lanes, present).
 * ``action_memory`` (C, 2) int64: the actor's proposed action and the
   PSAR-refined action of the previous step (0 at reset); passed through.
+* ``action_mask`` (C, 5) bool: the actions the actor may sample (PettingZoo's
+  ``action_mask``). All True here; the environment narrows it to the actions
+  PSAR would execute unchanged when ``EnvConfig.psar_actions = "masked"``
+  (:mod:`diacc.action_mask`). Not a network input.
 * ``alive`` (C,) bool: the CAV is on the road. Every other field of a row
   whose CAV is not alive is zero (masks False), except ``action_memory``.
 
@@ -116,6 +120,7 @@ class ActorObs:
     lane_mask: np.ndarray  # (C, 3) bool
     road: np.ndarray  # (C, ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS) float32
     action_memory: np.ndarray  # (C, 2) int64
+    action_mask: np.ndarray  # (C, N_ACTIONS) bool legal actions (diacc.action_mask); all True
     alive: np.ndarray  # (C,) bool
 
 
@@ -133,8 +138,9 @@ class CriticState:
     traffic: np.ndarray  # (TRAFFIC_FEATURES,) float32
 
 
-#: ActorObs fields the actor networks read (``alive`` only masks the losses).
-ACTOR_KEYS = tuple(f.name for f in fields(ActorObs) if f.name != "alive")
+#: ActorObs fields the actor networks read (``alive`` only masks the losses,
+#: ``action_mask`` the action distribution).
+ACTOR_KEYS = tuple(f.name for f in fields(ActorObs) if f.name not in ("alive", "action_mask"))
 #: CriticState fields the critic networks read (all of them).
 CRITIC_KEYS = tuple(f.name for f in fields(CriticState))
 
@@ -209,6 +215,7 @@ class ObservationSpec:
             "lane_mask": ((c, self.lane_slots), b),
             "road": ((c, self.road_features), f32),
             "action_memory": ((c, 2), i64),
+            "action_mask": ((c, self.n_actions), b),
             "alive": ((c,), b),
         }
 
@@ -510,6 +517,7 @@ class ObservationBuilder:
             lane_mask=lane_mask,
             road=_f32(road),
             action_memory=action_memory.astype(np.int64, copy=True),
+            action_mask=np.ones(cav_index.shape + (N_ACTIONS,), bool),
             alive=alive.copy(),
         )
 

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diacc.action_mask import with_action_mask
 from diacc.backends.base import Backend, BackendError, backend_class
 from diacc.config import preset_road
 from diacc.env import BottleneckEnv, EnvConfig, StepResult, decide
@@ -287,6 +288,7 @@ class BatchedVectorEnv(SyncVectorEnv):
             np.stack([env.last_refined for env in envs]),  # (E, V)
             after,
         )
+        actor = with_action_mask(actor, after, cav_index, self.config, self.batch.road)
         taus = {env.temperature for env in envs}
         assert len(taus) == 1, "the envs of a batch share the reward temperature"
         terms = reward(after, cav_index, self.batch.road, taus.pop(), self.config.reward)

@@ -49,7 +49,7 @@ class Rollout:
 
     actor_obs: list  # S stacked ActorObs, fields (E, C, ...)
     critic_state: list  # S stacked CriticState, fields (E, ...)
-    actions: np.ndarray  # (S, E, C) int64 actor's proposed action
+    actions: np.ndarray  # (S, E, C) int64 proposed action (executed: env.psar_actions)
     logprobs: np.ndarray  # (S, E, C)
     alive: np.ndarray  # (S, E, C) bool: CAV on the road when acting
     values: np.ndarray  # (S, E) de-normalised V(s_t), for GAE

@@ -38,6 +38,7 @@ import torch.nn.functional as F
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
+from diacc.action_mask import masked_logits
 from diacc.algo.buffer import Rollout, compute_gae
 from diacc.algo.checkpoint import (
     CheckpointError,
@@ -218,9 +219,10 @@ def collect_rollout(
         roll.critic_hidden[t] = h_critic.cpu().numpy()
         with torch.no_grad():
             start_t = torch.as_tensor(start, device=device)
-            logits, h_actor = actor(
-                to_tensors(flatten_agents(actor_obs), device), h_actor, start_t.repeat_interleave(C)
-            )
+            obs_t = to_tensors(flatten_agents(actor_obs), device)
+            logits, h_actor = actor(obs_t, h_actor, start_t.repeat_interleave(C))
+            # All True unless env.psar_actions = "masked" (then a no-op: same numbers).
+            logits = masked_logits(logits, obs_t["action_mask"])  # (E*C, 5)
             dist = torch.distributions.Categorical(logits=logits)
             action = dist.sample()  # (E*C,)
             value, h_critic = critic(to_tensors(critic_state, device), h_critic, start_t)
@@ -230,6 +232,10 @@ def collect_rollout(
         roll.values[t] = value_norm.denormalize(value).cpu().numpy()
 
         out = envs.step(roll.actions[t])
+        if cfg.env.psar_actions == "executed":  # learn from what PSAR executed
+            roll.actions[t] = out.refined_action
+            executed = torch.as_tensor(out.refined_action, device=device).view(-1)
+            roll.logprobs[t] = dist.log_prob(executed).view(E, C).cpu().numpy()
         roll.rewards[t], roll.terminated[t], roll.truncated[t] = (
             out.reward,
             out.terminated,
@@ -355,7 +361,8 @@ def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: i
         batch.critic_start[:, envs_idx],
     )
     # float(): under bf16 autocast the networks return bf16; losses are taken in fp32.
-    dist = torch.distributions.Categorical(logits=logits.float())  # (L, b_a, 5)
+    logits = masked_logits(logits.float(), batch.actor_obs["action_mask"][:, agents_idx])
+    dist = torch.distributions.Categorical(logits=logits)  # (L, b_a, 5)
     return dist.log_prob(batch.actions[:, agents_idx]), dist.entropy(), values.float(), agents_idx
 
 
