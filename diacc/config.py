@@ -187,10 +187,24 @@ class SimConfig:
 # --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ObservationConfig:
+    """Sizes of the observation layout (:mod:`diacc.observation`) and two options.
+
+    The options keep the layout (so every network and shipped checkpoint fits)
+    and default to the paper's observation. ``critic_step_input=False`` zeroes
+    the critic's step / episode-length feature: with 100-step training and
+    330-step evaluation episodes the value of a truncated episode otherwise
+    extrapolates past anything seen. ``road_speed_limits=True`` writes each
+    segment's speed limit / the route's highest into the road table's fourth
+    column (otherwise 1 for every segment present), so actor and critic see
+    the limits a preset lowers (``paper-congestion``).
+    """
+
     history_steps: int = 5  # neighbour trajectories, current step included
     n_neighbours: int = 6  # nearest vehicles in same and adjacent lanes
     max_vehicles: int = 40  # critic pads to this many vehicles
     lane_window_m: float = 100.0  # lane statistics look this far ahead and behind
+    critic_step_input: bool = True  # the critic's step / T feature (False: always 0)
+    road_speed_limits: bool = False  # road table column 4 = segment limit / route max
 
 
 #: Options of :class:`PSARConfig` (see :func:`diacc.psar.psar`).
