@@ -406,6 +406,9 @@ class TrainConfig:
     max_grad_norm: float = 10.0
     chunk_len: int = 10
     checkpoint_every: int = 10  # updates
+    # "team": one value per env, all CAVs share the advantage (paper); "per_agent":
+    # a value per CAV slot from its own features beside the global state (README)
+    critic_values: str = "team"
     run_dir: str = "runs/diacc"
     env: EnvConfig = field(default_factory=EnvConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -525,6 +528,7 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
 _CHOICES: dict[str, tuple[str, ...]] = {
     "vector": ("auto", "sync", "batched", "process"),
     "device": ("auto", "cpu", "cuda"),
+    "critic_values": ("team", "per_agent"),
 }
 
 

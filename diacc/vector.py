@@ -72,6 +72,7 @@ class EnvStep:
     episode: dict | None  # metrics of the episode that just ended
     reward_terms: dict[str, float] | None = None  # parts of the step's reward
     restarted: bool = False
+    final_actor_obs: ActorObs | None = None  # observations where the episode ended
 
 
 @dataclass
@@ -87,6 +88,7 @@ class VectorStep:
     refined_action: np.ndarray  # (E, C)
     psar_rule_mask: np.ndarray  # (E, C)
     final_critic_state: list[CriticState | None]  # (E,)
+    final_actor_obs: list[ActorObs | None]  # (E,) (None also after a simulator crash)
     episodes: list[dict]  # metrics of episodes that ended this step
     reward_terms: dict[str, np.ndarray]  # each part of the reward, (E',) over envs that reported it
     restarts: int
@@ -136,10 +138,10 @@ class EnvRunner:
         """
         self.return_ += out.reward
         self.recorder.record(out.state, psar=out.psar, critical=critical)
-        final, episode = None, None
+        final, final_actor, episode = None, None, None
         actor, critic = out.actor_obs, out.critic_state
         if out.terminated or out.truncated:
-            final = critic
+            final, final_actor = critic, actor
             episode = {
                 "return": self.return_,
                 "length": self.env.steps,
@@ -159,6 +161,7 @@ class EnvRunner:
             final,
             episode,
             out.reward_terms,
+            final_actor_obs=final_actor,
         )
 
     def close(self) -> None:
@@ -201,6 +204,7 @@ def _stack_steps(steps: list[EnvStep]) -> VectorStep:
         refined_action=np.stack([s.refined_action for s in steps]),
         psar_rule_mask=np.stack([s.psar_rule_mask for s in steps]),
         final_critic_state=[s.final_critic_state for s in steps],
+        final_actor_obs=[s.final_actor_obs for s in steps],
         episodes=[s.episode for s in steps if s.episode is not None],
         reward_terms={
             key: np.array([s.reward_terms[key] for s in steps if s.reward_terms])

@@ -485,7 +485,7 @@ def test_full_episode_on_real_backends_masks_cavs_that_left(backend_name):
 
 
 def test_matched_horizon_options_keep_the_layout(road):
-    """``critic_step_input=False`` zeroes step/T; ``road_speed_limits`` puts limit/max in column 4."""
+    """critic_step_input=False zeroes step/T; road_speed_limits puts limit/max in column 4."""
     import dataclasses
 
     from diacc.config import preset_road

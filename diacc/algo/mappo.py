@@ -52,9 +52,10 @@ from diacc.algo.checkpoint import (
 from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig, validate
 from diacc.errors import DiaccError
+from diacc.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_policy
-from diacc.observation import ObservationSpec, stack
+from diacc.observation import ObservationSpec, stack, unstack
 from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
 from diacc.runlog import log, run_log
@@ -156,6 +157,8 @@ class Agent:
 def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
     """The networks of ``cfg.variant`` with the learner on ``device`` (rollouts on the CPU)."""
     actor, critic = build_policy(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
+    if cfg.critic_values == "per_agent":
+        critic = AgentValueCritic(critic, cfg.model)
     value_norm = ValueNorm()
     extras = {}
     if device != ROLLOUT_DEVICE:
@@ -206,7 +209,8 @@ def collect_rollout(
     actor, critic, value_norm = agent.rollout_actor, agent.rollout_critic, agent.rollout_value_norm
     device = ROLLOUT_DEVICE
     E, C, H_a, H_c = cfg.n_envs, envs.n_cavs, actor.hidden_size, critic.hidden_size
-    roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, H_c)
+    per_agent = cfg.critic_values == "per_agent"
+    roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, H_c, per_agent)
     actor_obs, critic_state = envs.reset(first_episode=update * EPISODES_PER_UPDATE)
     h_actor = torch.zeros(E * C, H_a, device=device)  # (E*C, H)
     h_critic = torch.zeros(E, H_c, device=device)  # (E, H)
@@ -225,7 +229,9 @@ def collect_rollout(
             logits = masked_logits(logits, obs_t["action_mask"])  # (E*C, 5)
             dist = torch.distributions.Categorical(logits=logits)
             action = dist.sample()  # (E*C,)
-            value, h_critic = critic(to_tensors(critic_state, device), h_critic, start_t)
+            value, h_critic = critic(
+                critic_inputs(critic_state, actor_obs, per_agent, device), h_critic, start_t
+            )
         roll.actions[t] = action.view(E, C).cpu().numpy()
         roll.logprobs[t] = dist.log_prob(action).view(E, C).cpu().numpy()
         roll.values_normalised[t] = value.cpu().numpy()
@@ -242,13 +248,18 @@ def collect_rollout(
             out.truncated,
         )
         for e in np.flatnonzero(out.truncated):  # bootstrap from where the episode was cut
+            final_actor = out.final_actor_obs[e]
+            if final_actor is None:  # a simulator crash: the CAVs' last features are gone
+                final_actor = unstack(actor_obs, e)
             with torch.no_grad():
                 v_final, _ = critic(
-                    to_tensors(stack([out.final_critic_state[e]]), device),
+                    critic_inputs(
+                        stack([out.final_critic_state[e]]), stack([final_actor]), per_agent, device
+                    ),
                     h_critic[e : e + 1],
                     torch.zeros(1, dtype=torch.bool, device=device),
                 )
-            roll.final_values[t, e] = value_norm.denormalize(v_final).item()
+            roll.final_values[t, e] = value_norm.denormalize(v_final).cpu().numpy()[0]
         stats.episodes += out.episodes
         stats.psar_counts += rule_counts(out.psar_rule_mask[roll.alive[t]])
         stats.decisions += int(roll.alive[t].sum())
@@ -259,24 +270,44 @@ def collect_rollout(
         start = out.terminated | out.truncated
     with torch.no_grad():
         next_value, _ = critic(
-            to_tensors(critic_state, device), h_critic, torch.as_tensor(start, device=device)
+            critic_inputs(critic_state, actor_obs, per_agent, device),
+            h_critic,
+            torch.as_tensor(start, device=device),
         )
     stats.seconds = time.perf_counter() - t0
     return roll, value_norm.denormalize(next_value).cpu().numpy(), stats
 
 
 def rollout_gae(roll: Rollout, next_value: np.ndarray, cfg: TrainConfig):
-    """Advantages and returns (S, E) of a rollout (see :func:`compute_gae`)."""
+    """Advantages and returns (S, E) of a rollout (see :func:`compute_gae`).
+
+    With per-agent values (S, E, C) the team reward and episode flags are
+    broadcast over the CAV slots: GAE per agent on the shared reward.
+    """
+    shape = roll.values.shape
+
+    def per_value(array: np.ndarray) -> np.ndarray:  # (S, E) -> shape of the values
+        return np.broadcast_to(array.reshape(array.shape + (1,) * (len(shape) - 2)), shape)
+
     return compute_gae(
-        roll.rewards,
+        per_value(roll.rewards),
         roll.values,
         next_value,
-        roll.terminated,
-        roll.truncated,
+        per_value(roll.terminated),
+        per_value(roll.truncated),
         roll.final_values,
         cfg.gamma,
         cfg.gae_lambda,
     )
+
+
+def critic_inputs(critic_state, actor_obs, per_agent: bool, device) -> dict[str, torch.Tensor]:
+    """The critic's input: its state, and with per-agent values each slot's own features."""
+    tensors = to_tensors(critic_state, device)
+    if per_agent:
+        features = agent_features(actor_obs.self_state, actor_obs.alive)  # (E, C, F)
+        tensors[AGENT_KEY] = torch.as_tensor(features, device=device)
+    return tensors
 
 
 # ----------------------------------------------------------------------------- batch
@@ -299,8 +330,8 @@ class Batch:
     logprobs: torch.Tensor  # (L, B_a)
     alive: torch.Tensor  # (L, B_a) float, 0 for dead/absent CAVs
     advantages: torch.Tensor  # (L, B_a) normalised over alive CAVs
-    returns: torch.Tensor  # (L, B_c) unnormalised
-    old_values_normalised: torch.Tensor  # (L, B_c) critic outputs at rollout time
+    returns: torch.Tensor  # (L, B_c) unnormalised; (L, B_c, C) with per-agent values
+    old_values_normalised: torch.Tensor  # (L, B_c) critic outputs at rollout time (or C)
 
 
 def make_batch(
@@ -316,7 +347,12 @@ def make_batch(
         return torch.as_tensor(array, dtype=dtype, device=device)
 
     actor, critic = stack(roll.actor_obs), stack(roll.critic_state)
-    adv = np.repeat(advantages[:, :, None], C, axis=2)  # (S, E, C): team advantage per CAV
+    critic_arrays = {f.name: getattr(critic, f.name) for f in fields(critic)}
+    if advantages.ndim == 3:  # per-agent values: each CAV its own advantage
+        adv = advantages.copy()  # (S, E, C)
+        critic_arrays[AGENT_KEY] = agent_features(actor.self_state, actor.alive)  # (S, E, C, F)
+    else:
+        adv = np.repeat(advantages[:, :, None], C, axis=2)  # (S, E, C): team advantage per CAV
     alive_adv = adv[roll.alive]
     if alive_adv.size > 1:
         adv = (adv - alive_adv.mean()) / (alive_adv.std() + 1e-8)
@@ -326,7 +362,7 @@ def make_batch(
             {f.name: per_agent(getattr(actor, f.name)) for f in fields(actor)}, device
         ),
         critic_state=to_tensors(
-            {f.name: chunk_time_major(getattr(critic, f.name), L) for f in fields(critic)}, device
+            {name: chunk_time_major(array, L) for name, array in critic_arrays.items()}, device
         ),
         actor_h0=tensor(roll.actor_hidden[::L].reshape(-1, roll.actor_hidden.shape[-1])),
         critic_h0=tensor(roll.critic_hidden[::L].reshape(-1, roll.critic_hidden.shape[-1])),
