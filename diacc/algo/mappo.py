@@ -6,7 +6,12 @@ then ``epochs`` passes of PPO over it:
 * **Actors** share parameters. All CAVs of all environments act as one batch
   of E * C agents; each has its own GRU hidden state.
 * **Critic** is centralised: one value per environment from the critic state,
-  because the team reward R_t is shared by all CAVs (paper eq. reward_all).
+  because the team reward R_t is shared by all CAVs (paper eq. reward_all);
+  ``critic_values="per_agent"`` values each CAV slot instead
+  (:mod:`diacc.models.agent_value`), with GAE per agent.
+* **Actions** meet PSAR as ``env.psar_actions`` says: the proposed action's
+  log-prob (paper), the executed one's, or sampling among the actions PSAR
+  would execute unchanged (``ActorObs.action_mask``, :mod:`diacc.action_mask`).
 * **GAE** (lambda 0.95, gamma 0.99) on de-normalised values, keeping
   termination (no bootstrap) and truncation (bootstrap) apart.
 * **Recurrent training** on chunks of ``chunk_len`` steps, each started from
