@@ -275,6 +275,11 @@ class RewardConfig:
     "the reduced weight on the global reward"; its best w_e = 0.6 goes with
     the default w_g = 0.4), so ``--study w_e`` (:data:`diacc.sweepaxes.STUDIES`)
     moves both together; ``--sweep env.reward.w_ego=...`` alone keeps w_g.
+
+    The last four fields are options that default to the paper's reading
+    (:mod:`diacc.reward`, README "Learning options"): ``closeness``,
+    ``warning_ttc_s`` (used by ``closeness="bumper"``), ``exit_bonus_scale``
+    and ``delay_weight``.
     """
 
     w_ego: float = 0.6
