@@ -6,20 +6,11 @@ import json
 
 import numpy as np
 import torch
-from test_mappo import tiny_config
+from test_mappo import rollout_batch, tiny_config
 
-from diacc.algo.mappo import (
-    collect_rollout,
-    evaluate_batch,
-    make_agent,
-    make_batch,
-    rollout_gae,
-    seed_everything,
-    train,
-)
+from diacc.algo.mappo import evaluate_batch, train
 from diacc.config import override
 from diacc.policies import CheckpointPolicy
-from diacc.vector import make_vector_env
 
 ALL_OPTIONS = {
     "critic_values": "per_agent",
@@ -32,21 +23,9 @@ ALL_OPTIONS = {
 }
 
 
-def rollout(cfg):
-    seed_everything(cfg.seed)
-    agent = make_agent(cfg, torch.device("cpu"))
-    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
-    try:
-        roll, next_value, _ = collect_rollout(agent, envs, cfg, 0)
-    finally:
-        envs.close()
-    adv, ret = rollout_gae(roll, next_value, cfg)
-    return agent, roll, make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
-
-
 def test_per_agent_values_and_masked_actions_replay_exactly(tmp_path):
     cfg = override(tiny_config(tmp_path), ALL_OPTIONS)
-    agent, roll, batch = rollout(cfg)
+    agent, roll, batch = rollout_batch(cfg)
     E, C = cfg.n_envs, 4
     assert roll.values.shape == (cfg.rollout_steps, E, C)
     assert batch.returns.shape == (cfg.chunk_len, 2 * E, C)
@@ -67,11 +46,11 @@ def test_per_agent_values_and_masked_actions_replay_exactly(tmp_path):
 
 def test_executed_mode_trains_on_what_psar_executed(tmp_path):
     cfg = override(tiny_config(tmp_path), {"env.psar_actions": "executed"})
-    agent, roll, batch = rollout(cfg)
+    agent, roll, batch = rollout_batch(cfg)
     # The stored action of step t is the refined action the env remembered at t + 1.
     for t in range(cfg.rollout_steps - 1):
         carried = ~roll.episode_start[t + 1]  # (E,)
-        executed = np.stack([obs.action_memory[..., 1] for obs in roll.actor_obs[t + 1 : t + 2]])[0]
+        executed = roll.actor_obs[t + 1].action_memory[..., 1]  # (E, C) refined at t
         assert (roll.actions[t][carried] == executed[carried]).all()
     with torch.no_grad():
         logprob, _, _, agents = evaluate_batch(agent, batch, torch.arange(2 * cfg.n_envs), 4)
