@@ -325,7 +325,10 @@ class BottleneckEnv(ParallelEnv):
     @staticmethod
     def _agent_obs(actor_obs: ActorObs, i: int) -> dict[str, np.ndarray]:
         # np.asarray: a per-agent scalar (``alive``) stays a 0-d array, as its space expects
-        return {name: np.asarray(value[i]) for name, value in asdict(actor_obs).items()}
+        obs = {name: np.asarray(value[i]) for name, value in asdict(actor_obs).items()}
+        # PettingZoo's action_mask convention (its API test samples with it): int8.
+        obs["action_mask"] = obs["action_mask"].astype(np.int8)
+        return obs
 
 
 # ---------------------------------------------------------------------- AEC entry point
