@@ -74,3 +74,38 @@ def test_tiny_training_with_every_option_and_masked_evaluation(tmp_path):
         assert np.take_along_axis(actor.action_mask, actions[:, None], axis=-1).all()
         actor = env.step_arrays(actions).actor_obs
     env.close()
+
+
+def test_per_agent_gae_is_the_team_gae_of_each_slot():
+    """GAE per agent = the team GAE run on each slot's values, with the shared reward."""
+    from diacc.algo.buffer import Rollout, compute_gae
+    from diacc.algo.mappo import rollout_gae
+    from diacc.config import TrainConfig
+
+    rng = np.random.default_rng(0)
+    S, E, C = 6, 2, 3
+    roll = Rollout.allocate(S, E, C, 1, 1, per_agent=True)
+    roll.rewards[:] = rng.normal(size=(S, E))
+    roll.values[:] = rng.normal(size=(S, E, C))
+    roll.final_values[:] = rng.normal(size=(S, E, C))
+    roll.terminated[2, 0] = roll.truncated[4, 1] = True
+    next_value = rng.normal(size=(E, C))
+    cfg = TrainConfig(gamma=0.9, gae_lambda=0.8)
+    adv, ret = rollout_gae(roll, next_value, cfg)
+    assert adv.shape == (S, E, C)
+    for c in range(C):
+        team_adv, team_ret = compute_gae(
+            roll.rewards,
+            roll.values[..., c],
+            next_value[:, c],
+            roll.terminated,
+            roll.truncated,
+            roll.final_values[..., c],
+            0.9,
+            0.8,
+        )
+        np.testing.assert_allclose(adv[..., c], team_adv)
+        np.testing.assert_allclose(ret[..., c], team_ret)
+    # Hand check of the last step of env 0 (no episode end): delta = r + gamma V' - V.
+    delta = roll.rewards[-1, 0] + 0.9 * next_value[0] - roll.values[-1, 0]
+    np.testing.assert_allclose(adv[-1, 0], delta)
