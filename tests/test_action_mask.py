@@ -88,6 +88,8 @@ def test_psar_actions_option_is_checked():
     cfg = TrainConfig(variant="mappo", env=dataclasses.replace(EnvConfig(), psar_actions="masked"))
     with pytest.raises(ConfigError, match="needs PSAR"):
         validate(cfg)
+    with pytest.raises(ConfigError, match="critic_values"):
+        validate(TrainConfig(critic_values="shared"))
 
 
 def test_env_observation_carries_the_mask_only_when_masked():
