@@ -241,6 +241,9 @@ class BottleneckEnv(ParallelEnv):
                 "individual": float(terms.ego[terms.alive].mean()) if terms.alive.any() else 0.0,
                 "global": terms.global_reward,
                 "completion": terms.completion,
+                # Logged so that a learning curve shows whether closeness fires.
+                "warning": float(terms.warning[terms.alive].mean()) if terms.alive.any() else 0.0,
+                "delay": terms.delay,
                 "tau": terms.tau,
             },
         )

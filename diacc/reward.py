@@ -122,7 +122,7 @@ class RewardTerms:
     ego_softmin: float  # sum_i w_i r_e^i
     global_reward: float  # r_g
     completion: float  # r_done
-    delay: float  # minus the delay rate (0 unless delay_weight > 0)
+    delay: float  # minus the delay rate, before its weight (delay_weight, default 0)
     total: float  # R
 
     def env(self, e: int) -> RewardTerms:
@@ -225,7 +225,7 @@ def reward(
     completion = cfg.exit_bonus * n_cav_arrivals
     if cfg.exit_bonus_scale == "fleet":
         completion = completion / max(cav_index.shape[-1], 1)
-    delay = -_delay_rate(state, limits_mps) if cfg.delay_weight else np.zeros(lead)
+    delay = -_delay_rate(state, limits_mps)  # (...,) computed for the logs whatever the weight
     total = (
         cfg.w_ego * ego_softmin
         + cfg.w_global * global_reward

@@ -747,7 +747,9 @@ def progress_record(stats: UpdateStats, update_s: float) -> dict:
 
     ``team_reward`` is R, what PPO maximises (paper eq. reward_all), per step
     and environment; ``global_reward`` is its part r_g; ``reward/*`` are the
-    other parts (``ego_softmin``, ``individual``, ``completion``, ``tau``);
+    other parts (``ego_softmin``, ``individual``, ``completion``, ``warning``:
+    the mean warning term of the CAVs on the road, ``delay``: the delay term
+    before its weight, ``tau``);
     ``individual`` is the mean ego reward r_e over the CAVs on the road, what
     the training curves' individual-reward panel plots (``ego_softmin``, its
     softmin-weighted sum, falls as tau anneals whatever the policy does);

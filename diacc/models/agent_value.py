@@ -18,6 +18,7 @@ steps before it leaves is not a guess.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -33,13 +34,10 @@ AGENT_KEY = "agent_self"
 AGENT_FEATURES = SELF_FEATURES + 1
 
 
-def agent_features(self_state, alive):
-    """(..., C, AGENT_FEATURES) float32 numpy features of each CAV slot (zero when off the road)."""
-    import numpy as np
-
-    return np.concatenate(
-        [self_state, np.asarray(alive, np.float32)[..., None]], axis=-1
-    ).astype(np.float32)
+def agent_features(self_state: np.ndarray, alive: np.ndarray) -> np.ndarray:
+    """(..., C, AGENT_FEATURES) float32 features of each CAV slot (zero when off the road)."""
+    on_road = np.asarray(alive, np.float32)[..., None]  # (..., C, 1)
+    return np.concatenate([self_state, on_road], axis=-1).astype(np.float32)
 
 
 class AgentValueCritic(nn.Module):
