@@ -6,9 +6,9 @@ that never happened (measured: PSAR rewrote 27-41 % of the shipped agents'
 decisions). Masking them out of the distribution before sampling makes the
 sampled action the executed one and lets greedy evaluation pick the best
 *allowed* action instead of repeating a suppressed one (the deadlock at lane
-ends). The mask runs PSAR (:func:`diacc.psar.psar`, unchanged) on each of the
-5 candidates for all CAVs of all envs at once, on the state the decision is
-taken in:
+ends). The mask runs PSAR (:func:`diacc.psar.psar`, unchanged) once on all
+5 candidates for all CAVs of all envs (the state tiled five times), on the
+state the decision is taken in:
 
 * a candidate is allowed when PSAR returns it as the action (Decel-LC and a
   stronger Force-Brake keep the action and are allowed: they only add
@@ -45,17 +45,18 @@ def psar_action_mask(
     """
     cfg = dataclasses.replace(config.psar, coordinate_lane_changes=False)
     cav_index = np.asarray(cav_index)
-    n_actions = len(ACTION_NAMES)
-    allowed = np.zeros(cav_index.shape + (n_actions,), bool)  # (..., C, 5)
-    remain_refined = None
-    for action in range(n_actions):
-        proposed = np.full(cav_index.shape, action, np.int64)  # (..., C)
-        refined = psar(state, cav_index, proposed, cfg, road, config.sim).action  # (..., C)
-        allowed[..., action] = refined == action
-        if action == REMAIN:
-            remain_refined = refined
+    n_actions, n_cavs = len(ACTION_NAMES), cav_index.shape[-1]
+    # One PSAR call for every candidate: the state tiled candidate-major to (5 E, V).
+    singles = [state] if state.x_m.ndim == 1 else [state.env(e) for e in range(len(state.x_m))]
+    tiled = TrafficState.stack(singles * n_actions)  # (5 E, V)
+    slots = np.tile(cav_index.reshape(-1, n_cavs), (n_actions, 1))  # (5 E, C)
+    candidate = np.repeat(np.arange(n_actions), len(singles))[:, None]  # (5 E, 1)
+    proposed = np.broadcast_to(candidate, slots.shape)  # (5 E, C)
+    refined = psar(tiled, slots, proposed, cfg, road, config.sim).action  # (5 E, C)
+    refined = np.moveaxis(refined.reshape(n_actions, *cav_index.shape), 0, -1)  # (..., C, 5)
+    allowed = refined == np.arange(n_actions)  # (..., C, 5)
     none_left = ~allowed.any(axis=-1)  # (..., C)
-    fallback = np.eye(n_actions, dtype=bool)[remain_refined]  # (..., C, 5)
+    fallback = np.eye(n_actions, dtype=bool)[refined[..., REMAIN]]  # (..., C, 5)
     allowed |= none_left[..., None] & fallback
     alive = take(state.active, cav_index)  # (..., C)
     return allowed | ~alive[..., None]
