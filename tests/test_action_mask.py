@@ -92,17 +92,26 @@ def test_psar_actions_option_is_checked():
         validate(TrainConfig(critic_values="shared"))
 
 
-def test_env_observation_carries_the_mask_only_when_masked():
+@pytest.mark.parametrize("backend", ["highway", "sumo"])
+def test_env_observation_carries_the_mask_only_when_masked(backend):
+    """Masked: PSAR executes every allowed proposal but lane changes (which it
+    may still cancel for another CAV's change); unmasked: all True."""
+    from diacc.actions import ACTION_LANE_OFFSET
     from diacc.env import BottleneckEnv
 
-    for mode, expect_narrow in (("proposed", False), ("masked", True)):
-        env = BottleneckEnv(dataclasses.replace(EnvConfig(), psar_actions=mode))
+    for mode in ("proposed", "masked"):
+        env = BottleneckEnv(dataclasses.replace(EnvConfig(backend=backend), psar_actions=mode))
         actor, _ = env.reset_arrays(seed=3)
         narrowed = False
         for _ in range(30):
             assert actor.action_mask.any(axis=-1).all()
             narrowed |= not actor.action_mask.all()
-            out = env.step_arrays(np.full(env.n_cavs, ACCELERATE))
+            # The highest allowed action: accelerate (or decelerate) whenever allowed.
+            proposed = np.array([np.flatnonzero(row)[-1] for row in actor.action_mask])
+            out = env.step_arrays(proposed)
+            if mode == "masked":
+                keeps_lane = out.alive & (ACTION_LANE_OFFSET[proposed] == 0)
+                assert (out.refined_action[keeps_lane] == proposed[keeps_lane]).all()
             actor = out.actor_obs
-        assert narrowed == expect_narrow, mode
+        assert narrowed == (mode == "masked")
         env.close()
