@@ -40,8 +40,14 @@ def main() -> None:
     root, seeds = Path(sys.argv[1]), sys.argv[2:]
     print("| setting | seed | steps | " + " | ".join(label for _, label in COLUMNS) + " |")
     print("|---" * (3 + len(COLUMNS)) + "|")
-    for setting in ("default", "options"):
+    # Every run directory <setting>-s<seed> there, today's defaults first.
+    runs = {
+        p.name.rsplit("-s", 1)[0] for p in root.iterdir() if p.name.rsplit("-s", 1)[-1] in seeds
+    }
+    for setting in sorted(runs, key=lambda name: (name != "default", name)):
         for seed in seeds:
+            if not (root / f"{setting}-s{seed}").is_dir():
+                continue
             m = tail_means(root / f"{setting}-s{seed}")
             cells = " | ".join(f"{m[key]:.3f}" for key, _ in COLUMNS)
             print(f"| {setting} | {seed} | {m['steps']} | {cells} |")
