@@ -1,19 +1,23 @@
 #!/usr/bin/env bash
 # The committed "trained agent vs human traffic" result (README "Trained agent"):
-# evaluate DIACC checkpoints trained on highway (train-50, paper-congestion) and
-# the two non-learning baselines on the paper's training cells, on both
-# backends, with the paper-congestion preset and 330-step episodes (README
-# "Congestion presets"), then write the tables.
+# evaluate DIACC checkpoints trained on highway (train-50, paper-congestion),
+# each with sampled and greedy actions, and the non-learning baselines (pure HDV,
+# same-mix: the CAV slots driven by normal human drivers, cooperative, and the
+# scripted heuristic under PSAR) on the paper's training cells, on both
+# backends, with 330-step episodes, then write the tables with the flow rows.
 #
-#   bash benchmarks/trained_vs_hdv.sh OUT RUN_DIR...
+#   PRESET=paper-congestion EPISODES=10 bash benchmarks/trained_vs_hdv.sh OUT RUN_DIR...
 #
-# Finished cells are skipped, so an interrupted run continues where it stopped.
+# PRESET (default paper-congestion) is the HDV style preset, BACKENDS (default
+# "highway sumo") the backends. Finished cells are skipped, so an interrupted
+# run continues where it stopped.
 set -euo pipefail
 out=$1; shift
 episodes=${EPISODES:-10}
-common=(--grid train --episodes "$episodes" --style-preset paper-congestion --episode-steps 330 --no-progress --workers "${WORKERS:-2}")
-for backend in highway sumo; do
-  for baseline in pure-hdv cooperative; do
+preset=${PRESET:-paper-congestion}
+common=(--grid train --episodes "$episodes" --style-preset "$preset" --episode-steps 330 --no-progress --workers "${WORKERS:-2}")
+for backend in ${BACKENDS:-highway sumo}; do
+  for baseline in pure-hdv same-mix cooperative heuristic; do
     diacc eval --policy "$baseline" --backend "$backend" "${common[@]}" --out "$out/$backend/$baseline"
   done
   for run in "$@"; do
@@ -22,5 +26,5 @@ for backend in highway sumo; do
         --out "$out/$backend/$(basename "$run" .pt)-$actions"
     done
   done
-  diacc table "$out/$backend"/* --rows speed,p_we,p_sce,collision,arrived --out "$out/table-$backend.md"
+  diacc table "$out/$backend"/* --rows speed,p_we,p_sce,collision,arrived,flow --out "$out/table-$backend.md"
 done

@@ -18,16 +18,24 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
-__all__ = ["__version__", "env", "parallel_env"]
+__all__ = ["__version__", "env", "load_policy", "parallel_env"]
 
 if TYPE_CHECKING:  # pragma: no cover
+    from pathlib import Path
+
+    from diacc.agent import TrainedPolicy
     from diacc.env import BottleneckEnv
 
 
-def parallel_env(render_mode: str | None = None, **config: Any) -> BottleneckEnv:
+def parallel_env(
+    render_mode: str | None = None, observation_format: str = "dict", **config: Any
+) -> BottleneckEnv:
     """The bottleneck environment as a PettingZoo ``ParallelEnv``.
 
-    ``config`` holds fields of :class:`diacc.env.EnvConfig` (``backend``,
+    ``render_mode``: ``None``, ``"rgb_array"`` or ``"human"``;
+    ``observation_format``: ``"dict"`` (graph structure as named arrays) or
+    ``"flat"`` (one float32 vector, for SB3/SuperSuit; :func:`diacc.spaces.unflatten`
+    restores the dict). ``config`` holds fields of :class:`diacc.env.EnvConfig` (``backend``,
     ``map``, ``use_psar``, ...); nested sections take a dict or their dataclass,
     e.g. ``scenario={"n_vehicles": 12, "cav_penetration": 0.25}``. Unknown keys
     raise :class:`diacc.config.ConfigError`.
@@ -35,7 +43,19 @@ def parallel_env(render_mode: str | None = None, **config: Any) -> BottleneckEnv
     from diacc.config import override
     from diacc.env import BottleneckEnv, EnvConfig
 
-    return BottleneckEnv(override(EnvConfig(), config), render_mode=render_mode)
+    return BottleneckEnv(
+        override(EnvConfig(), config),
+        render_mode=render_mode,
+        observation_format=observation_format,
+    )
+
+
+def load_policy(path: str | Path, sampled: bool = False) -> TrainedPolicy:
+    """A trained agent that acts on PettingZoo observations, keeping each agent's
+    recurrent state (:class:`diacc.agent.TrainedPolicy`); greedy, or ``sampled``."""
+    from diacc.agent import TrainedPolicy
+
+    return TrainedPolicy(path, sampled=sampled)
 
 
 def __getattr__(name: str) -> Any:

@@ -195,6 +195,23 @@ def _bench_parser(sub) -> None:
         help="scripted CAVs with and without PSAR on every map (both backends, or --backend)",
     )
     p.add_argument("--episodes", type=int, default=20, help="seeded episodes per row of --safety")
+    p.add_argument(
+        "--style-preset",
+        choices=tuple(STYLE_PRESETS),
+        default=None,
+        help="HDV style preset of --safety (default: the simulation default)",
+    )
+    p.add_argument(
+        "--episode-steps",
+        type=int,
+        default=None,
+        help="episode length of --safety in decision steps (default: the simulation default)",
+    )
+    p.add_argument(
+        "--policies",
+        default=None,
+        help="comma-separated scripted policies of --safety (default: all, with and without PSAR)",
+    )
     p.add_argument("--device", default="cpu", help="torch device of --models and --training")
     p.add_argument(
         "--steps", type=int, default=None, help="steps to time (benchmark default if unset)"
@@ -209,7 +226,24 @@ def cmd_bench(args: argparse.Namespace) -> None:
         if args.episodes < 1:
             raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
         backends = (args.backend,) if args.backend else BACKENDS
-        safety.run(backends=backends, episodes=args.episodes)
+        if args.episode_steps is not None and args.episode_steps < 1:
+            raise ConfigError(f"--episode-steps must be >= 1, got {args.episode_steps}")
+        policies = safety.POLICIES
+        if args.policies is not None:
+            policies = tuple(p.strip() for p in args.policies.split(",") if p.strip())
+            unknown = [p for p in policies if p not in safety.POLICIES]
+            if unknown or not policies:
+                raise ConfigError(
+                    f"unknown --policies entry {(unknown or [''])[0]!r}; use some of "
+                    f"{', '.join(safety.POLICIES)}"
+                )
+        safety.run(
+            backends=backends,
+            policies=policies,
+            episodes=args.episodes,
+            style_preset=args.style_preset,
+            episode_steps=args.episode_steps,
+        )
         return
     if args.backend == "highway":
         from diacc.bench import highway

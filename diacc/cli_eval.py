@@ -36,7 +36,10 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--policy",
         required=True,
-        help="pure-hdv, cooperative, or a checkpoint.pt (or its run directory)",
+        help="pure-hdv, same-mix (CAV slots driven by normal human drivers; same-mix:<style> "
+        "for aggressive or cautious ones), cooperative, heuristic, a scripted probe "
+        "(remain, accelerate, random; <name>-nopsar without PSAR) or a checkpoint.pt "
+        "(or its run directory)",
     )
     p.add_argument(
         "--variant",
@@ -106,7 +109,9 @@ def add_parsers(sub) -> None:
         "--rows",
         default="speed,p_we,p_sce",
         help="comma-separated rows: speed, p_we, p_sce (the paper's) and the optional "
-        "collision (share of episodes ending in a crash), arrived (share of vehicles)",
+        "collision (share of episodes ending in a crash), arrived (share of vehicles) and the "
+        "flow rows throughput, delay, arrived_speed, travel_time, never_arrived "
+        "('flow' stands for all five)",
     )
     p.add_argument("--out", type=Path, default=None, help="write to a file instead of stdout")
 
@@ -137,6 +142,20 @@ def add_parsers(sub) -> None:
         "--out", type=Path, default=Path("figures/speeds"), help="output path, .png and .pdf added"
     )
     q.add_argument("--map", default=None, help="only the samples of this map (all by default)")
+    q = plot_sub.add_parser(
+        "timespace",
+        help="time-space diagram and speed profile of one episode",
+        description="Time-space diagram of one episode (one dot per vehicle and step,\n"
+        "coloured by speed, lane reduction shaded) and its speed profile along the road.",
+    )
+    _policy_args(q)
+    _episode_args(q, "decisions to play at most")
+    q.add_argument(
+        "--out",
+        type=Path,
+        default=Path("figures/timespace"),
+        help="output path, .png and .pdf added",
+    )
 
     p = sub.add_parser(
         "render",
@@ -144,16 +163,39 @@ def add_parsers(sub) -> None:
         description="One episode as a GIF, with a legend and a time / step / PSAR stamp.",
     )
     _policy_args(p)
+    _episode_args(p, "decisions to render at most")
+    p.add_argument("--fps", type=float, default=5.0, help="GIF frames per second")
+    p.add_argument(
+        "--view",
+        choices=("traffic", "bottleneck"),
+        default="traffic",
+        help="camera: follow the traffic (4 px/m), or stay on the lane drop (8 px/m)",
+    )
+    p.add_argument("--out", type=Path, default=Path("episode.gif"), help="output .gif")
+
+
+def _episode_args(p: argparse.ArgumentParser, steps_help: str) -> None:
+    """The traffic of one episode (``render``, ``plot timespace``)."""
     p.add_argument("--map", default="train-25", help="shipped map name or .toml path")
     p.add_argument("--vehicles", type=int, default=25, help="vehicles inserted at t = 0 (N)")
     p.add_argument("--penetration", type=float, default=0.4, help="CAV share rho")
     p.add_argument("--mix", default="D1", help="HDV style mix: D1, D2 or D3")
-    p.add_argument("--steps", type=int, default=100, help="decisions to render at most")
+    p.add_argument("--steps", type=int, default=100, help=steps_help)
     p.add_argument(
         "--seed", type=int, default=None, help="traffic seed (default: seed of eval episode 0)"
     )
-    p.add_argument("--fps", type=float, default=5.0, help="GIF frames per second")
-    p.add_argument("--out", type=Path, default=Path("episode.gif"), help="output .gif")
+
+
+def _episode_cell(args: argparse.Namespace):
+    from diacc.grid import make_cell
+
+    traffic = {
+        "map": args.map,
+        "n_vehicles": args.vehicles,
+        "cav_penetration": args.penetration,
+        "style_mix": args.mix,
+    }
+    return make_cell(traffic, args.command)
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
@@ -180,9 +222,9 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
 
 def cmd_table(args: argparse.Namespace) -> None:
-    from diacc.report import build_table, render_table
+    from diacc.report import build_table, expand_rows, render_table
 
-    rows = tuple(r.strip() for r in args.rows.split(",") if r.strip())
+    rows = expand_rows(args.rows)
     text = render_table(build_table(args.results, args.speed_std, rows), args.format)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -197,28 +239,33 @@ def cmd_plot(args: argparse.Namespace) -> None:
 
     if args.plot_kind == "curves":
         paths = plots.plot_curves(args.runs, args.out, smooth=args.smooth)
+    elif args.plot_kind == "timespace":
+        from diacc.policies import parse_policy
+        from diacc.timespace import plot_timespace
+
+        spec = parse_policy(args.policy, args.variant, args.actions == "sampled")
+        cell = _episode_cell(args)
+        paths = plot_timespace(spec, cell, args.out, args.steps, _settings(args), seed=args.seed)
     else:
         paths = plots.plot_speeds(args.results, args.out, map_name=args.map)
     print("wrote " + ", ".join(map(str, paths)))
 
 
 def cmd_render(args: argparse.Namespace) -> None:
-    from diacc.grid import make_cell
     from diacc.policies import parse_policy
     from diacc.render import render_episode
 
     spec = parse_policy(args.policy, args.variant, args.actions == "sampled")
-    cell = make_cell(
-        {
-            "map": args.map,
-            "n_vehicles": args.vehicles,
-            "cav_penetration": args.penetration,
-            "style_mix": args.mix,
-        },
-        "render",
-    )
+    cell = _episode_cell(args)
     result = render_episode(
-        spec, cell, args.out, args.steps, _settings(args), seed=args.seed, fps=args.fps
+        spec,
+        cell,
+        args.out,
+        args.steps,
+        _settings(args),
+        seed=args.seed,
+        fps=args.fps,
+        view=args.view,
     )
     print(
         f"wrote {result.path}: {result.n_frames} frames, PSAR highlighted in {result.psar_frames}"

@@ -51,9 +51,10 @@ def add_parsers(sub) -> None:
         "reproduce",
         help="train, evaluate and tabulate the paper's experiments in one resumable command",
         description="Train the variants on the training maps for every seed, evaluate every\n"
-        "checkpoint and the pure-hdv and cooperative baselines on the training and\n"
-        "zero-shot grids on both backends, and write Tables II and III, the training\n"
-        "curves, the speed distributions and the sim-to-sim transfer report.\n"
+        "checkpoint and the pure-hdv, same-mix, cooperative and heuristic baselines on\n"
+        "the training and zero-shot grids on both backends, and write Tables II and\n"
+        "III, the training curves, the speed distributions and the sim-to-sim\n"
+        "transfer report.\n"
         "Prints the resolved plan first, one line per run and evaluation job, and\n"
         "where the files are at the end.",
         epilog=_epilog(),

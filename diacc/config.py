@@ -62,6 +62,10 @@ class DriverStyle:
     lc_cooperative: float  # SUMO LC2013 lcCooperative
     lc_speed_gain: float  # SUMO LC2013 lcSpeedGain
     lc_strategic: float  # SUMO LC2013 lcStrategic
+    #: Lets a vehicle waiting at a lane end in, braking harder than comfortable if
+    #: need be (SUMO lcCooperativeSpeed 1; highway: yields up to the forced-merge
+    #: braking). Off in the paper's presets; the ``zipper`` preset turns it on.
+    zipper: bool = False
 
 
 _AGGRESSIVE = DriverStyle("aggressive", 0.9, 1.0, 3.5, 5.5, 0.0, 0.05, 0.0, 100.0, 100.0)
@@ -74,6 +78,7 @@ _CAUTIOUS_PAPER = DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, -1.0, 0.
 #: presets" has the measured pure-HDV rows of each):
 #:
 #: * ``realistic`` (default): every driver merges (cautious lcStrategic 0.2).
+#: * ``zipper``: ``realistic``, and every driver lets one waiting at a lane end in.
 #: * ``paper``: the authors' cautious values; cautious drivers in an ending lane
 #:   get stuck at its end, as in the paper's pure-HDV row.
 #: * ``paper-congestion``: ``paper`` with normal drivers' lcStrategic at SUMO's
@@ -94,6 +99,13 @@ STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
         DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, 0.0, 0.0, 0.2),
     ),
 }
+#: ``zipper``: ``realistic`` drivers who also let a driver waiting at a lane end in
+#: (:attr:`DriverStyle.zipper`): without it a cautious driver who reached the end
+#: of an ending lane can stand there over a minute beside a 22 m/s stream (measured
+#: on the demand scenario, README "Scenario kinds").
+STYLE_PRESETS["zipper"] = tuple(
+    dataclasses.replace(style, zipper=True) for style in STYLE_PRESETS["realistic"]
+)
 
 
 #: Speed limit of the reduction segments per preset (presets not listed keep the
@@ -335,6 +347,12 @@ class EnvConfig:
     def __post_init__(self) -> None:
         _check_choice("backend", self.backend, BACKENDS)
         _check_choice("env.psar_actions", self.psar_actions, PSAR_ACTION_MODES)
+        episode_s = self.sim.episode_steps * self.sim.step_s
+        if self.scenario.warmup_s >= episode_s:
+            raise ConfigError(
+                f"scenario.warmup_s {self.scenario.warmup_s:g} s is not shorter than the episode "
+                f"({self.sim.episode_steps} steps of {self.sim.step_s:g} s = {episode_s:g} s)"
+            )
 
 
 # --------------------------------------------------------------------------

@@ -19,6 +19,22 @@ The episode terminates on a collision or when every vehicle has left, and is
 truncated at ``episode_steps``. A CAV that has left the route is done and is
 never revived.
 
+**Agent slots.** The arrays have C = ``Scenario.n_slots`` agent slots. In a
+release every CAV has its own slot for the whole episode (slot k = the k-th
+CAV). In a ``demand`` scenario CAVs enter and leave: a CAV that enters takes
+the first free slot (CAVs in order of entry), keeps it until it leaves, and
+its slot stays pointed at it for the step it arrives (so the reward sees the
+arrival) and is free from the next step on. A refilled slot is flagged in
+``StepResult.slot_start``: the policy starts that slot's recurrent state
+afresh. An empty slot points at a vehicle that is not on the road, so every
+consumer of ``cav_index`` sees it dead (``alive`` False) without knowing
+about slots. CAVs that find no free slot (more than ``cav_slots`` at once)
+drive themselves meanwhile (no command, :mod:`diacc.backends.base`) and are
+counted in :attr:`BottleneckEnv.unserved_cavs`.
+PettingZoo names agents by CAV, not slot: ``possible_agents`` are
+``cav_0 .. cav_{K-1}`` for the K CAVs of the episode in order of entry, and
+``agents`` are those on the road and in a slot now.
+
 Two APIs share the same code path: the PettingZoo dict API (``reset`` /
 ``step``) for users and API tests, and the batched API (:meth:`reset_arrays` /
 :meth:`step_arrays`) that the trainer uses to avoid per-agent dicts. A step is
@@ -31,7 +47,7 @@ from __future__ import annotations
 
 import sys
 import types
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 from typing import Any
 
 import gymnasium
@@ -48,13 +64,35 @@ from diacc.actions import (
 )
 from diacc.backends.base import Backend, CavCommands, make_backend
 from diacc.config import EnvConfig, preset_road
+from diacc.errors import DiaccError
 from diacc.maps import Map, load_map
+from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.psar import PSARResult, psar
 from diacc.reward import RewardTerms, reward
+from diacc.spaces import agent_observation, check_format, observation_space, state_space
 from diacc.state import TrafficState, take
 
-__all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "StepResult", "aec_env"]
+__all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "RenderModeError", "StepResult", "aec_env"]
+
+#: The episode-end metrics every agent's ``infos`` carries on the last step (see
+#: :meth:`BottleneckEnv.step`), a subset of :class:`diacc.metrics.EpisodeMetrics`.
+INFO_METRICS = (
+    "mean_speed_mps",
+    "mean_cav_speed_mps",
+    "mean_hdv_speed_mps",
+    "p_we",
+    "p_sce",
+    "n_collisions",
+    "arrived_fraction",
+    "mean_travel_time_s",
+    "episode_steps",
+    "n_vehicles",
+)
+
+
+class RenderModeError(DiaccError, ValueError):
+    """A render mode this environment cannot honour here; one line."""
 
 
 @dataclass
@@ -111,8 +149,15 @@ def decide(
         speed_change_mps = action_speed_change_mps(refined, sim.speed_change_mps)
     lane_change = np.zeros(state.x_m.shape, np.int8)  # (..., V)
     speed_change = np.zeros(state.x_m.shape, np.float64)
-    np.put_along_axis(lane_change, cav_index, ACTION_LANE_OFFSET[refined], axis=-1)
-    np.put_along_axis(speed_change, cav_index, speed_change_mps, axis=-1)
+    # Added, not put: empty slots may share a vehicle (not on the road) and add 0 there.
+    where = (*np.indices(cav_index.shape)[:-1], cav_index)
+    np.add.at(lane_change, where, ACTION_LANE_OFFSET[refined].astype(np.int8))
+    np.add.at(speed_change, where, speed_change_mps)
+    # CAVs on the road without a slot (demand: more than cav_slots at once) drive
+    # themselves: NaN is "no command" (diacc.backends.base).
+    driven = np.zeros(state.x_m.shape, bool)  # (..., V)
+    np.logical_or.at(driven, where, alive)
+    speed_change[state.is_cav & state.active & ~driven] = np.nan
     commands = CavCommands(lane_change, speed_change)
     return Decision(proposed, refined, rule, rule_mask, result, commands)
 
@@ -133,6 +178,7 @@ class StepResult:
     psar: PSARResult | None  # full PSAR result (None when PSAR is off)
     state: TrafficState
     reward_terms: dict[str, float]
+    slot_start: np.ndarray  # (C,) bool: a new CAV took the slot; its next action starts afresh
 
 
 class BottleneckEnv(ParallelEnv):
@@ -140,7 +186,8 @@ class BottleneckEnv(ParallelEnv):
 
     metadata = {
         "name": "diacc_bottleneck_v0",
-        "render_modes": ["rgb_array"],
+        "render_modes": ["human", "rgb_array"],
+        "render_fps": 10,
         "is_parallelizable": True,
     }
 
@@ -149,27 +196,37 @@ class BottleneckEnv(ParallelEnv):
         config: EnvConfig | None = None,
         render_mode: str | None = None,
         backend: Backend | None = None,
+        observation_format: str = "dict",
     ) -> None:
         """``backend``: the simulator to run on (e.g. one env of a batch), by default a new
-        one of ``config.backend`` on ``config.map``."""
+        one of ``config.backend`` on ``config.map``. ``render_mode``: ``None``,
+        ``"rgb_array"`` (:meth:`render` returns a frame) or ``"human"`` (a window,
+        refreshed every step; refused without a display). ``observation_format``:
+        ``"dict"`` or ``"flat"`` (:mod:`diacc.spaces`)."""
         self.config = config or EnvConfig()
-        self.render_mode = render_mode
+        self.render_mode = check_render_mode(render_mode)
+        self.observation_format = check_format(observation_format)
         if backend is None:
             road = preset_road(load_map(self.config.map), self.config.sim.style_preset)
             backend = make_backend(self.config.backend, road, self.config.sim)
         self.backend: Backend = backend
         self.road: Map = backend.road
         self.builder = ObservationBuilder(self.road, self.config.obs, self.config.sim.episode_steps)
-        self.n_cavs = self.config.scenario.n_cavs
-        self.possible_agents = [f"cav_{i}" for i in range(self.n_cavs)]
+        self.n_cavs = self.config.scenario.n_slots  # C agent slots
+        self.possible_agents = [f"cav_{k}" for k in range(self.config.scenario.n_cavs)]
         self.agents: list[str] = []
         self.temperature = self.config.reward.tau_init
         self.state_: TrafficState | None = None
         self._viewer = None  # diacc.viewer.Viewer, made by the first render()
+        self._window = None  # diacc.viewer.Window of render_mode "human"
+        self._recorder: EpisodeRecorder | None = None  # episode metrics of the dict API
         self._seed: int | None = None
         # Spaces are the same for every agent: built once, returned as the same object.
-        self._observation_space: gymnasium.spaces.Dict | None = None
+        spec = self.builder.spec()
+        self._dict_space = observation_space(spec, "dict")
+        self._observation_space = observation_space(spec, self.observation_format)
         self._action_space = gymnasium.spaces.Discrete(len(ACTION_NAMES))
+        self.state_space = state_space(spec)
 
     # ------------------------------------------------------------------ batched API
     def reset_arrays(self, seed: int | None = None) -> tuple[ActorObs, CriticState]:
@@ -178,14 +235,51 @@ class BottleneckEnv(ParallelEnv):
             seed = 0 if self._seed is None else self._seed + 1
         self._seed = seed
         state = self.backend.reset(self.config.scenario, seed)
-        self.cav_index = np.flatnonzero(state.is_cav)  # (C,) vehicle index of each agent
+        self.cav_ordinal = np.cumsum(state.is_cav) - 1  # (V,) k of the k-th CAV (agent cav_k)
+        self.slot_vehicle = np.full(self.n_cavs, -1, np.int64)  # (C,) occupant, -1 none
+        self._last_vehicle = np.full(self.n_cavs, -1, np.int64)  # (C,) latest occupant
         self.action_memory = np.zeros((self.n_cavs, 2), np.int64)  # proposed, refined
         self.last_refined = np.zeros(state.n_vehicles, np.int64)
         self.steps = 0
         self.state_ = state
         self.builder.reset(state)
-        self.agents = list(self.possible_agents)
+        self.slot_start = self._fill_slots(state)
+        self.agents = self._live_agents(state)
+        self._recorder = None  # the dict API's reset() starts one; the batched API needs none
         return self._observe()
+
+    def _fill_slots(self, state: TrafficState) -> np.ndarray:
+        """Free the slots of CAVs gone before this step, give CAVs on the road without
+        a slot the free ones (module docstring); sets :attr:`cav_index`, returns the
+        (C,) refilled slots."""
+        occupant = self.slot_vehicle
+        held = np.maximum(occupant, 0)
+        stays = (occupant >= 0) & (state.active[held] | state.arrived_now[held])  # (C,)
+        waiting = np.flatnonzero(state.active & state.is_cav)  # in order of entry
+        waiting = waiting[~np.isin(waiting, occupant[stays])]
+        free = np.flatnonzero(~stays)
+        n_new = min(len(free), len(waiting))
+        occupant = np.where(stays, occupant, -1)
+        occupant[free[:n_new]] = waiting[:n_new]
+        refilled = np.zeros(self.n_cavs, bool)
+        refilled[free[:n_new]] = True
+        self.unserved_cavs = len(waiting) - n_new  # CAVs on the road without a slot
+        self.slot_vehicle = occupant
+        self._last_vehicle = np.where(occupant >= 0, occupant, self._last_vehicle)
+        # An empty slot points at its last occupant (gone for good) or, never used, at
+        # any vehicle off the road: one exists, since then some CAV is not on the road.
+        index = self._last_vehicle
+        if (index < 0).any():
+            index = np.where(index < 0, np.flatnonzero(~state.active)[0], index)
+        self.cav_index = index.copy()  # (C,) vehicle index of each slot
+        self.action_memory[refilled] = 0
+        return refilled
+
+    def _live_agents(self, state: TrafficState) -> list[str]:
+        """PettingZoo names of the CAVs on the road that hold a slot."""
+        live = self.slot_vehicle[self.slot_vehicle >= 0]
+        live = np.sort(live[state.active[live]])
+        return [f"cav_{k}" for k in self.cav_ordinal[live]]
 
     def step_arrays(self, actions: np.ndarray) -> StepResult:
         """Advance one decision step with proposed actions (C,) for every CAV slot."""
@@ -210,6 +304,7 @@ class BottleneckEnv(ParallelEnv):
         self.builder.push(state)
         self.action_memory = np.stack([decision.proposed, decision.refined], axis=1)
         self.last_refined[self.cav_index] = decision.refined
+        self.slot_start = self._fill_slots(state)
 
     def conclude(
         self,
@@ -222,7 +317,8 @@ class BottleneckEnv(ParallelEnv):
         """The step's result, given the observations and the reward of the state
         :meth:`enter` entered (which :meth:`ObservationBuilder.observe_batch` and
         :func:`~diacc.reward.reward` compute for many envs at once)."""
-        terminated = bool(len(state.collisions) > 0 or not state.active.any())
+        # Every vehicle gone: none on the road and none still to enter (demand).
+        terminated = bool(len(state.collisions) > 0 or state.arrived.all())
         truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
         return StepResult(
             actor_obs=actor_obs,
@@ -246,6 +342,7 @@ class BottleneckEnv(ParallelEnv):
                 "delay": terms.delay,
                 "tau": terms.tau,
             },
+            slot_start=self.slot_start.copy(),
         )
 
     def _observe(self) -> tuple[ActorObs, CriticState]:
@@ -254,10 +351,9 @@ class BottleneckEnv(ParallelEnv):
         return actor, self.builder.critic()
 
     # ------------------------------------------------------------------ PettingZoo API
-    def observation_space(self, agent: str) -> gymnasium.spaces.Dict:
-        """One agent's row of :class:`ActorObs`, from the observation spec (no reset needed)."""
-        if self._observation_space is not None:
-            return self._observation_space
+    def observation_space(self, agent: str) -> gymnasium.spaces.Space:
+        """One agent's observation space (:mod:`diacc.spaces`; no reset needed)."""
+        return self._observation_space
         spec = self.builder.spec()
         spaces = {}
         for name, (shape, dtype) in spec.actor_shapes(n_cavs=1).items():
@@ -274,20 +370,39 @@ class BottleneckEnv(ParallelEnv):
     def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
         return self._action_space
 
+    def _agent_slots(self) -> dict[str, int]:
+        """Slot of each agent (CAV) that holds one now."""
+        held = np.flatnonzero(self.slot_vehicle >= 0)
+        return {f"cav_{self.cav_ordinal[self.slot_vehicle[i]]}": int(i) for i in held}
+
     def reset(self, seed: int | None = None, options: dict | None = None):
         actor_obs, _ = self.reset_arrays(seed)
-        observations = {a: self._agent_obs(actor_obs, i) for i, a in enumerate(self.agents)}
+        self._recorder = EpisodeRecorder(
+            self.road, self.config.events, self.config.scenario.warmup_s
+        )
+        self._recorder.record(self.state_)
+        slots = self._agent_slots()
+        observations = {a: self._agent_obs(actor_obs, slots[a]) for a in self.agents}
+        if self.render_mode == "human":
+            self.render()
         return observations, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, int]):
-        index = {a: i for i, a in enumerate(self.possible_agents)}
+        index = self._agent_slots()
         batch = np.zeros(self.n_cavs, np.int64)
         for agent, action in actions.items():
-            batch[index[agent]] = action
+            if agent in index:
+                batch[index[agent]] = action
         out = self.step_arrays(batch)
+        if self._recorder is not None:
+            self._recorder.record(out.state, psar=out.psar)
         acting = list(self.agents)
+        ended = out.terminated or out.truncated
+        # CAVs that took a slot in this step join (PettingZoo lets agents appear).
+        index.update(self._agent_slots())
+        joining = [] if ended else [a for a in self._live_agents(out.state) if a not in acting]
         observations, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
-        for agent in acting:
+        for agent in acting + joining:
             i = index[agent]
             observations[agent] = self._agent_obs(out.actor_obs, i)
             rewards[agent] = out.reward
@@ -299,7 +414,14 @@ class BottleneckEnv(ParallelEnv):
                 "collisions": out.state.collisions.copy(),
                 "arrivals": out.state.arrivals.copy(),
             }
-        self.agents = [a for a in acting if not (terms[a] or truncs[a])]
+        self.agents = [] if ended else self._live_agents(out.state)
+        if not self.agents and acting and self._recorder is not None:
+            summary = self._recorder.summary()
+            metrics = {key: getattr(summary, key) for key in INFO_METRICS}
+            for agent in acting + joining:
+                infos[agent]["episode_metrics"] = dict(metrics)
+        if self.render_mode == "human":
+            self.render()
         return observations, rewards, terms, truncs, infos
 
     def state(self) -> np.ndarray:
@@ -310,38 +432,76 @@ class BottleneckEnv(ParallelEnv):
         )
 
     def render(self) -> np.ndarray | None:
-        """An RGB frame (H, W, 3) uint8 of the current state (:class:`diacc.viewer.Viewer`)."""
+        """What ``render_mode`` asks for: ``"rgb_array"`` returns an RGB frame (H, W, 3)
+        uint8 of the current state (:class:`diacc.viewer.Viewer`), ``"human"`` shows
+        it in a window and returns ``None``. Without a render mode there is nothing
+        to render: a one-line :class:`RenderModeError` (Gymnasium only warns, which
+        hides the mistake)."""
+        if self.render_mode is None:
+            raise RenderModeError(
+                "render() needs a render_mode; make the env with render_mode='rgb_array' "
+                "(frames) or 'human' (a window)"
+            )
         if self.state_ is None:
             return None
         if self._viewer is None:
             from diacc.viewer import Viewer
 
             self._viewer = Viewer(self.road, self.config.sim)
-        return self._viewer.draw(self.state_)
+        frame = self._viewer.draw(self.state_)
+        if self.render_mode == "rgb_array":
+            return frame
+        if self._window is None:
+            from diacc.viewer import Window
+
+            self._window = Window(f"diacc {self.config.map} ({self.config.backend})")
+        self._window.show(frame)
+        return None
 
     def close(self) -> None:
         if self._viewer is not None:
             self._viewer.close()
+        if self._window is not None:
+            self._window.close()
+            self._window = None
         self.backend.close()
 
     # ------------------------------------------------------------------ helpers
-    @staticmethod
-    def _agent_obs(actor_obs: ActorObs, i: int) -> dict[str, np.ndarray]:
-        # np.asarray: a per-agent scalar (``alive``) stays a 0-d array, as its space expects
-        obs = {name: np.asarray(value[i]) for name, value in asdict(actor_obs).items()}
-        # PettingZoo's action_mask convention (its API test samples with it): int8.
-        obs["action_mask"] = obs["action_mask"].astype(np.int8)
-        return obs
+    def _agent_obs(self, actor_obs: ActorObs, i: int) -> dict[str, np.ndarray] | np.ndarray:
+        return agent_observation(actor_obs, i, self._dict_space, self.observation_format)
+
+
+def check_render_mode(render_mode: str | None) -> str | None:
+    """``render_mode`` if this machine can honour it, else a one-line :class:`RenderModeError`.
+
+    ``"human"`` needs a display (``DISPLAY`` or ``WAYLAND_DISPLAY`` on Linux);
+    refusing it here beats a window that never appears.
+    """
+    modes = BottleneckEnv.metadata["render_modes"]
+    if render_mode is not None and render_mode not in modes:
+        raise RenderModeError(
+            f"unknown render_mode {render_mode!r}; use one of: {', '.join(modes)} (or None)"
+        )
+    if render_mode == "human":
+        from diacc.viewer import display_available
+
+        if not display_available():
+            raise RenderModeError(
+                "render_mode 'human' needs a display and none was found (DISPLAY is unset); "
+                "use render_mode='rgb_array' and save the frames"
+            )
+    return render_mode
 
 
 # ---------------------------------------------------------------------- AEC entry point
-def aec_env(render_mode: str | None = None, **config: Any):
+def aec_env(render_mode: str | None = None, observation_format: str = "dict", **config: Any):
     """The environment as a PettingZoo ``AECEnv``, by PettingZoo's own parallel->AEC wrapper."""
     from pettingzoo.utils.conversions import parallel_to_aec
 
     from diacc import parallel_env
 
-    return parallel_to_aec(parallel_env(render_mode=render_mode, **config))
+    env = parallel_env(render_mode=render_mode, observation_format=observation_format, **config)
+    return parallel_to_aec(env)
 
 
 class CallableEnvModule(types.ModuleType):
@@ -352,8 +512,10 @@ class CallableEnvModule(types.ModuleType):
     ``from diacc.env import EnvConfig`` and ``diacc.env(map="train-50")`` working.
     """
 
-    def __call__(self, render_mode: str | None = None, **config: Any):
-        return aec_env(render_mode=render_mode, **config)
+    def __call__(
+        self, render_mode: str | None = None, observation_format: str = "dict", **config: Any
+    ):
+        return aec_env(render_mode=render_mode, observation_format=observation_format, **config)
 
 
 sys.modules[__name__].__class__ = CallableEnvModule

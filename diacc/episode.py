@@ -30,7 +30,7 @@ class CavPolicy(Protocol):
 
     def begin_episode(self, n_cavs: int, seed: int) -> None: ...
 
-    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray: ...
+    def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray: ...
 
 
 class EpisodeDriver:
@@ -41,6 +41,9 @@ class EpisodeDriver:
         self.env = BottleneckEnv(cfg)
         self.road, self.backend = self.env.road, self.env.backend
         self.state: TrafficState | None = None
+        use_road = getattr(policy, "use_road", None)  # optional: policies that read the map
+        if use_road is not None:
+            use_road(self.road)
 
     def reset(self, seed: int) -> TrafficState:
         """Start the episode of ``seed`` (traffic and, for scripted policies, their draws)."""
@@ -55,12 +58,15 @@ class EpisodeDriver:
     def step(self) -> TrafficState:
         """Advance one decision step; sets :attr:`done`, :attr:`psar_rule` and :attr:`psar`."""
         assert self.state is not None and not self.done, "reset() before step()"
-        actions = self.policy.act(self._obs, first_step=self.steps == 0)
+        # (C,) slots whose CAV acts first now: all at the start, refilled ones later (demand).
+        first_step = (self.steps == 0) | self.env.slot_start
+        actions = self.policy.act(self._obs, first_step=first_step)
         alive_before = self._obs.alive.copy()  # (C,)
+        acting = self.env.cav_index.copy()  # (C,) before slots are refilled (demand)
         out = self.env.step_arrays(actions)
         self._obs = out.actor_obs
         self.psar_rule = np.zeros(out.state.n_vehicles, np.int8)
-        self.psar_rule[self.env.cav_index] = np.where(alive_before, out.psar_rule, 0)
+        self.psar_rule[acting] = np.where(alive_before, out.psar_rule, 0)
         self.psar = out.psar
         self.steps += 1
         self.state, self.done = out.state, out.terminated or out.truncated
@@ -72,7 +78,7 @@ class EpisodeDriver:
 
 def play_episode(driver: EpisodeDriver, seed: int) -> EpisodeRecorder:
     """Play one seeded episode to its end; the recorder holds every state (the metrics' input)."""
-    recorder = EpisodeRecorder(driver.road, driver.cfg.events)
+    recorder = EpisodeRecorder(driver.road, driver.cfg.events, driver.cfg.scenario.warmup_s)
     recorder.record(driver.reset(seed))
     while not driver.done:
         state = driver.step()

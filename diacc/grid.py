@@ -20,7 +20,13 @@ A :class:`Cell` is one traffic condition of paper Tables II-III. Grids:
       cav_penetration = 0.2
       style_mix = "D3"
 
-  or as a product of value lists (every key optional, defaults as in ``train``)::
+  A cell with ``inflow_vph`` is a ``demand`` cell (:mod:`diacc.scenario`):
+  vehicles enter at that rate over the run's ``scenario.demand_s`` (its
+  warm-up and agent slots too), and ``n_vehicles`` may be left out (it
+  follows from the inflow).
+
+  or as a product of value lists (every key optional, defaults as in ``train``;
+  ``inflow_vph`` sweeps demand instead of N)::
 
       [product]
       map = ["test-25", "test-50"]
@@ -58,6 +64,8 @@ PAPER_ZERO_SHOT_ROWS = (
 )
 #: Columns that identify a cell in every results file, in this order.
 CELL_KEYS = ("map", "n_vehicles", "cav_penetration", "style_mix")
+#: Cell keys that may be left out: a demand cell's inflow (0: the paper's release).
+OPTIONAL_CELL_KEYS = ("inflow_vph",)
 #: First word of every evaluation seed's entropy; training seeds start with the
 #: run seed (small integers), so evaluation episodes use other random streams.
 EVAL_SEED_TAG = 0xE7A1_5EED
@@ -75,11 +83,14 @@ class Cell:
     n_vehicles: int
     cav_penetration: float
     style_mix: str
+    inflow_vph: float = 0.0  # > 0: a demand cell (vehicles enter at this rate)
 
     @property
     def key(self) -> str:
-        """Stable, file-name-safe identifier, e.g. ``train-25_N25_rho0.40_D1``."""
-        return f"{self.map}_N{self.n_vehicles}_rho{self.cav_penetration:.2f}_{self.style_mix}"
+        """Stable, file-name-safe identifier, e.g. ``train-25_N25_rho0.40_D1``
+        (``train-50_Q3200_rho0.40_D1`` for a demand cell)."""
+        size = f"Q{self.inflow_vph:.0f}" if self.inflow_vph else f"N{self.n_vehicles}"
+        return f"{self.map}_{size}_rho{self.cav_penetration:.2f}_{self.style_mix}"
 
     def scenario(
         self, cav_penetration: float | None = None, base: Scenario | None = None
@@ -87,6 +98,16 @@ class Cell:
         """The scenario of this cell (``cav_penetration`` overrides rho, e.g. 0 for pure HDV)."""
         base = base or Scenario()
         rho = self.cav_penetration if cav_penetration is None else cav_penetration
+        demand = {}
+        if self.inflow_vph:  # the run's demand settings, or the defaults
+            timing = base if base.kind == "demand" else Scenario()
+            demand = {
+                "kind": "demand",
+                "inflow_vph": self.inflow_vph,
+                "demand_s": timing.demand_s,
+                "warmup_s": timing.warmup_s,
+                "cav_slots": timing.cav_slots,
+            }
         return Scenario(
             n_vehicles=self.n_vehicles,
             cav_penetration=rho,
@@ -94,6 +115,7 @@ class Cell:
             insert_start_m=base.insert_start_m,
             insert_spacing_m=base.insert_spacing_m,
             insert_speed_mps=base.insert_speed_mps,
+            **demand,
         )
 
     def seed(self, episode: int) -> int:
@@ -117,12 +139,17 @@ class Cell:
 
 def make_cell(values: dict, source: str = "<grid>") -> Cell:
     """Validate one cell mapping (as read from TOML or CSV) into a :class:`Cell`."""
-    unknown = set(values) - set(CELL_KEYS)
+    unknown = set(values) - set(CELL_KEYS) - set(OPTIONAL_CELL_KEYS)
     if unknown:
         raise GridError(
             f"{source}: unknown grid cell key {sorted(unknown)[0]!r}; "
-            f"known keys: {', '.join(CELL_KEYS)}"
+            f"known keys: {', '.join(CELL_KEYS + OPTIONAL_CELL_KEYS)}"
         )
+    inflow = values.get("inflow_vph", 0.0)
+    if not isinstance(inflow, (int, float)) or isinstance(inflow, bool) or inflow < 0:
+        raise GridError(f"{source}: inflow_vph must be a positive number, got {inflow!r}")
+    if inflow and "n_vehicles" not in values:
+        values = {**values, "n_vehicles": 1}  # set from the inflow below
     missing = [k for k in CELL_KEYS if k not in values]
     if missing:
         raise GridError(f"{source}: grid cell is missing key {missing[0]!r}")
@@ -137,11 +164,13 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
         raise GridError(f"{source}: cav_penetration must be a number in [0, 1], got {rho!r}")
     if mix not in STYLE_MIXES:
         raise GridError(f"{source}: unknown style mix {mix!r}; known: {', '.join(STYLE_MIXES)}")
-    cell = Cell(str(values["map"]), int(n), float(rho), str(mix))
+    cell = Cell(str(values["map"]), int(n), float(rho), str(mix), float(inflow))
     try:
-        cell.scenario()
+        scenario = cell.scenario()
     except ScenarioError as exc:
         raise GridError(f"{source}: {exc}") from None
+    if inflow:  # N follows from the inflow (at the default demand_s)
+        cell = Cell(cell.map, scenario.n_vehicles, cell.cav_penetration, mix, float(inflow))
     return cell
 
 
@@ -152,20 +181,22 @@ def _product(values: dict, source: str) -> list[Cell]:
         "cav_penetration": [0.4],
         "style_mix": ["D1"],
     }
-    unknown = set(values) - set(CELL_KEYS)
+    unknown = set(values) - set(CELL_KEYS) - set(OPTIONAL_CELL_KEYS)
     if unknown:
         raise GridError(
             f"{source}: unknown grid cell key {sorted(unknown)[0]!r}; "
-            f"known keys: {', '.join(CELL_KEYS)}"
+            f"known keys: {', '.join(CELL_KEYS + OPTIONAL_CELL_KEYS)}"
         )
-    lists = {k: values.get(k, defaults[k]) for k in CELL_KEYS}
+    keys = CELL_KEYS + tuple(k for k in OPTIONAL_CELL_KEYS if k in values)
+    lists = {k: values.get(k, defaults.get(k)) for k in keys}
     for key, value in lists.items():
         if not isinstance(value, list) or not value:
             raise GridError(f"{source}: product key {key!r} must be a non-empty list")
-    return [
-        make_cell(dict(zip(CELL_KEYS, combo, strict=True)), source)
-        for combo in itertools.product(*(lists[k] for k in CELL_KEYS))
+    cells = [
+        make_cell(dict(zip(keys, combo, strict=True)), source)
+        for combo in itertools.product(*(lists[k] for k in keys))
     ]
+    return sorted(set(cells), key=cells.index)  # demand cells of any N are one cell
 
 
 def load_grid(name_or_path: str | Path) -> list[Cell]:

@@ -19,8 +19,25 @@ Definitions:
 * ``arrived_fraction``: vehicles that reached the route end / vehicles seen.
   Travel time = time of the first state marking a vehicle arrived minus the
   time of the first state it was seen active in.
+* Flow (how the bottleneck serves the traffic as a whole):
+  ``throughput_vph``: vehicles seen past the end of the last reduction segment
+  (or arrived), per hour of the episode (first to last recorded state; nan on
+  a map without a reduction). ``total_delay_s``: vehicle-seconds lost against
+  free-flow travel at each segment's speed limit, summed over the vehicles
+  seen: time on the road (to arrival, or to the episode's end for vehicles
+  still on it) minus the time the distance they covered takes at the limits;
+  ``delay_per_vehicle_s`` divides it by the vehicles seen.
+  ``mean_arrived_speed_mps``: mean of the speed samples of vehicles that
+  arrived; ``never_arrived_fraction`` = 1 - ``arrived_fraction``.
 * PSAR fire rate per rule: CAV decisions where the rule took effect
   (:attr:`diacc.psar.PSARResult.rule_mask`) / decisions of active CAVs.
+* Warm-up (``warmup_s``, demand scenarios): states before it add no speed
+  sample, event, collision or PSAR count, and vehicles count as seen only
+  once on the road after it; travel times are those of vehicles that entered
+  after it (so none is cut short). Flows cover the measured window only:
+  throughput counts the vehicles passing the bottleneck's end after the
+  warm-up per hour of the window, the delay is that of each vehicle's time on
+  the road within the window. 0 (the default) measures everything.
 """
 
 from __future__ import annotations
@@ -61,6 +78,11 @@ class EpisodeMetrics:
     n_vehicles: int  # vehicles seen on the road
     psar_decisions: int  # active-CAV decisions that went through PSAR
     psar_fire_rate: dict[str, float]  # rule name -> fraction of those decisions
+    throughput_vph: float  # vehicles past the bottleneck's end per hour
+    total_delay_s: float  # vehicle-seconds lost against the speed limits
+    delay_per_vehicle_s: float
+    mean_arrived_speed_mps: float  # speed samples of vehicles that arrived
+    never_arrived_fraction: float
 
     def as_dict(self) -> dict:
         """Plain dict (for JSON / TensorBoard logging)."""
@@ -111,9 +133,10 @@ class EpisodeRecorder:
         events: thresholds of the waiting / safety-critical event detectors.
     """
 
-    def __init__(self, road: Map, events: EventConfig | None = None) -> None:
+    def __init__(self, road: Map, events: EventConfig | None = None, warmup_s: float = 0.0) -> None:
         self.road = road
         self.events = events or EventConfig()
+        self.warmup_s = warmup_s
         self._kind_of_segment = np.array(
             [SEGMENT_KINDS.index(s.kind) for s in road.segments], dtype=np.int8
         )  # (S,)
@@ -124,6 +147,17 @@ class EpisodeRecorder:
         self._psar_decisions = 0
         self._first_step: int | None = None
         self._last_step = 0
+        self._last_time_s = 0.0
+        reductions = [i for i, seg in enumerate(road.segments) if seg.kind.startswith("reduction")]
+        #: x past which a vehicle has crossed the bottleneck (nan: no reduction segment)
+        self._bottleneck_end_m = (
+            float(road.segment_ends_m[reductions[-1]]) if reductions else float("nan")
+        )
+        limits = np.array([seg.speed_limit_mps for seg in road.segments])  # (S,)
+        lengths = np.array([seg.length_m for seg in road.segments])  # (S,)
+        #: free-flow time to reach each segment boundary from the route start
+        self._edges_m = np.concatenate([[0.0], np.cumsum(lengths)])  # (S + 1,)
+        self._free_time_s = np.concatenate([[0.0], np.cumsum(lengths / limits)])  # (S + 1,)
 
     def _init_vehicles(self, n: int) -> None:
         self._n = n
@@ -132,8 +166,15 @@ class EpisodeRecorder:
         self._waited = np.zeros(n, dtype=bool)  # (V,)
         self._sce = np.zeros(n, dtype=bool)  # (V,)
         self._arrived = np.zeros(n, dtype=bool)  # (V,)
+        self._entered = np.zeros(n, dtype=bool)  # (V,) on the road at some recorded state
         self._first_time_s = np.full(n, np.nan)  # (V,)
         self._arrival_time_s = np.full(n, np.nan)  # (V,)
+        self._window_time_s = np.full(n, np.nan)  # (V,) first measured on the road
+        self._window_start_s: float | None = None
+        self._passed_before = np.zeros(n, dtype=bool)  # (V,) past the end at window start
+        self._first_x_m = np.full(n, np.nan)  # (V,)
+        self._last_x_m = np.full(n, np.nan)  # (V,)
+        self._passed = np.zeros(n, dtype=bool)  # (V,) crossed the bottleneck's end
 
     def record(
         self,
@@ -160,6 +201,16 @@ class EpisodeRecorder:
             self._first_step = state.step
             self._is_cav = state.is_cav.copy()
         self._last_step = state.step
+        new = state.active & ~self._entered
+        self._first_time_s[new] = state.time_s
+        self._entered |= state.active
+        self._last_time_s = float(state.time_s)
+        if state.time_s < self.warmup_s - 1e-9:
+            return
+        if self._window_start_s is None:  # first measured state: flows count from here
+            self._window_start_s = float(state.time_s)
+            if self.warmup_s > 0:  # those passed during the warm-up
+                self._passed_before = state.active & (state.x_m >= self._bottleneck_end_m)
 
         idx = np.flatnonzero(state.active)  # (A,)
         self._chunks.append(
@@ -173,7 +224,10 @@ class EpisodeRecorder:
             )
         )
         new = state.active & ~self._seen
-        self._first_time_s[new] = state.time_s
+        self._window_time_s[new] = state.time_s
+        self._first_x_m[new] = state.x_m[new]
+        self._last_x_m[state.active] = state.x_m[state.active]
+        self._passed |= state.arrived | (state.active & (state.x_m >= self._bottleneck_end_m))
         self._seen |= state.active
         self._waited |= waiting_events(state, self.events)
         if critical is None:
@@ -209,11 +263,13 @@ class EpisodeRecorder:
         n_collisions = int(pairs.shape[0])
         n_hdv_collisions = int(np.count_nonzero(~self._is_cav[pairs].any(axis=1)))
         travel_s = self._arrival_time_s - self._first_time_s  # (V,) nan if not both
+        travel_s[self._first_time_s < self.warmup_s - 1e-9] = np.nan  # entered in the warm-up
         decisions = self._psar_decisions
         fire = {
             name: (float(count) / decisions if decisions else float("nan"))
             for name, count in zip(RULE_NAMES[1:], self._psar_counts.tolist(), strict=True)
         }
+        arrived = self._arrived & self._seen  # (V,)
         return EpisodeMetrics(
             mean_speed_mps=_mean(speed),
             std_speed_mps=float(speed.std()) if speed.size else float("nan"),
@@ -230,7 +286,35 @@ class EpisodeRecorder:
             n_vehicles=n_seen,
             psar_decisions=decisions,
             psar_fire_rate=fire,
+            **self._flow(samples, arrived, n_seen),
         )
+
+    def _flow(self, samples: SpeedSamples, arrived: np.ndarray, n_seen: int) -> dict:
+        """The flow fields of :class:`EpisodeMetrics` (module docstring)."""
+        duration_h = (self._last_time_s - (self._window_start_s or 0.0)) / 3600.0
+        n_passed = int(np.count_nonzero(self._passed & self._seen & ~self._passed_before))
+        throughput = (
+            n_passed / duration_h
+            if duration_h > 0 and np.isfinite(self._bottleneck_end_m)
+            else float("nan")
+        )
+        seen = self._seen  # (V,)
+        end_time_s = np.where(arrived, self._arrival_time_s, self._last_time_s)  # (V,)
+        end_x_m = np.where(arrived, self._edges_m[-1], self._last_x_m)  # (V,)
+        free_s = self._free_flow_s(end_x_m[seen]) - self._free_flow_s(self._first_x_m[seen])
+        total_delay = float(np.sum(end_time_s[seen] - self._window_time_s[seen] - free_s))
+        arrived_samples = arrived[samples.vehicle]  # (S,)
+        return {
+            "throughput_vph": throughput,
+            "total_delay_s": total_delay,
+            "delay_per_vehicle_s": total_delay / n_seen if n_seen else float("nan"),
+            "mean_arrived_speed_mps": _mean(samples.speed_mps[arrived_samples]),
+            "never_arrived_fraction": _share(seen & ~arrived, n_seen),
+        }
+
+    def _free_flow_s(self, x_m: np.ndarray) -> np.ndarray:
+        """Free-flow time (s) from the route start to ``x_m`` at the segments' limits."""
+        return np.interp(x_m, self._edges_m, self._free_time_s)
 
 
 def _mean(values: np.ndarray) -> float:

@@ -321,25 +321,92 @@ def gaussian_kde(samples: np.ndarray, grid: np.ndarray) -> np.ndarray:
 def plot_speeds(
     result_dirs: list[str | Path], out: str | Path, map_name: str | None = None
 ) -> list[Path]:
-    """Per-segment-kind speed box plots and KDEs, one colour per policy."""
+    """Per-segment-kind speed box plots and KDEs, one colour per policy, one figure per map.
+
+    Maps are never pooled: with ``map_name`` the figure shows that map; without
+    it, a results set of one map gives ``<out>.png``, and one of several maps
+    gives ``<out>-<map>.png`` per map. The caption names the backend(s), the
+    map and the episodes behind each policy.
+    """
     if not result_dirs:
         raise PlotError("give at least one results directory")
-    loaded = [load_speeds(d, map_name) for d in result_dirs]
-    labels = [label for label, _ in loaded]
+    loaded = [_speed_source(d) for d in result_dirs]
+    labels = [src["label"] for src in loaded]
     if len(set(labels)) < len(labels):
         labels = [f"{lab} [{Path(d).name}]" for lab, d in zip(labels, result_dirs, strict=True)]
-    return draw_speeds(
-        [(lab, by_kind) for lab, (_, by_kind) in zip(labels, loaded, strict=True)], out
-    )
+    maps = list(dict.fromkeys(m for src in loaded for m in src["by_map"]))
+    if map_name is not None:
+        missing = [
+            d for d, src in zip(result_dirs, loaded, strict=True) if map_name not in src["by_map"]
+        ]
+        if missing:
+            raise PlotError(
+                f"results directory {missing[0]} has no speed samples on map {map_name!r}"
+            )
+        maps = [map_name]
+    backends = sorted({src["backend"] for src in loaded})
+    paths = []
+    for m in maps:
+        columns = [
+            (lab, src["by_map"].get(m, _no_speeds()))
+            for lab, src in zip(labels, loaded, strict=True)
+        ]
+        episodes = ", ".join(
+            f"{lab}: {src['episodes'].get(m, 0)}" for lab, src in zip(labels, loaded, strict=True)
+        )
+        caption = (
+            f"Backend {' and '.join(backends)}, map {m}. Episodes per policy: {episodes}. "
+            "Boxes: quartiles and median (black line) of all vehicle-step speed samples, "
+            "whiskers 1.5 IQR, outliers hidden; curves: Gaussian KDE of the same samples."
+        )
+        target = out if len(maps) == 1 else _suffixed(out, Path(m).stem)
+        paths += draw_speeds(columns, target, f"Speeds on {m} ({', '.join(backends)})", caption)
+    return paths
+
+
+def _speed_source(result_dir: str | Path) -> dict:
+    """Label, backend, map -> kind -> samples and map -> episode count of a results directory."""
+    meta, rows = load_episodes(result_dir)
+    label, by_map = load_speeds_by_map(result_dir)
+    episodes: dict[str, int] = {}
+    for row in rows:
+        episodes[row["map"]] = episodes.get(row["map"], 0) + 1
+    return {
+        "label": label,
+        "backend": meta.get("backend", "?"),
+        "by_map": by_map,
+        "episodes": episodes,
+    }
+
+
+def _no_speeds() -> dict[str, np.ndarray]:
+    return {kind: np.zeros(0) for kind in SEGMENT_KINDS}
+
+
+def _suffixed(out: str | Path, suffix: str) -> Path:
+    out = Path(out)
+    if out.suffix in (".png", ".pdf"):
+        out = out.with_suffix("")
+    return out.with_name(f"{out.name}-{suffix}")
 
 
 def draw_speeds(
-    loaded: list[tuple[str, dict[str, np.ndarray]]], out: str | Path, title: str | None = None
+    loaded: list[tuple[str, dict[str, np.ndarray]]],
+    out: str | Path,
+    title: str | None = None,
+    caption: str | None = None,
 ) -> list[Path]:
-    """The figure of :func:`plot_speeds` from (label, segment kind -> samples (S,)) per policy."""
+    """The figure of :func:`plot_speeds` from (label, segment kind -> samples (S,)) per policy.
+
+    Boxes are light (alpha 0.45) with a black median line, so the median
+    stays visible on any box colour; every density panel has its axis labels
+    and a legend; ``caption`` goes under the figure.
+    """
     kinds = [k for k in SEGMENT_KINDS if any(by_kind[k].size for _, by_kind in loaded)]
+    if not kinds:
+        raise PlotError("no speed samples to plot")
     plt = _pyplot()
-    fig, axes = plt.subplots(1, 1 + len(kinds), figsize=(4.5 * (1 + len(kinds)), 3.8))
+    fig, axes = plt.subplots(1, 1 + len(kinds), figsize=(4.5 * (1 + len(kinds)), 4.0))
     box_ax, kde_axes = axes[0], axes[1:]
     width = 0.8 / len(loaded)
     for p, (label, by_kind) in enumerate(loaded):
@@ -353,25 +420,36 @@ def draw_speeds(
             patch_artist=True,
             showfliers=False,
             manage_ticks=False,
+            medianprops={"color": "black", "linewidth": 1.6},
         )
         for patch in parts["boxes"]:
             patch.set_facecolor(colour)
-            patch.set_alpha(0.6)
-        box_ax.plot([], [], color=colour, lw=6, alpha=0.6, label=label)
+            patch.set_alpha(0.45)
+            patch.set_edgecolor(colour)
+        box_ax.plot([], [], color=colour, lw=6, alpha=0.45, label=label)
         for ax, kind in zip(kde_axes, kinds, strict=True):
             if by_kind[kind].size:
                 hi = max(30.0, float(by_kind[kind].max()) + 2)
                 grid = np.linspace(0.0, hi, 300)
-                ax.plot(grid, gaussian_kde(by_kind[kind], grid), color=colour, label=label)
+                density = gaussian_kde(by_kind[kind], grid)
+                ax.plot(grid, density, color=colour, label=f"{label} (n = {by_kind[kind].size})")
+    box_ax.plot([], [], color="black", lw=1.6, label="median")
     box_ax.set_xticks(np.arange(len(kinds)), kinds)
+    box_ax.set_xlabel("segment kind")
     box_ax.set_ylabel("speed (m/s)")
     box_ax.set_title("Speed by segment kind")
+    box_ax.grid(axis="y", alpha=0.3)
     box_ax.legend(fontsize=8)
     for ax, kind in zip(kde_axes, kinds, strict=True):
         ax.set_title(f"Speed density: {kind}")
         ax.set_xlabel("speed (m/s)")
+        ax.set_ylabel("density (per m/s)")
+        ax.set_ylim(bottom=0.0)
         ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
     if title:
         fig.suptitle(title)
     fig.tight_layout()
+    if caption:
+        fig.text(0.01, -0.01, caption, fontsize=8.5, ha="left", va="top", wrap=True)
     return _save(fig, out)

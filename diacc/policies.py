@@ -1,13 +1,15 @@
-"""Policies the evaluator runs: two non-learning baselines, scripted CAVs and checkpoints.
+"""Policies the evaluator runs: non-learning baselines, scripted CAVs and checkpoints.
 
 Every policy answers the same two questions, and every episode is played
 through the environment (:mod:`diacc.episode`), so the evaluator treats a
 baseline exactly like a checkpoint:
 
 * :meth:`Policy.env_config`: which environment a grid cell means for it
-  (``pure-hdv`` turns every CAV into an HDV; ``cooperative`` lets the CAVs
-  drive themselves; a checkpoint keeps the observation, PSAR, reward and
-  simulation settings it was trained with);
+  (``pure-hdv`` turns every CAV into an HDV and redraws the styles of all;
+  ``same-mix`` keeps the cell's draw and hands the CAV slots to human
+  drivers of one style, so that it differs from a CAV policy in the control
+  only; ``cooperative`` lets the CAVs drive themselves; a checkpoint keeps
+  the observation, PSAR, reward and simulation settings it was trained with);
 * :meth:`Policy.act`: the CAVs' actions; from a trained actor with its GRU
   state, greedy (argmax, the default) or, with ``PolicySpec.sampled``, drawn
   from the policy's distribution with a generator seeded by the episode seed
@@ -28,17 +30,24 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.actions import ACTION_NAMES, REMAIN
-from diacc.config import VARIANTS, EnvConfig, SimConfig, TrainConfig
+from diacc.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.config import STYLE_NAMES, VARIANTS, EnvConfig, SimConfig, TrainConfig
 from diacc.errors import DiaccError
 from diacc.grid import Cell
+from diacc.maps import Map
 from diacc.observation import ActorObs
 
-#: Names of the non-learning baselines.
-BASELINES = ("pure-hdv", "cooperative")
-#: Scripted CAV policies (safety benchmark): one fixed action, or uniform random.
-#: ``<name>-nopsar`` runs the same script without PSAR.
-SCRIPTED = ("remain", "accelerate", "random")
+#: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
+#: ``normal`` human model; ``same-mix:<style>`` by another style (:data:`STYLE_NAMES`).
+BASELINES = ("pure-hdv", "same-mix", "cooperative")
+SAME_MIX = "same-mix"
+#: Style of the human drivers in the CAV slots of plain ``same-mix``.
+SAME_MIX_DEFAULT_STYLE = "normal"
+#: Scripted CAV policies: one fixed action, uniform random, or the ``heuristic``
+#: (:class:`ScriptedPolicy`). ``<name>-nopsar`` runs the same script without PSAR.
+SCRIPTED = ("remain", "accelerate", "random", "heuristic")
+#: The heuristic leaves a lane that ends within this distance ahead (m).
+HEURISTIC_LEAVE_M = 150.0
 
 
 class PolicyError(DiaccError, ValueError):
@@ -95,7 +104,7 @@ class PolicySpec:
 
     @property
     def is_baseline(self) -> bool:
-        return self.name in BASELINES
+        return self.name in BASELINES or self.name.startswith(f"{SAME_MIX}:")
 
     @property
     def is_scripted(self) -> bool:
@@ -117,20 +126,28 @@ class Policy:
         refuses larger cells).
         """
         obs = self.base.obs
+        scenario = cell.scenario(base=self.base.scenario)
         return dataclasses.replace(
             self.base,
             backend=settings.backend,
             map=cell.map,
-            scenario=cell.scenario(base=self.base.scenario),
+            scenario=scenario,
             sim=settings.apply(self.base.sim),
-            obs=dataclasses.replace(obs, max_vehicles=max(obs.max_vehicles, cell.n_vehicles)),
+            obs=dataclasses.replace(obs, max_vehicles=max(obs.max_vehicles, scenario.n_vehicles)),
         )
+
+    def use_road(self, road: Map) -> None:
+        """The road of the episodes to come (:class:`~diacc.episode.EpisodeDriver` calls it)."""
 
     def begin_episode(self, n_cavs: int, seed: int) -> None:
         """Forget any recurrent state (called before the first :meth:`act`)."""
 
-    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
-        """(C,) int64 actions for every CAV slot; here ``remain``, i.e. no command."""
+    def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
+        """(C,) int64 actions for every CAV slot; here ``remain``, i.e. no command.
+
+        ``first_step``: True at the episode's first step, or a (C,) mask of the slots
+        whose CAV acts for the first time (slots refilled in a demand scenario).
+        """
         return np.full(actor_obs.alive.shape[0], REMAIN, np.int64)
 
     def describe(self) -> dict:
@@ -148,6 +165,40 @@ class PureHdvPolicy(Policy):
         return dataclasses.replace(
             cfg, use_psar=False, scenario=cell.scenario(cav_penetration=0.0, base=cfg.scenario)
         )
+
+
+def same_mix_style(name: str) -> str:
+    """The style of a ``same-mix`` / ``same-mix:<style>`` name (one-line error if unknown)."""
+    style = SAME_MIX_DEFAULT_STYLE if name == SAME_MIX else name.removeprefix(f"{SAME_MIX}:")
+    if (name != SAME_MIX and not name.startswith(f"{SAME_MIX}:")) or style not in STYLE_NAMES:
+        raise PolicyError(
+            f"unknown policy {name!r}; the same-mix baseline is {SAME_MIX} "
+            f"({SAME_MIX_DEFAULT_STYLE} drivers) or {SAME_MIX}:<style> with style one of "
+            f"{', '.join(STYLE_NAMES)}"
+        )
+    return style
+
+
+class SameMixPolicy(Policy):
+    """The cell's own vehicles and seeds, its CAV slots driven by human drivers.
+
+    Pure HDV redraws the styles of all N vehicles, so it differs from a CAV
+    policy in the vehicle mix as well as in the control (with ``paper``
+    presets, e.g., in the number of cautious drivers who get stuck at a lane
+    end). Here the draw is the CAV policy's (:attr:`Scenario.cav_slot_style`):
+    the same HDVs in the same slots, and in each CAV slot a human driver of
+    one style (``normal`` unless named), with no PSAR. A CAV policy's gain
+    over this baseline is what its control changes.
+    """
+
+    def __init__(self, name: str = SAME_MIX) -> None:
+        self.style = same_mix_style(name)
+        self.label = name
+
+    def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
+        cfg = super().env_config(cell, settings)
+        scenario = dataclasses.replace(cfg.scenario, cav_slot_style=self.style)
+        return dataclasses.replace(cfg, use_psar=False, scenario=scenario)
 
 
 class CooperativePolicy(Policy):
@@ -168,11 +219,17 @@ class CooperativePolicy(Policy):
 
 
 class ScriptedPolicy(Policy):
-    """CAVs that always take one action (``remain``, ``accelerate``) or a uniform
-    random one (``random``, seeded by the episode seed), with or without PSAR.
+    """CAVs that always take one action (``remain``, ``accelerate``), a uniform
+    random one (``random``, seeded by the episode seed) or follow the
+    ``heuristic``, with or without PSAR.
 
-    These are the probes of ``diacc bench --safety``: what PSAR and the
-    simulators make of a policy that knows nothing about traffic.
+    The first three are the probes of ``diacc bench --safety``: what PSAR and
+    the simulators make of a policy that knows nothing about traffic. The
+    heuristic is the simplest sensible driver, a bar for a learned one:
+    accelerate, and once the own lane ends within :data:`HEURISTIC_LEAVE_M`,
+    ask for the neighbouring lane that survives longer (PSAR turns the
+    request into ``remain``/``decelerate`` while the gap is unsafe). It reads
+    what the actor observes (own position and lane) and the static map.
     """
 
     def __init__(self, name: str) -> None:
@@ -183,15 +240,48 @@ class ScriptedPolicy(Policy):
         self.script = script
         self.base = dataclasses.replace(EnvConfig(), use_psar=not name.endswith("-nopsar"))
         self._rng = np.random.default_rng(0)
+        self._road: Map | None = None
+
+    def use_road(self, road: Map) -> None:
+        self._road = road
 
     def begin_episode(self, n_cavs: int, seed: int) -> None:
         self._rng = np.random.default_rng([int(seed), 0x5C21])
 
-    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
+    def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
         n_cavs = actor_obs.alive.shape[0]
         if self.script == "random":
             return self._rng.integers(0, len(ACTION_NAMES), n_cavs).astype(np.int64)
+        if self.script == "heuristic":
+            if self._road is None:
+                raise PolicyError("the heuristic needs the road: call use_road() first")
+            return heuristic_actions(actor_obs, self._road)
         return np.full(n_cavs, ACTION_NAMES.index(self.script), np.int64)
+
+
+def heuristic_actions(actor_obs: ActorObs, road: Map) -> np.ndarray:
+    """(C,) actions of the heuristic (see :class:`ScriptedPolicy`).
+
+    Position and lane come from the observation (``self_state`` x / route
+    length and lane / (max_lanes - 1)); the map says where each lane ends
+    (:meth:`Map.lane_end_m`) and on which side lanes drop (``drop_side``).
+    A CAV whose lane ends within :data:`HEURISTIC_LEAVE_M` asks for the
+    neighbouring lane away from the drop side, which leads to the surviving
+    lanes even where that neighbour ends at the same point (the outer lane
+    of a 4 -> 2 drop goes over the inner one).
+    """
+    lane_norm = max(road.max_lanes - 1, 1)
+    x_m = actor_obs.self_state[:, 0].astype(np.float64) * road.length_m  # (C,)
+    lane = np.rint(actor_obs.self_state[:, 4] * lane_norm).astype(np.int64)  # (C,)
+    lane = np.clip(lane, 0, road.max_lanes - 1)
+    segment = road.segment_of(x_m)  # (C,)
+    leave = road.lane_end_m()[segment, lane] - x_m < HEURISTIC_LEAVE_M  # (C,)
+    offset = -1 if road.drop_side == "left" else +1  # towards the surviving lanes
+    target = lane + offset  # (C,)
+    in_range = (target >= 0) & (target < road.max_lanes)
+    exists = in_range & road.lane_exists()[segment, np.clip(target, 0, road.max_lanes - 1)]
+    side = LANE_RIGHT if offset < 0 else LANE_LEFT
+    return np.where(leave & exists & actor_obs.alive, side, ACCELERATE).astype(np.int64)
 
 
 class CheckpointPolicy(Policy):
@@ -217,9 +307,10 @@ class CheckpointPolicy(Policy):
         self._generator = torch.Generator()
 
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
-        if cell.n_vehicles > self.base.obs.max_vehicles:
+        n_vehicles = cell.scenario(base=self.base.scenario).n_vehicles
+        if n_vehicles > self.base.obs.max_vehicles:
             raise PolicyError(
-                f"cell {cell.key} has {cell.n_vehicles} vehicles but checkpoint {self.path} "
+                f"cell {cell.key} has {n_vehicles} vehicles but checkpoint {self.path} "
                 f"observes at most {self.base.obs.max_vehicles}"
             )
         return super().env_config(cell, settings)
@@ -230,14 +321,14 @@ class CheckpointPolicy(Policy):
         self._hidden = torch.zeros(n_cavs, self.hidden_size)
         self._generator.manual_seed(seed)
 
-    def act(self, actor_obs: ActorObs, first_step: bool) -> np.ndarray:
+    def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
         import torch
 
         from diacc.action_mask import masked_logits
         from diacc.models.inputs import to_tensors
 
         n_cavs = actor_obs.alive.shape[0]
-        start = torch.full((n_cavs,), bool(first_step))
+        start = torch.as_tensor(np.broadcast_to(first_step, (n_cavs,)).copy())  # (C,) bool
         with torch.no_grad():
             obs = to_tensors(actor_obs)
             logits, self._hidden = self.actor(obs, self._hidden, start)
@@ -263,7 +354,9 @@ class CheckpointPolicy(Policy):
 
 def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -> PolicySpec:
     """Check a ``--policy`` value: a baseline name or an existing checkpoint file."""
-    if name in BASELINES or PolicySpec(name).is_scripted:
+    if name.startswith(f"{SAME_MIX}:"):
+        same_mix_style(name)
+    if PolicySpec(name).is_baseline or PolicySpec(name).is_scripted:
         if variant is not None:
             raise PolicyError(f"--variant applies to checkpoints, not to the {name} baseline")
         if sampled:
@@ -277,7 +370,7 @@ def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -
     if path.suffix != ".pt" and not path.exists():
         raise PolicyError(
             f"unknown policy {name!r}; use {', '.join(BASELINES + SCRIPTED)} (scripted ones also "
-            "as <name>-nopsar) or the path of a checkpoint.pt"
+            f"as <name>-nopsar, {SAME_MIX}:<style>) or the path of a checkpoint.pt"
         )
     if not path.exists():
         raise PolicyError(f"checkpoint {path} does not exist")
@@ -290,6 +383,8 @@ def build_policy(spec: PolicySpec) -> Policy:
         return PureHdvPolicy()
     if spec.name == "cooperative":
         return CooperativePolicy()
+    if spec.name == SAME_MIX or spec.name.startswith(f"{SAME_MIX}:"):
+        return SameMixPolicy(spec.name)
     if spec.is_scripted:
         return ScriptedPolicy(spec.name)
     return CheckpointPolicy(spec.name, spec.variant, spec.sampled)

@@ -43,6 +43,10 @@ RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
 RULE_NAMES = ("none", "cancel_lc", "decel_lc", "force_brake", "suppr_accel")
 #: Bit of each rule code in :attr:`PSARResult.rule_mask` (``1 << (code - 1)``).
 RULE_BITS = {code: 1 << (code - 1) for code in range(1, len(RULE_NAMES))}
+#: Lateral drift (m) off its lane's centre line towards the ego lane from which a
+#: neighbouring-lane vehicle counts as cutting in (both backends keep vehicles on the
+#: centre line exactly unless they change lanes).
+CUT_IN_DRIFT_M = 0.05
 
 
 @dataclass
@@ -133,6 +137,17 @@ def psar(
       about 60 m to brake for a standing queue, and a leader that brakes
       hard needs about one second of headway. ``"paper"`` uses the fixed
       thresholds.
+    * Cut-ins: the nearest vehicle ahead in a neighbouring lane whose
+      centre has left its lane's centre line towards the ego lane by more
+      than :data:`CUT_IN_DRIFT_M` (a lane change into the ego lane under
+      way, :func:`_cut_in_front`) is a front obstacle of the car-following
+      block too. Without it
+      the CAV sees the merging vehicle only once its centre crosses the lane
+      boundary; on SUMO, where an LC2013 driver may start a merge from
+      standstill a few metres ahead of a CAV (its gap check assumes the CAV
+      keeps its speed), the CAV would meanwhile accelerate into a gap it can
+      no longer brake for (``bench --safety``: the heuristic on train-50,
+      ``paper-congestion``, 330 steps).
     * Inactive CAVs keep their proposed action with rule NONE.
 
     A batch of states ((E, V) arrays, :class:`~diacc.state.TrafficState`) is
@@ -222,6 +237,7 @@ def psar(
         lane_end_kinematics(state, cav_index, lane + offset, road, cfg.queue_gap_m),
     ]
     own_fronts = [sf_vehicle, lane_end_kinematics(state, cav_index, lane, road, cfg.queue_gap_m)]
+    own_fronts.append(pair_kinematics(state, cav_index, _cut_in_front(state, cav_index, road)))
 
     cancel_front = np.zeros(shape, dtype=bool)
     b_lc_mps2 = np.zeros(shape)
@@ -357,6 +373,25 @@ def psar(
         invalid_lc=invalid_lc,
         active=active,
     )
+
+
+def _cut_in_front(state: TrafficState, cav_index: np.ndarray, road: Map) -> np.ndarray:
+    """(..., C) the nearest vehicle ahead of each CAV that is moving across into its
+    lane from a neighbouring one (drift > :data:`CUT_IN_DRIFT_M`), -1 if none.
+
+    Every vehicle is a candidate, not only the nearest one of each neighbouring
+    lane: a merging HDV is often a queue's head with others alongside the CAV.
+    """
+    drift_m = state.y_m - road.lane_center_y_m(state.lane)  # (..., V) + = to the left
+    side = state.lane[..., None, :] - take(state.lane, cav_index)[..., None]  # (..., C, V)
+    toward = ((side == 1) & (drift_m[..., None, :] < -CUT_IN_DRIFT_M)) | (
+        (side == -1) & (drift_m[..., None, :] > CUT_IN_DRIFT_M)
+    )
+    dx_m = state.x_m[..., None, :] - take(state.x_m, cav_index)[..., None]  # (..., C, V)
+    candidate = toward & (dx_m >= 0) & state.active[..., None, :]
+    dx_m = np.where(candidate, dx_m, np.inf)
+    nearest = np.argmin(dx_m, axis=-1)  # (..., C)
+    return np.where(np.isfinite(np.min(dx_m, axis=-1)), nearest, -1)
 
 
 def rule_counts(rule_mask: np.ndarray) -> np.ndarray:

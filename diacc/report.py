@@ -10,17 +10,29 @@ grid cell the paper's three rows, plus two optional ones (``rows``):
 * **p(WE) (%)**, **p(SCE) (%)**: mean +- std over episodes of the per-episode
   shares (population std, ddof = 0).
 * optional **Collision (%)**: share of episodes that ended in a collision;
-  **Arrived (%)**: mean share of vehicles that reached the route end.
+  **Arrived (%)**: mean share of vehicles that reached the route end;
+  the flow rows (:data:`FLOW_ROWS`, definitions in :mod:`diacc.metrics`),
+  each mean +- std over episodes: **Throughput (veh/h)**, **Delay (s/veh)**,
+  **Arrived speed (m/s)**, **Travel time (s)** (of arrived vehicles),
+  **Never arrived (%)**.
 
-Each entry also shows its relative change against the ``pure-hdv`` column
-(when one is given), ``(mean - mean_ref) / mean_ref``.
+Each entry also shows its change against the ``pure-hdv`` column and
+against the ``same-mix`` column of the same backend (when given;
+:data:`REFERENCES`): relative, ``(mean - mean_ref) / mean_ref`` in %, for
+speeds, flows and times, and a difference in percentage points (pp) for
+shares, since "-100 %" for a share going from 14 % to 0 % reads worse than
+"-14.0 pp". Pure HDV redraws every driver, same-mix keeps the CAV policy's
+vehicles and hands its CAV slots to human drivers, so only the second change
+is what the CAVs' control does.
 
 Emphasis follows the paper's Tables II/III: per row, the best value is bold
 and the second best underlined (italic in Markdown), compared at the printed
-precision (higher speed / arrived share, lower shares). Unlike the paper, a
-column is ranked in a cell only when the ranking means something there
-(:data:`RANKING_RULE`): it is no slower than the pure-HDV column of the same
-backend and its collision rate is no higher. A policy that is slower or
+precision (higher speed / arrived share, lower shares). Columns are ranked
+only against columns of the same backend: the two simulators' traffic is not
+the same, so a highway column is never "better" than a sumo one. Unlike the
+paper, a column is ranked in a cell only when the ranking means something
+there (:data:`RANKING_RULE`): it is no slower than the pure-HDV column of the
+same backend and its collision rate is no higher. A policy that is slower or
 crashes more than human traffic is never bold for one metric out of context.
 Output as Markdown, LaTeX (booktabs, multirow: :data:`LATEX_PREAMBLE`) or a
 tidy CSV.
@@ -39,22 +51,37 @@ import numpy as np
 from diacc.evaluate import EvaluationError, load_episodes
 from diacc.grid import Cell
 
-#: (key, row label, higher is better, episodes.csv column); shares are shown in percent
+#: (key, row label, higher is better, episodes.csv column, display scale); shares
+#: are shown in percent (scale 100). Results written before a column existed lack
+#: its row (older ``episodes.csv`` files have no flow columns).
 METRICS = (
-    ("speed", "Speed (m/s)", True, "mean_speed_mps"),
-    ("p_we", "p(WE) (%)", False, "p_we"),
-    ("p_sce", "p(SCE) (%)", False, "p_sce"),
-    ("collision", "Collision (%)", False, "collision"),
-    ("arrived", "Arrived (%)", True, "arrived_fraction"),
+    ("speed", "Speed (m/s)", True, "mean_speed_mps", 1.0),
+    ("p_we", "p(WE) (%)", False, "p_we", 100.0),
+    ("p_sce", "p(SCE) (%)", False, "p_sce", 100.0),
+    ("collision", "Collision (%)", False, "collision", 100.0),
+    ("arrived", "Arrived (%)", True, "arrived_fraction", 100.0),
+    ("throughput", "Throughput (veh/h)", True, "throughput_vph", 1.0),
+    ("delay", "Delay (s/veh)", False, "delay_per_vehicle_s", 1.0),
+    ("arrived_speed", "Arrived speed (m/s)", True, "mean_arrived_speed_mps", 1.0),
+    ("travel_time", "Travel time (s)", False, "mean_travel_time_s", 1.0),
+    ("never_arrived", "Never arrived (%)", False, "never_arrived_fraction", 100.0),
 )
-#: Rows of the paper's tables; ``collision`` and ``arrived`` are optional.
+#: Rows of the paper's tables; the others are optional.
 DEFAULT_ROWS = ("speed", "p_we", "p_sce")
+#: The flow rows (``--rows`` shorthand ``flow``).
+FLOW_ROWS = ("throughput", "delay", "arrived_speed", "travel_time", "never_arrived")
 REFERENCE = "pure-hdv"
+#: Columns every other column is compared with, in the order shown.
+REFERENCES = (REFERENCE, "same-mix")
 FORMATS = ("markdown", "latex", "csv")
 RANKING_RULE = (
-    "bold: best, underlined (Markdown: italic): second best of a row, as in the paper; "
-    "ranked only columns no slower and with no more collisions than pure HDV"
+    "bold: best, underlined (Markdown: italic): second best of a row among the columns of "
+    "one backend, as in the paper; ranked only columns no slower and with no more "
+    "collisions than pure HDV on that backend"
 )
+CHANGE_RULE = "changes in % for speeds, flows and times, in percentage points (pp) for shares"
+#: Display scale of each metric (100: a share shown in percent).
+_SCALE = {key: scale for key, _, _, _, scale in METRICS}
 #: What a LaTeX document needs for :func:`to_latex`'s output.
 LATEX_PREAMBLE = "\\usepackage{booktabs}\n\\usepackage{multirow}"
 SPEED_STD = ("samples", "episodes")
@@ -80,21 +107,31 @@ class Table:
     rows: tuple[str, ...] = DEFAULT_ROWS  # metrics shown, in order
     caption: str = ""
 
-    def reference(self, column: str) -> str | None:
-        """The pure-HDV column a column is compared with: same backend first."""
-        refs = [c for c in self.columns if self.policy[c] == REFERENCE]
-        same = [c for c in refs if self.backend[c] == self.backend[column]]
-        return (same or refs or [None])[0]
+    def reference(self, column: str, policy: str = REFERENCE) -> str | None:
+        """The column of ``policy`` (pure HDV, same-mix) of the same backend a column is
+        compared with, if any (columns of different backends are never compared)."""
+        same = [
+            c
+            for c in self.columns
+            if self.policy[c] == policy and self.backend[c] == self.backend[column]
+        ]
+        return (same or [None])[0]
 
-    def relative_change(self, cell: Cell, metric: str, column: str) -> float | None:
-        """Percent change of the mean against the pure-HDV column (None if undefined)."""
-        ref = self.reference(column)
-        if ref is None or self.policy[column] == REFERENCE:
+    def change(
+        self, cell: Cell, metric: str, column: str, policy: str = REFERENCE
+    ) -> float | None:
+        """Change of the mean against the ``policy`` column (None if undefined; pure HDV is
+        compared with nothing, same-mix with pure HDV): percent, or percentage points for
+        shares (:func:`change_unit`)."""
+        ref = self.reference(column, policy)
+        if ref is None or self.policy[column] in (REFERENCE, policy):
             return None
         a, b = self.stats.get((cell.key, metric, column)), self.stats.get((cell.key, metric, ref))
-        if a is None or b is None or b.mean == 0 or not math.isfinite(b.mean):
+        if a is None or b is None or not math.isfinite(b.mean):
             return None
-        return 100.0 * (a.mean - b.mean) / b.mean
+        if change_unit(metric) == "pp":
+            return a.mean - b.mean  # shares are stored in percent already
+        return None if b.mean == 0 else 100.0 * (a.mean - b.mean) / b.mean
 
     def _rounded(self, cell: Cell, metric: str, column: str) -> float | None:
         stat = self.stats.get((cell.key, metric, column))
@@ -116,22 +153,25 @@ class Table:
         return True
 
     def marks(self, cell: Cell, metric: str) -> tuple[set[str], set[str]]:
-        """(best, second-best) columns of a row; second best only with 3+ ranked columns."""
+        """(best, second-best) columns of a row, ranked within each backend; second best
+        only where a backend has 3+ ranked columns."""
         higher = next(m[2] for m in METRICS if m[0] == metric)
-        values = {
-            c: v
-            for c in self.columns
-            if self.ranked(cell, c) and (v := self._rounded(cell, metric, c)) is not None
-        }
-        if len(values) < 2:
-            return set(), set()
-        order = sorted(set(values.values()), reverse=higher)
-        best = {c for c, v in values.items() if v == order[0]}
-        second = (
-            {c for c, v in values.items() if v == order[1]}
-            if len(values) >= 3 and len(order) > 1
-            else set()
-        )
+        best: set[str] = set()
+        second: set[str] = set()
+        for backend in dict.fromkeys(self.backend[c] for c in self.columns):
+            values = {
+                c: v
+                for c in self.columns
+                if self.backend[c] == backend
+                and self.ranked(cell, c)
+                and (v := self._rounded(cell, metric, c)) is not None
+            }
+            if len(values) < 2:
+                continue
+            order = sorted(set(values.values()), reverse=higher)
+            best |= {c for c, v in values.items() if v == order[0]}
+            if len(values) >= 3 and len(order) > 1:
+                second |= {c for c, v in values.items() if v == order[1]}
         return best, second
 
     def best(self, cell: Cell, metric: str) -> set[str]:
@@ -155,12 +195,16 @@ def _speed_stat(rows: list[dict[str, str]], speed_std: str) -> Stat:
     return Stat(mean, math.sqrt(max(second_moment - mean**2, 0.0)), len(rows))
 
 
-def _share_stat(rows: list[dict[str, str]], key: str) -> Stat | None:
-    """Mean +- std in percent over episodes; None if the results lack the column."""
+def _episode_stat(rows: list[dict[str, str]], key: str, scale: float) -> Stat | None:
+    """Mean +- std over episodes (times ``scale``, 100 for percent) of the episodes where
+    the value is defined; None if the results lack the column or every value is nan."""
     if key not in rows[0]:
         return None
-    values = 100.0 * np.array([_float(r[key]) for r in rows])  # (K,) percent
-    return Stat(float(values.mean()), float(values.std()), len(rows))
+    values = scale * np.array([_float(r[key]) for r in rows])  # (K,)
+    values = values[np.isfinite(values)]
+    if not values.size:
+        return None
+    return Stat(float(values.mean()), float(values.std()), int(values.size))
 
 
 def _episodes(counts: list[int]) -> str:
@@ -189,6 +233,12 @@ def build_table(
     if not result_dirs:
         raise EvaluationError("give at least one results directory")
     return table_from_results([(Path(d), *load_episodes(d)) for d in result_dirs], speed_std, rows)
+
+
+def expand_rows(text: str) -> tuple[str, ...]:
+    """Row names of a comma-separated ``--rows`` value; ``flow`` stands for :data:`FLOW_ROWS`."""
+    names = [r.strip() for r in text.split(",") if r.strip()]
+    return tuple(n for name in names for n in (FLOW_ROWS if name == "flow" else (name,)))
 
 
 def _check_options(speed_std: str, rows: tuple[str, ...] | list[str]) -> None:
@@ -224,14 +274,18 @@ def table_from_results(
         by_cell: dict[Cell, list[dict[str, str]]] = {}
         for row in episode_rows:
             cell = Cell(
-                row["map"], int(row["n_vehicles"]), float(row["cav_penetration"]), row["style_mix"]
+                row["map"],
+                int(row["n_vehicles"]),
+                float(row["cav_penetration"]),
+                row["style_mix"],
+                float(row.get("inflow_vph") or 0.0),  # demand cells (older files: none)
             )
             by_cell.setdefault(cell, []).append(row)
         for cell, cell_rows in by_cell.items():
             cells[cell.key] = cell
             stats[(cell.key, "speed", label)] = _speed_stat(cell_rows, speed_std)
-            for metric, _, _, column in METRICS[1:]:
-                if (stat := _share_stat(cell_rows, column)) is not None:
+            for metric, _, _, column, scale in METRICS[1:]:
+                if (stat := _episode_stat(cell_rows, column, scale)) is not None:
                     stats[(cell.key, metric, label)] = stat
         first = episode_rows[0]
         version = f", {first['sumo_version']}" if first.get("sumo_version") else ""
@@ -254,8 +308,16 @@ def table_from_results(
         if speed_std == "samples"
         else "speed: mean ± std of episode means"
     )
-    notes.append(f"{speed_note}; shares: mean ± std over episodes")
+    notes.append(f"{speed_note}; other rows: mean ± std over episodes")
+    refs = [r for r in REFERENCES if r in {m["policy"] for _, m, _ in loaded}]
+    if refs:
+        notes.append(
+            "in brackets: change of the mean against "
+            + " and ".join({REFERENCE: "pure HDV", "same-mix": "same-mix"}[r] for r in refs)
+            + " (same backend), in that order"
+        )
     notes.append(RANKING_RULE)
+    notes.append(CHANGE_RULE)
     ordered = sorted(
         cells.values(), key=lambda c: (c.map, -c.cav_penetration, c.n_vehicles, c.style_mix)
     )
@@ -288,6 +350,11 @@ def table_from_results(
     )
 
 
+def change_unit(metric: str) -> str:
+    """``"pp"`` (percentage points) for shares, ``"%"`` (a relative change) for the rest."""
+    return "pp" if _SCALE[metric] == 100.0 else "%"
+
+
 # ----------------------------------------------------------------------------- rendering
 def _scenario(cell: Cell) -> str:
     return f"N={cell.n_vehicles}, rho={cell.cav_penetration:.1f}, {cell.style_mix}"
@@ -315,9 +382,11 @@ def _entry(
         text = f"{marks[0]}{text}{marks[1]}"
     elif column in second:
         text = f"{marks[2]}{text}{marks[3]}"
-    change = table.relative_change(cell, metric, column)
-    if change is not None:
-        text += f" ({change:+.1f}{percent})"
+    changes = [table.change(cell, metric, column, ref) for ref in REFERENCES]
+    unit = percent if change_unit(metric) == "%" else "pp"
+    shown = [f"{c:+.1f} {unit}" for c in changes if c is not None]
+    if shown:
+        text += f" ({', '.join(shown)})"
     return text
 
 
@@ -400,7 +469,8 @@ def to_latex(table: Table) -> str:
 
 
 def to_csv(table: Table) -> str:
-    """Tidy CSV: one line per (cell, metric, policy); ``best`` 1 best, 2 second best."""
+    """Tidy CSV: one line per (cell, metric, policy); ``change`` in ``change_unit``
+    (% or pp, :func:`change_unit`); ``best`` 1 best, 2 second best (within a backend)."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(
@@ -414,7 +484,9 @@ def to_csv(table: Table) -> str:
             "mean",
             "std",
             "n_episodes",
-            "rel_change_pct",
+            "change",
+            "change_same_mix",
+            "change_unit",
             "best",
         ]
     )
@@ -425,7 +497,8 @@ def to_csv(table: Table) -> str:
                 stat = table.stats.get((cell.key, metric, col))
                 if stat is None:
                     continue
-                change = table.relative_change(cell, metric, col)
+                change = table.change(cell, metric, col)
+                change_mix = table.change(cell, metric, col, "same-mix")
                 writer.writerow(
                     [
                         cell.map,
@@ -438,6 +511,8 @@ def to_csv(table: Table) -> str:
                         repr(stat.std),
                         stat.n_episodes,
                         "" if change is None else repr(change),
+                        "" if change_mix is None else repr(change_mix),
+                        change_unit(metric),
                         1 if col in best else 2 if col in second else 0,
                     ]
                 )

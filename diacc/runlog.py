@@ -7,18 +7,24 @@ the ``diacc`` logger: :func:`enable_stderr` (called by the CLI) prints each
 as one ``diacc: warning: ...`` line, and :func:`run_log` appends them, with a
 timestamp, to a file of the run directory or results directory
 (``train.log``, ``eval.log``) so that the record outlives the terminal.
+Milestones (a run's start with its :func:`config_digest`, its checkpoints,
+its end) are logged at INFO level: in the file only, not on stderr.
 Worker processes started inside :func:`run_log` find that file in the
 environment (:data:`ENV_VAR`) and append to it too (:func:`join_parent_log`).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 log = logging.getLogger("diacc")
 log.setLevel(logging.INFO)
@@ -86,3 +92,13 @@ def _file_handler(path: Path) -> logging.FileHandler:
     handler = logging.FileHandler(path, encoding="utf-8")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     return handler
+
+
+def config_digest(config: Any) -> str:
+    """First 12 hex digits of the SHA-256 of a config dataclass as JSON (sorted keys).
+
+    Logged with a run's start, so two logs show at a glance whether two runs
+    had the same config (the config itself is in ``config.json``).
+    """
+    text = json.dumps(asdict(config), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]

@@ -5,10 +5,21 @@ A :class:`Scenario` is the *what* (N, penetration, style mix); a
 its type, style and starting slot. Both backends insert exactly the same
 population, which is what makes cross-backend comparisons meaningful.
 
-Placement follows facts.md: all vehicles start at t = 0 near the route
-start at ``insert_speed_mps``, one every ``insert_spacing_m`` (8 m: 25
-vehicles fill the first 200 m), lanes taken round-robin in a random order,
-vehicles shuffled over the slots.
+Two kinds of scenario (``Scenario.kind``):
+
+* ``"release"`` (the paper's, the default): all vehicles start at t = 0 near
+  the route start at ``insert_speed_mps``, one every ``insert_spacing_m``
+  (facts.md: 8 m, 25 vehicles fill the first 200 m), lanes taken round-robin
+  in a random order, vehicles shuffled over the slots.
+* ``"demand"``: vehicles enter at ``insert_start_m`` over ``demand_s``
+  seconds at ``inflow_vph`` (one per 3600 / inflow s, each at a uniformly
+  drawn instant within its own interval, so the arrival rate is exact and
+  the sequence still irregular; the first vehicle is a CAV at t = 0), same
+  round-robin lanes, same CAV share and style mix. ``n_vehicles`` is then
+  derived: inflow x duration. A vehicle is *pending* (neither active nor
+  arrived) until it departs; a backend inserts it at its departure time
+  once its lane's entry is free, so a queue at the entry delays it but
+  never drops it.
 """
 
 from __future__ import annotations
@@ -32,6 +43,12 @@ STYLE_MIXES: dict[str, tuple[float, float, float]] = {
 }
 
 
+#: How vehicles enter (module docstring).
+SCENARIO_KINDS = ("release", "demand")
+#: Largest inflow accepted (veh/h): above what 4 lanes carry at any speed, so larger is a typo.
+MAX_INFLOW_VPH = 10_000.0
+
+
 class ScenarioError(DiaccError, ValueError):
     """Invalid scenario values; the message is one line."""
 
@@ -46,8 +63,40 @@ class Scenario:
     insert_start_m: float = 10.0  # x of the rearmost insertion row (facts.md)
     insert_spacing_m: float = 8.0  # between consecutive vehicles (any lane)
     insert_speed_mps: float = 10.0
+    kind: str = "release"  # or "demand" (module docstring)
+    inflow_vph: float = 2400.0  # demand: vehicles per hour entering the route
+    demand_s: float = 300.0  # demand: vehicles enter during [0, demand_s)
+    warmup_s: float = 0.0  # metrics ignore states before this time (traffic settles)
+    cav_slots: int = 16  # demand: agent slots, the most CAVs driven by the policy at once
+    #: ``""``: the CAV slots hold CAVs. A style name (:data:`STYLE_NAMES`): the
+    #: same slots hold HDVs of that style instead (the ``same-mix`` baseline),
+    #: so the draw keeps every other vehicle's style and every vehicle's slot and
+    #: a comparison isolates what the CAVs' control changes.
+    cav_slot_style: str = ""
 
     def __post_init__(self) -> None:
+        if self.kind not in SCENARIO_KINDS:
+            raise ScenarioError(
+                f"unknown scenario kind {self.kind!r}; choose one of {', '.join(SCENARIO_KINDS)}"
+            )
+        if not self.warmup_s >= 0:
+            raise ScenarioError(f"warmup_s must be >= 0, got {self.warmup_s!r}")
+        if self.kind == "demand":
+            if not 0 < self.inflow_vph <= MAX_INFLOW_VPH:
+                raise ScenarioError(
+                    f"inflow_vph must be in (0, {MAX_INFLOW_VPH:.0f}] veh/h, "
+                    f"got {self.inflow_vph!r}"
+                )
+            if not self.demand_s > 0 or self.warmup_s >= self.demand_s:
+                raise ScenarioError(
+                    f"demand_s must be > 0 and longer than warmup_s, got demand_s "
+                    f"{self.demand_s!r}, warmup_s {self.warmup_s!r}"
+                )
+            if not isinstance(self.cav_slots, int) or self.cav_slots < 1:
+                raise ScenarioError(f"cav_slots must be a positive integer, got {self.cav_slots!r}")
+            # N follows from the demand: one vehicle per 3600 / inflow seconds.
+            n_total = max(1, int(self.inflow_vph * self.demand_s / 3600.0))
+            object.__setattr__(self, "n_vehicles", n_total)
         if not isinstance(self.n_vehicles, int) or self.n_vehicles < 1:
             raise ScenarioError(f"n_vehicles must be a positive integer, got {self.n_vehicles!r}")
         if not 0.0 <= self.cav_penetration <= 1.0:
@@ -57,6 +106,11 @@ class Scenario:
             raise ScenarioError(
                 f"style_mix must be 3 non-negative shares (aggressive, normal, cautious) "
                 f"summing to 1, got {self.style_mix!r}"
+            )
+        if self.cav_slot_style and self.cav_slot_style not in STYLE_NAMES:
+            raise ScenarioError(
+                f"unknown driving style {self.cav_slot_style!r} for the CAV slots; "
+                f"known: {', '.join(STYLE_NAMES)}"
             )
         if self.insert_spacing_m <= 0 or self.insert_speed_mps < 0:
             raise ScenarioError("insert_spacing_m must be > 0 and insert_speed_mps >= 0")
@@ -81,8 +135,23 @@ class Scenario:
         return tuple(float(p) for p in self.style_mix)  # type: ignore[return-value]
 
     @property
-    def n_cavs(self) -> int:
+    def n_cav_slots(self) -> int:
+        """Vehicles drawn into CAV slots (CAVs, or HDVs of ``cav_slot_style``)."""
         return int(round(self.cav_penetration * self.n_vehicles))
+
+    @property
+    def n_cavs(self) -> int:
+        """CAVs on the road over the whole episode (0 when the slots hold humans)."""
+        return 0 if self.cav_slot_style else self.n_cav_slots
+
+    @property
+    def n_slots(self) -> int:
+        """Agent slots C: every CAV has its own in a release; in a demand scenario at
+        most ``cav_slots`` CAVs at once, a slot reused when its CAV leaves
+        (:class:`diacc.env.BottleneckEnv`)."""
+        if self.kind == "demand":
+            return min(self.cav_slots, self.n_cavs)
+        return self.n_cavs
 
 
 @dataclass(frozen=True)
@@ -94,6 +163,7 @@ class Population:
     x_m: np.ndarray  # (V,) float64 initial centre position
     lane: np.ndarray  # (V,) int16 initial absolute lane
     speed_mps: np.ndarray  # (V,) float64 initial speed
+    depart_s: np.ndarray  # (V,) float64 departure time: all 0 in a release, increasing in demand
 
     @property
     def n_vehicles(self) -> int:
@@ -103,7 +173,7 @@ class Population:
 def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
     """Draw types, styles and starting slots for every vehicle, reproducibly."""
     rng = np.random.default_rng(seed)
-    n, n_cav = scenario.n_vehicles, scenario.n_cavs
+    n, n_cav = scenario.n_vehicles, scenario.n_cav_slots
     lanes = list(road.lane_range(0))
     if not lanes:  # pragma: no cover - maps always have >= 1 lane
         raise ScenarioError(f"map {road.name!r} has no lane at its start")
@@ -119,13 +189,37 @@ def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
     is_cav = np.arange(n) < n_cav
     order = rng.permutation(n)
     style, is_cav = style[order], is_cav[order]
+    if scenario.kind == "demand" and is_cav.any():
+        # The first vehicle to enter is a CAV (slot), so that every episode starts
+        # with an agent (PettingZoo); the draw stays as it was otherwise.
+        first_cav = int(np.argmax(is_cav))
+        for arr in (is_cav, style):
+            arr[[0, first_cav]] = arr[[first_cav, 0]]
+    if scenario.cav_slot_style:  # same draws, the slots driven by humans
+        style[is_cav] = STYLE_NAMES.index(scenario.cav_slot_style)
+        is_cav[:] = False
+
+    lane_order = rng.permutation(lanes)
+    lane = lane_order[np.arange(n) % len(lanes)].astype(np.int16)
+    if scenario.kind == "demand":
+        # Arrival k at a uniform instant of its own interval [k, k + 1) * headway: exact
+        # rate, irregular sequence; everyone enters at the route start, lanes round-robin.
+        headway_s = 3600.0 / scenario.inflow_vph
+        depart_s = (np.arange(n) + rng.uniform(0.0, 1.0, n)) * headway_s
+        depart_s[0] = 0.0  # the first vehicle (a CAV, above) enters at t = 0
+        return Population(
+            is_cav=is_cav,
+            style=style,
+            x_m=np.full(n, scenario.insert_start_m),
+            lane=lane,
+            speed_mps=np.full(n, scenario.insert_speed_mps, dtype=np.float64),
+            depart_s=depart_s,
+        )
 
     # Slots (facts.md): one vehicle every ``insert_spacing_m``, lanes round-robin,
     # so vehicles in the same lane start n_lanes * spacing apart. The lane order
     # of the round-robin is drawn at random; vehicles are shuffled over slots.
-    lane_order = rng.permutation(lanes)
     x = scenario.insert_start_m + scenario.insert_spacing_m * np.arange(n - 1, -1, -1.0)
-    lane = lane_order[np.arange(n) % len(lanes)].astype(np.int16)
     if x[0] >= road.segments[0].length_m:
         raise ScenarioError(
             f"{n} vehicles do not fit in the first segment of map {road.name!r} "
@@ -137,4 +231,5 @@ def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
         x_m=x,
         lane=lane,
         speed_mps=np.full(n, scenario.insert_speed_mps, dtype=np.float64),
+        depart_s=np.zeros(n),
     )

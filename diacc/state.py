@@ -16,7 +16,9 @@ Coordinate convention (identical for all backends)
 
 A vehicle is ``active`` while it is on the road. It becomes ``arrived`` when
 its centre passes the route end, and is then inactive for ever; its other
-fields keep their last values. Inactive entries must be masked by consumers.
+fields keep their last values. In a ``demand`` scenario a vehicle that has
+not entered yet is *pending*: neither active nor arrived, at its entry slot
+(:mod:`diacc.scenario`). Inactive entries must be masked by consumers.
 
 Batches
 -------

@@ -73,6 +73,7 @@ class EnvStep:
     reward_terms: dict[str, float] | None = None  # parts of the step's reward
     restarted: bool = False
     final_actor_obs: ActorObs | None = None  # observations where the episode ended
+    slot_start: np.ndarray | None = None  # (C,) bool: a new CAV took the slot (None: none did)
 
 
 @dataclass
@@ -92,6 +93,7 @@ class VectorStep:
     episodes: list[dict]  # metrics of episodes that ended this step
     reward_terms: dict[str, np.ndarray]  # each part of the reward, (E',) over envs that reported it
     restarts: int
+    slot_start: np.ndarray  # (E, C) bool: a new CAV took the slot; its next action starts afresh
 
 
 class EnvRunner:
@@ -114,7 +116,9 @@ class EnvRunner:
         self.episode += 1
         self.return_ = 0.0
         actor, critic = self.env.reset_arrays(seed)
-        self.recorder = EpisodeRecorder(self.env.road, self.config.events)
+        self.recorder = EpisodeRecorder(
+            self.env.road, self.config.events, self.config.scenario.warmup_s
+        )
         self.recorder.record(self.env.state_)
         return actor, critic
 
@@ -162,6 +166,7 @@ class EnvRunner:
             episode,
             out.reward_terms,
             final_actor_obs=final_actor,
+            slot_start=self.env.slot_start.copy(),
         )
 
     def close(self) -> None:
@@ -211,6 +216,9 @@ def _stack_steps(steps: list[EnvStep]) -> VectorStep:
             for key in next((s.reward_terms for s in steps if s.reward_terms), {})
         },
         restarts=sum(s.restarted for s in steps),
+        slot_start=np.stack(
+            [np.zeros(len(s.alive), bool) if s.slot_start is None else s.slot_start for s in steps]
+        ),
     )
 
 
@@ -226,7 +234,7 @@ class SyncVectorEnv:
     ) -> None:
         indices = list(range(n_envs)) if env_indices is None else env_indices
         self.runners = [EnvRunner(config, run_seed, e) for e in indices]
-        self.n_envs, self.n_cavs = len(indices), config.scenario.n_cavs
+        self.n_envs, self.n_cavs = len(indices), config.scenario.n_slots
 
     def reset_list(self, first_episode: int | None = None) -> list[tuple[ActorObs, CriticState]]:
         return [r.reset(first_episode) for r in self.runners]
@@ -273,7 +281,7 @@ class BatchedVectorEnv(SyncVectorEnv):
         self.runners = [
             EnvRunner(config, run_seed, e, BatchSlot(self.batch, e)) for e in range(n_envs)
         ]
-        self.config, self.n_envs, self.n_cavs = config, n_envs, config.scenario.n_cavs
+        self.config, self.n_envs, self.n_cavs = config, n_envs, config.scenario.n_slots
 
     def step_list(self, actions: np.ndarray) -> list[EnvStep]:  # actions (E, C)
         envs = [r.env for r in self.runners]
@@ -284,6 +292,7 @@ class BatchedVectorEnv(SyncVectorEnv):
         decisions = [decision.env(e) for e in range(self.n_envs)]
         for env, d, s in zip(envs, decisions, states, strict=True):
             env.enter(d, s)
+        cav_index = np.stack([env.cav_index for env in envs])  # (E, C) slots refilled by enter
         after = TrafficState.stack(states)  # (E, V) arrays
         actor, critic = ObservationBuilder.observe_batch(
             [env.builder for env in envs],
@@ -347,7 +356,7 @@ class ProcessVectorEnv:
         self, config: EnvConfig, n_envs: int, run_seed: int, n_workers: int | None = None
     ) -> None:
         self.config, self.run_seed = config, run_seed
-        self.n_envs, self.n_cavs = n_envs, config.scenario.n_cavs
+        self.n_envs, self.n_cavs = n_envs, config.scenario.n_slots
         n_workers = min(n_envs, n_workers or os.cpu_count() or 1)
         self.groups = [g.tolist() for g in np.array_split(np.arange(n_envs), n_workers)]
         self.ctx = mp.get_context("spawn")

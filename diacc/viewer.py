@@ -3,7 +3,7 @@
 The viewer reads only the :class:`~diacc.state.TrafficState` and the map, so
 an episode looks the same whichever simulator produced it (``diacc render``,
 ``BottleneckEnv.render``). highway-env's viewer opens a display; with SDL's
-dummy driver its frames come out black (facts.md). Here we set the dummy
+dummy driver its frames come out black. Here we set the dummy
 driver, draw into a plain
 ``pygame.Surface`` wrapped as highway-env's ``WorldSurface``, and let
 ``RoadGraphics`` / ``VehicleGraphics`` paint lanes and vehicles. Lightweight
@@ -14,7 +14,13 @@ is asked for, so rendering costs nothing during training.
 from __future__ import annotations
 
 import os
+import sys
 
+#: Whether a display could show a window, read before the dummy driver below is set.
+_DISPLAY = sys.platform in ("darwin", "win32") or bool(
+    os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+)
+_DUMMY_SET_HERE = "SDL_VIDEODRIVER" not in os.environ
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
@@ -33,6 +39,8 @@ from diacc.state import TrafficState  # noqa: E402
 
 #: Vehicle colours (RGB): CAVs green as highway-env's ego, HDVs by style.
 CAV_COLOR = VehicleGraphics.EGO_COLOR
+#: Where the camera looks: at the mean position of the traffic, or at the bottleneck.
+VIEWS = ("traffic", "bottleneck")
 STYLE_COLORS = {
     AGGRESSIVE: (255, 120, 60),
     NORMAL: VehicleGraphics.BLUE,
@@ -40,7 +48,10 @@ STYLE_COLORS = {
 }
 CRASHED_COLOR = (200, 0, 0)
 HIGHLIGHT_COLOR = (255, 0, 255)
-OFFROAD_COLOR = (60, 120, 60)
+#: Lanes that do not exist in a segment (the lane drop): a sandy hatch, far from every
+#: vehicle colour (a green verge read as a row of CAVs).
+OFFROAD_COLOR = (196, 182, 150)
+OFFROAD_HATCH_COLOR = (170, 155, 120)
 
 
 class Viewer:
@@ -53,9 +64,17 @@ class Viewer:
         width_px: int = 1200,
         height_px: int = 160,
         scaling_px_per_m: float = 4.0,
+        view: str = "traffic",
     ) -> None:
+        """``view``: ``"traffic"`` centres each frame on the mean position of the
+        vehicles; ``"bottleneck"`` keeps the camera still on the first lane drop,
+        with the last 40 % of the window after it (where the queue forms)."""
+        if view not in VIEWS:
+            raise ValueError(f"unknown view {view!r}; use one of: {', '.join(VIEWS)}")
         self.road_map = road
         self.sim = sim
+        self.view = view
+        self.window_m = (0.0, 0.0)  # (left, right) road positions of the last frame
         self.road = Road(network=build_road_network(road), vehicles=[], record_history=False)
         self.surface = WorldSurface((width_px, height_px), 0, pygame.Surface((width_px, height_px)))
         self.surface.scaling = scaling_px_per_m
@@ -97,7 +116,7 @@ class Viewer:
                 )
         self._sync(state)
         surface = self.surface
-        centre_x = float(state.x_m[state.active].mean()) if state.active.any() else 0.0
+        centre_x = self._centre_m(state)
         road_mid_y = float(
             to_highway_env_y(
                 self.road_map, 0.5 * self.road_map.max_lanes * self.road_map.lane_width_m
@@ -112,8 +131,23 @@ class Viewer:
         RoadGraphics.display_traffic(self.road, surface, offscreen=True)
         if highlight is not None:
             self._draw_outlines(state, highlight)
+        half_width_m = surface.get_width() / surface.scaling / 2
+        self.window_m = (centre_x - half_width_m, centre_x + half_width_m)
         frame = pygame.surfarray.array3d(surface)  # (W, H, 3)
         return np.ascontiguousarray(np.transpose(frame, (1, 0, 2))).astype(np.uint8)
+
+    def _centre_m(self, state: TrafficState) -> float:
+        if self.view == "bottleneck":
+            road = self.road_map
+            drops = [
+                start
+                for seg, start in zip(road.segments, road.segment_starts_m, strict=True)
+                if seg.kind != "multilane"
+            ]
+            width_m = self.surface.get_width() / self.surface.scaling
+            drop_m = drops[0] if drops else 0.5 * road.length_m
+            return float(drop_m + 0.1 * width_m)  # the drop at 40 % of the width
+        return float(state.x_m[state.active].mean()) if state.active.any() else 0.0
 
     def _draw_offroad(self) -> None:
         """Paint lanes that do not exist in a segment (the bottleneck) as verge."""
@@ -124,8 +158,17 @@ class Viewer:
             for lane in np.flatnonzero(~exists[s]):
                 y_top = float(to_highway_env_y(road, (lane + 1) * road.lane_width_m))
                 x0, y0 = surface.pos2pix(starts[s], y_top)
-                rect = (x0, y0, surface.pix(ends[s] - starts[s]), surface.pix(road.lane_width_m))
-                pygame.draw.rect(surface, OFFROAD_COLOR, rect, 0)
+                width_px, height_px = (
+                    surface.pix(ends[s] - starts[s]),
+                    surface.pix(road.lane_width_m),
+                )
+                pygame.draw.rect(surface, OFFROAD_COLOR, (x0, y0, width_px, height_px), 0)
+                for dx in range(0, width_px + height_px, 12):  # diagonal hatch
+                    start = (x0 + dx, y0)
+                    end = (x0 + dx - height_px, y0 + height_px)
+                    clipped = pygame.Rect(x0, y0, width_px, height_px).clipline(start, end)
+                    if clipped:
+                        pygame.draw.line(surface, OFFROAD_HATCH_COLOR, *clipped, 2)
 
     def _draw_outlines(self, state: TrafficState, highlight: np.ndarray) -> None:
         half_l, half_w = 0.5 * self.sim.vehicle_length_m + 0.6, 0.5 * self.sim.vehicle_width_m + 0.6
@@ -148,3 +191,36 @@ class Viewer:
     def close(self) -> None:
         self._vehicles.clear()
         self.road.vehicles = []
+
+
+def display_available() -> bool:
+    """Whether a window can be shown (a display, and no video driver forced to ``dummy``)."""
+    return _DISPLAY and (_DUMMY_SET_HERE or os.environ.get("SDL_VIDEODRIVER") != "dummy")
+
+
+class Window:
+    """A pygame window showing the viewer's frames (``render_mode="human"``).
+
+    Frames are drawn offscreen (:class:`Viewer`) and blitted here, so the
+    window shows exactly what ``rgb_array`` returns. The dummy video driver
+    this module sets for offscreen drawing is lifted before the display starts.
+    """
+
+    def __init__(self, title: str) -> None:
+        if _DUMMY_SET_HERE and os.environ.get("SDL_VIDEODRIVER") == "dummy":
+            del os.environ["SDL_VIDEODRIVER"]
+        pygame.display.init()
+        pygame.display.set_caption(title)
+        self._screen: pygame.Surface | None = None
+
+    def show(self, frame: np.ndarray) -> None:
+        """Show one (H, W, 3) uint8 frame; keeps the window responsive."""
+        height_px, width_px = frame.shape[:2]
+        if self._screen is None or self._screen.get_size() != (width_px, height_px):
+            self._screen = pygame.display.set_mode((width_px, height_px))
+        pygame.surfarray.blit_array(self._screen, np.transpose(frame, (1, 0, 2)))
+        pygame.display.flip()
+        pygame.event.pump()
+
+    def close(self) -> None:
+        pygame.display.quit()

@@ -126,3 +126,33 @@ def test_recorder_rejects_inconsistent_input():
     rec.record(make_state([0.0, 10.0], [0, 1]))
     with pytest.raises(MetricsError, match="vehicles"):
         rec.record(make_state([0.0], [0]))
+
+
+def test_flow_metrics_match_hand_computation():
+    recorder = EpisodeRecorder(ROAD)
+    for state in episode():
+        recorder.record(state)
+    m = recorder.summary()
+    # Only vehicle 3 is past the reduction's end (800 m): 1 vehicle in 2 s.
+    assert m.throughput_vph == pytest.approx(1800.0)
+    # Time on the road minus distance / 25 m/s: 2 - 24/25, 2 - 38/25, 2 - 6/25, and
+    # vehicle 3 arrived at t = 1 after the 10 m to the route end (1300 m).
+    delays = [2 - 24 / 25, 2 - 38 / 25, 2 - 6 / 25, 1 - 10 / 25]
+    assert m.total_delay_s == pytest.approx(sum(delays))
+    assert m.delay_per_vehicle_s == pytest.approx(sum(delays) / 4)
+    assert m.mean_arrived_speed_mps == pytest.approx(24.0)  # vehicle 3's one sample
+    assert m.never_arrived_fraction == pytest.approx(0.75)
+
+
+def test_delay_uses_each_segments_limit():
+    from diacc.config import preset_road
+
+    road = preset_road(load_map("train-50"), "paper-congestion")  # reduction at 15 m/s
+    recorder = EpisodeRecorder(road)
+    recorder.record(make_state([450.0], [0], 20.0, segment=0, time_s=0.0, step=0))
+    recorder.record(make_state([850.0], [0], 20.0, segment=2, time_s=30.0, step=30))
+    m = recorder.summary()
+    # free flow 450 -> 850 m: 50 / 25 + 300 / 15 + 50 / 25 = 24 s; still on the road at t = 30
+    assert m.total_delay_s == pytest.approx(6.0)
+    assert m.throughput_vph == pytest.approx(3600.0 / 30.0)
+    assert math.isnan(m.mean_arrived_speed_mps) and m.never_arrived_fraction == 1.0

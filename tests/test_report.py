@@ -71,7 +71,7 @@ def results(tmp_path):
     )
     # DIACC: speeds 15 +- 1 and 17 +- 1 (200 each): mean 16, E[v^2] = (226 + 290)/2 = 258,
     #   std = sqrt(258 - 256) = sqrt(2); p(WE) 0%, 10% -> 5 +- 5; p(SCE) 0, 0
-    #   relative change: speed (16-13)/13 = +23.1%, p(WE) (5-30)/30 = -83.3%, p(SCE) -100%
+    #   change: speed (16-13)/13 = +23.1 %, p(WE) 5 - 30 = -25 pp, p(SCE) 0 - 8 = -8 pp
     diacc = _results(
         tmp_path / "diacc", "diacc", [(0, 15.0, 1.0, 200, 0.0, 0.0), (1, 17.0, 1.0, 200, 0.1, 0.0)]
     )
@@ -87,27 +87,28 @@ def test_table_numbers_are_exact(results):
     assert (speed_diacc.mean, speed_diacc.std) == pytest.approx((16.0, 2**0.5))
     we = table.stats[(cell.key, "p_we", "pure-hdv")]
     assert (we.mean, we.std, we.n_episodes) == pytest.approx((30.0, 10.0, 2))
-    assert table.relative_change(cell, "speed", "diacc") == pytest.approx(300 / 13)
-    assert table.relative_change(cell, "p_we", "diacc") == pytest.approx(-250 / 3)
-    assert table.relative_change(cell, "p_sce", "diacc") == pytest.approx(-100.0)
-    assert table.relative_change(cell, "speed", "pure-hdv") is None
+    assert table.change(cell, "speed", "diacc") == pytest.approx(300 / 13)
+    assert table.change(cell, "p_we", "diacc") == pytest.approx(-25.0)  # pp
+    assert table.change(cell, "p_sce", "diacc") == pytest.approx(-8.0)
+    assert table.change(cell, "speed", "pure-hdv") is None
     assert table.best(cell, "speed") == {"diacc"} and table.best(cell, "p_sce") == {"diacc"}
 
     markdown = render_table(table, "markdown")
     assert (
-        "| N=25, rho=0.4, D1 | Speed (m/s) | 13.00 ± 2.00 | **16.00 ± 1.41** (+23.1%) |" in markdown
+        "| N=25, rho=0.4, D1 | Speed (m/s) | 13.00 ± 2.00 | **16.00 ± 1.41** (+23.1 %) |"
+        in markdown
     )
-    assert "| p(WE) (%) | 30.00 ± 10.00 | **5.00 ± 5.00** (-83.3%) |" in markdown
-    assert "| p(SCE) (%) | 8.00 ± 0.00 | **0.00 ± 0.00** (-100.0%) |" in markdown
+    assert "| p(WE) (%) | 30.00 ± 10.00 | **5.00 ± 5.00** (-25.0 pp) |" in markdown
+    assert "| p(SCE) (%) | 8.00 ± 0.00 | **0.00 ± 0.00** (-8.0 pp) |" in markdown
     assert "SUMO 1.28.0, style preset paper, 2 episodes per cell" in markdown
 
     latex = render_table(table, "latex")
-    assert r"\textbf{16.00 $\pm$ 1.41} (+23.1\%)" in latex and r"\multirow{3}{*}" in latex
+    assert r"\textbf{16.00 $\pm$ 1.41} (+23.1 \%)" in latex and r"\multirow{3}{*}" in latex
 
     rows = list(csv.DictReader(io.StringIO(render_table(table, "csv"))))
     speed = {r["policy"]: r for r in rows if r["metric"] == "speed"}
-    assert float(speed["diacc"]["rel_change_pct"]) == pytest.approx(300 / 13)
-    assert speed["diacc"]["best"] == "1" and speed["pure-hdv"]["rel_change_pct"] == ""
+    assert float(speed["diacc"]["change"]) == pytest.approx(300 / 13)
+    assert speed["diacc"]["best"] == "1" and speed["pure-hdv"]["change"] == ""
 
 
 def test_speed_std_over_episodes(results):
@@ -118,7 +119,7 @@ def test_speed_std_over_episodes(results):
 
 def test_table_cli_formats(results, tmp_path, capsys):
     assert main(["table", *map(str, results)]) == 0
-    assert "**16.00 ± 1.41** (+23.1%)" in capsys.readouterr().out
+    assert "**16.00 ± 1.41** (+23.1 %)" in capsys.readouterr().out
     assert (
         main(["table", *map(str, results), "--format", "csv", "--out", str(tmp_path / "t.csv")])
         == 0
@@ -164,9 +165,12 @@ def test_slower_or_crashier_policies_are_not_ranked(tmp_path):
     assert table.marks(cell, "collision")[0] == {"pure-hdv", "mappo-iadm", "diacc"}
 
     markdown = render_table(table, "markdown")
-    assert "| Collision (%) | **0.00 ± 0.00** | 0.00 ± 0.00 | **0.00 ± 0.00** |" in markdown
-    assert "| Arrived (%) | **100.00 ± 0.00** | 50.00 ± 0.00 (-50.0%) |" in markdown
-    assert "| 14.00 ± 1.00 (-30.0%) | _21.00 ± 1.00_ (+5.0%) | **22.00 ± 1.00** (+10.0%) |" in (
+    assert (
+        "| Collision (%) | **0.00 ± 0.00** | 0.00 ± 0.00 (+0.0 pp) | **0.00 ± 0.00** (+0.0 pp) |"
+        in markdown
+    )
+    assert "| Arrived (%) | **100.00 ± 0.00** | 50.00 ± 0.00 (-50.0 pp) |" in markdown
+    assert "| 14.00 ± 1.00 (-30.0 %) | _21.00 ± 1.00_ (+5.0 %) | **22.00 ± 1.00** (+10.0 %) |" in (
         markdown
     )
     caption = markdown.splitlines()[0]
@@ -198,3 +202,68 @@ def test_table_cli_rows_option(results, capsys):
     assert main(["table", *map(str, results), "--rows", "p_we"]) == 0
     out = capsys.readouterr().out
     assert "p(WE) (%)" in out and "Speed (m/s)" not in out
+
+
+def test_columns_are_ranked_and_compared_within_their_backend(results, tmp_path):
+    hdv, diacc = results  # both on sumo
+    fast = _results(
+        tmp_path / "fast", "diacc", [(0, 30.0, 1.0, 200, 0.0, 0.0), (1, 30.0, 1.0, 200, 0.0, 0.0)]
+    )
+    (fast / "meta.json").write_text(json.dumps({"policy": "diacc", "backend": "highway"}))
+    table = build_table([hdv, diacc, fast])
+    (cell,) = table.cells
+    highway = next(c for c in table.columns if table.backend[c] == "highway")
+    sumo = next(
+        c for c in table.columns if table.backend[c] == "sumo" and table.policy[c] == "diacc"
+    )
+    assert table.best(cell, "speed") == {sumo}  # 30 m/s on highway does not beat sumo's 16
+    assert table.change(cell, "speed", highway) is None  # no pure HDV on highway to compare
+    assert table.reference(highway) is None
+    assert any("within" in n or "one backend" in n for n in table.notes)
+
+
+def _flow_results(path: Path, policy: str, speeds: list[float], delays: list[float]) -> Path:
+    """Results of cell train-25 N25 rho0.4 D1 with the flow columns (100 samples, 0 std)."""
+    path.mkdir(parents=True)
+    (path / "meta.json").write_text(json.dumps({"policy": policy, "backend": "sumo"}))
+    columns = [*COLUMNS, "throughput_vph", "delay_per_vehicle_s", "never_arrived_fraction"]
+    with open(path / "episodes.csv", "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(columns)
+        for ep, (speed, delay) in enumerate(zip(speeds, delays, strict=True)):
+            base = [policy, "sumo", "", "paper", "train-25", 25, 0.4, "D1", ep]
+            writer.writerow([*base, speed, 0.0, 100, 0.0, 0.0, 900.0, delay, "nan" if ep else 0.1])
+    return path
+
+
+def test_gains_against_same_mix_and_flow_rows(tmp_path, capsys):
+    hdv = _flow_results(tmp_path / "hdv", "pure-hdv", [10.0, 10.0], [20.0, 20.0])
+    mix = _flow_results(tmp_path / "mix", "same-mix", [12.5, 12.5], [10.0, 10.0])
+    agent = _flow_results(tmp_path / "agent", "diacc", [11.0, 13.0], [8.0, 12.0])
+    old = tmp_path / "old"  # written before the flow columns existed
+    _results(old, "cooperative", [(0, 9.0, 0.0, 100, 0.0, 0.0)])
+    table = build_table([hdv, mix, agent, old], rows=("speed", "throughput", "delay"))
+    (cell,) = table.cells
+    # diacc: speed 12 is +20% against pure HDV (10) and -4% against same-mix (12.5);
+    # delay 10 s is -50% against pure HDV (20 s) and +0% against same-mix.
+    assert table.change(cell, "speed", "diacc") == pytest.approx(20.0)
+    assert table.change(cell, "speed", "diacc", "same-mix") == pytest.approx(-4.0)
+    assert table.change(cell, "delay", "diacc", "same-mix") == pytest.approx(0.0)
+    assert table.change(cell, "speed", "same-mix") == pytest.approx(25.0)
+    assert table.change(cell, "speed", "same-mix", "same-mix") is None
+    assert table.change(cell, "speed", "pure-hdv", "same-mix") is None
+    assert (cell.key, "delay", "cooperative") not in table.stats  # old file: no flow row
+    markdown = render_table(table, "markdown")
+    assert "| _12.00 ± 1.00_ (+20.0 %, -4.0 %) | 9.00 ± 0.00 (-10.0 %, -28.0 %) |" in markdown
+    assert "| Delay (s/veh) | _20.00 ± 0.00_ | **10.00 ± 0.00** (-50.0 %) |" in markdown
+    assert "| Throughput (veh/h) | **900.00 ± 0.00** |" in markdown
+    assert "against pure HDV and same-mix" in markdown
+    csv_rows = list(csv.DictReader(io.StringIO(render_table(table, "csv"))))
+    speed = {r["policy"]: r for r in csv_rows if r["metric"] == "speed"}
+    assert float(speed["diacc"]["change_same_mix"]) == pytest.approx(-4.0)
+    # never arrived: an episode's nan is left out (1 of 2 episodes defined)
+    table = build_table([hdv], rows=("never_arrived",))
+    stat = table.stats[(cell.key, "never_arrived", "pure-hdv")]
+    assert (stat.mean, stat.n_episodes) == pytest.approx((10.0, 1))
+    assert main(["table", str(hdv), str(agent), "--rows", "speed,flow"]) == 2  # no travel time
+    assert "has the data of row 'arrived_speed'" in capsys.readouterr().err

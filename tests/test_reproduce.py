@@ -96,8 +96,8 @@ def test_tiny_budget_writes_every_output(tiny):
     )
     assert "[4/5] resumed diacc-train-50-s1" in stdout  # the interrupted run continued
     assert "[1/5] trained mappo-train-50-s1" in stdout
-    assert "[13/13] eval diacc-train-50-s1-sumo on sumo: 1 of 1 cells to run" in stdout
-    assert f"  [13/13] cell [1/1] {TRAIN_CELL}: mean speed " in stdout
+    assert "[17/17] eval diacc-train-50-s1-sumo on sumo: 1 of 1 cells to run" in stdout
+    assert f"  [17/17] cell [1/1] {TRAIN_CELL}: mean speed " in stdout
     manifest = json.loads((out / "manifest.json").read_text())
     assert all(stage["finished"] for stage in manifest["stages"].values())
     assert manifest["invocations"][-1]["exit"] == "finished"
@@ -124,6 +124,8 @@ def test_table_numbers_come_from_the_evaluation_files(tiny):
             expected = _pooled_speed(rows, zero_shot)
             assert _table_speed(table3, backend, column) == pytest.approx(expected, abs=0.006)
     assert "test-50" in table3 and "train-50" not in table3.split("**", 2)[1]
+    assert "| pure-hdv | same-mix | cooperative | heuristic | " in table2
+    assert "| Delay (s/veh) |" in table2 and "against pure HDV and same-mix" in table2
     assert "\\begin{tabular}" in (out / "tables/table2.tex").read_text()
 
 
@@ -155,7 +157,7 @@ def test_second_invocation_only_checks(tiny, capsys):
     seconds = time.perf_counter() - start
     stdout = capsys.readouterr().out
     assert stdout.count("skipped") == 5 and "trained" not in stdout.replace("trained on", "")
-    assert stdout.count("cells already done") == 13 and "cells to run" not in stdout
+    assert stdout.count("cells already done") == 17 and "cells to run" not in stdout
     assert "outputs were up to date" in stdout
     assert before == {rel: (out / rel).stat().st_mtime_ns for rel in before}
     assert seconds < 60  # a few seconds on an idle machine: nothing is loaded or simulated

@@ -131,3 +131,28 @@ def test_safety_benchmark_small(backend_name):
     (row,) = rows
     assert row.collision_free == 1.0 and row.hdv_hdv_collisions == 0
     assert row.arrived_fraction > 0.5  # and they do cross the bottleneck
+
+
+@pytest.mark.parametrize("backend_name", ["highway", "sumo"])
+def test_safety_benchmark_heuristic_congested(backend_name, capsys):
+    """The heuristic under PSAR in the congested preset (the bench's second setting)."""
+    from diacc.bench.safety import run
+
+    rows = run(
+        backends=(backend_name,),
+        maps=("train-50",),
+        policies=("heuristic",),
+        episodes=1,
+        style_preset="paper-congestion",
+        episode_steps=120,
+    )
+    (row,) = rows
+    assert row.meets_target and row.arrived_fraction > 0.5
+    assert "style preset paper-congestion, 120-step episodes" in capsys.readouterr().out
+
+
+def test_bench_safety_bad_episode_steps_is_one_line(capsys):
+    from diacc.cli import main
+
+    assert main(["bench", "--safety", "--episode-steps", "0"]) == 2
+    assert capsys.readouterr().err.strip() == "diacc: error: --episode-steps must be >= 1, got 0"

@@ -366,3 +366,27 @@ def test_psar_matches_scalar_reference_on_random_dense_traffic():
             assert res.action[k] == ref_a
             assert res.decel_lc_mps2[k] == pytest.approx(ref_b)
     assert (fired > 0).all()  # every rule was exercised
+
+
+@pytest.mark.parametrize("other_lane, drift_m", [(2, -0.1), (0, +0.1)])
+def test_a_vehicle_starting_to_cut_in_is_a_front_obstacle(other_lane, drift_m):
+    """The SUMO crash of the heuristic (issue 23): an HDV standing 17 m ahead in the next
+    lane begins to move across; the CAV must not accelerate into its gap."""
+    centre_m = ROAD.lane_center_y_m(np.array([1, other_lane]))
+    x, lane, speed = [448.0, 470.0], [1, other_lane], [7.3, 0.0]
+    for drift, expected in ((drift_m, DECELERATE), (0.0, ACCELERATE), (-drift_m, ACCELERATE)):
+        y = [float(centre_m[0]), float(centre_m[1]) + drift]  # drift towards / none / away
+        state = make_state(x, lane, speed, is_cav=[True, False], y_m=y)
+        res = psar(state, np.array([0]), np.array([ACCELERATE]), PSARConfig(), ROAD)
+        assert res.action.tolist() == [expected], drift
+
+
+def test_the_cut_in_behind_a_vehicle_alongside_is_seen():
+    """The merging vehicle need not be the nearest one of its lane (test-50 crash)."""
+    centre_m = ROAD.lane_center_y_m(np.array([1, 2, 2]))
+    y = [float(centre_m[0]), float(centre_m[1]), float(centre_m[2]) - 0.1]
+    state = make_state(
+        [806.6, 810.0, 832.4], [1, 2, 2], [9.5, 9.0, 0.0], is_cav=[True, False, False], y_m=y
+    )
+    res = psar(state, np.array([0]), np.array([ACCELERATE]), PSARConfig(), ROAD)
+    assert res.action.tolist() == [DECELERATE]

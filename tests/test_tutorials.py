@@ -47,6 +47,7 @@ EXPECTED: dict[str, tuple[str, ...]] = {
         "07_validate_on_sumo/sumo_episode.gif",
         "07_validate_on_sumo/sumo_last_frame.png",
     ),
+    "08_trained_agent_in_python.py": ("08_trained_agent_in_python/trained_agent_frame.png",),
 }
 
 
@@ -102,6 +103,8 @@ def test_tutorial_runs(name: str, shared_out: Path) -> None:
             assert column in table
     if name == "07_validate_on_sumo.py":
         assert "reusing the checkpoint of tutorial 6" in proc.stdout
+    if name == "08_trained_agent_in_python.py":
+        assert "mean_speed_mps" in proc.stdout and "sampled" in proc.stdout
 
 
 def test_tutorial_7_alone_trains_its_own_agent(tmp_path: Path) -> None:

@@ -174,7 +174,7 @@ print("wrote", speed_png)
 #
 # `Viewer.draw(state)` draws a state of either backend with highway-env's renderer
 # (offscreen, no window). Vehicles are coloured by style: orange aggressive,
-# blue normal, yellow cautious; the green verge marks lanes that do not exist
+# blue normal, yellow cautious; the sand-coloured hatch marks lanes that do not exist
 # in the bottleneck.
 
 # %%

@@ -59,6 +59,7 @@ class Rollout:
     truncated: np.ndarray  # (S, E) bool
     final_values: np.ndarray  # (S, E), or (S, E, C) per agent
     episode_start: np.ndarray  # (S, E) bool: s_t is the first state of an episode
+    agent_start: np.ndarray  # (S, E, C) bool: episode start, or a new CAV in the slot at s_t
     actor_hidden: np.ndarray  # (S, E, C, H) hidden state *before* step t
     critic_hidden: np.ndarray  # (S, E, H)
 
@@ -82,6 +83,7 @@ class Rollout:
             truncated=np.zeros((steps, envs), bool),
             final_values=np.zeros(v, np.float64),
             episode_start=np.zeros((steps, envs), bool),
+            agent_start=np.zeros((steps, envs, cavs), bool),
             actor_hidden=np.zeros((steps, envs, cavs, actor_h), f),
             critic_hidden=np.zeros((steps, envs, critic_h), f),
         )

@@ -19,6 +19,11 @@ then ``epochs`` passes of PPO over it:
   episode starts inside a chunk.
 * **Death masking**: CAVs that have left (or were never on the road) add
   nothing to any actor loss.
+* **Agent slots refill** (``demand`` scenarios, :mod:`diacc.env`): a slot
+  that a new CAV takes starts from a zero actor hidden state, in the rollout
+  and in the chunked replay (``agent_start``), as at an episode start. The
+  advantage is the team's, per environment, so the previous occupant needs no
+  GAE cut of its own: its steps end where its slot went dead (masked).
 * Every update starts all environments afresh with seeds derived from
   (run seed, env, update); with the RNG states in the checkpoint this makes
   ``--resume`` reproduce an uninterrupted run exactly.
@@ -41,7 +46,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch.utils.tensorboard import SummaryWriter
-from tqdm import tqdm
 
 from diacc.action_mask import masked_logits
 from diacc.algo.buffer import Rollout, compute_gae
@@ -56,6 +60,7 @@ from diacc.algo.checkpoint import (
 )
 from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig, validate
+from diacc.console import TrainProgress
 from diacc.errors import DiaccError
 from diacc.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
 from diacc.models.inputs import to_tensors
@@ -63,7 +68,7 @@ from diacc.models.registry import build_policy
 from diacc.observation import ObservationSpec, stack, unstack
 from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
-from diacc.runlog import log, run_log
+from diacc.runlog import config_digest, log, run_log
 from diacc.threads import set_torch_threads
 from diacc.vector import make_vector_env
 
@@ -220,16 +225,19 @@ def collect_rollout(
     h_actor = torch.zeros(E * C, H_a, device=device)  # (E*C, H)
     h_critic = torch.zeros(E, H_c, device=device)  # (E, H)
     start = np.ones(E, bool)
+    slot_start = np.zeros((E, C), bool)  # (E, C) new CAV in the slot since the last action
     stats = RolloutStats([], np.zeros(len(RULE_NAMES) - 1, np.int64), 0, 0, {}, 0.0)
     for t in range(cfg.rollout_steps):
         roll.actor_obs[t], roll.critic_state[t] = actor_obs, critic_state
         roll.episode_start[t], roll.alive[t] = start, actor_obs.alive
+        roll.agent_start[t] = start[:, None] | slot_start
         roll.actor_hidden[t] = h_actor.view(E, C, H_a).cpu().numpy()
         roll.critic_hidden[t] = h_critic.cpu().numpy()
         with torch.no_grad():
             start_t = torch.as_tensor(start, device=device)
+            agent_start_t = torch.as_tensor(roll.agent_start[t].reshape(-1), device=device)
             obs_t = to_tensors(flatten_agents(actor_obs), device)
-            logits, h_actor = actor(obs_t, h_actor, start_t.repeat_interleave(C))
+            logits, h_actor = actor(obs_t, h_actor, agent_start_t)
             # All True unless env.psar_actions = "masked" (then a no-op: same numbers).
             logits = masked_logits(logits, obs_t["action_mask"])  # (E*C, 5)
             dist = torch.distributions.Categorical(logits=logits)
@@ -273,6 +281,7 @@ def collect_rollout(
             stats.reward_terms.setdefault(key, []).append(float(values.mean()))
         actor_obs, critic_state = out.actor_obs, out.critic_state
         start = out.terminated | out.truncated
+        slot_start = out.slot_start
     with torch.no_grad():
         next_value, _ = critic(
             critic_inputs(critic_state, actor_obs, per_agent, device),
@@ -361,7 +370,7 @@ def make_batch(
     alive_adv = adv[roll.alive]
     if alive_adv.size > 1:
         adv = (adv - alive_adv.mean()) / (alive_adv.std() + 1e-8)
-    starts = np.repeat(roll.episode_start[:, :, None], C, axis=2)
+    starts = roll.agent_start  # (S, E, C): episode starts and refilled slots
     return Batch(
         actor_obs=to_tensors(
             {f.name: per_agent(getattr(actor, f.name)) for f in fields(actor)}, device
@@ -656,13 +665,18 @@ def _train_loop(
     writer = SummaryWriter(
         str(run_dir / "tb"), purge_step=global_step + 1 if first_update else None
     )
-    bar = tqdm(
-        total=n_updates * steps_per_update,
-        initial=global_step,
-        unit="step",
-        disable=not progress,
-        desc=f"train {cfg.variant}",
+    bar = TrainProgress(n_updates * steps_per_update, global_step, f"train {cfg.variant}", progress)
+    log.info(
+        "start: %s in %s, updates %d-%d of %d (%d env steps each), config %s",
+        cfg.variant,
+        run_dir,
+        first_update + 1,
+        last_update,
+        n_updates,
+        steps_per_update,
+        config_digest(cfg),
     )
+    started_s = time.perf_counter()
     try:
         with _StopOnSignal() as stop:
             for update in range(first_update, last_update):
@@ -704,12 +718,7 @@ def _train_loop(
                 )
                 record = progress_record(stats, update_s=time.perf_counter() - t0)
                 write_record(record, writer, run_dir / "progress.jsonl")
-                bar.update(steps_per_update)
-                bar.set_postfix(
-                    R=f"{record['team_reward']:.2f}",
-                    speed=f"{record.get('episode/mean_speed_mps', float('nan')):.1f}",
-                    sps=f"{record['env_steps_per_s']:.0f}",
-                )
+                bar.update(steps_per_update, record["team_reward"], rollout.episodes)
                 if (
                     (update + 1) % cfg.checkpoint_every == 0
                     or update + 1 == last_update
@@ -717,6 +726,7 @@ def _train_loop(
                 ):
                     save_checkpoint(ckpt_path, agent, cfg, update + 1, global_step)
                     saved_update = update + 1
+                    log.info("checkpoint: update %d, env step %d", update + 1, global_step)
                 if stop.signum is not None and update + 1 < last_update:
                     log.warning("stopped after update %d; checkpoint saved", update + 1)
                     raise TrainingInterrupted(stop.signum, update + 1, ckpt_path)
@@ -724,6 +734,13 @@ def _train_loop(
         bar.close()
         writer.close()
         envs.close()
+    log.info(
+        "end: after update %d of %d, env step %d, %.1f s",
+        last_update,
+        n_updates,
+        global_step,
+        time.perf_counter() - started_s,
+    )
     return run_dir
 
 

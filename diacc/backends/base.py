@@ -8,7 +8,7 @@ Everything past the backend (observations, PSAR, metrics, the viewer
 :mod:`diacc.viewer`) reads only that state, so nothing else needs to know
 which simulator runs. Each backend is a package: ``highway/`` and ``sumo/``.
 
-CAV command semantics, identical on every backend (facts.md "Actions"):
+CAV command semantics, identical on every backend:
 
 * ``lane_change[i]`` in {-1, 0, +1}: move one lane to the right (-1) or left
   (+1); the change completes within the step. A change towards a lane that
@@ -22,6 +22,12 @@ CAV command semantics, identical on every backend (facts.md "Actions"):
   front at the lane end and may change lanes later. A lane change is made
   only where :meth:`diacc.maps.Map.lane_change_allowed` allows it (the rule
   PSAR applies too).
+
+* ``speed_change_mps[i] = NaN``: no command: the CAV drives itself this step
+  (car following and lane changes of its vType with the simulator's own
+  safety, like the cooperative baseline's CAVs). A CAV of a ``demand``
+  scenario drives itself from its entry until the step it first gets a
+  command, and while it holds no agent slot (:mod:`diacc.env`).
 
 Entries of HDVs in the command arrays are ignored.
 """

@@ -1,7 +1,8 @@
 """``diacc bench --safety``: can scripted CAVs cross the bottleneck without collisions?
 
 Scripted policies (:class:`~diacc.policies.ScriptedPolicy`: always
-``remain``, always ``accelerate``, uniform ``random``) drive the CAVs of the
+``remain``, always ``accelerate``, uniform ``random``, and the ``heuristic``
+that accelerates and leaves an ending lane early) drive the CAVs of the
 paper's training scenario (N = 25, rho = 0.4, D1) with and without PSAR, on
 every map and backend, through the same episode driver as evaluation
 (:func:`diacc.evaluate.run_episode`). A policy that knows nothing about
@@ -9,11 +10,15 @@ traffic is the hardest test of the safety layer: whatever it proposes, PSAR
 should keep it out of collisions, and HDVs should never collide with each
 other. Per (backend, map, policy) it prints the collision-free share of
 episodes, the number of HDV-HDV collision pairs, the mean speed of all
-vehicles, p(SCE) and the arrived fraction.
+vehicles, p(SCE) and the arrived fraction. The HDV style preset and the
+episode length are the evaluation's (:class:`~diacc.policies.EvalSettings`,
+``--style-preset`` and ``--episode-steps``), so the congested ``paper-congestion``
+runs with 330-step episodes are benchmarked too.
 
-Target (issue "Collision-free bottleneck driving"): with PSAR, ``remain`` and
-``accelerate`` collision-free in >= 95 % of episodes on every map and both
-backends, and 0 HDV-HDV collisions. Without PSAR collisions are expected.
+Target (issue "Collision-free bottleneck driving"): with PSAR, ``remain``,
+``accelerate`` and ``heuristic`` collision-free in >= 95 % of episodes on every
+map and both backends, and 0 HDV-HDV collisions. Without PSAR collisions are
+expected.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.config import BACKENDS
+from diacc.config import BACKENDS, SimConfig
 from diacc.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
@@ -32,8 +37,9 @@ from diacc.policies import SCRIPTED, EvalSettings, ScriptedPolicy
 
 #: Policies of the benchmark: each script with PSAR, then without.
 POLICIES = tuple(SCRIPTED) + tuple(f"{name}-nopsar" for name in SCRIPTED)
-#: Target collision-free share for ``remain`` and ``accelerate`` with PSAR.
+#: Target collision-free share for these policies (all with PSAR).
 TARGET_COLLISION_FREE = 0.95
+TARGET_POLICIES = ("remain", "accelerate", "heuristic")
 
 
 @dataclass
@@ -53,16 +59,17 @@ class SafetyRow:
     @property
     def meets_target(self) -> bool | None:
         """None where the target does not apply (random, no PSAR)."""
-        if self.policy not in ("remain", "accelerate"):
+        if self.policy not in TARGET_POLICIES:
             return None
         return self.collision_free >= TARGET_COLLISION_FREE and self.hdv_hdv_collisions == 0
 
 
-def measure(backend: str, map_name: str, policy_name: str, episodes: int) -> SafetyRow:
+def measure(settings: EvalSettings, map_name: str, policy_name: str, episodes: int) -> SafetyRow:
     """Run ``episodes`` seeded episodes of one scripted policy; seeds as evaluation's."""
     policy = ScriptedPolicy(policy_name)
     cell = Cell(map_name, 25, 0.4, "D1")
-    driver = EpisodeDriver(policy, policy.env_config(cell, EvalSettings(backend=backend)))
+    backend = settings.backend
+    driver = EpisodeDriver(policy, policy.env_config(cell, settings))
     try:
         rows = [run_episode(driver, cell, k).row for k in range(episodes)]
     finally:
@@ -85,11 +92,19 @@ def run(
     maps: tuple[str, ...] | None = None,
     policies: tuple[str, ...] = POLICIES,
     episodes: int = 20,
+    style_preset: str | None = None,
+    episode_steps: int | None = None,
 ) -> list[SafetyRow]:
-    """Measure every combination and print one Markdown table; returns the rows."""
+    """Measure every combination and print one Markdown table; returns the rows.
+
+    ``style_preset`` / ``episode_steps``: None keeps the defaults of
+    :class:`~diacc.config.SimConfig`.
+    """
     maps = tuple(maps or available_maps())
+    sim = EvalSettings(style_preset=style_preset, episode_steps=episode_steps).apply(SimConfig())
     print(
-        f"safety benchmark: N = 25, rho = 0.4, D1, {episodes} seeded episodes per row "
+        f"safety benchmark: N = 25, rho = 0.4, D1, style preset {sim.style_preset}, "
+        f"{sim.episode_steps}-step episodes, {episodes} seeded episodes per row "
         f"(seeds as `diacc eval`)"
     )
     print(
@@ -102,7 +117,8 @@ def run(
     for backend in backends:
         for map_name in maps:
             for policy_name in policies:
-                row = measure(backend, map_name, policy_name, episodes)
+                settings = EvalSettings(backend, episode_steps, style_preset)
+                row = measure(settings, map_name, policy_name, episodes)
                 out.append(row)
                 target = {None: "", True: "met", False: "**missed**"}[row.meets_target]
                 print(

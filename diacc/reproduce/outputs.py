@@ -37,6 +37,7 @@ from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, load_episodes
 from diacc.grid import Cell
 from diacc.maps import SEGMENT_KINDS
 from diacc.plots import PlotError
+from diacc.report import FLOW_ROWS
 from diacc.reproduce.plan import (
     BASELINE_POLICIES,
     TRANSFER_BACKEND,
@@ -47,8 +48,8 @@ from diacc.reproduce.plan import (
 )
 from diacc.reproduce.stages import row_cell_key
 
-#: Table rows: the paper's three, plus the share of episodes ending in a collision.
-TABLE_ROWS = ("speed", "p_we", "p_sce", "collision")
+#: Table rows: the paper's three, the share of episodes ending in a collision, the flow rows.
+TABLE_ROWS = ("speed", "p_we", "p_sce", "collision", *FLOW_ROWS)
 TABLES = {"train": "table2", "zero-shot": "table3", "zero-shot-product": "table3-product"}
 TABLE_TITLES = {
     "train": "Table II (training grid)",

@@ -38,8 +38,10 @@ from diacc.grid import GRID_NAMES, Cell, load_grid
 from diacc.maps import load_map
 from diacc.sweepaxes import Setting
 
-#: Non-learning columns of every table (see :mod:`diacc.policies`).
-BASELINE_POLICIES = ("pure-hdv", "cooperative")
+#: Non-learning columns of every table (see :mod:`diacc.policies`): pure HDV, the
+#: same vehicles with human drivers in the CAV slots (what a CAV policy's control
+#: is measured against), cooperative CAVs and the scripted heuristic under PSAR.
+BASELINE_POLICIES = ("pure-hdv", "same-mix", "cooperative", "heuristic")
 #: Sim-to-sim transfer: this variant, trained on the training backend and on this one.
 TRANSFER_VARIANT = "diacc"
 TRANSFER_BACKEND = "sumo"

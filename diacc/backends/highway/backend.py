@@ -25,7 +25,9 @@ Modelling choices (documented here because both backends must agree on them):
   (the ``paper`` presets' cautious drivers): like LC2013 on SUMO they make no
   lane change for the lane end and stop at it. A last-resort guard keeps an HDV behind its HDV
   leader; its use is counted in ``stats["guard_events"]`` (0 in practice).
-* **CAVs** follow their commands exactly (see :mod:`diacc.backends.base`).
+* **CAVs** follow their commands exactly (see :mod:`diacc.backends.base`);
+  one without a command (NaN) drives itself for the step like a cooperative
+  CAV (below), and so does a CAV that has just entered, until its first step.
   A commanded change is made only if :meth:`Map.lane_change_allowed` says
   so (the rule PSAR applies too). A CAV is never moved by the simulator: in
   a lane that ends it stops with its front at the end (counted in
@@ -49,6 +51,13 @@ Modelling choices (documented here because both backends must agree on them):
   highway-env); the environment ends the episode anyway.
 * **Arrival**: a vehicle whose centre passes ``Map.length_m`` becomes
   inactive and is listed in ``arrivals`` of that step.
+* **Departure** (``demand`` scenarios): a pending vehicle enters at its
+  population slot at the first sub-step at or after its departure time at
+  which its entry is free: no vehicle of its lane closer ahead than the
+  gap IDM wants at its insertion speed behind that vehicle (s* = s0 + vT +
+  v dv / 2 sqrt(ab)), and no earlier vehicle of its lane still waiting
+  (first come, first served per lane). SUMO's default insertion checks make
+  the same decision with its own car-following model.
 """
 
 from __future__ import annotations
@@ -191,13 +200,16 @@ class HighwayBackend:
         self.idm.min_gap_m[e] = per_vehicle("min_gap_m", min_gap_m)
         self.idm.accel_mps2[e] = per_vehicle("accel_mps2", cav.accel_mps2)
         self.idm.decel_mps2[e] = per_vehicle("decel_mps2", cav.decel_mps2)
-        self.politeness[e] = per_vehicle("politeness", self.cooperative.politeness if coop else 0.0)
+        # CAVs that drive themselves (cooperative mode, or no command) change lanes
+        # cooperatively; commanded CAVs never run MOBIL.
+        self.politeness[e] = per_vehicle("politeness", self.cooperative.politeness)
         self.gain_threshold_mps2[e] = per_vehicle(
-            "lc_gain_threshold_mps2", self.cooperative.lc_gain_threshold_mps2 if coop else 0.0
+            "lc_gain_threshold_mps2", self.cooperative.lc_gain_threshold_mps2
         )
         # LC2013's lcStrategic < 0 (the authors' cautious drivers): no lane change
         # because a lane ends, so such a driver stops at the end of its lane.
         self.strategic[e] = per_vehicle("lc_strategic", 0.0) >= 0.0
+        self.zipper[e] = per_vehicle("zipper", False).astype(bool)
 
         # is_cav: vehicles driven by commands; cooperative CAVs drive like HDVs.
         self.is_cav[e] = False if coop else pop.is_cav
@@ -210,7 +222,9 @@ class HighwayBackend:
         self.speed_mps[e] = pop.speed_mps
         for name in ("lat_speed_mps", "heading_rad", "cooldown_s", "_cav_accel_mps2"):
             getattr(self, name)[e] = 0.0
-        self.active[e], self.arrived[e], self.crashed[e] = True, False, False
+        self._depart_s[e] = pop.depart_s
+        self._pending[e] = pop.depart_s > 0.0
+        self.active[e], self.arrived[e], self.crashed[e] = ~self._pending[e], False, False
         self.yield_to[e] = -1
         self._contact[e] = False
         self._route_end_m[e] = self.road.length_m
@@ -227,6 +241,45 @@ class HighwayBackend:
         lane = self._lane()
         return self._make_state(e, lane, np.zeros(n), _EMPTY_PAIRS, np.zeros(0, np.int32))
 
+    def _insert_due(self, now_s: np.ndarray) -> None:
+        """Let pending vehicles whose departure time ``now_s`` (E,) has come enter where
+        their lane's entry is free (module docstring, "Departure")."""
+        due = self._pending & (self._depart_s <= now_s[:, None] + 1e-9)  # (E, V)
+        if not due.any():
+            return
+        length_m = self.sim.vehicle_length_m
+        entered = np.zeros_like(due)
+        for e in np.flatnonzero(due.any(axis=1)):
+            waiting = self._pending[e]
+            for lane in np.unique(self.lane_to[e, due[e]]):
+                first = np.flatnonzero(waiting & (self.lane_to[e] == lane))[0]  # FIFO per lane
+                if not due[e, first]:
+                    continue
+                x0, v0 = self.x_m[e, first], self.speed_mps[e, first]
+                in_lane = self.active[e] & ((self.lane_from[e] == lane) | (self.lane_to[e] == lane))
+                ahead = in_lane & (self.x_m[e] > x0 - length_m)
+                if ahead.any():
+                    j = np.flatnonzero(ahead)[np.argmin(self.x_m[e, ahead])]
+                    gap_m = self.x_m[e, j] - x0 - length_m
+                    need_m = self.idm.min_gap_m[e, first] + max(
+                        0.0,
+                        v0 * self.idm.headway_s[e, first]
+                        + v0 * (v0 - self.speed_mps[e, j]) * self._inv_2_sqrt_ab[e, first],
+                    )
+                    if gap_m < need_m:
+                        continue
+                entered[e, first] = True
+        if not entered.any():
+            return
+        self._pending &= ~entered
+        self.active |= entered
+        self.is_cav &= ~entered  # a CAV drives itself until its first command
+        self._cav_target_mps = np.where(entered, self.speed_mps, self._cav_target_mps)
+        envs = entered.any(axis=1)
+        self._leaders_dirty |= envs
+        self._refresh_road_facts(envs)
+        self._refresh_speed_bounds()
+
     def step_batch(self, commands: CavCommands) -> list[TrafficState]:
         """Advance every env one decision step; ``commands`` arrays are (E, V); a state per env."""
         if not self._ready.all():
@@ -239,10 +292,19 @@ class HighwayBackend:
                 f"commands must have shape {shape}, got {lane_cmd.shape} and {dv_cmd.shape}"
             )
         speed_start = self.speed_mps.copy()
+        if self.cav_mode == "commanded":
+            # NaN: no command, the CAV drives itself this step (diacc.backends.base).
+            commanded = (self.is_cav | self._reported_cav) & ~np.isnan(dv_cmd)  # (E, V)
+            self._leaders_dirty |= (commanded != self.is_cav).any(axis=1)
+            self.is_cav = commanded
+            dv_cmd = np.where(commanded, dv_cmd, 0.0)
         self._apply_cav_commands(lane_cmd.astype(np.intp), dv_cmd)
         arrived_before = self.arrived.copy()
         new_contacts = np.zeros_like(self._contact)  # (E, V, V)
+        demand = self._pending.any()
         for k in range(self.sim.substeps):
+            if demand:
+                self._insert_due(self.time_s + k * self.dt_s)
             if k % self._decide_every == 0:
                 self._decide_lane_changes()
             contact = self._substep()
@@ -280,12 +342,12 @@ class HighwayBackend:
         for name in (
             "politeness", "gain_threshold_mps2", "x_m", "y_m", "speed_mps", "lat_speed_mps",
             "heading_rad", "cooldown_s", "_route_end_m", "_cav_target_mps", "_cav_accel_mps2",
-            "_inv_2_sqrt_ab", "_desired_mps", "_end_x_m", "_inv_desired",
+            "_inv_2_sqrt_ab", "_desired_mps", "_end_x_m", "_inv_desired", "_depart_s",
         ):  # fmt: skip
             setattr(self, name, np.zeros(shape))
         for name in (
             "strategic", "is_cav", "_reported_cav", "active", "arrived", "crashed",
-            "_has_leader", "_guarded", "_moving", "_screen",
+            "_has_leader", "_guarded", "_moving", "_screen", "_pending", "zipper",
         ):  # fmt: skip
             setattr(self, name, np.zeros(shape, dtype=bool))
         self.style = np.zeros(shape, dtype=np.int8)
@@ -510,7 +572,11 @@ class HighwayBackend:
         nf = np.where(left, foll[:, 2], foll[:, 0])  # (E, V)
         nf_gap = np.where(left, foll_gap[:, 2], foll_gap[:, 0])
         nf_acc = np.where(left, foll_with_me[:, 2], foll_with_me[:, 0])
-        polite = (self._at(self.politeness, nf) > 0.0) | (v < m.yield_speed_mps)
+        zipper = self._at(self.zipper, nf)  # (E, V) follower lets a merger in (zipper preset)
+        polite = (self._at(self.politeness, nf) > 0.0) | (v < m.yield_speed_mps) | zipper
+        can_brake = np.where(
+            zipper, m.forced_max_imposed_brake_mps2, self._at(self.idm.decel_mps2, nf)
+        )
         waiting = (
             forced
             & ~start
@@ -519,7 +585,7 @@ class HighwayBackend:
             & np.isfinite(nf_gap)
             & ~self._at(self.is_cav, nf)
             & polite
-            & (nf_acc >= -self._at(self.idm.decel_mps2, nf))
+            & (nf_acc >= -can_brake)
         )
         yield_to = np.full_like(self.yield_to, -1)
         for e in np.flatnonzero(waiting.any(axis=1)):  # rare: a merger waits

@@ -42,7 +42,9 @@ def vtypes_xml(sim: SimConfig) -> str:
             f'delta="{sim.idm_delta}" tau="{style.time_headway_s}" minGap="{style.min_gap_m}" '
             f'accel="{style.accel_mps2}" decel="{style.decel_mps2}" '
             f'laneChangeModel="LC2013" lcCooperative="{style.lc_cooperative}" '
-            f'lcSpeedGain="{style.lc_speed_gain}" lcStrategic="{style.lc_strategic}"/>'
+            f'lcSpeedGain="{style.lc_speed_gain}" lcStrategic="{style.lc_strategic}"'
+            + (' lcCooperativeSpeed="1"' if style.zipper else "")
+            + "/>"
         )
     cav = sim.cav
     if sim.cav_mode == "commanded":

@@ -45,6 +45,9 @@ from diacc.state import TrafficState
 CAV_LANE_CHANGE_MODE = 0
 #: speedMode of commanded CAVs: no safe-speed, acceleration or right-of-way checks.
 CAV_SPEED_MODE = 0
+#: SUMO's own modes, for a CAV that drives itself (no command this step).
+SUMO_DEFAULT_SPEED_MODE = 31
+SUMO_DEFAULT_LANE_CHANGE_MODE = 1621
 #: Lane-change manoeuvre time as a fraction of a decision step: long enough for
 #: a readable heading (SUMO keeps heading 0 for instant changes), short enough
 #: that a change commanded at the start of a step ends within it (base.py).
@@ -95,8 +98,13 @@ class SumoSim:
         self.state: TrafficState | None = None
 
     # ---- lifecycle -----------------------------------------------------
-    def _args(self, seed: int) -> list[str]:
+    def _args(self, seed: int, demand: bool = False) -> list[str]:
         s = self.spec
+        # The release's slots are 3 m apart at 10 m/s (facts.md start): physically
+        # free but closer than IDM's safe gap, so only overlap is checked; the cars
+        # brake in the first steps, as on the highway backend. Vehicles entering over
+        # time (demand) get SUMO's full checks: one enters when its entry is safe.
+        checks = "all" if demand else "collision"
         return [
             "-n", str(s.net_path),
             "-a", str(s.vtypes_path),
@@ -106,10 +114,7 @@ class SumoSim:
             "--collision.action", "warn",
             "--collision.check-junctions", "true",
             "--time-to-teleport", "-1",
-            # The population's slots are 3 m apart at 10 m/s (facts.md start):
-            # physically free but closer than IDM's safe gap, so only overlap is
-            # checked; the cars brake in the first steps, as on the highway backend.
-            "--insertion-checks", "collision",
+            "--insertion-checks", checks,
             "--lanechange.duration", f"{LANE_CHANGE_FRACTION * self.sim.step_s}",
             "--default.action-step-length", f"{self.dt_s}",
             "--no-step-log", "true",
@@ -117,14 +122,14 @@ class SumoSim:
             "--duration-log.disable", "true",
         ]  # fmt: skip
 
-    def load(self, seed: int) -> None:
+    def load(self, seed: int, demand: bool = False) -> None:
         """(Re)start SUMO with a seed; ``load`` is much cheaper than a new ``start``."""
         if self.started:
-            self.ls.load(self._args(seed))
+            self.ls.load(self._args(seed, demand))
         else:
             import sumolib
 
-            self.ls.start([sumolib.checkBinary("sumo"), *self._args(seed)])
+            self.ls.start([sumolib.checkBinary("sumo"), *self._args(seed, demand)])
             self.started = True
             self.version = str(self.ls.simulation.getVersion()[1])
 
@@ -135,17 +140,21 @@ class SumoSim:
 
     # ---- reset ---------------------------------------------------------
     def reset(self, seed: int, pop: Population) -> TrafficState:
-        """Insert exactly ``pop`` at t = 0 and check that every vehicle is on the road.
+        """Insert exactly ``pop`` and, in a release, check that every vehicle is on the road.
 
-        Returns the simulation's own state, which the next step updates in
-        place (the worker encodes it before that; other callers copy it).
+        Vehicles of a demand scenario depart at their ``depart_s`` (SUMO delays
+        one whose entry is not yet safe) and are pending until then. Returns the
+        simulation's own state, which the next step updates in place (the worker
+        encodes it before that; other callers copy it).
         """
-        self.load(seed)
+        self.demand = bool(np.any(pop.depart_s > 0.0))
+        self.load(seed, self.demand)
         n = pop.n_vehicles
         self.ids = [f"v{i}" for i in range(n)]
         self.index = {vid: i for i, vid in enumerate(self.ids)}
         self.is_cav = pop.is_cav.copy()
         self.commanded = pop.is_cav & (self.spec.sim.cav_mode == "commanded")  # (V,)
+        self.self_driving = np.zeros(n, bool)  # (V,) commanded CAVs now without a command
         length_m = self.sim.vehicle_length_m
         front_m = pop.x_m + 0.5 * length_m  # (V,) SUMO departPos is the front bumper
         sumo_lane = pop.lane - self.first_lane[0]  # (V,)
@@ -153,39 +162,36 @@ class SumoSim:
         for i, vid in enumerate(self.ids):
             type_id = CAV_TYPE if pop.is_cav[i] else HDV_TYPES[pop.style[i]]
             veh.add(
-                vid, ROUTE_ID, typeID=type_id, depart="0", departLane=str(int(sumo_lane[i])),
+                vid, ROUTE_ID, typeID=type_id, depart=f"{pop.depart_s[i]:.3f}",
+                departLane=str(int(sumo_lane[i])),
                 departPos=f"{front_m[i]:.3f}", departSpeed=f"{pop.speed_mps[i]:.3f}",
             )  # fmt: skip
         self.ls.simulationStep()  # insertion happens in SUMO's first step, before any move
         on_road = set(veh.getIDList())
         missing = [vid for vid in self.ids if vid not in on_road]
-        if missing:
+        if missing and not self.demand:
             raise SimulationError(
                 f"SUMO did not insert {len(missing)} of {n} vehicles ({', '.join(missing[:5])}"
                 f"{'...' if len(missing) > 5 else ''}) on map {self.road.name!r}: "
                 "the starting slots are too tight for the vehicle types"
             )
-        for i, vid in enumerate(self.ids):
-            veh.subscribe(vid, self.state_vars)
-            if self.commanded[i]:
-                veh.setSpeedMode(vid, CAV_SPEED_MODE)
-                veh.setLaneChangeMode(vid, CAV_LANE_CHANGE_MODE)
+        self._subscribe([vid for vid in self.ids if vid in on_road])
         self.state = TrafficState(
             time_s=0.0,
             step=0,
             vehicle_id=np.arange(n, dtype=np.int32),
-            x_m=np.zeros(n),
-            y_m=np.zeros(n),
-            speed_mps=np.zeros(n),
+            x_m=pop.x_m.astype(np.float64),  # pending vehicles (demand) wait at their slot
+            y_m=self.road.lane_center_y_m(pop.lane).astype(np.float64),
+            speed_mps=pop.speed_mps.astype(np.float64),
             accel_mps2=np.zeros(n),
             heading_rad=np.zeros(n),
-            lane=np.zeros(n, np.int16),
+            lane=pop.lane.astype(np.int16),
             segment=np.zeros(n, np.int16),
             length_m=np.full(n, length_m),
             width_m=np.full(n, self.sim.vehicle_width_m),
             is_cav=pop.is_cav.astype(bool),
             style=pop.style.astype(np.int8),
-            active=np.ones(n, bool),
+            active=np.zeros(n, bool),  # set by _read_state
             arrived=np.zeros(n, bool),
             collisions=np.zeros((0, 2), np.int32),
             arrivals=np.zeros(0, np.int32),
@@ -208,6 +214,8 @@ class SumoSim:
         for _ in range(self.sim.substeps):
             sim.step()
             contacts.update((c.collider, c.victim) for c in sim.getCollisions())
+            if self.demand:
+                self._subscribe(sim.getDepartedIDList())
         pairs = set()
         for collider, victim in contacts:
             a, b = self.index.get(collider), self.index.get(victim)
@@ -221,6 +229,18 @@ class SumoSim:
         st.accel_mps2 = np.where(st.active, (st.speed_mps - prev_speed) / self.sim.step_s, 0.0)
         return st
 
+    def _subscribe(self, vids) -> None:
+        """Subscribe vehicles that just entered. A release's CAVs are handed to the
+        commands at once; a CAV entering later drives itself until its first command."""
+        veh = self.ls.vehicle
+        for vid in vids:
+            veh.subscribe(vid, self.state_vars)
+            i = self.index[vid]
+            if self.commanded[i] and not self.demand:
+                veh.setSpeedMode(vid, CAV_SPEED_MODE)
+                veh.setLaneChangeMode(vid, CAV_LANE_CHANGE_MODE)
+            self.self_driving[i] = self.commanded[i] and self.demand
+
     def _command(self, lane_change: np.ndarray, speed_change_mps: np.ndarray) -> None:
         """Send each active commanded CAV its step's speed, and its lane change if any.
 
@@ -228,7 +248,17 @@ class SumoSim:
         microseconds per call on arrays this small (same values).
         """
         st = self.state
-        cav = np.flatnonzero(self.commanded & st.active)  # (C,)
+        # NaN: no command, the CAV drives itself with SUMO's own models (base.py).
+        free = self.commanded & st.active & np.isnan(speed_change_mps)  # (V,)
+        veh = self.ls.vehicle
+        for i in np.flatnonzero(free & ~self.self_driving).tolist():
+            veh.setSpeedMode(self.ids[i], SUMO_DEFAULT_SPEED_MODE)
+            veh.setLaneChangeMode(self.ids[i], SUMO_DEFAULT_LANE_CHANGE_MODE)
+        for i in np.flatnonzero(~free & self.self_driving & st.active).tolist():
+            veh.setSpeedMode(self.ids[i], CAV_SPEED_MODE)
+            veh.setLaneChangeMode(self.ids[i], CAV_LANE_CHANGE_MODE)
+        self.self_driving = free
+        cav = np.flatnonzero(self.commanded & st.active & ~free)  # (C,)
         if cav.size == 0:
             return
         seg = st.segment[cav]
@@ -279,8 +309,8 @@ class SumoSim:
         present = np.zeros(st.n_vehicles, bool)
         present[idx] = True
         st.arrivals = np.flatnonzero(st.active & ~present).astype(np.int32)
-        st.active[st.arrivals] = False
         st.arrived[st.arrivals] = True
+        st.active[:] = present  # pending vehicles (demand) become active when they depart
         seg = data[:, 1].astype(np.int16)
         abs_lane = data[:, 2].astype(np.int16)
         st.segment[idx] = seg
