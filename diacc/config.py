@@ -213,10 +213,24 @@ class SimConfig:
 # --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ObservationConfig:
+    """Sizes of the observation layout (:mod:`diacc.observation`) and two options.
+
+    The options keep the layout (so every network and shipped checkpoint fits)
+    and default to the paper's observation. ``critic_step_input=False`` zeroes
+    the critic's step / episode-length feature: with 100-step training and
+    330-step evaluation episodes the value of a truncated episode otherwise
+    extrapolates past anything seen. ``road_speed_limits=True`` writes each
+    segment's speed limit / the route's highest into the road table's fourth
+    column (otherwise 1 for every segment present), so actor and critic see
+    the limits a preset lowers (``paper-congestion``).
+    """
+
     history_steps: int = 5  # neighbour trajectories, current step included
     n_neighbours: int = 6  # nearest vehicles in same and adjacent lanes
     max_vehicles: int = 40  # critic pads to this many vehicles
     lane_window_m: float = 100.0  # lane statistics look this far ahead and behind
+    critic_step_input: bool = True  # the critic's step / T feature (False: always 0)
+    road_speed_limits: bool = False  # road table column 4 = segment limit / route max
 
 
 #: Options of :class:`PSARConfig` (see :func:`diacc.psar.psar`).
@@ -284,6 +298,11 @@ class EventConfig:
     emergency_decel_mps2: float = 4.5
 
 
+#: Options of :class:`RewardConfig` (see :mod:`diacc.reward`); the first is the paper's.
+CLOSENESS_MODES = ("centre", "bumper")
+EXIT_BONUS_SCALES = ("per_cav", "fleet")
+
+
 @dataclass(frozen=True)
 class RewardConfig:
     """Reward of paper eq. (reward_all..reward_global) with the authors' magnitudes.
@@ -293,6 +312,11 @@ class RewardConfig:
     "the reduced weight on the global reward"; its best w_e = 0.6 goes with
     the default w_g = 0.4), so ``--study w_e`` (:data:`diacc.sweepaxes.STUDIES`)
     moves both together; ``--sweep env.reward.w_ego=...`` alone keeps w_g.
+
+    The last four fields are options that default to the paper's reading
+    (:mod:`diacc.reward`, README "Learning options"): ``closeness``,
+    ``warning_ttc_s`` (used by ``closeness="bumper"``), ``exit_bonus_scale``
+    and ``delay_weight``.
     """
 
     w_ego: float = 0.6
@@ -311,9 +335,23 @@ class RewardConfig:
     tau_init: float = 2.0
     tau_final: float = 0.05
     tau_anneal_fraction: float = 0.5  # of the training steps
+    # ---- options (diacc.reward; README "Learning options"); defaults = the paper read literally
+    closeness: str = "centre"  # "centre" (paper) or "bumper": gap and TTC to lane leader/follower
+    warning_ttc_s: float = 3.0  # "bumper": TTC to the same-lane leader that starts the warning
+    exit_bonus_scale: str = "per_cav"  # "per_cav" (paper) or "fleet": bonus / CAV slots
+    delay_weight: float = 0.0  # weight of the delay term (vehicle-seconds lost / s / vehicle)
+
+    def __post_init__(self) -> None:
+        _check_choice("env.reward.closeness", self.closeness, CLOSENESS_MODES)
+        _check_choice("env.reward.exit_bonus_scale", self.exit_bonus_scale, EXIT_BONUS_SCALES)
 
 
 BACKENDS = ("highway", "sumo")
+#: How the actor's actions meet PSAR (:mod:`diacc.action_mask`, README "Learning
+#: options"): "proposed" trains on the proposed action (the paper read
+#: literally), "executed" on the action PSAR executed, "masked" samples only
+#: actions PSAR would execute unchanged.
+PSAR_ACTION_MODES = ("proposed", "executed", "masked")
 
 
 @dataclass(frozen=True)
@@ -323,6 +361,7 @@ class EnvConfig:
     backend: str = "highway"
     map: str = "train-25"
     use_psar: bool = True  # in a TrainConfig, set by its variant
+    psar_actions: str = "proposed"  # PSAR_ACTION_MODES; not "proposed" needs use_psar
     scenario: Scenario = field(default_factory=Scenario)
     sim: SimConfig = field(default_factory=SimConfig)
     obs: ObservationConfig = field(default_factory=ObservationConfig)
@@ -332,6 +371,7 @@ class EnvConfig:
 
     def __post_init__(self) -> None:
         _check_choice("backend", self.backend, BACKENDS)
+        _check_choice("env.psar_actions", self.psar_actions, PSAR_ACTION_MODES)
         episode_s = self.sim.episode_steps * self.sim.step_s
         if self.scenario.warmup_s >= episode_s:
             raise ConfigError(
@@ -414,6 +454,9 @@ class TrainConfig:
     max_grad_norm: float = 10.0
     chunk_len: int = 10
     checkpoint_every: int = 10  # updates
+    # "team": one value per env, all CAVs share the advantage (paper); "per_agent":
+    # a value per CAV slot from its own features beside the global state (README)
+    critic_values: str = "team"
     run_dir: str = "runs/diacc"
     env: EnvConfig = field(default_factory=EnvConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -525,6 +568,8 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
     "env.reward.tau_init": (0, None, True),
     "env.reward.tau_final": (0, None, True),
     "env.reward.tau_anneal_fraction": (0, 1, True),
+    "env.reward.warning_ttc_s": (0, None, True),
+    "env.reward.delay_weight": (0, None, False),
     "model.hidden_dim": (1, None, False),
     "model.gat_heads": (1, None, False),
     "model.cross_heads": (1, None, False),
@@ -535,6 +580,7 @@ _LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
 _CHOICES: dict[str, tuple[str, ...]] = {
     "vector": ("auto", "sync", "batched", "process"),
     "device": ("auto", "cpu", "cuda"),
+    "critic_values": ("team", "per_agent"),
 }
 
 
@@ -572,6 +618,11 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"total_steps {cfg.total_steps} is less than one update "
             f"(rollout_steps {cfg.rollout_steps} x n_envs {cfg.n_envs} = "
             f"{cfg.rollout_steps * cfg.n_envs} steps)"
+        )
+    if cfg.env.psar_actions != "proposed" and not cfg.env.use_psar:
+        raise ConfigError(
+            f"env.psar_actions {cfg.env.psar_actions!r} needs PSAR, which variant "
+            f"{cfg.variant!r} does not use"
         )
     if cfg.rollout_steps % cfg.chunk_len:
         raise ConfigError(

@@ -54,6 +54,7 @@ import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
+from diacc.action_mask import with_action_mask
 from diacc.actions import (
     ACTION_LANE_OFFSET,
     ACTION_NAMES,
@@ -336,6 +337,9 @@ class BottleneckEnv(ParallelEnv):
                 "individual": float(terms.ego[terms.alive].mean()) if terms.alive.any() else 0.0,
                 "global": terms.global_reward,
                 "completion": terms.completion,
+                # Logged so that a learning curve shows whether closeness fires.
+                "warning": float(terms.warning[terms.alive].mean()) if terms.alive.any() else 0.0,
+                "delay": terms.delay,
                 "tau": terms.tau,
             },
             slot_start=self.slot_start.copy(),
@@ -343,6 +347,7 @@ class BottleneckEnv(ParallelEnv):
 
     def _observe(self) -> tuple[ActorObs, CriticState]:
         actor = self.builder.actor(self.cav_index, self.action_memory, self.last_refined)
+        actor = with_action_mask(actor, self.state_, self.cav_index, self.config, self.road)
         return actor, self.builder.critic()
 
     # ------------------------------------------------------------------ PettingZoo API

@@ -39,9 +39,15 @@ Actor (:class:`ActorObs`, one row per CAV slot):
   that does not exist in the ego's current segment (``Map.lane_exists``) is
   masked and zero.
 * ``road`` (C, 4 S): static road table, one row per segment
-  (start / route length, end / route length, lanes / max_lanes, present).
+  (start / route length, end / route length, lanes / max_lanes, present: 1,
+  or the segment's speed limit / the route's highest with
+  ``ObservationConfig.road_speed_limits``; 0 for absent rows).
 * ``action_memory`` (C, 2) int64: the actor's proposed action and the
   PSAR-refined action of the previous step (0 at reset); passed through.
+* ``action_mask`` (C, 5) bool: the actions the actor may sample (PettingZoo's
+  ``action_mask``). All True here; the environment narrows it to the actions
+  PSAR would execute unchanged when ``EnvConfig.psar_actions = "masked"``
+  (:mod:`diacc.action_mask`). Not a network input.
 * ``alive`` (C,) bool: the CAV is on the road. Every other field of a row
   whose CAV is not alive is zero (masks False), except ``action_memory``.
 
@@ -58,7 +64,8 @@ Critic (:class:`CriticState`, one per environment):
   exists). Lanes beyond ``Map.max_lanes`` are masked and zero.
 * ``road`` (4 S,): static road table.
 * ``traffic`` (4,): active vehicles / N, mean speed / v_max, CAV share of
-  active vehicles, step / episode length.
+  active vehicles, step / episode length (0 with
+  ``ObservationConfig.critic_step_input = False``).
 
 :class:`ObservationSpec` is the one description of this layout: every size,
 shape, dtype and field name (what the networks read: :data:`ACTOR_KEYS`,
@@ -116,6 +123,7 @@ class ActorObs:
     lane_mask: np.ndarray  # (C, 3) bool
     road: np.ndarray  # (C, ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS) float32
     action_memory: np.ndarray  # (C, 2) int64
+    action_mask: np.ndarray  # (C, N_ACTIONS) bool legal actions (diacc.action_mask); all True
     alive: np.ndarray  # (C,) bool
 
 
@@ -133,8 +141,9 @@ class CriticState:
     traffic: np.ndarray  # (TRAFFIC_FEATURES,) float32
 
 
-#: ActorObs fields the actor networks read (``alive`` only masks the losses).
-ACTOR_KEYS = tuple(f.name for f in fields(ActorObs) if f.name != "alive")
+#: ActorObs fields the actor networks read (``alive`` only masks the losses,
+#: ``action_mask`` the action distribution).
+ACTOR_KEYS = tuple(f.name for f in fields(ActorObs) if f.name not in ("alive", "action_mask"))
 #: CriticState fields the critic networks read (all of them).
 CRITIC_KEYS = tuple(f.name for f in fields(CriticState))
 
@@ -209,6 +218,7 @@ class ObservationSpec:
             "lane_mask": ((c, self.lane_slots), b),
             "road": ((c, self.road_features), f32),
             "action_memory": ((c, 2), i64),
+            "action_mask": ((c, self.n_actions), b),
             "alive": ((c,), b),
         }
 
@@ -330,7 +340,11 @@ class ObservationBuilder:
         table[:n_seg, 0] = road.segment_starts_m / self._route_m
         table[:n_seg, 1] = road.segment_ends_m / self._route_m
         table[:n_seg, 2] = [s.lanes / road.max_lanes for s in road.segments]
-        table[:n_seg, 3] = 1.0
+        table[:n_seg, 3] = (
+            [seg.speed_limit_mps / self._v_max_mps for seg in road.segments]
+            if cfg.road_speed_limits
+            else 1.0
+        )
         self._road_table = table.reshape(-1)  # (4 S_max,)
 
         self._frame: _Frame | None = None
@@ -510,6 +524,7 @@ class ObservationBuilder:
             lane_mask=lane_mask,
             road=_f32(road),
             action_memory=action_memory.astype(np.int64, copy=True),
+            action_mask=np.ones(cav_index.shape + (N_ACTIONS,), bool),
             alive=alive.copy(),
         )
 
@@ -568,13 +583,16 @@ class ObservationBuilder:
         )  # (..., L, 4)
 
         n_active = active.sum(axis=-1)  # (...,)
+        step_fraction = np.asarray(state.step) / self.episode_steps  # (...,)
+        if not self.cfg.critic_step_input:  # matched horizons: no clock for the critic
+            step_fraction = np.zeros_like(step_fraction)
         safe_active = np.maximum(n_active, 1)
         traffic = np.stack(
             [
                 n_active / n_max,
                 np.where(active, state.speed_mps, 0.0).sum(axis=-1) / safe_active / self._v_max_mps,
                 (state.is_cav & active).sum(axis=-1) / safe_active,
-                np.asarray(state.step) / self.episode_steps,
+                step_fraction,
             ],
             axis=-1,
         )

@@ -328,12 +328,15 @@ class CheckpointPolicy(Policy):
     def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
         import torch
 
+        from diacc.action_mask import masked_logits
         from diacc.models.inputs import to_tensors
 
         n_cavs = actor_obs.alive.shape[0]
         start = torch.as_tensor(np.broadcast_to(first_step, (n_cavs,)).copy())  # (C,) bool
         with torch.no_grad():
-            logits, self._hidden = self.actor(to_tensors(actor_obs), self._hidden, start)
+            obs = to_tensors(actor_obs)
+            logits, self._hidden = self.actor(obs, self._hidden, start)
+            logits = masked_logits(logits, obs["action_mask"])  # as in training
             if self.sampled:
                 probs = torch.softmax(logits, -1)  # (C, 5)
                 action = torch.multinomial(probs, 1, generator=self._generator)[:, 0]

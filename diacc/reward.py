@@ -27,6 +27,18 @@
   in which all C CAVs leave thus earns ``C * exit_bonus`` in total.
 * With no CAV on the road the ego and global terms are 0 (nothing to score).
 
+Options (:class:`~diacc.config.RewardConfig`; the defaults are the paper read
+literally, README "Learning options"):
+
+* ``closeness="bumper"``: ``dist`` is the bumper gap to the same-lane leader
+  and follower (the gap of PSAR and the metrics) instead of the centre
+  distance to everyone, and a closing leader with ``TTC <= warning_ttc_s``
+  adds ``-(ttc_w - TTC) / ttc_w`` to the warning term.
+* ``exit_bonus_scale="fleet"``: ``r_done = exit_bonus * arrivals / C``, so
+  all CAVs leaving earn ``exit_bonus`` in total, not ``C`` times it.
+* ``delay_weight > 0``: adds ``-delay_weight * sum_active (1 - v/v_lim)^+ / V``
+  over *all* vehicles, the flow metrics' delay per second and vehicle.
+
 :func:`reward` also scores a batch of E states ((E, V) arrays,
 :mod:`diacc.state`) in one call: every per-CAV array then has a leading env
 axis and every scalar is an (E,) array; entry ``e`` is env ``e``'s reward.
@@ -40,6 +52,7 @@ import numpy as np
 
 from diacc.config import RewardConfig
 from diacc.maps import Map
+from diacc.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.state import TrafficState, take
 
 
@@ -109,6 +122,7 @@ class RewardTerms:
     ego_softmin: float  # sum_i w_i r_e^i
     global_reward: float  # r_g
     completion: float  # r_done
+    delay: float  # minus the delay rate, before its weight (delay_weight, default 0)
     total: float  # R
 
     def env(self, e: int) -> RewardTerms:
@@ -171,11 +185,16 @@ def reward(
     )  # (..., C, V)
 
     d_w, d_c = cfg.warning_distance_m, cfg.collision_distance_m
+    if cfg.closeness == "bumper":
+        dist_m, ttc_warning = _bumper_gaps(state, cav_index, others, cfg.warning_ttc_s)
+    else:
+        ttc_warning = 0.0
     in_warning = others & (dist_m <= d_w)  # (..., C, V)
     in_collision = (others & (dist_m <= d_c)) | (collided_with & not_self)  # (..., C, V)
 
     speed = -np.abs(speed_mps - v_max_mps) / v_max_mps + cfg.speed_offset
     warning = np.where(in_warning, -(d_w - dist_m) / (d_w - d_c), 0.0).sum(axis=-1)
+    warning = warning + ttc_warning
     collision = np.where(
         in_collision, -np.maximum(d_c - dist_m, 0.0) / d_c + cfg.collision_offset, 0.0
     ).sum(axis=-1)
@@ -204,7 +223,15 @@ def reward(
     )
     n_cav_arrivals = (state.is_cav & state.arrived_now).sum(axis=-1)
     completion = cfg.exit_bonus * n_cav_arrivals
-    total = cfg.w_ego * ego_softmin + cfg.w_global * global_reward + completion
+    if cfg.exit_bonus_scale == "fleet":
+        completion = completion / max(cav_index.shape[-1], 1)
+    delay = -_delay_rate(state, limits_mps)  # (...,) computed for the logs whatever the weight
+    total = (
+        cfg.w_ego * ego_softmin
+        + cfg.w_global * global_reward
+        + completion
+        + cfg.delay_weight * delay
+    )
     scalar = float if not lead else np.asarray
     return RewardTerms(
         speed=speed,
@@ -218,8 +245,56 @@ def reward(
         ego_softmin=scalar(ego_softmin),
         global_reward=scalar(global_reward),
         completion=scalar(completion),
+        delay=scalar(delay),
         total=scalar(total),
     )
+
+
+def _bumper_gaps(
+    state: TrafficState, cav_index: np.ndarray, others: np.ndarray, warning_ttc_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Closeness by bumper gap and TTC (``RewardConfig.closeness = "bumper"``).
+
+    Centre distance needs two 5 m cars to overlap before it drops to 3 m, so
+    the paper's warning term never fires in lane-keeping traffic; the
+    bumper gap to the same-lane leader and follower (:func:`pair_kinematics`,
+    the gap PSAR and the metrics use) does. Returns a (..., C, V) "distance"
+    table holding the bumper gap for those two vehicles and +inf for every
+    other one, and the (..., C) TTC warning ``-(ttc_w - TTC) / ttc_w`` for a
+    leader closing in with ``TTC <= ttc_w`` (0 otherwise), in [-1, 0].
+    """
+    lanes = lane_leaders_followers(state, cav_index)
+    pair = np.stack([lanes.front[..., SAME_COL], lanes.rear[..., SAME_COL]], axis=-1)  # (..., C, 2)
+    ego = np.broadcast_to(cav_index[..., None], pair.shape)
+    kin = pair_kinematics(state, ego, pair)  # (..., C, 2)
+    gap_m = np.where(kin.valid, np.abs(np.nan_to_num(kin.d_long_m)), np.inf)  # (..., C, 2)
+    dist_m = np.full(others.shape, np.inf)  # (..., C, V)
+    safe_pair = np.where(kin.valid, pair, 0)
+    # One column at a time: a missing neighbour (index 0 after masking) keeps what is there.
+    for col in (0, 1):
+        current = np.take_along_axis(dist_m, safe_pair[..., col : col + 1], axis=-1)
+        value = np.where(kin.valid[..., col : col + 1], gap_m[..., col : col + 1], current)
+        np.put_along_axis(dist_m, safe_pair[..., col : col + 1], value, axis=-1)
+    leader_ttc_s = kin.ttc_s[..., 0]  # (..., C), inf when not closing or no leader
+    ttc_warning = np.where(
+        leader_ttc_s <= warning_ttc_s, -(warning_ttc_s - leader_ttc_s) / warning_ttc_s, 0.0
+    )
+    return dist_m, ttc_warning
+
+
+def _delay_rate(state: TrafficState, limits_mps: np.ndarray) -> np.ndarray:
+    """(...,) seconds lost per second per vehicle: ``sum_active (1 - v / v_limit) / V``.
+
+    The flow metrics' delay is vehicle-seconds lost against driving at each
+    segment's limit, summed over all vehicles (HDVs included: what the CAVs
+    change is the whole traffic's delay). Per step that is ``dt (1 - v/v_lim)``
+    per active vehicle; per second and per vehicle of the scenario the term
+    stays in [0, 1] whatever the demand, and driving above the limit earns
+    nothing back (clipped at 0), so the term cannot pay for speeding.
+    """
+    v_limit_mps = limits_mps[np.clip(state.segment, 0, limits_mps.shape[0] - 1)]  # (..., V)
+    lost = np.maximum(1.0 - state.speed_mps / v_limit_mps, 0.0)  # (..., V)
+    return np.where(state.active, lost, 0.0).sum(axis=-1) / max(state.n_vehicles, 1)
 
 
 def _check_config(cfg: RewardConfig) -> None:

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diacc.action_mask import with_action_mask
 from diacc.backends.base import Backend, BackendError, backend_class
 from diacc.config import preset_road
 from diacc.env import BottleneckEnv, EnvConfig, StepResult, decide
@@ -71,6 +72,7 @@ class EnvStep:
     episode: dict | None  # metrics of the episode that just ended
     reward_terms: dict[str, float] | None = None  # parts of the step's reward
     restarted: bool = False
+    final_actor_obs: ActorObs | None = None  # observations where the episode ended
     slot_start: np.ndarray | None = None  # (C,) bool: a new CAV took the slot (None: none did)
 
 
@@ -87,6 +89,7 @@ class VectorStep:
     refined_action: np.ndarray  # (E, C)
     psar_rule_mask: np.ndarray  # (E, C)
     final_critic_state: list[CriticState | None]  # (E,)
+    final_actor_obs: list[ActorObs | None]  # (E,) (None also after a simulator crash)
     episodes: list[dict]  # metrics of episodes that ended this step
     reward_terms: dict[str, np.ndarray]  # each part of the reward, (E',) over envs that reported it
     restarts: int
@@ -139,10 +142,10 @@ class EnvRunner:
         """
         self.return_ += out.reward
         self.recorder.record(out.state, psar=out.psar, critical=critical)
-        final, episode = None, None
+        final, final_actor, episode = None, None, None
         actor, critic = out.actor_obs, out.critic_state
         if out.terminated or out.truncated:
-            final = critic
+            final, final_actor = critic, actor
             episode = {
                 "return": self.return_,
                 "length": self.env.steps,
@@ -162,6 +165,7 @@ class EnvRunner:
             final,
             episode,
             out.reward_terms,
+            final_actor_obs=final_actor,
             slot_start=self.env.slot_start.copy(),
         )
 
@@ -205,6 +209,7 @@ def _stack_steps(steps: list[EnvStep]) -> VectorStep:
         refined_action=np.stack([s.refined_action for s in steps]),
         psar_rule_mask=np.stack([s.psar_rule_mask for s in steps]),
         final_critic_state=[s.final_critic_state for s in steps],
+        final_actor_obs=[s.final_actor_obs for s in steps],
         episodes=[s.episode for s in steps if s.episode is not None],
         reward_terms={
             key: np.array([s.reward_terms[key] for s in steps if s.reward_terms])
@@ -296,6 +301,7 @@ class BatchedVectorEnv(SyncVectorEnv):
             np.stack([env.last_refined for env in envs]),  # (E, V)
             after,
         )
+        actor = with_action_mask(actor, after, cav_index, self.config, self.batch.road)
         taus = {env.temperature for env in envs}
         assert len(taus) == 1, "the envs of a batch share the reward temperature"
         terms = reward(after, cav_index, self.batch.road, taus.pop(), self.config.reward)

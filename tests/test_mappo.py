@@ -64,9 +64,8 @@ def tiny_config(tmp_path, **extra) -> TrainConfig:
     return override(cfg, {"env.scenario": Scenario(n_vehicles=8, cav_penetration=0.5)})
 
 
-@pytest.fixture(scope="module")
-def rollout_and_batch(tmp_path_factory):
-    cfg = tiny_config(tmp_path_factory.mktemp("r"))
+def rollout_batch(cfg: TrainConfig):
+    """A fresh seeded agent, one rollout of it and the batch made of it."""
     seed_everything(cfg.seed)
     agent = make_agent(cfg, torch.device("cpu"))
     envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
@@ -75,8 +74,13 @@ def rollout_and_batch(tmp_path_factory):
     finally:
         envs.close()
     adv, ret = rollout_gae(roll, next_value, cfg)
-    batch = make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
-    return cfg, agent, roll, batch
+    return agent, roll, make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
+
+
+@pytest.fixture(scope="module")
+def rollout_and_batch(tmp_path_factory):
+    cfg = tiny_config(tmp_path_factory.mktemp("r"))
+    return (cfg, *rollout_batch(cfg))
 
 
 def test_rollout_has_episode_boundaries_and_dead_cavs(rollout_and_batch):

@@ -482,3 +482,23 @@ def test_full_episode_on_real_backends_masks_cavs_that_left(backend_name):
         assert saw_dead
     finally:
         backend.close()
+
+
+def test_matched_horizon_options_keep_the_layout(road):
+    """critic_step_input=False zeroes step/T; road_speed_limits puts limit/max in column 4."""
+    import dataclasses
+
+    from diacc.config import preset_road
+
+    state = make_state(road, [100.0, 600.0], [0, 1], [1, 0], step=25)
+    cfg = dataclasses.replace(CFG, critic_step_input=False, road_speed_limits=True)
+    slow = preset_road(road, "paper-congestion")  # reduction segment at 15 m/s
+    b, obs = build(slow, state, [0], cfg)
+    crit = b.critic()
+    assert crit.traffic[3] == 0.0 and crit.traffic[0] == pytest.approx(2 / 40)
+    kinds = [seg.kind.startswith("reduction") for seg in slow.segments]
+    expected = [15.0 / 25.0 if k else 1.0 for k in kinds]
+    np.testing.assert_allclose(crit.road.reshape(MAX_SEGMENTS, 4)[:3, 3], expected, atol=1e-6)
+    np.testing.assert_allclose(obs.road[0].reshape(MAX_SEGMENTS, 4)[:3, 3], expected, atol=1e-6)
+    assert 15.0 / 25.0 in expected  # the preset lowered one segment
+    check_layout(obs, crit, 1, cfg)

@@ -157,3 +157,62 @@ def test_reward_rejects_bad_config():
     bad = RewardConfig(collision_distance_m=5.0)
     with pytest.raises(RewardError, match="collision_distance_m"):
         reward(state, np.array([0]), ROAD, 1.0, bad)
+
+
+# ---------------------------------------------------------------- options (README)
+def test_bumper_closeness_uses_lane_gaps_and_leader_ttc():
+    # CAV 0 at x=100 lane 0 at 20 m/s; leader HDV 1 at x=107.5 (gap 2.5 m) at 10 m/s;
+    # HDV 2 in lane 1 alongside (centre 3.2 m: outside d_w under "centre" too);
+    # follower HDV 3 at x=94 (gap 1.0 m, inside d_c). Only 1 and 3 count.
+    state = make_state(
+        [100.0, 107.5, 100.0, 94.0],
+        [0, 0, 1, 0],
+        [20.0, 10.0, 20.0, 20.0],
+        is_cav=[True] + [False] * 3,
+    )
+    cfg = RewardConfig(closeness="bumper", warning_ttc_s=3.0)
+    terms = reward(state, np.array([0]), ROAD, 1.0, cfg)
+    d_w, d_c = 3.0, 1.5
+    ttc = 2.5 / 10.0  # gap / closing speed
+    warning = -(d_w - 2.5) / (d_w - d_c) - (d_w - 1.0) / (d_w - d_c) - (3.0 - ttc) / 3.0
+    assert terms.warning[0] == pytest.approx(warning)
+    assert terms.collision[0] == pytest.approx(-(d_c - 1.0) / d_c - 10.0)
+    # The paper's centre distances: 7.5, 3.2 and 6 m, nothing fires.
+    literal = reward(state, np.array([0]), ROAD, 1.0, CFG)
+    assert literal.warning[0] == 0.0 and literal.collision[0] == 0.0
+
+
+def test_bumper_closeness_quiet_without_close_vehicles():
+    state = make_state([100.0, 140.0], [0, 0], [20.0, 25.0], is_cav=[True, False])
+    terms = reward(state, np.array([0]), ROAD, 1.0, RewardConfig(closeness="bumper"))
+    assert terms.warning[0] == 0.0 and terms.collision[0] == 0.0  # 35 m gap, opening
+
+
+def test_fleet_exit_bonus_and_delay_term():
+    # 4 CAV slots, one arrives; HDV at 15 m/s and CAV at 25 m/s on a 25 m/s road.
+    state = make_state(
+        [100.0, 200.0, 300.0, 400.0, 500.0],
+        [0, 0, 0, 0, 1],
+        [25.0, 25.0, 25.0, 25.0, 15.0],
+        is_cav=[True, True, True, True, False],
+        active=[False, True, True, True, True],
+        arrived=[True, False, False, False, False],
+        arrivals=[0],
+    )
+    cav = np.array([0, 1, 2, 3])
+    per_cav = reward(state, cav, ROAD, 1.0, CFG)
+    fleet = reward(state, cav, ROAD, 1.0, RewardConfig(exit_bonus_scale="fleet"))
+    assert per_cav.completion == pytest.approx(20.0) and fleet.completion == pytest.approx(5.0)
+    rate = (1.0 - 15.0 / 25.0) / 5  # only the HDV is slower than the limit; V = 5
+    assert per_cav.delay == pytest.approx(-rate)  # logged, but weight 0 by default
+    delayed = reward(state, cav, ROAD, 1.0, RewardConfig(delay_weight=2.0))
+    assert delayed.total == pytest.approx(per_cav.total - 2.0 * rate)
+
+
+def test_reward_options_rejected_when_unknown():
+    from diacc.config import ConfigError
+
+    with pytest.raises(ConfigError, match="closeness"):
+        RewardConfig(closeness="overlap")
+    with pytest.raises(ConfigError, match="exit_bonus_scale"):
+        RewardConfig(exit_bonus_scale="half")

@@ -27,7 +27,7 @@ def test_masks_are_integer_multibinary_and_state_has_a_space():
         binaries = {
             k: s for k, s in space.spaces.items() if isinstance(s, gymnasium.spaces.MultiBinary)
         }
-        assert set(binaries) == {"hdv_mask", "cav_mask", "lane_mask", "alive"}
+        assert set(binaries) == {"hdv_mask", "cav_mask", "lane_mask", "action_mask", "alive"}
         assert all(isinstance(s.n, int) for s in binaries.values())  # TorchRL reads n as an int
         observations, _ = env.reset(seed=0)
         for obs in observations.values():

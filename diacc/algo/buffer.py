@@ -32,7 +32,7 @@ def compute_gae(
     """
     n_steps = rewards.shape[0]
     advantages = np.zeros_like(rewards, dtype=np.float64)
-    last = np.zeros(rewards.shape[1], dtype=np.float64)
+    last = np.zeros(rewards.shape[1:], dtype=np.float64)  # (E,) or (E, C)
     for t in reversed(range(n_steps)):
         ended = terminated[t] | truncated[t]
         following = next_values if t == n_steps - 1 else values[t + 1]
@@ -49,35 +49,39 @@ class Rollout:
 
     actor_obs: list  # S stacked ActorObs, fields (E, C, ...)
     critic_state: list  # S stacked CriticState, fields (E, ...)
-    actions: np.ndarray  # (S, E, C) int64 actor's proposed action
+    actions: np.ndarray  # (S, E, C) int64 proposed action (executed: env.psar_actions)
     logprobs: np.ndarray  # (S, E, C)
     alive: np.ndarray  # (S, E, C) bool: CAV on the road when acting
-    values: np.ndarray  # (S, E) de-normalised V(s_t), for GAE
+    values: np.ndarray  # (S, E) de-normalised V(s_t), for GAE; (S, E, C) per agent
     values_normalised: np.ndarray  # (S, E) the critic's raw output: the value-clip centre
     rewards: np.ndarray  # (S, E)
     terminated: np.ndarray  # (S, E) bool
     truncated: np.ndarray  # (S, E) bool
-    final_values: np.ndarray  # (S, E)
+    final_values: np.ndarray  # (S, E), or (S, E, C) per agent
     episode_start: np.ndarray  # (S, E) bool: s_t is the first state of an episode
     agent_start: np.ndarray  # (S, E, C) bool: episode start, or a new CAV in the slot at s_t
     actor_hidden: np.ndarray  # (S, E, C, H) hidden state *before* step t
     critic_hidden: np.ndarray  # (S, E, H)
 
     @classmethod
-    def allocate(cls, steps: int, envs: int, cavs: int, actor_h: int, critic_h: int) -> Rollout:
+    def allocate(
+        cls, steps: int, envs: int, cavs: int, actor_h: int, critic_h: int, per_agent: bool = False
+    ) -> Rollout:
+        """``per_agent``: values (S, E, C), one per CAV slot (``critic_values="per_agent"``)."""
         f = np.float32
+        v = (steps, envs, cavs) if per_agent else (steps, envs)
         return cls(
             actor_obs=[None] * steps,
             critic_state=[None] * steps,
             actions=np.zeros((steps, envs, cavs), np.int64),
             logprobs=np.zeros((steps, envs, cavs), f),
             alive=np.zeros((steps, envs, cavs), bool),
-            values=np.zeros((steps, envs), np.float64),
-            values_normalised=np.zeros((steps, envs), f),
+            values=np.zeros(v, np.float64),
+            values_normalised=np.zeros(v, f),
             rewards=np.zeros((steps, envs), np.float64),
             terminated=np.zeros((steps, envs), bool),
             truncated=np.zeros((steps, envs), bool),
-            final_values=np.zeros((steps, envs), np.float64),
+            final_values=np.zeros(v, np.float64),
             episode_start=np.zeros((steps, envs), bool),
             agent_start=np.zeros((steps, envs, cavs), bool),
             actor_hidden=np.zeros((steps, envs, cavs, actor_h), f),

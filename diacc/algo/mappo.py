@@ -6,7 +6,12 @@ then ``epochs`` passes of PPO over it:
 * **Actors** share parameters. All CAVs of all environments act as one batch
   of E * C agents; each has its own GRU hidden state.
 * **Critic** is centralised: one value per environment from the critic state,
-  because the team reward R_t is shared by all CAVs (paper eq. reward_all).
+  because the team reward R_t is shared by all CAVs (paper eq. reward_all);
+  ``critic_values="per_agent"`` values each CAV slot instead
+  (:mod:`diacc.models.agent_value`), with GAE per agent.
+* **Actions** meet PSAR as ``env.psar_actions`` says: the proposed action's
+  log-prob (paper), the executed one's, or sampling among the actions PSAR
+  would execute unchanged (``ActorObs.action_mask``, :mod:`diacc.action_mask`).
 * **GAE** (lambda 0.95, gamma 0.99) on de-normalised values, keeping
   termination (no bootstrap) and truncation (bootstrap) apart.
 * **Recurrent training** on chunks of ``chunk_len`` steps, each started from
@@ -42,6 +47,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.tensorboard import SummaryWriter
 
+from diacc.action_mask import masked_logits
 from diacc.algo.buffer import Rollout, compute_gae
 from diacc.algo.checkpoint import (
     CheckpointError,
@@ -57,9 +63,10 @@ from diacc.config import TrainConfig, validate
 from diacc.console import TrainProgress
 from diacc.errors import DiaccError
 from diacc.maps import load_map
+from diacc.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_policy
-from diacc.observation import ObservationSpec, stack
+from diacc.observation import ObservationSpec, stack, unstack
 from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
 from diacc.runlog import claim_run_dir, config_digest, locked_dir, log, run_log
@@ -162,6 +169,8 @@ class Agent:
 def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
     """The networks of ``cfg.variant`` with the learner on ``device`` (rollouts on the CPU)."""
     actor, critic = build_policy(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
+    if cfg.critic_values == "per_agent":
+        critic = AgentValueCritic(critic, cfg.model)
     value_norm = ValueNorm()
     extras = {}
     if device != ROLLOUT_DEVICE:
@@ -212,7 +221,8 @@ def collect_rollout(
     actor, critic, value_norm = agent.rollout_actor, agent.rollout_critic, agent.rollout_value_norm
     device = ROLLOUT_DEVICE
     E, C, H_a, H_c = cfg.n_envs, envs.n_cavs, actor.hidden_size, critic.hidden_size
-    roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, H_c)
+    per_agent = cfg.critic_values == "per_agent"
+    roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, H_c, per_agent)
     actor_obs, critic_state = envs.reset(first_episode=update * EPISODES_PER_UPDATE)
     h_actor = torch.zeros(E * C, H_a, device=device)  # (E*C, H)
     h_critic = torch.zeros(E, H_c, device=device)  # (E, H)
@@ -228,31 +238,43 @@ def collect_rollout(
         with torch.no_grad():
             start_t = torch.as_tensor(start, device=device)
             agent_start_t = torch.as_tensor(roll.agent_start[t].reshape(-1), device=device)
-            logits, h_actor = actor(
-                to_tensors(flatten_agents(actor_obs), device), h_actor, agent_start_t
-            )
+            obs_t = to_tensors(flatten_agents(actor_obs), device)
+            logits, h_actor = actor(obs_t, h_actor, agent_start_t)
+            # All True unless env.psar_actions = "masked" (then a no-op: same numbers).
+            logits = masked_logits(logits, obs_t["action_mask"])  # (E*C, 5)
             dist = torch.distributions.Categorical(logits=logits)
             action = dist.sample()  # (E*C,)
-            value, h_critic = critic(to_tensors(critic_state, device), h_critic, start_t)
+            value, h_critic = critic(
+                critic_inputs(critic_state, actor_obs, per_agent, device), h_critic, start_t
+            )
         roll.actions[t] = action.view(E, C).cpu().numpy()
         roll.logprobs[t] = dist.log_prob(action).view(E, C).cpu().numpy()
         roll.values_normalised[t] = value.cpu().numpy()
         roll.values[t] = value_norm.denormalize(value).cpu().numpy()
 
         out = envs.step(roll.actions[t])
+        if cfg.env.psar_actions == "executed":  # learn from what PSAR executed
+            roll.actions[t] = out.refined_action
+            executed = torch.as_tensor(out.refined_action, device=device).view(-1)
+            roll.logprobs[t] = dist.log_prob(executed).view(E, C).cpu().numpy()
         roll.rewards[t], roll.terminated[t], roll.truncated[t] = (
             out.reward,
             out.terminated,
             out.truncated,
         )
         for e in np.flatnonzero(out.truncated):  # bootstrap from where the episode was cut
+            final_actor = out.final_actor_obs[e]
+            if final_actor is None:  # a simulator crash: the CAVs' last features are gone
+                final_actor = unstack(actor_obs, e)
             with torch.no_grad():
                 v_final, _ = critic(
-                    to_tensors(stack([out.final_critic_state[e]]), device),
+                    critic_inputs(
+                        stack([out.final_critic_state[e]]), stack([final_actor]), per_agent, device
+                    ),
                     h_critic[e : e + 1],
                     torch.zeros(1, dtype=torch.bool, device=device),
                 )
-            roll.final_values[t, e] = value_norm.denormalize(v_final).item()
+            roll.final_values[t, e] = value_norm.denormalize(v_final).cpu().numpy()[0]
         stats.episodes += out.episodes
         stats.psar_counts += rule_counts(out.psar_rule_mask[roll.alive[t]])
         stats.decisions += int(roll.alive[t].sum())
@@ -264,24 +286,44 @@ def collect_rollout(
         slot_start = out.slot_start
     with torch.no_grad():
         next_value, _ = critic(
-            to_tensors(critic_state, device), h_critic, torch.as_tensor(start, device=device)
+            critic_inputs(critic_state, actor_obs, per_agent, device),
+            h_critic,
+            torch.as_tensor(start, device=device),
         )
     stats.seconds = time.perf_counter() - t0
     return roll, value_norm.denormalize(next_value).cpu().numpy(), stats
 
 
 def rollout_gae(roll: Rollout, next_value: np.ndarray, cfg: TrainConfig):
-    """Advantages and returns (S, E) of a rollout (see :func:`compute_gae`)."""
+    """Advantages and returns (S, E) of a rollout (see :func:`compute_gae`).
+
+    With per-agent values (S, E, C) the team reward and episode flags are
+    broadcast over the CAV slots: GAE per agent on the shared reward.
+    """
+    shape = roll.values.shape
+
+    def per_value(array: np.ndarray) -> np.ndarray:  # (S, E) -> shape of the values
+        return np.broadcast_to(array.reshape(array.shape + (1,) * (len(shape) - 2)), shape)
+
     return compute_gae(
-        roll.rewards,
+        per_value(roll.rewards),
         roll.values,
         next_value,
-        roll.terminated,
-        roll.truncated,
+        per_value(roll.terminated),
+        per_value(roll.truncated),
         roll.final_values,
         cfg.gamma,
         cfg.gae_lambda,
     )
+
+
+def critic_inputs(critic_state, actor_obs, per_agent: bool, device) -> dict[str, torch.Tensor]:
+    """The critic's input: its state, and with per-agent values each slot's own features."""
+    tensors = to_tensors(critic_state, device)
+    if per_agent:
+        features = agent_features(actor_obs.self_state, actor_obs.alive)  # (E, C, F)
+        tensors[AGENT_KEY] = torch.as_tensor(features, device=device)
+    return tensors
 
 
 # ----------------------------------------------------------------------------- batch
@@ -304,8 +346,8 @@ class Batch:
     logprobs: torch.Tensor  # (L, B_a)
     alive: torch.Tensor  # (L, B_a) float, 0 for dead/absent CAVs
     advantages: torch.Tensor  # (L, B_a) normalised over alive CAVs
-    returns: torch.Tensor  # (L, B_c) unnormalised
-    old_values_normalised: torch.Tensor  # (L, B_c) critic outputs at rollout time
+    returns: torch.Tensor  # (L, B_c) unnormalised; (L, B_c, C) with per-agent values
+    old_values_normalised: torch.Tensor  # (L, B_c) critic outputs at rollout time (or C)
 
 
 def make_batch(
@@ -321,7 +363,12 @@ def make_batch(
         return torch.as_tensor(array, dtype=dtype, device=device)
 
     actor, critic = stack(roll.actor_obs), stack(roll.critic_state)
-    adv = np.repeat(advantages[:, :, None], C, axis=2)  # (S, E, C): team advantage per CAV
+    critic_arrays = {f.name: getattr(critic, f.name) for f in fields(critic)}
+    if advantages.ndim == 3:  # per-agent values: each CAV its own advantage
+        adv = advantages.copy()  # (S, E, C)
+        critic_arrays[AGENT_KEY] = agent_features(actor.self_state, actor.alive)  # (S, E, C, F)
+    else:
+        adv = np.repeat(advantages[:, :, None], C, axis=2)  # (S, E, C): team advantage per CAV
     alive_adv = adv[roll.alive]
     if alive_adv.size > 1:
         adv = (adv - alive_adv.mean()) / (alive_adv.std() + 1e-8)
@@ -331,7 +378,7 @@ def make_batch(
             {f.name: per_agent(getattr(actor, f.name)) for f in fields(actor)}, device
         ),
         critic_state=to_tensors(
-            {f.name: chunk_time_major(getattr(critic, f.name), L) for f in fields(critic)}, device
+            {name: chunk_time_major(array, L) for name, array in critic_arrays.items()}, device
         ),
         actor_h0=tensor(roll.actor_hidden[::L].reshape(-1, roll.actor_hidden.shape[-1])),
         critic_h0=tensor(roll.critic_hidden[::L].reshape(-1, roll.critic_hidden.shape[-1])),
@@ -366,7 +413,8 @@ def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: i
         batch.critic_start[:, envs_idx],
     )
     # float(): under bf16 autocast the networks return bf16; losses are taken in fp32.
-    dist = torch.distributions.Categorical(logits=logits.float())  # (L, b_a, 5)
+    logits = masked_logits(logits.float(), batch.actor_obs["action_mask"][:, agents_idx])
+    dist = torch.distributions.Categorical(logits=logits)  # (L, b_a, 5)
     return dist.log_prob(batch.actions[:, agents_idx]), dist.entropy(), values.float(), agents_idx
 
 
@@ -740,7 +788,9 @@ def progress_record(stats: UpdateStats, update_s: float) -> dict:
 
     ``team_reward`` is R, what PPO maximises (paper eq. reward_all), per step
     and environment; ``global_reward`` is its part r_g; ``reward/*`` are the
-    other parts (``ego_softmin``, ``individual``, ``completion``, ``tau``);
+    other parts (``ego_softmin``, ``individual``, ``completion``, ``warning``:
+    the mean warning term of the CAVs on the road, ``delay``: the delay term
+    before its weight, ``tau``);
     ``individual`` is the mean ego reward r_e over the CAVs on the road, what
     the training curves' individual-reward panel plots (``ego_softmin``, its
     softmin-weighted sum, falls as tau anneals whatever the policy does);

@@ -56,6 +56,7 @@ def random_actor_obs(
         lane_mask=lane_mask,
         road=_normal(rng, *batch, ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS),
         action_memory=rng.integers(0, N_ACTIONS, size=(*batch, 2)),
+        action_mask=np.ones((*batch, N_ACTIONS), bool),
         alive=rng.random(batch) < 0.9,
     )
 
