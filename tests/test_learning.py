@@ -50,7 +50,9 @@ class SampledActor:
         self.hidden = torch.zeros(n_cavs, self.actor.hidden_size)
 
     def act(self, actor_obs, first_step: bool) -> np.ndarray:
-        start = torch.full((self.hidden.shape[0],), first_step)
+        # first_step: one flag for all CAV slots, or one per slot (refilled slots)
+        flags = np.broadcast_to(np.asarray(first_step, bool), (self.hidden.shape[0],))
+        start = torch.as_tensor(flags.copy())
         with torch.no_grad():
             logits, self.hidden = self.actor(to_tensors(actor_obs), self.hidden, start)
         probs = torch.softmax(logits, -1)

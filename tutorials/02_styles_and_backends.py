@@ -60,11 +60,18 @@ OUT.mkdir(parents=True, exist_ok=True)
 
 # %%
 names = [f.name for f in fields(STYLE_PRESETS["paper"][0]) if f.name != "name"]
+
+
+def cell(value) -> str:
+    """One table entry: numbers and flags as numbers, unset options as '-'."""
+    return f"{'-':>12}" if value is None else f"{float(value):>12.2f}"
+
+
 for preset, styles in STYLE_PRESETS.items():
     print(f"preset {preset!r}")
     print(f"  {'parameter':<24}" + "".join(f"{s.name:>12}" for s in styles))
     for name in names:
-        print(f"  {name:<24}" + "".join(f"{getattr(s, name):>12.2f}" for s in styles))
+        print(f"  {name:<24}" + "".join(cell(getattr(s, name)) for s in styles))
 print("\nHDV style mixes (aggressive, normal, cautious):", STYLE_MIXES)
 
 # %% [markdown]
