@@ -36,6 +36,7 @@ from diacc.threads import (
 )
 
 SMALL = ModelConfig(hidden_dim=32, gru_hidden=32, cross_dim=32)
+TINY_NETS = {"model.hidden_dim": 16, "model.gru_hidden": 16, "model.cross_dim": 16}
 
 
 # ----------------------------------------------------------------------------- threads
@@ -245,3 +246,32 @@ def test_overlapped_training_is_reproducible_lagged_and_resumes_exactly(tmp_path
         assert torch.equal(tensor, runs["b"][name]), name
         assert torch.equal(tensor, runs["split"][name]), name
     assert any(not torch.equal(t, runs["sync"][n]) for n, t in runs["a"].items())
+
+
+# ----------------------------------------------------------------------------- bench
+def test_training_bench_rows_and_core_shares(tmp_path):
+    """The bench's small learner is configs/small-learner.toml; every row runs, shares add up."""
+    from pathlib import Path
+
+    from diacc.bench import training
+    from diacc.tomlfile import read_toml
+
+    toml = read_toml(Path(__file__).parents[1] / "configs" / "small-learner.toml", ValueError)
+    flat = {
+        "minibatches": toml["minibatches"],
+        **{f"model.{k}": v for k, v in toml["model"].items()},
+    }
+    assert training.SMALL_LEARNER == flat
+    labels = [label for label, _, _ in training.configurations("cpu", False, only="learners")]
+    assert labels[:8] == [label for label, _ in training.LEARNER_ROWS]
+    assert "small learner + bf16 + overlap" in labels
+    sync = training.core_shares(2.0, 0.5, 1.4, overlap=False)
+    assert sync == {"core0": (0.25, 0.7), "core1": (0.0, 0.0)}
+    assert training.core_shares(1.0, 0.5, 0.9, overlap=True) == {
+        "core0": (0.5, 0.0),
+        "core1": (0.0, 0.9),
+    }
+    row = training.measure(
+        "diacc", "highway", 2, 2, "cpu", rollout_steps=10, options={"overlap": True, **TINY_NETS}
+    )
+    assert row["steps_per_s"] > 0 and 0 < row["core1"][1] <= 1.5

@@ -729,13 +729,19 @@ def learn(
     n_cavs: int,
     generator: torch.Generator | None = None,
 ) -> tuple[np.ndarray, dict[str, float]]:
-    """GAE, batching and the PPO update of one rollout; returns (returns (S, E), losses)."""
+    """GAE, batching and the PPO update of one rollout; returns (returns (S, E), losses).
+
+    ``losses`` also holds ``learner_s``, the wall seconds this took (the
+    learner's share of an update, logged for ``diacc bench --training``).
+    """
+    t0 = time.perf_counter()
     advantages, returns = rollout_gae(roll, next_value, cfg)
     for name, array in (("reward", roll.rewards), ("returns", returns)):
         if not np.isfinite(array).all():
             raise NonFiniteError(f"non-finite {name} in the rollout")
     batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
-    return returns, ppo_update(agent, batch, cfg, n_cavs, generator)
+    losses = ppo_update(agent, batch, cfg, n_cavs, generator)
+    return returns, {**losses, "learner_s": time.perf_counter() - t0}
 
 
 def _update_generator(cfg: TrainConfig, update: int, device: torch.device):
