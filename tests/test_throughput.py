@@ -275,3 +275,4 @@ def test_training_bench_rows_and_core_shares(tmp_path):
         "diacc", "highway", 2, 2, "cpu", rollout_steps=10, options={"overlap": True, **TINY_NETS}
     )
     assert row["steps_per_s"] > 0 and 0 < row["core1"][1] <= 1.5
+    assert row["idle_steps_per_s"] > 0 and row["learner_cpu_s"] > 0

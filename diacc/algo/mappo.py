@@ -196,6 +196,7 @@ class RolloutStats:
     restarts: int
     reward_terms: dict[str, list[float]]  # per-step means of each reward part
     seconds: float
+    cpu_seconds: float = 0.0  # CPU time of the collecting thread (comparable under load)
 
 
 def collect_rollout(
@@ -208,7 +209,7 @@ def collect_rollout(
     learner is being updated meanwhile). Returns the filled rollout, V(s_S)
     for bootstrapping (E,), and stats.
     """
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.thread_time()
     if sync:
         agent.sync_rollout()
     actor, critic, value_norm = agent.rollout_actor, agent.rollout_critic, agent.rollout_value_norm
@@ -264,7 +265,7 @@ def collect_rollout(
         next_value, _ = critic(
             to_tensors(critic_state, device), h_critic, torch.as_tensor(start, device=device)
         )
-    stats.seconds = time.perf_counter() - t0
+    stats.seconds, stats.cpu_seconds = time.perf_counter() - t0, time.thread_time() - cpu0
     return roll, value_norm.denormalize(next_value).cpu().numpy(), stats
 
 
@@ -696,6 +697,7 @@ def _train_loop(
                     update + 1, global_step, tau, lr, losses, roll, returns, rollout
                 )
                 record = progress_record(stats, update_s=time.perf_counter() - t0)
+                record["rollout_cpu_s"] = rollout.cpu_seconds
                 write_record(record, writer, run_dir / "progress.jsonl")
                 bar.update(steps_per_update)
                 bar.set_postfix(
@@ -731,17 +733,19 @@ def learn(
 ) -> tuple[np.ndarray, dict[str, float]]:
     """GAE, batching and the PPO update of one rollout; returns (returns (S, E), losses).
 
-    ``losses`` also holds ``learner_s``, the wall seconds this took (the
-    learner's share of an update, logged for ``diacc bench --training``).
+    ``losses`` also holds ``learner_s`` and ``learner_cpu_s``, the wall and
+    CPU seconds this took (the learner's share of an update, logged for
+    ``diacc bench --training``).
     """
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.thread_time()
     advantages, returns = rollout_gae(roll, next_value, cfg)
     for name, array in (("reward", roll.rewards), ("returns", returns)):
         if not np.isfinite(array).all():
             raise NonFiniteError(f"non-finite {name} in the rollout")
     batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
     losses = ppo_update(agent, batch, cfg, n_cavs, generator)
-    return returns, {**losses, "learner_s": time.perf_counter() - t0}
+    seconds = {"learner_s": time.perf_counter() - t0, "learner_cpu_s": time.thread_time() - cpu0}
+    return returns, {**losses, **seconds}
 
 
 def _update_generator(cfg: TrainConfig, update: int, device: torch.device):

@@ -21,7 +21,13 @@ wall time of the paper's 3 M-step run from the measured rate. Rows:
 Every row also shows how the update's wall time splits, per core, into
 rollout, learner and idle (:func:`core_shares`), and the table title the
 machine's load average before and after: on a shared machine the absolute
-rates move with the load, ratios within one run much less.
+rates move with the load, ratios within one run much less. A process with
+two busy threads (``overlap``) also gets a larger share of a crowded
+machine, so under load its wall-clock gain overstates what it gives on an
+idle one; the CPU seconds per update and the rate they imply on an idle
+2-core machine (rollout + learner in sequence, or the longer of the two
+with ``overlap``; GIL contention between the threads not modelled) are
+shown beside it.
 
 The first update of every configuration pays start-up and is left out.
 ``--device cuda`` puts the learner on CUDA (rollouts stay on the CPU).
@@ -102,7 +108,17 @@ def measure(
     update_s = sum(1.0 / r["updates_per_s"] for r in steady) / len(steady)
     rollout_s = sum(steps / r["env_steps_per_s"] for r in steady) / len(steady)
     learn_s = sum(r["learner_s"] for r in steady) / len(steady)
+    # CPU seconds per update barely move with the machine's load: the rate an idle
+    # 2-core machine would reach follows from them (rollout then learner on one
+    # core; with overlap side by side on two, the longer one setting the pace).
+    rollout_cpu = sum(r["rollout_cpu_s"] for r in steady) / len(steady)
+    learn_cpu = sum(r["learner_cpu_s"] for r in steady) / len(steady)
+    overlap = bool((options or {}).get("overlap"))
+    idle_update_s = max(rollout_cpu, learn_cpu) if overlap else rollout_cpu + learn_cpu
     return {
+        "rollout_cpu_s": rollout_cpu,
+        "learner_cpu_s": learn_cpu,
+        "idle_steps_per_s": steps / idle_update_s,
         **core_shares(update_s, rollout_s, learn_s, bool((options or {}).get("overlap"))),
         "variant": variant,
         "backend": backend,
@@ -273,6 +289,8 @@ def _print(rows, variant, backend, device, updates, rollout_steps, loads) -> Non
         "learner s / update",
         "3 M steps (h)",
         "vs. first row",
+        "CPU s / update: rollout + learner",
+        "env-steps/s, idle 2 cores (CPU-time model)",
         "core 0: rollout / learner / idle",
         "core 1",
     ):
@@ -287,6 +305,8 @@ def _print(rows, variant, backend, device, updates, rollout_steps, loads) -> Non
             f"{r['learner_s']:.2f}",
             f"{r['projected_3M_h']:.1f}",
             _ratio(rows, r["envs"], "steps_per_s", r["label"], base),
+            f"{r['rollout_cpu_s']:.2f} + {r['learner_cpu_s']:.2f}",
+            f"{r['idle_steps_per_s']:.0f}",
             _shares(r["core0"]),
             _shares(r["core1"]),
         )
