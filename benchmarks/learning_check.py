@@ -68,9 +68,14 @@ def main() -> None:
     parser.add_argument("--title", default="diacc on highway, train-50, N = 25, 10 CAVs, 4 envs")
     parser.add_argument("--smooth", type=int, default=1, help="moving average over updates")
     parser.add_argument("--window", type=int, default=10_000, help="steps of first/last summary")
+    parser.add_argument(
+        "--max-step", type=int, default=None, help="cut every run at this many steps (equal steps)"
+    )
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     runs = {label: read_run(Path(path)) for label, path in (r.split("=", 1) for r in args.runs)}
+    if args.max_step is not None:
+        runs = {k: [r for r in rows if r["step"] <= args.max_step] for k, rows in runs.items()}
     with (args.out / "curves.csv").open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["run", "step", *COLUMNS])
