@@ -31,8 +31,14 @@ st.node_mask[..., 25:] = False; st.neighbour_mask[..., 25:, :] = False
 st = to_tensors(st)
 ob = to_tensors(random_actor_obs(spec, (10, 200), rng))
 starts = torch.zeros(10, 20, dtype=torch.bool); starts_a = torch.zeros(10, 200, dtype=torch.bool)
-def c(): v, _ = critic.forward_sequence(st, torch.zeros(20, 64), starts); v.sum().backward(); return v
-def a(): l, _ = actor.forward_sequence(ob, torch.zeros(200, 64), starts_a); l.sum().backward(); return l
+def c():
+    v, _ = critic.forward_sequence(st, torch.zeros(20, 64), starts)
+    v.sum().backward()
+    return v
+def a():
+    logits, _ = actor.forward_sequence(ob, torch.zeros(200, 64), starts_a)
+    logits.sum().backward()
+    return logits
 out = {}
 for name, f in (("critic", c), ("actor", a)):
     r = f().detach()
