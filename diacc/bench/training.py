@@ -128,7 +128,7 @@ def measure(
         "steps_per_s": steps / update_s,
         "rollout_steps_per_s": steps / rollout_s,
         "update_s": update_s,
-        "learner_s": update_s - rollout_s,
+        "learner_s": learn_s,  # measured: with overlap it runs beside the rollout
         "total_s": seconds,
         "projected_3M_h": PAPER_STEPS / (steps / update_s) / 3600,
     }
