@@ -663,24 +663,26 @@ def _train_loop(
                     and (update + 1) % cfg.checkpoint_every != 0
                 )
                 collected = None
+                learn_roll = functools.partial(
+                    learn,
+                    agent,
+                    roll,
+                    next_value,
+                    cfg,
+                    device,
+                    envs.n_cavs,
+                    _update_generator(cfg, update, device),
+                )
                 try:
                     if prefetch:
                         next_tau = temperature(
                             global_step + steps_per_update, cfg.total_steps, cfg.env.reward
                         )
                         returns, losses, collected = _learn_beside_rollout(
-                            agent, envs, cfg, device, update, roll, next_value, next_tau
+                            learn_roll, agent, envs, cfg, update, next_tau
                         )
                     else:
-                        returns, losses = learn(
-                            agent,
-                            roll,
-                            next_value,
-                            cfg,
-                            device,
-                            envs.n_cavs,
-                            _update_generator(cfg, update, device),
-                        )
+                        returns, losses = learn_roll()
                 except NonFiniteError as exc:
                     kept = (
                         f"checkpoint {ckpt_path} still holds update {saved_update}"
@@ -760,16 +762,15 @@ def _update_generator(cfg: TrainConfig, update: int, device: torch.device):
 
 
 def _learn_beside_rollout(
+    learn_roll: Callable[[], tuple[np.ndarray, dict[str, float]]],
     agent: Agent,
     envs,
     cfg: TrainConfig,
-    device: torch.device,
     update: int,
-    roll: Rollout,
-    next_value: np.ndarray,
     next_tau: float,
 ):
-    """Learn from ``roll`` on a second thread while this one collects update + 1's rollout.
+    """Run ``learn_roll`` (:func:`learn` of this update) on a second thread while
+    this one collects update + 1's rollout.
 
     The rollout networks keep the parameters from before this update (no
     sync until both are done), which is the one-update policy lag. torch
@@ -781,15 +782,7 @@ def _learn_beside_rollout(
 
     def run_update() -> None:
         try:
-            result["learnt"] = learn(
-                agent,
-                roll,
-                next_value,
-                cfg,
-                device,
-                envs.n_cavs,
-                _update_generator(cfg, update, device),
-            )
+            result["learnt"] = learn_roll()
         except BaseException as exc:  # re-raised on the main thread
             result["error"] = exc
 
