@@ -10,6 +10,10 @@ could stop a CAV::
 
 Each row of ``curves.csv`` is one PPO update: the share of the episodes that
 ended in that update's rollout with a collision, and their mean speeds.
+
+Labels of the form ``NAME/sSEED`` are seeds of one configuration: their
+last-window means are then also summarised per configuration (mean and
+spread over seeds) in ``summary.md``.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import statistics
 from pathlib import Path
 
 import matplotlib
@@ -63,9 +68,14 @@ def main() -> None:
     parser.add_argument("--title", default="diacc on highway, train-50, N = 25, 10 CAVs, 4 envs")
     parser.add_argument("--smooth", type=int, default=1, help="moving average over updates")
     parser.add_argument("--window", type=int, default=10_000, help="steps of first/last summary")
+    parser.add_argument(
+        "--max-step", type=int, default=None, help="cut every run at this many steps (equal steps)"
+    )
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     runs = {label: read_run(Path(path)) for label, path in (r.split("=", 1) for r in args.runs)}
+    if args.max_step is not None:
+        runs = {k: [r for r in rows if r["step"] <= args.max_step] for k, rows in runs.items()}
     with (args.out / "curves.csv").open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["run", "step", *COLUMNS])
@@ -99,6 +109,41 @@ def main() -> None:
             f"{mean(last, 'mean_cav_speed_mps'):.1f} m/s; "
             f"arrived {mean(first, 'arrived_fraction'):.2f} -> {mean(last, 'arrived_fraction'):.2f}"
         )
+
+    write_seed_summary(runs, args.out / "summary.md", args.window)
+
+
+def write_seed_summary(runs: dict[str, list[dict]], path: Path, window: int) -> None:
+    """Per configuration (label ``NAME/sSEED``): mean +- sd over seeds of the last window."""
+    groups: dict[str, list[list[dict]]] = {}
+    for label, rows in runs.items():
+        if "/s" in label:
+            groups.setdefault(label.rsplit("/s", 1)[0], []).append(rows)
+    if not groups:
+        return
+    lines = [
+        f"Last {window} environment steps of each run, mean +- sd over seeds",
+        "",
+        "| configuration | seeds | steps | " + " | ".join(PANEL_COLUMNS) + " |",
+        "|---|---|---|" + "---|" * len(PANEL_COLUMNS),
+    ]
+    for name, seeds in groups.items():
+        cells = []
+        for column in PANEL_COLUMNS:
+            per_seed = []
+            for rows in seeds:
+                last = [r[column] for r in rows if r["step"] > rows[-1]["step"] - window]
+                per_seed.append(sum(last) / len(last))
+            sd = statistics.stdev(per_seed) if len(per_seed) > 1 else float("nan")
+            cells.append(f"{statistics.mean(per_seed):.3f} +- {sd:.3f}")
+        steps = min(rows[-1]["step"] for rows in seeds)
+        lines.append(f"| {name} | {len(seeds)} | {steps} | " + " | ".join(cells) + " |")
+    path.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+#: Columns of the per-configuration summary.
+PANEL_COLUMNS = ("collision_rate", "mean_cav_speed_mps", "mean_speed_mps", "arrived_fraction")
 
 
 if __name__ == "__main__":

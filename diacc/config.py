@@ -440,6 +440,8 @@ class TrainConfig:
     torch_threads: int = 0  # intra-op threads of the trainer; 0 = diacc.threads rule
     update_bf16: bool = False  # bf16 autocast in the PPO update (changes numerics: option)
     update_compile: bool = False  # torch.compile the networks' sequence replay in the update
+    # collect the next rollout while the learner trains (second thread): one-update policy lag
+    overlap: bool = False
     lr: float = 5e-4
     adam_eps: float = 1e-5
     lr_decay: bool = True

@@ -11,6 +11,9 @@ fight for two cores. diacc therefore sets thread counts itself:
   cores, else half the cores (at most :data:`MAX_DEFAULT_THREADS`), leaving
   the rest to environment workers and other jobs. ``TrainConfig.torch_threads``
   (> 0) overrides it. One inter-op thread: diacc runs no parallel graphs.
+  With ``TrainConfig.overlap`` the trainer runs two Python threads (rollout
+  and PPO update); each runs its own torch ops on itself when the intra-op
+  count is 1, so on 2 cores the two keep one core each.
 * **worker processes** diacc starts (vector-env workers, evaluator workers,
   SUMO workers): 1 torch thread and ``OMP/MKL/OPENBLAS_NUM_THREADS=1`` in
   their environment (:func:`worker_environment`); they step simulators on

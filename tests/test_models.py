@@ -434,3 +434,53 @@ def test_every_variant_runs_on_builder_observations():
         value, _ = critic(state, torch.zeros(2, CFG.gru_hidden), torch.ones(2))
         assert logits.shape == (2, N_ACTIONS) and value.shape == (2,)
         assert torch.isfinite(logits).all() and torch.isfinite(value).all()
+
+
+# ---------------------------------------------------------------- cheaper forms, same maths
+def test_cross_attention_matches_the_per_head_formula():
+    """The fused K/V product and elementwise scores equal softmax(q k^T / sqrt(d)) v per head."""
+    from diacc.models.attention import CrossAttention
+
+    torch.manual_seed(5)
+    layer = CrossAttention(12, 6, 16, 4)
+    query, keys = torch.randn(3, 12), torch.randn(3, 9, 6)
+    mask = torch.rand(3, 9) < 0.6
+    mask[0] = False  # no keys at all: zeros
+    mask[1, 0] = True
+    with torch.no_grad():
+        got, weights = layer(query, keys, mask, return_attention=True)
+        want = torch.zeros(3, 16)
+        for b in range(1, 3):
+            heads = []
+            for h in range(4):
+                cut = slice(4 * h, 4 * h + 4)
+                q = layer.q(query[b])[cut]
+                k, v = layer.k(keys[b, mask[b]])[:, cut], layer.v(keys[b, mask[b]])[:, cut]
+                heads.append(torch.softmax(k @ q / 2.0, 0) @ v)
+            want[b] = layer.out(torch.cat(heads))
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-5)
+    assert weights.shape == (3, 4, 9) and torch.equal(weights[0], torch.zeros(4, 9))
+
+
+def test_trimming_padded_node_slots_changes_no_output_or_gradient(monkeypatch):
+    """ITDR cuts the node slots behind the last vehicle; outputs and gradients stay the same."""
+    import diacc.models.itdr as itdr
+
+    state = _critic_state(6, seed=11, min_active=3)
+    state["node_mask"][:, 20:] = False  # vehicles in the first 20 of 40 slots only
+    state["neighbour_mask"] &= state["node_mask"][..., None]
+    trimmed = itdr.trim_padded_nodes(state)
+    assert trimmed["nodes"].shape[1] == int(state["node_mask"].nonzero()[:, 1].max()) + 1 <= 20
+
+    def value_and_grads():
+        critic = _seeded(CIECCritic, CFG, SPEC)
+        value, _ = critic(state, torch.zeros(6, CFG.gru_hidden), torch.zeros(6))
+        value.sum().backward()
+        return value.detach(), [p.grad.clone() for p in critic.parameters()]
+
+    value, grads = value_and_grads()
+    monkeypatch.setattr(itdr, "trim_padded_nodes", lambda s: s)
+    value_full, grads_full = value_and_grads()
+    torch.testing.assert_close(value, value_full, atol=1e-6, rtol=1e-5)
+    for g, g_full in zip(grads, grads_full, strict=True):
+        torch.testing.assert_close(g, g_full, atol=1e-6, rtol=1e-5)

@@ -36,6 +36,7 @@ from diacc.threads import (
 )
 
 SMALL = ModelConfig(hidden_dim=32, gru_hidden=32, cross_dim=32)
+TINY_NETS = {"model.hidden_dim": 16, "model.gru_hidden": 16, "model.cross_dim": 16}
 
 
 # ----------------------------------------------------------------------------- threads
@@ -206,3 +207,72 @@ def test_cuda_without_a_gpu_is_a_one_line_error():
         assert done.returncode == 2, done.stderr
         assert "Traceback" not in done.stderr
         assert "no CUDA device" in done.stderr.strip().splitlines()[-1]
+
+
+# ----------------------------------------------------------------------------- overlap
+def _weights(path):
+    payload = checkpoint.load_checkpoint(path)
+    return {f"{part}.{k}": v for part in ("actor", "critic") for k, v in payload[part].items()}
+
+
+def test_overlapped_training_is_reproducible_lagged_and_resumes_exactly(tmp_path, monkeypatch):
+    """``overlap``: rollouts beside the update, with the previous update's parameters.
+
+    Same seed, same weights; a run stopped at a checkpoint and resumed equals
+    the uninterrupted one (no rollout is prefetched across a checkpoint); and
+    it is not the synchronous run (the rollouts act with lagged parameters).
+    """
+    calls = []
+    real = mappo.collect_rollout
+
+    def spy(agent, envs, cfg, update, sync=True):
+        calls.append((update, sync))
+        return real(agent, envs, cfg, update, sync)
+
+    monkeypatch.setattr(mappo, "collect_rollout", spy)
+    extra = {"total_steps": 160, "checkpoint_every": 2}  # 4 updates of 40 steps
+    runs = {}
+    for name, overlap in (("a", True), ("b", True), ("sync", False)):
+        calls.clear()
+        mappo.train(tiny_config(tmp_path / name, overlap=overlap, **extra), progress=False)
+        runs[name] = _weights(tmp_path / name / "run" / "checkpoint.pt")
+        if overlap:  # update 1 and 3 prefetched beside updates 0 and 2; 2 follows a checkpoint
+            assert calls == [(0, True), (1, False), (2, True), (3, False)]
+    split = tiny_config(tmp_path / "split", overlap=True, **extra)
+    mappo.train(split, progress=False, stop_after_updates=2)
+    mappo.train(split, resume=True, progress=False)
+    runs["split"] = _weights(tmp_path / "split" / "run" / "checkpoint.pt")
+    for name, tensor in runs["a"].items():
+        assert torch.equal(tensor, runs["b"][name]), name
+        assert torch.equal(tensor, runs["split"][name]), name
+    assert any(not torch.equal(t, runs["sync"][n]) for n, t in runs["a"].items())
+
+
+# ----------------------------------------------------------------------------- bench
+def test_training_bench_rows_and_core_shares(tmp_path):
+    """The bench's small learner is configs/small-learner.toml; every row runs, shares add up."""
+    from pathlib import Path
+
+    from diacc.bench import training
+    from diacc.tomlfile import read_toml
+
+    toml = read_toml(Path(__file__).parents[1] / "configs" / "small-learner.toml", ValueError)
+    flat = {
+        "minibatches": toml["minibatches"],
+        **{f"model.{k}": v for k, v in toml["model"].items()},
+    }
+    assert training.SMALL_LEARNER == flat
+    labels = [label for label, _, _ in training.configurations("cpu", False, only="learners")]
+    assert labels[:8] == [label for label, _ in training.LEARNER_ROWS]
+    assert "small learner + bf16 + overlap" in labels
+    sync = training.core_shares(2.0, 0.5, 1.4, overlap=False)
+    assert sync == {"core0": (0.25, 0.7), "core1": (0.0, 0.0)}
+    assert training.core_shares(1.0, 0.5, 0.9, overlap=True) == {
+        "core0": (0.5, 0.0),
+        "core1": (0.0, 0.9),
+    }
+    row = training.measure(
+        "diacc", "highway", 2, 2, "cpu", rollout_steps=10, options={"overlap": True, **TINY_NETS}
+    )
+    assert row["steps_per_s"] > 0 and 0 < row["core1"][1] <= 1.5
+    assert row["idle_steps_per_s"] > 0 and row["learner_cpu_s"] > 0

@@ -27,6 +27,12 @@ then ``epochs`` passes of PPO over it:
 * Every update starts all environments afresh with seeds derived from
   (run seed, env, update); with the RNG states in the checkpoint this makes
   ``--resume`` reproduce an uninterrupted run exactly.
+* **Overlap** (``overlap = true``, off by default): the next rollout is
+  collected on the main thread while a second thread runs the PPO update,
+  so both cores work. That rollout acts with the parameters from *before*
+  the update (a one-update policy lag); PPO's ratios are taken against the
+  stored log-probabilities of that behaviour policy, so its importance
+  weighting and clipping apply as they are. See :func:`_train_loop`.
 """
 
 from __future__ import annotations
@@ -173,7 +179,8 @@ def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
         critic = AgentValueCritic(critic, cfg.model)
     value_norm = ValueNorm()
     extras = {}
-    if device != ROLLOUT_DEVICE:
+    # Separate rollout networks: on another device, or when rollouts run beside the update.
+    if device != ROLLOUT_DEVICE or cfg.overlap:
         extras = {
             "rollout_actor": copy.deepcopy(actor),
             "rollout_critic": copy.deepcopy(critic),
@@ -205,19 +212,22 @@ class RolloutStats:
     restarts: int
     reward_terms: dict[str, list[float]]  # per-step means of each reward part
     seconds: float
+    cpu_seconds: float = 0.0  # CPU time of the collecting thread (comparable under load)
 
 
 def collect_rollout(
-    agent: Agent, envs, cfg: TrainConfig, update: int
+    agent: Agent, envs, cfg: TrainConfig, update: int, sync: bool = True
 ) -> tuple[Rollout, np.ndarray, RolloutStats]:
     """Run every environment for ``rollout_steps`` decisions from a fresh reset.
 
     The forwards run on the agent's rollout networks (:data:`ROLLOUT_DEVICE`),
-    refreshed from the learner first. Returns the filled rollout, V(s_S) for
-    bootstrapping (E,), and stats.
+    refreshed from the learner first unless ``sync`` is False (overlap: the
+    learner is being updated meanwhile). Returns the filled rollout, V(s_S)
+    for bootstrapping (E,), and stats.
     """
-    t0 = time.perf_counter()
-    agent.sync_rollout()
+    t0, cpu0 = time.perf_counter(), time.thread_time()
+    if sync:
+        agent.sync_rollout()
     actor, critic, value_norm = agent.rollout_actor, agent.rollout_critic, agent.rollout_value_norm
     device = ROLLOUT_DEVICE
     E, C, H_a, H_c = cfg.n_envs, envs.n_cavs, actor.hidden_size, critic.hidden_size
@@ -290,7 +300,7 @@ def collect_rollout(
             h_critic,
             torch.as_tensor(start, device=device),
         )
-    stats.seconds = time.perf_counter() - t0
+    stats.seconds, stats.cpu_seconds = time.perf_counter() - t0, time.thread_time() - cpu0
     return roll, value_norm.denormalize(next_value).cpu().numpy(), stats
 
 
@@ -419,11 +429,20 @@ def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: i
 
 
 # ----------------------------------------------------------------------------- PPO update
-def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dict[str, float]:
+def ppo_update(
+    agent: Agent,
+    batch: Batch,
+    cfg: TrainConfig,
+    n_cavs: int,
+    generator: torch.Generator | None = None,
+) -> dict[str, float]:
     """``epochs`` passes of clipped PPO over the batch; returns mean diagnostics.
 
     With ``cfg.update_bf16`` the network forwards run under bf16 autocast
     (weights, optimiser and losses stay fp32), on the CPU as on CUDA.
+    Minibatches are drawn from ``generator`` (default: torch's global one);
+    an update running beside a rollout needs its own, or the two threads'
+    draws would interleave differently from run to run.
     """
     autocast = functools.partial(
         torch.autocast, batch.returns.device.type, torch.bfloat16, enabled=cfg.update_bf16
@@ -440,7 +459,9 @@ def ppo_update(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> dic
     for epoch in range(cfg.epochs):
         # Minibatches of whole (chunk, env) sequences keep each env's CAVs with its critic.
         for minibatch, envs_idx in enumerate(
-            torch.randperm(n_sequences, device=batch.returns.device).chunk(cfg.minibatches)
+            torch.randperm(n_sequences, device=batch.returns.device, generator=generator).chunk(
+                cfg.minibatches
+            )
         ):
             with autocast():
                 logprob, entropy, value, agents_idx = evaluate_batch(agent, batch, envs_idx, n_cavs)
@@ -703,28 +724,51 @@ def _train_loop(
     started_s = time.perf_counter()
     try:
         with _StopOnSignal() as stop:
+            collected = None  # overlap: the next update's rollout, collected beside the learner
             for update in range(first_update, last_update):
                 t0 = time.perf_counter()
                 if cfg.lr_decay:
                     for group in agent.optimizer.param_groups:
                         group["lr"] = cfg.lr * (1.0 - update / n_updates)
                 tau = temperature(global_step, cfg.total_steps, cfg.env.reward)
-                envs.set_temperature(tau)
-
-                roll, next_value, rollout = collect_rollout(agent, envs, cfg, update)
+                if collected is None:
+                    envs.set_temperature(tau)
+                    collected = collect_rollout(agent, envs, cfg, update)
+                roll, next_value, rollout = collected
                 if rollout.restarts:
                     log.warning(
                         "update %d: %d simulator restart(s) in the rollout; episodes cut",
                         update + 1,
                         rollout.restarts,
                     )
-                advantages, returns = rollout_gae(roll, next_value, cfg)
+                # Prefetch the next rollout during this update, except before a checkpoint:
+                # a resumed run then collects it exactly as the uninterrupted one did.
+                prefetch = (
+                    cfg.overlap
+                    and update + 1 < last_update
+                    and (update + 1) % cfg.checkpoint_every != 0
+                )
+                collected = None
+                learn_roll = functools.partial(
+                    learn,
+                    agent,
+                    roll,
+                    next_value,
+                    cfg,
+                    device,
+                    envs.n_cavs,
+                    _update_generator(cfg, update, device),
+                )
                 try:
-                    for name, array in (("reward", roll.rewards), ("returns", returns)):
-                        if not np.isfinite(array).all():
-                            raise NonFiniteError(f"non-finite {name} in the rollout")
-                    batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
-                    losses = ppo_update(agent, batch, cfg, envs.n_cavs)
+                    if prefetch:
+                        next_tau = temperature(
+                            global_step + steps_per_update, cfg.total_steps, cfg.env.reward
+                        )
+                        returns, losses, collected = _learn_beside_rollout(
+                            learn_roll, agent, envs, cfg, update, next_tau
+                        )
+                    else:
+                        returns, losses = learn_roll()
                 except NonFiniteError as exc:
                     kept = (
                         f"checkpoint {ckpt_path} still holds update {saved_update}"
@@ -741,6 +785,7 @@ def _train_loop(
                     update + 1, global_step, tau, lr, losses, roll, returns, rollout
                 )
                 record = progress_record(stats, update_s=time.perf_counter() - t0)
+                record["rollout_cpu_s"] = rollout.cpu_seconds
                 write_record(record, writer, run_dir / "progress.jsonl")
                 bar.update(steps_per_update, record["team_reward"], rollout.episodes)
                 if (
@@ -766,6 +811,81 @@ def _train_loop(
         time.perf_counter() - started_s,
     )
     return run_dir
+
+
+def learn(
+    agent: Agent,
+    roll: Rollout,
+    next_value: np.ndarray,
+    cfg: TrainConfig,
+    device: torch.device,
+    n_cavs: int,
+    generator: torch.Generator | None = None,
+) -> tuple[np.ndarray, dict[str, float]]:
+    """GAE, batching and the PPO update of one rollout; returns (returns (S, E), losses).
+
+    ``losses`` also holds ``learner_s`` and ``learner_cpu_s``, the wall and
+    CPU seconds this took (the learner's share of an update, logged for
+    ``diacc bench --training``).
+    """
+    t0, cpu0 = time.perf_counter(), time.thread_time()
+    advantages, returns = rollout_gae(roll, next_value, cfg)
+    for name, array in (("reward", roll.rewards), ("returns", returns)):
+        if not np.isfinite(array).all():
+            raise NonFiniteError(f"non-finite {name} in the rollout")
+    batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
+    losses = ppo_update(agent, batch, cfg, n_cavs, generator)
+    seconds = {"learner_s": time.perf_counter() - t0, "learner_cpu_s": time.thread_time() - cpu0}
+    return returns, {**losses, **seconds}
+
+
+def _update_generator(cfg: TrainConfig, update: int, device: torch.device):
+    """Minibatch RNG of an update: torch's global one, or with ``overlap`` its own.
+
+    Seeded from (run seed, update), so that overlapped runs are reproducible
+    and resume exactly without storing its state.
+    """
+    if not cfg.overlap:
+        return None
+    return torch.Generator(device=device).manual_seed(cfg.seed * 1_000_003 + update)
+
+
+def _learn_beside_rollout(
+    learn_roll: Callable[[], tuple[np.ndarray, dict[str, float]]],
+    agent: Agent,
+    envs,
+    cfg: TrainConfig,
+    update: int,
+    next_tau: float,
+):
+    """Run ``learn_roll`` (:func:`learn` of this update) on a second thread while
+    this one collects update + 1's rollout.
+
+    The rollout networks keep the parameters from before this update (no
+    sync until both are done), which is the one-update policy lag. torch
+    releases the GIL inside its kernels, so the two threads run on two cores
+    for most of the update. Returns (returns, losses, next rollout); an error
+    of the update is raised here after both finished.
+    """
+    result: dict = {}
+
+    def run_update() -> None:
+        try:
+            result["learnt"] = learn_roll()
+        except BaseException as exc:  # re-raised on the main thread
+            result["error"] = exc
+
+    learner = threading.Thread(target=run_update, name="diacc-learner")
+    learner.start()
+    try:
+        envs.set_temperature(next_tau)
+        collected = collect_rollout(agent, envs, cfg, update + 1, sync=False)
+    finally:
+        learner.join()
+    if "error" in result:
+        raise result["error"]
+    agent.sync_rollout()
+    return (*result["learnt"], collected)
 
 
 # ----------------------------------------------------------------------------- logging

@@ -2,30 +2,39 @@
 
 Runs a few real updates of :func:`diacc.algo.mappo.train` per configuration,
 in this process, one configuration after another in one run, and projects the
-wall time of the paper's 3 M-step run from the measured rate:
+wall time of the paper's 3 M-step run from the measured rate. Rows:
 
-* ``per-env envs``: the environments stepped one after another, each with
-  its own simulator (``vector = "sync"``, the path before batching), next to
-  ``thread policy``, where ``highway`` runs all envs on one batched simulator
-  (``vector = "auto"`` = ``"batched"``; :class:`diacc.vector.BatchedVectorEnv`);
-* ``torch default threads``: one intra-op thread per core (torch's own
-  default, what diacc did before it had a thread policy);
-* ``thread policy``: :func:`diacc.threads.default_threads`;
-* ``+ bf16 update`` / ``+ compiled update``: the learner options
-  ``update_bf16`` / ``update_compile`` (compile only where a C++ compiler or
-  CUDA is present; the first update, which compiles, is not timed);
-* ``+ hidden 64`` (GAT, MLP and GRU widths 64 instead of 128) and ``+ concat
-  TAIE heads`` (``model.taie_concat_heads``): the cheaper learners;
-* the first two again **with a competing CPU-bound process** (a busy loop
-  started for their duration), which is where thread counts matter.
+* **learners** (default config = ``paper learner``): the paper's network
+  sizes, and ``small learner`` (configs/small-learner.toml: hidden 64, 4
+  minibatches), each alone, ``+ bf16`` (``update_bf16``), ``+ overlap``
+  (``overlap``: the next rollout beside the update, on the second core) and
+  both; ``+ compiled update`` (only where a C++ compiler or CUDA is present;
+  the first update, which compiles, is not timed) and ``hidden 64 + concat
+  TAIE heads`` (``model.taie_concat_heads``);
+* **vector**: ``per-env envs``, the environments stepped one after another
+  (``vector = "sync"``), next to ``thread policy``, where ``highway`` runs
+  all envs on one batched simulator (:class:`diacc.vector.BatchedVectorEnv`);
+* **threads**: torch's default intra-op threads (one per core) against
+  :func:`diacc.threads.default_threads`, alone and **with a competing
+  CPU-bound process** (a busy loop for their duration).
 
-The first update of every configuration pays start-up and is left out. The
-learner share per update is the update's time minus its rollout's (GAE,
-batching and ``epochs`` PPO passes). ``--device cuda`` puts the learner on
-CUDA (rollouts stay on the CPU).
+Every row also shows how the update's wall time splits, per core, into
+rollout, learner and idle (:func:`core_shares`), and the table title the
+machine's load average before and after: on a shared machine the absolute
+rates move with the load, ratios within one run much less. A process with
+two busy threads (``overlap``) also gets a larger share of a crowded
+machine, so under load its wall-clock gain overstates what it gives on an
+idle one; the CPU seconds per update and the rate they imply on an idle
+2-core machine (rollout + learner in sequence, or the longer of the two
+with ``overlap``; GIL contention between the threads not modelled) are
+shown beside it.
 
-``python -m diacc.bench.training --device cuda --envs 4 --updates 3``;
-``--vector-only`` measures the first two rows alone (per-env vs batched envs).
+The first update of every configuration pays start-up and is left out.
+``--device cuda`` puts the learner on CUDA (rollouts stay on the CPU).
+
+``diacc bench --training``; ``python -m diacc.bench.training --envs 16
+--only learners``; ``--vector-only`` (= ``--only vector``) for the first
+two vector rows; ``--profile`` for :mod:`diacc.bench.update_profile`.
 """
 
 from __future__ import annotations
@@ -53,8 +62,6 @@ from diacc.errors import DiaccError
 PAPER_STEPS = 3_000_000
 #: The smaller networks of the learner-cost rows (the paper: hidden sizes "of the order 64-256").
 SMALL_MODEL = {"model.hidden_dim": 64, "model.gru_hidden": 64}
-#: Rows "thread policy + <option>" whose learner time is compared with "thread policy".
-LEARNER_OPTIONS = ("bf16 update", "compiled update", "hidden 64", "hidden 64 + concat TAIE heads")
 
 
 def measure(
@@ -100,7 +107,19 @@ def measure(
     steps = rollout_steps * n_envs
     update_s = sum(1.0 / r["updates_per_s"] for r in steady) / len(steady)
     rollout_s = sum(steps / r["env_steps_per_s"] for r in steady) / len(steady)
+    learn_s = sum(r["learner_s"] for r in steady) / len(steady)
+    # CPU seconds per update barely move with the machine's load: the rate an idle
+    # 2-core machine would reach follows from them (rollout then learner on one
+    # core; with overlap side by side on two, the longer one setting the pace).
+    rollout_cpu = sum(r["rollout_cpu_s"] for r in steady) / len(steady)
+    learn_cpu = sum(r["learner_cpu_s"] for r in steady) / len(steady)
+    overlap = bool((options or {}).get("overlap"))
+    idle_update_s = max(rollout_cpu, learn_cpu) if overlap else rollout_cpu + learn_cpu
     return {
+        "rollout_cpu_s": rollout_cpu,
+        "learner_cpu_s": learn_cpu,
+        "idle_steps_per_s": steps / idle_update_s,
+        **core_shares(update_s, rollout_s, learn_s, bool((options or {}).get("overlap"))),
         "variant": variant,
         "backend": backend,
         "envs": n_envs,
@@ -109,10 +128,26 @@ def measure(
         "steps_per_s": steps / update_s,
         "rollout_steps_per_s": steps / rollout_s,
         "update_s": update_s,
-        "learner_s": update_s - rollout_s,
+        "learner_s": learn_s,  # measured: with overlap it runs beside the rollout
         "total_s": seconds,
         "projected_3M_h": PAPER_STEPS / (steps / update_s) / 3600,
     }
+
+
+def core_shares(update_s: float, rollout_s: float, learn_s: float, overlap: bool) -> dict:
+    """Share of an update's wall time each of 2 cores spends on rollout, learner, nothing.
+
+    Synchronous: one core runs the rollout, then the learner (torch uses one
+    thread by policy); the second core idles (the batched highway envs run in
+    the trainer process). Overlap: the rollout on one core, the learner on
+    the other. Shares are wall times of each part over the update's; what
+    the parts do not cover (logging, joins, waiting for a busy machine's CPU)
+    shows as idle.
+    """
+    rollout, learner = rollout_s / update_s, learn_s / update_s
+    if overlap:
+        return {"core0": (rollout, 0.0), "core1": (0.0, learner)}
+    return {"core0": (rollout, learner), "core1": (0.0, 0.0)}
 
 
 @contextmanager
@@ -133,33 +168,50 @@ def compile_available(device: str) -> bool:
 
 #: Label of the row whose envs step one after another (compared with "thread policy").
 PER_ENV = "per-env envs (vector sync), thread policy"
+#: configs/small-learner.toml as overrides (a test keeps the two equal).
+SMALL_LEARNER = {**SMALL_MODEL, "minibatches": 4}
+#: The learner rows: (label, overrides); each is compared with the first of its learner.
+LEARNER_ROWS = (
+    ("paper learner", {}),
+    ("paper learner + bf16", {"update_bf16": True}),
+    ("paper learner + overlap", {"overlap": True}),
+    ("paper learner + bf16 + overlap", {"update_bf16": True, "overlap": True}),
+    ("small learner", SMALL_LEARNER),
+    ("small learner + bf16", {**SMALL_LEARNER, "update_bf16": True}),
+    ("small learner + overlap", {**SMALL_LEARNER, "overlap": True}),
+    ("small learner + bf16 + overlap", {**SMALL_LEARNER, "update_bf16": True, "overlap": True}),
+)
+#: Row groups of ``--only``.
+GROUPS = ("learners", "vector", "threads", "all")
 
 
 def configurations(
-    device: str, with_compile: bool, vector_only: bool = False
+    device: str, with_compile: bool, vector_only: bool = False, only: str = "all"
 ) -> list[tuple[str, dict, bool]]:
-    """(label, config overrides, with a competing process) in the order they are run."""
+    """(label, config overrides, with a competing process) in the order they are run.
+
+    ``paper learner`` is the default config ("thread policy" in the thread
+    and vector rows); ``small learner`` is configs/small-learner.toml.
+    """
     vector_rows = [(PER_ENV, {"vector": "sync"}, False), ("thread policy", {}, False)]
-    if vector_only:
+    if vector_only or only == "vector":
         return vector_rows
-    torch_default = {"torch_threads": os.cpu_count() or 1}
-    rows = [
-        (f"torch default threads ({torch_default['torch_threads']})", torch_default, False),
-        ("thread policy", {}, False),
-        vector_rows[0],
-        ("thread policy + bf16 update", {"update_bf16": True}, False),
-    ]
+    rows = [(label, options, False) for label, options in LEARNER_ROWS]
     if with_compile and compile_available(device):
-        rows.append(("thread policy + compiled update", {"update_compile": True}, False))
-    rows += [
-        ("thread policy + hidden 64", SMALL_MODEL, False),
+        rows.append(("paper learner + compiled update", {"update_compile": True}, False))
+    rows.append(
         (
-            "thread policy + hidden 64 + concat TAIE heads",
+            "paper learner, hidden 64 + concat TAIE heads",
             {**SMALL_MODEL, "model.taie_concat_heads": True},
             False,
-        ),
-    ]
-    rows += [
+        )
+    )
+    if only == "learners":
+        return rows
+    torch_default = {"torch_threads": os.cpu_count() or 1}
+    thread_rows = [
+        (f"torch default threads ({torch_default['torch_threads']})", torch_default, False),
+        ("thread policy", {}, False),
         (
             f"torch default threads ({torch_default['torch_threads']}), busy CPU",
             torch_default,
@@ -167,18 +219,21 @@ def configurations(
         ),
         ("thread policy, busy CPU", {}, True),
     ]
-    return rows
+    if only == "threads":
+        return thread_rows
+    return rows + [vector_rows[0]] + thread_rows
 
 
 def run(
     device: str = "cpu",
-    envs: tuple[int, ...] = (4,),
+    envs: tuple[int, ...] = (16,),
     backend: str = "highway",
     variant: str = "diacc",
     updates: int = 3,
     rollout_steps: int = 50,
     with_compile: bool = True,
     vector_only: bool = False,
+    only: str = "all",
 ) -> list[dict]:
     """Measure every configuration (:func:`configurations`) per env count; print one table.
 
@@ -186,15 +241,16 @@ def run(
     """
     if updates < 2:
         raise ValueError(f"updates must be >= 2 (the first one is not timed), got {updates}")
+    load_before = os.getloadavg()
     rows = []
     for n_envs in envs:
-        for label, options, busy in configurations(device, with_compile, vector_only):
+        for label, options, busy in configurations(device, with_compile, vector_only, only):
             with competing_process() if busy else _nothing():
                 row = measure(
                     variant, backend, n_envs, updates, device, rollout_steps, "auto", options
                 )
             rows.append({**row, "label": label, "busy": busy})
-    _print(rows, variant, backend, device, updates, rollout_steps)
+    _print(rows, variant, backend, device, updates, rollout_steps, (load_before, os.getloadavg()))
     return rows
 
 
@@ -212,10 +268,18 @@ def _ratio(rows: list[dict], n_envs: int, key: str, label: str, base: str) -> st
     return f"x{a / b:.2f}" if key.endswith("per_s") else f"x{b / a:.2f}"
 
 
-def _print(rows, variant, backend, device, updates, rollout_steps) -> None:
+def _shares(core: tuple[float, float]) -> str:
+    """'rollout / learner / idle' percentages of one core."""
+    rollout, learner = core
+    return f"{rollout:.0%} / {learner:.0%} / {max(0.0, 1 - rollout - learner):.0%}"
+
+
+def _print(rows, variant, backend, device, updates, rollout_steps, loads) -> None:
+    load = " -> ".join(", ".join(f"{x:.1f}" for x in avg) for avg in loads)
     table = Table(
         title=f"training throughput: {variant} on {backend}, learner on {device}, "
-        f"{os.cpu_count()} CPU cores, {updates - 1} timed update(s) of {rollout_steps} steps"
+        f"{os.cpu_count()} CPU cores, {updates - 1} timed update(s) of {rollout_steps} steps; "
+        f"load average {load}"
     )
     for col in (
         "envs",
@@ -225,6 +289,10 @@ def _print(rows, variant, backend, device, updates, rollout_steps) -> None:
         "learner s / update",
         "3 M steps (h)",
         "vs. first row",
+        "CPU s / update: rollout + learner",
+        "env-steps/s, idle 2 cores (CPU-time model)",
+        "core 0: rollout / learner / idle",
+        "core 1",
     ):
         table.add_column(col, justify="right")
     for r in rows:
@@ -237,8 +305,12 @@ def _print(rows, variant, backend, device, updates, rollout_steps) -> None:
             f"{r['learner_s']:.2f}",
             f"{r['projected_3M_h']:.1f}",
             _ratio(rows, r["envs"], "steps_per_s", r["label"], base),
+            f"{r['rollout_cpu_s']:.2f} + {r['learner_cpu_s']:.2f}",
+            f"{r['idle_steps_per_s']:.0f}",
+            _shares(r["core0"]),
+            _shares(r["core1"]),
         )
-    Console(width=160).print(table)
+    Console(width=200).print(table)
     for n_envs in sorted({r["envs"] for r in rows}):
         train = _ratio(rows, n_envs, "steps_per_s", "thread policy", PER_ENV)
         rollout = _ratio(rows, n_envs, "rollout_steps_per_s", "thread policy", PER_ENV)
@@ -247,51 +319,18 @@ def _print(rows, variant, backend, device, updates, rollout_steps) -> None:
                 f"{n_envs} envs: env-steps/s of the default vector env over per-env envs: "
                 f"{train} (train), {rollout} (rollout only)"
             )
-        for option in LEARNER_OPTIONS:
-            ratio = _ratio(rows, n_envs, "learner_s", f"thread policy + {option}", "thread policy")
-            if ratio:
-                print(f"{n_envs} envs: learner speed-up of {option} over the default: {ratio}")
-
-
-def profile_update(
-    n_envs: int = 4, rollout_steps: int = 50, bf16: bool = False, top: int = 15
-) -> str:
-    """torch.profiler table of one PPO pass (``epochs`` = 1) on a real rollout batch."""
-    import torch
-
-    from diacc.algo import mappo
-    from diacc.threads import set_torch_threads
-
-    cfg = override(
-        TrainConfig(),
-        {
-            "n_envs": n_envs,
-            "rollout_steps": rollout_steps,
-            "env.sim.episode_steps": min(rollout_steps, EnvConfig().sim.episode_steps),
-            "device": "cpu",
-            "epochs": 1,
-        },
-    )
-    cfg = override(cfg, {"update_bf16": bf16})
-    mappo.seed_everything(cfg.seed)
-    set_torch_threads(cfg.torch_threads)
-    agent = mappo.make_agent(cfg, torch.device("cpu"))
-    envs = mappo.make_vector_env(cfg.env, n_envs, cfg.seed)
-    try:
-        roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0)
-    finally:
-        envs.close()
-    advantages, returns = mappo.rollout_gae(roll, next_value, cfg)
-    batch = mappo.make_batch(roll, advantages, returns, cfg.chunk_len, torch.device("cpu"))
-    with torch.profiler.profile() as prof:
-        mappo.ppo_update(agent, batch, cfg, envs.n_cavs)
-    return prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=top)
+        for learner in ("paper learner", "small learner"):
+            for label, _ in LEARNER_ROWS:
+                if label.startswith(learner + " +"):
+                    ratio = _ratio(rows, n_envs, "steps_per_s", label, learner)
+                    if ratio:
+                        print(f"{n_envs} envs: {label} over {learner}: {ratio} env-steps/s")
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--device", default="cpu")
-    p.add_argument("--envs", type=int, nargs="+", default=[4])
+    p.add_argument("--envs", type=int, nargs="+", default=[16])
     p.add_argument("--backend", default="highway")
     p.add_argument("--variant", default="diacc")
     p.add_argument("--updates", type=int, default=3, help="per configuration; the first is untimed")
@@ -300,18 +339,20 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument(
         "--vector-only", action="store_true", help="only per-env vs batched envs (two rows)"
     )
+    p.add_argument("--only", choices=GROUPS, default="all", help="rows of one group only")
     p.add_argument(
-        "--profile", action="store_true", help="profile one PPO pass (fp32, then bf16) instead"
+        "--profile",
+        action="store_true",
+        help="per-module profile of one PPO update instead (diacc.bench.update_profile)",
     )
     args = p.parse_args(argv)
     mappo.resolve_device(args.device)  # a missing CUDA device fails before any row runs
     if args.profile:
-        for bf16 in (False, True):
-            print(
-                f"PPO pass on a real batch ({args.envs[0]} envs x {args.rollout_steps} steps), "
-                f"bf16 = {bf16}"
-            )
-            print(profile_update(args.envs[0], args.rollout_steps, bf16))
+        from diacc.bench import update_profile
+
+        update_profile.main(
+            ["--envs", str(args.envs[0]), "--rollout-steps", str(args.rollout_steps)]
+        )
         return
     run(
         args.device,
@@ -322,6 +363,7 @@ def main(argv: list[str] | None = None) -> None:
         args.rollout_steps,
         not args.no_compile,
         args.vector_only,
+        args.only,
     )
 
 

@@ -50,12 +50,18 @@ class CrossAttention(nn.Module):
         A batch row whose keys are all masked returns zeros (and zero weights).
         """
         q = self.q(query).unflatten(-1, (self.heads, self.head_dim))  # (B, H, d)
-        k = self.k(keys).unflatten(-1, (self.heads, self.head_dim))  # (B, N, H, d)
-        v = self.v(keys).unflatten(-1, (self.heads, self.head_dim))  # (B, N, H, d)
-        scores = torch.einsum("bhd,bnhd->bhn", q, k) / math.sqrt(self.head_dim)  # (B, H, N)
-        weights = masked_softmax(scores, key_mask[:, None, :], dim=-1)  # (B, H, N)
-        heads = torch.einsum("bhn,bnhd->bhd", weights, v).flatten(-2)  # (B, H*d)
+        # K and V in one product (weights side by side; same parameters as two Linears).
+        kv = nn.functional.linear(
+            keys, torch.cat([self.k.weight, self.v.weight]), torch.cat([self.k.bias, self.v.bias])
+        ).unflatten(-1, (2, self.heads, self.head_dim))  # (B, N, 2, H, d)
+        k, v = kv.unbind(-3)  # (B, N, H, d) each
+        # One query per row: products and sums over d and N stay elementwise, where
+        # einsum would permute both operands into a batched matrix product of 1-row matrices.
+        scores = (k * q[:, None]).sum(-1) / math.sqrt(self.head_dim)  # (B, N, H)
+        weights = masked_softmax(scores, key_mask[..., None], dim=1)  # (B, N, H)
+        heads = (weights[..., None] * v).sum(1).flatten(-2)  # (B, H*d)
         has_keys = key_mask.any(-1, keepdim=True).to(heads.dtype)  # (B, 1)
         out = self.out(heads) * has_keys  # (B, embed_dim)
+        weights = weights.transpose(1, 2)  # (B, H, N)
         self.last_attention = weights.detach()
         return (out, weights) if return_attention else out

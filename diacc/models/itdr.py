@@ -19,12 +19,12 @@ change the value, and permuting vehicles only permutes node features.
 from __future__ import annotations
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from diacc.config import ModelConfig
 from diacc.models.attention import CrossAttention
 from diacc.models.errors import ModelError
-from diacc.models.gat import GraphAttention
+from diacc.models.gat import GlobalGraphAttention
 from diacc.models.inputs import TensorDict
 from diacc.models.layers import VALUE_GAIN, embed_present, mlp
 from diacc.models.recurrent import Encoder, RecurrentNet
@@ -38,6 +38,35 @@ from diacc.observation import (
     TRAFFIC_FEATURES,
     ObservationSpec,
 )
+
+
+def trim_padded_nodes(state: TensorDict) -> TensorDict:
+    """Drop the node slots behind the last vehicle of the batch (N -> N' <= N).
+
+    The critic pads every state to ``max_vehicles`` slots with the vehicles
+    first (at N = 25 of 40 slots, 15 are always empty), and padded slots add
+    nothing to any output: their GAT output is zero and the cross-attention
+    masks them. Their cost is not nothing (the GAT's attention matrix is
+    N x N), so they are cut off here; the outputs are the same. Edges into a
+    cut slot point at a padded vehicle, which the GAT ignores anyway; they are
+    masked so that no index leaves the shorter node axis. Not under
+    ``torch.compile``, where the data-dependent N' would break the graph.
+    """
+    node_mask = state["node_mask"]  # (M, N)
+    if torch.compiler.is_compiling() or node_mask.shape[-1] == 0:
+        return state
+    slots = torch.arange(1, node_mask.shape[-1] + 1, device=node_mask.device)  # (N,)
+    n_used = max(int((node_mask * slots).max()), 1)
+    if n_used == node_mask.shape[-1]:
+        return state
+    neighbours = state["neighbours"][:, :n_used]  # (M, N', K)
+    return {
+        **state,
+        "nodes": state["nodes"][:, :n_used],
+        "node_mask": node_mask[:, :n_used],
+        "neighbours": neighbours,
+        "neighbour_mask": state["neighbour_mask"][:, :n_used] & (neighbours < n_used),
+    }
 
 
 class ITDR(Encoder):
@@ -58,7 +87,7 @@ class ITDR(Encoder):
         # hidden-wide heads over all N vehicles (the critic's largest layer).
         if hidden % cfg.gat_heads:
             raise ModelError(f"hidden_dim {hidden} must be a multiple of gat_heads {cfg.gat_heads}")
-        self.gat = GraphAttention(
+        self.gat = GlobalGraphAttention(
             hidden, hidden // cfg.gat_heads, cfg.gat_heads, concat=True, negative_slope=slope
         )
         self.cross = CrossAttention(2 * hidden, hidden, cfg.cross_dim, cfg.cross_heads)
@@ -75,19 +104,21 @@ class ITDR(Encoder):
         """GAT interaction features of every vehicle (M, N, hidden_dim); zero for padding."""
         node_mask = state["node_mask"]  # (M, N)
         embedded = embed_present(self.node_embed, state["nodes"], node_mask)  # (M, N, E)
-        return self.gat.forward_graph(
-            embedded, state["neighbours"], state["neighbour_mask"], node_mask
-        )
+        return self.gat(embedded, state["neighbours"], state["neighbour_mask"], node_mask)
 
     def forward(
         self, state: TensorDict, return_attention: bool = False
     ) -> Tensor | tuple[Tensor, Tensor]:
         """Encode; with ``return_attention`` also the cross-attention weights (M, heads, N)."""
         f_tf = self.traffic_feature(state)  # (M, 2E)
+        used = trim_padded_nodes(state)
         attended, weights = self.cross(
-            f_tf, self.node_features(state), state["node_mask"], return_attention=True
-        )  # (M, cross_dim), (M, heads, N)
+            f_tf, self.node_features(used), used["node_mask"], return_attention=True
+        )  # (M, cross_dim), (M, heads, N')
         features = torch.cat([f_tf, attended], -1)
+        # Weights over all N slots again (zero on the cut ones), for callers and inspection.
+        weights = nn.functional.pad(weights, (0, state["node_mask"].shape[-1] - weights.shape[-1]))
+        self.cross.last_attention = weights.detach()  # (M, heads, N)
         return (features, weights) if return_attention else features
 
 
