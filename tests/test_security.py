@@ -221,8 +221,9 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-def _signal_ends_every_child(tmp_path, argv, ready, signum=signal.SIGTERM) -> str:
-    """Run ``diacc argv``; once ``ready(command lines of its descendants)``, send ``signum``.
+def _signal_ends_every_child(tmp_path, argv, ready, signum=signal.SIGTERM, times=1) -> str:
+    """Run ``diacc argv``; once ``ready(command lines of its descendants)``, send ``signum``
+    (``times`` times, 0.5 s apart).
 
     Checks the exit status (128 + signum) and, by pid, that every descendant seen
     before the signal is gone within 20 s. Returns stderr.
@@ -242,7 +243,9 @@ def _signal_ends_every_child(tmp_path, argv, ready, signum=signal.SIGTERM) -> st
         assert ready(list(children.values())), f"not ready: {list(children.values())}"
         time.sleep(1.0)  # busy with the episodes
         children.update(descendants(proc.pid))
-        proc.send_signal(signum)
+        for _ in range(times):
+            proc.send_signal(signum)
+            time.sleep(0.5)
         _, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -285,12 +288,13 @@ def test_signal_to_sumo_eval_with_workers_ends_every_child(tmp_path, signum):
     _signal_ends_every_child(tmp_path, argv, _count("sumo.worker", 2), signum)
 
 
-@pytest.mark.parametrize("vector", ["sync", "process"])
-def test_sigterm_to_sumo_train_ends_every_child(tmp_path, vector):
+@pytest.mark.parametrize(("vector", "times"), [("sync", 1), ("process", 2)])
+def test_sigterm_to_sumo_train_ends_every_child(tmp_path, vector, times):
+    """One SIGTERM checkpoints after the update, a second stops at once: 143 both times."""
     argv = ["train", "--backend", "sumo", "--envs", "2", "--steps", "100000", "--run-dir", "run"]
     argv += ["--set", f"vector={vector}"]
-    err = _signal_ends_every_child(tmp_path, argv, _count("sumo.worker", 2))
-    assert "checkpoint saved" in err
+    err = _signal_ends_every_child(tmp_path, argv, _count("sumo.worker", 2), times=times)
+    assert ("checkpoint saved" if times == 1 else "stopped at once by a second SIGTERM") in err
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
