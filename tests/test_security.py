@@ -273,7 +273,7 @@ def _grid(tmp_path) -> Path:
     return grid
 
 
-EVAL = ["eval", "--policy", "pure-hdv", "--episodes", "50", "--out", "out", "--no-progress"]
+EVAL = ["eval", "--policy", "pure-hdv", "--episodes", "200", "--out", "out", "--no-progress"]
 
 
 def test_sigterm_to_eval_with_workers_ends_every_child(tmp_path):
