@@ -457,7 +457,14 @@ class Terminated(KeyboardInterrupt):
         return "terminated (SIGTERM)"
 
 
+#: Set by the SIGTERM handler: libraries that catch the exception and raise a
+#: bare KeyboardInterrupt of their own (Ray's ``wait``/``get``) lose its type.
+_sigterm_seen = False
+
+
 def _terminated(signum: int, frame) -> None:
+    global _sigterm_seen
+    _sigterm_seen = True
     raise Terminated
 
 
@@ -469,6 +476,8 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded by `reproduce`
     enable_stderr()
     main_thread = threading.current_thread() is threading.main_thread()
+    global _sigterm_seen
+    _sigterm_seen = False
     # SIGTERM as SIGINT: an exception, so that every `finally` ends its children
     # (pool and vector-env workers, SUMO, a local Ray) instead of orphaning them.
     previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
@@ -490,7 +499,9 @@ def _run(args: argparse.Namespace) -> int:
         print(f"diacc: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:  # TrainingInterrupted says which signal and what was saved
-        print(f"diacc: {exc or 'interrupted'}", file=sys.stderr)
+        if _sigterm_seen and not hasattr(exc, "signum"):
+            exc = Terminated()
+        print(f"diacc: {str(exc) or 'interrupted'}", file=sys.stderr)
         return 128 + getattr(exc, "signum", 2)
     except BrokenPipeError:
         # The reader (``diacc simulate | head``) has gone: stop quietly, as Unix tools do.

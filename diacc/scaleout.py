@@ -24,7 +24,9 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import signal
 import socket
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -66,6 +68,7 @@ def connect(address: str | None = None, num_cpus: int | None = None):
     if ray.is_initialized():
         return ray
     options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
+    sigterm = signal.getsignal(signal.SIGTERM)
     try:
         if address:
             ray.init(address=address, **options)
@@ -75,6 +78,12 @@ def connect(address: str | None = None, num_cpus: int | None = None):
         where = f"the Ray cluster at {address}" if address else "a local Ray instance"
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise ScaleoutError(f"could not start or reach {where}: {first}") from None
+    finally:
+        # ray.init replaces the SIGTERM handler with one that exits with status 1;
+        # the caller's (the CLI's: an exception, so exit 143 after cleanup) comes back.
+        # Ray's own atexit hook then stops the local instance (raylet, GCS, workers).
+        if sigterm is not None and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, sigterm)
     return ray
 
 

@@ -221,29 +221,102 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
-def test_sigterm_to_eval_with_workers_ends_every_child(tmp_path):
+def _signal_ends_every_child(tmp_path, argv, ready, signum=signal.SIGTERM, times=1) -> str:
+    """Run ``diacc argv``; once ``ready(command lines of its descendants)``, send ``signum``
+    (``times`` times, 0.5 s apart).
+
+    Checks the exit status (128 + signum) and, by pid, that every descendant seen
+    before the signal is gone within 20 s. Returns stderr.
+    """
+    from test_faults import _descendants as descendants
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "diacc.cli", *argv], env=ENV, stderr=subprocess.PIPE, text=True,
+        cwd=tmp_path,
+    )  # fmt: skip
+    deadline, children = time.monotonic() + 120, {}
+    try:
+        while time.monotonic() < deadline and not ready(list(children.values())):
+            assert proc.poll() is None, "the command ended before the signal"
+            children.update(descendants(proc.pid))
+            time.sleep(0.1)
+        assert ready(list(children.values())), f"not ready: {list(children.values())}"
+        time.sleep(1.0)  # busy with the episodes
+        children.update(descendants(proc.pid))
+        for _ in range(times):
+            proc.send_signal(signum)
+            time.sleep(0.5)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signum, err
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and any(_alive(p) for p in children):
+        time.sleep(0.1)
+    left = [children[p] for p in children if _alive(p)]
+    for pid in [p for p in children if _alive(p)]:
+        os.kill(pid, signal.SIGKILL)  # leave the machine clean for the next test
+    assert not left, f"children outlived the command: {left}"
+    assert "Traceback" not in err, err
+    return err
+
+
+def _count(word: str, n: int):
+    return lambda commands: sum(word in cmd for cmd in commands) >= n
+
+
+def _grid(tmp_path) -> Path:
     grid = tmp_path / "grid.toml"
     grid.write_text('[product]\nmap = ["train-25"]\nn_vehicles = [20, 25]\n'
                     'cav_penetration = [0.4]\nstyle_mix = ["D1"]\n')  # fmt: skip
-    argv = ["eval", "--policy", "pure-hdv", "--grid", str(grid), "--episodes", "50"]
-    argv += ["--workers", "2", "--out", str(tmp_path / "out"), "--no-progress"]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "diacc.cli", *argv], env=ENV, stderr=subprocess.PIPE, text=True
-    )
-    deadline, children = time.monotonic() + 120, set()
-    while time.monotonic() < deadline and len(children) < 3:  # 2 workers + resource tracker
-        children = _descendants(proc.pid)
-        time.sleep(0.1)
-    assert len(children) >= 3, "the pool did not start"
-    time.sleep(1.0)  # workers busy with their episodes
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=30)
-    assert proc.returncode == 128 + signal.SIGTERM, err
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and any(_alive(p) for p in children):
-        time.sleep(0.1)
-    assert not [p for p in children if _alive(p)], "children outlived the command"
-    assert "Traceback" not in err, err
+    return grid
+
+
+EVAL = ["eval", "--policy", "pure-hdv", "--episodes", "200", "--out", "out", "--no-progress"]
+
+
+def test_sigterm_to_eval_with_workers_ends_every_child(tmp_path):
+    argv = [*EVAL, "--grid", str(_grid(tmp_path)), "--workers", "2"]
+    _signal_ends_every_child(tmp_path, argv, _count("multiprocessing", 3))  # + resource tracker
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_signal_to_sumo_eval_with_workers_ends_every_child(tmp_path, signum):
+    """Pool workers die at once; their SUMO workers read a reset connection and exit quietly."""
+    argv = [*EVAL, "--grid", str(_grid(tmp_path)), "--workers", "2", "--backend", "sumo"]
+    _signal_ends_every_child(tmp_path, argv, _count("sumo.worker", 2), signum)
+
+
+@pytest.mark.parametrize(("vector", "times"), [("sync", 1), ("process", 2)])
+def test_sigterm_to_sumo_train_ends_every_child(tmp_path, vector, times):
+    """One SIGTERM checkpoints after the update, a second stops at once: 143 both times."""
+    argv = ["train", "--backend", "sumo", "--envs", "2", "--steps", "100000", "--run-dir", "run"]
+    argv += ["--set", f"vector={vector}"]
+    err = _signal_ends_every_child(tmp_path, argv, _count("sumo.worker", 2), times=times)
+    assert ("checkpoint saved" if times == 1 else "stopped at once by a second SIGTERM") in err
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_signal_to_ray_eval_ends_every_child(tmp_path, signum):
+    """The local Ray instance (GCS, raylet, its workers) goes with the command.
+
+    ray.init installs a SIGTERM handler that exits with status 1 and Ray turns the
+    CLI's exception into a bare KeyboardInterrupt: still 143, still every child gone.
+    """
+    pytest.importorskip("ray")
+    argv = [*EVAL, "--grid", str(_grid(tmp_path)), "--engine", "ray", "--ray-cpus", "2"]
+    err = _signal_ends_every_child(tmp_path, argv, _count("ray::_run_cell", 2), signum)
+    assert f"diacc: {'terminated (SIGTERM)' if signum == signal.SIGTERM else 'interrupted'}" in err
+
+
+@pytest.mark.slow  # about 30 s on 2 busy cores; the Ray eval test above is the short one
+def test_sigterm_to_ray_sweep_with_sumo_ends_every_child(tmp_path):
+    """Ray tasks training on SUMO: raylet, task workers and their SUMO workers all end."""
+    pytest.importorskip("ray")
+    argv = ["sweep", "--seeds", "1,2", "--steps", "100000", "--envs", "2", "--backend", "sumo"]
+    argv += ["--engine", "ray", "--ray-cpus", "2", "--out-dir", "runs"]
+    _signal_ends_every_child(tmp_path, argv, _count("sumo.worker", 4))
 
 
 # ----------------------------------------------------------------------------- 8: hangs

@@ -585,10 +585,21 @@ def truncate_progress(path: Path, update: int) -> None:
     tmp.replace(path)
 
 
+class StoppedAtOnce(KeyboardInterrupt):
+    """A second SIGINT/SIGTERM: training stopped mid-update; ``signum`` sets the exit status."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+    def __str__(self) -> str:
+        return f"stopped at once by a second {signal.Signals(self.signum).name}"
+
+
 class _StopOnSignal:
     """SIGINT/SIGTERM set :attr:`signum`; the loop stops at the next update boundary.
 
-    A second signal stops at once (KeyboardInterrupt), keeping the last checkpoint.
+    A second signal stops at once (:class:`StoppedAtOnce`), keeping the last checkpoint.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -608,7 +619,7 @@ class _StopOnSignal:
 
     def _handle(self, signum: int, frame) -> None:
         if self.signum is not None:
-            raise KeyboardInterrupt
+            raise StoppedAtOnce(signum)
         self.signum = signum
         log.warning(
             "%s received: saving a checkpoint after the current update (again to stop now)",

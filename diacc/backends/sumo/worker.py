@@ -355,8 +355,10 @@ def worker_main(conn) -> None:  # pragma: no cover - runs in a child process
             except Exception as exc:  # noqa: BLE001 - reported to the parent as one line
                 text = str(exc).strip().splitlines()
                 conn.send(("err", f"{type(exc).__name__}: {text[0] if text else ''}"))
-    except (EOFError, BrokenPipeError, KeyboardInterrupt):
-        pass  # parent gone: just exit
+    except (EOFError, ConnectionError, KeyboardInterrupt):
+        # Parent gone (end of file, or a reset when it died with a reply unread) or
+        # interrupted with it (Ctrl-C reaches the whole process group): just exit.
+        pass
     finally:
         if sim is not None:
             sim.close()
