@@ -11,6 +11,7 @@ ray = pytest.importorskip(
     "ray", reason='Ray is not installed (optional extra: pip install -e ".[ray]")'
 )
 
+from diacc.algo.mappo import TIMING_KEYS  # noqa: E402
 from diacc.cli import main  # noqa: E402
 from diacc.config import TrainConfig, override  # noqa: E402
 from diacc.evaluate import evaluate  # noqa: E402
@@ -19,7 +20,6 @@ from diacc.policies import EvalSettings, parse_policy  # noqa: E402
 from diacc.scaleout import RayEngine, run_sweep, sweep_configs  # noqa: E402
 
 #: progress.jsonl keys that measure time, not learning
-TIMING_KEYS = {"env_steps_per_s", "updates_per_s"}
 
 
 @pytest.fixture(scope="module")

@@ -914,6 +914,13 @@ class UpdateStats:
     rollout: RolloutStats
 
 
+#: Fields of a ``progress.jsonl`` record that measure time: they differ between two
+#: runs of the same seed, so identity checks (resume, Ray vs local) leave them out.
+TIMING_KEYS = frozenset(
+    {"env_steps_per_s", "updates_per_s", "learner_s", "learner_cpu_s", "rollout_cpu_s"}
+)
+
+
 def progress_record(stats: UpdateStats, update_s: float) -> dict:
     """One ``progress.jsonl`` row: losses, rewards, PSAR rates and episode means.
 
