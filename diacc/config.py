@@ -1,4 +1,5 @@
-"""Typed configuration. Every default comes from ``shared/reference/facts.md``.
+"""Typed configuration. Defaults follow the DIACC paper and, where it is silent, the
+authors' public predecessor environment (lzxphhh/HARL-based_simulator).
 
 Configs are frozen dataclasses so that a run's settings cannot drift after
 start-up; ``dataclasses.replace`` makes variants. :func:`override` applies a
@@ -77,8 +78,9 @@ _NORMAL = DriverStyle("normal", 1.0, 1.5, 2.5, 4.5, 0.5, 0.2, 0.5, 1.0, 0.5)
 #: the route needs it", so a cautious driver in an ending lane stops at its end
 #: and stays there (both backends; the highway backend skips its forced merge).
 _CAUTIOUS_PAPER = DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, -1.0, 0.0, -1.0)
-#: Named style presets (facts.md "lcStrategic" pitfall; README "Congestion
-#: presets" has the measured pure-HDV rows of each):
+#: Named style presets (the authors' cautious lcStrategic -1 strands drivers at lane
+#: ends; docs/benchmarks/index.md "Congestion presets" has the measured pure-HDV
+#: rows of each):
 #:
 #: * ``realistic`` (default): every driver merges (cautious lcStrategic 0.2).
 #: * ``zipper``: ``realistic``, and every driver lets one waiting at a lane end in.
@@ -123,8 +125,9 @@ STYLE_PRESETS["zipper"] = tuple(
 
 
 #: Speed limit of the reduction segments per preset (presets not listed keep the
-#: map's). 15 m/s is the limit of the authors' predecessor bottleneck (facts.md);
-#: the paper gives the route's *maximum* limit only (25 m/s).
+#: map's). 15 m/s is the limit of the authors' predecessor bottleneck
+#: (lzxphhh/HARL-based_simulator); the paper gives the route's *maximum* limit
+#: only (25 m/s).
 PRESET_REDUCTION_SPEED_MPS: dict[str, float] = {"paper-congestion": 15.0, "merge-congestion": 15.0}
 
 
@@ -240,7 +243,7 @@ HORIZON_MODES = ("stopping", "headway", "paper")
 
 @dataclass(frozen=True)
 class PSARConfig:
-    """Thresholds of Algorithm 1 (authors' values, facts.md) and two options.
+    """Thresholds of Algorithm 1 (the paper's and the authors' code's values) and two options.
 
     ``force_brake``: ``"cancel"`` brakes away the closing speed within the
     step (the authors' implementation, bounded by ``SimConfig.cav.decel_mps2``);
