@@ -118,7 +118,7 @@ STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
 #: ``zipper``: ``realistic`` drivers who also let a driver waiting at a lane end in
 #: (:attr:`DriverStyle.zipper`): without it a cautious driver who reached the end
 #: of an ending lane can stand there over a minute beside a 22 m/s stream (measured
-#: on the demand scenario, README "Scenario kinds").
+#: on the demand scenario, docs/concepts/scenarios.md).
 STYLE_PRESETS["zipper"] = tuple(
     dataclasses.replace(style, zipper=True) for style in STYLE_PRESETS["realistic"]
 )
@@ -317,7 +317,7 @@ class RewardConfig:
     moves both together; ``--sweep env.reward.w_ego=...`` alone keeps w_g.
 
     The last four fields are options that default to the paper's reading
-    (:mod:`diacc.reward`, README "Learning options"): ``closeness``,
+    (:mod:`diacc.reward`, docs/concepts/learning-options.md): ``closeness``,
     ``warning_ttc_s`` (used by ``closeness="bumper"``), ``exit_bonus_scale``
     and ``delay_weight``.
     """
@@ -338,7 +338,7 @@ class RewardConfig:
     tau_init: float = 2.0
     tau_final: float = 0.05
     tau_anneal_fraction: float = 0.5  # of the training steps
-    # ---- options (diacc.reward; README "Learning options"); defaults = the paper read literally
+    # ---- options (diacc.reward; docs/concepts/learning-options.md); defaults: the paper
     closeness: str = "centre"  # "centre" (paper) or "bumper": gap and TTC to lane leader/follower
     warning_ttc_s: float = 3.0  # "bumper": TTC to the same-lane leader that starts the warning
     exit_bonus_scale: str = "per_cav"  # "per_cav" (paper) or "fleet": bonus / CAV slots
@@ -350,8 +350,8 @@ class RewardConfig:
 
 
 BACKENDS = ("highway", "sumo")
-#: How the actor's actions meet PSAR (:mod:`diacc.action_mask`, README "Learning
-#: options"): "proposed" trains on the proposed action (the paper read
+#: How the actor's actions meet PSAR (:mod:`diacc.action_mask`,
+#: docs/concepts/learning-options.md): "proposed" trains on the proposed action (the paper read
 #: literally), "executed" on the action PSAR executed, "masked" samples only
 #: actions PSAR would execute unchanged.
 PSAR_ACTION_MODES = ("proposed", "executed", "masked")
@@ -458,7 +458,7 @@ class TrainConfig:
     chunk_len: int = 10
     checkpoint_every: int = 10  # updates
     # "team": one value per env, all CAVs share the advantage (paper); "per_agent":
-    # a value per CAV slot from its own features beside the global state (README)
+    # a value per CAV slot from its own features beside the global state (docs)
     critic_values: str = "team"
     run_dir: str = "runs/diacc"
     env: EnvConfig = field(default_factory=EnvConfig)
