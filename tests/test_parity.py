@@ -90,8 +90,7 @@ CONGESTED = SimConfig(style_preset="paper-congestion", episode_steps=330)
 @pytest.mark.parametrize("backend_name", ["highway", "sumo"])
 def test_paper_congestion_preset_is_markedly_more_congested(backend_name):
     """CI-sized (2 seeds, 50 % map): docs/benchmarks/index.md measures, over 10 episodes,
-    realistic
-    18.2 (sumo) / 18.7 (highway) m/s against paper-congestion 11.5 / 11.1 m/s.
+    realistic 18.2 (sumo) / 18.7 (highway) m/s against paper-congestion 11.5 / 11.1 m/s.
     A 20 % drop is well outside seed noise (~1 m/s on 2 seeds) and needs every
     lever of the preset (stuck cautious drivers, slower bottleneck, long episode)
     to work on that backend; some cautious drivers never arrive."""
