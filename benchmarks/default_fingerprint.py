@@ -1,5 +1,5 @@
 """Fingerprint of a tiny default training run: checks that options left at their
-defaults change nothing (README "Learning options").
+defaults change nothing (docs/concepts/learning-options.md).
 
 Trains ``tests/test_mappo.py``'s ``tiny_config`` (2 envs, 80 steps, seed 1) into
 OUT and prints the first 16 hex digits of the SHA-256 of the actor and critic

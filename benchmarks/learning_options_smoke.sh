@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Smoke comparison of the learning options (README "Learning options"): today's
+# Smoke comparison of the learning options (docs/concepts/learning-options.md): today's
 # defaults vs every option on, same seeds and steps. A smoke test that the
 # options train end to end, NOT evidence for adopting any of them (issue 27
 # asks for 3 seeds x up to 1 M steps for that).

@@ -1,6 +1,5 @@
 #!/usr/bin/env bash
-# The committed `diacc reproduce` result (README "Reproducing the paper", "Committed
-# result"): all four variants on train-25 and train-50, seeds 1-3, 50k env steps
+# The committed `diacc reproduce` result (docs/results/reproduce-small.md): all four variants on train-25 and train-50, seeds 1-3, 50k env steps
 # each (4 envs, the small learner of configs/small-learner.toml), diacc also trained
 # on SUMO for the transfer, evaluated with the paper-congestion preset and 330-step
 # episodes on both backends, 4 episodes per cell, 4 zero-shot cells per test map;

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The committed "trained agent vs human traffic" result (README "Trained agent"):
+# The committed "trained agent vs human traffic" result (docs/results/trained-agent.md):
 # evaluate DIACC checkpoints trained on highway (train-50, paper-congestion),
 # each with sampled and greedy actions, and the non-learning baselines (pure HDV,
 # same-mix: the CAV slots driven by normal human drivers, cooperative, and the

@@ -1,4 +1,4 @@
-"""The CAV action set (facts.md "Actions") and what each action asks of a backend.
+"""The CAV action set (the paper's five discrete actions) and what each action asks of a backend.
 
 One small module because the environment, PSAR, the baselines and the
 renderer all speak in these codes; the environment turns them into

@@ -1,4 +1,5 @@
-"""Typed configuration. Every default comes from ``shared/reference/facts.md``.
+"""Typed configuration. Defaults follow the DIACC paper and, where it is silent, the
+authors' public predecessor environment (lzxphhh/HARL-based_simulator).
 
 Configs are frozen dataclasses so that a run's settings cannot drift after
 start-up; ``dataclasses.replace`` makes variants. :func:`override` applies a
@@ -77,8 +78,9 @@ _NORMAL = DriverStyle("normal", 1.0, 1.5, 2.5, 4.5, 0.5, 0.2, 0.5, 1.0, 0.5)
 #: the route needs it", so a cautious driver in an ending lane stops at its end
 #: and stays there (both backends; the highway backend skips its forced merge).
 _CAUTIOUS_PAPER = DriverStyle("cautious", 1.2, 2.0, 1.5, 2.5, 1.0, 0.6, -1.0, 0.0, -1.0)
-#: Named style presets (facts.md "lcStrategic" pitfall; README "Congestion
-#: presets" has the measured pure-HDV rows of each):
+#: Named style presets (the authors' cautious lcStrategic -1 strands drivers at lane
+#: ends; docs/benchmarks/index.md "Congestion presets" has the measured pure-HDV
+#: rows of each):
 #:
 #: * ``realistic`` (default): every driver merges (cautious lcStrategic 0.2).
 #: * ``zipper``: ``realistic``, and every driver lets one waiting at a lane end in.
@@ -116,15 +118,16 @@ STYLE_PRESETS: dict[str, tuple[DriverStyle, DriverStyle, DriverStyle]] = {
 #: ``zipper``: ``realistic`` drivers who also let a driver waiting at a lane end in
 #: (:attr:`DriverStyle.zipper`): without it a cautious driver who reached the end
 #: of an ending lane can stand there over a minute beside a 22 m/s stream (measured
-#: on the demand scenario, README "Scenario kinds").
+#: on the demand scenario, docs/concepts/scenarios.md).
 STYLE_PRESETS["zipper"] = tuple(
     dataclasses.replace(style, zipper=True) for style in STYLE_PRESETS["realistic"]
 )
 
 
 #: Speed limit of the reduction segments per preset (presets not listed keep the
-#: map's). 15 m/s is the limit of the authors' predecessor bottleneck (facts.md);
-#: the paper gives the route's *maximum* limit only (25 m/s).
+#: map's). 15 m/s is the limit of the authors' predecessor bottleneck
+#: (lzxphhh/HARL-based_simulator); the paper gives the route's *maximum* limit
+#: only (25 m/s).
 PRESET_REDUCTION_SPEED_MPS: dict[str, float] = {"paper-congestion": 15.0, "merge-congestion": 15.0}
 
 
@@ -240,7 +243,7 @@ HORIZON_MODES = ("stopping", "headway", "paper")
 
 @dataclass(frozen=True)
 class PSARConfig:
-    """Thresholds of Algorithm 1 (authors' values, facts.md) and two options.
+    """Thresholds of Algorithm 1 (the paper's and the authors' code's values) and two options.
 
     ``force_brake``: ``"cancel"`` brakes away the closing speed within the
     step (the authors' implementation, bounded by ``SimConfig.cav.decel_mps2``);
@@ -314,7 +317,7 @@ class RewardConfig:
     moves both together; ``--sweep env.reward.w_ego=...`` alone keeps w_g.
 
     The last four fields are options that default to the paper's reading
-    (:mod:`diacc.reward`, README "Learning options"): ``closeness``,
+    (:mod:`diacc.reward`, docs/concepts/learning-options.md): ``closeness``,
     ``warning_ttc_s`` (used by ``closeness="bumper"``), ``exit_bonus_scale``
     and ``delay_weight``.
     """
@@ -335,7 +338,7 @@ class RewardConfig:
     tau_init: float = 2.0
     tau_final: float = 0.05
     tau_anneal_fraction: float = 0.5  # of the training steps
-    # ---- options (diacc.reward; README "Learning options"); defaults = the paper read literally
+    # ---- options (diacc.reward; docs/concepts/learning-options.md); defaults: the paper
     closeness: str = "centre"  # "centre" (paper) or "bumper": gap and TTC to lane leader/follower
     warning_ttc_s: float = 3.0  # "bumper": TTC to the same-lane leader that starts the warning
     exit_bonus_scale: str = "per_cav"  # "per_cav" (paper) or "fleet": bonus / CAV slots
@@ -347,8 +350,8 @@ class RewardConfig:
 
 
 BACKENDS = ("highway", "sumo")
-#: How the actor's actions meet PSAR (:mod:`diacc.action_mask`, README "Learning
-#: options"): "proposed" trains on the proposed action (the paper read
+#: How the actor's actions meet PSAR (:mod:`diacc.action_mask`,
+#: docs/concepts/learning-options.md): "proposed" trains on the proposed action (the paper read
 #: literally), "executed" on the action PSAR executed, "masked" samples only
 #: actions PSAR would execute unchanged.
 PSAR_ACTION_MODES = ("proposed", "executed", "masked")
@@ -457,7 +460,7 @@ class TrainConfig:
     chunk_len: int = 10
     checkpoint_every: int = 10  # updates
     # "team": one value per env, all CAVs share the advantage (paper); "per_agent":
-    # a value per CAV slot from its own features beside the global state (README)
+    # a value per CAV slot from its own features beside the global state (docs)
     critic_values: str = "team"
     run_dir: str = "runs/diacc"
     env: EnvConfig = field(default_factory=EnvConfig)

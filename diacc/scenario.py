@@ -9,8 +9,9 @@ Two kinds of scenario (``Scenario.kind``):
 
 * ``"release"`` (the paper's, the default): all vehicles start at t = 0 near
   the route start at ``insert_speed_mps``, one every ``insert_spacing_m``
-  (facts.md: 8 m, 25 vehicles fill the first 200 m), lanes taken round-robin
-  in a random order, vehicles shuffled over the slots.
+  (8 m: 25 vehicles fill the first 200 m, a start that gives paper-like
+  congestion; the paper gives no coordinates), lanes taken round-robin in a
+  random order, vehicles shuffled over the slots.
 * ``"demand"``: vehicles enter at ``insert_start_m`` over ``demand_s``
   seconds at ``inflow_vph`` (one per 3600 / inflow s, each at a uniformly
   drawn instant within its own interval, so the arrival rate is exact and
@@ -60,7 +61,7 @@ class Scenario:
     n_vehicles: int = 25  # paper training cell: 25 vehicles,
     cav_penetration: float = 0.4  # 10 of them CAVs,
     style_mix: str | tuple[float, float, float] = "D1"  # HDV styles of mix D1
-    insert_start_m: float = 10.0  # x of the rearmost insertion row (facts.md)
+    insert_start_m: float = 10.0  # x of the rearmost insertion row
     insert_spacing_m: float = 8.0  # between consecutive vehicles (any lane)
     insert_speed_mps: float = 10.0
     kind: str = "release"  # or "demand" (module docstring)
@@ -216,7 +217,7 @@ def draw_population(scenario: Scenario, road: Map, seed: int) -> Population:
             depart_s=depart_s,
         )
 
-    # Slots (facts.md): one vehicle every ``insert_spacing_m``, lanes round-robin,
+    # Slots: one vehicle every ``insert_spacing_m``, lanes round-robin,
     # so vehicles in the same lane start n_lanes * spacing apart. The lane order
     # of the round-robin is drawn at random; vehicles are shuffled over slots.
     x = scenario.insert_start_m + scenario.insert_spacing_m * np.arange(n - 1, -1, -1.0)

@@ -1,4 +1,4 @@
-"""The learning-path options (README "Learning options") in tiny training runs."""
+"""The learning-path options (docs/concepts/learning-options.md) in tiny training runs."""
 
 from __future__ import annotations
 

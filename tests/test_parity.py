@@ -83,14 +83,14 @@ def test_pure_hdv_traffic_agrees(map_name):
     assert abs(sumo["arrived_fraction"] - hw["arrived_fraction"]) <= ARRIVED_ABS_TOL
 
 
-#: The paper-like congestion preset as README measures it (330-step episodes).
+#: The paper-like congestion preset as docs/benchmarks/index.md measures it (330-step episodes).
 CONGESTED = SimConfig(style_preset="paper-congestion", episode_steps=330)
 
 
 @pytest.mark.parametrize("backend_name", ["highway", "sumo"])
 def test_paper_congestion_preset_is_markedly_more_congested(backend_name):
-    """CI-sized (2 seeds, 50 % map): README measures, over 10 episodes, realistic
-    18.2 (sumo) / 18.7 (highway) m/s against paper-congestion 11.5 / 11.1 m/s.
+    """CI-sized (2 seeds, 50 % map): docs/benchmarks/index.md measures, over 10 episodes,
+    realistic 18.2 (sumo) / 18.7 (highway) m/s against paper-congestion 11.5 / 11.1 m/s.
     A 20 % drop is well outside seed noise (~1 m/s on 2 seeds) and needs every
     lever of the preset (stuck cautious drivers, slower bottleneck, long episode)
     to work on that backend; some cautious drivers never arrive."""

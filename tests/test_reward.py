@@ -159,7 +159,7 @@ def test_reward_rejects_bad_config():
         reward(state, np.array([0]), ROAD, 1.0, bad)
 
 
-# ---------------------------------------------------------------- options (README)
+# ---------------------------------------------------------------- options (docs)
 def test_bumper_closeness_uses_lane_gaps_and_leader_ttc():
     # CAV 0 at x=100 lane 0 at 20 m/s; leader HDV 1 at x=107.5 (gap 2.5 m) at 10 m/s;
     # HDV 2 in lane 1 alongside (centre 3.2 m: outside d_w under "centre" too);

@@ -1,6 +1,6 @@
 """The shipped trained checkpoints (checkpoints/*.pt) load and drive both backends.
 
-They are the "Trained agent" of README: a refactor that cannot read them, or
+They are the agents of docs/results/trained-agent.md: a refactor that cannot read them, or
 a backend change that makes them crash, must fail here rather than in a
 newcomer's first command.
 """
