@@ -28,7 +28,7 @@
 * With no CAV on the road the ego and global terms are 0 (nothing to score).
 
 Options (:class:`~diacc.config.RewardConfig`; the defaults are the paper read
-literally, README "Learning options"):
+literally, docs/concepts/learning-options.md):
 
 * ``closeness="bumper"``: ``dist`` is the bumper gap to the same-lane leader
   and follower (the gap of PSAR and the metrics) instead of the centre

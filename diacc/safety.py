@@ -9,7 +9,7 @@ Python loop over vehicles. A batch of states ((E, V) arrays) is handled by
 the same code: index arrays then carry the leading env axis too, and all
 pairwise work stays within each env.
 
-Gap and TTC (paper, PSAR section; facts.md)
+Gap and TTC (paper, PSAR section)
 -------------------------------------------
 For an ego ``i`` and another vehicle ``j``::
 

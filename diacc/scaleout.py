@@ -16,7 +16,7 @@ sweep``) do the same work on one machine. With ``--engine ray``:
 Ray runs on a local instance started for the command (``--ray-cpus`` CPUs)
 unless ``--ray-address`` names a running cluster (``auto``, ``HOST:6379``, or
 ``ray://HOST:10001``). Every machine of the cluster needs the same diacc
-installed (see README, "Scaling out with Ray").
+installed (see docs/guide/scaling-out.md).
 """
 
 from __future__ import annotations

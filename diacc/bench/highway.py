@@ -36,7 +36,7 @@ ACTION_PROBS = (0.5, 0.05, 0.05, 0.2, 0.2)
 #: Our commands per action: (lane change, speed change in units of speed_change_mps).
 _OUR_ACTIONS = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
 #: The same actions in highway-env's DiscreteMetaAction order {0 LEFT, 1 IDLE, 2 RIGHT,
-#: 3 FASTER, 4 SLOWER} (facts.md: the orders differ, map explicitly).
+#: 3 FASTER, 4 SLOWER} (the orders differ: map explicitly).
 _STOCK_ACTIONS = np.array([1, 0, 2, 3, 4])
 
 

@@ -1,6 +1,6 @@
 """Network benchmark: parameter counts, rollout-step latency and update cost per variant.
 
-Sizes follow the training setup (facts.md): 20 environments x 10 CAVs, 100
+Sizes follow the training setup (MAPPO practice and the paper): 20 environments x 10 CAVs, 100
 rollout steps, recurrent chunks of 10. One rollout step is the actor on every
 CAV plus the critic on every environment state (no gradients); one update pass
 is forward + backward of a PPO-like loss over the whole rollout replayed in

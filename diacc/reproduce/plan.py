@@ -68,8 +68,7 @@ class Budget:
 
 
 #: ``tiny``: the whole pipeline on one map in a few minutes (CI); every number it
-#: prints is untrained noise. ``small``: the learning check's 50k steps (README
-#: "Safety"), enough for safe but not yet fast agents. ``paper``: the paper's 3 M
+#: prints is untrained noise. ``small``: the learning check's 50k steps (docs/results/safety.md), enough for safe but not yet fast agents. ``paper``: the paper's 3 M
 #: steps, 3 seeds and 20 environments; the paper does not say how many
 #: evaluation episodes it ran, 10 is ``diacc eval``'s default.
 BUDGETS: dict[str, Budget] = {
@@ -82,10 +81,10 @@ BUDGETS: dict[str, Budget] = {
 #: What each preset is for, shown with its values in ``diacc reproduce --help``.
 BUDGET_PURPOSE = {
     "tiny": "the whole pipeline in a few minutes (CI); its numbers are untrained noise",
-    "small": "the README learning check's 50k steps (there: diacc safe, not yet faster "
+    "small": "the learning check's 50k steps (there: diacc safe, not yet faster "
     "than human traffic); hours",
-    "paper": "the paper's budget; 8-12 h per training run on 2 cores (README, Measured "
-    "figures), so days",
+    "paper": "the paper's budget; 8-12 h per training run on 2 cores (docs/benchmarks, "
+    "Measured figures), so days",
 }
 
 

@@ -14,7 +14,7 @@ models, each deliberate:
 * A lane that ends is seen by IDM as a standing obstacle at its end, and a
   vehicle in such a lane is *forced* to merge towards a continuing lane,
   with a gap-acceptance that relaxes as the lane end approaches. Stock MOBIL
-  has neither, and deadlocks at lane drops (facts.md).
+  has neither, and deadlocks at lane drops (measured).
 * Followers in the target lane of a waiting merger yield to it (treat it as
   their leader), so every merger eventually gets in.
 """

@@ -7,7 +7,7 @@ the CAV type depends on the CAV mode:
 
 * ``commanded``: the policy drives. The CAV keeps SUMO's IDM only as a model
   of its physical limits; speeds come from ``slowDown`` with ``speedMode 0``
-  (no built-in safety, facts.md) and lane changes from ``changeLane``.
+  (no built-in safety, as in the authors' environment) and lane changes from ``changeLane``.
 * ``cooperative``: the non-learning "cooperative" baseline of the paper: CACC
   car following with ``lcCooperative = 1``, driving on its own with SUMO's
   default safety.

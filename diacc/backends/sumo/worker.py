@@ -1,6 +1,6 @@
 """The libsumo simulation that runs inside one worker process.
 
-libsumo holds one simulation per process (facts.md), so every
+libsumo holds one simulation per process (a second start silently replaces the first), so every
 :class:`~diacc.backends.sumo.backend.SumoBackend` owns a worker process that runs
 :func:`worker_main`. The worker owns a :class:`SumoSim` and answers three
 requests over a ``multiprocessing.connection.Connection`` (a socket pair
@@ -100,7 +100,7 @@ class SumoSim:
     # ---- lifecycle -----------------------------------------------------
     def _args(self, seed: int, demand: bool = False) -> list[str]:
         s = self.spec
-        # The release's slots are 3 m apart at 10 m/s (facts.md start): physically
+        # The release's slots are 3 m apart at 10 m/s (the paper-like start): physically
         # free but closer than IDM's safe gap, so only overlap is checked; the cars
         # brake in the first steps, as on the highway backend. Vehicles entering over
         # time (demand) get SUMO's full checks: one enters when its entry is safe.
