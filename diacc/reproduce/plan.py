@@ -68,9 +68,10 @@ class Budget:
 
 
 #: ``tiny``: the whole pipeline on one map in a few minutes (CI); every number it
-#: prints is untrained noise. ``small``: the learning check's 50k steps (docs/results/safety.md), enough for safe but not yet fast agents. ``paper``: the paper's 3 M
-#: steps, 3 seeds and 20 environments; the paper does not say how many
-#: evaluation episodes it ran, 10 is ``diacc eval``'s default.
+#: prints is untrained noise. ``small``: the learning check's 50k steps
+#: (docs/results/safety.md), enough for safe but not yet fast agents. ``paper``:
+#: the paper's 3 M steps, 3 seeds and 20 environments; the paper does not say how
+#: many evaluation episodes it ran, 10 is ``diacc eval``'s default.
 BUDGETS: dict[str, Budget] = {
     "tiny": Budget("tiny", 200, (1,), 1, 1, ("train-50",), 1, True),
     "small": Budget("small", 50_000, (1, 2), 4, 2, ("train-25", "train-50"), None, True),
