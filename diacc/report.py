@@ -117,9 +117,7 @@ class Table:
         ]
         return (same or [None])[0]
 
-    def change(
-        self, cell: Cell, metric: str, column: str, policy: str = REFERENCE
-    ) -> float | None:
+    def change(self, cell: Cell, metric: str, column: str, policy: str = REFERENCE) -> float | None:
         """Change of the mean against the ``policy`` column (None if undefined; pure HDV is
         compared with nothing, same-mix with pure HDV): percent, or percentage points for
         shares (:func:`change_unit`)."""
