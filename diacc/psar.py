@@ -136,7 +136,12 @@ def psar(
       The authors' distances come from a 15 m/s road; at 25 m/s a CAV needs
       about 60 m to brake for a standing queue, and a leader that brakes
       hard needs about one second of headway. ``"paper"`` uses the fixed
-      thresholds. ``"headway"`` (issue 26) replaces the car-following block
+      thresholds. Under ``"stopping"`` a moving CAV whose gap is at most the one a
+      lane change needs to enter (d_LC,min plus the safe gap at its current speed)
+      gets Force-Brake's distance branch (line 19) even when it is not closing:
+      else it holds a gap from which it cannot answer a leader that brakes in
+      the same step, and closes at one step's braking until it hits.
+      ``"headway"`` (issue 26) replaces the car-following block
       (lines 17-27) by braking physics alone (:func:`_headway_car_following`):
       about one second behind an HDV, ``cfg.min_gap_m`` +
       ``cfg.cav_time_gap_s`` behind a CAV whose refined command of this step
@@ -383,7 +388,14 @@ def psar(
         extra_m = front_margin_m(sf, a)
         d_warn_m, d_att_m = cfg.d_warn_m + extra_m, cfg.d_att_m + extra_m  # (..., C)
         closing = ttc_s < np.inf  # paper's TTC > 0
-        br1 = has_leader & (d_m <= d_warn_m) & closing
+        # "stopping": a gap shorter than the one a lane change needs to enter
+        # (d_LC,min + Gipps) is closed in effect, even at equal speeds: the leader
+        # may brake in this very step, and a CAV that answers a step late keeps
+        # closing at that step's braking until it hits (bench --safety, test-50).
+        # Judged at the CAV's current speed (as for ``remain``), whatever it proposed.
+        hold_m = cfg.d_lc_min_m + front_margin_m(sf, np.full(shape, REMAIN))
+        too_short = stopping & (ego_speed_mps > 0.0) & (d_m <= hold_m)
+        br1 = has_leader & (d_m <= d_warn_m) & (closing | too_short)
         br2 = has_leader & ~br1 & ((d_m <= cfg.d_safe_m) | ((d_m <= d_warn_m) & (a == ACCELERATE)))
         br3 = has_leader & ~br1 & ~br2 & (np.abs(d_m) <= d_att_m) & (ttc_s <= cfg.ttc_warn_s)
         br4 = has_leader & ~br1 & ~br2 & ~br3 & (np.abs(d_m) <= d_att_m)

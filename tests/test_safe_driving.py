@@ -14,7 +14,7 @@ from helpers import make_state
 from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.backends.base import CavCommands, make_backend
 from diacc.config import PSARConfig, SimConfig
-from diacc.kinematics import safe_gap_m
+from diacc.kinematics import braking_step, safe_gap_m
 from diacc.maps import load_map
 from diacc.psar import CANCEL_LC, FORCE_BRAKE, psar
 from diacc.scenario import Scenario
@@ -60,8 +60,38 @@ def test_stopping_horizon_sees_a_standing_queue_early_enough():
     res = one_cav(queue, REMAIN, ego=(100.0, 1, 25.0))
     assert res.rule.tolist() == [FORCE_BRAKE] and res.speed_change_mps[0] == pytest.approx(-4.0)
     # Following at equal speed, one second of headway is needed to accelerate.
-    assert one_cav([(120.0, 1, 20.0)], ACCELERATE).action.tolist() == [REMAIN]
+    assert one_cav([(130.0, 1, 20.0)], ACCELERATE).action.tolist() == [REMAIN]
     assert one_cav([(160.0, 1, 20.0)], ACCELERATE).action.tolist() == [ACCELERATE]
+
+
+def test_a_gap_too_short_to_answer_a_braking_leader_is_opened_even_when_not_closing():
+    # bench --safety, highway test-50, paper-congestion, episode 4: a CAV changed in
+    # 10 m behind a faster CAV, which then braked; the follower held 12.3 m at
+    # 20.6 m/s (leader 21 m/s), needed about 1 m + 18.7 m, and only "remained".
+    leader = [(100.0 + 5.0 + 12.33, 1, 21.0)]
+    res = one_cav(leader, REMAIN, ego=(100.0, 1, 20.63))
+    assert res.action.tolist() == [DECELERATE] and res.rule.tolist() == [FORCE_BRAKE]
+    assert one_cav(leader, REMAIN, ego=(100.0, 1, 20.63), cfg=LITERAL).rule.tolist() == [0]
+    # Played out: the leader brakes at the planned 4 m/s2 from now on, the CAV does
+    # what PSAR says each 1 s step; it must stop behind the leader without contact.
+    follower_x_m, follower_mps, leader_x_m, leader_mps = 100.0, 20.63, *leader[0][::2]
+    for _ in range(12):
+        res = one_cav(
+            [(leader_x_m, 1, leader_mps)], REMAIN, ego=(follower_x_m, 1, follower_mps)
+        )
+        step_m, leader_mps = braking_step(leader_mps, 1.0, 4.0)
+        leader_x_m += float(step_m)
+        end_mps = max(follower_mps + float(res.speed_change_mps[0]), 0.0)
+        if end_mps < follower_mps:  # braking: stops within the step if it must
+            step_m, end_mps = braking_step(follower_mps, 1.0, follower_mps - end_mps)
+        else:
+            step_m = 0.5 * (follower_mps + end_mps)
+        follower_x_m, follower_mps = follower_x_m + float(step_m), float(end_mps)
+        assert leader_x_m - follower_x_m - 5.0 > 0.0
+    assert follower_mps == 0.0 and float(leader_mps) == 0.0
+    # Not for a standing CAV, nor with room to answer.
+    assert one_cav([(105.5, 1, 0.0)], REMAIN, ego=(100.0, 1, 0.0)).rule.tolist() == [0]
+    assert one_cav([(130.0, 1, 20.0)], REMAIN).rule.tolist() == [0]
 
 
 def test_lane_end_is_a_wall_with_its_queue():
