@@ -76,9 +76,7 @@ def test_a_gap_too_short_to_answer_a_braking_leader_is_opened_even_when_not_clos
     # what PSAR says each 1 s step; it must stop behind the leader without contact.
     follower_x_m, follower_mps, leader_x_m, leader_mps = 100.0, 20.63, *leader[0][::2]
     for _ in range(12):
-        res = one_cav(
-            [(leader_x_m, 1, leader_mps)], REMAIN, ego=(follower_x_m, 1, follower_mps)
-        )
+        res = one_cav([(leader_x_m, 1, leader_mps)], REMAIN, ego=(follower_x_m, 1, follower_mps))
         step_m, leader_mps = braking_step(leader_mps, 1.0, 4.0)
         leader_x_m += float(step_m)
         end_mps = max(follower_mps + float(res.speed_change_mps[0]), 0.0)
