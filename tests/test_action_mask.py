@@ -48,10 +48,12 @@ def test_closing_leader_leaves_only_braking():
 
 
 def test_suppressed_actions_are_masked_and_mask_is_never_empty():
-    # Gap 4 m, opening: Algorithm 1 turns accelerate *and* decelerate into remain.
-    # Lane-change targets blocked by vehicles alongside.
+    # Gap 4 m at 20 m/s, opening: inside the gap the CAV needs to stop, so the
+    # stopping horizon brakes even though it is not closing (remain and accelerate
+    # become decelerate). Lane-change targets blocked by vehicles alongside: only
+    # braking is left, never nothing.
     blocked = [(109.0, 1, 21.0), (100.5, 0, 20.0), (100.5, 2, 20.0)]
-    assert mask_of(blocked) == allowed(REMAIN)
+    assert mask_of(blocked) == allowed(DECELERATE)
 
 
 def test_cav_off_the_road_allows_everything():
