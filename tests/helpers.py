@@ -70,3 +70,20 @@ def make_state(
     state.y_m = state.y_m.astype(np.float64)
     validate_state(state)
     return state
+
+
+#: A 160 m map (3 lanes, then a 25 % reduction) for tiny training and demand runs.
+SHORT_MAP = """
+name = "short"
+lane_width_m = 3.2
+[[segments]]
+kind = "multilane"
+length_m = 100
+lanes = 3
+speed_limit_mps = 25.0
+[[segments]]
+kind = "reduction25"
+length_m = 60
+lanes = 2
+speed_limit_mps = 25.0
+"""

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from helpers import SHORT_MAP
 from pettingzoo.test import parallel_api_test
 
 from diacc.actions import LANE_RIGHT
@@ -23,21 +24,6 @@ from diacc.scenario import Scenario, ScenarioError, draw_population
 from diacc.vector import make_vector_env
 
 BACKENDS = ["highway", "sumo"]
-
-SHORT_MAP = """
-name = "short"
-lane_width_m = 3.2
-[[segments]]
-kind = "multilane"
-length_m = 100
-lanes = 3
-speed_limit_mps = 25.0
-[[segments]]
-kind = "reduction25"
-length_m = 60
-lanes = 2
-speed_limit_mps = 25.0
-"""
 
 STRAIGHT_MAP = """
 name = "straight"

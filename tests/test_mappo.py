@@ -7,6 +7,7 @@ import copy
 import numpy as np
 import pytest
 import torch
+from helpers import SHORT_MAP
 
 from diacc.algo.checkpoint import CheckpointError, load_checkpoint
 from diacc.algo.mappo import (
@@ -35,22 +36,6 @@ TINY = {
     "model.gru_hidden": 32,
     "model.cross_dim": 32,
 }
-
-
-SHORT_MAP = """
-name = "short"
-lane_width_m = 3.2
-[[segments]]
-kind = "multilane"
-length_m = 100
-lanes = 3
-speed_limit_mps = 25.0
-[[segments]]
-kind = "reduction25"
-length_m = 60
-lanes = 2
-speed_limit_mps = 25.0
-"""
 
 
 def tiny_config(tmp_path, **extra) -> TrainConfig:
