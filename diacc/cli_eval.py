@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from diacc import cli_scale
-from diacc.config import ACTION_MODES, BACKENDS, STYLE_PRESETS
+from diacc.config import ACTION_MODES, BACKENDS, HORIZON_MODES, STYLE_PRESETS
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.report`, kept here so
 #: that ``--help`` does not import the evaluation stack).
@@ -28,7 +28,10 @@ def _settings(args: argparse.Namespace):
     from diacc.policies import EvalSettings
 
     return EvalSettings(
-        backend=args.backend, episode_steps=args.episode_steps, style_preset=args.style_preset
+        backend=args.backend,
+        episode_steps=args.episode_steps,
+        style_preset=args.style_preset,
+        psar_horizon=args.psar_horizon,
     )
 
 
@@ -64,6 +67,13 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         choices=tuple(STYLE_PRESETS),
         default=None,
         help="HDV style preset (default: the policy's own setting)",
+    )
+    p.add_argument(
+        "--psar-horizon",
+        choices=HORIZON_MODES,
+        default=None,
+        help="PSAR horizon of every policy with PSAR, baselines and checkpoints alike "
+        "(default: the policy's own setting; docs/concepts/psar.md)",
     )
 
 

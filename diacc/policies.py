@@ -31,7 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from diacc.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
-from diacc.config import STYLE_NAMES, VARIANTS, EnvConfig, SimConfig, TrainConfig
+from diacc.config import (
+    HORIZON_MODES,
+    STYLE_NAMES,
+    VARIANTS,
+    EnvConfig,
+    PSARConfig,
+    SimConfig,
+    TrainConfig,
+)
 from diacc.errors import DiaccError
 from diacc.grid import Cell
 from diacc.maps import Map
@@ -65,10 +73,17 @@ class EvalSettings:
     backend: str = "highway"
     episode_steps: int | None = None
     style_preset: str | None = None
+    #: PSAR horizon of every policy with PSAR (baselines and checkpoints alike), so that a
+    #: comparison's rules and learners are filtered by the same PSAR.
+    psar_horizon: str | None = None
 
     def __post_init__(self) -> None:
         if self.episode_steps is not None and self.episode_steps < 1:
             raise PolicyError(f"episode_steps must be >= 1, got {self.episode_steps}")
+        if self.psar_horizon is not None and self.psar_horizon not in HORIZON_MODES:
+            raise PolicyError(
+                f"unknown PSAR horizon {self.psar_horizon!r}; use {', '.join(HORIZON_MODES)}"
+            )
 
     def apply(self, sim: SimConfig) -> SimConfig:
         changes = {}
@@ -78,12 +93,17 @@ class EvalSettings:
             changes["style_preset"] = self.style_preset
         return dataclasses.replace(sim, **changes)
 
+    def apply_psar(self, psar: PSARConfig) -> PSARConfig:
+        if self.psar_horizon is None:
+            return psar
+        return dataclasses.replace(psar, horizon=self.psar_horizon)
+
     def describe(self) -> dict:
         """What an evaluation's ``meta.json`` records of these settings (and checks on reuse)."""
-        return {
-            "backend": self.backend,
-            "settings": {"episode_steps": self.episode_steps, "style_preset": self.style_preset},
-        }
+        settings = {"episode_steps": self.episode_steps, "style_preset": self.style_preset}
+        if self.psar_horizon is not None:  # absent otherwise: older results stay reusable
+            settings["psar_horizon"] = self.psar_horizon
+        return {"backend": self.backend, "settings": settings}
 
 
 def action_mode(sampled: bool) -> str:
@@ -137,6 +157,7 @@ class Policy:
             map=cell.map,
             scenario=scenario,
             sim=settings.apply(self.base.sim),
+            psar=settings.apply_psar(self.base.psar),
             obs=dataclasses.replace(obs, max_vehicles=max(obs.max_vehicles, scenario.n_vehicles)),
         )
 

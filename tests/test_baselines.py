@@ -16,6 +16,7 @@ from diacc.policies import (
     HEURISTIC_LEAVE_M,
     EvalSettings,
     PolicyError,
+    PolicySpec,
     SameMixPolicy,
     build_policy,
     heuristic_actions,
@@ -109,3 +110,18 @@ def test_heuristic_needs_the_road_and_runs_under_psar():
     assert policy.env_config(CELL, EvalSettings()).use_psar
     with pytest.raises(PolicyError, match="needs the road"):
         policy.act(_obs([0.0], [0], load_map("train-50")), first_step=True)
+
+
+def test_eval_psar_horizon_reaches_every_policy_with_psar_and_is_recorded():
+    """``diacc eval --psar-horizon``: rules and learners compared under the same PSAR."""
+    cell = Cell("train-50", 25, 0.4, "D1")
+    settings = EvalSettings(psar_horizon="headway")
+    for name in ("heuristic", "cooperative", "accelerate"):
+        assert build_policy(PolicySpec(name)).env_config(cell, settings).psar.horizon == "headway"
+    default = build_policy(PolicySpec("heuristic")).env_config(cell, EvalSettings())
+    assert default.psar.horizon == "stopping"
+    assert settings.describe()["settings"]["psar_horizon"] == "headway"
+    # Unset, the key is absent, so results written before the option stay reusable.
+    assert "psar_horizon" not in EvalSettings().describe()["settings"]
+    with pytest.raises(PolicyError, match="unknown PSAR horizon 'soon'"):
+        EvalSettings(psar_horizon="soon")

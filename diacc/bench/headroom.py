@@ -16,7 +16,6 @@ episodes (seeds as ``diacc eval``).
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -27,7 +26,7 @@ from diacc.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
 from diacc.maps import load_map
-from diacc.policies import EvalSettings, PolicySpec, ScriptedPolicy, build_policy
+from diacc.policies import EvalSettings, PolicySpec, build_policy
 
 #: Reference rows: (label, policy name, CAV share; None = the cell's rho).
 REFERENCES = (
@@ -76,11 +75,7 @@ def measure(
 ) -> dict[str, float]:
     """Mean :data:`METRICS` of ``episodes`` seeded episodes of one policy on one cell."""
     policy = build_policy(PolicySpec(policy_name))
-    if horizon is not None and isinstance(policy, ScriptedPolicy):
-        policy.base = dataclasses.replace(
-            policy.base, psar=dataclasses.replace(policy.base.psar, horizon=horizon)
-        )
-    settings = EvalSettings(backend=backend, episode_steps=steps, style_preset=style_preset)
+    settings = EvalSettings(backend, steps, style_preset, psar_horizon=horizon)
     driver = EpisodeDriver(policy, policy.env_config(cell, settings))
     try:
         rows = [run_episode(driver, cell, k).row for k in range(episodes)]

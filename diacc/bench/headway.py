@@ -13,7 +13,6 @@ behind HDVs and <= 0.8 s behind CAVs on both backends.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -109,11 +108,8 @@ def measure(
 ) -> HeadwayRow:
     """Time gaps of ``episodes`` seeded episodes (N = 25, rho = 0.4, D1; seeds as evaluation's)."""
     policy = ScriptedPolicy(policy_name)
-    policy.base = dataclasses.replace(
-        policy.base, psar=dataclasses.replace(policy.base.psar, horizon=horizon)
-    )
     cell = Cell(map_name, 25, 0.4, "D1")
-    settings = EvalSettings(backend=backend, episode_steps=steps, style_preset=style_preset)
+    settings = EvalSettings(backend, steps, style_preset, psar_horizon=horizon)
     driver = EpisodeDriver(policy, policy.env_config(cell, settings))
     limit_mps = np.array([s.speed_limit_mps for s in driver.road.segments])  # (S,)
     moving: dict[str, list[np.ndarray]] = {name: [] for name in PAIRS}
