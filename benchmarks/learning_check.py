@@ -35,13 +35,17 @@ COLUMNS = {
     "mean_cav_speed_mps": "episode/mean_cav_speed_mps",
     "p_sce": "episode/p_sce",
     "arrived_fraction": "episode/arrived_fraction",
+    "delay_per_vehicle_s": "episode/delay_per_vehicle_s",
 }
 #: Panels of the figure: (column, y label).
 PANELS = (
     ("collision_rate", "training episodes with a collision"),
     ("mean_cav_speed_mps", "mean CAV speed in training [m/s]"),
     ("arrived_fraction", "vehicles that arrived [share]"),
+    ("delay_per_vehicle_s", "delay per vehicle in training [s]"),
 )
+#: Panels whose values are shares (y axis 0-1).
+SHARES = ("collision_rate", "arrived_fraction")
 
 
 def smooth(values: list[float], window: int) -> list[float]:
@@ -89,7 +93,7 @@ def main() -> None:
             ax.plot(steps, smooth([r[column] for r in rows], args.smooth), label=label)
     for ax, (column, ylabel) in zip(axes, PANELS, strict=True):
         ax.set(xlabel="environment steps", ylabel=ylabel)
-        if column != "mean_cav_speed_mps":
+        if column in SHARES:
             ax.set_ylim(-0.02, 1.02)
         ax.legend()
         ax.grid(alpha=0.3)
@@ -143,7 +147,13 @@ def write_seed_summary(runs: dict[str, list[dict]], path: Path, window: int) -> 
 
 
 #: Columns of the per-configuration summary.
-PANEL_COLUMNS = ("collision_rate", "mean_cav_speed_mps", "mean_speed_mps", "arrived_fraction")
+PANEL_COLUMNS = (
+    "collision_rate",
+    "mean_cav_speed_mps",
+    "mean_speed_mps",
+    "arrived_fraction",
+    "delay_per_vehicle_s",
+)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# Evaluation of the issue-27 runs (benchmarks/learning_evidence.sh) on evaluation seeds never
+# used in training: the training cell (train-50, N = 25, rho = 0.4, D1), `realistic`, 330-step
+# episodes, PSAR horizon `headway` for rules and learners alike, against pure HDV, same-mix,
+# the heuristic and cooperative, on both backends (the agents are trained on highway only, so
+# SUMO is their transfer check). Finished cells are skipped (resumable).
+#
+#   RUNS=runs/l27 OUT=runs/l27-eval EPISODES=10 bash benchmarks/learning_evidence_eval.sh
+#   python benchmarks/learning_evidence.py runs/l27-eval --out benchmarks/results/learning-evidence
+#
+# SAMPLED_ON (default highway) lists the backends on which sampled actions are evaluated too.
+set -euo pipefail
+runs=${RUNS:-runs/l27}
+out=${OUT:-runs/l27-eval}
+episodes=${EPISODES:-10}
+export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
+common=(--grid benchmarks/grids/train-50.toml --episodes "$episodes" --style-preset realistic
+        --episode-steps 330 --psar-horizon headway --no-progress --workers "${WORKERS:-1}")
+for backend in ${BACKENDS:-highway sumo}; do
+  for baseline in pure-hdv same-mix heuristic cooperative; do
+    nice -n 5 diacc eval --policy "$baseline" --backend "$backend" "${common[@]}" \
+      --out "$out/$backend/$baseline" > /dev/null
+  done
+  for run in "$runs"/*/; do
+    [[ -f $run/checkpoint.pt ]] || continue
+    name=$(basename "$run")
+    modes=greedy
+    [[ " ${SAMPLED_ON:-highway} " == *" $backend "* ]] && modes="greedy sampled"
+    for actions in $modes; do
+      nice -n 5 diacc eval --policy "$run" --actions "$actions" --backend "$backend" \
+        "${common[@]}" --out "$out/$backend/$name-$actions" > /dev/null
+    done
+  done
+  echo "$backend done $(date -u +%H:%M:%S)"
+done
