@@ -91,11 +91,26 @@ def add_parsers(sub) -> None:
     p.add_argument("--variants", default="diacc", help=f"comma-separated, of {', '.join(VARIANTS)}")
     p.add_argument("--maps", default=EnvConfig.map, help="comma-separated map names or paths")
     p.add_argument("--seeds", default="1,2,3", help="comma-separated run seeds")
-    p.add_argument("--backend", choices=BACKENDS, default=EnvConfig.backend, help="simulator")
+    # None: the --config file's value, else the default the help names (as in 'diacc train')
     p.add_argument(
-        "--steps", type=int, default=TrainConfig.total_steps, help="environment steps per run"
+        "--backend",
+        choices=BACKENDS,
+        default=None,
+        help=f"simulator (default: {EnvConfig.backend})",
     )
-    p.add_argument("--envs", type=int, default=TrainConfig.n_envs, help="environments per run")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="environment steps per run (decisions x environments) "
+        f"(default: {TrainConfig.total_steps})",
+    )
+    p.add_argument(
+        "--envs",
+        type=int,
+        default=None,
+        help=f"environments per run (default: {TrainConfig.n_envs})",
+    )
     p.add_argument(
         "--device", choices=("cpu", "cuda", "auto"), default="cpu", help="torch device of each run"
     )
@@ -115,7 +130,7 @@ def add_parsers(sub) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> None:
-    from diacc.cli import train_config_from_args
+    from diacc.config import build_train_config
     from diacc.console import fmt, plural, print_config
     from diacc.maps import load_map
     from diacc.plots import plot_curves
@@ -129,10 +144,18 @@ def cmd_sweep(args: argparse.Namespace) -> None:
             raise ConfigError(f"unknown variant {variant!r}; use some of {', '.join(VARIANTS)}")
     for map_name in maps:
         load_map(map_name)  # fail fast on a bad map name
-    base = train_config_from_args(
-        argparse.Namespace(
-            **vars(args), variant=variants[0], map=maps[0], seed=seeds[0], run_dir=str(args.out_dir)
-        )
+    # the first run's settings; sweep_configs sets each run's variant, map, seed and run_dir
+    base = build_train_config(
+        args.config,
+        variant=variants[0],
+        backend=args.backend,
+        map=maps[0],
+        steps=args.steps,
+        envs=args.envs,
+        seed=seeds[0],
+        device=args.device,
+        run_dir=args.out_dir,
+        sets=args.set,
     )
     if args.engine == "local" and (args.ray_address or args.ray_cpus):
         raise ConfigError("--ray-address / --ray-cpus need --engine ray")

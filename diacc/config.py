@@ -5,14 +5,20 @@ Configs are frozen dataclasses so that a run's settings cannot drift after
 start-up; ``dataclasses.replace`` makes variants. :func:`override` applies a
 flat ``{"section.field": value}`` mapping (from a TOML file or CLI flags) and
 rejects unknown keys with a one-line :class:`ConfigError`; :func:`validate`
-rejects non-finite and out-of-range values.
+rejects non-finite and out-of-range values. :func:`build_train_config` is the
+one place a :class:`TrainConfig` is assembled from user input (defaults < TOML
+file < named options < ``--set`` pairs): ``diacc train``, ``diacc sweep`` and
+``diacc reproduce`` all call it, so the library never goes through its own
+command line.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from diacc.errors import DiaccError
@@ -534,6 +540,91 @@ def _coerce(current: Any, value: Any, key: str) -> Any:
     if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
         raise ConfigError(f"config key {key!r} expects {kind.__name__}, got {value!r}")
     return value
+
+
+def build_train_config(
+    file: str | Path | None = None,
+    *,
+    variant: str | None = None,
+    backend: str | None = None,
+    map: str | None = None,  # noqa: A002 - the option's name
+    steps: int | None = None,
+    envs: int | None = None,
+    seed: int | None = None,
+    device: str | None = None,
+    run_dir: str | Path | None = None,
+    style_preset: str | None = None,
+    sets: Iterable[str] | Mapping[str, Any] = (),
+) -> TrainConfig:
+    """The training config of user input: defaults < TOML ``file`` < named options < ``sets``.
+
+    One function for every entry point (``diacc train``, ``sweep``, ``reproduce``)
+    so that they resolve settings the same way and the library never builds a
+    command line to call itself. A named option left at None keeps the file's
+    (or the default) value; ``steps`` is ``total_steps`` (environment steps,
+    decisions x environments), ``envs`` is ``n_envs``, ``style_preset`` is
+    ``env.sim.style_preset``. ``sets`` are ``KEY=VALUE`` texts (``--set``) or a
+    mapping of dotted keys to values. All layers are applied in one
+    :func:`override`, so a value one layer asks for and the variant contradicts
+    (``env.use_psar``) is refused, whichever layer named the variant. Without a
+    ``run_dir`` anywhere the run goes to ``runs/<variant>-<backend>-<map>-s<seed>``
+    of the resolved config. Not validated here (:func:`validate` runs before a
+    run writes anything); bad keys and values raise a one-line :class:`ConfigError`.
+    """
+    from diacc.tomlfile import read_toml
+
+    values: dict[str, Any] = {}
+    if file is not None:
+        if not Path(file).exists():
+            raise ConfigError(f"config file {file} does not exist")
+        values.update(_flatten(read_toml(Path(file), ConfigError)))
+    named = {
+        "variant": variant,
+        "env.backend": backend,
+        "env.map": None if map is None else str(map),
+        "total_steps": steps,
+        "n_envs": envs,
+        "seed": seed,
+        "device": device,
+        "run_dir": None if run_dir is None else str(run_dir),
+        "env.sim.style_preset": style_preset,
+    }
+    values.update({k: v for k, v in named.items() if v is not None})
+    values.update(sets if isinstance(sets, Mapping) else parse_sets(sets))
+    cfg = override(TrainConfig(), values)
+    if not any(key.replace("-", "_") == "run_dir" for key in values):
+        cfg = dataclasses.replace(cfg, run_dir=default_run_dir(cfg))
+    return cfg
+
+
+def default_run_dir(cfg: TrainConfig) -> str:
+    """``runs/<variant>-<backend>-<map>-s<seed>``: where a run goes that names no directory."""
+    from diacc.maps import map_tag
+
+    return f"runs/{cfg.variant}-{cfg.env.backend}-{map_tag(cfg.env.map)}-s{cfg.seed}"
+
+
+def parse_sets(items: Iterable[str]) -> dict[str, str]:
+    """``["KEY=VALUE", ...]`` (``--set``) -> ``{KEY: VALUE}``; the values stay text for
+    :func:`override` to parse by the field's type (a later KEY wins)."""
+    values: dict[str, str] = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        values[key] = value
+    return values
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested TOML tables -> dotted keys (``{"env": {"map": m}}`` -> ``{"env.map": m}``)."""
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, Mapping) and value:  # an empty one stays for override to judge
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
 
 
 # --------------------------------------------------------------------------
