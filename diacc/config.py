@@ -474,7 +474,8 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         _check_choice("variant", self.variant, VARIANTS)
-        # The variant decides PSAR, so the environment cannot disagree with it.
+        # The variant decides PSAR, so the environment cannot disagree with it: derived
+        # here; :func:`override` refuses an ``env.use_psar`` asked for that contradicts it.
         use_psar = VARIANT_TABLE[self.variant].psar
         if self.env.use_psar != use_psar:
             object.__setattr__(self, "env", dataclasses.replace(self.env, use_psar=use_psar))
@@ -498,7 +499,33 @@ def override(config: Any, values: dict[str, Any]) -> Any:
             if not isinstance(node, dict):
                 raise ConfigError(f"unknown config key {key!r}")
         node[leaf] = value
-    return _replace(config, tree, "")
+    result = _replace(config, tree, "")
+    if isinstance(result, TrainConfig):
+        _refuse_contradicted_psar(result, tree)
+    return result
+
+
+def _refuse_contradicted_psar(cfg: TrainConfig, tree: dict[str, Any]) -> None:
+    """One-line :class:`ConfigError` if ``env.use_psar`` was asked for against the variant.
+
+    The variant derives ``env.use_psar`` (:class:`TrainConfig`), so a requested
+    value it contradicts would otherwise be dropped without a word.
+    """
+    env = next((v for k, v in tree.items() if k.replace("-", "_") == "env"), None)
+    if not isinstance(env, dict):
+        return
+    for key, value in env.items():
+        if key.replace("-", "_") != "use_psar":
+            continue
+        wanted = _coerce(True, value, "env.use_psar")
+        if wanted != cfg.env.use_psar:
+            others = [v.name for v in VARIANT_TABLE.values() if v.psar == wanted]
+            raise ConfigError(
+                f"env.use_psar={str(wanted).lower()} contradicts variant {cfg.variant!r}, "
+                f"which {'uses' if cfg.env.use_psar else 'does not use'} PSAR; the variant "
+                f"decides it: choose one {'with' if wanted else 'without'} PSAR "
+                f"({', '.join(others)})"
+            )
 
 
 def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
