@@ -1,15 +1,28 @@
 """diacc.config.build_train_config: one builder for the CLI, sweep and reproduce.
 
 Layers: defaults < TOML file < named options < --set; a variant-derived field
-(env.use_psar) asked for against the variant is a one-line ConfigError.
+(env.use_psar) asked for against the variant is a one-line ConfigError; every
+field's range is checked when any config is built (EnvConfig too).
 """
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from diacc.cli import main
-from diacc.config import ConfigError, TrainConfig, build_train_config, override
+from diacc.config import (
+    ConfigError,
+    EnvConfig,
+    ModelConfig,
+    ObservationConfig,
+    Scenario,
+    SimConfig,
+    TrainConfig,
+    build_train_config,
+    override,
+)
 from diacc.sweepaxes import sweep_settings
 
 
@@ -86,3 +99,26 @@ def test_train_cli_refuses_the_contradiction(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("diacc: error: env.use_psar=false contradicts variant 'diacc'")
     assert "\n" not in err and not run.exists()
+
+
+def test_ranges_are_checked_when_any_config_is_built():
+    with pytest.raises(ConfigError, match="'vehicle_length_m' must be > 0, got 0.0"):
+        SimConfig(vehicle_length_m=0.0)
+    with pytest.raises(ConfigError, match="'history_steps' must be >= 1, got 0"):
+        ObservationConfig(history_steps=0)
+    with pytest.raises(ConfigError, match="'leaky_slope' must be >= 0"):
+        ModelConfig(leaky_slope=-0.1)
+    with pytest.raises(ConfigError, match="'scenario.insert_start_m' must be a finite number"):
+        EnvConfig(scenario=Scenario(insert_start_m=math.nan))
+    with pytest.raises(ConfigError, match="'lr' must be > 0, got 0"):
+        TrainConfig(lr=0)  # not only in validate(): at construction
+    with pytest.raises(ConfigError, match="'device' must be one of auto, cpu, cuda, got 'tpu'"):
+        TrainConfig(device="tpu")
+    # through override, the message names the dotted key as typed
+    with pytest.raises(ConfigError, match="config key 'env.sim.idm_delta' must be > 0, got 0.0"):
+        override(TrainConfig(), {"env.sim.idm_delta": "0"})
+    with pytest.raises(ConfigError, match="'env.scenario.style_mix\\[1\\]' must be a finite"):
+        override(TrainConfig(), {"env.scenario": Scenario(style_mix=(0.2, math.nan, 0.2))})
+    # bounds are inclusive where the field allows them
+    assert TrainConfig(gamma=1.0, entropy_coef=0.0).gamma == 1.0
+    assert SimConfig(speed_change_mps=0.0).speed_change_mps == 0.0
