@@ -27,6 +27,7 @@ from diacc.config import (
     VARIANTS,
     ConfigError,
     EnvConfig,
+    SimConfig,
     TrainConfig,
     build_train_config,
 )
@@ -117,9 +118,19 @@ def _train_parser(sub) -> None:
         help=f"torch device; auto: cuda if available (default: {TrainConfig.device})",
     )
     p.add_argument(
-        "--run-dir",
+        "--style-preset",
+        choices=tuple(STYLE_PRESETS),
         default=None,
-        help="output directory (default: runs/<variant>-<backend>-<map>-s<seed>)",
+        help=f"HDV driving-style parameters, env.sim.style_preset (default: "
+        f"{SimConfig.style_preset})",
+    )
+    cli_scale.add_out_arg(
+        p,
+        "--run-dir",
+        dest="run_dir",
+        metavar="DIR",
+        default=None,
+        help="run directory (default: runs/<variant>-<backend>-<map>-s<seed>)",
     )
     p.add_argument(
         "--config",
@@ -133,11 +144,11 @@ def _train_parser(sub) -> None:
         metavar="KEY=VALUE",
         help="override any config field, e.g. --set env.reward.w_ego=0.8 (repeatable)",
     )
-    p.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoint.pt")
+    p.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
     p.add_argument(
         "--overwrite",
         action="store_true",
-        help="replace the run that <run-dir> holds (without it, such a directory is refused)",
+        help="replace the run that <out> holds (without it, such a directory is refused)",
     )
     p.add_argument(
         "--allow-config-change",
@@ -162,6 +173,7 @@ def cmd_train(args: argparse.Namespace) -> None:
         seed=args.seed,
         device=args.device,
         run_dir=args.run_dir,
+        style_preset=args.style_preset,
         sets=args.set,
     )
     load_map(cfg.env.map)  # fail fast on a bad map name
@@ -357,7 +369,7 @@ def _simulate_parser(sub) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
-    from diacc.config import ObservationConfig, SimConfig
+    from diacc.config import ObservationConfig
     from diacc.console import metric_lines, print_lines
     from diacc.episode import EpisodeDriver, play_episode
     from diacc.policies import Policy

@@ -94,7 +94,7 @@ def test_sweep_over_use_psar_is_refused():
 
 def test_train_cli_refuses_the_contradiction(tmp_path, capsys):
     run = tmp_path / "run"
-    argv = ["train", "--run-dir", str(run), "--set", "env.use_psar=false", "--no-progress"]
+    argv = ["train", "--out", str(run), "--set", "env.use_psar=false", "--no-progress"]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("diacc: error: env.use_psar=false contradicts variant 'diacc'")
