@@ -4,8 +4,11 @@ authors' public predecessor environment (lzxphhh/HARL-based_simulator).
 Configs are frozen dataclasses so that a run's settings cannot drift after
 start-up; ``dataclasses.replace`` makes variants. :func:`override` applies a
 flat ``{"section.field": value}`` mapping (from a TOML file or CLI flags) and
-rejects unknown keys with a one-line :class:`ConfigError`; :func:`validate`
-rejects non-finite and out-of-range values. :func:`build_train_config` is the
+rejects unknown keys with a one-line :class:`ConfigError`. Each field's range
+is written next to it (:func:`ranged`, :func:`one_of`) and checked once, when
+any config is built (every float must also be finite), so code that reads a
+config never checks it again; :func:`validate` adds the relations between
+fields that a training run needs. :func:`build_train_config` is the
 one place a :class:`TrainConfig` is assembled from user input (defaults < TOML
 file < named options < ``--set`` pairs): ``diacc train``, ``diacc sweep`` and
 ``diacc reproduce`` all call it, so the library never goes through its own
