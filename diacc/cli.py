@@ -27,11 +27,11 @@ from diacc.config import (
     VARIANTS,
     ConfigError,
     EnvConfig,
+    SimConfig,
     TrainConfig,
-    override,
+    build_train_config,
 )
 from diacc.errors import DiaccError
-from diacc.tomlfile import read_toml
 
 DESCRIPTION = """\
 diacc: multi-agent reinforcement learning for connected automated vehicles
@@ -73,39 +73,64 @@ def _train_parser(sub) -> None:
         "config.json, checkpoint.pt, progress.jsonl and TensorBoard logs (tb/).\n"
         "Precedence: defaults < --config file < named options < --set.",
     )
+    # Named options default to None ("not given"), so that a --config file's value
+    # stands unless the option is given; the help shows the value used then.
     p.add_argument(
         "--variant",
         choices=VARIANTS,
-        default=TrainConfig.variant,
+        default=None,
         help="mappo: plain MLP actor; mappo-iadm: + interaction-aware actor; "
-        "diacc-nopsar: + C-IEC critic; diacc: + PSAR safety filter",
+        "diacc-nopsar: + C-IEC critic; diacc: + PSAR safety filter "
+        f"(default: {TrainConfig.variant})",
     )
     p.add_argument(
-        "--backend", choices=BACKENDS, default=EnvConfig.backend, help="simulator to train on"
+        "--backend",
+        choices=BACKENDS,
+        default=None,
+        help=f"simulator to train on (default: {EnvConfig.backend})",
     )
-    p.add_argument("--map", default=EnvConfig.map, help="shipped map name or .toml path")
+    p.add_argument(
+        "--map", default=None, help=f"shipped map name or .toml path (default: {EnvConfig.map})"
+    )
     p.add_argument(
         "--steps",
         type=int,
-        default=TrainConfig.total_steps,
-        help="environment steps in total (decisions x environments)",
+        default=None,
+        help="environment steps in total (decisions x environments) "
+        f"(default: {TrainConfig.total_steps})",
     )
     p.add_argument(
-        "--envs", type=int, default=TrainConfig.n_envs, help="environments stepped in parallel"
+        "--envs",
+        type=int,
+        default=None,
+        help=f"environments stepped in parallel (default: {TrainConfig.n_envs})",
     )
     p.add_argument(
-        "--seed", type=int, default=TrainConfig.seed, help="run seed (networks and traffic)"
+        "--seed",
+        type=int,
+        default=None,
+        help=f"run seed (networks and traffic) (default: {TrainConfig.seed})",
     )
     p.add_argument(
         "--device",
         choices=("cpu", "cuda", "auto"),
-        default=TrainConfig.device,
-        help="torch device; auto: cuda if available",
+        default=None,
+        help=f"torch device; auto: cuda if available (default: {TrainConfig.device})",
     )
     p.add_argument(
-        "--run-dir",
+        "--style-preset",
+        choices=tuple(STYLE_PRESETS),
         default=None,
-        help="output directory (default: runs/<variant>-<backend>-<map>-s<seed>)",
+        help=f"HDV driving-style parameters, env.sim.style_preset (default: "
+        f"{SimConfig.style_preset})",
+    )
+    cli_scale.add_out_arg(
+        p,
+        "--run-dir",
+        dest="run_dir",
+        metavar="DIR",
+        default=None,
+        help="run directory (default: runs/<variant>-<backend>-<map>-s<seed>)",
     )
     p.add_argument(
         "--config",
@@ -119,11 +144,11 @@ def _train_parser(sub) -> None:
         metavar="KEY=VALUE",
         help="override any config field, e.g. --set env.reward.w_ego=0.8 (repeatable)",
     )
-    p.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoint.pt")
+    p.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
     p.add_argument(
         "--overwrite",
         action="store_true",
-        help="replace the run that <run-dir> holds (without it, such a directory is refused)",
+        help="replace the run that <out> holds (without it, such a directory is refused)",
     )
     p.add_argument(
         "--allow-config-change",
@@ -133,44 +158,24 @@ def _train_parser(sub) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def train_config_from_args(args: argparse.Namespace) -> TrainConfig:
-    """Defaults <- config file <- named flags <- --set overrides."""
-    from diacc.maps import map_tag
-
-    cfg = TrainConfig()
-    if args.config:
-        if not args.config.exists():
-            raise ConfigError(f"config file {args.config} does not exist")
-        cfg = override(cfg, read_toml(args.config, ConfigError))
-    run_dir = args.run_dir or f"runs/{args.variant}-{args.backend}-{map_tag(args.map)}-s{args.seed}"
-    cfg = override(
-        cfg,
-        {
-            "variant": args.variant,
-            "env.backend": args.backend,
-            "env.map": args.map,
-            "total_steps": args.steps,
-            "n_envs": args.envs,
-            "seed": args.seed,
-            "device": args.device,
-            "run_dir": run_dir,
-        },
-    )
-    values = {}
-    for item in args.set:
-        if "=" not in item:
-            raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
-        key, value = item.split("=", 1)
-        values[key] = value
-    return override(cfg, values)
-
-
 def cmd_train(args: argparse.Namespace) -> None:
     from diacc.algo.mappo import train
     from diacc.console import print_config
     from diacc.maps import load_map
 
-    cfg = train_config_from_args(args)
+    cfg = build_train_config(
+        args.config,
+        variant=args.variant,
+        backend=args.backend,
+        map=args.map,
+        steps=args.steps,
+        envs=args.envs,
+        seed=args.seed,
+        device=args.device,
+        run_dir=args.run_dir,
+        style_preset=args.style_preset,
+        sets=args.set,
+    )
     load_map(cfg.env.map)  # fail fast on a bad map name
     if args.resume and args.overwrite:
         raise ConfigError("--resume continues the run that --overwrite would replace: choose one")
@@ -364,7 +369,7 @@ def _simulate_parser(sub) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
-    from diacc.config import ObservationConfig, SimConfig
+    from diacc.config import ObservationConfig
     from diacc.console import metric_lines, print_lines
     from diacc.episode import EpisodeDriver, play_episode
     from diacc.policies import Policy

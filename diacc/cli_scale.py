@@ -13,6 +13,14 @@ from diacc.config import BACKENDS, VARIANTS, ConfigError, EnvConfig, TrainConfig
 from diacc.sweepaxes import STUDIES
 
 
+def add_out_arg(p: argparse.ArgumentParser, old_name: str, **kwargs) -> None:
+    """``--out``, every command's name for where it writes, and ``old_name`` (the
+    command's former name for it) as a hidden alias, so old command lines still run."""
+    p.add_argument("--out", **kwargs)
+    alias = {k: v for k, v in kwargs.items() if k != "default"}
+    p.add_argument(old_name, **{**alias, "help": argparse.SUPPRESS, "default": argparse.SUPPRESS})
+
+
 def add_engine_args(p: argparse.ArgumentParser) -> None:
     """``--engine``, ``--ray-address``, ``--ray-cpus``."""
     p.add_argument(
@@ -63,12 +71,12 @@ def add_parsers(sub) -> None:
         "sweep",
         help="train variants x maps x config settings x seeds, locally or as Ray tasks",
         description="Train every (variant, map, setting, seed) combination, one run directory\n"
-        "each (<out-dir>/<variant>-<backend>-<map>-s<seed>[-<setting>]), then draw\n"
-        "<out-dir>/curves-<map>.png: one curve per variant and setting, mean +- std\n"
+        "each (<out>/<variant>-<backend>-<map>-s<seed>[-<setting>]), then draw\n"
+        "<out>/curves-<map>.png: one curve per variant and setting, mean +- std\n"
         "over seeds. Settings come from --sweep KEY=V1,V2 (repeatable: the product)\n"
         "and --study. Finished runs are skipped, interrupted ones resume from their\n"
         "checkpoint, a directory holding a run with other settings is an error. With\n"
-        "--engine ray the runs are parallel Ray tasks; on a cluster, put --out-dir on\n"
+        "--engine ray the runs are parallel Ray tasks; on a cluster, put --out on\n"
         "a shared filesystem. Other settings as in 'diacc train' (--config, --set;\n"
         "the sweep axes win).",
         epilog="studies (the paper's training-curve figure, panels d-i):\n"
@@ -91,16 +99,37 @@ def add_parsers(sub) -> None:
     p.add_argument("--variants", default="diacc", help=f"comma-separated, of {', '.join(VARIANTS)}")
     p.add_argument("--maps", default=EnvConfig.map, help="comma-separated map names or paths")
     p.add_argument("--seeds", default="1,2,3", help="comma-separated run seeds")
-    p.add_argument("--backend", choices=BACKENDS, default=EnvConfig.backend, help="simulator")
+    # None: the --config file's value, else the default the help names (as in 'diacc train')
     p.add_argument(
-        "--steps", type=int, default=TrainConfig.total_steps, help="environment steps per run"
+        "--backend",
+        choices=BACKENDS,
+        default=None,
+        help=f"simulator (default: {EnvConfig.backend})",
     )
-    p.add_argument("--envs", type=int, default=TrainConfig.n_envs, help="environments per run")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="environment steps per run (decisions x environments) "
+        f"(default: {TrainConfig.total_steps})",
+    )
+    p.add_argument(
+        "--envs",
+        type=int,
+        default=None,
+        help=f"environments per run (default: {TrainConfig.n_envs})",
+    )
     p.add_argument(
         "--device", choices=("cpu", "cuda", "auto"), default="cpu", help="torch device of each run"
     )
-    p.add_argument(
-        "--out-dir", type=Path, default=Path("runs/sweep"), help="parent of the run dirs"
+    add_out_arg(
+        p,
+        "--out-dir",
+        dest="out",
+        metavar="DIR",
+        type=Path,
+        default=Path("runs/sweep"),
+        help="parent of the run dirs",
     )
     p.add_argument("--config", type=Path, help="TOML file of config overrides (none by default)")
     p.add_argument(
@@ -115,7 +144,7 @@ def add_parsers(sub) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> None:
-    from diacc.cli import train_config_from_args
+    from diacc.config import build_train_config
     from diacc.console import fmt, plural, print_config
     from diacc.maps import load_map
     from diacc.plots import plot_curves
@@ -129,15 +158,23 @@ def cmd_sweep(args: argparse.Namespace) -> None:
             raise ConfigError(f"unknown variant {variant!r}; use some of {', '.join(VARIANTS)}")
     for map_name in maps:
         load_map(map_name)  # fail fast on a bad map name
-    base = train_config_from_args(
-        argparse.Namespace(
-            **vars(args), variant=variants[0], map=maps[0], seed=seeds[0], run_dir=str(args.out_dir)
-        )
+    # the first run's settings; sweep_configs sets each run's variant, map, seed and run_dir
+    base = build_train_config(
+        args.config,
+        variant=variants[0],
+        backend=args.backend,
+        map=maps[0],
+        steps=args.steps,
+        envs=args.envs,
+        seed=seeds[0],
+        device=args.device,
+        run_dir=args.out,
+        sets=args.set,
     )
     if args.engine == "local" and (args.ray_address or args.ray_cpus):
         raise ConfigError("--ray-address / --ray-cpus need --engine ray")
     settings = sweep_settings(base, axis_texts(args.sweep, args.study))
-    configs = sweep_configs(base, variants, maps, seeds, args.out_dir, settings)
+    configs = sweep_configs(base, variants, maps, seeds, args.out, settings)
     check_run_dirs(configs)
     # sweep_configs' order is variant, map, setting, seed: one setting per len(seeds) runs
     label = {
@@ -172,7 +209,7 @@ def cmd_sweep(args: argparse.Namespace) -> None:
         if len(here) < len(runs):
             print(f"training curves of {map_name}: {len(runs) - len(here)} run dirs not here")
         if here:
-            paths = plot_curves(here, args.out_dir / f"curves-{Path(map_name).stem}")
+            paths = plot_curves(here, args.out / f"curves-{Path(map_name).stem}")
             print(f"training curves: {paths[0]}")
 
 

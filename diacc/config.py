@@ -4,15 +4,24 @@ authors' public predecessor environment (lzxphhh/HARL-based_simulator).
 Configs are frozen dataclasses so that a run's settings cannot drift after
 start-up; ``dataclasses.replace`` makes variants. :func:`override` applies a
 flat ``{"section.field": value}`` mapping (from a TOML file or CLI flags) and
-rejects unknown keys with a one-line :class:`ConfigError`; :func:`validate`
-rejects non-finite and out-of-range values.
+rejects unknown keys with a one-line :class:`ConfigError`. Each field's range
+is written next to it (:func:`ranged`, :func:`one_of`) and checked once, when
+any config is built (every float must also be finite), so code that reads a
+config never checks it again; :func:`validate` adds the relations between
+fields that a training run needs. :func:`build_train_config` is the
+one place a :class:`TrainConfig` is assembled from user input (defaults < TOML
+file < named options < ``--set`` pairs): ``diacc train``, ``diacc sweep`` and
+``diacc reproduce`` all call it, so the library never goes through its own
+command line.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from diacc.errors import DiaccError
@@ -38,6 +47,64 @@ def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
     """One-line :class:`ConfigError` unless ``value`` is one of ``choices``."""
     if value not in choices:
         raise ConfigError(f"config key {key!r} must be one of {', '.join(choices)}, got {value!r}")
+
+
+def ranged(default: Any, low: float, high: float | None = None, *, open_low: bool = False) -> Any:
+    """A dataclass field whose value must lie in ``[low, high]`` (``(low, high]`` with
+    ``open_low``; no upper bound when ``high`` is None).
+
+    The range sits next to the field it bounds and is checked once, when the
+    config is built (:func:`_check_fields` in each section's ``__post_init__``),
+    so that no code reading the config checks it again.
+    """
+    return field(default=default, metadata={"range": (low, high, open_low)})
+
+
+def one_of(default: str, choices: tuple[str, ...]) -> Any:
+    """A dataclass field whose value must be one of ``choices`` (checked at construction)."""
+    return field(default=default, metadata={"choices": choices})
+
+
+class _FieldError(ConfigError):
+    """A field's value out of its range; :func:`override` prefixes the section's path to
+    ``key`` so the message names the dotted key the user typed."""
+
+    def __init__(self, key: str, problem: str) -> None:
+        super().__init__(f"config key {key!r} {problem}")
+        self.key, self.problem = key, problem
+
+
+def _check_fields(obj: Any, prefix: str = "") -> None:
+    """Every float field finite, every :func:`ranged` field in range, every :func:`one_of`
+    field one of its choices; one-line :class:`ConfigError` naming the first bad field.
+
+    Nested sections check themselves; a tuple gives one value per item (``key[i]``).
+    """
+    for f in dataclasses.fields(obj):
+        value, key = getattr(obj, f.name), f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(value):
+            continue
+        for item_key, item in (
+            [(f"{key}[{i}]", v) for i, v in enumerate(value)]
+            if isinstance(value, tuple)
+            else [(key, value)]
+        ):
+            if isinstance(item, float) and not math.isfinite(item):
+                raise _FieldError(item_key, f"must be a finite number, got {item}")
+        if "range" in f.metadata:
+            low, high, open_low = f.metadata["range"]
+            too_low = value <= low if open_low else value < low
+            if too_low or (high is not None and value > high):
+                raise _FieldError(key, f"must be {_range_text(low, high, open_low)}, got {value}")
+        if "choices" in f.metadata and value not in f.metadata["choices"]:
+            choices = f.metadata["choices"]
+            raise _FieldError(key, f"must be one of {', '.join(choices)}, got {value!r}")
+
+
+def _range_text(low: float, high: float | None, open_low: bool) -> str:
+    if high is None:
+        return f"{'>' if open_low else '>='} {low}"
+    return f"in {'(' if open_low else '['}{low}, {high}]"
 
 
 # --------------------------------------------------------------------------
@@ -176,6 +243,7 @@ class CavParams:
                 f"CAV safe_decel_mps2 must be in (0, decel_mps2 = {self.decel_mps2}], "
                 f"got {self.safe_decel_mps2}"
             )
+        _check_fields(self)
 
 
 # --------------------------------------------------------------------------
@@ -192,11 +260,11 @@ class SimConfig:
 
     step_s: float = 1.0  # one decision step
     substeps: int = 10  # highway backend integration steps per decision
-    episode_steps: int = 100
-    speed_change_mps: float = 2.0  # accelerate/decelerate action, over one step
-    vehicle_length_m: float = 5.0
-    vehicle_width_m: float = 1.8
-    idm_delta: float = 4.0  # IDM acceleration exponent
+    episode_steps: int = ranged(100, 1)
+    speed_change_mps: float = ranged(2.0, 0)  # accelerate/decelerate action, over one step
+    vehicle_length_m: float = ranged(5.0, 0, open_low=True)
+    vehicle_width_m: float = ranged(1.8, 0, open_low=True)
+    idm_delta: float = ranged(4.0, 0, open_low=True)  # IDM acceleration exponent
     style_preset: str = "realistic"
     cav_mode: str = "commanded"  # or "cooperative" (see CAV_MODES)
     cav: CavParams = field(default_factory=CavParams)
@@ -209,6 +277,7 @@ class SimConfig:
                 f"SimConfig needs step_s > 0 and substeps >= 1, got {self.step_s} and "
                 f"{self.substeps}"
             )
+        _check_fields(self)
 
 
 # --------------------------------------------------------------------------
@@ -228,12 +297,15 @@ class ObservationConfig:
     the limits a preset lowers (``paper-congestion``).
     """
 
-    history_steps: int = 5  # neighbour trajectories, current step included
-    n_neighbours: int = 6  # nearest vehicles in same and adjacent lanes
-    max_vehicles: int = 40  # critic pads to this many vehicles
-    lane_window_m: float = 100.0  # lane statistics look this far ahead and behind
+    history_steps: int = ranged(5, 1)  # neighbour trajectories, current step included
+    n_neighbours: int = ranged(6, 1)  # nearest vehicles in same and adjacent lanes
+    max_vehicles: int = ranged(40, 1)  # critic pads to this many vehicles
+    lane_window_m: float = ranged(100.0, 0, open_low=True)  # lane statistics: ahead and behind
     critic_step_input: bool = True  # the critic's step / T feature (False: always 0)
     road_speed_limits: bool = False  # road table column 4 = segment limit / route max
+
+    def __post_init__(self) -> None:
+        _check_fields(self)
 
 
 #: Options of :class:`PSARConfig` (see :func:`diacc.psar.psar`).
@@ -289,6 +361,7 @@ class PSARConfig:
                 f"PSARConfig needs min_gap_m >= 0 and cav_time_gap_s >= 0, got "
                 f"{self.min_gap_m} and {self.cav_time_gap_s}"
             )
+        _check_fields(self)
 
 
 @dataclass(frozen=True)
@@ -299,6 +372,9 @@ class EventConfig:
     sce_min_gap_m: float = 1.0
     sce_ttc_s: float = 1.5
     emergency_decel_mps2: float = 4.5
+
+    def __post_init__(self) -> None:
+        _check_fields(self)
 
 
 #: Options of :class:`RewardConfig` (see :mod:`diacc.reward`); the first is the paper's.
@@ -322,8 +398,8 @@ class RewardConfig:
     and ``delay_weight``.
     """
 
-    w_ego: float = 0.6
-    w_global: float = 0.4
+    w_ego: float = ranged(0.6, 0)
+    w_global: float = ranged(0.4, 0)
     speed_weight: float = 5.0  # speed term scaled to [0, 5]
     speed_offset: float = 1.0  # p_ev
     warning_distance_m: float = 3.0
@@ -335,18 +411,27 @@ class RewardConfig:
     time_penalty_speed_mps: float = 5.0  # v_th
     global_offset: float = 1.0  # p_gv
     exit_bonus: float = 20.0  # r_done per CAV leaving the route
-    tau_init: float = 2.0
-    tau_final: float = 0.05
-    tau_anneal_fraction: float = 0.5  # of the training steps
+    tau_init: float = ranged(2.0, 0, open_low=True)
+    tau_final: float = ranged(0.05, 0, open_low=True)
+    tau_anneal_fraction: float = ranged(0.5, 0, 1, open_low=True)  # of the training steps
     # ---- options (diacc.reward; docs/concepts/learning-options.md); defaults: the paper
     closeness: str = "centre"  # "centre" (paper) or "bumper": gap and TTC to lane leader/follower
-    warning_ttc_s: float = 3.0  # "bumper": TTC to the same-lane leader that starts the warning
+    # "bumper": TTC to the same-lane leader that starts the warning
+    warning_ttc_s: float = ranged(3.0, 0, open_low=True)
     exit_bonus_scale: str = "per_cav"  # "per_cav" (paper) or "fleet": bonus / CAV slots
-    delay_weight: float = 0.0  # weight of the delay term (vehicle-seconds lost / s / vehicle)
+    # weight of the delay term (vehicle-seconds lost / s / vehicle)
+    delay_weight: float = ranged(0.0, 0)
 
     def __post_init__(self) -> None:
         _check_choice("env.reward.closeness", self.closeness, CLOSENESS_MODES)
         _check_choice("env.reward.exit_bonus_scale", self.exit_bonus_scale, EXIT_BONUS_SCALES)
+        _check_fields(self)
+        # the warning term divides by their difference (diacc.reward)
+        if not 0.0 < self.collision_distance_m < self.warning_distance_m:
+            raise ConfigError(
+                "RewardConfig needs 0 < collision_distance_m < warning_distance_m, got "
+                f"{self.collision_distance_m} and {self.warning_distance_m}"
+            )
 
 
 BACKENDS = ("highway", "sumo")
@@ -381,6 +466,9 @@ class EnvConfig:
                 f"scenario.warmup_s {self.scenario.warmup_s:g} s is not shorter than the episode "
                 f"({self.sim.episode_steps} steps of {self.sim.step_s:g} s = {episode_s:g} s)"
             )
+        _check_fields(self)
+        # Scenario (diacc.scenario) checks its own ranges; finiteness is checked here.
+        _check_fields(self.scenario, "scenario.")
 
 
 # --------------------------------------------------------------------------
@@ -388,13 +476,16 @@ class EnvConfig:
 # --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ModelConfig:
-    hidden_dim: int = 128
-    gat_heads: int = 4
-    cross_heads: int = 8
-    cross_dim: int = 64
-    gru_hidden: int = 128
-    leaky_slope: float = 0.2
+    hidden_dim: int = ranged(128, 1)
+    gat_heads: int = ranged(4, 1)
+    cross_heads: int = ranged(8, 1)
+    cross_dim: int = ranged(64, 1)
+    gru_hidden: int = ranged(128, 1)
+    leaky_slope: float = ranged(0.2, 0)
     taie_concat_heads: bool = False  # TAIE GAT heads hidden/heads wide, concatenated (cheaper)
+
+    def __post_init__(self) -> None:
+        _check_fields(self)
 
 
 @dataclass(frozen=True)
@@ -432,46 +523,51 @@ class TrainConfig:
     """One training run: the variant, the PPO settings and the environment it trains in."""
 
     variant: str = "diacc"
-    total_steps: int = 3_000_000  # environment steps (decisions x envs)
-    n_envs: int = 20
+    total_steps: int = ranged(3_000_000, 1)  # environment steps (decisions x envs)
+    n_envs: int = ranged(20, 1)
     # sync (in process), batched (one highway simulator for all envs), process (worker
     # processes), auto (by backend: batched for highway, process for sumo)
-    vector: str = "auto"
-    rollout_steps: int = 100
-    seed: int = 1
-    device: str = "auto"  # of the PPO update; rollout forwards always run on the CPU
-    torch_threads: int = 0  # intra-op threads of the trainer; 0 = diacc.threads rule
+    vector: str = one_of("auto", ("auto", "sync", "batched", "process"))
+    rollout_steps: int = ranged(100, 1)
+    seed: int = 1  # in [0, 2**32 - 1]
+    # of the PPO update; rollout forwards always run on the CPU
+    device: str = one_of("auto", ("auto", "cpu", "cuda"))
+    torch_threads: int = ranged(0, 0)  # intra-op threads of the trainer; 0 = diacc.threads rule
     update_bf16: bool = False  # bf16 autocast in the PPO update (changes numerics: option)
     update_compile: bool = False  # torch.compile the networks' sequence replay in the update
     # collect the next rollout while the learner trains (second thread): one-update policy lag
     overlap: bool = False
-    lr: float = 5e-4
-    adam_eps: float = 1e-5
+    lr: float = ranged(5e-4, 0, open_low=True)
+    adam_eps: float = ranged(1e-5, 0, open_low=True)
     lr_decay: bool = True
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    clip: float = 0.2
-    epochs: int = 5
-    minibatches: int = 1
-    entropy_coef: float = 0.01
-    value_coef: float = 1.0
-    huber_delta: float = 10.0
-    max_grad_norm: float = 10.0
-    chunk_len: int = 10
-    checkpoint_every: int = 10  # updates
+    gamma: float = ranged(0.99, 0, 1)
+    gae_lambda: float = ranged(0.95, 0, 1)
+    clip: float = ranged(0.2, 0, open_low=True)
+    epochs: int = ranged(5, 1)
+    minibatches: int = ranged(1, 1)
+    entropy_coef: float = ranged(0.01, 0)
+    value_coef: float = ranged(1.0, 0)
+    huber_delta: float = ranged(10.0, 0, open_low=True)
+    max_grad_norm: float = ranged(10.0, 0, open_low=True)
+    chunk_len: int = ranged(10, 1)
+    checkpoint_every: int = ranged(10, 1)  # updates
     # "team": one value per env, all CAVs share the advantage (paper); "per_agent":
     # a value per CAV slot from its own features beside the global state (docs)
-    critic_values: str = "team"
+    critic_values: str = one_of("team", ("team", "per_agent"))
     run_dir: str = "runs/diacc"
     env: EnvConfig = field(default_factory=EnvConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
 
     def __post_init__(self) -> None:
         _check_choice("variant", self.variant, VARIANTS)
-        # The variant decides PSAR, so the environment cannot disagree with it.
+        # The variant decides PSAR, so the environment cannot disagree with it: derived
+        # here; :func:`override` refuses an ``env.use_psar`` asked for that contradicts it.
         use_psar = VARIANT_TABLE[self.variant].psar
         if self.env.use_psar != use_psar:
             object.__setattr__(self, "env", dataclasses.replace(self.env, use_psar=use_psar))
+        _check_fields(self)
+        if not 0 <= self.seed < 2**32:
+            raise ConfigError(f"seed must be in [0, 2**32 - 1], got {self.seed}")
 
 
 def override(config: Any, values: dict[str, Any]) -> Any:
@@ -492,7 +588,33 @@ def override(config: Any, values: dict[str, Any]) -> Any:
             if not isinstance(node, dict):
                 raise ConfigError(f"unknown config key {key!r}")
         node[leaf] = value
-    return _replace(config, tree, "")
+    result = _replace(config, tree, "")
+    if isinstance(result, TrainConfig):
+        _refuse_contradicted_psar(result, tree)
+    return result
+
+
+def _refuse_contradicted_psar(cfg: TrainConfig, tree: dict[str, Any]) -> None:
+    """One-line :class:`ConfigError` if ``env.use_psar`` was asked for against the variant.
+
+    The variant derives ``env.use_psar`` (:class:`TrainConfig`), so a requested
+    value it contradicts would otherwise be dropped without a word.
+    """
+    env = next((v for k, v in tree.items() if k.replace("-", "_") == "env"), None)
+    if not isinstance(env, dict):
+        return
+    for key, value in env.items():
+        if key.replace("-", "_") != "use_psar":
+            continue
+        wanted = _coerce(True, value, "env.use_psar")
+        if wanted != cfg.env.use_psar:
+            others = [v.name for v in VARIANT_TABLE.values() if v.psar == wanted]
+            raise ConfigError(
+                f"env.use_psar={str(wanted).lower()} contradicts variant {cfg.variant!r}, "
+                f"which {'uses' if cfg.env.use_psar else 'does not use'} PSAR; the variant "
+                f"decides it: choose one {'with' if wanted else 'without'} PSAR "
+                f"({', '.join(others)})"
+            )
 
 
 def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
@@ -513,7 +635,10 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
             )
         else:
             changes[head] = _coerce(current, value, full_key)
-    return dataclasses.replace(obj, **changes)
+    try:
+        return dataclasses.replace(obj, **changes)
+    except _FieldError as exc:  # a field of this section: name it by its full key
+        raise _FieldError(f"{prefix}{exc.key}", exc.problem) from None
 
 
 def _coerce(current: Any, value: Any, key: str) -> Any:
@@ -536,81 +661,103 @@ def _coerce(current: Any, value: Any, key: str) -> Any:
     return value
 
 
+def build_train_config(
+    file: str | Path | None = None,
+    *,
+    variant: str | None = None,
+    backend: str | None = None,
+    map: str | None = None,  # noqa: A002 - the option's name
+    steps: int | None = None,
+    envs: int | None = None,
+    seed: int | None = None,
+    device: str | None = None,
+    run_dir: str | Path | None = None,
+    style_preset: str | None = None,
+    sets: Iterable[str] | Mapping[str, Any] = (),
+) -> TrainConfig:
+    """The training config of user input: defaults < TOML ``file`` < named options < ``sets``.
+
+    One function for every entry point (``diacc train``, ``sweep``, ``reproduce``)
+    so that they resolve settings the same way and the library never builds a
+    command line to call itself. A named option left at None keeps the file's
+    (or the default) value; ``steps`` is ``total_steps`` (environment steps,
+    decisions x environments), ``envs`` is ``n_envs``, ``style_preset`` is
+    ``env.sim.style_preset``. ``sets`` are ``KEY=VALUE`` texts (``--set``) or a
+    mapping of dotted keys to values. All layers are applied in one
+    :func:`override`, so a value one layer asks for and the variant contradicts
+    (``env.use_psar``) is refused, whichever layer named the variant. Without a
+    ``run_dir`` anywhere the run goes to ``runs/<variant>-<backend>-<map>-s<seed>``
+    of the resolved config. Not validated here (:func:`validate` runs before a
+    run writes anything); bad keys and values raise a one-line :class:`ConfigError`.
+    """
+    from diacc.tomlfile import read_toml
+
+    values: dict[str, Any] = {}
+    if file is not None:
+        if not Path(file).exists():
+            raise ConfigError(f"config file {file} does not exist")
+        values.update(_flatten(read_toml(Path(file), ConfigError)))
+    named = {
+        "variant": variant,
+        "env.backend": backend,
+        "env.map": None if map is None else str(map),
+        "total_steps": steps,
+        "n_envs": envs,
+        "seed": seed,
+        "device": device,
+        "run_dir": None if run_dir is None else str(run_dir),
+        "env.sim.style_preset": style_preset,
+    }
+    values.update({k: v for k, v in named.items() if v is not None})
+    values.update(sets if isinstance(sets, Mapping) else parse_sets(sets))
+    cfg = override(TrainConfig(), values)
+    if not any(key.replace("-", "_") == "run_dir" for key in values):
+        cfg = dataclasses.replace(cfg, run_dir=default_run_dir(cfg))
+    return cfg
+
+
+def default_run_dir(cfg: TrainConfig) -> str:
+    """``runs/<variant>-<backend>-<map>-s<seed>``: where a run goes that names no directory."""
+    from diacc.maps import map_tag
+
+    return f"runs/{cfg.variant}-{cfg.env.backend}-{map_tag(cfg.env.map)}-s{cfg.seed}"
+
+
+def parse_sets(items: Iterable[str]) -> dict[str, str]:
+    """``["KEY=VALUE", ...]`` (``--set``) -> ``{KEY: VALUE}``; the values stay text for
+    :func:`override` to parse by the field's type (a later KEY wins)."""
+    values: dict[str, str] = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
+        key, value = item.split("=", 1)
+        values[key] = value
+    return values
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested TOML tables -> dotted keys (``{"env": {"map": m}}`` -> ``{"env.map": m}``)."""
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, Mapping) and value:  # an empty one stays for override to judge
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
 # --------------------------------------------------------------------------
 # Validation
 # --------------------------------------------------------------------------
-#: Allowed range of each numeric training setting: (low, high, low is exclusive).
-#: Every float of every section must also be finite (checked for all fields).
-_LIMITS: dict[str, tuple[float | None, float | None, bool]] = {
-    "total_steps": (1, None, False),
-    "n_envs": (1, None, False),
-    "rollout_steps": (1, None, False),
-    "lr": (0, None, True),
-    "adam_eps": (0, None, True),
-    "gamma": (0, 1, False),
-    "gae_lambda": (0, 1, False),
-    "clip": (0, None, True),
-    "epochs": (1, None, False),
-    "minibatches": (1, None, False),
-    "entropy_coef": (0, None, False),
-    "value_coef": (0, None, False),
-    "huber_delta": (0, None, True),
-    "max_grad_norm": (0, None, True),
-    "chunk_len": (1, None, False),
-    "checkpoint_every": (1, None, False),
-    "torch_threads": (0, None, False),
-    "env.sim.episode_steps": (1, None, False),
-    "env.sim.speed_change_mps": (0, None, False),
-    "env.sim.vehicle_length_m": (0, None, True),
-    "env.sim.vehicle_width_m": (0, None, True),
-    "env.sim.idm_delta": (0, None, True),
-    "env.obs.history_steps": (1, None, False),
-    "env.obs.n_neighbours": (1, None, False),
-    "env.obs.max_vehicles": (1, None, False),
-    "env.obs.lane_window_m": (0, None, True),
-    "env.reward.w_ego": (0, None, False),
-    "env.reward.w_global": (0, None, False),
-    "env.reward.tau_init": (0, None, True),
-    "env.reward.tau_final": (0, None, True),
-    "env.reward.tau_anneal_fraction": (0, 1, True),
-    "env.reward.warning_ttc_s": (0, None, True),
-    "env.reward.delay_weight": (0, None, False),
-    "model.hidden_dim": (1, None, False),
-    "model.gat_heads": (1, None, False),
-    "model.cross_heads": (1, None, False),
-    "model.cross_dim": (1, None, False),
-    "model.gru_hidden": (1, None, False),
-    "model.leaky_slope": (0, None, False),
-}
-_CHOICES: dict[str, tuple[str, ...]] = {
-    "vector": ("auto", "sync", "batched", "process"),
-    "device": ("auto", "cpu", "cuda"),
-    "critic_values": ("team", "per_agent"),
-}
-
-
 def validate(cfg: TrainConfig) -> TrainConfig:
-    """Reject non-finite floats, out-of-range values and unknown choices (one-line ConfigError).
+    """Reject settings that cannot train together (one-line ConfigError).
 
+    Each field's own range, finiteness and choices are checked when the config
+    is built (:func:`ranged`, :func:`one_of`, the sections' ``__post_init__``);
+    what is left are relations between fields that only a training run needs.
     Called before a run writes anything, so a bad value never leaves a run
     directory behind or surfaces later as a NaN checkpoint or a torch error.
     """
-    for key, value in _leaves(cfg):
-        if isinstance(value, float) and not math.isfinite(value):
-            raise ConfigError(f"config key {key!r} must be a finite number, got {value}")
-        if key in _LIMITS:
-            low, high, exclusive = _LIMITS[key]
-            too_low = low is not None and (value <= low if exclusive else value < low)
-            if too_low or (high is not None and value > high):
-                raise ConfigError(
-                    f"config key {key!r} must be {_range(low, high, exclusive)}, got {value}"
-                )
-        if key in _CHOICES and value not in _CHOICES[key]:
-            raise ConfigError(
-                f"config key {key!r} must be one of {', '.join(_CHOICES[key])}, got {value!r}"
-            )
-    if not 0 <= cfg.seed < 2**32:
-        raise ConfigError(f"seed must be in [0, 2**32 - 1], got {cfg.seed}")
     if cfg.env.scenario.n_cavs < 1:
         raise ConfigError(
             f"env.scenario: {cfg.env.scenario.n_vehicles} vehicles at cav_penetration "
@@ -646,12 +793,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"{cfg.n_envs * (cfg.rollout_steps // cfg.chunk_len)} sequences"
         )
     return cfg
-
-
-def _range(low: float | None, high: float | None, exclusive: bool) -> str:
-    if high is None:
-        return f"{'>' if exclusive else '>='} {low}"
-    return f"in {'(' if exclusive else '['}{low}, {high}]"
 
 
 def _leaves(obj: Any, prefix: str = "") -> list[tuple[str, Any]]:

@@ -309,11 +309,6 @@ class ObservationBuilder:
                 f"map {road.name!r} has {road.max_lanes} lanes; the observation layout "
                 f"holds at most MAX_LANES = {MAX_LANES}"
             )
-        if cfg.history_steps < 1 or cfg.n_neighbours < 1 or cfg.max_vehicles < 1:
-            raise ObservationError(
-                "history_steps, n_neighbours and max_vehicles must all be >= 1, got "
-                f"{cfg.history_steps}, {cfg.n_neighbours}, {cfg.max_vehicles}"
-            )
         if episode_steps < 1:
             raise ObservationError(f"episode_steps must be >= 1, got {episode_steps}")
         self.road = road

@@ -65,13 +65,13 @@ def temperature(step: int, total_steps: int, cfg: RewardConfig) -> float:
 
     Linear from ``tau_init`` to ``tau_final`` over the first
     ``tau_anneal_fraction * total_steps`` environment steps, then constant.
+    ``cfg``'s ranges (``tau_anneal_fraction`` in (0, 1], temperatures > 0) were
+    checked when it was built (:class:`~diacc.config.RewardConfig`), so not here.
     """
     if total_steps <= 0:
         raise RewardError(f"total_steps must be positive, got {total_steps}")
     if step < 0:
         raise RewardError(f"step must be >= 0, got {step}")
-    if not 0.0 < cfg.tau_anneal_fraction <= 1.0:
-        raise RewardError(f"tau_anneal_fraction must be in (0, 1], got {cfg.tau_anneal_fraction}")
     anneal_steps = cfg.tau_anneal_fraction * total_steps
     frac = min(step / anneal_steps, 1.0)
     return float(cfg.tau_init - (cfg.tau_init - cfg.tau_final) * frac)
@@ -150,12 +150,12 @@ def reward(
         cav_index: (C,) vehicle indices of the CAV slots.
         road: the map (speed limits per segment).
         tau: softmin temperature (:func:`temperature`).
-        cfg: reward weights and thresholds.
+        cfg: reward weights and thresholds (checked when it was built, e.g.
+            ``collision_distance_m < warning_distance_m``; not on every call).
 
     Returns:
         :class:`RewardTerms`.
     """
-    _check_config(cfg)
     cav_index = np.asarray(cav_index)
     lead = state.x_m.shape[:-1]
     if (
@@ -295,11 +295,3 @@ def _delay_rate(state: TrafficState, limits_mps: np.ndarray) -> np.ndarray:
     v_limit_mps = limits_mps[np.clip(state.segment, 0, limits_mps.shape[0] - 1)]  # (..., V)
     lost = np.maximum(1.0 - state.speed_mps / v_limit_mps, 0.0)  # (..., V)
     return np.where(state.active, lost, 0.0).sum(axis=-1) / max(state.n_vehicles, 1)
-
-
-def _check_config(cfg: RewardConfig) -> None:
-    if not 0.0 < cfg.collision_distance_m < cfg.warning_distance_m:
-        raise RewardError(
-            "RewardConfig needs 0 < collision_distance_m < warning_distance_m, got "
-            f"{cfg.collision_distance_m} and {cfg.warning_distance_m}"
-        )

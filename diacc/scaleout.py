@@ -10,7 +10,7 @@ sweep``) do the same work on one machine. With ``--engine ray``:
   on (cell, episode) only, so the files are identical to a local run's.
 * ``diacc sweep``: every (variant, map, setting, seed) run is one Ray task that calls
   the trainer. Run directories are written where the task runs: on a cluster,
-  put ``--out-dir`` on a filesystem all machines share (NFS), or collect the
+  put ``--out`` on a filesystem all machines share (NFS), or collect the
   directories from the machines each run reports.
 
 Ray runs on a local instance started for the command (``--ray-cpus`` CPUs)

@@ -29,7 +29,7 @@ from typing import Any
 from diacc.config import ConfigError, TrainConfig, override, validate
 
 #: Keys a sweep varies with its own options (``--variants``, ``--maps``, ``--seeds``).
-OWN_AXES = {"variant": "--variants", "env.map": "--maps", "seed": "--seeds", "run_dir": "--out-dir"}
+OWN_AXES = {"variant": "--variants", "env.map": "--maps", "seed": "--seeds", "run_dir": "--out"}
 #: The paper's two selection studies as sweep axes (module docstring). The paper
 #: names w_e = 0 to 0.4, 0.6, 0.8 and 1.0; 0.2 is our step inside "0 to 0.4".
 STUDIES: dict[str, str] = {

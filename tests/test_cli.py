@@ -20,7 +20,7 @@ def _error(capsys, argv: list[str]) -> str:
 
 
 def test_train_rejects_bad_input(tmp_path, capsys):
-    run = ["--run-dir", str(tmp_path / "r"), "--no-progress"]
+    run = ["--out", str(tmp_path / "r"), "--no-progress"]
     assert "unknown map 'nowhere'" in _error(capsys, ["train", "--map", "nowhere", *run])
     assert "unknown config key 'env.reward.nope'" in _error(
         capsys, ["train", "--set", "env.reward.nope=1", *run]
@@ -60,7 +60,7 @@ def test_bench_needs_a_target(capsys):
 def test_train_writes_a_run_directory(tmp_path, capsys):
     config = tmp_path / "small.toml"
     config.write_text(
-        "rollout_steps = 10\nepochs = 1\n[env.scenario]\nn_vehicles = 8\n"
+        "rollout_steps = 10\nepochs = 1\nn_envs = 4\nseed = 5\n[env.scenario]\nn_vehicles = 8\n"
         "cav_penetration = 0.25\n[env.sim]\nepisode_steps = 10\n[model]\nhidden_dim = 32\n"
         "gru_hidden = 32\ncross_dim = 32\n"
     )
@@ -75,7 +75,9 @@ def test_train_writes_a_run_directory(tmp_path, capsys):
                 "2",
                 "--config",
                 str(config),
-                "--run-dir",
+                "--style-preset",
+                "zipper",
+                "--run-dir",  # the old name of --out still works
                 str(run),
                 "--no-progress",
             ]
@@ -95,6 +97,9 @@ def test_train_writes_a_run_directory(tmp_path, capsys):
     } <= set(record)
     stored = json.loads((run / "config.json").read_text())
     assert stored["env"]["scenario"]["n_vehicles"] == 8 and stored["model"]["hidden_dim"] == 32
+    # the file's seed stands (no --seed), --envs beats the file's n_envs
+    assert stored["seed"] == 5 and stored["n_envs"] == 2
+    assert stored["env"]["sim"]["style_preset"] == "zipper"
     out = capsys.readouterr().out
     assert out.index("resolved config") < out.index("run directory")
     assert re.search(r"total_steps\s+.*20\s+.*3000000", out)  # value and default

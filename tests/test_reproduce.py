@@ -384,7 +384,8 @@ def test_ray_engine_gives_the_local_results(tmp_path, capsys):
 
         ray.shutdown()
     stdout = capsys.readouterr().out
-    assert "[2/2] trained" in stdout and "[4/4] eval" in stdout
+    # 2 runs; 6 eval jobs: the four baselines and the two checkpoints
+    assert "[2/2] trained" in stdout and "[6/6] eval" in stdout
     for policy in ("pure-hdv", "mappo-train-50-s1", "diacc-train-50-s1"):
         local = _episodes(tmp_path / "local/eval/highway" / policy)
         remote = _episodes(tmp_path / "ray/eval/highway" / policy)

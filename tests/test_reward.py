@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from helpers import make_state
 
-from diacc.config import RewardConfig
+from diacc.config import ConfigError, RewardConfig, TrainConfig, override
 from diacc.maps import load_map
 from diacc.reward import RewardError, reward, softmin_weights, temperature
 
@@ -152,11 +152,12 @@ def test_no_cav_on_road_gives_only_completion():
     assert terms.total == pytest.approx(40.0)
 
 
-def test_reward_rejects_bad_config():
-    state = make_state([0.0], [0], is_cav=True)
-    bad = RewardConfig(collision_distance_m=5.0)
-    with pytest.raises(RewardError, match="collision_distance_m"):
-        reward(state, np.array([0]), ROAD, 1.0, bad)
+def test_reward_config_rejects_bad_distances():
+    # checked once when the config is built, not on every reward call
+    with pytest.raises(ConfigError, match="collision_distance_m < warning_distance_m"):
+        RewardConfig(collision_distance_m=5.0)
+    with pytest.raises(ConfigError, match="'env.reward.tau_anneal_fraction' must be in"):
+        override(TrainConfig(), {"env.reward.tau_anneal_fraction": 0})
 
 
 # ---------------------------------------------------------------- options (docs)

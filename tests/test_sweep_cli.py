@@ -15,7 +15,7 @@ SMALL = [
 
 def test_local_sweep_trains_then_skips(tmp_path, capsys):
     argv = ["sweep", "--variants", "mappo", "--seeds", "1,2", "--steps", "10", "--envs", "1"]
-    argv += ["--out-dir", str(tmp_path), *SMALL]
+    argv += ["--out", str(tmp_path), *SMALL]
     assert main(argv) == 0
     out = capsys.readouterr().out
     assert "2 runs (1 variants x 1 maps x 2 seeds) on engine local" in out
@@ -34,6 +34,7 @@ def test_tau_sweep_keeps_each_setting_apart(tmp_path, capsys):
     from diacc.plots import group_curves
 
     argv = ["sweep", "--variants", "diacc", "--seeds", "1", "--steps", "200", "--envs", "1"]
+    # --out-dir: the old name of --out, still accepted
     argv += ["--out-dir", str(tmp_path), "--sweep", "env.reward.tau_final=0.05,0.5", *SMALL]
     assert main(argv) == 0
     out = capsys.readouterr().out

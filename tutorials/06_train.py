@@ -20,7 +20,7 @@
 # The command line does it all:
 #
 # ```bash
-# diacc train --variant diacc --steps 4000 --envs 4 --run-dir runs/quickstart
+# diacc train --variant diacc --steps 4000 --envs 4 --out runs/quickstart
 # diacc eval --policy runs/quickstart/checkpoint.pt --episodes 3 --out results/quickstart
 # diacc eval --policy pure-hdv --episodes 3 --out results/pure-hdv
 # diacc table results/pure-hdv results/quickstart

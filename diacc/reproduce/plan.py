@@ -18,7 +18,6 @@ on ``highway``) and ``eval/<backend>/<policy>/``.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
 from dataclasses import dataclass
@@ -32,6 +31,7 @@ from diacc.config import (
     ConfigError,
     SimConfig,
     TrainConfig,
+    build_train_config,
     override,
 )
 from diacc.grid import GRID_NAMES, Cell, load_grid
@@ -194,12 +194,8 @@ class Plan:
     def train_config(self, run: RunSpec) -> TrainConfig:
         """The full training config of a run: defaults, budget, preset, --set, the run, then
         its --sweep setting."""
-        from diacc.cli import train_config_from_args
-
         cfg = self.config
-        args = argparse.Namespace(
-            config=None,
-            set=[f"{_sim_key()}.style_preset={cfg.style_preset}", *cfg.train_sets],
+        trained = build_train_config(
             variant=run.variant,
             backend=run.backend,
             map=run.map,
@@ -207,33 +203,17 @@ class Plan:
             envs=cfg.budget.n_envs,
             seed=run.seed,
             device=cfg.device,
-            run_dir=str(self.run_dir(run)),
+            run_dir=self.run_dir(run),
+            style_preset=cfg.style_preset,
+            sets=cfg.train_sets,
         )
-        return override(train_config_from_args(args), run.setting.changes)
+        return override(trained, run.setting.changes)
 
     def planned_steps(self, run: RunSpec) -> int:
         """Environment steps the run will have taken when done (whole updates)."""
         from diacc.scaleout import planned_steps
 
         return planned_steps(self.train_config(run))
-
-
-def _sim_key(node: object | None = None, prefix: str = "") -> str:
-    """Dotted key of the :class:`SimConfig` inside :class:`TrainConfig` (``"sim"`` today).
-
-    Found by walking the config rather than written out, so that moving the
-    simulation settings inside the training config does not break this command.
-    """
-    node = TrainConfig() if node is None else node
-    for f in dataclasses.fields(node):
-        value = getattr(node, f.name)
-        if isinstance(value, SimConfig):
-            return prefix + f.name
-        if dataclasses.is_dataclass(value):
-            found = _sim_key(value, f"{prefix}{f.name}.")
-            if found:
-                return found
-    return ""
 
 
 # ----------------------------------------------------------------------------- resolution
