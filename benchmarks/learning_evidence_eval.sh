@@ -23,6 +23,14 @@ for backend in ${BACKENDS:-highway sumo}; do
   done
   for run in "$runs"/*/; do
     [[ -f $run/checkpoint.pt ]] || continue
+    # Only finished runs: a run still training has a checkpoint too.
+    python - "$run" <<'PY' || { echo "$(basename "$run"): not finished, skipped"; continue; }
+import json, sys
+run = sys.argv[1]
+total = json.load(open(f"{run}/config.json"))["total_steps"]
+rows = [json.loads(line) for line in open(f"{run}/progress.jsonl") if line.strip()]
+sys.exit(0 if rows and rows[-1]["global_step"] >= total else 1)
+PY
     name=$(basename "$run")
     modes=greedy
     [[ " ${SAMPLED_ON:-highway} " == *" $backend "* ]] && modes="greedy sampled"
