@@ -43,32 +43,41 @@ METRICS = (
 )
 
 
-def episode_means(path: Path) -> dict[str, float]:
-    """Mean of every metric over the episodes of one evaluation directory."""
+def episode_means(path: Path) -> dict[str, dict[str, float]]:
+    """``{map: mean of every metric over its episodes}`` of one evaluation directory."""
     with (path / "episodes.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     if not rows:
         raise SystemExit(f"{path}/episodes.csv has no episodes")
-    return {key: statistics.mean(float(r[key]) for r in rows) for key, *_ in METRICS} | {
-        "episodes": len(rows)
+    by_map: dict[str, list[dict]] = {}
+    for row in rows:
+        by_map.setdefault(row["map"], []).append(row)
+    return {
+        name: {key: statistics.mean(float(r[key]) for r in cell) for key, *_ in METRICS}
+        | {"episodes": len(cell)}
+        for name, cell in by_map.items()
     }
 
 
-def group_runs(backend_dir: Path) -> dict[str, list[dict[str, float]]]:
-    """``{label: [per-seed means]}``: a baseline is one 'seed', a trained group its seeds."""
-    groups: dict[str, list[dict[str, float]]] = {}
+def group_runs(backend_dir: Path) -> dict[str, dict[str, list[dict[str, float]]]]:
+    """``{map: {label: [per-seed means]}}``: a baseline is one 'seed', a trained group its seeds."""
+    groups: dict[str, dict[str, list[dict[str, float]]]] = {}
     for path in sorted(p for p in backend_dir.iterdir() if (p / "episodes.csv").exists()):
-        if path.name in BASELINES:
-            groups[path.name] = [episode_means(path)]
-            continue
         match = RUN_NAME.match(path.name)
-        if match is None:
+        if path.name in BASELINES:
+            label = path.name
+        elif match is not None:
+            label = f"{match['setting']} {match['variant']} ({match['actions']})"
+        else:
             raise SystemExit(f"{path}: not a baseline nor SETTING-VARIANT-sSEED-ACTIONS")
-        label = f"{match['setting']} {match['variant']} ({match['actions']})"
-        groups.setdefault(label, []).append(episode_means(path))
-    missing = [b for b in ("same-mix", "heuristic", "cooperative") if b not in groups]
-    if missing:
-        raise SystemExit(f"{backend_dir}: baseline results missing: {', '.join(missing)}")
+        for map_name, means in episode_means(path).items():
+            groups.setdefault(map_name, {}).setdefault(label, []).append(means)
+    for map_name, cell in groups.items():
+        missing = [b for b in ("same-mix", "heuristic", "cooperative") if b not in cell]
+        if missing:
+            raise SystemExit(
+                f"{backend_dir}, {map_name}: baseline results missing: {', '.join(missing)}"
+            )
     return groups
 
 
@@ -109,11 +118,12 @@ def main() -> None:
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     lines, table = [], []
-    for backend_dir in sorted(p for p in args.eval_dir.iterdir() if p.is_dir()):
-        groups = group_runs(backend_dir)
+    backend_dirs = sorted(p for p in args.eval_dir.iterdir() if p.is_dir())
+    tables = [(d, m, g) for d in backend_dirs for m, g in group_runs(d).items()]
+    for backend_dir, map_name, groups in tables:
         heads = " | ".join(h for _, h, *_ in METRICS)
         lines += [
-            f"## {backend_dir.name}",
+            f"## {backend_dir.name}, {map_name}",
             "",
             f"| policy | seeds x episodes | {heads} | delay vs same-mix | delay vs heuristic "
             "| throughput vs same-mix | targets met |",
@@ -143,7 +153,15 @@ def main() -> None:
                 + f" | {verdict} |"
             )
             for i, run in enumerate(runs):
-                table.append({"backend": backend_dir.name, "policy": label, "seed_index": i, **run})
+                table.append(
+                    {
+                        "backend": backend_dir.name,
+                        "map": map_name,
+                        "policy": label,
+                        "seed_index": i,
+                        **run,
+                    }
+                )
         lines.append("")
     (args.out / "summary.md").write_text("\n".join(lines))
     with (args.out / "summary.csv").open("w", newline="") as fh:
