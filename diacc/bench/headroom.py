@@ -137,21 +137,19 @@ class SlotCountingDriver(EpisodeDriver):
         return state
 
 
-def measure(
+def make_driver(
     backend: str,
     cell: Cell,
     policy_name: str,
-    episodes: int,
     style_preset: str,
     steps: int,
     horizon: str | None = None,
     demand: Scenario | None = None,
-) -> dict[str, float]:
-    """Mean :data:`METRICS` of ``episodes`` seeded episodes of one policy on one cell.
+) -> SlotCountingDriver:
+    """The episode driver of one reference on one cell (the caller closes it).
 
     ``demand``: the demand timing (``demand_s``, ``warmup_s``); the cell carries
     the inflow. Policies in :data:`COMMANDING` then get a slot for every CAV.
-    Adds ``unslotted_cav_steps`` (mean per episode).
     """
     policy = build_policy(PolicySpec(policy_name))
     if demand is not None:
@@ -162,7 +160,22 @@ def measure(
         sim = dataclasses.replace(policy.base.sim, episode_steps=steps)  # EnvConfig checks warm-up
         policy.base = dataclasses.replace(policy.base, scenario=base, sim=sim)
     settings = EvalSettings(backend, steps, style_preset, psar_horizon=horizon)
-    driver = SlotCountingDriver(policy, policy.env_config(cell, settings))
+    return SlotCountingDriver(policy, policy.env_config(cell, settings))
+
+
+def measure(
+    backend: str,
+    cell: Cell,
+    policy_name: str,
+    episodes: int,
+    style_preset: str,
+    steps: int,
+    horizon: str | None = None,
+    demand: Scenario | None = None,
+) -> dict[str, float]:
+    """Mean :data:`METRICS` of ``episodes`` seeded episodes of one policy on one cell,
+    and ``unslotted_cav_steps`` (mean per episode); arguments as :func:`make_driver`."""
+    driver = make_driver(backend, cell, policy_name, style_preset, steps, horizon, demand)
     rows, unslotted = [], []
     try:
         for k in range(episodes):
