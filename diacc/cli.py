@@ -286,6 +286,15 @@ def cmd_bench(args: argparse.Namespace) -> None:
         raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
     if args.steps is not None and args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
+    demand_flags = {
+        "--inflow": args.inflow,
+        "--demand-s": args.demand_s,
+        "--warmup-s": args.warmup_s,
+    }
+    given = [flag for flag, value in demand_flags.items() if value is not None]
+    given += ["--scenario demand"] * (args.scenario == "demand")
+    if given and not (args.headroom and args.scenario == "demand"):
+        raise ConfigError(f"{given[0]} needs --headroom with --scenario demand")
     if args.safety:
         from diacc.bench import safety
 
@@ -320,14 +329,6 @@ def cmd_bench(args: argparse.Namespace) -> None:
             steps=args.steps or 330,
         )
         return
-    demand_flags = {
-        "--inflow": args.inflow,
-        "--demand-s": args.demand_s,
-        "--warmup-s": args.warmup_s,
-    }
-    given = [flag for flag, value in demand_flags.items() if value is not None]
-    if given and not (args.headroom and args.scenario == "demand"):
-        raise ConfigError(f"{given[0]} needs --headroom --scenario demand")
     if args.headroom:
         from diacc.bench import headroom
 

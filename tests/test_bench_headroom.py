@@ -97,7 +97,7 @@ def test_headroom_demand_tiny(tmp_path, capsys):
         (["--scenario", "demand", "--inflow", "3600", "--warmup-s", "600"], "longer than warmup"),
         (["--scenario", "demand", "--inflow", "3600", "--steps", "100"], "is not shorter than"),
         (["--scenario", "demand"], "--scenario demand needs --inflow"),
-        (["--inflow", "3600"], "--inflow needs --headroom --scenario demand"),
+        (["--inflow", "3600"], "--inflow needs --headroom with --scenario demand"),
     ],
 )
 def test_headroom_demand_bad_input(capsys, argv, message):
@@ -105,3 +105,6 @@ def test_headroom_demand_bad_input(capsys, argv, message):
     err = capsys.readouterr().err.strip()
     assert err.startswith("diacc: error: ") and "\n" not in err
     assert message in err
+    # The demand flags belong to --headroom only.
+    assert main(["bench", "--headway", "--scenario", "demand"]) == 2
+    assert "--scenario demand needs --headroom with" in capsys.readouterr().err
