@@ -32,6 +32,7 @@ from diacc.config import (
     build_train_config,
 )
 from diacc.errors import DiaccError
+from diacc.scenario import SCENARIO_KINDS
 
 DESCRIPTION = """\
 diacc: multi-agent reinforcement learning for connected automated vehicles
@@ -222,6 +223,31 @@ def _bench_parser(sub) -> None:
         "cooperative, 100 %% CAVs (highway, or --backend)",
     )
     p.add_argument(
+        "--scenario",
+        choices=SCENARIO_KINDS,
+        default="release",
+        help="scenario kind of --headroom: the one-shot release (train-25, train-50) or "
+        "demand (train-50, needs --inflow)",
+    )
+    p.add_argument(
+        "--inflow",
+        type=float,
+        default=None,
+        help="vehicles per hour entering the route in --headroom --scenario demand",
+    )
+    p.add_argument(
+        "--demand-s",
+        type=float,
+        default=None,
+        help="seconds of demand of --scenario demand (default 480, as benchmarks/results/demand)",
+    )
+    p.add_argument(
+        "--warmup-s",
+        type=float,
+        default=None,
+        help="seconds of --scenario demand the metrics ignore (default 120)",
+    )
+    p.add_argument(
         "--horizon",
         choices=HORIZON_MODES,
         default=None,
@@ -265,6 +291,15 @@ def cmd_bench(args: argparse.Namespace) -> None:
         raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
     if args.steps is not None and args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
+    demand_flags = {
+        "--inflow": args.inflow,
+        "--demand-s": args.demand_s,
+        "--warmup-s": args.warmup_s,
+    }
+    given = [flag for flag, value in demand_flags.items() if value is not None]
+    given += ["--scenario demand"] * (args.scenario == "demand")
+    if given and not (args.headroom and args.scenario == "demand"):
+        raise ConfigError(f"{given[0]} needs --headroom with --scenario demand")
     if args.safety:
         from diacc.bench import safety
 
@@ -302,12 +337,21 @@ def cmd_bench(args: argparse.Namespace) -> None:
     if args.headroom:
         from diacc.bench import headroom
 
+        demand = None
+        if args.scenario == "demand":
+            if args.inflow is None:
+                raise ConfigError("--scenario demand needs --inflow (vehicles per hour)")
+            timing = {"demand_s": args.demand_s, "warmup_s": args.warmup_s}
+            demand = headroom.demand_scenario(
+                args.inflow, **{k: v for k, v in timing.items() if v is not None}
+            )
         headroom.run(
             backends=(args.backend,) if args.backend else ("highway",),
             episodes=args.episodes or 4,
-            style_preset=args.style_preset or "realistic",
-            steps=args.steps or 330,
+            style_preset=args.style_preset,
+            steps=args.steps,
             horizon=args.horizon,
+            demand=demand,
         )
         return
     if args.backend == "highway":

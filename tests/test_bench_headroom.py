@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
-from helpers import make_state
+from helpers import SHORT_MAP, make_state
 
 from diacc.bench import headroom, headway
 from diacc.cli import main
 from diacc.config import ConfigError
+from diacc.evaluate import run_episode
+from diacc.grid import Cell
+from diacc.policies import EvalSettings, PolicySpec, build_policy
 
 
 def test_time_gaps_by_pair_class():
@@ -50,3 +55,56 @@ def test_headroom_and_headway_bad_input(capsys):
     assert "--episodes must be >= 1" in err_lines[0] and "--steps must be >= 1" in err_lines[1]
     with pytest.raises(SystemExit):  # argparse: unknown horizon
         main(["bench", "--headroom", "--horizon", "tight"])
+
+
+def test_headroom_demand_tiny(tmp_path, capsys):
+    """Every reference row on a tiny demand run; the heuristic rows drive every CAV."""
+    road = tmp_path / "short.toml"
+    road.write_text(SHORT_MAP)
+    # 30 vehicles enter over 30 s on a 160 m road; metrics from 10 s on.
+    demand = headroom.demand_scenario(3600, demand_s=30, warmup_s=10)
+    rows = headroom.run(maps=(str(road),), episodes=1, demand=demand, horizon="headway")
+    out = capsys.readouterr().out
+    assert "demand 3600 veh/h for 30 s (N = 30), warm-up 10 s" in out and "preset zipper" in out
+    assert "| throughput vs pure HDV |" in out and "| unslotted CAV-steps |" in out
+    assert [r.label for r in rows] == [label for label, _, _ in headroom.REFERENCES]
+    by_label = {r.label: r.values for r in rows}
+    for label in ("heuristic", "100 % CAVs heuristic"):
+        assert by_label[label]["unslotted_cav_steps"] == 0.0
+    for values in by_label.values():
+        assert values["throughput_vph"] > 0 and values["collision"] == 0.0
+    # The count can fail: with one slot, 100 % CAVs leave CAVs without one.
+    policy = build_policy(PolicySpec("heuristic"))
+    one_slot = dataclasses.replace(demand, cav_slots=1)
+    sim = dataclasses.replace(policy.base.sim, episode_steps=30)
+    policy.base = dataclasses.replace(policy.base, scenario=one_slot, sim=sim)
+    cell = Cell(str(road), demand.n_vehicles, 1.0, "D1", demand.inflow_vph)
+    driver = headroom.SlotCountingDriver(
+        policy, policy.env_config(cell, EvalSettings("highway", 30, "zipper"))
+    )
+    try:
+        run_episode(driver, cell, 0)
+    finally:
+        driver.close()
+    assert driver.unslotted_cav_steps > 0
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--scenario", "demand", "--inflow", "-100"], "inflow_vph must be in (0, 10000]"),
+        (["--scenario", "demand", "--inflow", "1e6"], "inflow_vph must be in (0, 10000]"),
+        (["--scenario", "demand", "--inflow", "3600", "--warmup-s", "600"], "longer than warmup"),
+        (["--scenario", "demand", "--inflow", "3600", "--steps", "100"], "is not shorter than"),
+        (["--scenario", "demand"], "--scenario demand needs --inflow"),
+        (["--inflow", "3600"], "--inflow needs --headroom with --scenario demand"),
+    ],
+)
+def test_headroom_demand_bad_input(capsys, argv, message):
+    assert main(["bench", "--headroom", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("diacc: error: ") and "\n" not in err
+    assert message in err
+    # The demand flags belong to --headroom only.
+    assert main(["bench", "--headway", "--scenario", "demand"]) == 2
+    assert "--scenario demand needs --headroom with" in capsys.readouterr().err

@@ -1,12 +1,28 @@
 """``diacc bench --headroom``: how much better than human traffic can CAVs do here at all?
 
 A learner can only find gains the scenario and PSAR leave. This benchmark
-puts the references side by side for each training map (one-shot release,
-N = 25, D1): free-flow travel at the speed limits, pure HDV, ``same-mix``
-(the CAV slots driven by human drivers), the scripted ``heuristic`` under
-PSAR, the ``cooperative`` baseline, and the heuristic with **100 % CAVs**.
-If 100 % CAVs cannot beat pure HDV on delay, there is nothing to learn and
-the scenario or PSAR must change first (issue 26).
+puts the references side by side for each map: free-flow travel at the
+speed limits, pure HDV, ``same-mix`` (the CAV slots driven by human
+drivers), the scripted ``heuristic`` under PSAR, the ``cooperative``
+baseline, and the heuristic with **100 % CAVs**. If 100 % CAVs cannot beat
+pure HDV, there is nothing to learn and the scenario or PSAR must change
+first (issue 26).
+
+Two scenario kinds (:mod:`diacc.scenario`):
+
+* ``release`` (default): the paper's one-shot release, N = 25, rho = 0.4,
+  D1, on ``train-25`` and ``train-50``.
+* ``demand``: vehicles enter at ``inflow_vph`` for ``demand_s`` seconds
+  (rho = 0.4, D1, ``train-50``, preset ``zipper`` so that every driver can
+  merge); metrics ignore the first ``warmup_s``. Here throughput past the
+  reduction is the quantity that cooperation could raise, so the table
+  compares throughput as well as delay with pure HDV. The heuristic rows
+  give **every** CAV a slot (``cav_slots`` = the episode's CAVs, see
+  :func:`slots_for_every_cav`): with the default 16 slots most CAVs of a
+  100 % CAV stream would drive themselves (IDM-MOBIL / SUMO's models) and
+  the row would measure humans, not the heuristic. The column ``unslotted
+  CAV-steps`` counts steps at which a CAV on the road lacked a slot; it is
+  0 for those rows, checked.
 
 Metrics are the evaluator's (:mod:`diacc.metrics`): mean speed, delay per
 vehicle against free-flow travel, throughput past the bottleneck, arrived
@@ -16,6 +32,7 @@ episodes (seeds as ``diacc eval``).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -27,6 +44,8 @@ from diacc.evaluate import run_episode
 from diacc.grid import Cell
 from diacc.maps import load_map
 from diacc.policies import EvalSettings, PolicySpec, build_policy
+from diacc.scenario import Scenario
+from diacc.state import TrafficState
 
 #: Reference rows: (label, policy name, CAV share; None = the cell's rho).
 REFERENCES = (
@@ -36,6 +55,8 @@ REFERENCES = (
     ("cooperative", "cooperative", None),
     ("100 % CAVs heuristic", "heuristic", 1.0),
 )
+#: Policies whose CAVs take commands (the others' CAVs do not exist or drive themselves).
+COMMANDING = ("heuristic",)
 #: Metrics of a row, in print order: (episodes.csv column, header, format).
 METRICS = (
     ("mean_speed_mps", "speed m/s", "{:.2f}"),
@@ -45,6 +66,11 @@ METRICS = (
     ("p_we", "p(WE)", "{:.1%}"),
     ("collision", "collision eps", "{:.0%}"),
 )
+#: Demand defaults: the committed demand results' (benchmarks/results/demand).
+DEMAND_S = 480.0
+WARMUP_S = 120.0
+#: Cell of every row (the paper's training cell): N (release), rho, style mix.
+RELEASE_N, RHO, MIX = 25, 0.4, "D1"
 
 
 @dataclass
@@ -55,13 +81,86 @@ class HeadroomRow:
     map: str
     label: str
     episodes: int
-    values: dict[str, float]  # METRICS column -> mean over episodes
+    values: dict[str, float]  # METRICS column (+ unslotted_cav_steps) -> mean over episodes
 
 
 def free_flow_travel_s(map_name: str, style_preset: str) -> float:
     """Time (s) to drive the whole route at each segment's speed limit."""
     road = preset_road(load_map(map_name), style_preset)
     return float(sum(s.length_m / s.speed_limit_mps for s in road.segments))
+
+
+def demand_scenario(
+    inflow_vph: float, demand_s: float = DEMAND_S, warmup_s: float = WARMUP_S
+) -> Scenario:
+    """The demand scenario of the head-room table (the Scenario checks the numbers)."""
+    return Scenario(
+        kind="demand",
+        inflow_vph=inflow_vph,
+        demand_s=demand_s,
+        warmup_s=warmup_s,
+        cav_penetration=RHO,
+        style_mix=MIX,
+    )
+
+
+def slots_for_every_cav(scenario: Scenario) -> int:
+    """Agent slots that leave no CAV of a demand episode driving itself.
+
+    A slot per CAV of the whole episode, not per CAV on the road at once: on
+    ``train-50`` at jam spacing (~7.5 m) some 600 vehicles fit on the road,
+    more than the 480 of a 3600 veh/h x 480 s run, so no tighter bound holds
+    for every backend and seed. Slots of CAVs not yet entered or gone are
+    dead (masked) and only cost array width.
+    """
+    return max(1, scenario.n_cavs)
+
+
+class SlotCountingDriver(EpisodeDriver):
+    """An :class:`EpisodeDriver` that counts CAV-steps without an agent slot.
+
+    In a demand episode a CAV that finds every slot taken drives itself
+    (:mod:`diacc.env`), which would make a heuristic row partly a human one;
+    this count shows that it never happened.
+    """
+
+    unslotted_cav_steps = 0
+
+    def reset(self, seed: int) -> TrafficState:
+        state = super().reset(seed)
+        self.unslotted_cav_steps = int(self.env.unserved_cavs)
+        return state
+
+    def step(self) -> TrafficState:
+        state = super().step()
+        self.unslotted_cav_steps += int(self.env.unserved_cavs)
+        return state
+
+
+def make_driver(
+    backend: str,
+    cell: Cell,
+    policy_name: str,
+    style_preset: str,
+    steps: int,
+    horizon: str | None = None,
+    demand: Scenario | None = None,
+) -> SlotCountingDriver:
+    """The episode driver of one reference on one cell (the caller closes it).
+
+    ``demand``: the demand timing (``demand_s``, ``warmup_s``); the cell carries
+    the inflow. Policies in :data:`COMMANDING` then get a slot for every CAV.
+    """
+    policy = build_policy(PolicySpec(policy_name))
+    if demand is not None:
+        slots = demand.cav_slots
+        if policy_name in COMMANDING:
+            slots = slots_for_every_cav(cell.scenario(base=demand))
+        base = dataclasses.replace(demand, cav_slots=slots)
+        sim = dataclasses.replace(policy.base.sim, episode_steps=steps)  # EnvConfig checks warm-up
+        policy.base = dataclasses.replace(policy.base, scenario=base, sim=sim)
+    settings = EvalSettings(backend, steps, style_preset, psar_horizon=horizon)
+    return SlotCountingDriver(policy, policy.env_config(cell, settings))
 
 
 def measure(
@@ -72,28 +171,50 @@ def measure(
     style_preset: str,
     steps: int,
     horizon: str | None = None,
+    demand: Scenario | None = None,
 ) -> dict[str, float]:
-    """Mean :data:`METRICS` of ``episodes`` seeded episodes of one policy on one cell."""
-    policy = build_policy(PolicySpec(policy_name))
-    settings = EvalSettings(backend, steps, style_preset, psar_horizon=horizon)
-    driver = EpisodeDriver(policy, policy.env_config(cell, settings))
+    """Mean :data:`METRICS` of ``episodes`` seeded episodes of one policy on one cell,
+    and ``unslotted_cav_steps`` (mean per episode); arguments as :func:`make_driver`."""
+    driver = make_driver(backend, cell, policy_name, style_preset, steps, horizon, demand)
+    rows, unslotted = [], []
     try:
-        rows = [run_episode(driver, cell, k).row for k in range(episodes)]
+        for k in range(episodes):
+            rows.append(run_episode(driver, cell, k).row)
+            unslotted.append(driver.unslotted_cav_steps)
     finally:
         driver.close()
-    return {key: float(np.mean([r[key] for r in rows])) for key, _, _ in METRICS}
+    values = {key: float(np.mean([r[key] for r in rows])) for key, _, _ in METRICS}
+    values["unslotted_cav_steps"] = float(np.mean(unslotted))
+    return values
+
+
+def _change(value: float, base: float) -> str:
+    return f"{(value - base) / base:+.0%}" if base else "n/a"
 
 
 def run(
     backends: tuple[str, ...] = ("highway",),
-    maps: tuple[str, ...] = ("train-25", "train-50"),
+    maps: tuple[str, ...] | None = None,
     episodes: int = 4,
-    style_preset: str = "realistic",
-    steps: int = 330,
+    style_preset: str | None = None,
+    steps: int | None = None,
     horizon: str | None = None,
     references: tuple[tuple[str, str, float | None], ...] = REFERENCES,
+    demand: Scenario | None = None,
 ) -> list[HeadroomRow]:
-    """Measure every reference and print one Markdown table per (backend, map)."""
+    """Measure every reference and print one Markdown table per (backend, map).
+
+    ``demand``: a ``demand`` :class:`Scenario` (:func:`demand_scenario`) instead of
+    the one-shot release; then ``maps`` defaults to ``train-50``, ``style_preset``
+    to ``zipper`` and ``steps`` to the demand duration.
+    """
+    if demand is not None and demand.kind != "demand":
+        raise ConfigError(f"head-room demand scenario must be of kind demand, got {demand.kind!r}")
+    if maps is None:
+        maps = ("train-50",) if demand else ("train-25", "train-50")
+    style_preset = style_preset or ("zipper" if demand else "realistic")
+    if steps is None:
+        steps = int(round(demand.demand_s)) if demand else 330
     if style_preset not in STYLE_PRESETS:
         raise ConfigError(
             f"unknown style preset {style_preset!r}; known: {', '.join(STYLE_PRESETS)}"
@@ -101,10 +222,19 @@ def run(
     if episodes < 1 or steps < 1:
         raise ConfigError(f"head-room needs episodes >= 1 and steps >= 1, got {episodes}, {steps}")
     psar_label = horizon or "default"
+    if demand is None:
+        what = f"one-shot release N = {RELEASE_N}, rho = {RHO}, {MIX}"
+    else:
+        what = (
+            f"demand {demand.inflow_vph:.0f} veh/h for {demand.demand_s:g} s "
+            f"(N = {demand.n_vehicles}), warm-up {demand.warmup_s:g} s, rho = {RHO}, {MIX}"
+        )
     print(
-        f"head-room: one-shot release N = 25, rho = 0.4, D1, preset {style_preset}, "
+        f"head-room: {what}, preset {style_preset}, "
         f"{episodes} seeded episodes x {steps} steps, PSAR horizon {psar_label}"
     )
+    headers = [h for _, h, _ in METRICS] + ["unslotted CAV-steps"] * (demand is not None)
+    headers += ["delay vs pure HDV", "throughput vs pure HDV"]
     out, start = [], time.perf_counter()
     for backend in backends:
         for map_name in maps:
@@ -112,19 +242,26 @@ def run(
                 f"\n{backend}, {map_name}: free-flow travel "
                 f"{free_flow_travel_s(map_name, style_preset):.1f} s (delay 0 by definition)"
             )
-            print(
-                "| reference | " + " | ".join(h for _, h, _ in METRICS) + " | delay vs pure HDV |"
-            )
-            print("|---" * (len(METRICS) + 2) + "|")
-            base_delay = None
+            print("| reference | " + " | ".join(headers) + " |")
+            print("|---" * (len(headers) + 1) + "|")
+            base = None
             for label, name, rho in references:
-                cell = Cell(map_name, 25, 0.4 if rho is None else rho, "D1")
-                values = measure(backend, cell, name, episodes, style_preset, steps, horizon)
+                if demand is None:
+                    cell = Cell(map_name, RELEASE_N, RHO if rho is None else rho, MIX)
+                else:
+                    share = RHO if rho is None else rho
+                    cell = Cell(map_name, demand.n_vehicles, share, MIX, demand.inflow_vph)
+                values = measure(
+                    backend, cell, name, episodes, style_preset, steps, horizon, demand
+                )
                 out.append(HeadroomRow(backend, map_name, label, episodes, values))
-                delay = values["delay_per_vehicle_s"]
-                base_delay = delay if base_delay is None else base_delay
-                change = (delay - base_delay) / base_delay if base_delay else float("nan")
+                base = base or values
                 cells = [fmt.format(values[key]) for key, _, fmt in METRICS]
-                print(f"| {label} | " + " | ".join(cells) + f" | {change:+.0%} |", flush=True)
+                if demand is not None:
+                    self_driving = name == "cooperative"  # its CAVs never take commands
+                    cells.append("n/a" if self_driving else f"{values['unslotted_cav_steps']:.0f}")
+                cells.append(_change(values["delay_per_vehicle_s"], base["delay_per_vehicle_s"]))
+                cells.append(_change(values["throughput_vph"], base["throughput_vph"]))
+                print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
     print(f"({time.perf_counter() - start:.0f} s)")
     return out
