@@ -28,6 +28,7 @@ import torch
 
 from diacc.config import TrainConfig, override
 from diacc.errors import DiaccError
+from diacc.fileio import atomic_target
 from diacc.models.registry import build_policy
 from diacc.observation import ObservationSpec
 
@@ -60,12 +61,10 @@ def save_checkpoint(
         "optimizer": agent.optimizer.state_dict(),
         "rng": rng_state(),
     }
-    tmp = path.with_suffix(".tmp")
     try:
-        torch.save(payload, tmp)
-        tmp.replace(path)
+        with atomic_target(path) as tmp:
+            torch.save(payload, tmp)
     except OSError as exc:  # disk full, read-only directory: the old checkpoint stays
-        tmp.unlink(missing_ok=True)
         raise CheckpointError(
             f"cannot write checkpoint {path} ({exc.strerror or type(exc).__name__}); "
             "the previous checkpoint is unchanged"
@@ -322,9 +321,8 @@ def convert_checkpoint(src: Path, dst: Path | None = None) -> Path:
         raise CheckpointError(f"checkpoint {src} has no readable RNG state") from None
     payload["format"] = FORMAT
     validate_payload(payload, src)
-    tmp = dst.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(dst)
+    with atomic_target(dst) as tmp:
+        torch.save(payload, tmp)
     return dst
 
 

@@ -68,6 +68,7 @@ from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig, validate
 from diacc.console import TrainProgress
 from diacc.errors import DiaccError
+from diacc.fileio import atomic_write
 from diacc.maps import load_map
 from diacc.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
 from diacc.models.inputs import to_tensors
@@ -580,9 +581,7 @@ def truncate_progress(path: Path, update: int) -> None:
                 kept.append(line + "\n")
         except (ValueError, KeyError, TypeError):  # a torn last line of a killed run
             continue
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text("".join(kept))
-    tmp.replace(path)
+    atomic_write(path, "".join(kept))
 
 
 class StoppedAtOnce(KeyboardInterrupt):
