@@ -29,7 +29,7 @@ import torch
 from diacc.config import TrainConfig, override
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_target
-from diacc.models.registry import build_policy
+from diacc.models.registry import build_networks
 from diacc.observation import ObservationSpec
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -214,7 +214,7 @@ def load_actor(path: Path, variant: str | None = None) -> tuple[torch.nn.Module,
     except ValueError as exc:
         raise CheckpointError(f"checkpoint {path} has an unusable config ({exc})") from None
     _check_fits(payload, cfg, path)
-    actor, _ = build_policy(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
+    actor, _ = build_networks(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
     try:
         actor.load_state_dict(payload["actor"])
     except RuntimeError:

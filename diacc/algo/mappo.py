@@ -72,7 +72,7 @@ from diacc.fileio import atomic_write
 from diacc.maps import load_map
 from diacc.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
 from diacc.models.inputs import to_tensors
-from diacc.models.registry import build_policy
+from diacc.models.registry import build_networks
 from diacc.observation import ObservationSpec, stack, unstack
 from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
@@ -175,7 +175,7 @@ class Agent:
 
 def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
     """The networks of ``cfg.variant`` with the learner on ``device`` (rollouts on the CPU)."""
-    actor, critic = build_policy(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
+    actor, critic = build_networks(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
     if cfg.critic_values == "per_agent":
         critic = AgentValueCritic(critic, cfg.model)
     value_norm = ValueNorm()
