@@ -515,7 +515,7 @@ def ppo_update(
     return {k: float(np.mean(v)) for k, v in stats.items()}
 
 
-class NonFiniteError(RuntimeError):
+class NonFiniteError(DiaccError, RuntimeError):
     """A loss, gradient or parameter became NaN/inf; the update must not be kept."""
 
 
