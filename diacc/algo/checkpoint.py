@@ -21,19 +21,16 @@ import pickle
 import random
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from diacc.algo.agent import Agent
 from diacc.config import TrainConfig, override
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_target
 from diacc.models.registry import build_networks
 from diacc.observation import ObservationSpec
-
-if TYPE_CHECKING:  # pragma: no cover
-    from diacc.algo.mappo import Agent
 
 
 class CheckpointError(DiaccError, RuntimeError):
