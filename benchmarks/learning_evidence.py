@@ -28,7 +28,8 @@ import re
 import statistics
 from pathlib import Path
 
-BASELINES = ("pure-hdv", "same-mix", "heuristic", "cooperative")
+from diacc.reproduce.plan import BASELINE_COLUMNS
+
 RUN_NAME = re.compile(
     r"^(?P<setting>[a-z]+)-(?P<variant>[a-z-]+)-s(?P<seed>\d+)-(?P<actions>greedy|sampled)$"
 )
@@ -64,7 +65,7 @@ def group_runs(backend_dir: Path) -> dict[str, dict[str, list[dict[str, float]]]
     groups: dict[str, dict[str, list[dict[str, float]]]] = {}
     for path in sorted(p for p in backend_dir.iterdir() if (p / "episodes.csv").exists()):
         match = RUN_NAME.match(path.name)
-        if path.name in BASELINES:
+        if path.name in BASELINE_COLUMNS:
             label = path.name
         elif match is not None:
             label = f"{match['setting']} {match['variant']} ({match['actions']})"
@@ -137,7 +138,7 @@ def main() -> None:
             delay = seed_mean(runs, "total_delay_s")[0]
             flow = seed_mean(runs, "throughput_vph")[0]
             verdict = ""
-            if label not in BASELINES:
+            if label not in BASELINE_COLUMNS:
                 met = checks(runs, groups)
                 verdict = (
                     "all"

@@ -17,14 +17,14 @@ import sys
 code = r"""
 import sys, time, torch, numpy as np
 torch.set_num_threads(1)
-from diacc.models.registry import build_policy
+from diacc.models.registry import build_networks
 from diacc.config import ModelConfig, ObservationConfig
 from diacc.observation import ObservationSpec
 from diacc.models.synthetic import random_critic_state, random_actor_obs
 from diacc.models.inputs import to_tensors
 spec = ObservationSpec.from_config(ObservationConfig())
 torch.manual_seed(0)
-actor, critic = build_policy("diacc", ModelConfig(hidden_dim=64, gru_hidden=64), spec)
+actor, critic = build_networks("diacc", ModelConfig(hidden_dim=64, gru_hidden=64), spec)
 rng = np.random.default_rng(0)
 st = random_critic_state(spec, (10, 20), rng, min_active=15)
 st.node_mask[..., 25:] = False; st.neighbour_mask[..., 25:, :] = False

@@ -43,6 +43,7 @@ from pathlib import Path
 from diacc.backends.base import BackendError
 from diacc.episode import EpisodeDriver, play_episode
 from diacc.errors import DiaccError
+from diacc.fileio import atomic_write
 from diacc.grid import CELL_KEYS, Cell, make_cell
 from diacc.maps import SEGMENT_KINDS
 from diacc.metrics import SpeedSamples
@@ -287,12 +288,6 @@ Engine = Callable[[list[CellTask], PolicySpec, EvalSettings, int], Iterator[Cell
 
 
 # ----------------------------------------------------------------------------- files
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
-
-
 def _csv_bytes(columns: list[str] | tuple[str, ...], rows: list) -> bytes:
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
@@ -326,9 +321,9 @@ def write_cell(out_dir: Path, cell: Cell, results: list[EpisodeResult]) -> None:
     cells_dir.mkdir(parents=True, exist_ok=True)
     speeds = [row for r in results for row in speed_rows(r)]
     speeds_bytes = _gzip(_csv_bytes(SPEED_COLUMNS, speeds))
-    _atomic_write(cells_dir / f"{cell.file_key}.speeds.csv.gz", speeds_bytes)
+    atomic_write(cells_dir / f"{cell.file_key}.speeds.csv.gz", speeds_bytes)
     columns = list(results[0].row)
-    _atomic_write(
+    atomic_write(
         cells_dir / f"{cell.file_key}.episodes.csv",
         _csv_bytes(columns, [[r.row[c] for c in columns] for r in results]),
     )
@@ -405,13 +400,13 @@ def merge_cells(out_dir: Path) -> None:
                     "re-run it into a fresh results directory"
                 )
             rows += list(reader)
-    _atomic_write(out_dir / EPISODES_FILE, _csv_bytes(header, rows))
+    atomic_write(out_dir / EPISODES_FILE, _csv_bytes(header, rows))
     parts = []
     for path in episode_files:
         speeds = path.with_name(path.name.replace(".episodes.csv", ".speeds.csv.gz"))
         body = gzip.decompress(speeds.read_bytes()).decode()
         parts.append(body if not parts else body.split("\n", 1)[1])
-    _atomic_write(out_dir / SPEEDS_FILE, _gzip("".join(parts).encode()))
+    atomic_write(out_dir / SPEEDS_FILE, _gzip("".join(parts).encode()))
 
 
 def _check_meta(out_dir: Path, meta: dict) -> None:
@@ -425,7 +420,7 @@ def _check_meta(out_dir: Path, meta: dict) -> None:
                     f"{old.get('backend')} with other {key!r}; choose another --out"
                 )
     out_dir.mkdir(parents=True, exist_ok=True)
-    _atomic_write(path, json.dumps(meta, indent=2).encode())
+    atomic_write(path, json.dumps(meta, indent=2).encode())
 
 
 @dataclass

@@ -49,13 +49,14 @@ from pathlib import Path
 import numpy as np
 
 from diacc.config import EventConfig
+from diacc.errors import DiaccError
 from diacc.maps import SEGMENT_KINDS, Map
 from diacc.psar import RULE_NAMES, PSARResult, rule_counts
 from diacc.safety import safety_critical_events, waiting_events
 from diacc.state import TrafficState
 
 
-class MetricsError(ValueError):
+class MetricsError(DiaccError, ValueError):
     """Inconsistent input to the recorder (vehicle count changed...); one line."""
 
 

@@ -119,7 +119,7 @@ class ActorObs:
     cav_nodes: np.ndarray  # (C, K, T, NODE_FEATURES) float32
     cav_mask: np.ndarray  # (C, K) bool
     cav_prev_action: np.ndarray  # (C, K) int64
-    lane_stats: np.ndarray  # (C, 3, LANE_FEATURES) float32
+    lane_stats: np.ndarray  # (C, LANE_SLOTS, LANE_FEATURES) float32
     lane_mask: np.ndarray  # (C, 3) bool
     road: np.ndarray  # (C, ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS) float32
     action_memory: np.ndarray  # (C, 2) int64

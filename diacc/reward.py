@@ -51,12 +51,13 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from diacc.config import RewardConfig
+from diacc.errors import DiaccError
 from diacc.maps import Map
 from diacc.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.state import TrafficState, take
 
 
-class RewardError(ValueError):
+class RewardError(DiaccError, ValueError):
     """Bad input to the reward (temperature <= 0, bad thresholds...); one line."""
 
 

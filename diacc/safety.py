@@ -41,11 +41,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from diacc.config import EventConfig
+from diacc.errors import DiaccError
 from diacc.maps import Map
 from diacc.state import TrafficState, take
 
 
-class SafetyError(ValueError):
+class SafetyError(DiaccError, ValueError):
     """Bad input to a safety function (wrong shape, unknown action...); one line."""
 
 

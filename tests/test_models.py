@@ -14,7 +14,7 @@ from diacc.models.gat import GraphAttention
 from diacc.models.inputs import to_tensors
 from diacc.models.itdr import ITDR, CIECCritic
 from diacc.models.mlp import MLPActor
-from diacc.models.registry import build_policy
+from diacc.models.registry import build_networks
 from diacc.models.synthetic import random_actor_obs, random_critic_state
 from diacc.models.taie import TAIE, DIADMActor
 from diacc.observation import N_ACTIONS, ObservationSpec
@@ -269,7 +269,7 @@ def test_no_nan_without_neighbours_or_vehicles():
     for key in ("node_mask", "neighbour_mask", "lane_mask"):
         state[key] = torch.zeros_like(state[key])
     for variant in VARIANTS:
-        actor, critic = build_policy(variant, CFG, SPEC)
+        actor, critic = build_networks(variant, CFG, SPEC)
         logits, _ = actor(obs, torch.zeros(8, CFG.gru_hidden), torch.ones(8))
         value, _ = critic(state, torch.zeros(3, CFG.gru_hidden), torch.ones(3))
         (logits.sum() + value.sum()).backward()
@@ -286,7 +286,7 @@ def test_no_nan_without_neighbours_or_vehicles():
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_gradients_reach_every_parameter(variant):
     torch.manual_seed(11)
-    actor, critic = build_policy(variant, CFG, SPEC)
+    actor, critic = build_networks(variant, CFG, SPEC)
     obs = to_tensors(random_actor_obs(SPEC, (2, 16), np.random.default_rng(11)))  # (T, B, ...)
     state = to_tensors(random_critic_state(SPEC, (2, 4), np.random.default_rng(12), min_active=5))
     logits, _ = actor.forward_sequence(obs, torch.zeros(16, CFG.gru_hidden), torch.zeros(2, 16))
@@ -317,7 +317,7 @@ def test_episode_start_resets_the_hidden_state():
 
 @pytest.mark.parametrize("variant", ["mappo", "diacc"])
 def test_sequence_replay_equals_step_by_step(variant):
-    actor, critic = build_policy(variant, CFG, SPEC)
+    actor, critic = build_networks(variant, CFG, SPEC)
     rng = np.random.default_rng(14)
     obs = to_tensors(random_actor_obs(SPEC, (4, 5), rng))
     state = to_tensors(random_critic_state(SPEC, (4, 2), rng))
@@ -337,7 +337,7 @@ def test_sequence_replay_equals_step_by_step(variant):
 
 # ---------------------------------------------------------------- registry and inputs
 def test_registry_pairs_and_determinism():
-    kinds = {v: tuple(type(n).__name__ for n in build_policy(v, CFG, SPEC)) for v in VARIANTS}
+    kinds = {v: tuple(type(n).__name__ for n in build_networks(v, CFG, SPEC)) for v in VARIANTS}
     assert kinds == {
         "mappo": ("MLPActor", "MLPCritic"),
         "mappo-iadm": ("DIADMActor", "MLPCritic"),
@@ -345,15 +345,15 @@ def test_registry_pairs_and_determinism():
         "diacc": ("DIADMActor", "CIECCritic"),
     }
     torch.manual_seed(0)
-    a1, _ = build_policy("diacc", CFG, SPEC)
+    a1, _ = build_networks("diacc", CFG, SPEC)
     torch.manual_seed(0)
-    a2, _ = build_policy("diacc", CFG, SPEC)
+    a2, _ = build_networks("diacc", CFG, SPEC)
     for p1, p2 in zip(a1.parameters(), a2.parameters(), strict=True):
         assert torch.equal(p1, p2)
     head = a1.head.weight  # orthogonal with gain 0.01: rows have norm 0.01
     torch.testing.assert_close(head.norm(dim=1), torch.full((N_ACTIONS,), 0.01))
     with pytest.raises(ModelError, match="unknown variant 'qmix'"):
-        build_policy("qmix", CFG, SPEC)
+        build_networks("qmix", CFG, SPEC)
 
 
 def test_to_tensors_keeps_dtypes_and_any_batch_axes():
@@ -385,7 +385,7 @@ def test_bad_inputs_raise_one_line_errors():
     with pytest.raises(ModelError, match="built for"):
         actor(small, torch.zeros(4, CFG.gru_hidden), torch.zeros(4))
     with pytest.raises(ModelError, match="multiple of cross_heads"):
-        build_policy("diacc", ModelConfig(cross_dim=30, cross_heads=8), SPEC)
+        build_networks("diacc", ModelConfig(cross_dim=30, cross_heads=8), SPEC)
     with pytest.raises(ModelError, match="multiple of gat_heads"):
         TAIE(ModelConfig(hidden_dim=30, gat_heads=4, taie_concat_heads=True), SPEC)
 
@@ -429,7 +429,7 @@ def test_every_variant_runs_on_builder_observations():
     assert not obs["hdv_mask"][1].any() and not obs["cav_mask"][1].any()
     spec = ObservationSpec.from_config(obs_cfg)
     for variant in VARIANTS:
-        actor, critic = build_policy(variant, CFG, spec)
+        actor, critic = build_networks(variant, CFG, spec)
         logits, _ = actor(obs, torch.zeros(2, CFG.gru_hidden), torch.ones(2))
         value, _ = critic(state, torch.zeros(2, CFG.gru_hidden), torch.ones(2))
         assert logits.shape == (2, N_ACTIONS) and value.shape == (2,)

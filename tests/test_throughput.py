@@ -24,7 +24,7 @@ from diacc.config import (
 )
 from diacc.models.inputs import to_tensors
 from diacc.models.layers import embed_all, embed_present, mlp
-from diacc.models.registry import build_policy
+from diacc.models.registry import build_networks
 from diacc.models.synthetic import random_actor_obs, random_critic_state
 from diacc.observation import ObservationSpec
 from diacc.threads import (
@@ -110,7 +110,7 @@ def test_sequence_replay_traces_without_graph_breaks(variant):
     """torch.compile sees one graph per network (dynamo tracing only; no code generation)."""
     spec, rng = ObservationSpec.from_config(ObservationConfig()), np.random.default_rng(0)
     makers = (random_actor_obs, random_critic_state)
-    for net, make_obs in zip(build_policy(variant, SMALL, spec), makers, strict=True):
+    for net, make_obs in zip(build_networks(variant, SMALL, spec), makers, strict=True):
         torch._dynamo.reset()
         args = _chunk_inputs(make_obs, net, rng, spec, 6)
         explained = torch._dynamo.explain(net.forward_sequence)(*args)

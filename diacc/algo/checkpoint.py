@@ -21,18 +21,16 @@ import pickle
 import random
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from diacc.algo.agent import Agent
 from diacc.config import TrainConfig, override
 from diacc.errors import DiaccError
-from diacc.models.registry import build_policy
+from diacc.fileio import atomic_target
+from diacc.models.registry import build_networks
 from diacc.observation import ObservationSpec
-
-if TYPE_CHECKING:  # pragma: no cover
-    from diacc.algo.mappo import Agent
 
 
 class CheckpointError(DiaccError, RuntimeError):
@@ -60,12 +58,10 @@ def save_checkpoint(
         "optimizer": agent.optimizer.state_dict(),
         "rng": rng_state(),
     }
-    tmp = path.with_suffix(".tmp")
     try:
-        torch.save(payload, tmp)
-        tmp.replace(path)
+        with atomic_target(path) as tmp:
+            torch.save(payload, tmp)
     except OSError as exc:  # disk full, read-only directory: the old checkpoint stays
-        tmp.unlink(missing_ok=True)
         raise CheckpointError(
             f"cannot write checkpoint {path} ({exc.strerror or type(exc).__name__}); "
             "the previous checkpoint is unchanged"
@@ -215,7 +211,7 @@ def load_actor(path: Path, variant: str | None = None) -> tuple[torch.nn.Module,
     except ValueError as exc:
         raise CheckpointError(f"checkpoint {path} has an unusable config ({exc})") from None
     _check_fits(payload, cfg, path)
-    actor, _ = build_policy(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
+    actor, _ = build_networks(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
     try:
         actor.load_state_dict(payload["actor"])
     except RuntimeError:
@@ -322,9 +318,8 @@ def convert_checkpoint(src: Path, dst: Path | None = None) -> Path:
         raise CheckpointError(f"checkpoint {src} has no readable RNG state") from None
     payload["format"] = FORMAT
     validate_payload(payload, src)
-    tmp = dst.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(dst)
+    with atomic_target(dst) as tmp:
+        torch.save(payload, tmp)
     return dst
 
 

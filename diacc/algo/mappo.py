@@ -54,6 +54,7 @@ import torch.nn.functional as F
 from torch.utils.tensorboard import SummaryWriter
 
 from diacc.action_mask import masked_logits
+from diacc.algo.agent import Agent
 from diacc.algo.buffer import Rollout, compute_gae
 from diacc.algo.checkpoint import (
     CheckpointError,
@@ -68,10 +69,11 @@ from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig, validate
 from diacc.console import TrainProgress
 from diacc.errors import DiaccError
+from diacc.fileio import atomic_write
 from diacc.maps import load_map
 from diacc.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
 from diacc.models.inputs import to_tensors
-from diacc.models.registry import build_policy
+from diacc.models.registry import build_networks
 from diacc.observation import ObservationSpec, stack, unstack
 from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
@@ -123,58 +125,9 @@ def explained_variance(pred: np.ndarray, target: np.ndarray) -> float:
 ROLLOUT_DEVICE = torch.device("cpu")
 
 
-@dataclass
-class Agent:
-    """Everything that learns or is saved: networks, optimiser, value normaliser.
-
-    ``actor``, ``critic`` and ``value_norm`` are the learner, on the update's
-    device. Rollouts use ``rollout_*`` on :data:`ROLLOUT_DEVICE`: the same
-    modules when the learner is on the CPU, else CPU copies that
-    :meth:`sync_rollout` refreshes. The update replays sequences through
-    :meth:`replay_actor` / :meth:`replay_critic`: the learner's
-    ``forward_sequence``, or its compiled form (``*_sequence``) with
-    ``update_compile``.
-    """
-
-    actor: torch.nn.Module
-    critic: torch.nn.Module
-    value_norm: ValueNorm
-    optimizer: torch.optim.Optimizer
-    rollout_actor: torch.nn.Module | None = None
-    rollout_critic: torch.nn.Module | None = None
-    rollout_value_norm: ValueNorm | None = None
-    actor_sequence: Callable | None = None
-    critic_sequence: Callable | None = None
-
-    def __post_init__(self) -> None:
-        self.rollout_actor = self.actor if self.rollout_actor is None else self.rollout_actor
-        self.rollout_critic = self.critic if self.rollout_critic is None else self.rollout_critic
-        if self.rollout_value_norm is None:
-            self.rollout_value_norm = self.value_norm
-
-    def replay_actor(self, *args) -> tuple[torch.Tensor, torch.Tensor]:
-        """The learner actor's ``forward_sequence`` (compiled if ``actor_sequence`` is set)."""
-        return (self.actor_sequence or self.actor.forward_sequence)(*args)
-
-    def replay_critic(self, *args) -> tuple[torch.Tensor, torch.Tensor]:
-        """The learner critic's ``forward_sequence`` (compiled if ``critic_sequence`` is set)."""
-        return (self.critic_sequence or self.critic.forward_sequence)(*args)
-
-    def sync_rollout(self) -> None:
-        """Copy the learner's weights and value statistics into the rollout copies."""
-        pairs = (
-            (self.rollout_actor, self.actor),
-            (self.rollout_critic, self.critic),
-            (self.rollout_value_norm, self.value_norm),
-        )
-        for copy_, learner in pairs:
-            if copy_ is not learner:
-                copy_.load_state_dict(learner.state_dict())
-
-
 def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
     """The networks of ``cfg.variant`` with the learner on ``device`` (rollouts on the CPU)."""
-    actor, critic = build_policy(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
+    actor, critic = build_networks(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
     if cfg.critic_values == "per_agent":
         critic = AgentValueCritic(critic, cfg.model)
     value_norm = ValueNorm()
@@ -514,7 +467,7 @@ def ppo_update(
     return {k: float(np.mean(v)) for k, v in stats.items()}
 
 
-class NonFiniteError(RuntimeError):
+class NonFiniteError(DiaccError, RuntimeError):
     """A loss, gradient or parameter became NaN/inf; the update must not be kept."""
 
 
@@ -580,9 +533,7 @@ def truncate_progress(path: Path, update: int) -> None:
                 kept.append(line + "\n")
         except (ValueError, KeyError, TypeError):  # a torn last line of a killed run
             continue
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text("".join(kept))
-    tmp.replace(path)
+    atomic_write(path, "".join(kept))
 
 
 class StoppedAtOnce(KeyboardInterrupt):

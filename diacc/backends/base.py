@@ -34,6 +34,7 @@ Entries of HDVs in the command arrays are ignored.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal, Protocol, runtime_checkable
 
@@ -82,17 +83,26 @@ class Backend(Protocol):
     def close(self) -> None: ...
 
 
+#: Backend name -> a function that imports and returns its class. The package
+#: :mod:`diacc.backends` fills it (its ``__init__`` runs before this module is
+#: used), so this protocol module never imports an implementation, and a
+#: simulator (highway-env, libsumo) is loaded only when its backend is asked for.
+_LOADERS: dict[str, Callable[[], type[Backend]]] = {}
+
+
+def register_backend(name: str, loader: Callable[[], type[Backend]]) -> None:
+    """Make backend ``name`` (one of :data:`diacc.config.BACKENDS`) buildable by name."""
+    if name not in BACKENDS:
+        raise BackendError(f"backend {name!r} is not in diacc.config.BACKENDS")
+    _LOADERS[name] = loader
+
+
 def backend_class(name: str) -> type[Backend]:
     """The class of backend ``name`` (``"highway"`` or ``"sumo"``), imported only when asked."""
-    if name == "highway":
-        from diacc.backends.highway.backend import HighwayBackend
-
-        return HighwayBackend
-    if name == "sumo":
-        from diacc.backends.sumo.backend import SumoBackend
-
-        return SumoBackend
-    raise BackendError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")
+    loader = _LOADERS.get(name)
+    if loader is None:
+        raise BackendError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")
+    return loader()
 
 
 def make_backend(name: str, road: Map, sim: SimConfig | None = None) -> Backend:

@@ -17,7 +17,7 @@ import torch
 
 from diacc.config import VARIANTS, ModelConfig, ObservationConfig
 from diacc.models.inputs import to_tensors
-from diacc.models.registry import build_policy, parameter_count
+from diacc.models.registry import build_networks, parameter_count
 from diacc.models.synthetic import random_actor_obs, random_critic_state
 from diacc.observation import ObservationSpec
 
@@ -135,7 +135,7 @@ def run(
         },
     }
     for variant in VARIANTS:
-        actor, critic = (net.to(device) for net in build_policy(variant, cfg, spec))
+        actor, critic = (net.to(device) for net in build_networks(variant, cfg, spec))
         figures["params"][variant] = (parameter_count(actor), parameter_count(critic))
         step = functools.partial(_rollout_step, actor, critic, step_obs, step_state, device)
         update = functools.partial(

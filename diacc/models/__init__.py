@@ -1,18 +1,18 @@
 """Actor and critic networks of every variant (MAPPO, MAPPO-IADM, DIACC).
 
-Entry points: :func:`build_policy` pairs networks per variant and
+Entry points: :func:`build_networks` pairs networks per variant and
 :func:`to_tensors` turns observation containers into the tensor dicts they take.
 """
 
 from diacc.models.errors import ModelError
 from diacc.models.inputs import merge_leading, to_tensors
 from diacc.models.recurrent import RecurrentNet
-from diacc.models.registry import build_policy, parameter_count
+from diacc.models.registry import build_networks, parameter_count
 
 __all__ = [
     "ModelError",
     "RecurrentNet",
-    "build_policy",
+    "build_networks",
     "merge_leading",
     "parameter_count",
     "to_tensors",

@@ -16,36 +16,25 @@ from diacc.models.errors import ModelError
 from diacc.models.inputs import TensorDict
 from diacc.models.layers import POLICY_GAIN, VALUE_GAIN, mlp, one_hot
 from diacc.models.recurrent import Encoder, RecurrentNet
-from diacc.models.taie import N_ACTOR_LANES
 from diacc.observation import (
     ACTOR_KEYS,
     CRITIC_KEYS,
-    CRITIC_NODE_FEATURES,
-    LANE_FEATURES,
-    MAX_LANES,
-    MAX_SEGMENTS,
     N_ACTIONS,
-    NODE_FEATURES,
-    ROAD_FEATURES_PER_SEGMENT,
-    SELF_FEATURES,
-    TRAFFIC_FEATURES,
     ObservationSpec,
 )
-
-ROAD_DIM = ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS
 
 
 def actor_flat_dim(spec: ObservationSpec) -> int:
     """Length of a flattened ActorObs row."""
-    t, k = spec.history_steps, spec.n_neighbours
+    t, k, nodes = spec.history_steps, spec.n_neighbours, spec.node_features
     return (
-        SELF_FEATURES
-        + t * NODE_FEATURES
-        + 2 * (k * t * NODE_FEATURES + k)
-        + k * N_ACTIONS
-        + N_ACTOR_LANES * (LANE_FEATURES + 1)
-        + ROAD_DIM
-        + 2 * N_ACTIONS
+        spec.self_features
+        + t * nodes
+        + 2 * (k * t * nodes + k)
+        + k * spec.n_actions
+        + spec.lane_slots * (spec.lane_features + 1)
+        + spec.road_features
+        + 2 * spec.n_actions
     )
 
 
@@ -53,11 +42,11 @@ def critic_flat_dim(spec: ObservationSpec) -> int:
     """Length of a flattened CriticState row."""
     n, k = spec.max_vehicles, spec.n_neighbours
     return (
-        n * (CRITIC_NODE_FEATURES + 1)
+        n * (spec.critic_node_features + 1)
         + 2 * n * k
-        + MAX_LANES * (LANE_FEATURES + 1)
-        + ROAD_DIM
-        + TRAFFIC_FEATURES
+        + spec.max_lanes * (spec.lane_features + 1)
+        + spec.road_features
+        + spec.traffic_features
     )
 
 

@@ -22,7 +22,7 @@ _ACTORS: dict[str, _Builder] = {"mlp": MLPActor, "diadm": DIADMActor}
 _CRITICS: dict[str, _Builder] = {"mlp": MLPCritic, "ciec": CIECCritic}
 
 
-def build_policy(
+def build_networks(
     variant: str, cfg: ModelConfig, obs_spec: ObservationSpec
 ) -> tuple[RecurrentNet, RecurrentNet]:
     """Build the (actor, critic) pair of a variant, orthogonally initialised as in MAPPO.

@@ -42,8 +42,8 @@ def random_actor_obs(
     t, k = spec.history_steps, spec.n_neighbours
     hdv_mask = _first_k_mask(rng, batch, k)
     cav_mask = _first_k_mask(rng, batch, k)
-    lane_mask = np.ones((*batch, 3), dtype=bool)
-    lane_mask[..., 1:] = rng.random((*batch, 2)) < 0.7
+    lane_mask = np.ones((*batch, spec.lane_slots), dtype=bool)
+    lane_mask[..., 1:] = rng.random((*batch, spec.lane_slots - 1)) < 0.7
     return ActorObs(
         self_state=_normal(rng, *batch, SELF_FEATURES),
         ego_hist=_normal(rng, *batch, t, NODE_FEATURES),
@@ -52,7 +52,7 @@ def random_actor_obs(
         cav_nodes=_normal(rng, *batch, k, t, NODE_FEATURES) * cav_mask[..., None, None],
         cav_mask=cav_mask,
         cav_prev_action=rng.integers(0, N_ACTIONS, size=(*batch, k)) * cav_mask,
-        lane_stats=_normal(rng, *batch, 3, LANE_FEATURES) * lane_mask[..., None],
+        lane_stats=_normal(rng, *batch, spec.lane_slots, LANE_FEATURES) * lane_mask[..., None],
         lane_mask=lane_mask,
         road=_normal(rng, *batch, ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS),
         action_memory=rng.integers(0, N_ACTIONS, size=(*batch, 2)),

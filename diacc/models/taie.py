@@ -29,16 +29,9 @@ from diacc.models.layers import POLICY_GAIN, embed_present, mlp, one_hot
 from diacc.models.recurrent import Encoder, RecurrentNet
 from diacc.observation import (
     ACTOR_KEYS,
-    LANE_FEATURES,
-    MAX_SEGMENTS,
     N_ACTIONS,
-    NODE_FEATURES,
-    ROAD_FEATURES_PER_SEGMENT,
-    SELF_FEATURES,
     ObservationSpec,
 )
-
-N_ACTOR_LANES = 3  # ego, left, right
 
 
 class TAIE(Encoder):
@@ -52,7 +45,7 @@ class TAIE(Encoder):
     def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
         super().__init__()
         hidden, slope = cfg.hidden_dim, cfg.leaky_slope
-        history_in = spec.history_steps * NODE_FEATURES
+        history_in = spec.history_steps * spec.node_features
         self.hdv_embed = mlp(history_in, hidden, hidden, slope)
         self.cav_embed = mlp(history_in + N_ACTIONS, hidden, hidden, slope)
         # Heads: averaged hidden-wide heads (the paper's eq. TAIE), or with
@@ -69,10 +62,10 @@ class TAIE(Encoder):
             for _ in range(2)
         )
         context_in = (
-            N_ACTOR_LANES * LANE_FEATURES
-            + N_ACTOR_LANES
-            + ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS
-            + SELF_FEATURES
+            spec.lane_slots * spec.lane_features
+            + spec.lane_slots
+            + spec.road_features
+            + spec.self_features
         )
         self.context = mlp(context_in, hidden, hidden, slope)
         self.fusion = mlp(3 * hidden, hidden, hidden, slope)

@@ -21,6 +21,7 @@ from importlib import metadata
 from typing import Any
 
 from diacc import __version__
+from diacc.fileio import atomic_write
 from diacc.reproduce.plan import Plan
 
 MANIFEST_FILE = "manifest.json"
@@ -81,6 +82,4 @@ class Manifest:
 
     def save(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        tmp.write_text(json.dumps(self.data, indent=2, default=str) + "\n")
-        tmp.replace(self.path)
+        atomic_write(self.path, json.dumps(self.data, indent=2, default=str) + "\n")

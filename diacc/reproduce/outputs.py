@@ -39,7 +39,7 @@ from diacc.maps import SEGMENT_KINDS
 from diacc.plots import PlotError
 from diacc.report import FLOW_ROWS
 from diacc.reproduce.plan import (
-    BASELINE_POLICIES,
+    BASELINE_COLUMNS,
     TRANSFER_BACKEND,
     TRANSFER_VARIANT,
     Plan,
@@ -107,7 +107,7 @@ class _Results:
 
 
 def _columns(plan: Plan, results: _Results, backend: str, cells) -> list:
-    columns = [results.column(backend, p, [(p, None)], cells) for p in BASELINE_POLICIES]
+    columns = [results.column(backend, p, [(p, None)], cells) for p in BASELINE_COLUMNS]
     for label, members in _learned_columns(plan).items():
         columns.append(results.column(backend, label, members, cells))
     return columns
@@ -190,7 +190,7 @@ def write_figures(plan: Plan, results: _Results | None = None) -> list[Path]:
         for map_name in cell_maps:
             columns = [
                 (p, _pooled_speeds(results, backend, [(p, None)], map_name))
-                for p in BASELINE_POLICIES
+                for p in BASELINE_COLUMNS
             ]
             for label, members in _learned_columns(plan).items():
                 columns.append((label, _pooled_speeds(results, backend, members, map_name)))

@@ -36,12 +36,14 @@ from diacc.config import (
 )
 from diacc.grid import GRID_NAMES, Cell, load_grid
 from diacc.maps import load_map, map_tag
+from diacc.policies import BASELINES
 from diacc.sweepaxes import Setting
 
-#: Non-learning columns of every table (see :mod:`diacc.policies`): pure HDV, the
-#: same vehicles with human drivers in the CAV slots (what a CAV policy's control
-#: is measured against), cooperative CAVs and the scripted heuristic under PSAR.
-BASELINE_POLICIES = ("pure-hdv", "same-mix", "cooperative", "heuristic")
+#: Non-learning columns of every table: the :data:`diacc.policies.BASELINES` (pure
+#: HDV, the same vehicles with human drivers in the CAV slots, what a CAV policy's
+#: control is measured against, and cooperative CAVs) and the scripted heuristic
+#: under PSAR.
+BASELINE_COLUMNS = (*BASELINES, "heuristic")
 #: Sim-to-sim transfer: this variant, trained on the training backend and on this one.
 TRANSFER_VARIANT = "diacc"
 TRANSFER_BACKEND = "sumo"
@@ -379,7 +381,7 @@ def make_plan(config: ReproduceConfig, notes: tuple[str, ...] = ()) -> Plan:
         r for r in runs if r.variant in config.variants and r.backend == config.train_backend
     ]
     for backend in config.backends:
-        for policy in BASELINE_POLICIES:
+        for policy in BASELINE_COLUMNS:
             add(backend, policy, None, all_cells)
         for run in main_runs:
             add(backend, run.name, run, all_cells)

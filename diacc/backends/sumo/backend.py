@@ -43,10 +43,11 @@ import numpy as np
 
 from diacc.backends.base import BackendError, CavCommands
 from diacc.backends.sumo import wire
-from diacc.backends.sumo.net import atomic_write, build_network
+from diacc.backends.sumo.net import build_network
 from diacc.backends.sumo.vtypes import vtypes_key, vtypes_xml
 from diacc.backends.sumo.worker import WorkerSpec
 from diacc.config import SimConfig
+from diacc.fileio import atomic_write
 from diacc.maps import Map
 from diacc.runlog import log
 from diacc.scenario import Scenario, draw_population

@@ -37,6 +37,7 @@ from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 from diacc.backends.base import BackendError
+from diacc.fileio import atomic_write
 from diacc.maps import Map
 from diacc.runlog import log
 
@@ -203,11 +204,3 @@ def usable_cache(folder: Path) -> Path:
             "set DIACC_CACHE to a writable folder"
         ) from None
     return fallback
-
-
-def atomic_write(path: Path, text: str) -> None:
-    """Write via a temporary file and rename, so concurrent builders never see half a file."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "w") as handle:
-        handle.write(text)
-    os.replace(tmp, path)

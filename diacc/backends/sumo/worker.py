@@ -30,6 +30,7 @@ from diacc.backends.sumo import wire
 from diacc.backends.sumo.net import ROUTE_ID, lane_ids
 from diacc.backends.sumo.vtypes import CAV_TYPE, HDV_TYPES
 from diacc.config import SimConfig
+from diacc.errors import DiaccError
 from diacc.kinematics import lane_change_reach_m
 from diacc.maps import Map
 from diacc.scenario import Population
@@ -70,7 +71,7 @@ class WorkerSpec:
     vtypes_path: Path
 
 
-class SimulationError(RuntimeError):
+class SimulationError(DiaccError, RuntimeError):
     """The simulation cannot go on (failed insertion...); one-line message."""
 
 

@@ -1,0 +1,88 @@
+"""Package structure (issue 24): one error base, no import circles.
+
+Every exception class diacc defines is a :class:`~diacc.errors.DiaccError`
+(keeping its builtin base), so the command line prints it as one line; only
+the ``KeyboardInterrupt`` subclasses that carry a signal stay outside it.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import inspect
+import pkgutil
+from pathlib import Path
+
+import diacc
+from diacc.errors import DiaccError
+
+
+def _modules() -> list[str]:
+    return sorted(m.name for m in pkgutil.walk_packages(diacc.__path__, "diacc."))
+
+
+def test_every_error_class_is_a_diacc_error_and_keeps_its_builtin_base():
+    outside, checked = [], 0
+    for name in _modules():
+        module = importlib.import_module(name)
+        for obj in vars(module).values():
+            if not (inspect.isclass(obj) and issubclass(obj, BaseException)):
+                continue
+            if obj.__module__ != name or issubclass(obj, KeyboardInterrupt):
+                continue
+            checked += 1
+            if not issubclass(obj, DiaccError):
+                outside.append(f"{name}.{obj.__name__}")
+            elif obj is not DiaccError:
+                assert issubclass(obj, (ValueError, RuntimeError)), obj
+    assert checked >= 20 and outside == []
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """diacc module -> the diacc modules it imports, read from the source: every import
+    statement counts, those inside functions and under ``TYPE_CHECKING`` too."""
+    root = Path(diacc.__file__).parent
+    files = {}
+    for path in root.rglob("*.py"):
+        parts = ("diacc", *path.relative_to(root).with_suffix("").parts)
+        files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+
+    def owner(name: str) -> str:  # the module a dotted name lives in
+        while name not in files:
+            name = name.rpartition(".")[0]
+        return name
+
+    graph: dict[str, set[str]] = {}
+    for module, path in files.items():
+        imported = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                imported |= {f"{node.module}.{a.name}" for a in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                raise AssertionError(f"{path}: relative import")
+        graph[module] = {
+            owner(name) for name in imported if name.startswith("diacc.") or name == "diacc"
+        } - {module, "diacc"}
+    return graph
+
+
+def test_no_import_circles():
+    """A module never imports, even lazily, a module that imports it back (issue 24:
+    mappo <-> checkpoint, backends.base -> its implementations)."""
+    graph = _import_graph()
+    assert {"diacc.algo.mappo", "diacc.backends.base"} <= set(graph)
+    done: set[str] = set()
+
+    def walk(module: str, path: list[str]) -> None:
+        if module in path:
+            raise AssertionError("import circle: " + " -> ".join(path[path.index(module) :]))
+        if module in done:
+            return
+        for child in sorted(graph[module]):
+            walk(child, [*path, module])
+        done.add(module)
+
+    for module in sorted(graph):
+        walk(module, [])
