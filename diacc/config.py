@@ -320,11 +320,13 @@ class PSARConfig:
     ``force_brake``: ``"cancel"`` brakes away the closing speed within the
     step (the authors' implementation, bounded by ``SimConfig.cav.decel_mps2``);
     ``"paper"`` is Algorithm 1 read literally (Force-Brake = action 4, one
-    ``speed_change_mps`` step). ``horizon``: ``"stopping"`` lengthens the
-    distance thresholds by a safe stopping gap; ``"paper"`` keeps them
-    fixed; ``"headway"`` follows by braking physics alone (about 1 s behind an
-    HDV, ``min_gap_m`` + ``cav_time_gap_s`` behind a CAV whose command is
-    known; ``cooperative_merge``: CAVs open a gap for a CAV asking to merge).
+    ``speed_change_mps`` step). ``horizon``: ``"headway"`` (the default) follows by
+    braking physics alone (about 1 s behind an HDV, ``min_gap_m`` +
+    ``cav_time_gap_s`` behind a CAV whose command is known;
+    ``cooperative_merge``: CAVs open a gap for a CAV asking to merge);
+    ``"stopping"`` (the default before 2026-12-02, kept by every checkpoint and
+    result made with it) lengthens the distance thresholds by a safe stopping
+    gap, which keeps CAVs ~2.3 s behind HDVs; ``"paper"`` keeps them fixed.
     ``coordinate_lane_changes`` stops two connected CAVs from changing
     lanes into each other. ``force_brake="paper", horizon="paper",
     coordinate_lane_changes=False`` is the literal pseudocode (the ablation);
@@ -340,7 +342,7 @@ class PSARConfig:
     ttc_att_s: float = 5.0
     b_max_mps2: float = 2.0
     force_brake: str = "cancel"
-    horizon: str = "stopping"
+    horizon: str = "headway"
     coordinate_lane_changes: bool = True  # CAVs do not change lanes into each other
     queue_gap_m: float = 2.0  # standstill gap per vehicle queued at a lane end (PSAR's wall)
     min_gap_m: float = 2.0  # "headway": standstill gap kept behind any front obstacle

@@ -47,7 +47,7 @@ from diacc.fileio import atomic_write
 from diacc.grid import CELL_KEYS, Cell, make_cell
 from diacc.maps import SEGMENT_KINDS
 from diacc.metrics import SpeedSamples
-from diacc.policies import EvalSettings, PolicySpec, build_policy
+from diacc.policies import CheckpointPolicy, EvalSettings, PolicySpec, build_policy
 from diacc.psar import RULE_NAMES
 from diacc.runlog import locked_dir, log, run_log
 from diacc.threads import default_threads, worker_environment
@@ -409,10 +409,27 @@ def merge_cells(out_dir: Path) -> None:
     atomic_write(out_dir / SPEEDS_FILE, _gzip("".join(parts).encode()))
 
 
-def _check_meta(out_dir: Path, meta: dict) -> None:
+def _horizon_before_default(policy) -> str:
+    """PSAR horizon a policy ran with, unasked, before ``meta.json`` recorded it.
+
+    A checkpoint keeps the horizon of its stored config; every other policy
+    took :class:`~diacc.config.PSARConfig`'s default, ``"stopping"`` until the
+    default became ``"headway"`` (2026-12-02).
+    """
+    return policy.base.psar.horizon if isinstance(policy, CheckpointPolicy) else "stopping"
+
+
+def _check_meta(out_dir: Path, meta: dict, horizon_before: str | None = None) -> None:
+    """Refuse a results directory that holds another evaluation; write ``meta.json``.
+
+    ``horizon_before``: the PSAR horizon of a ``meta.json`` that does not name
+    one (written before it was recorded); None: the policy runs without PSAR.
+    """
     path = out_dir / META_FILE
     if path.exists():
         old = read_json_object(path, EvaluationError)
+        if horizon_before is not None and isinstance(old.get("settings"), dict):
+            old["settings"] = {"psar_horizon": horizon_before, **old["settings"]}
         for key in ("policy", "checkpoint", "backend", "settings"):
             if old.get(key) != meta.get(key):
                 raise EvaluationError(
@@ -458,10 +475,16 @@ def evaluate(
         raise EvaluationError("the grid has no cells")
     policy = build_policy(spec)  # fail fast on a bad checkpoint, in this process
     for cell in cells:
-        policy.env_config(cell, settings)  # fail fast on cells the policy cannot run
+        env = policy.env_config(cell, settings)  # fail fast on cells the policy cannot run
     meta = {**policy.describe(), **settings.describe()}
+    # The horizon in effect, asked for or not, so that no run adds episodes of another
+    # horizon to a results directory (the default changed; the directory may be older).
+    horizon_before = None
+    if env.use_psar:
+        meta["settings"] = {**meta["settings"], "psar_horizon": env.psar.horizon}
+        horizon_before = _horizon_before_default(policy)
     with locked_dir(out_dir, "eval"):  # one writer; an unusable --out is one line
-        _check_meta(out_dir, meta)
+        _check_meta(out_dir, meta, horizon_before)
         return _evaluate(
             spec, cells, episodes, out_dir, settings, workers, progress, engine, on_cell, policy
         )

@@ -127,8 +127,8 @@ def psar(
       the CAV's planned braking ``sim.cav.safe_decel_mps2`` over the step;
       ``"paper"`` is the literal reading, action 4 = one ``dv_action`` step,
       which cannot stop a CAV that closes faster than that.
-    * Horizon (``cfg.horizon``): ``"stopping"`` (default) lengthens d_warn and
-      d_att, and the lane-change cancel distance d_LC,min to the target-lane
+    * Horizon (``cfg.horizon``): ``"stopping"`` (the default before 2026-12-02)
+      lengthens d_warn and d_att, and the lane-change cancel distance d_LC,min to the target-lane
       front and rear vehicles, by Gipps' safe gap
       (:func:`~diacc.kinematics.safe_gap_m`): one decision step of reaction,
       then braking at the CAV's planned deceleration while the vehicle ahead
@@ -141,7 +141,7 @@ def psar(
       gets Force-Brake's distance branch (line 19) even when it is not closing:
       else it holds a gap from which it cannot answer a leader that brakes in
       the same step, and closes at one step's braking until it hits.
-      ``"headway"`` (issue 26) replaces the car-following block
+      ``"headway"`` (issue 26; the default) replaces the car-following block
       (lines 17-27) by braking physics alone (:func:`_headway_car_following`):
       about one second behind an HDV, ``cfg.min_gap_m`` +
       ``cfg.cav_time_gap_s`` behind a CAV whose refined command of this step

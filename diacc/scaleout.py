@@ -233,7 +233,9 @@ def stored_config_changes(cfg: TrainConfig) -> list[str]:
     A run found finished is skipped and one found checkpointed is resumed:
     both only under the settings it was trained with, or the results would be
     reported under settings they were not made with. Fields added to the
-    config after the run was trained count as their defaults.
+    config after the run was trained count as their defaults (of that time:
+    :func:`~diacc.algo.checkpoint.config_from_checkpoint`), so a run trained
+    with the ``stopping`` horizon is not continued under today's ``headway``.
     """
     from diacc.algo.checkpoint import config_from_checkpoint
     from diacc.algo.mappo import check_resume_config

@@ -17,9 +17,12 @@ from diacc.state import TrafficState
 
 ROAD = load_map("train-25")  # 4 lanes at x = 100 m
 CFG = EnvConfig(psar_actions="masked")
+STOPPING_CFG = dataclasses.replace(CFG, psar=dataclasses.replace(CFG.psar, horizon="stopping"))
 
 
-def mask_of(others: list[tuple[float, int, float]], ego_lane: int = 1, **kw) -> list[bool]:
+def mask_of(
+    others: list[tuple[float, int, float]], ego_lane: int = 1, cfg: EnvConfig = CFG, **kw
+) -> list[bool]:
     """Mask of CAV 0 at (100 m, ego_lane, 20 m/s) among (x, lane, speed) HDVs."""
     state = make_state(
         [100.0] + [o[0] for o in others],
@@ -28,7 +31,7 @@ def mask_of(others: list[tuple[float, int, float]], ego_lane: int = 1, **kw) -> 
         is_cav=[True] + [False] * len(others),
         **kw,
     )
-    return psar_action_mask(state, np.array([0]), CFG, ROAD)[0].tolist()
+    return psar_action_mask(state, np.array([0]), cfg, ROAD)[0].tolist()
 
 
 def allowed(*actions: int) -> list[bool]:
@@ -43,8 +46,12 @@ def test_free_road_allows_everything_the_road_allows():
 
 def test_closing_leader_leaves_only_braking():
     # Gap 7 m closing at 1 m/s: Force-Brake turns remain and accelerate into decelerate;
-    # lane changes stay (free neighbour lanes).
-    assert mask_of([(112.0, 1, 19.0)]) == allowed(LANE_LEFT, LANE_RIGHT, DECELERATE)
+    # under "stopping" lane changes stay (free neighbour lanes); under "headway" a CAV
+    # that must brake for its leader does not change lanes (it is behind that leader
+    # during the change), so only braking is left.
+    closing = [(112.0, 1, 19.0)]
+    assert mask_of(closing, cfg=STOPPING_CFG) == allowed(LANE_LEFT, LANE_RIGHT, DECELERATE)
+    assert mask_of(closing) == allowed(DECELERATE)
 
 
 def test_suppressed_actions_are_masked_and_mask_is_never_empty():
@@ -53,6 +60,8 @@ def test_suppressed_actions_are_masked_and_mask_is_never_empty():
     # become decelerate). Lane-change targets blocked by vehicles alongside: only
     # braking is left, never nothing.
     blocked = [(109.0, 1, 21.0), (100.5, 0, 20.0), (100.5, 2, 20.0)]
+    assert mask_of(blocked, cfg=STOPPING_CFG) == allowed(DECELERATE)
+    # The default "headway" horizon as well: 4 m is less than 2 m + about 1 s at 20 m/s.
     assert mask_of(blocked) == allowed(DECELERATE)
 
 

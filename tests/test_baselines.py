@@ -119,7 +119,7 @@ def test_eval_psar_horizon_reaches_every_policy_with_psar_and_is_recorded():
     for name in ("heuristic", "cooperative", "accelerate"):
         assert build_policy(PolicySpec(name)).env_config(cell, settings).psar.horizon == "headway"
     default = build_policy(PolicySpec("heuristic")).env_config(cell, EvalSettings())
-    assert default.psar.horizon == "stopping"
+    assert default.psar.horizon == "headway"  # the default since 2026-12-02
     assert settings.describe()["settings"]["psar_horizon"] == "headway"
     # Unset, the key is absent, so results written before the option stay reusable.
     assert "psar_horizon" not in EvalSettings().describe()["settings"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import gzip
+import json
 from collections import defaultdict
 from pathlib import Path
 
@@ -16,7 +17,7 @@ from diacc.algo.mappo import make_agent
 from diacc.cli import main
 from diacc.config import ModelConfig, TrainConfig
 from diacc.env import BottleneckEnv
-from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, evaluate, read_csv
+from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, EvaluationError, evaluate, read_csv
 from diacc.grid import Cell, GridError, load_grid
 from diacc.maps import SEGMENT_KINDS
 from diacc.policies import EvalSettings, PolicySpec
@@ -199,6 +200,31 @@ def test_checkpoint_policy_greedy_and_deterministic(tmp_path):
     assert outs[0] == outs[1]
     (row,) = read_csv(tmp_path / "a" / EPISODES_FILE)
     assert row["policy"] == "diacc" and row["psar"] == "True" and int(row["psar_decisions"]) > 0
+
+
+def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_path):
+    """PSAR's default horizon became "headway" (2026-12-02). A results directory written
+    before, whose meta.json names no horizon, holds "stopping" episodes of a rule-based
+    policy: continuing it unasked would mix horizons. A checkpoint kept its own."""
+    meta = {"policy": "heuristic", "backend": "highway", "settings": {"episode_steps": 10}}
+    meta["settings"]["style_preset"] = None
+    old = tmp_path / "heuristic"
+    old.mkdir()
+    (old / "meta.json").write_text(json.dumps(meta))
+    run = lambda spec, out, **kw: evaluate(  # noqa: E731
+        spec, [SMALL], 1, out, EvalSettings("highway", episode_steps=10, **kw), progress=False
+    )
+    with pytest.raises(EvaluationError, match="other 'settings'"):
+        run(PolicySpec("heuristic"), old)
+    run(PolicySpec("heuristic"), old, psar_horizon="stopping")
+    assert json.loads((old / "meta.json").read_text())["settings"]["psar_horizon"] == "stopping"
+    ckpt = _checkpoint(tmp_path / "run")  # trained (here: made) with today's default
+    old_ckpt = tmp_path / "checkpoint"
+    old_ckpt.mkdir()
+    meta = {**meta, "policy": "diacc", "checkpoint": str(ckpt.resolve())}
+    (old_ckpt / "meta.json").write_text(json.dumps(meta))
+    run(PolicySpec(str(ckpt)), old_ckpt)
+    assert json.loads((old_ckpt / "meta.json").read_text())["settings"]["psar_horizon"] == "headway"
 
 
 def test_sampled_actions_are_seeded_and_differ_from_greedy(tmp_path):

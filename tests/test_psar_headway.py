@@ -23,6 +23,7 @@ from diacc.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, _exit_room_m, psar
 ROAD = load_map("train-25")
 SIM = SimConfig()
 HEADWAY = PSARConfig(horizon="headway")
+STOPPING = PSARConfig(horizon="stopping")  # the default before 2026-12-02
 LENGTH_M = 5.0  # make_state's vehicles: centre distance = bumper gap + 5 m
 
 
@@ -70,7 +71,7 @@ def test_behind_an_hdv_one_second_plus_the_standstill_gap():
     assert res.speed_change_mps[0] == pytest.approx(root(0.1, 0.5, 10.5 + 400 / 11) - 20.0)
     assert res.rule.tolist() == [FORCE_BRAKE]
     # The "stopping" horizon wants about twice the gap before it lets a CAV accelerate.
-    stop = run([100.0, 127.5], [1, 1], 20.0, [True, False], [ACCELERATE], PSARConfig())
+    stop = run([100.0, 127.5], [1, 1], 20.0, [True, False], [ACCELERATE], STOPPING)
     assert stop.action.tolist() == [REMAIN]
 
 
@@ -104,7 +105,7 @@ def test_lane_change_in_front_of_a_cav_leaves_no_wide_hole():
     assert res.action.tolist() == [LANE_LEFT, REMAIN]  # the rear CAV makes room at once
     assert res.rule.tolist() == [0, SUPPR_ACCEL]
     # The "stopping" horizon keeps a rear CAV one reacting, accelerating step away.
-    res = run(x, lanes, 20.0, cavs, [LANE_LEFT, ACCELERATE], PSARConfig())
+    res = run(x, lanes, 20.0, cavs, [LANE_LEFT, ACCELERATE], STOPPING)
     assert res.rule.tolist()[0] == CANCEL_LC
     # Too close to the front HDV: cancelled under "headway" as well.
     x_close = [100.0, 100.0 + LENGTH_M + 21.0, 100.0 - LENGTH_M - 9.0]

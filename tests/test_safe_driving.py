@@ -21,7 +21,8 @@ from diacc.scenario import Scenario
 
 ROAD = load_map("train-25")  # lane 3 ends at 500 m
 SIM = SimConfig()  # CAV safe braking 4 m/s2, actions +-2 m/s per 1 s step
-DEFAULT = PSARConfig()
+DEFAULT = PSARConfig()  # the "headway" horizon since 2026-12-02
+STOPPING = PSARConfig(horizon="stopping")  # the default before
 LITERAL = PSARConfig(force_brake="paper", horizon="paper", coordinate_lane_changes=False)
 
 
@@ -44,12 +45,18 @@ def test_safe_gap_is_gipps():
 
 def test_force_brake_cancels_the_closing_speed_within_the_braking_limit():
     leader = [(112.0, 1, 17.0)]  # gap 7 m, closing 3 m/s
-    res = one_cav(leader, REMAIN)
+    res = one_cav(leader, REMAIN, cfg=STOPPING)
     assert res.action.tolist() == [DECELERATE] and res.rule.tolist() == [FORCE_BRAKE]
     assert res.speed_change_mps.tolist() == pytest.approx([-4.0])  # min(3 + 2, 4 m/s per step)
     res = one_cav(leader, REMAIN, cfg=LITERAL)  # the literal reading: one action step
     assert res.speed_change_mps.tolist() == pytest.approx([-2.0])
+    # "headway" sizes the braking by physics; an HDV ahead that may brake harder than the
+    # planned 4 m/s2 allows up to the CAV's physical limit (5 m/s2) here.
+    res = one_cav(leader, REMAIN)
+    assert res.action.tolist() == [DECELERATE] and res.rule.tolist() == [FORCE_BRAKE]
+    assert res.speed_change_mps.tolist() == pytest.approx([-SIM.cav.decel_mps2 * SIM.step_s])
     # A proposal that already brakes as hard is left alone only in the literal reading.
+    assert one_cav(leader, DECELERATE, cfg=STOPPING).rule.tolist() == [FORCE_BRAKE]
     assert one_cav(leader, DECELERATE).rule.tolist() == [FORCE_BRAKE]
     assert one_cav(leader, DECELERATE, cfg=LITERAL).rule.tolist() == [0]
 
@@ -57,11 +64,11 @@ def test_force_brake_cancels_the_closing_speed_within_the_braking_limit():
 def test_stopping_horizon_sees_a_standing_queue_early_enough():
     queue = [(160.0, 1, 0.0)]  # 55 m ahead, standing; the CAV drives 25 m/s
     assert one_cav(queue, REMAIN, cfg=LITERAL).rule.tolist() == [0]  # beyond d_att = 15 m
-    res = one_cav(queue, REMAIN, ego=(100.0, 1, 25.0))
+    res = one_cav(queue, REMAIN, cfg=STOPPING, ego=(100.0, 1, 25.0))
     assert res.rule.tolist() == [FORCE_BRAKE] and res.speed_change_mps[0] == pytest.approx(-4.0)
     # Following at equal speed, one second of headway is needed to accelerate.
-    assert one_cav([(130.0, 1, 20.0)], ACCELERATE).action.tolist() == [REMAIN]
-    assert one_cav([(160.0, 1, 20.0)], ACCELERATE).action.tolist() == [ACCELERATE]
+    assert one_cav([(130.0, 1, 20.0)], ACCELERATE, cfg=STOPPING).action.tolist() == [REMAIN]
+    assert one_cav([(160.0, 1, 20.0)], ACCELERATE, cfg=STOPPING).action.tolist() == [ACCELERATE]
 
 
 def test_a_gap_too_short_to_answer_a_braking_leader_is_opened_even_when_not_closing():
@@ -92,15 +99,21 @@ def test_a_gap_too_short_to_answer_a_braking_leader_is_opened_even_when_not_clos
     assert one_cav([(130.0, 1, 20.0)], REMAIN).rule.tolist() == [0]
 
 
-def test_lane_end_is_a_wall_with_its_queue():
+@pytest.mark.parametrize("cfg", [DEFAULT, STOPPING], ids=lambda c: c.horizon)
+def test_lane_end_is_a_wall_with_its_queue(cfg):
     # Lane 3 ends at 500 m: a CAV 60 m before it at 20 m/s must start braking.
-    res = one_cav([], REMAIN, ego=(437.5, 3, 20.0))
+    res = one_cav([], REMAIN, cfg=cfg, ego=(437.5, 3, 20.0))
     assert res.rule.tolist() == [FORCE_BRAKE]
     # Far from the end nothing happens.
-    assert one_cav([], REMAIN, ego=(400.0, 3, 10.0)).rule.tolist() == [0]
+    assert one_cav([], REMAIN, cfg=cfg, ego=(400.0, 3, 10.0)).rule.tolist() == [0]
     # A leader still rolling towards the end will queue there: the wall moves back by it.
-    assert one_cav([], REMAIN, ego=(460.0, 3, 10.0)).rule.tolist() == [0]
-    assert one_cav([(480.0, 3, 10.0)], REMAIN, ego=(460.0, 3, 10.0)).rule.tolist() == [FORCE_BRAKE]
+    # "stopping" wants Gipps' gap (reaction step + braking) from 460 m at 10 m/s; "headway"
+    # from 467 m needs 10 m (the step) + 12.5 m (braking) + 2 m to the wall, 23.5 m with
+    # the leader's 5 m + 2 m queued in front of it, 30.5 m without.
+    ego = (460.0, 3, 10.0) if cfg.horizon == "stopping" else (467.0, 3, 10.0)
+    assert one_cav([], REMAIN, cfg=cfg, ego=ego).rule.tolist() == [0]
+    leader = [(480.0, 3, 10.0)] if cfg.horizon == "stopping" else [(490.0, 3, 10.0)]
+    assert one_cav(leader, REMAIN, cfg=cfg, ego=ego).rule.tolist() == [FORCE_BRAKE]
 
 
 def test_lane_change_into_a_lane_ending_within_reach_is_not_made():

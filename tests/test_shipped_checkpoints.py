@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from diacc.algo.checkpoint import config_from_checkpoint
+from diacc.config import PSARConfig
 from diacc.episode import EpisodeDriver
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec, build_policy
@@ -40,3 +42,25 @@ def test_checkpoint_drives_the_training_cell(path, backend):
         driver.close()
     assert len(state.collisions) == 0 and driver.steps == 20
     assert (state.x_m[state.is_cav] > start_m + 100.0).all()  # every CAV drove on
+
+
+@pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
+def test_checkpoint_keeps_the_psar_horizon_it_was_trained_with(path):
+    """The default horizon changed to "headway" (2026-12-02); these agents were trained
+    with "stopping", which their stored config names and evaluation must keep."""
+    import torch
+
+    stored = torch.load(path, map_location="cpu", weights_only=True)["config"]
+    assert stored["env"]["psar"]["horizon"] == "stopping"
+    assert PSARConfig().horizon == "headway"
+    policy = build_policy(PolicySpec(str(path), "diacc"))
+    cell = Cell("train-50", 25, 0.4, "D1")
+    assert policy.env_config(cell, EvalSettings()).psar.horizon == "stopping"
+    # Only an explicit --psar-horizon changes it.
+    headway = EvalSettings(psar_horizon="headway")
+    assert policy.env_config(cell, headway).psar.horizon == "headway"
+    # A stored config that predates the field loads with the default of its time.
+    del stored["env"]["psar"]["horizon"]
+    assert config_from_checkpoint({"config": stored}).env.psar.horizon == "stopping"
+    stored["env"]["psar"]["horizon"] = "paper"
+    assert config_from_checkpoint({"config": stored}).env.psar.horizon == "paper"

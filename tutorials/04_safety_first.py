@@ -304,19 +304,25 @@ print("wrote", map_png)
 # 3. The end of a lane is not a vehicle, so PSAR never brakes for it.
 #
 # With those, scripted CAVs that always `accelerate` crashed in every episode
-# (`diacc bench --safety`). diacc's default `PSARConfig()` keeps Algorithm 1's
-# structure and adds: Force-Brake that cancels the closing speed within the
-# step (the authors' own implementation), bounded by the CAV's planned braking
+# (`diacc bench --safety`). diacc's `PSARConfig(horizon="stopping")` (the
+# default until 2026-12-02) keeps Algorithm 1's structure and adds: Force-Brake
+# that cancels the closing speed within the step (the authors' own
+# implementation), bounded by the CAV's planned braking
 # `SimConfig.cav.safe_decel_mps2`; distance thresholds lengthened by Gipps'
 # safe gap (one step of reaction, then braking while the leader brakes as
 # hard); lane ends as standing walls in front of the queue that forms there;
-# and connected CAVs that do not change lanes into each other.
+# and connected CAVs that do not change lanes into each other. Today's default
+# `PSARConfig()`, horizon `headway`, keeps the walls and the coordination but
+# sizes car-following gaps by braking physics alone (about 1 s behind an HDV,
+# which may brake harder than 4 m/s^2, so the CAV may use its full 5 m/s^2;
+# see the PSAR concepts page); the cases below run all three.
 
 # %%
-physical = PSARConfig()
+stopping = PSARConfig(horizon="stopping")
+physical = PSARConfig()  # horizon "headway"
 sim = SimConfig()
 both = scene([(100.0, 0, 20.0, True), (101.0, 2, 20.0, True)])
-for name, c in (("literal", cfg), ("default", physical)):
+for name, c in (("literal", cfg), ("stopping", stopping), ("default", physical)):
     res = psar(both, np.array([0, 1]), np.array([LANE_LEFT, LANE_RIGHT]), c, road, sim)
     print(
         f"{name:>8}: CAV in lane 0 goes left, CAV in lane 2 goes right:",
@@ -327,7 +333,7 @@ for name, c in (("literal", cfg), ("default", physical)):
 
 gap_m, closing = 9.0, 7.0  # 9 m behind a leader that is 7 m/s slower
 state = scene([EGO, (100.0 + 5.0 + gap_m, 1, 20.0 - closing, False)])
-for name, c in (("literal", cfg), ("default", physical)):
+for name, c in (("literal", cfg), ("stopping", stopping), ("default", physical)):
     res = psar(state, np.array([0]), np.array([REMAIN]), c, road, sim)
     dv = float(res.speed_change_mps[0])
     # Constant deceleration over the 1 s step: the gap shrinks by the mean closing speed.
@@ -341,7 +347,7 @@ for name, c in (("literal", cfg), ("default", physical)):
 
 # A CAV alone in lane 3, which ends at 500 m, 60 m before the end at 20 m/s:
 alone = scene([(437.5, 3, 20.0, True)])
-for name, c in (("literal", cfg), ("default", physical)):
+for name, c in (("literal", cfg), ("stopping", stopping), ("default", physical)):
     res = psar(alone, np.array([0]), np.array([REMAIN]), c, road, sim)
     print(f"{name:>8}: lane ends 60 m ahead: {RULE_NAMES[int(res.rule[0])]}")
 

@@ -336,16 +336,26 @@ def _numpy_reconstruct():
 _ENV_SECTIONS_BEFORE_NESTING = ("backend", "map", "sim", "scenario", "obs", "psar", "reward")
 
 
+#: Fields whose default changed, with the value a config that predates them was loaded
+#: with before: a stored config without the field keeps that value instead of taking
+#: the new default silently. ``env.psar.horizon``: ``"headway"`` since 2026-12-02,
+#: ``"stopping"`` before (every config written since the field exists stores it).
+_OLD_DEFAULTS = {"env.psar.horizon": "stopping"}
+
+
 def config_from_checkpoint(payload: dict) -> TrainConfig:
     """Rebuild the TrainConfig stored in a checkpoint (fields it predates take their defaults).
 
     Checkpoints written before ``TrainConfig.env`` existed kept the
     environment's sections at the top level; they are moved under ``env``.
+    A field whose default has changed since (:data:`_OLD_DEFAULTS`) takes the
+    old default, so loading never switches how a trained policy was filtered.
     """
     saved = dict(payload["config"])
     if "env" not in saved:
         saved["env"] = {k: saved.pop(k) for k in _ENV_SECTIONS_BEFORE_NESTING if k in saved}
-    return override(TrainConfig(), flatten_config(saved))
+    flat = flatten_config(saved)
+    return override(TrainConfig(), {**_OLD_DEFAULTS, **flat})
 
 
 def flatten_config(tree: dict, prefix: str = "") -> dict:

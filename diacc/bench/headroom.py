@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.config import STYLE_PRESETS, ConfigError, preset_road
+from diacc.config import STYLE_PRESETS, ConfigError, PSARConfig, preset_road
 from diacc.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
@@ -221,7 +221,7 @@ def run(
         )
     if episodes < 1 or steps < 1:
         raise ConfigError(f"head-room needs episodes >= 1 and steps >= 1, got {episodes}, {steps}")
-    psar_label = horizon or "default"
+    psar_label = horizon or PSARConfig().horizon  # the horizon the table was made with
     if demand is None:
         what = f"one-shot release N = {RELEASE_N}, rho = {RHO}, {MIX}"
     else:
