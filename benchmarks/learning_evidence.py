@@ -5,7 +5,7 @@ Reads the evaluation directories written by ``benchmarks/learning_evidence_eval.
     EVAL/<backend>/<baseline>/episodes.csv   (pure-hdv, same-mix, heuristic, cooperative)
     EVAL/<backend>/<setting>-<variant>-s<seed>-<actions>/episodes.csv
 
-and writes ``summary.md`` (and ``summary.csv``) into ``--out``: per backend, every
+and writes ``evaluation.md`` (and ``evaluation.csv``) into ``--out``: per backend, every
 baseline and every (setting, variant, actions) group of trained runs, with the
 mean over its seeds of each run's episode mean (and the sd over seeds), the
 change against same-mix and the heuristic, and the issue's target checks:
@@ -164,8 +164,8 @@ def main() -> None:
                     }
                 )
         lines.append("")
-    (args.out / "summary.md").write_text("\n".join(lines))
-    with (args.out / "summary.csv").open("w", newline="") as fh:
+    (args.out / "evaluation.md").write_text("\n".join(lines))
+    with (args.out / "evaluation.csv").open("w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(table[0]))
         writer.writeheader()
         writer.writerows(table)

@@ -25,10 +25,10 @@ def test_checkpoints_are_shipped():
 
 
 @pytest.mark.parametrize("backend", ["highway", "sumo"])
-@pytest.mark.parametrize("path", CHECKPOINTS[:1], ids=lambda p: p.name)
+@pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
 def test_checkpoint_drives_the_training_cell(path, backend):
     policy = build_policy(PolicySpec(str(path), "diacc", sampled=True))
-    assert policy.base.sim.style_preset == "paper-congestion" and policy.base.use_psar
+    assert policy.base.sim.style_preset in path.name and policy.base.use_psar
     cfg = policy.env_config(
         Cell("train-50", 25, 0.4, "D1"), EvalSettings(backend, episode_steps=20)
     )
@@ -46,19 +46,21 @@ def test_checkpoint_drives_the_training_cell(path, backend):
 
 @pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
 def test_checkpoint_keeps_the_psar_horizon_it_was_trained_with(path):
-    """The default horizon changed to "headway" (2026-12-02); these agents were trained
-    with "stopping", which their stored config names and evaluation must keep."""
+    """The default horizon changed to "headway" (2026-12-02); the paper-congestion agents
+    were trained with "stopping" (the file name says the horizon of the others), which
+    their stored config names and evaluation must keep."""
     import torch
 
     stored = torch.load(path, map_location="cpu", weights_only=True)["config"]
-    assert stored["env"]["psar"]["horizon"] == "stopping"
+    trained = "headway" if "-headway-" in path.name else "stopping"
+    assert stored["env"]["psar"]["horizon"] == trained
     assert PSARConfig().horizon == "headway"
     policy = build_policy(PolicySpec(str(path), "diacc"))
     cell = Cell("train-50", 25, 0.4, "D1")
-    assert policy.env_config(cell, EvalSettings()).psar.horizon == "stopping"
+    assert policy.env_config(cell, EvalSettings()).psar.horizon == trained
     # Only an explicit --psar-horizon changes it.
-    headway = EvalSettings(psar_horizon="headway")
-    assert policy.env_config(cell, headway).psar.horizon == "headway"
+    literal = EvalSettings(psar_horizon="paper")
+    assert policy.env_config(cell, literal).psar.horizon == "paper"
     # A stored config that predates the field loads with the default of its time.
     del stored["env"]["psar"]["horizon"]
     assert config_from_checkpoint({"config": stored}).env.psar.horizon == "stopping"
