@@ -419,23 +419,44 @@ def _horizon_before_default(policy) -> str:
     return policy.base.psar.horizon if isinstance(policy, CheckpointPolicy) else "stopping"
 
 
-def _check_meta(out_dir: Path, meta: dict, horizon_before: str | None = None) -> None:
-    """Refuse a results directory that holds another evaluation; write ``meta.json``.
+def evaluation_meta(policy, cells: list[Cell], settings: EvalSettings) -> tuple[dict, str | None]:
+    """What ``meta.json`` records of an evaluation, and how to read an older one.
 
-    ``horizon_before``: the PSAR horizon of a ``meta.json`` that does not name
-    one (written before it was recorded); None: the policy runs without PSAR.
+    Returns ``(meta, horizon_before)``: the policy, backend and settings, the
+    settings with the PSAR horizon in effect (asked for or not, so that no run
+    adds episodes of another horizon to a results directory: the default
+    changed, the directory may be older); ``horizon_before`` is the horizon of
+    a ``meta.json`` that does not name one (None: the policy runs without PSAR).
     """
+    meta = {**policy.describe(), **settings.describe()}
+    env = policy.env_config(cells[0], settings)  # every cell shares PSAR and simulation
+    if not env.use_psar:
+        return meta, None
+    meta["settings"] = {**meta["settings"], "psar_horizon": env.psar.horizon}
+    return meta, _horizon_before_default(policy)
+
+
+def meta_conflict(old: dict, meta: dict, horizon_before: str | None) -> str | None:
+    """The first key in which an existing ``meta.json`` differs from ``meta``, else None."""
+    if horizon_before is not None and isinstance(old.get("settings"), dict):
+        old = {**old, "settings": {"psar_horizon": horizon_before, **old["settings"]}}
+    for key in ("policy", "checkpoint", "backend", "settings"):
+        if old.get(key) != meta.get(key):
+            return key
+    return None
+
+
+def _check_meta(out_dir: Path, meta: dict, horizon_before: str | None = None) -> None:
+    """Refuse a results directory that holds another evaluation; write ``meta.json``."""
     path = out_dir / META_FILE
     if path.exists():
         old = read_json_object(path, EvaluationError)
-        if horizon_before is not None and isinstance(old.get("settings"), dict):
-            old["settings"] = {"psar_horizon": horizon_before, **old["settings"]}
-        for key in ("policy", "checkpoint", "backend", "settings"):
-            if old.get(key) != meta.get(key):
-                raise EvaluationError(
-                    f"results directory {out_dir} holds {old.get('policy')} on "
-                    f"{old.get('backend')} with other {key!r}; choose another --out"
-                )
+        key = meta_conflict(old, meta, horizon_before)
+        if key is not None:
+            raise EvaluationError(
+                f"results directory {out_dir} holds {old.get('policy')} on "
+                f"{old.get('backend')} with other {key!r}; choose another --out"
+            )
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write(path, json.dumps(meta, indent=2).encode())
 
@@ -475,14 +496,8 @@ def evaluate(
         raise EvaluationError("the grid has no cells")
     policy = build_policy(spec)  # fail fast on a bad checkpoint, in this process
     for cell in cells:
-        env = policy.env_config(cell, settings)  # fail fast on cells the policy cannot run
-    meta = {**policy.describe(), **settings.describe()}
-    # The horizon in effect, asked for or not, so that no run adds episodes of another
-    # horizon to a results directory (the default changed; the directory may be older).
-    horizon_before = None
-    if env.use_psar:
-        meta["settings"] = {**meta["settings"], "psar_horizon": env.psar.horizon}
-        horizon_before = _horizon_before_default(policy)
+        policy.env_config(cell, settings)  # fail fast on cells the policy cannot run
+    meta, horizon_before = evaluation_meta(policy, cells, settings)
     with locked_dir(out_dir, "eval"):  # one writer; an unusable --out is one line
         _check_meta(out_dir, meta, horizon_before)
         return _evaluate(

@@ -87,23 +87,29 @@ def check_existing_evaluations(plan: Plan) -> None:
     never see the change, so the tables would report greedy results as
     sampled ones.
     """
-    from diacc.evaluate import META_FILE
+    from diacc.evaluate import META_FILE, evaluation_meta, meta_conflict
+    from diacc.policies import build_policy
 
     for job in plan.jobs:
         path = plan.eval_dir(job) / META_FILE
         if not path.exists():
             continue
         meta = read_json_object(path, ConfigError)
-        wanted = job_settings(plan, job).describe()
-        if job.run is not None:
-            wanted["actions"] = action_mode(job_spec(plan, job).sampled)
-        for key, value in wanted.items():
-            if meta.get(key) != value:
-                raise ConfigError(
-                    f"{path.parent} holds evaluations with another {key} ({meta.get(key)!r}, "
-                    f"this command asks for {value!r}); repeat the options it was started with, "
-                    "or choose another --out"
-                )
+        spec = job_spec(plan, job)
+        wanted, horizon_before = evaluation_meta(
+            build_policy(spec), list(job.cells), job_settings(plan, job)
+        )
+        # Actions first: they also change a checkpoint's policy label.
+        key = None
+        if job.run is not None and meta.get("actions") != action_mode(spec.sampled):
+            key = "actions"
+        key = key or meta_conflict(meta, wanted, horizon_before)
+        if key is not None:
+            raise ConfigError(
+                f"{path.parent} holds evaluations with another {key} ({meta.get(key)!r}, "
+                f"this command asks for {wanted.get(key)!r}); repeat the options it was started "
+                "with, or choose another --out"
+            )
 
 
 def train_all(
