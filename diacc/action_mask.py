@@ -29,6 +29,7 @@ import numpy as np
 
 from diacc.actions import ACTION_NAMES, REMAIN
 from diacc.config import EnvConfig
+from diacc.lateral_frame import MIRRORED_ACTION, is_mirrored
 from diacc.maps import Map
 from diacc.observation import ActorObs
 from diacc.psar import psar
@@ -65,9 +66,16 @@ def psar_action_mask(
 def with_action_mask(
     actor: ActorObs, state: TrafficState, cav_index: np.ndarray, config: EnvConfig, road: Map
 ) -> ActorObs:
-    """``actor`` with its ``action_mask`` set as ``config.psar_actions`` asks (in place)."""
+    """``actor`` with its ``action_mask`` set as ``config.psar_actions`` asks (in place).
+
+    ``state`` and ``road`` are the world's; the mask is in the agents' lateral
+    frame, like the actions it masks (:mod:`diacc.lateral_frame`).
+    """
     if config.psar_actions == "masked":
-        actor.action_mask = psar_action_mask(state, cav_index, config, road)
+        mask = psar_action_mask(state, cav_index, config, road)  # (..., C, 5) world frame
+        if is_mirrored(road, config.obs.lateral_frame):
+            mask = mask[..., MIRRORED_ACTION]
+        actor.action_mask = mask
     return actor
 
 

@@ -283,12 +283,20 @@ class SimConfig:
 # --------------------------------------------------------------------------
 # Observation, safety, reward
 # --------------------------------------------------------------------------
+#: Values of ``ObservationConfig.lateral_frame`` (:mod:`diacc.lateral_frame`).
+LATERAL_FRAMES = ("drop-left", "world")
+
+
 @dataclass(frozen=True)
 class ObservationConfig:
-    """Sizes of the observation layout (:mod:`diacc.observation`) and two options.
+    """Sizes of the observation layout (:mod:`diacc.observation`) and three options.
 
-    The options keep the layout (so every network and shipped checkpoint fits)
-    and default to the paper's observation. ``critic_step_input=False`` zeroes
+    The options keep the layout (so every network and shipped checkpoint fits).
+    ``lateral_frame = "drop-left"`` (default) shows a road that drops its right
+    lanes mirrored, so agents trained on left drops know where the lanes end
+    (:mod:`diacc.lateral_frame`; the identity on every shipped map); ``"world"``
+    is the literal reading. The two others default to the paper's observation.
+    ``critic_step_input=False`` zeroes
     the critic's step / episode-length feature: with 100-step training and
     330-step evaluation episodes the value of a truncated episode otherwise
     extrapolates past anything seen. ``road_speed_limits=True`` writes each
@@ -303,6 +311,8 @@ class ObservationConfig:
     lane_window_m: float = ranged(100.0, 0, open_low=True)  # lane statistics: ahead and behind
     critic_step_input: bool = True  # the critic's step / T feature (False: always 0)
     road_speed_limits: bool = False  # road table column 4 = segment limit / route max
+    # "drop-left": a road dropping its right lanes is seen mirrored (diacc.lateral_frame)
+    lateral_frame: str = one_of("drop-left", LATERAL_FRAMES)
 
     def __post_init__(self) -> None:
         _check_fields(self)

@@ -65,6 +65,7 @@ from diacc.actions import (
 from diacc.backends.base import Backend, CavCommands, make_backend
 from diacc.config import EnvConfig, preset_road
 from diacc.errors import DiaccError
+from diacc.lateral_frame import is_mirrored, mirror_actions
 from diacc.maps import Map, load_map
 from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
@@ -130,28 +131,32 @@ def decide(
     ``actions``, or for a batch of states with (E, C) ones (:mod:`diacc.state`).
     """
     proposed = np.asarray(actions, dtype=np.int64).reshape(cav_index.shape)
+    # The agents act in their lateral frame (diacc.lateral_frame), PSAR and the backend
+    # in the world's: ``world`` is what the agents asked for, in the world's frame.
+    mirrored = is_mirrored(road, config.obs.lateral_frame)
+    world = mirror_actions(proposed) if mirrored else proposed
     alive = take(state.active, cav_index)  # (..., C)
     no_rule = np.zeros(cav_index.shape, np.int8)
     sim = config.sim
     if config.use_psar:
-        result = psar(state, cav_index, proposed, config.psar, road, sim)
-        refined = np.where(alive, result.action, REMAIN)
+        result = psar(state, cav_index, world, config.psar, road, sim)
+        executed = np.where(alive, result.action, REMAIN)
         rule = np.where(alive, result.rule, 0).astype(np.int8)
         rule_mask = np.where(alive, result.rule_mask, 0).astype(np.int8)
         speed_change_mps = np.where(alive, result.speed_change_mps, 0.0)
     else:
         # Without PSAR a lane change the road does not allow is still not made
         # (the same rule as PSAR and the backends), so the executed action is honest.
-        allowed = lane_change_allowed(state, cav_index, proposed, road, sim)
-        is_lc = ACTION_LANE_OFFSET[proposed] != 0
-        result, refined = None, np.where(alive & (allowed | ~is_lc), proposed, REMAIN)
+        allowed = lane_change_allowed(state, cav_index, world, road, sim)
+        is_lc = ACTION_LANE_OFFSET[world] != 0
+        result, executed = None, np.where(alive & (allowed | ~is_lc), world, REMAIN)
         rule, rule_mask = no_rule, no_rule
-        speed_change_mps = action_speed_change_mps(refined, sim.speed_change_mps)
+        speed_change_mps = action_speed_change_mps(executed, sim.speed_change_mps)
     lane_change = np.zeros(state.x_m.shape, np.int8)  # (..., V)
     speed_change = np.zeros(state.x_m.shape, np.float64)
     # Added, not put: empty slots may share a vehicle (not on the road) and add 0 there.
     where = (*np.indices(cav_index.shape)[:-1], cav_index)
-    np.add.at(lane_change, where, ACTION_LANE_OFFSET[refined].astype(np.int8))
+    np.add.at(lane_change, where, ACTION_LANE_OFFSET[executed].astype(np.int8))
     np.add.at(speed_change, where, speed_change_mps)
     # CAVs on the road without a slot (demand: more than cav_slots at once) drive
     # themselves: NaN is "no command" (diacc.backends.base).
@@ -159,6 +164,7 @@ def decide(
     np.logical_or.at(driven, where, alive)
     speed_change[state.is_cav & state.active & ~driven] = np.nan
     commands = CavCommands(lane_change, speed_change)
+    refined = mirror_actions(executed) if mirrored else executed  # back in the agents' frame
     return Decision(proposed, refined, rule, rule_mask, result, commands)
 
 

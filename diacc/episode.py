@@ -42,8 +42,8 @@ class EpisodeDriver:
         self.road, self.backend = self.env.road, self.env.backend
         self.state: TrafficState | None = None
         use_road = getattr(policy, "use_road", None)  # optional: policies that read the map
-        if use_road is not None:
-            use_road(self.road)
+        if use_road is not None:  # the map as the agents see it (diacc.lateral_frame)
+            use_road(self.env.builder.road)
 
     def reset(self, seed: int) -> TrafficState:
         """Start the episode of ``seed`` (traffic and, for scripted policies, their draws)."""

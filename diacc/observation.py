@@ -80,6 +80,7 @@ import numpy as np
 
 from diacc.config import ObservationConfig
 from diacc.errors import DiaccError
+from diacc.lateral_frame import agent_map, is_mirrored, mirror_state
 from diacc.maps import Map
 from diacc.state import TrafficState, take
 
@@ -311,6 +312,10 @@ class ObservationBuilder:
             )
         if episode_steps < 1:
             raise ObservationError(f"episode_steps must be >= 1, got {episode_steps}")
+        # The agents' frame (diacc.lateral_frame): every state is observed reflected when
+        # the road drops its right lanes; ``road`` is then the mirrored map.
+        self.mirrored = is_mirrored(road, cfg.lateral_frame)
+        road = agent_map(road, cfg.lateral_frame)
         self.road = road
         self.cfg = cfg
         self.episode_steps = int(episode_steps)
@@ -353,7 +358,7 @@ class ObservationBuilder:
     def reset(self, state: TrafficState) -> None:
         """Start an episode: the whole history holds copies of ``state``."""
         self._check_state(state, expect_vehicles=None)
-        state = state.copy()
+        state = self._in_frame(state)
         self._frame = _Frame(state, _History.filled(state, self.cfg.history_steps))
 
     def push(self, state: TrafficState) -> None:
@@ -361,7 +366,7 @@ class ObservationBuilder:
         if self._frame is None:
             raise ObservationError("push() called before reset(); start the episode first")
         self._check_state(state, expect_vehicles=self._frame.state.n_vehicles)
-        state = state.copy()
+        state = self._in_frame(state)
         self._frame.hist.push(state)
         self._frame = _Frame(state, self._frame.hist)
 
@@ -412,6 +417,8 @@ class ObservationBuilder:
         first, frames = builders[0], [b._current() for b in builders]
         if state is None:
             state = TrafficState.stack([f.state for f in frames])  # (E, V) arrays
+        elif first.mirrored:  # the caller's batch is in the world's frame
+            state = mirror_state(state, first.road)
         nbr, nbr_mask = first._neighbours(state)  # (E, V, K): one search for all envs
         for f, env_nbr, env_mask in zip(frames, nbr, nbr_mask, strict=True):
             if f.nbr is None:  # each builder keeps its env's sets (critic(), neighbours)
@@ -424,6 +431,10 @@ class ObservationBuilder:
         return actor, first._critic(frame)
 
     # ---- internals -----------------------------------------------------------
+    def _in_frame(self, state: TrafficState) -> TrafficState:
+        """A copy of ``state`` in the agents' frame (mirrored or as it is)."""
+        return mirror_state(state, self.road) if self.mirrored else state.copy()
+
     def _actor(
         self,
         frame: _Frame,
