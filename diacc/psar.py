@@ -603,8 +603,10 @@ def _headway_bound_mps(
 
     Every front obstacle gives a bound (:func:`~diacc.kinematics.safe_end_speed_mps`):
     the same-lane leader, the end of the own lane (not for a CAV leaving it:
-    the road checked the change's reach) and the nearest CAV ahead that
-    changes, or asks to change, into the lane in this step. An HDV leader,
+    the road checked the change's reach) and each CAV ahead that changes,
+    or asks to change, into the lane in this step (each one, not only the
+    nearest: a nearer one that only asks may drive on and uncover one that
+    moves in standing; learning evidence, train-50 seed 1637607931). An HDV leader,
     whose command is unknown, may brake at once as hard as its style's
     deceleration (at least the planned rate ``sim.cav.safe_decel_mps2``),
     and the CAV plans to answer with its full braking ``sim.cav.decel_mps2``:
