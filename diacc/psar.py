@@ -603,8 +603,10 @@ def _headway_bound_mps(
 
     Every front obstacle gives a bound (:func:`~diacc.kinematics.safe_end_speed_mps`):
     the same-lane leader, the end of the own lane (not for a CAV leaving it:
-    the road checked the change's reach) and the nearest CAV ahead that
-    changes, or asks to change, into the lane in this step. An HDV leader,
+    the road checked the change's reach) and each CAV ahead that changes,
+    or asks to change, into the lane in this step (each one, not only the
+    nearest: a nearer one that only asks may drive on and uncover one that
+    moves in standing; learning evidence, train-50 seed 1637607931). An HDV leader,
     whose command is unknown, may brake at once as hard as its style's
     deceleration (at least the planned rate ``sim.cav.safe_decel_mps2``),
     and the CAV plans to answer with its full braking ``sim.cav.decel_mps2``:
@@ -635,11 +637,13 @@ def _headway_bound_mps(
 
     ego_mps = long_speed(cav_index)  # (..., C)
 
-    def bound(gap_m, lead_step_m, lead_end_mps, time_gap_s, own_decel=decel, lead_decel=None):
+    def bound(
+        gap_m, lead_step_m, lead_end_mps, time_gap_s, own_decel=decel, lead_decel=None, own=None
+    ):
         with np.errstate(invalid="ignore"):
             out = safe_end_speed_mps(
                 gap_m,
-                ego_mps,
+                ego_mps if own is None else own,
                 lead_step_m,
                 lead_end_mps,
                 step_s,
@@ -676,7 +680,9 @@ def _headway_bound_mps(
     )
     fixed_mps = np.minimum(fixed_mps, merging_mps)
 
-    # The nearest CAV ahead changing into each CAV's lane: (..., C, C) [i, j] = j cuts in.
+    # Every CAV ahead changing into each CAV's lane: (..., C, C) [i, j] = j cuts in. Each
+    # one bounds, not only the nearest: a nearer one that only asks (and drives on in its
+    # own lane) does not shield the CAV from one that moves in, standing, further ahead.
     i_, j_ = (Ellipsis, slice(None), None), (Ellipsis, None, slice(None))
     cav_x_m, cav_length_m = take(state.x_m, cav_index), take(state.length_m, cav_index)
     lane = take(state.lane, cav_index).astype(np.int64)
@@ -686,15 +692,13 @@ def _headway_bound_mps(
     # pass the rear check; a CAV closer or alongside drives on and lets it in behind.
     asking = ~changing[j_] & (pair_gap_m < cfg.d_lc_min_m)
     cuts = (entering_lane[j_] == lane[i_]) & (entering_lane[j_] >= 0) & (dx_m > 0) & ~asking
-    pair_gap_m = np.where(cuts, pair_gap_m, np.inf)  # (..., C, C)
-    cut_slot = np.where(cuts.any(-1), np.argmin(pair_gap_m, -1), -1)  # (..., C)
-    cut_gap_m = np.min(pair_gap_m, axis=-1)
+    cut_gap_m = np.where(cuts, pair_gap_m, np.inf)  # (..., C, C)
 
     # A lane changer also follows the front CAV of its target lane (an HDV there was
     # checked with the unknown-leader gap before the change was allowed).
     tf_slot = np.where(changing & tf_vehicle.valid, take(slot_of, np.maximum(tf_index, 0)), -1)
     tf_gap_m = np.where(tf_slot >= 0, tf_vehicle.d_long_m, np.inf)
-    known = ((lead_slot, lead_gap_m), (cut_slot, cut_gap_m), (tf_slot, tf_gap_m))
+    known = ((lead_slot, lead_gap_m), (tf_slot, tf_gap_m))
 
     def behind_known(slot: np.ndarray, gap_m: np.ndarray, end_mps: np.ndarray) -> np.ndarray:
         """Bound behind the CAV in ``slot`` (-1: none), which ends the step at ``end_mps``."""
@@ -702,6 +706,13 @@ def _headway_bound_mps(
         v0, v1 = np.take_along_axis(ego_mps, s, -1), np.take_along_axis(end_mps, s, -1)
         gap_m = np.where(slot >= 0, gap_m, np.inf)
         return bound(gap_m, 0.5 * (v0 + v1) * step_s, v1, cfg.cav_time_gap_s)
+
+    def behind_cuts(end_mps: np.ndarray) -> np.ndarray:
+        """Bound behind every CAV cutting in (``cut_gap_m``), each ending at ``end_mps``."""
+        v0, v1 = ego_mps[j_], end_mps[j_]
+        step_m = 0.5 * (v0 + v1) * step_s
+        out = bound(cut_gap_m, step_m, v1, cfg.cav_time_gap_s, own=ego_mps[i_])
+        return out.min(-1, initial=np.inf)
 
     cav_limit_mps = limit_mps[take(state.segment, cav_index).astype(np.int64)]
     bound_mps = fixed_mps.copy()
@@ -711,9 +722,10 @@ def _headway_bound_mps(
         ready = ~decided
         for slot, _gap in known:
             ready &= (slot < 0) | np.take_along_axis(decided, np.maximum(slot, 0), -1)
+        ready &= ~(cuts & ~decided[j_]).any(-1)
         if not ready.any():
             break
-        now = fixed_mps
+        now = np.minimum(fixed_mps, behind_cuts(end_mps))
         for slot, gap_m in known:
             now = np.minimum(now, behind_known(slot, gap_m, end_mps))
         bound_mps = np.where(ready, now, bound_mps)
@@ -731,5 +743,8 @@ def _headway_bound_mps(
         worst_mps = np.minimum(
             worst_mps, bound(gap_m, *braking_step(speed_mps, step_s, decel), 0.0)
         )
+    cut_step_m, cut_end_mps = braking_step(ego_mps[j_], step_s, decel)
+    worst_cut_mps = bound(cut_gap_m, cut_step_m, cut_end_mps, 0.0, own=ego_mps[i_])
+    worst_mps = np.minimum(worst_mps, worst_cut_mps.min(-1, initial=np.inf))
     bound_mps = np.where(decided, bound_mps, worst_mps)
     return bound_mps

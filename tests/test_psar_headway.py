@@ -127,6 +127,23 @@ def test_cavs_open_a_gap_for_a_cav_that_asks_to_merge():
     assert res.rule.tolist()[1] == 0
 
 
+def test_a_cav_brakes_for_a_standing_cav_moving_in_behind_a_nearer_one_that_only_asks():
+    # Learning evidence, highway train-50, sampled actions, episode seed 1637607931,
+    # step 28: CAV A stands in lane 2 and moves right into lane 1, 18 m ahead of CAV B
+    # (10 m/s); the rear check lets it, as B can brake at once (1 m + 0.3 s x 10 m/s +
+    # 10^2 / 8 = 16.5 m). CAV C, 1 m behind A in lane 0 at 22 m/s, asks for lane 1 too
+    # and is cancelled (A goes first). B used to follow only the nearest CAV entering
+    # its lane, C, which drives on at 22 m/s, held 10 m/s and hit A two steps later.
+    x = [300.0, 299.0, 300.0 - LENGTH_M - 18.0]  # A, C, B
+    res = run(x, [2, 0, 1], [0.0, 22.0, 10.0], [True, True, True], [LANE_RIGHT, LANE_LEFT, REMAIN])
+    assert res.action.tolist() == [LANE_RIGHT, REMAIN, DECELERATE]
+    assert res.rule.tolist() == [0, CANCEL_LC, FORCE_BRAKE]
+    # B brakes to u behind the standing A, u^2 / 8 + 0.8 u = 18 - 10 / 2 - 2, from
+    # where it stops 2 m + 0.3 s x u behind A; within the planned 4 m/s^2.
+    assert res.speed_change_mps[2] == pytest.approx(root(1 / 8, 0.8, 11.0) - 10.0)
+    assert -4.0 < res.speed_change_mps[2] < -3.0
+
+
 def test_outer_lane_of_a_double_drop_is_left_before_its_end():
     # train-50: lanes 2 and 3 end at 500 m. Lane 3 can only be left into lane 2, which
     # a standing car may enter only if lane 2 lasts its length beyond its centre, so
