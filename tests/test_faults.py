@@ -29,6 +29,8 @@ HANG_S = float(os.environ.get("DIACC_TEST_HANG_S", "180"))
 
 TINY_TOML = """
 rollout_steps = 10
+# 1-2 envs x 10 steps are 1-2 sequences, fewer than the default 4 minibatches
+minibatches = 1
 epochs = 2
 checkpoint_every = 1
 device = "cpu"
