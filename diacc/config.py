@@ -1,5 +1,7 @@
 """Typed configuration. Defaults follow the DIACC paper and, where it is silent, the
-authors' public predecessor environment (lzxphhh/HARL-based_simulator).
+authors' public predecessor environment (lzxphhh/HARL-based_simulator); the learner's
+sizes are the measured cheaper ones (:class:`ModelConfig`; the paper's are
+:data:`PAPER_LEARNER`, ``configs/paper-learner.toml``).
 
 Configs are frozen dataclasses so that a run's settings cannot drift after
 start-up; ``dataclasses.replace`` makes variants. :func:`override` applies a
