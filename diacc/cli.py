@@ -136,7 +136,9 @@ def _train_parser(sub) -> None:
     p.add_argument(
         "--config",
         type=Path,
-        help="TOML file of config overrides (dotted or nested keys; none by default)",
+        help="TOML file of config overrides (dotted or nested keys; none by default), e.g. "
+        "configs/paper-learner.toml: the paper's network sizes (128, 1 minibatch) instead "
+        "of the default learner's (64, 4 minibatches)",
     )
     p.add_argument(
         "--set",

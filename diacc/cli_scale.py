@@ -131,7 +131,11 @@ def add_parsers(sub) -> None:
         default=Path("runs/sweep"),
         help="parent of the run dirs",
     )
-    p.add_argument("--config", type=Path, help="TOML file of config overrides (none by default)")
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="TOML file of config overrides (none by default), e.g. configs/paper-learner.toml",
+    )
     p.add_argument(
         "--set",
         action="append",

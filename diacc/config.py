@@ -1,5 +1,7 @@
 """Typed configuration. Defaults follow the DIACC paper and, where it is silent, the
-authors' public predecessor environment (lzxphhh/HARL-based_simulator).
+authors' public predecessor environment (lzxphhh/HARL-based_simulator); the learner's
+sizes are the measured cheaper ones (:class:`ModelConfig`; the paper's are
+:data:`PAPER_LEARNER`, ``configs/paper-learner.toml``).
 
 Configs are frozen dataclasses so that a run's settings cannot drift after
 start-up; ``dataclasses.replace`` makes variants. :func:`override` applies a
@@ -488,16 +490,33 @@ class EnvConfig:
 # --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ModelConfig:
-    hidden_dim: int = ranged(128, 1)
+    """Network sizes of actor and critic.
+
+    The hidden sizes default to 64, the small end of the paper's "of the order
+    64-256": with 4 minibatches (:class:`TrainConfig`) this learner learned at
+    least as fast per environment step as 128 wide networks with 1 minibatch, at
+    half the update cost (3 seeds x 32k steps, docs/benchmarks/index.md,
+    ``benchmarks/results/learner-comparison-iii``); every committed trained agent
+    uses it. The paper's size is ``configs/paper-learner.toml``
+    (:data:`PAPER_LEARNER`). A checkpoint keeps the sizes it was trained with.
+    """
+
+    hidden_dim: int = ranged(64, 1)
     gat_heads: int = ranged(4, 1)
     cross_heads: int = ranged(8, 1)
     cross_dim: int = ranged(64, 1)
-    gru_hidden: int = ranged(128, 1)
+    gru_hidden: int = ranged(64, 1)
     leaky_slope: float = ranged(0.2, 0)
     taie_concat_heads: bool = False  # TAIE GAT heads hidden/heads wide, concatenated (cheaper)
 
     def __post_init__(self) -> None:
         _check_fields(self)
+
+
+#: The paper-size learner (hidden sizes 128, one minibatch: the defaults before
+#: 2026-12-02) as config overrides; ``configs/paper-learner.toml`` holds the same
+#: (a test keeps the two equal) and the benchmarks compare against it.
+PAPER_LEARNER: dict[str, Any] = {"model.hidden_dim": 128, "model.gru_hidden": 128, "minibatches": 1}
 
 
 @dataclass(frozen=True)
@@ -556,7 +575,10 @@ class TrainConfig:
     gae_lambda: float = ranged(0.95, 0, 1)
     clip: float = ranged(0.2, 0, open_low=True)
     epochs: int = ranged(5, 1)
-    minibatches: int = ranged(1, 1)
+    # of whole (chunk, env) sequences per epoch: 4 gives 20 Adam steps per update instead
+    # of 5 at the same compute (ModelConfig: measured with hidden 64); needs
+    # n_envs x rollout_steps / chunk_len >= minibatches (validate)
+    minibatches: int = ranged(4, 1)
     entropy_coef: float = ranged(0.01, 0)
     value_coef: float = ranged(1.0, 0)
     huber_delta: float = ranged(10.0, 0, open_low=True)
@@ -799,10 +821,13 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"rollout_steps {cfg.rollout_steps} must be >= env.sim.episode_steps "
             f"{cfg.env.sim.episode_steps}, so that rollouts hold whole episodes"
         )
-    if cfg.minibatches > cfg.n_envs * (cfg.rollout_steps // cfg.chunk_len):
+    sequences = cfg.n_envs * (cfg.rollout_steps // cfg.chunk_len)
+    if cfg.minibatches > sequences:
+        # A minibatch is at least one whole (chunk, env) sequence.
         raise ConfigError(
-            f"minibatches {cfg.minibatches} exceeds the rollout's "
-            f"{cfg.n_envs * (cfg.rollout_steps // cfg.chunk_len)} sequences"
+            f"minibatches {cfg.minibatches} exceeds the rollout's {sequences} sequences "
+            f"(n_envs {cfg.n_envs} x rollout_steps {cfg.rollout_steps} / chunk_len "
+            f"{cfg.chunk_len}); set minibatches <= {sequences} or raise n_envs or rollout_steps"
         )
     return cfg
 

@@ -22,6 +22,7 @@ from diacc.config import (
     TrainConfig,
     build_train_config,
     override,
+    validate,
 )
 from diacc.sweepaxes import sweep_settings
 
@@ -53,6 +54,21 @@ def test_defaults_and_run_dir():
     assert cfg.run_dir == "runs/mappo-highway-train-25-s3"
     assert build_train_config(run_dir="out/r").run_dir == "out/r"
     assert build_train_config(sets=["run_dir=out/s"]).run_dir == "out/s"
+
+
+def test_default_learner_is_the_small_one_and_needs_four_sequences():
+    """Hidden sizes 64 and 4 minibatches by default (the paper's 128 and 1 are
+    configs/paper-learner.toml); a rollout of fewer sequences says how to fix it."""
+    cfg = TrainConfig()
+    assert (cfg.model.hidden_dim, cfg.model.gru_hidden, cfg.minibatches) == (64, 64, 4)
+    tiny = {"n_envs": 1, "rollout_steps": 20, "total_steps": 20, "env.sim.episode_steps": 20}
+    with pytest.raises(
+        ConfigError,
+        match=r"^minibatches 4 exceeds the rollout's 2 sequences "
+        r"\(n_envs 1 x rollout_steps 20 / chunk_len 10\); set minibatches <= 2",
+    ):
+        validate(override(TrainConfig(), tiny))
+    assert validate(override(TrainConfig(), {**tiny, "minibatches": 2})).minibatches == 2
 
 
 def test_bad_input_is_one_line(tmp_path):

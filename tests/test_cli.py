@@ -60,7 +60,9 @@ def test_bench_needs_a_target(capsys):
 def test_train_writes_a_run_directory(tmp_path, capsys):
     config = tmp_path / "small.toml"
     config.write_text(
-        "rollout_steps = 10\nepochs = 1\nn_envs = 4\nseed = 5\n[env.scenario]\nn_vehicles = 8\n"
+        # --envs 2 x 10 steps are 2 sequences: minibatches 1 (the default 4 needs 4)
+        "rollout_steps = 10\nepochs = 1\nn_envs = 4\nseed = 5\nminibatches = 1\n"
+        "[env.scenario]\nn_vehicles = 8\n"
         "cav_penetration = 0.25\n[env.sim]\nepisode_steps = 10\n[model]\nhidden_dim = 32\n"
         "gru_hidden = 32\ncross_dim = 32\n"
     )

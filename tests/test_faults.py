@@ -29,6 +29,8 @@ HANG_S = float(os.environ.get("DIACC_TEST_HANG_S", "180"))
 
 TINY_TOML = """
 rollout_steps = 10
+# 1-2 envs x 10 steps are 1-2 sequences, fewer than the default 4 minibatches
+minibatches = 1
 epochs = 2
 checkpoint_every = 1
 device = "cpu"
@@ -240,8 +242,9 @@ def test_case3_nonfinite_gradient_stops_before_the_update(tmp_path, monkeypatch)
         name, param = next(iter(agent.critic.named_parameters()))
 
         def poison(grad):  # update 2 onwards: the gradient of one critic tensor is NaN
-            backward_calls.append(name)
-            return grad * float("nan") if len(backward_calls) > cfg.epochs else grad
+            backward_calls.append(name)  # one backward per minibatch of each epoch
+            per_update = cfg.epochs * cfg.minibatches
+            return grad * float("nan") if len(backward_calls) > per_update else grad
 
         param.register_hook(poison)
         return agent

@@ -64,6 +64,7 @@ def test_ray_sweep_trains_like_a_local_run(local_ray, tmp_path):
             "total_steps": 20,
             "n_envs": 1,
             "rollout_steps": 10,
+            "minibatches": 1,  # 1 env x 10 steps: 1 sequence
             "epochs": 1,
             "device": "cpu",
             "env.scenario.n_vehicles": 8,

@@ -66,3 +66,25 @@ def test_checkpoint_keeps_the_psar_horizon_it_was_trained_with(path):
     assert config_from_checkpoint({"config": stored}).env.psar.horizon == "stopping"
     stored["env"]["psar"]["horizon"] = "paper"
     assert config_from_checkpoint({"config": stored}).env.psar.horizon == "paper"
+
+
+@pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
+def test_checkpoint_keeps_the_learner_it_was_trained_with(path):
+    """The default learner became the shipped agents' (hidden 64, 4 minibatches,
+    2026-12-02); a checkpoint's stored config decides its sizes, and one that lacked
+    them would load with the paper's sizes, the defaults of its time."""
+    import torch
+
+    from diacc.config import PAPER_LEARNER, TrainConfig
+
+    stored = torch.load(path, map_location="cpu", weights_only=True)["config"]
+    cfg = config_from_checkpoint({"config": stored})
+    assert (cfg.model.hidden_dim, cfg.model.gru_hidden, cfg.minibatches) == (64, 64, 4)
+    assert cfg.model == TrainConfig().model
+    for key in ("hidden_dim", "gru_hidden"):
+        del stored["model"][key]
+    del stored["minibatches"]
+    old = config_from_checkpoint({"config": stored})
+    assert (old.model.hidden_dim, old.model.gru_hidden, old.minibatches) == tuple(
+        PAPER_LEARNER[k] for k in ("model.hidden_dim", "model.gru_hidden", "minibatches")
+    )

@@ -7,7 +7,8 @@ import pytest
 from diacc.cli import main
 
 SMALL = [
-    "--set", "rollout_steps=10", "--set", "epochs=1", "--set", "env.scenario.n_vehicles=8",
+    "--set", "rollout_steps=10", "--set", "minibatches=1", "--set", "epochs=1",
+    "--set", "env.scenario.n_vehicles=8",
     "--set", "env.scenario.cav_penetration=0.25", "--set", "env.sim.episode_steps=10",
     "--set", "model.hidden_dim=16", "--set", "model.gru_hidden=16", "--set", "model.cross_dim=16",
 ]  # fmt: skip

@@ -250,7 +250,8 @@ def test_overlapped_training_is_reproducible_lagged_and_resumes_exactly(tmp_path
 
 # ----------------------------------------------------------------------------- bench
 def test_training_bench_rows_and_core_shares(tmp_path):
-    """The bench's small learner is configs/small-learner.toml; every row runs, shares add up."""
+    """The bench's small learner is configs/small-learner.toml (= the defaults), its paper
+    learner configs/paper-learner.toml; every row runs, shares add up."""
     from pathlib import Path
 
     from diacc.bench import training
@@ -262,6 +263,10 @@ def test_training_bench_rows_and_core_shares(tmp_path):
         **{f"model.{k}": v for k, v in toml["model"].items()},
     }
     assert training.SMALL_LEARNER == flat
+    assert override(TrainConfig(), flat) == TrainConfig()
+    paper = read_toml(Path(__file__).parents[1] / "configs" / "paper-learner.toml", ValueError)
+    assert override(TrainConfig(), paper) == override(TrainConfig(), training.PAPER_LEARNER)
+    assert dict(training.LEARNER_ROWS)["paper learner"] == training.PAPER_LEARNER
     labels = [label for label, _, _ in training.configurations("cpu", False, only="learners")]
     assert labels[:8] == [label for label, _ in training.LEARNER_ROWS]
     assert "small learner + bf16 + overlap" in labels
@@ -271,8 +276,8 @@ def test_training_bench_rows_and_core_shares(tmp_path):
         "core0": (0.5, 0.0),
         "core1": (0.0, 0.9),
     }
-    row = training.measure(
-        "diacc", "highway", 2, 2, "cpu", rollout_steps=10, options={"overlap": True, **TINY_NETS}
-    )
+    # 2 envs x 10 steps are 2 sequences: one minibatch
+    tiny = {"overlap": True, "minibatches": 1, **TINY_NETS}
+    row = training.measure("diacc", "highway", 2, 2, "cpu", rollout_steps=10, options=tiny)
     assert row["steps_per_s"] > 0 and 0 < row["core1"][1] <= 1.5
     assert row["idle_steps_per_s"] > 0 and row["learner_cpu_s"] > 0

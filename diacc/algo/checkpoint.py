@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from diacc.algo.agent import Agent
-from diacc.config import TrainConfig, override
+from diacc.config import PAPER_LEARNER, TrainConfig, override
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_target
 from diacc.models.registry import build_networks
@@ -340,7 +340,10 @@ _ENV_SECTIONS_BEFORE_NESTING = ("backend", "map", "sim", "scenario", "obs", "psa
 #: with before: a stored config without the field keeps that value instead of taking
 #: the new default silently. ``env.psar.horizon``: ``"headway"`` since 2026-12-02,
 #: ``"stopping"`` before (every config written since the field exists stores it).
-_OLD_DEFAULTS = {"env.psar.horizon": "stopping"}
+#: The learner's sizes and minibatches: the small learner since 2026-12-02, the
+#: paper's (:data:`diacc.config.PAPER_LEARNER`) before; every stored config holds
+#: them, so this only keeps a config that lost them on the sizes it meant.
+_OLD_DEFAULTS = {"env.psar.horizon": "stopping", **PAPER_LEARNER}
 
 
 def config_from_checkpoint(payload: dict) -> TrainConfig:

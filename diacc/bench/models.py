@@ -1,7 +1,9 @@
 """Network benchmark: parameter counts, rollout-step latency and update cost per variant.
 
-Sizes follow the training setup (MAPPO practice and the paper): 20 environments x 10 CAVs, 100
-rollout steps, recurrent chunks of 10. One rollout step is the actor on every
+Sizes follow the paper's training setup (and MAPPO practice): 20 environments x 10 CAVs, 100
+rollout steps, recurrent chunks of 10, and the paper-size networks
+(configs/paper-learner.toml, hidden 128; the defaults are the small learner's 64)
+unless ``cfg`` says otherwise. One rollout step is the actor on every
 CAV plus the critic on every environment state (no gradients); one update pass
 is forward + backward of a PPO-like loss over the whole rollout replayed in
 chunks, i.e. one of the 5 epochs with 1 minibatch.
@@ -15,7 +17,14 @@ import time
 import numpy as np
 import torch
 
-from diacc.config import VARIANTS, ModelConfig, ObservationConfig
+from diacc.config import (
+    PAPER_LEARNER,
+    VARIANTS,
+    ModelConfig,
+    ObservationConfig,
+    TrainConfig,
+    override,
+)
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_networks, parameter_count
 from diacc.models.synthetic import random_actor_obs, random_critic_state
@@ -100,7 +109,8 @@ def run(
     from rich.console import Console
     from rich.table import Table
 
-    cfg, spec = cfg or ModelConfig(), spec or ObservationSpec.from_config(ObservationConfig())
+    cfg = cfg or override(TrainConfig(), PAPER_LEARNER).model
+    spec = spec or ObservationSpec.from_config(ObservationConfig())
     if rollout_steps % chunk_len:
         raise ValueError(
             f"rollout_steps {rollout_steps} must be a multiple of chunk_len {chunk_len}"

@@ -33,7 +33,7 @@ import torch
 from torch import nn
 
 from diacc.algo import mappo
-from diacc.config import EnvConfig, TrainConfig, override
+from diacc.config import PAPER_LEARNER, EnvConfig, TrainConfig, override
 from diacc.threads import set_torch_threads
 
 #: Networks' parts that are timed, by attribute path from the actor / critic.
@@ -212,9 +212,10 @@ def report(label: str, result: dict) -> str:
     return "\n".join(lines) + ("\n" + result["ops"] if result["ops"] else "")
 
 
-#: Learners profiled by default: the paper's sizes and configs/small-learner.toml.
+#: Learners profiled by default: configs/paper-learner.toml and configs/small-learner.toml
+#: (the defaults), both named so that the profile does not move with the defaults.
 LEARNERS = {
-    "paper learner (hidden 128, 1 minibatch)": {},
+    "paper learner (hidden 128, 1 minibatch)": PAPER_LEARNER,
     "small learner (hidden 64, 4 minibatches)": {
         "model.hidden_dim": 64,
         "model.gru_hidden": 64,

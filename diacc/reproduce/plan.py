@@ -86,8 +86,8 @@ BUDGET_PURPOSE = {
     "tiny": "the whole pipeline in a few minutes (CI); its numbers are untrained noise",
     "small": "the learning check's 50k steps (there: diacc safe, not yet faster "
     "than human traffic); hours",
-    "paper": "the paper's budget; 8-12 h per training run on 2 cores (docs/benchmarks, "
-    "Measured figures), so days",
+    "paper": "the paper's budget; 8-12 h per training run on 2 cores with the paper-size "
+    "learner (docs/benchmarks, Measured figures; the default small one is cheaper), so days",
 }
 
 
