@@ -100,7 +100,9 @@ def _steady_headway(style: int) -> float:
         (backend.params.idm.decel_mps2, preset.decel_mps2),
     ):
         arr[0, 1] = val
-    backend.params.inv_2_sqrt_ab_s2_per_m = 0.5 / np.sqrt(backend.params.idm.accel_mps2 * backend.params.idm.decel_mps2)
+    backend.params.inv_2_sqrt_ab_s2_per_m = 0.5 / np.sqrt(
+        backend.params.idm.accel_mps2 * backend.params.idm.decel_mps2
+    )
     # Leader: a CAV-like constant 15 m/s (hold the speed window fixed).
     backend.state.is_cav[0, 0] = True
     backend.state.cav_accel_mps2[0, 0] = 0.0

@@ -1,11 +1,12 @@
 """The fast ``highway`` backend: highway-env geometry, vectorised IDM/MOBIL traffic.
 
 Road geometry is a highway-env ``RoadNetwork`` (:mod:`.road`), but the
-traffic itself lives in (E, V) NumPy arrays, one row per environment of a
-batch (E = 1 for a single env), and every sub-step updates all vehicles of
-all envs at once (:mod:`.models`): no Python loop over vehicles or envs in
-``step``. This is what makes the backend 100x+ faster than stock multi-agent
-``highway-v0`` (``diacc.bench.highway``).
+traffic itself lives in (E, V) NumPy arrays (the typed records of
+:mod:`.simstate`), one row per environment of a batch (E = 1 for a single
+env), and every sub-step updates all vehicles of all envs at once
+(:mod:`.models`): no Python loop over vehicles or envs in ``step``. This
+is what makes the backend 100x+ faster than stock multi-agent ``highway-v0``
+(``diacc.bench.highway``).
 
 Modelling choices (documented here because both backends must agree on them):
 
@@ -116,6 +117,12 @@ class HighwayBackend:
     :meth:`step` are the E = 1 case; a batch is reset env by env
     (:meth:`reset_env`) and stepped together (:meth:`step_batch`), with the
     same results per env as E separate backends (``tests/test_highway_batch.py``).
+
+    The arrays are three records (:mod:`.simstate`), created at the first
+    reset: :attr:`state` (what a step changes), :attr:`params` (per-vehicle
+    parameters fixed at reset) and :attr:`caches` (derived quantities kept
+    between sub-steps). Copies of the three and of :attr:`stats` put a batch
+    back exactly where it was (``tests/test_highway_simstate.py``).
 
     Work that the single-env simulator skips when nothing happened (leader
     search, lane-change decisions, the exact box test) is skipped only when
