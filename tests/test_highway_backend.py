@@ -42,12 +42,12 @@ def single_lane_backend(n: int, x_m: list[float], speed_mps: list[float], styles
     backend.model = dataclasses.replace(backend.model, min_lane_change_speed_mps=1e9)
     backend.reset(Scenario.with_cavs(n, 0), 0)
     # The backend's arrays are (E, V) with E = 1 environment.
-    backend.x_m = np.array([x_m], dtype=float)
-    backend.speed_mps = np.array([speed_mps], dtype=float)
-    backend.lane_from = np.zeros((1, n), dtype=np.intp)
-    backend.lane_to = np.zeros((1, n), dtype=np.intp)
-    backend.y_m = backend.road.lane_center_y_m(backend.lane_from).astype(float)
-    backend._leaders_dirty[:] = True
+    backend.state.x_m = np.array([x_m], dtype=float)
+    backend.state.speed_mps = np.array([speed_mps], dtype=float)
+    backend.state.lane_from = np.zeros((1, n), dtype=np.intp)
+    backend.state.lane_to = np.zeros((1, n), dtype=np.intp)
+    backend.state.y_m = backend.road.lane_center_y_m(backend.state.lane_from).astype(float)
+    backend.caches.leaders_dirty[:] = True
     backend._refresh_road_facts(np.ones(1, bool))
     backend._refresh_speed_bounds()
     return backend
@@ -75,13 +75,13 @@ def test_idm_free_road_reaches_desired_speed():
 def test_follower_keeps_min_gap_behind_stopping_leader(style):
     # The leader is a wreck standing still; the follower must stop behind it.
     backend = single_lane_backend(2, [120.0, 20.0], [0.0, 25.0])
-    backend.style[:] = style
+    backend.params.style[:] = style
     preset = STYLE_PRESETS[SIM.style_preset][style]
-    backend.idm.min_gap_m[:] = preset.min_gap_m
-    backend.idm.headway_s[:] = preset.time_headway_s
-    backend.crashed[0, 0] = True
+    backend.params.idm.min_gap_m[:] = preset.min_gap_m
+    backend.params.idm.headway_s[:] = preset.time_headway_s
+    backend.state.crashed[0, 0] = True
     backend._refresh_speed_bounds()
-    backend._leaders_dirty[:] = True
+    backend.caches.leaders_dirty[:] = True
     gaps = []
     for _ in range(30):
         s = backend.step(CavCommands.idle(2))
@@ -94,17 +94,19 @@ def _steady_headway(style: int) -> float:
     backend = single_lane_backend(2, [60.0, 10.0], [15.0, 15.0])
     preset = STYLE_PRESETS[SIM.style_preset][style]
     for arr, val in (
-        (backend.idm.headway_s, preset.time_headway_s),
-        (backend.idm.min_gap_m, preset.min_gap_m),
-        (backend.idm.accel_mps2, preset.accel_mps2),
-        (backend.idm.decel_mps2, preset.decel_mps2),
+        (backend.params.idm.headway_s, preset.time_headway_s),
+        (backend.params.idm.min_gap_m, preset.min_gap_m),
+        (backend.params.idm.accel_mps2, preset.accel_mps2),
+        (backend.params.idm.decel_mps2, preset.decel_mps2),
     ):
         arr[0, 1] = val
-    backend._inv_2_sqrt_ab = 0.5 / np.sqrt(backend.idm.accel_mps2 * backend.idm.decel_mps2)
+    backend.params.inv_2_sqrt_ab_s2_per_m = 0.5 / np.sqrt(
+        backend.params.idm.accel_mps2 * backend.params.idm.decel_mps2
+    )
     # Leader: a CAV-like constant 15 m/s (hold the speed window fixed).
-    backend.is_cav[0, 0] = True
-    backend._cav_accel_mps2[0, 0] = 0.0
-    backend._cav_target_mps[0, 0] = 15.0
+    backend.state.is_cav[0, 0] = True
+    backend.state.cav_accel_mps2[0, 0] = 0.0
+    backend.state.cav_target_mps[0, 0] = 15.0
     backend._refresh_speed_bounds()
     for _ in range(40):
         s = backend.step(CavCommands.idle(2))
@@ -178,7 +180,7 @@ def test_cav_speed_change_and_clip():
 
 def test_cav_driving_into_leader_collides():
     backend = single_lane_backend(2, [40.0, 20.0], [0.0, 20.0])
-    backend.is_cav[0, 1] = True
+    backend.state.is_cav[0, 1] = True
     cmd = CavCommands.idle(2)
     pairs = []
     for _ in range(3):

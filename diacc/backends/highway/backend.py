@@ -1,11 +1,12 @@
 """The fast ``highway`` backend: highway-env geometry, vectorised IDM/MOBIL traffic.
 
 Road geometry is a highway-env ``RoadNetwork`` (:mod:`.road`), but the
-traffic itself lives in (E, V) NumPy arrays, one row per environment of a
-batch (E = 1 for a single env), and every sub-step updates all vehicles of
-all envs at once (:mod:`.models`): no Python loop over vehicles or envs in
-``step``. This is what makes the backend 100x+ faster than stock multi-agent
-``highway-v0`` (``diacc.bench.highway``).
+traffic itself lives in (E, V) NumPy arrays (the typed records of
+:mod:`.simstate`), one row per environment of a batch (E = 1 for a single
+env), and every sub-step updates all vehicles of all envs at once
+(:mod:`.models`): no Python loop over vehicles or envs in ``step``. This
+is what makes the backend 100x+ faster than stock multi-agent ``highway-v0``
+(``diacc.bench.highway``).
 
 Modelling choices (documented here because both backends must agree on them):
 
@@ -74,6 +75,7 @@ from diacc.backends.highway.models import (
     idm_accel,
 )
 from diacc.backends.highway.road import LaneTables, build_road_network
+from diacc.backends.highway.simstate import HighwayCaches, HighwayParams, HighwayState
 from diacc.config import STYLE_PRESETS, SimConfig
 from diacc.kinematics import lane_change_reach_m, safe_gap_m
 from diacc.maps import Map
@@ -115,6 +117,12 @@ class HighwayBackend:
     :meth:`step` are the E = 1 case; a batch is reset env by env
     (:meth:`reset_env`) and stepped together (:meth:`step_batch`), with the
     same results per env as E separate backends (``tests/test_highway_batch.py``).
+
+    The arrays are three records (:mod:`.simstate`), created at the first
+    reset: :attr:`state` (what a step changes), :attr:`params` (per-vehicle
+    parameters fixed at reset) and :attr:`caches` (derived quantities kept
+    between sub-steps). Copies of the three and of :attr:`stats` put a batch
+    back exactly where it was (``tests/test_highway_simstate.py``).
 
     Work that the single-env simulator skips when nothing happened (leader
     search, lane-change decisions, the exact box test) is skipped only when
@@ -182,8 +190,8 @@ class HighwayBackend:
         n = pop.n_vehicles
         if not self._ready.any():
             self._allocate(n)
-        elif n != self.x_m.shape[1]:
-            raise BackendError(f"env {env} has {n} vehicles, the batch {self.x_m.shape[1]}")
+        elif n != self.state.x_m.shape[1]:
+            raise BackendError(f"env {env} has {n} vehicles, the batch {self.state.x_m.shape[1]}")
         styles = STYLE_PRESETS[self.sim.style_preset]
         cav = self.sim.cav
         coop = self.cav_mode == "cooperative"
@@ -195,132 +203,158 @@ class HighwayBackend:
             table = np.array([getattr(s, attr) for s in styles])
             return np.where(pop.is_cav, cav_value, table[hdv_style])
 
-        e = env
-        self.idm.headway_s[e] = per_vehicle("time_headway_s", headway_s)
-        self.idm.min_gap_m[e] = per_vehicle("min_gap_m", min_gap_m)
-        self.idm.accel_mps2[e] = per_vehicle("accel_mps2", cav.accel_mps2)
-        self.idm.decel_mps2[e] = per_vehicle("decel_mps2", cav.decel_mps2)
-        # CAVs that drive themselves (cooperative mode, or no command) change lanes
-        # cooperatively; commanded CAVs never run MOBIL.
-        self.politeness[e] = per_vehicle("politeness", self.cooperative.politeness)
-        self.gain_threshold_mps2[e] = per_vehicle(
-            "lc_gain_threshold_mps2", self.cooperative.lc_gain_threshold_mps2
+        def row(value, dtype: type = np.float64) -> np.ndarray:
+            """``value`` (a scalar or (V,)) as an E = 1 row of ``dtype``."""
+            return np.broadcast_to(np.asarray(value, dtype), (n,))[None].copy()
+
+        idm = IdmParams(
+            row(per_vehicle("time_headway_s", headway_s)),
+            row(per_vehicle("min_gap_m", min_gap_m)),
+            row(per_vehicle("accel_mps2", cav.accel_mps2)),
+            row(per_vehicle("decel_mps2", cav.decel_mps2)),
+            self.sim.idm_delta,
         )
-        # LC2013's lcStrategic < 0 (the authors' cautious drivers): no lane change
-        # because a lane ends, so such a driver stops at the end of its lane.
-        self.strategic[e] = per_vehicle("lc_strategic", 0.0) >= 0.0
-        self.zipper[e] = per_vehicle("zipper", False).astype(bool)
         # A late merger (DriverStyle.merge_zone_m) is forced to merge only that close to the end.
         zones = [
             self.model.merge_zone_m if s.merge_zone_m is None else s.merge_zone_m for s in styles
         ]
-        self._merge_zone_m[e] = np.where(
-            pop.is_cav, self.model.merge_zone_m, np.array(zones)[hdv_style]
+        params = HighwayParams(
+            idm=idm,
+            inv_2_sqrt_ab_s2_per_m=0.5 / np.sqrt(idm.accel_mps2 * idm.decel_mps2),
+            # CAVs that drive themselves (cooperative mode, or no command) change lanes
+            # cooperatively; commanded CAVs never run MOBIL.
+            politeness=row(per_vehicle("politeness", self.cooperative.politeness)),
+            gain_threshold_mps2=row(
+                per_vehicle("lc_gain_threshold_mps2", self.cooperative.lc_gain_threshold_mps2)
+            ),
+            # LC2013's lcStrategic < 0 (the authors' cautious drivers): no lane change
+            # because a lane ends, so such a driver stops at the end of its lane.
+            strategic=row(per_vehicle("lc_strategic", 0.0) >= 0.0, bool),
+            zipper=row(per_vehicle("zipper", False), bool),
+            merge_zone_m=row(
+                np.where(pop.is_cav, self.model.merge_zone_m, np.array(zones)[hdv_style])
+            ),
+            reported_cav=row(pop.is_cav, bool),
+            style=row(pop.style, np.int8),
+            depart_s=row(pop.depart_s),
         )
-
-        # is_cav: vehicles driven by commands; cooperative CAVs drive like HDVs.
-        self.is_cav[e] = False if coop else pop.is_cav
-        self._reported_cav[e] = pop.is_cav  # TrafficState.is_cav
-        self.style[e] = pop.style
-        self.x_m[e] = pop.x_m
-        self.lane_from[e] = pop.lane
-        self.lane_to[e] = pop.lane
-        self.y_m[e] = self.road.lane_center_y_m(pop.lane)
-        self.speed_mps[e] = pop.speed_mps
-        for name in ("lat_speed_mps", "heading_rad", "cooldown_s", "_cav_accel_mps2"):
-            getattr(self, name)[e] = 0.0
-        self._depart_s[e] = pop.depart_s
-        self._pending[e] = pop.depart_s > 0.0
-        self.active[e], self.arrived[e], self.crashed[e] = ~self._pending[e], False, False
-        self.yield_to[e] = -1
-        self._contact[e] = False
-        self._route_end_m[e] = self.road.length_m
-        self._cav_target_mps[e] = self.speed_mps[e]
-        self._inv_2_sqrt_ab[e] = 0.5 / np.sqrt(self.idm.accel_mps2[e] * self.idm.decel_mps2[e])
-        self.time_s[e], self.step_count[e] = 0.0, 0
+        pending = row(pop.depart_s > 0.0, bool)
+        speed_mps = row(pop.speed_mps)
+        state = HighwayState(
+            x_m=row(pop.x_m),
+            y_m=row(self.road.lane_center_y_m(pop.lane)),
+            speed_mps=speed_mps,
+            lat_speed_mps=row(0.0),
+            heading_rad=row(0.0),
+            cooldown_s=row(0.0),
+            lane_from=row(pop.lane, np.intp),
+            lane_to=row(pop.lane, np.intp),
+            active=~pending,
+            arrived=row(False, bool),
+            crashed=row(False, bool),
+            pending=pending,
+            # Vehicles driven by commands; cooperative CAVs drive like HDVs.
+            is_cav=row(False if coop else pop.is_cav, bool),
+            yield_to=row(-1, np.intp),
+            route_end_m=row(self.road.length_m),
+            cav_target_mps=speed_mps.copy(),
+            cav_accel_mps2=row(0.0),
+            contact=np.zeros((1, n, n), bool),
+            time_s=np.zeros(1),
+            step_count=np.zeros(1, np.int64),
+        )
+        self.params.set_env(env, params)
+        self.state.set_env(env, state)
         for counts in self.stats.values():
-            counts[e] = 0
-        self._ready[e] = True
-        only = np.arange(self.n_envs) == e  # (E,)
-        self._leaders_dirty[e] = True
+            counts[env] = 0
+        self._ready[env] = True
+        only = np.arange(self.n_envs) == env  # (E,)
+        self.caches.leaders_dirty[env] = True
         self._refresh_road_facts(only)
         self._refresh_speed_bounds()
         lane = self._lane()
-        return self._make_state(e, lane, np.zeros(n), _EMPTY_PAIRS, np.zeros(0, np.int32))
+        return self._make_state(env, lane, np.zeros(n), _EMPTY_PAIRS, np.zeros(0, np.int32))
 
     def _insert_due(self, now_s: np.ndarray) -> None:
         """Let pending vehicles whose departure time ``now_s`` (E,) has come enter where
         their lane's entry is free (module docstring, "Departure")."""
-        due = self._pending & (self._depart_s <= now_s[:, None] + 1e-9)  # (E, V)
+        state, params, caches = self.state, self.params, self.caches
+        due = state.pending & (params.depart_s <= now_s[:, None] + 1e-9)  # (E, V)
         if not due.any():
             return
         length_m = self.sim.vehicle_length_m
         entered = np.zeros_like(due)
         for e in np.flatnonzero(due.any(axis=1)):
-            waiting = self._pending[e]
-            for lane in np.unique(self.lane_to[e, due[e]]):
-                first = np.flatnonzero(waiting & (self.lane_to[e] == lane))[0]  # FIFO per lane
+            waiting = state.pending[e]
+            for lane in np.unique(state.lane_to[e, due[e]]):
+                # First come, first served per lane.
+                first = np.flatnonzero(waiting & (state.lane_to[e] == lane))[0]
                 if not due[e, first]:
                     continue
-                x0, v0 = self.x_m[e, first], self.speed_mps[e, first]
-                in_lane = self.active[e] & ((self.lane_from[e] == lane) | (self.lane_to[e] == lane))
-                ahead = in_lane & (self.x_m[e] > x0 - length_m)
+                x0, v0 = state.x_m[e, first], state.speed_mps[e, first]
+                in_lane = state.active[e] & (
+                    (state.lane_from[e] == lane) | (state.lane_to[e] == lane)
+                )
+                ahead = in_lane & (state.x_m[e] > x0 - length_m)
                 if ahead.any():
-                    j = np.flatnonzero(ahead)[np.argmin(self.x_m[e, ahead])]
-                    gap_m = self.x_m[e, j] - x0 - length_m
-                    need_m = self.idm.min_gap_m[e, first] + max(
+                    j = np.flatnonzero(ahead)[np.argmin(state.x_m[e, ahead])]
+                    gap_m = state.x_m[e, j] - x0 - length_m
+                    need_m = params.idm.min_gap_m[e, first] + max(
                         0.0,
-                        v0 * self.idm.headway_s[e, first]
-                        + v0 * (v0 - self.speed_mps[e, j]) * self._inv_2_sqrt_ab[e, first],
+                        v0 * params.idm.headway_s[e, first]
+                        + v0
+                        * (v0 - state.speed_mps[e, j])
+                        * params.inv_2_sqrt_ab_s2_per_m[e, first],
                     )
                     if gap_m < need_m:
                         continue
                 entered[e, first] = True
         if not entered.any():
             return
-        self._pending &= ~entered
-        self.active |= entered
-        self.is_cav &= ~entered  # a CAV drives itself until its first command
-        self._cav_target_mps = np.where(entered, self.speed_mps, self._cav_target_mps)
+        state.pending &= ~entered
+        state.active |= entered
+        state.is_cav &= ~entered  # a CAV drives itself until its first command
+        state.cav_target_mps = np.where(entered, state.speed_mps, state.cav_target_mps)
         envs = entered.any(axis=1)
-        self._leaders_dirty |= envs
+        caches.leaders_dirty |= envs
         self._refresh_road_facts(envs)
         self._refresh_speed_bounds()
 
     def step_batch(self, commands: CavCommands) -> list[TrafficState]:
         """Advance every env one decision step; ``commands`` arrays are (E, V); a state per env."""
+        state, params, caches = self.state, self.params, self.caches
         if not self._ready.all():
             raise BackendError("step before every env of the batch was reset")
-        shape = self.x_m.shape
+        shape = state.x_m.shape
         lane_cmd = np.asarray(commands.lane_change)
         dv_cmd = np.asarray(commands.speed_change_mps, dtype=np.float64)
         if lane_cmd.shape != shape or dv_cmd.shape != shape:
             raise BackendError(
                 f"commands must have shape {shape}, got {lane_cmd.shape} and {dv_cmd.shape}"
             )
-        speed_start = self.speed_mps.copy()
+        speed_start = state.speed_mps.copy()
         if self.cav_mode == "commanded":
             # NaN: no command, the CAV drives itself this step (diacc.backends.base).
-            commanded = (self.is_cav | self._reported_cav) & ~np.isnan(dv_cmd)  # (E, V)
-            self._leaders_dirty |= (commanded != self.is_cav).any(axis=1)
-            self.is_cav = commanded
+            commanded = (state.is_cav | params.reported_cav) & ~np.isnan(dv_cmd)  # (E, V)
+            caches.leaders_dirty |= (commanded != state.is_cav).any(axis=1)
+            state.is_cav = commanded
             dv_cmd = np.where(commanded, dv_cmd, 0.0)
         self._apply_cav_commands(lane_cmd.astype(np.intp), dv_cmd)
-        arrived_before = self.arrived.copy()
-        new_contacts = np.zeros_like(self._contact)  # (E, V, V)
-        demand = self._pending.any()
+        arrived_before = state.arrived.copy()
+        new_contacts = np.zeros_like(state.contact)  # (E, V, V)
+        demand = state.pending.any()
         for k in range(self.sim.substeps):
             if demand:
-                self._insert_due(self.time_s + k * self.dt_s)
+                self._insert_due(state.time_s + k * self.dt_s)
             if k % self._decide_every == 0:
                 self._decide_lane_changes()
             contact = self._substep()
-            new_contacts |= contact & ~self._contact
-            self._contact = contact
-        self.time_s += self.sim.step_s
-        self.step_count += 1
-        accel = (self.speed_mps - speed_start) / self.sim.step_s  # (E, V)
-        new_arrivals = self.arrived & ~arrived_before  # (E, V)
+            new_contacts |= contact & ~state.contact
+            state.contact = contact
+        state.time_s += self.sim.step_s
+        state.step_count += 1
+        accel = (state.speed_mps - speed_start) / self.sim.step_s  # (E, V)
+        new_arrivals = state.arrived & ~arrived_before  # (E, V)
         lane = self._lane()
         return [
             self._make_state(
@@ -341,30 +375,12 @@ class HighwayBackend:
             )
 
     def _allocate(self, n: int) -> None:
-        """The (E, V) arrays of the batch; every row is written by :meth:`reset_env`."""
+        """The (E, V) records of the batch (every row is written by :meth:`reset_env`)
+        and the constants that follow from the batch's shape."""
         shape, n_envs = (self.n_envs, n), self.n_envs
-        self.idm = IdmParams(
-            np.zeros(shape), np.zeros(shape), np.ones(shape), np.ones(shape), self.sim.idm_delta
-        )
-        for name in (
-            "politeness", "gain_threshold_mps2", "x_m", "y_m", "speed_mps", "lat_speed_mps",
-            "heading_rad", "cooldown_s", "_route_end_m", "_cav_target_mps", "_cav_accel_mps2",
-            "_inv_2_sqrt_ab", "_desired_mps", "_end_x_m", "_inv_desired", "_depart_s",
-            "_merge_zone_m",
-        ):  # fmt: skip
-            setattr(self, name, np.zeros(shape))
-        for name in (
-            "strategic", "is_cav", "_reported_cav", "active", "arrived", "crashed",
-            "_has_leader", "_guarded", "_moving", "_screen", "_pending", "zipper",
-        ):  # fmt: skip
-            setattr(self, name, np.zeros(shape, dtype=bool))
-        self.style = np.zeros(shape, dtype=np.int8)
-        self.lane_from = np.zeros(shape, dtype=np.intp)
-        self.lane_to = np.zeros(shape, dtype=np.intp)
-        self.yield_to = np.full(shape, -1, dtype=np.intp)
-        self._leader = np.zeros(shape, dtype=np.intp)
-        self._contact = np.zeros((n_envs, n, n), dtype=bool)
-        self._pairs_active = np.zeros((n_envs, n, n), dtype=bool)
+        self.state = HighwayState.zeros(n_envs, n)
+        self.params = HighwayParams.zeros(n_envs, n, self.sim.idm_delta)
+        self.caches = HighwayCaches.zeros(n_envs, n)
         self._no_contact = np.zeros((n_envs, n, n), dtype=bool)
         self._not_self = ~np.eye(n, dtype=bool)  # (V, V)
         self._rows = np.broadcast_to(np.arange(n), shape)  # (E, V) own vehicle index
@@ -374,63 +390,62 @@ class HighwayBackend:
             rank: np.arange(n_envs).reshape((-1,) + (1,) * (rank - 1)) for rank in range(1, 5)
         }
         self._min_accel = -self.model.max_brake_mps2
-        self._leaders_dirty = np.ones(n_envs, dtype=bool)
-        self._heading_nonzero = False
-        self.time_s = np.zeros(n_envs)
-        self.step_count = np.zeros(n_envs, np.int64)
 
     def _at(self, values: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """``values[e, idx[e, ...]]`` for every env e: (E, V) values, (E, ...) vehicle indices."""
         return values[self._env_index[idx.ndim], idx]
 
     def _segment(self) -> np.ndarray:
-        return self.tables.segment_of(self.x_m)
+        return self.tables.segment_of(self.state.x_m)
 
     def _apply_cav_commands(self, lane_cmd: np.ndarray, dv_cmd: np.ndarray) -> None:
         """Fix each CAV's acceleration for the step and start commanded lane changes."""
+        state = self.state
         seg = self._segment()
         limit = self.tables.speed_limit_mps[seg]
-        cav = self.is_cav & self.active & ~self.crashed
-        target = np.clip(self.speed_mps + dv_cmd, 0.0, limit)
+        cav = state.is_cav & state.active & ~state.crashed
+        target = np.clip(state.speed_mps + dv_cmd, 0.0, limit)
         accel = np.clip(
-            (target - self.speed_mps) / self.sim.step_s,
+            (target - state.speed_mps) / self.sim.step_s,
             -self.sim.cav.decel_mps2,
             self.sim.cav.accel_mps2,
         )
-        self._cav_target_mps = np.where(cav, target, self.speed_mps)
-        self._cav_accel_mps2 = np.where(cav, accel, 0.0)
+        state.cav_target_mps = np.where(cav, target, state.speed_mps)
+        state.cav_accel_mps2 = np.where(cav, accel, 0.0)
         self._refresh_speed_bounds()
 
         offset = np.clip(lane_cmd, -1, 1)
-        reach_m = lane_change_reach_m(self.speed_mps, self.sim.step_s, self.sim.vehicle_length_m)
+        reach_m = lane_change_reach_m(state.speed_mps, self.sim.step_s, self.sim.vehicle_length_m)
         ok = (
             cav
-            & (self.lane_from == self.lane_to)
-            & self.road.lane_change_allowed(seg, self.lane_from, offset, self.x_m, reach_m)
+            & (state.lane_from == state.lane_to)
+            & self.road.lane_change_allowed(seg, state.lane_from, offset, state.x_m, reach_m)
         )
-        dest_c = np.clip(self.lane_from + offset, 0, self.road.max_lanes - 1)
+        dest_c = np.clip(state.lane_from + offset, 0, self.road.max_lanes - 1)
         self._start_changes(ok, dest_c, self.sim.step_s)
 
     def _start_changes(self, start: np.ndarray, dest: np.ndarray, duration_s: float) -> None:
+        state, caches = self.state, self.caches
         width = self.road.lane_width_m
-        direction = np.sign(dest - self.lane_from)
-        self.lane_to = np.where(start, dest, self.lane_to)
-        self.lat_speed_mps = np.where(start, direction * width / duration_s, self.lat_speed_mps)
+        direction = np.sign(dest - state.lane_from)
+        state.lane_to = np.where(start, dest, state.lane_to)
+        state.lat_speed_mps = np.where(start, direction * width / duration_s, state.lat_speed_mps)
         started = start.any(axis=1)  # (E,)
         if started.any():
-            self._leaders_dirty |= started
+            caches.leaders_dirty |= started
             self._refresh_road_facts(started)
-            moving = self.active & ~self.crashed & (self.lane_from != self.lane_to)
-            self._moving = _rows_where(started, moving, self._moving)
+            moving = state.active & ~state.crashed & (state.lane_from != state.lane_to)
+            caches.moving = _rows_where(started, moving, caches.moving)
 
     def _occupancy(self) -> np.ndarray:
         """(E, V, L + 2) bool: lanes each active vehicle occupies, padded by one lane per side."""
-        n_envs, n = self.x_m.shape
+        state = self.state
+        n_envs, n = state.x_m.shape
         occ = np.zeros((n_envs, n, self.road.max_lanes + 2), dtype=bool)
         env = np.arange(n_envs)[:, None]
-        occ[env, self._rows, self.lane_from + 1] = True
-        occ[env, self._rows, self.lane_to + 1] = True
-        occ &= self.active[:, :, None]
+        occ[env, self._rows, state.lane_from + 1] = True
+        occ[env, self._rows, state.lane_to + 1] = True
+        occ &= state.active[:, :, None]
         return occ
 
     def _decide_lane_changes(self) -> None:
@@ -441,34 +456,35 @@ class HighwayBackend:
         acceleration MOBIL needs, stacked as (E, 4, 3, V). An env where no
         vehicle may change lanes gets no change and no yielding from it, as if skipped.
         """
+        state, params, caches = self.state, self.params, self.caches
         m, sim, tab = self.model, self.sim, self.tables
-        x, v, length = self.x_m, self.speed_mps, sim.vehicle_length_m
+        x, v, length = state.x_m, state.speed_mps, sim.vehicle_length_m
         n_envs, n = x.shape
         n_lanes = self.road.max_lanes
         self._refresh_road_facts(np.ones(n_envs, dtype=bool))
         seg = self._segment()
-        desired = self._desired_mps
+        desired = caches.desired_mps
 
-        idle = self.active & ~self.crashed & (self.lane_from == self.lane_to)
-        lane = self.lane_from
+        idle = state.active & ~state.crashed & (state.lane_from == state.lane_to)
+        lane = state.lane_from
         dist_end = tab.end_m[seg, lane] - x  # (E, V)
         merge_dir = tab.merge_dir[seg, lane].astype(np.intp)
         # Only HDVs are forced to merge (a CAV that stays in an ending lane stops at its
         # end), and only drivers with a strategic lane-change term (lcStrategic >= 0).
-        near_end = idle & (merge_dir != 0) & (dist_end < self._merge_zone_m)
-        forced = near_end & self.strategic & ~self.is_cav
+        near_end = idle & (merge_dir != 0) & (dist_end < params.merge_zone_m)
+        forced = near_end & params.strategic & ~state.is_cav
         discretionary = (
             idle
-            & ~self.is_cav
+            & ~state.is_cav
             & ~near_end
-            & (self.cooldown_s <= 0.0)
+            & (state.cooldown_s <= 0.0)
             & (v >= m.min_lane_change_speed_mps)
         )
         if not (forced.any() or discretionary.any()):
-            yielded = (self.yield_to >= 0).any(axis=1)  # (E,)
+            yielded = (state.yield_to >= 0).any(axis=1)  # (E,)
             if yielded.any():
-                self.yield_to[:] = -1
-                self._leaders_dirty |= yielded
+                state.yield_to[:] = -1
+                caches.leaders_dirty |= yielded
             return
 
         # Neighbours in the right / own / left lane: (E, 3, V) each.
@@ -497,7 +513,9 @@ class HighwayBackend:
         lead_v = self._at(v, lead)  # (E, 3, V)
         v3 = np.broadcast_to(v[:, None, :], (n_envs, 3, n))
         lead_v = np.stack([lead_v, np.zeros_like(lead_v), v3, lead_v], axis=1)
-        acc = idm_accel(self._at(v, ego), self._at(desired, ego), self.idm.take(ego), gaps, lead_v)
+        acc = idm_accel(
+            self._at(v, ego), self._at(desired, ego), params.idm.take(ego), gaps, lead_v
+        )
         self_acc = np.minimum(acc[:, 0], acc[:, 1])  # (E, 3, V)
         foll_with_me = np.where(has_foll, acc[:, 2], 0.0)
         foll_without = np.where(has_foll, acc[:, 3], 0.0)
@@ -514,9 +532,9 @@ class HighwayBackend:
         # A CAV follower holds its commanded speed for the rest of the step and only
         # then brakes (at most at its decel limit): the gap must cover that, not IDM.
         foll2 = foll[:, side]  # (E, 2, V)
-        cav_foll = self._at(self.is_cav, foll2) & has_foll[:, side]
+        cav_foll = self._at(state.is_cav, foll2) & has_foll[:, side]
         cav_gap_m = sim.cav.min_gap_m + safe_gap_m(
-            self._at(self._cav_target_mps, foll2),
+            self._at(state.cav_target_mps, foll2),
             v[:, None, :],
             sim.step_s,
             sim.cav.safe_decel_mps2,
@@ -526,7 +544,7 @@ class HighwayBackend:
         gain = (
             self_acc[:, side]
             - self_acc[:, 1:2]
-            + self.politeness[:, None, :]
+            + params.politeness[:, None, :]
             * (nf_after - foll_without[:, side] + foll_without[:, 1:2] - foll_with_me[:, 1:2])
         )
         mobil_ok = (
@@ -535,9 +553,9 @@ class HighwayBackend:
             & (tab.end_m[seg2, dest_c] - x2 > m.merge_zone_m + m.merge_lookahead_m)
             & gaps_ok
             & (nf_after >= -m.mobil_max_imposed_brake_mps2)
-            & (gain >= self.gain_threshold_mps2[:, None, :])
+            & (gain >= params.gain_threshold_mps2[:, None, :])
         )
-        urgency = np.clip(1.0 - dist_end / self._merge_zone_m, 0.0, 1.0)  # (E, V)
+        urgency = np.clip(1.0 - dist_end / params.merge_zone_m, 0.0, 1.0)  # (E, V)
         accept_brake = m.mobil_max_imposed_brake_mps2 + urgency * (
             m.forced_max_imposed_brake_mps2 - m.mobil_max_imposed_brake_mps2
         )
@@ -557,7 +575,7 @@ class HighwayBackend:
 
         # Two vehicles entering the same lane side by side in the same instant
         # would not see each other: keep the front one.
-        rear_gap_need = self.idm.min_gap_m + v * self.idm.headway_s  # (E, V)
+        rear_gap_need = params.idm.min_gap_m + v * params.idm.headway_s  # (E, V)
         clash = (
             start[:, :, None]
             & start[:, None, :]
@@ -580,10 +598,11 @@ class HighwayBackend:
         nf = np.where(left, foll[:, 2], foll[:, 0])  # (E, V)
         nf_gap = np.where(left, foll_gap[:, 2], foll_gap[:, 0])
         nf_acc = np.where(left, foll_with_me[:, 2], foll_with_me[:, 0])
-        zipper = self._at(self.zipper, nf)  # (E, V) follower lets a merger in (zipper preset)
-        polite = (self._at(self.politeness, nf) > 0.0) | (v < m.yield_speed_mps) | zipper
+        # (E, V) the follower lets a merger in (zipper preset).
+        zipper = self._at(params.zipper, nf)
+        polite = (self._at(params.politeness, nf) > 0.0) | (v < m.yield_speed_mps) | zipper
         can_brake = np.where(
-            zipper, m.forced_max_imposed_brake_mps2, self._at(self.idm.decel_mps2, nf)
+            zipper, m.forced_max_imposed_brake_mps2, self._at(params.idm.decel_mps2, nf)
         )
         waiting = (
             forced
@@ -591,22 +610,22 @@ class HighwayBackend:
             & (dist_end < m.yield_zone_m)
             & (nf_gap > 0.0)
             & np.isfinite(nf_gap)
-            & ~self._at(self.is_cav, nf)
+            & ~self._at(state.is_cav, nf)
             & polite
             & (nf_acc >= -can_brake)
         )
-        yield_to = np.full_like(self.yield_to, -1)
+        yield_to = np.full_like(state.yield_to, -1)
         for e in np.flatnonzero(waiting.any(axis=1)):  # rare: a merger waits
             mergers = np.flatnonzero(waiting[e])
             order = mergers[np.argsort(-x[e, mergers], kind="stable")]  # nearest written last
             yield_to[e, nf[e, order]] = order
-        changed = (yield_to != self.yield_to).any(axis=1)  # (E,)
-        self.yield_to = yield_to
-        self._leaders_dirty |= changed
+        changed = (yield_to != state.yield_to).any(axis=1)  # (E,)
+        state.yield_to = yield_to
+        caches.leaders_dirty |= changed
 
     def _peers(self) -> np.ndarray:
         """(E, V, V) bool: j is another vehicle on the road."""
-        return self._not_self & self.active[:, None, :]
+        return self._not_self & self.state.active[:, None, :]
 
     def _refresh_road_facts(self, envs: np.ndarray) -> None:
         """Per-vehicle desired speed and end of the destination lane, in the (E,) ``envs``.
@@ -615,13 +634,14 @@ class HighwayBackend:
         sub-step: both only change at segment boundaries, so a new speed
         limit takes effect at the next decision (<= ``decision_period_s``).
         """
+        state, caches = self.state, self.caches
         seg = self._segment()
         desired = self.tables.speed_limit_mps[seg]
         # Lane end as a centre position: the obstacle's rear is at the end itself.
-        end_x = self.tables.end_m[seg, self.lane_to] + 0.5 * self.sim.vehicle_length_m
-        self._desired_mps = _rows_where(envs, desired, self._desired_mps)
-        self._end_x_m = _rows_where(envs, end_x, self._end_x_m)
-        self._inv_desired = 1.0 / np.maximum(self._desired_mps, 1e-3)
+        end_x = self.tables.end_m[seg, state.lane_to] + 0.5 * self.sim.vehicle_length_m
+        caches.desired_mps = _rows_where(envs, desired, caches.desired_mps)
+        caches.end_x_m = _rows_where(envs, end_x, caches.end_x_m)
+        caches.inv_desired_s_per_m = 1.0 / np.maximum(caches.desired_mps, 1e-3)
 
     def _refresh_speed_bounds(self) -> None:
         """Per-vehicle speed window of a sub-step: [0, inf) for HDVs, up to / down to
@@ -630,19 +650,21 @@ class HighwayBackend:
         Idempotent between commands (a frozen vehicle keeps its speed), so
         refreshing every env when one needs it changes nothing for the others.
         """
-        driving = self.active & ~self.crashed
-        up = self._cav_accel_mps2 >= 0.0
-        lo = np.where(self.is_cav & ~up, self._cav_target_mps, 0.0)
-        hi = np.where(self.is_cav & up, self._cav_target_mps, np.inf)
-        self._v_lo = np.where(driving, lo, self.speed_mps)
-        self._v_hi = np.where(driving, hi, self.speed_mps)
-        self._half_dt_active = np.where(self.active, 0.5 * self.dt_s, 0.0)
+        state, caches = self.state, self.caches
+        driving = state.active & ~state.crashed
+        up = state.cav_accel_mps2 >= 0.0
+        lo = np.where(state.is_cav & ~up, state.cav_target_mps, 0.0)
+        hi = np.where(state.is_cav & up, state.cav_target_mps, np.inf)
+        caches.v_lo_mps = np.where(driving, lo, state.speed_mps)
+        caches.v_hi_mps = np.where(driving, hi, state.speed_mps)
+        caches.half_dt_active_s = np.where(state.active, 0.5 * self.dt_s, 0.0)
 
     def _idm_fast(self, v: np.ndarray, gap_m: np.ndarray, lead_v: np.ndarray) -> np.ndarray:
         """:func:`idm_accel` with per-vehicle constants folded in (the sub-step hot path)."""
-        p = self.idm
-        free = np.power(v * self._inv_desired, p.delta)
-        dynamic = v * (p.headway_s + (v - lead_v) * self._inv_2_sqrt_ab)
+        params, caches = self.params, self.caches
+        p = params.idm
+        free = np.power(v * caches.inv_desired_s_per_m, p.delta)
+        dynamic = v * (p.headway_s + (v - lead_v) * params.inv_2_sqrt_ab_s2_per_m)
         s_star = p.min_gap_m + np.maximum(dynamic, 0.0)
         ratio = s_star / np.maximum(gap_m, 1e-2)
         return p.accel_mps2 * (1.0 - free - ratio * ratio)
@@ -658,61 +680,66 @@ class HighwayBackend:
         cannot pass each other without a collision), so the (V, V) search runs
         on those events only and sub-steps reuse the result.
         """
-        dirty = self._leaders_dirty
-        x, lf, lt = self.x_m, self.lane_from, self.lane_to
+        state, caches = self.state, self.caches
+        dirty = caches.leaders_dirty
+        x, lf, lt = state.x_m, state.lane_from, state.lane_to
         a, b = (slice(None), slice(None), None), (slice(None), None, slice(None))
         shares_lane = (
             (lf[a] == lf[b]) | (lf[a] == lt[b]) | (lt[a] == lf[b]) | (lt[a] == lt[b])
         )  # (E, V, V)
         dx = x[b] - x[a]  # (E, V, V) x_j - x_i
-        ahead = np.where(shares_lane & (dx > 0.0) & self.active[b], dx, np.inf)
+        ahead = np.where(shares_lane & (dx > 0.0) & state.active[b], dx, np.inf)
         leader = ahead.argmin(axis=2)  # (E, V)
         has_leader = np.isfinite(ahead.min(axis=2))
-        hdv = self.active & ~self.is_cav & ~self.crashed
-        guarded = hdv & has_leader & ~self._at(self.is_cav, leader)
+        hdv = state.active & ~state.is_cav & ~state.crashed
+        guarded = hdv & has_leader & ~self._at(state.is_cav, leader)
         # Pairs that can still start a contact: both on the road, not both wrecked.
         pairs_active = (
-            self.active[a] & self.active[b] & self._not_self & ~(self.crashed[a] & self.crashed[b])
+            state.active[a]
+            & state.active[b]
+            & self._not_self
+            & ~(state.crashed[a] & state.crashed[b])
         )
-        moving = self.active & ~self.crashed & (lf != lt)
-        screen = has_leader & ~(self.crashed & self._at(self.crashed, leader))
-        self._leader = _rows_where(dirty, leader, self._leader)
-        self._has_leader = _rows_where(dirty, has_leader, self._has_leader)
-        self._guarded = _rows_where(dirty, guarded, self._guarded)
-        self._pairs_active = _rows_where(dirty, pairs_active, self._pairs_active)
-        self._moving = _rows_where(dirty, moving, self._moving)
-        self._screen = _rows_where(dirty, screen, self._screen)
-        self._leaders_dirty = np.zeros_like(dirty)
+        moving = state.active & ~state.crashed & (lf != lt)
+        screen = has_leader & ~(state.crashed & self._at(state.crashed, leader))
+        caches.leader = _rows_where(dirty, leader, caches.leader)
+        caches.has_leader = _rows_where(dirty, has_leader, caches.has_leader)
+        caches.guarded = _rows_where(dirty, guarded, caches.guarded)
+        caches.pairs_active = _rows_where(dirty, pairs_active, caches.pairs_active)
+        caches.moving = _rows_where(dirty, moving, caches.moving)
+        caches.screen = _rows_where(dirty, screen, caches.screen)
+        caches.leaders_dirty = np.zeros_like(dirty)
 
     def _substep(self) -> np.ndarray:
         """Integrate one sub-step for all vehicles; return the (E, V, V) contact matrix."""
+        state, caches = self.state, self.caches
         m, sim, dt = self.model, self.sim, self.dt_s
-        x, v, length = self.x_m, self.speed_mps, sim.vehicle_length_m
-        if self._leaders_dirty.any():
+        x, v, length = state.x_m, state.speed_mps, sim.vehicle_length_m
+        if caches.leaders_dirty.any():
             self._refresh_leaders()
-        leader = self._leader
+        leader = caches.leader
 
         # HDV longitudinal: IDM towards the nearer of the leader and the end of the
         # destination lane (a standing obstacle; a leader before it stops for it too).
-        gap = np.where(self._has_leader, self._at(x, leader) - x, np.inf)  # (E, V)
-        end_closer = self._end_x_m - x < gap
-        gap = np.where(end_closer, self._end_x_m - x, gap) - length
+        gap = np.where(caches.has_leader, self._at(x, leader) - x, np.inf)  # (E, V)
+        end_closer = caches.end_x_m - x < gap
+        gap = np.where(end_closer, caches.end_x_m - x, gap) - length
         lead_v = np.where(end_closer, 0.0, self._at(v, leader))
         acc = self._idm_fast(v, gap, lead_v)
         # A yielding follower brakes for the merger *and* for its own leader, whichever
         # asks more: the merger may be alongside the real leader, not in front of it.
-        yielding = self.yield_to >= 0
+        yielding = state.yield_to >= 0
         if yielding.any():
-            merger = np.where(yielding, self.yield_to, self._rows)
+            merger = np.where(yielding, state.yield_to, self._rows)
             acc_merge = self._idm_fast(v, self._at(x, merger) - x - length, self._at(v, merger))
             acc = np.where(yielding, np.minimum(acc, acc_merge), acc)
         # CAVs: constant acceleration towards the commanded target speed.
-        acc = np.where(self.is_cav, self._cav_accel_mps2, np.maximum(acc, self._min_accel))
-        v_new = np.minimum(np.maximum(v + acc * dt, self._v_lo), self._v_hi)
-        x_new = x + (v + v_new) * self._half_dt_active
+        acc = np.where(state.is_cav, state.cav_accel_mps2, np.maximum(acc, self._min_accel))
+        v_new = np.minimum(np.maximum(v + acc * dt, caches.v_lo_mps), caches.v_hi_mps)
+        x_new = x + (v + v_new) * caches.half_dt_active_s
         # A CAV cannot drive past the end of its lane: it stops with its front there.
-        wall_x = self._end_x_m - length
-        at_wall = self.is_cav & (x_new > wall_x)
+        wall_x = caches.end_x_m - length
+        at_wall = state.is_cav & (x_new > wall_x)
         if at_wall.any():
             self.stats["cav_lane_end_stops"] += (at_wall & (v_new > 0.0)).sum(axis=1)
             x_new = np.where(at_wall, wall_x, x_new)
@@ -721,85 +748,94 @@ class HighwayBackend:
         # Last-resort guard: an HDV never runs into the HDV it follows.
         leader_x = self._at(x_new, leader)
         limit_x = leader_x - length - m.guard_gap_m
-        guard = self._guarded & (x_new > limit_x)
+        guard = caches.guarded & (x_new > limit_x)
         if guard.any():
             self.stats["guard_events"] += guard.sum(axis=1)
             x_new = np.where(guard, limit_x, x_new)
             v_new = np.where(guard, np.minimum(v_new, self._at(v_new, leader)), v_new)
             leader_x = self._at(x_new, leader)
-        self.x_m, self.speed_mps = x_new, v_new
+        state.x_m, state.speed_mps = x_new, v_new
 
         # Lateral motion; the manoeuvre completes when the destination centre is reached.
         # Vehicles not changing lanes get lat = 0, y unchanged and heading 0.
-        env_moving = self._moving.any(axis=1)  # (E,)
+        env_moving = caches.moving.any(axis=1)  # (E,)
         any_moving = env_moving.any()
         if any_moving:
-            lat = np.where(self._moving, self.lat_speed_mps, 0.0)
-            y_goal = (self.lane_to + 0.5) * self.road.lane_width_m
-            y_new = self.y_m + lat * dt
-            done = self._moving & ((y_goal - y_new) * np.sign(lat) <= 1e-9)
-            self.y_m = np.where(done, y_goal, y_new)
+            lat = np.where(caches.moving, state.lat_speed_mps, 0.0)
+            y_goal = (state.lane_to + 0.5) * self.road.lane_width_m
+            y_new = state.y_m + lat * dt
+            done = caches.moving & ((y_goal - y_new) * np.sign(lat) <= 1e-9)
+            state.y_m = np.where(done, y_goal, y_new)
             heading = np.arctan2(lat, v_new)  # v_new >= 0
-            self.heading_rad = np.minimum(
+            state.heading_rad = np.minimum(
                 np.maximum(heading, -m.max_heading_rad), m.max_heading_rad
             )
             if done.any():
-                self.lane_from = np.where(done, self.lane_to, self.lane_from)
-                self.lat_speed_mps = np.where(done, 0.0, self.lat_speed_mps)
-                self.cooldown_s = np.where(done, m.lane_change_cooldown_s, self.cooldown_s)
-                self._leaders_dirty |= done.any(axis=1)
-        elif self._heading_nonzero:
-            self.heading_rad = np.zeros_like(self.heading_rad)
-        self._heading_nonzero = any_moving
+                state.lane_from = np.where(done, state.lane_to, state.lane_from)
+                state.lat_speed_mps = np.where(done, 0.0, state.lat_speed_mps)
+                state.cooldown_s = np.where(done, m.lane_change_cooldown_s, state.cooldown_s)
+                caches.leaders_dirty |= done.any(axis=1)
+        elif caches.heading_nonzero:
+            state.heading_rad = np.zeros_like(state.heading_rad)
+        caches.heading_nonzero = any_moving
 
         # Collisions: a cheap screen first, the exact box test only if it fires. Without
         # lateral motion every vehicle of an env is straight in one lane and cannot skip
         # over its leader within a sub-step, so only leader pairs can touch; otherwise
         # screen all the env's pairs by bounding boxes.
-        maybe = (self._screen & (leader_x - x_new < length)).any(axis=1)  # (E,)
+        maybe = (caches.screen & (leader_x - x_new < length)).any(axis=1)  # (E,)
         if any_moving:
             length_m, width_m = sim.vehicle_length_m, sim.vehicle_width_m
-            cos_h, sin_h = np.abs(np.cos(self.heading_rad)), np.abs(np.sin(self.heading_rad))
+            cos_h, sin_h = (
+                np.abs(np.cos(state.heading_rad)),
+                np.abs(np.sin(state.heading_rad)),
+            )
             ext_x = 0.5 * (length_m * cos_h + width_m * sin_h)  # (E, V)
             ext_y = 0.5 * (length_m * sin_h + width_m * cos_h)
             near = (
                 np.abs(x_new[:, :, None] - x_new[:, None, :])
                 < ext_x[:, :, None] + ext_x[:, None, :]
             ) & (
-                np.abs(self.y_m[:, :, None] - self.y_m[:, None, :])
+                np.abs(state.y_m[:, :, None] - state.y_m[:, None, :])
                 < ext_y[:, :, None] + ext_y[:, None, :]
             )  # (E, V, V)
-            maybe = np.where(env_moving, (near & self._pairs_active).any(axis=(1, 2)), maybe)
+            maybe = np.where(env_moving, (near & caches.pairs_active).any(axis=(1, 2)), maybe)
         if maybe.any():
             contact = box_contacts(
-                self.x_m, self.y_m, self.heading_rad, length, sim.vehicle_width_m, self.active
+                state.x_m,
+                state.y_m,
+                state.heading_rad,
+                length,
+                sim.vehicle_width_m,
+                state.active,
             )
-            contact &= self._pairs_active & maybe[:, None, None]
+            contact &= caches.pairs_active & maybe[:, None, None]
             if contact.any():
                 hit = contact.any(axis=1) | contact.any(axis=2)  # (E, V)
-                self.crashed |= hit
-                self.speed_mps = np.where(hit, 0.0, self.speed_mps)
-                self.lat_speed_mps = np.where(hit, 0.0, self.lat_speed_mps)
+                state.crashed |= hit
+                state.speed_mps = np.where(hit, 0.0, state.speed_mps)
+                state.lat_speed_mps = np.where(hit, 0.0, state.lat_speed_mps)
                 self._refresh_speed_bounds()
-                self._leaders_dirty |= hit.any(axis=1)
+                caches.leaders_dirty |= hit.any(axis=1)
         else:
             contact = self._no_contact
 
         # Arrivals.
-        done_route = self.x_m > self._route_end_m
+        done_route = state.x_m > state.route_end_m
         if done_route.any():
-            self.active = self.active & ~done_route
-            self.arrived |= done_route
+            state.active = state.active & ~done_route
+            state.arrived |= done_route
             self._refresh_speed_bounds()
-            self._route_end_m = np.where(done_route, np.inf, self._route_end_m)
-            self._leaders_dirty |= done_route.any(axis=1)
+            state.route_end_m = np.where(done_route, np.inf, state.route_end_m)
+            caches.leaders_dirty |= done_route.any(axis=1)
         return contact
 
     def _lane(self) -> np.ndarray:
         """(E, V) reported lane: the one the centre is in, within the manoeuvre's two."""
-        lo = np.minimum(self.lane_from, self.lane_to)
-        hi = np.maximum(self.lane_from, self.lane_to)
-        return np.clip(np.floor(self.y_m / self.road.lane_width_m), lo, hi)
+        state = self.state
+        lo = np.minimum(state.lane_from, state.lane_to)
+        hi = np.maximum(state.lane_from, state.lane_to)
+        return np.clip(np.floor(state.y_m / self.road.lane_width_m), lo, hi)
 
     def _make_state(
         self,
@@ -810,24 +846,25 @@ class HighwayBackend:
         arrivals: np.ndarray,
     ) -> TrafficState:
         """Env ``e``'s TrafficState (copies of its rows); ``lane`` is :meth:`_lane`."""
-        n = self.x_m.shape[1]
+        state, params = self.state, self.params
+        n = state.x_m.shape[1]
         return TrafficState(
-            time_s=float(self.time_s[e]),
-            step=int(self.step_count[e]),
+            time_s=float(state.time_s[e]),
+            step=int(state.step_count[e]),
             vehicle_id=np.arange(n, dtype=np.int32),
-            x_m=self.x_m[e].copy(),
-            y_m=self.y_m[e].copy(),
-            speed_mps=self.speed_mps[e].copy(),
+            x_m=state.x_m[e].copy(),
+            y_m=state.y_m[e].copy(),
+            speed_mps=state.speed_mps[e].copy(),
             accel_mps2=np.asarray(accel_mps2, dtype=np.float64).copy(),
-            heading_rad=self.heading_rad[e].copy(),
+            heading_rad=state.heading_rad[e].copy(),
             lane=lane[e].astype(np.int16),
-            segment=self.tables.segment_of(self.x_m[e]).astype(np.int16),
+            segment=self.tables.segment_of(state.x_m[e]).astype(np.int16),
             length_m=np.full(n, self.sim.vehicle_length_m),
             width_m=np.full(n, self.sim.vehicle_width_m),
-            is_cav=self._reported_cav[e].copy(),
-            style=self.style[e].copy(),
-            active=self.active[e].copy(),
-            arrived=self.arrived[e].copy(),
+            is_cav=params.reported_cav[e].copy(),
+            style=params.style[e].copy(),
+            active=state.active[e].copy(),
+            arrived=state.arrived[e].copy(),
             collisions=collisions.astype(np.int32).reshape(-1, 2),
             arrivals=arrivals.astype(np.int32),
         )

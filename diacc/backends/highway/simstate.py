@@ -1,0 +1,231 @@
+"""The highway backend's simulator state as typed (E, V) arrays, one row per env.
+
+:class:`~diacc.backends.highway.backend.HighwayBackend` keeps everything it
+knows about the vehicles of a batch in three records, split by who writes
+them and when:
+
+* :class:`HighwayState`: what a step changes (positions, speeds, lanes,
+  flags, timers, clocks). Together with the parameters it *is* the traffic.
+* :class:`HighwayParams`: per-vehicle parameters drawn or derived once at
+  reset (driver model, style, departure time) and never changed by a step.
+* :class:`HighwayCaches`: quantities derived from the two above and kept
+  between sub-steps only because recomputing them every sub-step is slow
+  (leaders, lane ends, speed windows). Some are refreshed on events only,
+  so they belong to the state of a running batch, too.
+
+All three share the row operations of :class:`EnvRows`: :meth:`~EnvRows.copy`
+(a deep copy, so a batch can be checkpointed and restored exactly),
+:meth:`~EnvRows.env` (one env as an E = 1 record) and
+:meth:`~EnvRows.set_env` (write one env's row of every field, which is how
+``reset_env`` starts an env: a field cannot be forgotten, since the record's
+constructor needs them all). Arrays are (E, V) unless the field's comment
+says otherwise; E is the batch size, V the vehicles per env.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+
+from diacc.backends.highway.models import IdmParams
+
+
+def _map_arrays(value: Any, fn: Callable[[np.ndarray], np.ndarray]) -> Any:
+    """``fn`` applied to every array of ``value``, recursing into dataclasses (e.g.
+    :class:`IdmParams`); other values (scalars) are kept as they are."""
+    if isinstance(value, np.ndarray):
+        return fn(value)
+    if dataclasses.is_dataclass(value):
+        return dataclasses.replace(
+            value,
+            **{f.name: _map_arrays(getattr(value, f.name), fn) for f in dataclasses.fields(value)},
+        )
+    return value
+
+
+def _write_rows(target: Any, source: Any, env: int) -> None:
+    """Write the single env row of ``source`` into row ``env`` of ``target`` (same type)."""
+    if isinstance(target, np.ndarray):
+        target[env] = source[0]
+    elif dataclasses.is_dataclass(target):
+        for f in dataclasses.fields(target):
+            _write_rows(getattr(target, f.name), getattr(source, f.name), env)
+
+
+_Rows = TypeVar("_Rows", bound="EnvRows")
+
+
+class EnvRows:
+    """Row operations shared by the batch records (fields are arrays with E first)."""
+
+    __slots__ = ()
+
+    def copy(self: _Rows) -> _Rows:
+        """A deep copy: no array is shared with ``self``."""
+        return _map_arrays(self, np.copy)
+
+    def env(self: _Rows, e: int) -> _Rows:
+        """Env ``e`` as an E = 1 record (copies of its rows)."""
+        return _map_arrays(self, lambda a: a[e : e + 1].copy())
+
+    def set_env(self: _Rows, e: int, row: _Rows) -> None:
+        """Overwrite env ``e`` of every array field with ``row``'s (E = 1) values.
+
+        Scalar fields (not per env) are left alone.
+        """
+        _write_rows(self, row, e)
+
+
+@dataclass(slots=True)
+class HighwayState(EnvRows):
+    """Dynamic vehicle state of a batch: everything a step changes.
+
+    Pending vehicles (``demand`` scenarios) wait at their population slot,
+    inactive; arrived ones are inactive and frozen where they left.
+    """
+
+    x_m: np.ndarray  # (E, V) float64 centre position along the road
+    y_m: np.ndarray  # (E, V) float64 centre position across the road (0: right edge)
+    speed_mps: np.ndarray  # (E, V) float64 longitudinal speed, >= 0
+    lat_speed_mps: np.ndarray  # (E, V) float64 lateral speed of the current lane change (0: none)
+    heading_rad: np.ndarray  # (E, V) float64 atan2(v_lat, v_long) of the last sub-step, clipped
+    # Set to HighwayModel.lane_change_cooldown_s when a lane change completes; no code
+    # counts it down at present, so it only marks "has completed a lane change".
+    cooldown_s: np.ndarray  # (E, V) float64
+    lane_from: np.ndarray  # (E, V) intp lane a manoeuvre starts in (= lane_to when idle)
+    lane_to: np.ndarray  # (E, V) intp destination lane of the manoeuvre
+    active: np.ndarray  # (E, V) bool on the road (entered, neither arrived nor pending)
+    arrived: np.ndarray  # (E, V) bool passed the end of the map
+    crashed: np.ndarray  # (E, V) bool collided; stands still as an obstacle
+    pending: np.ndarray  # (E, V) bool waiting to depart (demand scenarios)
+    # Driven by commands this step; CAVs without a command (NaN), just-entered CAVs
+    # and all CAVs in cooperative mode drive like HDVs and are False here.
+    is_cav: np.ndarray  # (E, V) bool
+    yield_to: np.ndarray  # (E, V) intp merger this vehicle yields to (-1: none)
+    route_end_m: np.ndarray  # (E, V) float64 x where the vehicle arrives (inf once arrived)
+    cav_target_mps: np.ndarray  # (E, V) float64 commanded speed of the step (own speed if none)
+    cav_accel_mps2: np.ndarray  # (E, V) float64 constant CAV acceleration of the step
+    contact: np.ndarray  # (E, V, V) bool box contacts of the last sub-step
+    time_s: np.ndarray  # (E,) float64 simulated time
+    step_count: np.ndarray  # (E,) int64 decision steps since reset
+
+    @classmethod
+    def zeros(cls, n_envs: int, n_vehicles: int) -> HighwayState:
+        """A batch record before any reset (``reset_env`` writes every row)."""
+        shape = (n_envs, n_vehicles)
+        f64, flag, lane = np.zeros(shape), np.zeros(shape, bool), np.zeros(shape, np.intp)
+        return cls(
+            x_m=f64.copy(),
+            y_m=f64.copy(),
+            speed_mps=f64.copy(),
+            lat_speed_mps=f64.copy(),
+            heading_rad=f64.copy(),
+            cooldown_s=f64.copy(),
+            lane_from=lane.copy(),
+            lane_to=lane.copy(),
+            active=flag.copy(),
+            arrived=flag.copy(),
+            crashed=flag.copy(),
+            pending=flag.copy(),
+            is_cav=flag.copy(),
+            yield_to=np.full(shape, -1, np.intp),
+            route_end_m=f64.copy(),
+            cav_target_mps=f64.copy(),
+            cav_accel_mps2=f64.copy(),
+            contact=np.zeros((n_envs, n_vehicles, n_vehicles), bool),
+            time_s=np.zeros(n_envs),
+            step_count=np.zeros(n_envs, np.int64),
+        )
+
+
+@dataclass(slots=True)
+class HighwayParams(EnvRows):
+    """Per-vehicle parameters of a batch, fixed at reset (a step never writes them).
+
+    CAV rows hold the CAV vType's values (or the cooperative baseline's), so
+    the vectorised IDM/MOBIL code treats every vehicle alike.
+    """
+
+    idm: IdmParams  # (E, V) float64 each: time headway, minimum gap, accel, decel
+    inv_2_sqrt_ab_s2_per_m: np.ndarray  # (E, V) float64 1 / (2 sqrt(a b)) of the IDM, folded once
+    politeness: np.ndarray  # (E, V) float64 MOBIL politeness factor
+    gain_threshold_mps2: np.ndarray  # (E, V) float64 MOBIL acceleration gain threshold
+    strategic: np.ndarray  # (E, V) bool changes lanes for a lane end (LC2013 lcStrategic >= 0)
+    zipper: np.ndarray  # (E, V) bool lets a merger in when following it (zipper preset)
+    merge_zone_m: np.ndarray  # (E, V) float64 forced merging starts this far before a lane end
+    reported_cav: np.ndarray  # (E, V) bool a CAV in TrafficState.is_cav (whoever drives it)
+    style: np.ndarray  # (E, V) int8 driver style code (TrafficState.style)
+    depart_s: np.ndarray  # (E, V) float64 departure time (0: on the road at reset)
+
+    @classmethod
+    def zeros(cls, n_envs: int, n_vehicles: int, idm_delta: float) -> HighwayParams:
+        """A batch record before any reset (``reset_env`` writes every row)."""
+        shape = (n_envs, n_vehicles)
+        return cls(
+            idm=IdmParams(
+                np.zeros(shape), np.zeros(shape), np.ones(shape), np.ones(shape), idm_delta
+            ),
+            inv_2_sqrt_ab_s2_per_m=np.zeros(shape),
+            politeness=np.zeros(shape),
+            gain_threshold_mps2=np.zeros(shape),
+            strategic=np.zeros(shape, bool),
+            zipper=np.zeros(shape, bool),
+            merge_zone_m=np.zeros(shape),
+            reported_cav=np.zeros(shape, bool),
+            style=np.zeros(shape, np.int8),
+            depart_s=np.zeros(shape),
+        )
+
+
+@dataclass(slots=True)
+class HighwayCaches(EnvRows):
+    """Quantities derived from state and parameters, kept between sub-steps.
+
+    Each group is refreshed by one backend method, when its inputs may have
+    changed (the method's docstring says when). Those refreshed on events
+    only are part of a running batch's state: copy them along with it.
+    """
+
+    # HighwayBackend._refresh_road_facts: at decisions and lane-change starts.
+    desired_mps: np.ndarray  # (E, V) float64 speed limit of the vehicle's segment
+    inv_desired_s_per_m: np.ndarray  # (E, V) float64 1 / max(desired_mps, 1e-3)
+    end_x_m: np.ndarray  # (E, V) float64 centre x at which the destination lane ends
+    # HighwayBackend._refresh_speed_bounds: at commands, resets, contacts and arrivals.
+    v_lo_mps: np.ndarray  # (E, V) float64 lowest speed a sub-step may reach
+    v_hi_mps: np.ndarray  # (E, V) float64 highest speed a sub-step may reach
+    half_dt_active_s: np.ndarray  # (E, V) float64 dt / 2 on the road, 0 off it
+    # HighwayBackend._refresh_leaders: in the envs marked in leaders_dirty.
+    leader: np.ndarray  # (E, V) intp nearest active vehicle ahead sharing a lane
+    has_leader: np.ndarray  # (E, V) bool ``leader`` is real
+    guarded: np.ndarray  # (E, V) bool an HDV behind an HDV leader (last-resort guard)
+    screen: np.ndarray  # (E, V) bool leader pair that can start a contact
+    moving: np.ndarray  # (E, V) bool in a lane change, on the road, not wrecked
+    pairs_active: np.ndarray  # (E, V, V) bool pairs that can start a contact
+    leaders_dirty: np.ndarray  # (E,) bool leaders must be searched again before a sub-step
+    # Some heading was non-zero after the last sub-step (else zeroing it is skipped).
+    heading_nonzero: bool
+
+    @classmethod
+    def zeros(cls, n_envs: int, n_vehicles: int) -> HighwayCaches:
+        """Caches before any reset: every env's leaders are dirty."""
+        shape = (n_envs, n_vehicles)
+        return cls(
+            desired_mps=np.zeros(shape),
+            inv_desired_s_per_m=np.zeros(shape),
+            end_x_m=np.zeros(shape),
+            v_lo_mps=np.zeros(shape),
+            v_hi_mps=np.zeros(shape),
+            half_dt_active_s=np.zeros(shape),
+            leader=np.zeros(shape, np.intp),
+            has_leader=np.zeros(shape, bool),
+            guarded=np.zeros(shape, bool),
+            screen=np.zeros(shape, bool),
+            moving=np.zeros(shape, bool),
+            pairs_active=np.zeros((n_envs, n_vehicles, n_vehicles), bool),
+            leaders_dirty=np.ones(n_envs, bool),
+            heading_nonzero=False,
+        )
