@@ -28,12 +28,12 @@ The committed results/demand/humans.jsonl (benchmarks/README.md):
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numpy as np
 
 from diacc.backends.base import CavCommands, make_backend
+from diacc.bench import write_json_lines
 from diacc.config import EventConfig, SimConfig, preset_road
 from diacc.maps import load_map
 from diacc.metrics import EpisodeRecorder
@@ -144,15 +144,14 @@ def main() -> None:
     parser.add_argument("--preset", default="realistic")
     parser.add_argument("--out", default=None, help="append JSON lines here")
     args = parser.parse_args()
-    for inflow in args.inflow:
-        for traffic in args.traffic:
-            for backend in args.backend:
-                for seed in range(args.seeds):
-                    line = json.dumps(run(traffic, backend, args.map, inflow, seed, args))
-                    print(line, flush=True)
-                    if args.out:
-                        with open(args.out, "a") as fh:
-                            fh.write(line + "\n")
+    records = (
+        run(traffic, backend, args.map, inflow, seed, args)
+        for inflow in args.inflow
+        for traffic in args.traffic
+        for backend in args.backend
+        for seed in range(args.seeds)
+    )
+    write_json_lines(records, args.out)
 
 
 if __name__ == "__main__":

@@ -23,12 +23,11 @@ not the reduction, is their limit. One JSON line per episode.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numpy as np
 
-from diacc.bench import headroom
+from diacc.bench import headroom, write_json_lines
 from diacc.grid import Cell
 from diacc.scenario import draw_population
 
@@ -105,15 +104,14 @@ def main() -> None:
     parser.add_argument("--horizon", default="headway")
     parser.add_argument("--out", default=None, help="append JSON lines here")
     args = parser.parse_args()
-    for inflow in args.inflow:
-        for backend in args.backend:
-            for reference in args.reference:
-                for episode in range(args.seeds):
-                    line = json.dumps(run(backend, inflow, reference, episode, args))
-                    print(line, flush=True)
-                    if args.out:
-                        with open(args.out, "a") as fh:
-                            fh.write(line + "\n")
+    records = (
+        run(backend, inflow, reference, episode, args)
+        for inflow in args.inflow
+        for backend in args.backend
+        for reference in args.reference
+        for episode in range(args.seeds)
+    )
+    write_json_lines(records, args.out)
 
 
 if __name__ == "__main__":

@@ -59,14 +59,8 @@ class Parser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
 
 
-def add_command(sub, name: str, summary: str, description: str = "") -> Parser:
-    """A subcommand whose ``--help`` starts with its summary (and description)."""
-    text = summary[0].upper() + summary[1:] + "." + (f"\n\n{description}" if description else "")
-    return sub.add_parser(name, help=summary, description=text)
-
-
 def _train_parser(sub) -> None:
-    p = add_command(
+    p = cli_scale.add_command(
         sub,
         "train",
         "train a MAPPO variant (writes a run directory)",
@@ -194,7 +188,7 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 
 def _bench_parser(sub) -> None:
-    p = add_command(
+    p = cli_scale.add_command(
         sub,
         "bench",
         "speed benchmarks, measured side by side in one run",
@@ -389,7 +383,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
 
 
 def _simulate_parser(sub) -> None:
-    p = add_command(
+    p = cli_scale.add_command(
         sub,
         "simulate",
         "simulate one episode of human-driven traffic and print its metrics",
@@ -450,7 +444,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
 
 
 def _convert_parser(sub) -> None:
-    p = add_command(
+    p = cli_scale.add_command(
         sub,
         "convert-checkpoint",
         "rewrite old (format 1) checkpoints in today's format",

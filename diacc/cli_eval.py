@@ -79,10 +79,10 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
 
 def add_parsers(sub) -> None:
     """Add the evaluation subcommands to the main parser."""
-    p = sub.add_parser(
+    p = cli_scale.add_command(
+        sub,
         "eval",
-        help="evaluate a policy or baseline on a grid of scenarios",
-        description="Evaluate a policy or baseline on a grid of scenarios.\n\n"
+        "evaluate a policy or baseline on a grid of scenarios",
         "Writes episodes.csv and speeds.csv.gz into --out; re-running skips finished cells.\n"
         "Episode seeds depend on the cell and episode only, so every policy meets the\n"
         "same traffic.",
@@ -100,10 +100,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     cli_scale.add_engine_args(p)
 
-    p = sub.add_parser(
-        "table",
-        help="paper-style table (Tables II/III) from results directories",
-        description=f"Paper-style table (Tables II/III) from results directories.\n\n{TABLE_RULES}",
+    p = cli_scale.add_command(
+        sub, "table", "paper-style table (Tables II/III) from results directories", TABLE_RULES
     )
     p.add_argument("results", nargs="+", type=Path, help="results directories, one per column")
     p.add_argument(
@@ -125,11 +123,7 @@ def add_parsers(sub) -> None:
     )
     p.add_argument("--out", type=Path, default=None, help="write to a file instead of stdout")
 
-    p = sub.add_parser(
-        "plot",
-        help="training curves or speed distributions (PNG + PDF)",
-        description="Training curves or speed distributions (PNG + PDF).",
-    )
+    p = cli_scale.add_command(sub, "plot", "training curves or speed distributions (PNG + PDF)")
     plot_sub = p.add_subparsers(dest="plot_kind", required=True, metavar="KIND")
     q = plot_sub.add_parser(
         "curves",

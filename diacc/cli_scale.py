@@ -1,4 +1,5 @@
-"""Command-line options of the scale-out engines and ``diacc sweep``.
+"""Command-line options of the scale-out engines and ``diacc sweep``, and the
+parser helpers every command module shares (:func:`add_command`, :func:`add_out_arg`).
 
 Registered by :mod:`diacc.cli`; ``diacc eval`` takes the engine options too.
 Ray is imported only when ``--engine ray`` is chosen (:mod:`diacc.scaleout`).
@@ -11,6 +12,13 @@ from pathlib import Path
 
 from diacc.config import BACKENDS, VARIANTS, ConfigError, EnvConfig, TrainConfig
 from diacc.sweepaxes import STUDIES
+
+
+def add_command(sub, name: str, summary: str, description: str = "") -> argparse.ArgumentParser:
+    """A subcommand whose ``--help`` starts with its summary (and description):
+    the list of commands and each command's own help then say the same."""
+    text = summary[0].upper() + summary[1:] + "." + (f"\n\n{description}" if description else "")
+    return sub.add_parser(name, help=summary, description=text)
 
 
 def add_out_arg(p: argparse.ArgumentParser, old_name: str, **kwargs) -> None:

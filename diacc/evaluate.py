@@ -288,12 +288,15 @@ Engine = Callable[[list[CellTask], PolicySpec, EvalSettings, int], Iterator[Cell
 
 
 # ----------------------------------------------------------------------------- files
-def _csv_bytes(columns: list[str] | tuple[str, ...], rows: list) -> bytes:
+def csv_text(columns: list[str] | tuple[str, ...], rows: list) -> str:
+    """CSV text of a header and rows, lines ending in ``\n`` on every platform: the one
+    writer of the results files and of the tables and reports made from them, so that
+    they all diff and hash the same everywhere."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(columns)
     writer.writerows(rows)
-    return buffer.getvalue().encode()
+    return buffer.getvalue()
 
 
 def _gzip(data: bytes) -> bytes:
@@ -320,12 +323,12 @@ def write_cell(out_dir: Path, cell: Cell, results: list[EpisodeResult]) -> None:
     cells_dir = out_dir / CELLS_DIR
     cells_dir.mkdir(parents=True, exist_ok=True)
     speeds = [row for r in results for row in speed_rows(r)]
-    speeds_bytes = _gzip(_csv_bytes(SPEED_COLUMNS, speeds))
+    speeds_bytes = _gzip(csv_text(SPEED_COLUMNS, speeds).encode())
     atomic_write(cells_dir / f"{cell.file_key}.speeds.csv.gz", speeds_bytes)
     columns = list(results[0].row)
     atomic_write(
         cells_dir / f"{cell.file_key}.episodes.csv",
-        _csv_bytes(columns, [[r.row[c] for c in columns] for r in results]),
+        csv_text(columns, [[r.row[c] for c in columns] for r in results]).encode(),
     )
 
 
@@ -400,7 +403,7 @@ def merge_cells(out_dir: Path) -> None:
                     "re-run it into a fresh results directory"
                 )
             rows += list(reader)
-    atomic_write(out_dir / EPISODES_FILE, _csv_bytes(header, rows))
+    atomic_write(out_dir / EPISODES_FILE, csv_text(header, rows).encode())
     parts = []
     for path in episode_files:
         speeds = path.with_name(path.name.replace(".episodes.csv", ".speeds.csv.gz"))

@@ -154,16 +154,22 @@ class Cell:
         }
 
 
-def make_cell(values: dict, source: str = "<grid>") -> Cell:
-    """Validate one cell mapping (as read from TOML or CSV) into a :class:`Cell`."""
-    if not isinstance(values, dict):
-        raise GridError(f"{source}: a grid cell must be a table of {', '.join(CELL_KEYS)}")
+def _check_keys(values: dict, source: str) -> None:
+    """Refuse a key no cell has, naming the first one: a single cell and a
+    ``[product]`` table take the same keys, so a typo reads the same in both."""
     unknown = set(values) - set(CELL_KEYS) - set(OPTIONAL_CELL_KEYS)
     if unknown:
         raise GridError(
             f"{source}: unknown grid cell key {sorted(unknown)[0]!r}; "
             f"known keys: {', '.join(CELL_KEYS + OPTIONAL_CELL_KEYS)}"
         )
+
+
+def make_cell(values: dict, source: str = "<grid>") -> Cell:
+    """Validate one cell mapping (as read from TOML or CSV) into a :class:`Cell`."""
+    if not isinstance(values, dict):
+        raise GridError(f"{source}: a grid cell must be a table of {', '.join(CELL_KEYS)}")
+    _check_keys(values, source)
     inflow = values.get("inflow_vph", 0.0)
     if not isinstance(inflow, (int, float)) or isinstance(inflow, bool) or inflow < 0:
         raise GridError(f"{source}: inflow_vph must be a positive number, got {inflow!r}")
@@ -207,12 +213,7 @@ def _product(values: dict, source: str) -> list[Cell]:
     }
     if not isinstance(values, dict):
         raise GridError(f"{source}: [product] must be a table of value lists")
-    unknown = set(values) - set(CELL_KEYS) - set(OPTIONAL_CELL_KEYS)
-    if unknown:
-        raise GridError(
-            f"{source}: unknown grid cell key {sorted(unknown)[0]!r}; "
-            f"known keys: {', '.join(CELL_KEYS + OPTIONAL_CELL_KEYS)}"
-        )
+    _check_keys(values, source)
     keys = CELL_KEYS + tuple(k for k in OPTIONAL_CELL_KEYS if k in values)
     lists = {k: values.get(k, defaults.get(k)) for k in keys}
     for key, value in lists.items():

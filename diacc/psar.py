@@ -49,6 +49,23 @@ RULE_BITS = {code: 1 << (code - 1) for code in range(1, len(RULE_NAMES))}
 CUT_IN_DRIFT_M = 0.05
 
 
+@dataclass(frozen=True)
+class _FrontObstacles:
+    """What lies ahead of each CAV slot, as the ``"headway"`` car following needs it.
+
+    Found once by the lane-change checks and handed on whole, so the car following
+    and its speed bound (:func:`_headway_bound_mps`) read the same obstacles.
+    """
+
+    sf_vehicle: PairKinematics  # (..., C) same-lane leader
+    sf_index: np.ndarray  # (..., C) its vehicle index (-1: none)
+    tf_vehicle: PairKinematics  # (..., C) the target lane's front vehicle (lane changers)
+    tf_index: np.ndarray  # (..., C) its vehicle index (-1: none)
+    own_wall: PairKinematics  # (..., C) the end of the own lane as a standing obstacle
+    merging: PairKinematics  # (..., C) a vehicle ahead moving across into the lane
+    merging_index: np.ndarray  # (..., C) its vehicle index (-1: none; :func:`_cut_in_front`)
+
+
 @dataclass
 class PSARResult:
     """Refined actions and what PSAR did, one entry per CAV slot.
@@ -359,13 +376,15 @@ def psar(
             a,
             b_lc_mps2,
             mask,
-            sf_vehicle,
-            pairs[..., 2],
-            tf_vehicle,
-            pairs[..., 0],
-            own_fronts[1],
-            own_fronts[2],
-            cut_in,
+            _FrontObstacles(
+                sf_vehicle=sf_vehicle,
+                sf_index=pairs[..., 2],
+                tf_vehicle=tf_vehicle,
+                tf_index=pairs[..., 0],
+                own_wall=own_fronts[1],
+                merging=own_fronts[2],
+                merging_index=cut_in,
+            ),
             ego_speed_mps,
             asked_lane if cfg.cooperative_merge else np.full(shape, -1),
             cfg,
@@ -480,13 +499,7 @@ def _headway_car_following(
     a: np.ndarray,
     b_lc_mps2: np.ndarray,
     mask: np.ndarray,
-    sf_vehicle: PairKinematics,
-    sf_index: np.ndarray,
-    tf_vehicle: PairKinematics,
-    tf_index: np.ndarray,
-    own_wall: PairKinematics,
-    merging: PairKinematics,
-    merging_index: np.ndarray,
+    fronts: _FrontObstacles,
     ego_speed_mps: np.ndarray,
     asked_lane: np.ndarray,
     cfg: PSARConfig,
@@ -523,13 +536,7 @@ def _headway_car_following(
         entering_lane,
         changing,
         speed_change,
-        sf_vehicle,
-        sf_index,
-        tf_vehicle,
-        tf_index,
-        own_wall,
-        merging,
-        merging_index,
+        fronts,
         cfg,
         road,
         sim,
@@ -588,13 +595,7 @@ def _headway_bound_mps(
     entering_lane: np.ndarray,
     changing: np.ndarray,
     speed_change_mps: np.ndarray,
-    sf_vehicle: PairKinematics,
-    sf_index: np.ndarray,
-    tf_vehicle: PairKinematics,
-    tf_index: np.ndarray,
-    own_wall: PairKinematics,
-    merging: PairKinematics,
-    merging_index: np.ndarray,
+    fronts: _FrontObstacles,
     cfg: PSARConfig,
     road: Map,
     sim: SimConfig,
@@ -622,11 +623,8 @@ def _headway_bound_mps(
         entering_lane: (..., C) lane each CAV changes or asks to change into (-1: none).
         changing: (..., C) bool, the CAV changes lanes in this step.
         speed_change_mps: (..., C) commands before car following.
-        sf_vehicle, sf_index: same-lane leader kinematics and vehicle index (-1: none).
-        tf_vehicle, tf_index: the same of the target lane's front vehicle (lane changers).
-        own_wall: the end of the own lane as a standing obstacle.
-        merging, merging_index: a vehicle ahead already moving across into the
-            lane (:func:`_cut_in_front`), followed like an HDV leader.
+        fronts: what lies ahead (:class:`_FrontObstacles`); the merging vehicle
+            is followed like an HDV leader.
     """
     step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
     max_brake_mps = sim.cav.decel_mps2 * step_s  # see _headway_car_following
@@ -657,9 +655,9 @@ def _headway_bound_mps(
     slots = np.broadcast_to(np.arange(cav_index.shape[-1]), cav_index.shape)  # (..., C)
     slot_of = np.full(state.x_m.shape, -1, np.int64)  # (..., V) CAV slot of a vehicle, -1: HDV
     np.put_along_axis(slot_of, cav_index, slots, axis=-1)
-    lead = np.maximum(sf_index, 0)
-    lead_slot = np.where(sf_vehicle.valid, take(slot_of, lead), -1)  # (..., C)
-    lead_gap_m = np.where(sf_vehicle.valid, sf_vehicle.d_long_m, np.inf)
+    lead = np.maximum(fronts.sf_index, 0)
+    lead_slot = np.where(fronts.sf_vehicle.valid, take(slot_of, lead), -1)  # (..., C)
+    lead_gap_m = np.where(fronts.sf_vehicle.valid, fronts.sf_vehicle.d_long_m, np.inf)
     # An HDV leader may brake as hard as its style does, at least at the CAVs' planned
     # rate; behind one the CAV is ready to use its full braking (an emergency).
     style_decel_mps2 = np.array([st.decel_mps2 for st in STYLE_PRESETS[sim.style_preset]])
@@ -671,9 +669,9 @@ def _headway_bound_mps(
         return bound(gap_m, step_m, end_mps, 0.0, sim.cav.decel_mps2, hdv_decel_mps2)
 
     hdv_lead_mps = behind_hdv(lead_gap_m, lead)
-    merging_gap_m = np.where(merging.valid, merging.d_long_m, np.inf)
-    merging_mps = behind_hdv(merging_gap_m, np.maximum(merging_index, 0))
-    wall_gap_m = np.where(own_wall.valid & ~changing, own_wall.d_long_m, np.inf)
+    merging_gap_m = np.where(fronts.merging.valid, fronts.merging.d_long_m, np.inf)
+    merging_mps = behind_hdv(merging_gap_m, np.maximum(fronts.merging_index, 0))
+    wall_gap_m = np.where(fronts.own_wall.valid & ~changing, fronts.own_wall.d_long_m, np.inf)
     wall_gap_m = wall_gap_m - _exit_room_m(state, cav_index, road)
     fixed_mps = np.minimum(
         bound(wall_gap_m, 0.0, 0.0, 0.0), np.where(lead_slot >= 0, np.inf, hdv_lead_mps)
@@ -696,8 +694,10 @@ def _headway_bound_mps(
 
     # A lane changer also follows the front CAV of its target lane (an HDV there was
     # checked with the unknown-leader gap before the change was allowed).
-    tf_slot = np.where(changing & tf_vehicle.valid, take(slot_of, np.maximum(tf_index, 0)), -1)
-    tf_gap_m = np.where(tf_slot >= 0, tf_vehicle.d_long_m, np.inf)
+    tf_slot = np.where(
+        changing & fronts.tf_vehicle.valid, take(slot_of, np.maximum(fronts.tf_index, 0)), -1
+    )
+    tf_gap_m = np.where(tf_slot >= 0, fronts.tf_vehicle.d_long_m, np.inf)
     known = ((lead_slot, lead_gap_m), (tf_slot, tf_gap_m))
 
     def behind_known(slot: np.ndarray, gap_m: np.ndarray, end_mps: np.ndarray) -> np.ndarray:

@@ -40,16 +40,14 @@ tidy CSV.
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from diacc.evaluate import EvaluationError, load_episodes
-from diacc.grid import Cell
+from diacc.evaluate import EvaluationError, csv_text, load_episodes
+from diacc.grid import CELL_KEYS, Cell
 
 #: (key, row label, higher is better, episodes.csv column, display scale); shares
 #: are shown in percent (scale 100). Results written before a column existed lack
@@ -469,25 +467,19 @@ def to_latex(table: Table) -> str:
 def to_csv(table: Table) -> str:
     """Tidy CSV: one line per (cell, metric, policy); ``change`` in ``change_unit``
     (% or pp, :func:`change_unit`); ``best`` 1 best, 2 second best (within a backend)."""
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(
-        [
-            "map",
-            "n_vehicles",
-            "cav_penetration",
-            "style_mix",
-            "metric",
-            "policy",
-            "mean",
-            "std",
-            "n_episodes",
-            "change",
-            "change_same_mix",
-            "change_unit",
-            "best",
-        ]
-    )
+    header = [
+        *CELL_KEYS,
+        "metric",
+        "policy",
+        "mean",
+        "std",
+        "n_episodes",
+        "change",
+        "change_same_mix",
+        "change_unit",
+        "best",
+    ]
+    rows = []
     for cell in table.cells:
         for metric in table.rows:
             best, second = table.marks(cell, metric)
@@ -497,12 +489,9 @@ def to_csv(table: Table) -> str:
                     continue
                 change = table.change(cell, metric, col)
                 change_mix = table.change(cell, metric, col, "same-mix")
-                writer.writerow(
+                rows.append(
                     [
-                        cell.map,
-                        cell.n_vehicles,
-                        cell.cav_penetration,
-                        cell.style_mix,
+                        *cell.as_row().values(),
                         metric,
                         col,
                         repr(stat.mean),
@@ -514,7 +503,7 @@ def to_csv(table: Table) -> str:
                         1 if col in best else 2 if col in second else 0,
                     ]
                 )
-    return buffer.getvalue()
+    return csv_text(header, rows)
 
 
 def render_table(table: Table, fmt: str) -> str:

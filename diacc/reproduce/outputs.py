@@ -24,17 +24,15 @@ over in memory from the stages, so the outputs can be rebuilt at any time.
 
 from __future__ import annotations
 
-import csv
 import hashlib
-import io
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, load_episodes
-from diacc.grid import Cell
+from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, csv_text, load_episodes
+from diacc.grid import CELL_KEYS, Cell
 from diacc.maps import SEGMENT_KINDS
 from diacc.plots import PlotError
 from diacc.report import FLOW_ROWS
@@ -290,35 +288,28 @@ def write_transfer(plan: Plan, results: _Results | None = None) -> list[Path]:
     md += ["", *why] if why else []
     out = cfg.out_dir
     (out / TRANSFER_MD).write_text("\n".join(md) + "\n")
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(
+    header = [
+        *CELL_KEYS,
+        "pure_hdv_speed_mps",
+        f"{src}_trained_speed_mps",
+        f"{TRANSFER_BACKEND}_trained_speed_mps",
+        f"{src}_trained_gain_mps",
+        f"{TRANSFER_BACKEND}_trained_gain_mps",
+        "kept_share",
+    ]
+    csv_rows = [
         [
-            "map",
-            "n_vehicles",
-            "cav_penetration",
-            "style_mix",
-            "pure_hdv_speed_mps",
-            f"{src}_trained_speed_mps",
-            f"{TRANSFER_BACKEND}_trained_speed_mps",
-            f"{src}_trained_gain_mps",
-            f"{TRANSFER_BACKEND}_trained_gain_mps",
-            "kept_share",
+            *r.cell.as_row().values(),
+            repr(r.pure_hdv_speed_mps),
+            repr(r.source_speed_mps),
+            repr(r.target_speed_mps),
+            repr(r.source_gain_mps),
+            repr(r.target_gain_mps),
+            "n/a" if r.kept_share is None else repr(r.kept_share),
         ]
-    )
-    for r in rows:
-        writer.writerow(
-            [
-                *r.cell.as_row().values(),
-                repr(r.pure_hdv_speed_mps),
-                repr(r.source_speed_mps),
-                repr(r.target_speed_mps),
-                repr(r.source_gain_mps),
-                repr(r.target_gain_mps),
-                "n/a" if r.kept_share is None else repr(r.kept_share),
-            ]
-        )
-    (out / TRANSFER_CSV).write_text(buffer.getvalue())
+        for r in rows
+    ]
+    (out / TRANSFER_CSV).write_text(csv_text(header, csv_rows))
     return [out / TRANSFER_MD, out / TRANSFER_CSV]
 
 
