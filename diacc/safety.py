@@ -224,7 +224,8 @@ def pair_kinematics(state: TrafficState, ego: np.ndarray, other: np.ndarray) -> 
     dv_long_mps = take(state.speed_mps, ego) * np.abs(cos_i) - take(state.speed_mps, j) * np.abs(
         np.cos(take(state.heading_rad, j))
     )
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # A closing speed of ~1e-308 overflows to inf: that TTC is "never", as wanted.
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         ttc_raw_s = d_long_m / dv_long_mps
     closing = valid & (dv_long_mps != 0.0) & (ttc_raw_s > 0.0)
     return PairKinematics(
