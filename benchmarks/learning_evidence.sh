@@ -7,7 +7,8 @@
 #
 #   OUT=runs/l27 STEPS=200000 JOBS=2 bash benchmarks/learning_evidence.sh [NAME ...]
 #
-# NAME is SETTING-VARIANT-sSEED, e.g. options-diacc-s1; default: the queue below.
+# NAME is SETTING-VARIANT-sSEED, e.g. options-diacc-s1; SETTING is default, options (every
+# learning option on) or lowent (entropy_coef 0.001 instead of 0.01); default: the queue below.
 set -euo pipefail
 out=${OUT:-runs/l27}
 steps=${STEPS:-200000}
@@ -30,7 +31,8 @@ run_one() {
   case $setting in
     options) extra=$options ;;
     default) extra="" ;;
-    *) echo "unknown setting '$setting' in '$name' (options, default)" >&2; return 2 ;;
+    lowent) extra="--set entropy_coef=0.001" ;;  # a tenth of the default entropy bonus
+    *) echo "unknown setting '$setting' in '$name' (options, default, lowent)" >&2; return 2 ;;
   esac
   if [[ -f $dir/progress.jsonl ]] && python - "$dir" "$steps" <<'PY'
 import json, sys
