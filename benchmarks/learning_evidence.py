@@ -72,7 +72,7 @@ def group_runs(backend_dir: Path) -> dict[str, dict[str, list[dict[str, float]]]
         else:
             raise SystemExit(f"{path}: not a baseline nor SETTING-VARIANT-sSEED-ACTIONS")
         for map_name, means in episode_means(path).items():
-            groups.setdefault(map_name, {}).setdefault(label, []).append(means)
+            groups.setdefault(map_name, {}).setdefault(label, []).append(means | {"run": path.name})
     for map_name, cell in groups.items():
         missing = [b for b in ("same-mix", "heuristic", "cooperative") if b not in cell]
         if missing:
@@ -110,6 +110,32 @@ def checks(runs: list[dict[str, float]], groups: dict) -> dict[str, bool]:
         "no collision": mean["collision"] == 0.0,
         "p(SCE) <= same-mix": mean["p_sce"] <= ref["same-mix"]["p_sce"] + 1e-12,
     }
+
+
+#: Highway-trained agents on SUMO against the same agents trained on SUMO (the issue's
+#: transfer target: keep >= 80 % of the SUMO-trained agent's delay reduction vs same-mix).
+TRANSFER = ("sumo", "default diacc (greedy)", "sumotrained diacc (greedy)")
+
+
+def transfer_lines(tables: list) -> list[str]:
+    """The transfer check of every map where both groups of :data:`TRANSFER` were evaluated."""
+    backend, moved, native = TRANSFER
+    lines = []
+    for backend_dir, map_name, groups in tables:
+        if backend_dir.name != backend or moved not in groups or native not in groups:
+            continue
+        same_mix = seed_mean(groups["same-mix"], "total_delay_s")[0]
+        gain = {g: same_mix - seed_mean(groups[g], "total_delay_s")[0] for g in (moved, native)}
+        kept = gain[moved] / gain[native] if gain[native] > 0 else float("nan")
+        lines += [
+            f"## Transfer, {backend}, {map_name}",
+            "",
+            f"Delay reduction against same-mix ({same_mix:.0f} s): {moved} {gain[moved]:.0f} s, "
+            f"{native} {gain[native]:.0f} s; the highway-trained agent keeps {100 * kept:.0f} % "
+            f"of it (target >= 80 %: {'met' if kept >= 0.8 else 'missed'}).",
+            "",
+        ]
+    return lines
 
 
 def main() -> None:
@@ -159,11 +185,12 @@ def main() -> None:
                         "backend": backend_dir.name,
                         "map": map_name,
                         "policy": label,
-                        "seed_index": i,
+                        "seed_index": i,  # run: the evaluated run, e.g. default-diacc-s1-greedy
                         **run,
                     }
                 )
         lines.append("")
+    lines += transfer_lines(tables)
     (args.out / "evaluation.md").write_text("\n".join(lines))
     with (args.out / "evaluation.csv").open("w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(table[0]))
