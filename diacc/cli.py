@@ -106,12 +106,7 @@ def _train_parser(sub) -> None:
         default=None,
         help=f"run seed (networks and traffic) (default: {TrainConfig.seed})",
     )
-    p.add_argument(
-        "--device",
-        choices=("cpu", "cuda", "auto"),
-        default=None,
-        help=f"torch device; auto: cuda if available (default: {TrainConfig.device})",
-    )
+    cli_scale.add_device_arg(p)
     p.add_argument(
         "--style-preset",
         choices=tuple(STYLE_PRESETS),
@@ -265,28 +260,52 @@ def _bench_parser(sub) -> None:
         "--episode-steps",
         type=int,
         default=None,
-        help="episode length of --safety in decision steps (default: the simulation default)",
+        help="decision steps per episode of --safety / --headway / --headroom (default: "
+        f"--safety {SimConfig.episode_steps}, --headway 330, --headroom the scenario's)",
     )
     p.add_argument(
         "--policies",
         default=None,
         help="comma-separated scripted policies of --safety (default: all, with and without PSAR)",
     )
-    p.add_argument("--device", default="cpu", help="torch device of --models and --training")
     p.add_argument(
-        "--steps",
+        "--timing-steps",
         type=int,
         default=None,
-        help="steps to time, or episode steps of --headway / --headroom (default 330)",
+        help="steps to time of --backend / --env-batch (default: highway 200, sumo 500, "
+        "--env-batch 60 vector steps)",
     )
+    cli_scale.add_device_arg(p, "torch device of --models and --training's PPO update")
+    # --steps, the former name of both --timing-steps and --headway / --headroom's
+    # --episode-steps: hidden, still accepted (cmd_bench gives it the meaning it had)
+    p.add_argument("--steps", dest="legacy_steps", type=int, default=None, help=argparse.SUPPRESS)
+
+
+def bench_device(name: str | None) -> str:
+    """The concrete torch device (``cpu``, ``cuda``) of ``--device``, so that the
+    benchmark tables name the device they measured, not ``auto``."""
+    from diacc.algo.mappo import resolve_device
+
+    return str(resolve_device(name or TrainConfig.device))
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
     ran = False
     if args.episodes is not None and args.episodes < 1:
         raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
-    if args.steps is not None and args.steps < 1:
-        raise ConfigError(f"--steps must be >= 1, got {args.steps}")
+    lengths = {
+        "--steps": args.legacy_steps,
+        "--episode-steps": args.episode_steps,
+        "--timing-steps": args.timing_steps,
+    }
+    for flag, value in lengths.items():
+        if value is not None and value < 1:
+            raise ConfigError(f"{flag} must be >= 1, got {value}")
+    if args.legacy_steps is not None and not args.safety:  # --safety ignored --steps
+        if args.headway or args.headroom:
+            args.episode_steps = args.episode_steps or args.legacy_steps
+        else:
+            args.timing_steps = args.timing_steps or args.legacy_steps
     demand_flags = {
         "--inflow": args.inflow,
         "--demand-s": args.demand_s,
@@ -300,8 +319,6 @@ def cmd_bench(args: argparse.Namespace) -> None:
         from diacc.bench import safety
 
         backends = (args.backend,) if args.backend else BACKENDS
-        if args.episode_steps is not None and args.episode_steps < 1:
-            raise ConfigError(f"--episode-steps must be >= 1, got {args.episode_steps}")
         policies = safety.POLICIES
         if args.policies is not None:
             policies = tuple(p.strip() for p in args.policies.split(",") if p.strip())
@@ -327,7 +344,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
             backends=(args.backend,) if args.backend else BACKENDS,
             episodes=args.episodes or 4,
             style_preset=args.style_preset or "paper-congestion",
-            steps=args.steps or 330,
+            **({"steps": args.episode_steps} if args.episode_steps else {}),
         )
         return
     if args.headroom:
@@ -345,7 +362,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
             backends=(args.backend,) if args.backend else ("highway",),
             episodes=args.episodes or 4,
             style_preset=args.style_preset,
-            steps=args.steps,
+            steps=args.episode_steps,
             horizon=args.horizon,
             demand=demand,
         )
@@ -353,27 +370,27 @@ def cmd_bench(args: argparse.Namespace) -> None:
     if args.backend == "highway":
         from diacc.bench import highway
 
-        highway.run(**({"steps": args.steps} if args.steps else {}))
+        highway.run(**({"steps": args.timing_steps} if args.timing_steps else {}))
         ran = True
     if args.backend == "sumo":
         from diacc.bench import sumo
 
-        sumo.run(**({"steps": args.steps} if args.steps else {}))
+        sumo.run(**({"steps": args.timing_steps} if args.timing_steps else {}))
         ran = True
     if args.models:
         from diacc.bench import models
 
-        models.run(device=args.device)
+        models.run(device=bench_device(args.device))
         ran = True
     if args.training:
         from diacc.bench import training
 
-        training.run(device=args.device)
+        training.run(device=bench_device(args.device))
         ran = True
     if args.env_batch:
         from diacc.bench import envbatch
 
-        envbatch.run(**({"steps": args.steps} if args.steps else {}))
+        envbatch.run(**({"steps": args.timing_steps} if args.timing_steps else {}))
         ran = True
     if not ran:
         raise ConfigError(
@@ -404,7 +421,15 @@ def _simulate_parser(sub) -> None:
         default="realistic",
         help="HDV driving-style parameters (paper: authors' values)",
     )
-    p.add_argument("--steps", type=int, default=150, help="decision steps (1 s) at most")
+    cli_scale.add_renamed_arg(
+        p,
+        "--episode-steps",
+        "--steps",  # its former name
+        dest="episode_steps",
+        type=int,
+        default=150,
+        help="decision steps (1 s) at most",
+    )
     p.add_argument("--seed", type=int, default=0, help="traffic seed")
 
 
@@ -415,8 +440,8 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     from diacc.policies import Policy
     from diacc.scenario import Scenario
 
-    if args.steps < 1:
-        raise ConfigError(f"--steps must be >= 1, got {args.steps}")
+    if args.episode_steps < 1:
+        raise ConfigError(f"--episode-steps must be >= 1, got {args.episode_steps}")
     scenario = Scenario(
         n_vehicles=args.vehicles, cav_penetration=args.penetration, style_mix=args.mix
     )
@@ -425,7 +450,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
         map=args.map,
         use_psar=False,  # CAVs get no commands: they keep their lane and speed
         scenario=scenario,
-        sim=SimConfig(style_preset=args.style_preset, episode_steps=args.steps),
+        sim=SimConfig(style_preset=args.style_preset, episode_steps=args.episode_steps),
         obs=ObservationConfig(max_vehicles=max(ObservationConfig.max_vehicles, args.vehicles)),
     )
     driver = EpisodeDriver(Policy(), cfg)
@@ -437,7 +462,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     print(
         f"diacc simulate: backend {args.backend}{f' ({version})' if version else ''}, "
         f"map {road.name}, N={scenario.n_vehicles} ({scenario.n_cavs} CAVs), mix {args.mix}, "
-        f"style preset {args.style_preset}, seed {args.seed}, at most {args.steps} steps"
+        f"style preset {args.style_preset}, seed {args.seed}, at most {args.episode_steps} steps"
     )
     kinds = tuple(dict.fromkeys(seg.kind for seg in road.segments))
     print_lines(metric_lines(recorder.summary(), kinds))

@@ -153,7 +153,7 @@ def add_parsers(sub) -> None:
         "coloured by speed, lane reduction shaded) and its speed profile along the road.",
     )
     _policy_args(q)
-    _episode_args(q, "decisions to play at most")
+    _episode_args(q)
     q.add_argument(
         "--out",
         type=Path,
@@ -167,7 +167,7 @@ def add_parsers(sub) -> None:
         description="One episode as a GIF, with a legend and a time / step / PSAR stamp.",
     )
     _policy_args(p)
-    _episode_args(p, "decisions to render at most")
+    _episode_args(p)
     p.add_argument("--fps", type=float, default=5.0, help="GIF frames per second")
     p.add_argument(
         "--view",
@@ -178,13 +178,16 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", type=Path, default=Path("episode.gif"), help="output .gif")
 
 
-def _episode_args(p: argparse.ArgumentParser, steps_help: str) -> None:
-    """The traffic of one episode (``render``, ``plot timespace``)."""
+def _episode_args(p: argparse.ArgumentParser) -> None:
+    """The traffic of one episode (``render``, ``plot timespace``); its length is
+    ``--episode-steps`` (:func:`_policy_args`), formerly ``--steps``: still accepted."""
     p.add_argument("--map", default="train-25", help="shipped map name or .toml path")
     p.add_argument("--vehicles", type=int, default=25, help="vehicles inserted at t = 0 (N)")
     p.add_argument("--penetration", type=float, default=0.4, help="CAV share rho")
     p.add_argument("--mix", default="D1", help="HDV style mix: D1, D2 or D3")
-    p.add_argument("--steps", type=int, default=100, help=steps_help)
+    p.add_argument(
+        "--steps", dest="episode_steps", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS
+    )
     p.add_argument(
         "--seed", type=int, default=None, help="traffic seed (default: seed of eval episode 0)"
     )
@@ -249,7 +252,7 @@ def cmd_plot(args: argparse.Namespace) -> None:
 
         spec = parse_policy(args.policy, args.variant, args.actions == "sampled")
         cell = _episode_cell(args)
-        paths = plot_timespace(spec, cell, args.out, args.steps, _settings(args), seed=args.seed)
+        paths = plot_timespace(spec, cell, args.out, None, _settings(args), seed=args.seed)
     else:
         paths = plots.plot_speeds(args.results, args.out, map_name=args.map)
     print("wrote " + ", ".join(map(str, paths)))
@@ -265,7 +268,7 @@ def cmd_render(args: argparse.Namespace) -> None:
         spec,
         cell,
         args.out,
-        args.steps,
+        None,  # as long as the episode: --episode-steps, else the policy's own
         _settings(args),
         seed=args.seed,
         fps=args.fps,

@@ -13,7 +13,14 @@ import functools
 from pathlib import Path
 
 from diacc import cli_scale
-from diacc.config import ACTION_MODES, BACKENDS, STYLE_PRESETS, VARIANTS, ConfigError
+from diacc.config import (
+    ACTION_MODES,
+    BACKENDS,
+    STYLE_PRESETS,
+    VARIANTS,
+    ConfigError,
+    TrainConfig,
+)
 from diacc.grid import GRID_NAMES
 from diacc.reproduce.plan import DEFAULT_GRIDS
 from diacc.sweepaxes import STUDIES
@@ -61,7 +68,12 @@ def add_parsers(sub) -> None:
     )
     p.add_argument("--out", type=Path, default=Path("results/reproduce"), help="results folder")
     p.add_argument("--budget", default="paper", help="tiny, small or paper (see below)")
-    p.add_argument("--steps", type=int, default=None, help="environment steps per training run")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="environment steps per training run (decisions x environments)",
+    )
     p.add_argument("--seeds", default=None, help="comma-separated run seeds, e.g. 1,2,3")
     p.add_argument("--envs", type=int, default=None, help="environments per training run")
     p.add_argument("--episodes", type=int, default=None, help="evaluation episodes per cell")
@@ -108,9 +120,7 @@ def add_parsers(sub) -> None:
         help="checkpoints' evaluation actions: argmax, or sampled from their distribution "
         "(seeded per episode)",
     )
-    p.add_argument(
-        "--device", choices=("cpu", "cuda", "auto"), default="cpu", help="torch device of updates"
-    )
+    cli_scale.add_device_arg(p, "torch device of every training run's PPO update")
     p.add_argument(
         "--set",
         action="append",
@@ -175,7 +185,7 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
         style_preset=args.style_preset,
         episode_steps=args.episode_steps,
         actions=args.actions,
-        device=args.device,
+        device=args.device or TrainConfig.device,
         train_sets=tuple(args.set),
     )
     plan = make_plan(config, notes)

@@ -8,10 +8,14 @@ Ray is imported only when ``--engine ray`` is chosen (:mod:`diacc.scaleout`).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 from diacc.config import BACKENDS, VARIANTS, ConfigError, EnvConfig, TrainConfig
 from diacc.sweepaxes import STUDIES
+
+#: ``--device`` choices: those of :attr:`TrainConfig.device <diacc.config.TrainConfig>`.
+DEVICES = next(f for f in dataclasses.fields(TrainConfig) if f.name == "device").metadata["choices"]
 
 
 def add_command(sub, name: str, summary: str, description: str = "") -> argparse.ArgumentParser:
@@ -21,12 +25,35 @@ def add_command(sub, name: str, summary: str, description: str = "") -> argparse
     return sub.add_parser(name, help=summary, description=text)
 
 
-def add_out_arg(p: argparse.ArgumentParser, old_name: str, **kwargs) -> None:
-    """``--out``, every command's name for where it writes, and ``old_name`` (the
-    command's former name for it) as a hidden alias, so old command lines still run."""
-    p.add_argument("--out", **kwargs)
+def add_renamed_arg(p: argparse.ArgumentParser, name: str, old_name: str, **kwargs) -> None:
+    """Option ``name`` and ``old_name`` (its former spelling) as a hidden alias of the
+    same ``dest``, so that old command lines still run while ``--help`` shows one name
+    per meaning. Give ``dest``: argparse would derive the alias's own from its name."""
+    p.add_argument(name, **kwargs)
     alias = {k: v for k, v in kwargs.items() if k != "default"}
     p.add_argument(old_name, **{**alias, "help": argparse.SUPPRESS, "default": argparse.SUPPRESS})
+
+
+def add_out_arg(p: argparse.ArgumentParser, old_name: str, **kwargs) -> None:
+    """``--out``, every command's name for where it writes, with ``old_name`` (the
+    command's former name for it) as a hidden alias (:func:`add_renamed_arg`)."""
+    add_renamed_arg(p, "--out", old_name, **kwargs)
+
+
+def add_device_arg(
+    p: argparse.ArgumentParser, what: str = "torch device of the PPO update"
+) -> None:
+    """``--device``, the same choices and default on every command: None, which stands
+    for :attr:`TrainConfig.device <diacc.config.TrainConfig>` (``auto``) unless a
+    ``--config`` file names another, so that ``train``, ``sweep``, ``reproduce`` and
+    ``bench`` pick the same device for the same command line."""
+    p.add_argument(
+        "--device",
+        choices=DEVICES,
+        default=None,
+        help=f"{what}; auto: cuda if this machine has it, else cpu (TrainConfig's default, "
+        f"so that every command picks the same device) (default: {TrainConfig.device})",
+    )
 
 
 def add_engine_args(p: argparse.ArgumentParser) -> None:
@@ -127,9 +154,7 @@ def add_parsers(sub) -> None:
         default=None,
         help=f"environments per run (default: {TrainConfig.n_envs})",
     )
-    p.add_argument(
-        "--device", choices=("cpu", "cuda", "auto"), default="cpu", help="torch device of each run"
-    )
+    add_device_arg(p, "torch device of each run's PPO update")
     add_out_arg(
         p,
         "--out-dir",

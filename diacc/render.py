@@ -131,13 +131,15 @@ def annotate(
 
 
 def episode_driver(
-    spec: PolicySpec, cell: Cell, steps: int, settings: EvalSettings
+    spec: PolicySpec, cell: Cell, steps: int | None, settings: EvalSettings
 ) -> tuple[Policy, EpisodeDriver]:
     """(policy, driver) of one shown episode of ``cell``: the policy's own environment
-    for that cell, ended after at most ``steps`` decisions (GIFs, time-space diagrams)."""
+    for that cell, ended after at most ``steps`` decisions (GIFs, time-space diagrams;
+    None: the episode's own length, ``settings.episode_steps`` or the policy's)."""
     policy = build_policy(spec)
     cfg = policy.env_config(cell, settings)
-    max_steps = min(steps, cfg.sim.episode_steps)
+    own_steps = cfg.sim.episode_steps
+    max_steps = own_steps if steps is None else min(steps, own_steps)
     cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, episode_steps=max_steps))
     return policy, EpisodeDriver(policy, cfg)
 
@@ -146,13 +148,13 @@ def render_episode(
     spec: PolicySpec,
     cell: Cell,
     out: str | Path,
-    steps: int,
+    steps: int | None,
     settings: EvalSettings,
     seed: int | None = None,
     fps: float = 5.0,
     view: str = "traffic",
 ) -> RenderResult:
-    """Play one episode (at most ``steps`` decisions) and write it as a GIF.
+    """Play one episode (at most ``steps`` decisions; None: all of it) and write it as a GIF.
 
     The seed defaults to the evaluation seed of episode 0 of ``cell``, so the
     GIF shows the first episode ``diacc eval`` runs in that cell. ``view``:
@@ -163,7 +165,7 @@ def render_episode(
     out = Path(out)
     if out.suffix.lower() != ".gif":
         raise RenderError(f"--out must end in .gif, got {out}")
-    if steps < 1:
+    if steps is not None and steps < 1:
         raise RenderError(f"--steps must be >= 1, got {steps}")
     if fps <= 0:
         raise RenderError(f"--fps must be > 0, got {fps}")

@@ -40,11 +40,11 @@ class Trajectories:
 
 
 def record_trajectories(
-    spec: PolicySpec, cell: Cell, steps: int, settings: EvalSettings, seed: int
+    spec: PolicySpec, cell: Cell, steps: int | None, settings: EvalSettings, seed: int
 ) -> tuple[Trajectories, Map, str, str]:
-    """Play one episode of ``spec`` (at most ``steps`` decisions); (trajectories, map,
-    policy label, HDV style preset the episode ran with)."""
-    if steps < 1:
+    """Play one episode of ``spec`` (at most ``steps`` decisions; None: all of it);
+    (trajectories, map, policy label, HDV style preset the episode ran with)."""
+    if steps is not None and steps < 1:
         raise PlotError(f"--steps must be >= 1, got {steps}")
     policy, driver = episode_driver(spec, cell, steps, settings)
     try:
@@ -136,7 +136,7 @@ def plot_timespace(
     spec: PolicySpec,
     cell: Cell,
     out: str | Path,
-    steps: int,
+    steps: int | None,
     settings: EvalSettings,
     seed: int | None = None,
 ) -> list[Path]:

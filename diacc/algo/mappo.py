@@ -97,6 +97,16 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def device_here(name: str) -> str:
+    """The device ``name`` means on this machine (``auto`` -> ``cuda`` or ``cpu``), without
+    :func:`resolve_device`'s check: a resume compares what the update ran on, so that a
+    run saved with ``device`` ``cpu`` continues under ``auto`` on a machine without CUDA
+    (the default of ``sweep`` and ``reproduce`` was ``cpu`` before it became ``auto``)."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return name
+
+
 def flatten_agents(container, n_axes: int = 2):
     """Merge the first ``n_axes`` axes of every field: (E, C, ...) -> (E*C, ...)."""
     cls = type(container)
@@ -505,9 +515,13 @@ def check_resume_config(
 ) -> list[str]:
     """Fields (other than :data:`RESUME_FREE_FIELDS`) where ``cfg`` differs from the checkpoint's.
 
-    Raises :class:`CheckpointError` naming the first one unless ``allow_change``.
+    ``device`` counts as what it means here (:func:`device_here`). Raises
+    :class:`CheckpointError` naming the first one unless ``allow_change``.
     """
     old, new = flatten_config(saved), flatten_config(asdict(cfg))
+    for flat in (old, new):
+        if "device" in flat:
+            flat["device"] = device_here(flat["device"])
     changed = [
         k
         for k in sorted(set(old) | set(new), key=lambda k: (k.count("."), k))  # top level first

@@ -340,7 +340,13 @@ def _print(rows, variant, backend, device, updates, rollout_steps, loads) -> Non
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--device", default="cpu")
+    p.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default=TrainConfig.device,
+        help="torch device of the PPO update, as 'diacc train --device' (auto: cuda if "
+        "this machine has it, else cpu)",
+    )
     p.add_argument("--envs", type=int, nargs="+", default=[16])
     p.add_argument("--backend", default="highway")
     p.add_argument("--variant", default="diacc")
@@ -357,7 +363,8 @@ def main(argv: list[str] | None = None) -> None:
         help="per-module profile of one PPO update instead (diacc.bench.update_profile)",
     )
     args = p.parse_args(argv)
-    mappo.resolve_device(args.device)  # a missing CUDA device fails before any row runs
+    # a missing CUDA device fails before any row runs; the table names cpu or cuda, not auto
+    device = str(mappo.resolve_device(args.device))
     if args.profile:
         from diacc.bench import update_profile
 
@@ -366,7 +373,7 @@ def main(argv: list[str] | None = None) -> None:
         )
         return
     run(
-        args.device,
+        device,
         tuple(args.envs),
         args.backend,
         args.variant,

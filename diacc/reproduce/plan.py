@@ -121,7 +121,7 @@ class ReproduceConfig:
     style_preset: str = SimConfig.style_preset  # HDV styles, training and evaluation
     episode_steps: int | None = None  # evaluation episode length; None: the policy's own
     actions: str = "greedy"  # checkpoints' evaluation actions: argmax, or "sampled" (seeded)
-    device: str = "cpu"  # torch device of the PPO updates
+    device: str = TrainConfig.device  # torch device of the PPO updates (as 'diacc train')
     train_sets: tuple[str, ...] = ()  # KEY=VALUE training overrides, as `diacc train --set`
     # config settings each variant is trained with (--sweep/--study); () = one, the defaults
     settings: tuple[Setting, ...] = ()
