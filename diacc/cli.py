@@ -289,10 +289,10 @@ def bench_device(name: str | None) -> str:
     return str(resolve_device(name or TrainConfig.device))
 
 
-def cmd_bench(args: argparse.Namespace) -> None:
-    ran = False
-    if args.episodes is not None and args.episodes < 1:
-        raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
+def bench_lengths(args: argparse.Namespace) -> None:
+    """Check ``bench``'s step counts and give the hidden ``--steps`` the meaning it had
+    before it was split: episode steps of --headway / --headroom, else steps to time
+    (--safety ignored it); the new names win where both are given."""
     lengths = {
         "--steps": args.legacy_steps,
         "--episode-steps": args.episode_steps,
@@ -301,11 +301,19 @@ def cmd_bench(args: argparse.Namespace) -> None:
     for flag, value in lengths.items():
         if value is not None and value < 1:
             raise ConfigError(f"{flag} must be >= 1, got {value}")
-    if args.legacy_steps is not None and not args.safety:  # --safety ignored --steps
-        if args.headway or args.headroom:
-            args.episode_steps = args.episode_steps or args.legacy_steps
-        else:
-            args.timing_steps = args.timing_steps or args.legacy_steps
+    if args.legacy_steps is None or args.safety:
+        return
+    if args.headway or args.headroom:
+        args.episode_steps = args.episode_steps or args.legacy_steps
+    else:
+        args.timing_steps = args.timing_steps or args.legacy_steps
+
+
+def cmd_bench(args: argparse.Namespace) -> None:
+    ran = False
+    if args.episodes is not None and args.episodes < 1:
+        raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
+    bench_lengths(args)
     demand_flags = {
         "--inflow": args.inflow,
         "--demand-s": args.demand_s,

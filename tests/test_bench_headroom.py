@@ -46,13 +46,15 @@ def test_headroom_and_headway_bad_input(capsys):
     err_lines = []
     for argv in (
         ["bench", "--headroom", "--episodes", "0"],
-        ["bench", "--headway", "--steps", "0"],
+        ["bench", "--headway", "--episode-steps", "0"],
     ):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("diacc: error: ") and "\n" not in err
         err_lines.append(err)
-    assert "--episodes must be >= 1" in err_lines[0] and "--steps must be >= 1" in err_lines[1]
+    assert (
+        "--episodes must be >= 1" in err_lines[0] and "--episode-steps must be >= 1" in err_lines[1]
+    )
     with pytest.raises(SystemExit):  # argparse: unknown horizon
         main(["bench", "--headroom", "--horizon", "tight"])
 
@@ -95,7 +97,10 @@ def test_headroom_demand_tiny(tmp_path, capsys):
         (["--scenario", "demand", "--inflow", "-100"], "inflow_vph must be in (0, 10000]"),
         (["--scenario", "demand", "--inflow", "1e6"], "inflow_vph must be in (0, 10000]"),
         (["--scenario", "demand", "--inflow", "3600", "--warmup-s", "600"], "longer than warmup"),
-        (["--scenario", "demand", "--inflow", "3600", "--steps", "100"], "is not shorter than"),
+        (
+            ["--scenario", "demand", "--inflow", "3600", "--episode-steps", "100"],
+            "is not shorter than",
+        ),
         (["--scenario", "demand"], "--scenario demand needs --inflow"),
         (["--inflow", "3600"], "--inflow needs --headroom with --scenario demand"),
     ],

@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from diacc import __version__
+from diacc import __version__, cli
 from diacc.cli import build_parser, main
 
 
@@ -111,7 +111,17 @@ def test_train_writes_a_run_directory(tmp_path, capsys):
 
 @pytest.mark.parametrize("backend", ["highway", "sumo"])
 def test_simulate_prints_metrics(backend, capsys):
-    argv = ["simulate", "--backend", backend, "--map", "train-50", "--steps", "20", "--seed", "3"]
+    argv = [
+        "simulate",
+        "--backend",
+        backend,
+        "--map",
+        "train-50",
+        "--episode-steps",
+        "20",
+        "--seed",
+        "3",
+    ]
     assert main(argv) == 0
     out = capsys.readouterr().out
     context = out.splitlines()[0]
@@ -153,3 +163,103 @@ def test_version_and_plain_help(capsys):
     assert exit_.value.code == 0 and capsys.readouterr().out.strip() == f"diacc {__version__}"
     text = build_parser().format_help()
     assert "``" not in text and "COMMAND --help" in text
+
+
+#: Options renamed so that each name means one thing (issue 24): --steps is the total
+#: environment steps of training only. (command, new option, former name, value, dest)
+RENAMED = [
+    ("simulate", "--episode-steps", "--steps", "7", "episode_steps"),
+    ("render", "--episode-steps", "--steps", "7", "episode_steps"),
+    ("plot timespace", "--episode-steps", "--steps", "7", "episode_steps"),
+    ("train", "--out", "--run-dir", "d", "run_dir"),
+    ("sweep", "--out", "--out-dir", "d", "out"),
+]
+
+
+def _parse(command: str, *argv: str) -> argparse.Namespace:
+    policy = ["--policy", "pure-hdv"] if command in ("render", "plot timespace") else []
+    return build_parser().parse_args([*command.split(), *policy, *argv])
+
+
+@pytest.mark.parametrize(("command", "new", "old", "value", "dest"), RENAMED)
+def test_former_option_names_still_work_and_help_shows_only_the_new(command, new, old, value, dest):
+    assert str(getattr(_parse(command, new, value), dest)) == value
+    assert str(getattr(_parse(command, old, value), dest)) == value
+    parser = dict(_subparsers(build_parser()))[command]
+    options = re.findall(r"--[a-z-]+", parser.format_help())
+    assert new in options and old not in options
+
+
+def test_steps_means_environment_steps_of_training_only():
+    commands = dict(_subparsers(build_parser()))
+    training = {"train", "sweep", "reproduce"}
+    for name, sub in commands.items():
+        if "--steps" in re.findall(r"--[a-z-]+", sub.format_help()):
+            assert name in training, f"diacc {name} --steps"
+    for name in training:
+        text = " ".join(commands[name].format_help().split())
+        assert "--steps STEPS environment steps" in text and "(decisions x environments)" in text
+
+
+@pytest.mark.parametrize(
+    ("argv", "episode_steps", "timing_steps"),
+    [
+        (["--headway", "--episode-steps", "9"], 9, None),
+        (["--headway", "--steps", "9"], 9, None),  # --steps: the former name of both
+        (["--headroom", "--steps", "9"], 9, None),
+        (["--env-batch", "--timing-steps", "9"], None, 9),
+        (["--backend", "sumo", "--steps", "9"], None, 9),
+        (["--safety", "--steps", "9"], None, None),  # ignored by --safety, as before
+        (["--headway", "--steps", "9", "--episode-steps", "4"], 4, None),  # the new name wins
+    ],
+)
+def test_bench_former_steps_keeps_its_meaning(argv, episode_steps, timing_steps):
+    args = _parse("bench", *argv)
+    cli.bench_lengths(args)
+    assert (args.episode_steps, args.timing_steps) == (episode_steps, timing_steps)
+
+
+def test_bench_envbatch_timing_steps_and_its_former_name():
+    from diacc.bench import envbatch
+
+    parser = envbatch.build_parser()
+    assert parser.parse_args([]).timing_steps == 60
+    assert parser.parse_args(["--timing-steps", "5"]).timing_steps == 5
+    assert parser.parse_args(["--steps", "5"]).timing_steps == 5
+    assert "--steps" not in re.findall(r"--[a-z-]+", parser.format_help())
+
+
+def test_device_defaults_to_the_training_config_default_everywhere():
+    from diacc.config import TrainConfig
+
+    commands = dict(_subparsers(build_parser()))
+    with_device = {n for n, sub in commands.items() if "--device" in sub.format_help()}
+    assert with_device == {"train", "sweep", "reproduce", "bench"}
+    for name in with_device:
+        (action,) = [a for a in commands[name]._actions if "--device" in a.option_strings]
+        assert action.default is None and action.choices == ("auto", "cpu", "cuda")
+        text = " ".join(commands[name].format_help().split())
+        assert f"(default: {TrainConfig.device})" in text
+    assert cli.bench_device(None) in ("cpu", "cuda")  # what auto means on this machine
+
+
+def test_simulate_former_steps_runs(capsys):
+    assert main(["simulate", "--steps", "3", "--vehicles", "5"]) == 0
+    assert "at most 3 steps" in capsys.readouterr().out.splitlines()[0]
+
+
+def test_runs_saved_with_device_cpu_resume_under_the_auto_default():
+    """sweep's and reproduce's --device was cpu before it became auto: their run
+    directories continue where auto means cpu, and are refused where it means cuda."""
+    import dataclasses
+    from pathlib import Path
+
+    import torch
+
+    from diacc.algo.mappo import check_resume_config
+    from diacc.config import TrainConfig
+
+    saved = dataclasses.asdict(TrainConfig(device="cpu"))
+    changed = check_resume_config(saved, TrainConfig(device="auto"), Path("run"), True)
+    assert changed == (["device"] if torch.cuda.is_available() else [])
+    assert check_resume_config(saved, TrainConfig(device="cuda"), Path("run"), True) == ["device"]

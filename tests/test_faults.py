@@ -408,7 +408,7 @@ def test_case9_simulate_into_a_closed_pipe_is_quiet():
     os.close(read_end)  # the reader is gone before anything is written
     try:
         proc = subprocess.run(
-            _cli("simulate", "--steps", "3", "--vehicles", "5"),
+            _cli("simulate", "--episode-steps", "3", "--vehicles", "5"),
             env=ENV,
             stdout=write_end,
             stderr=subprocess.PIPE,
@@ -449,7 +449,7 @@ BAD_INPUT = [
     (["train", "--map", "{nan_map}"], "{nan_map}: " + LENGTH + " nan"),
     (["simulate", "--map", "{latin1_map}"], "{latin1_map}: not UTF-8 text (byte 0xdf at offset"),
     # case 9: simulate
-    (["simulate", "--steps", "-5"], "--steps must be >= 1, got -5"),
+    (["simulate", "--episode-steps", "-5"], "--episode-steps must be >= 1, got -5"),
     # issue 22: everything validated before anything is written
     (["train", "--set", "env.scenario.n_vehicles=500"], "500 vehicles do not fit in the first seg"),
     (

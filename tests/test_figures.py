@@ -32,16 +32,20 @@ def test_speed_profile_averages_active_samples_per_bin():
 def test_plot_timespace_command_writes_a_figure(tmp_path, capsys):
     out = tmp_path / "ts"
     args = ["plot", "timespace", "--policy", "pure-hdv", "--map", "train-50"]
-    assert main([*args, "--vehicles", "10", "--steps", "15", "--seed", "3", "--out", str(out)]) == 0
+    assert (
+        main([*args, "--vehicles", "10", "--episode-steps", "15", "--seed", "3", "--out", str(out)])
+        == 0
+    )
     assert "ts.png" in capsys.readouterr().out
     image = mpimg.imread(out.with_suffix(".png"))  # (H, W, 4)
     assert image.shape[1] > image.shape[0] > 300 and float(image[..., :3].std()) > 0.05
     assert out.with_suffix(".pdf").stat().st_size > 0
 
 
-def test_plot_timespace_rejects_zero_steps(capsys):
-    assert main(["plot", "timespace", "--policy", "pure-hdv", "--steps", "0"]) == 2
-    assert "diacc: error: --steps must be >= 1, got 0" in capsys.readouterr().err
+@pytest.mark.parametrize("flag", ["--episode-steps", "--steps"])  # --steps: the former name
+def test_plot_timespace_rejects_zero_steps(capsys, flag):
+    assert main(["plot", "timespace", "--policy", "pure-hdv", flag, "0"]) == 2
+    assert "diacc: error: episode_steps must be >= 1, got 0" in capsys.readouterr().err
 
 
 def test_speed_figures_one_per_map_with_a_caption(tmp_path, monkeypatch):

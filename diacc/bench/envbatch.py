@@ -146,7 +146,8 @@ def run(envs: tuple[int, ...] = (1, 4, 16), steps: int = 60, seed: int = 0) -> l
     return rows
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """``python -m diacc.bench.envbatch``'s options."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--envs", type=int, nargs="+", default=[1, 4, 16])
     p.add_argument(
@@ -156,7 +157,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument(
         "--steps", dest="timing_steps", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS
     )
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     run(tuple(args.envs), args.timing_steps)
 
 
