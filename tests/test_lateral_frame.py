@@ -36,7 +36,10 @@ def test_only_a_right_drop_road_is_mirrored_and_only_under_drop_left():
     assert agent_map(RIGHT_DROP, "drop-left").drop_side == "left"
     assert agent_map(LEFT_DROP, "drop-left") is LEFT_DROP
     assert mirror_actions([REMAIN, LANE_LEFT, LANE_RIGHT, ACCELERATE]).tolist() == [
-        REMAIN, LANE_RIGHT, LANE_LEFT, ACCELERATE,
+        REMAIN,
+        LANE_RIGHT,
+        LANE_LEFT,
+        ACCELERATE,
     ]
     assert np.array_equal(mirror_actions(mirror_actions(np.arange(5))), np.arange(5))
     with pytest.raises(ConfigError, match="lateral_frame"):
@@ -100,16 +103,17 @@ def test_the_heuristic_drives_the_same_episode_in_either_frame(backend, tmp_path
     path.write_text(
         'name = "right-50"\ndescription = "t"\nlane_width_m = 3.2\ndrop_side = "right"\n'
         + "".join(
-            f'[[segments]]\nkind = "{k}"\nlength_m = {n}\nlanes = {lanes}\n'
-            f"speed_limit_mps = 25.0\n"
-            for k, n, lanes in (("multilane", 300, 4), ("reduction50", 200, 2), ("multilane", 200, 4))
+            f'[[segments]]\nkind = "{k}"\nlength_m = {n}\nlanes = {lanes}\nspeed_limit_mps = 25.0\n'
+            for k, n, lanes in (
+                ("multilane", 300, 4),
+                ("reduction50", 200, 2),
+                ("multilane", 200, 4),
+            )
         )
     )
     results = {}
     for frame in ("drop-left", "world"):
-        cfg = EnvConfig(
-            backend=backend, map=str(path), obs=ObservationConfig(lateral_frame=frame)
-        )
+        cfg = EnvConfig(backend=backend, map=str(path), obs=ObservationConfig(lateral_frame=frame))
         cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, episode_steps=60))
         driver = EpisodeDriver(build_policy(parse_policy("heuristic")), cfg)
         try:
