@@ -533,7 +533,9 @@ class Variant:
     psar: bool  # actions pass through PSAR (paper: PSAR is part of D-IADM)
 
 
-#: The four variants, the only place they are defined.
+#: The variants, the only place they are defined: the paper's four, and plain MAPPO
+#: under PSAR (``mappo-psar``, not in the paper), so that an ablation with PSAR on for
+#: every row shows what the D-IADM actor and the C-IEC critic add.
 VARIANT_TABLE: dict[str, Variant] = {
     v.name: v
     for v in (
@@ -541,9 +543,12 @@ VARIANT_TABLE: dict[str, Variant] = {
         Variant("mappo-iadm", actor="diadm", critic="mlp", psar=True),
         Variant("diacc-nopsar", actor="diadm", critic="ciec", psar=False),
         Variant("diacc", actor="diadm", critic="ciec", psar=True),
+        Variant("mappo-psar", actor="mlp", critic="mlp", psar=True),
     )
 }
 VARIANTS = tuple(VARIANT_TABLE)
+#: The paper's ablation (Table III): what ``diacc reproduce`` trains by default.
+PAPER_VARIANTS = ("mappo", "mappo-iadm", "diacc-nopsar", "diacc")
 #: How a checkpoint picks its evaluation actions: argmax, or drawn from its
 #: distribution with a generator seeded by the episode (``--actions``).
 ACTION_MODES = ("greedy", "sampled")

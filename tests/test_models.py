@@ -343,6 +343,7 @@ def test_registry_pairs_and_determinism():
         "mappo-iadm": ("DIADMActor", "MLPCritic"),
         "diacc-nopsar": ("DIADMActor", "CIECCritic"),
         "diacc": ("DIADMActor", "CIECCritic"),
+        "mappo-psar": ("MLPActor", "MLPCritic"),
     }
     torch.manual_seed(0)
     a1, _ = build_networks("diacc", CFG, SPEC)

@@ -27,6 +27,7 @@ from diacc.config import (
     ACTION_MODES,
     BACKENDS,
     STYLE_PRESETS,
+    PAPER_VARIANTS,
     VARIANTS,
     ConfigError,
     SimConfig,
@@ -114,7 +115,7 @@ class ReproduceConfig:
 
     budget: Budget
     out_dir: Path = DEFAULT_OUT_DIR
-    variants: tuple[str, ...] = VARIANTS
+    variants: tuple[str, ...] = PAPER_VARIANTS
     backends: tuple[str, ...] = BACKENDS  # evaluated on
     train_backend: str = DEFAULT_TRAIN_BACKEND
     grids: tuple[str, ...] = DEFAULT_GRIDS
