@@ -215,3 +215,25 @@ def test_render_non_blank_frame_with_highlight():
     highlighted = viewer.draw(state, highlight=state.is_cav)
     assert not np.array_equal(frame, highlighted)
     backend.close()
+
+
+def test_lane_change_cooldown_counts_down_so_drivers_change_lanes_again():
+    """highway-env's LANE_CHANGE_DELAY: a driver who completed a lane change waits
+    ``lane_change_cooldown_s`` before choosing another one, then may choose again (before
+    2026-12-02 the timer never ran down: one discretionary change per driver and episode)."""
+    backend = make("train-50")
+    backend.reset(Scenario.with_cavs(25, 0), 3)
+    cooldown_s = backend.model.lane_change_cooldown_s
+    changes = np.zeros(25, int)
+    lane = backend.state.lane_from[0].copy()
+    for _ in range(60):
+        before = backend.state.cooldown_s[0].copy()
+        backend.step(CavCommands.idle(25))
+        after = backend.state.cooldown_s[0]
+        assert np.all((after >= 0.0) & (after <= cooldown_s))
+        # Without a new change within the step (1 s = the delay), every timer has run out.
+        same_lane = backend.state.lane_from[0] == lane
+        assert np.all(after[(before > 0) & same_lane] == 0.0)
+        changes += ~same_lane
+        lane = backend.state.lane_from[0].copy()
+    assert changes.max() >= 2  # some driver changed lanes more than once

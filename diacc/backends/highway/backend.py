@@ -778,6 +778,7 @@ class HighwayBackend:
         elif caches.heading_nonzero:
             state.heading_rad = np.zeros_like(state.heading_rad)
         caches.heading_nonzero = any_moving
+        state.cooldown_s = np.maximum(state.cooldown_s - dt, 0.0)  # LANE_CHANGE_DELAY counts down
 
         # Collisions: a cheap screen first, the exact box test only if it fires. Without
         # lateral motion every vehicle of an env is straight in one lane and cannot skip
