@@ -16,6 +16,7 @@ from diacc import cli_scale
 from diacc.config import (
     ACTION_MODES,
     BACKENDS,
+    PAPER_VARIANTS,
     STYLE_PRESETS,
     VARIANTS,
     ConfigError,
@@ -91,7 +92,9 @@ def add_parsers(sub) -> None:
         help="also train diacc on sumo and compare both on sumo (default: the budget's)",
     )
     p.add_argument(
-        "--variants", default=",".join(VARIANTS), help="comma-separated variants to train"
+        "--variants",
+        default=",".join(PAPER_VARIANTS),
+        help=f"comma-separated variants to train, of {', '.join(VARIANTS)} (default: the paper's)",
     )
     p.add_argument(
         "--backends", default=",".join(BACKENDS), help="comma-separated backends to evaluate on"

@@ -26,8 +26,8 @@ from pathlib import Path
 from diacc.config import (
     ACTION_MODES,
     BACKENDS,
-    STYLE_PRESETS,
     PAPER_VARIANTS,
+    STYLE_PRESETS,
     VARIANTS,
     ConfigError,
     SimConfig,
