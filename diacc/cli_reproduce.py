@@ -94,7 +94,7 @@ def add_parsers(sub) -> None:
     p.add_argument(
         "--variants",
         default=",".join(PAPER_VARIANTS),
-        help=f"comma-separated variants to train, of {', '.join(VARIANTS)} (default: the paper's)",
+        help=f"comma-separated variants to train, of {', '.join(VARIANTS)}; the paper's four",
     )
     p.add_argument(
         "--backends", default=",".join(BACKENDS), help="comma-separated backends to evaluate on"
