@@ -5,14 +5,16 @@
 # PSAR horizon `headway` in every run. Resumable: a run with a checkpoint continues
 # (--resume), a finished run is skipped. Two runs at a time, one torch thread each.
 #
-#   OUT=runs/l27 STEPS=200000 JOBS=2 bash benchmarks/learning_evidence.sh [NAME ...]
+#   OUT=runs/l27 STEPS=200000 JOBS=2 [EXTRA="--set ..."] bash benchmarks/learning_evidence.sh [NAME ...]
 #
 # NAME is SETTING-VARIANT-sSEED, e.g. options-diacc-s1; SETTING is default, options (every
 # learning option on) or lowent (entropy_coef 0.001 instead of 0.01); default: the queue below.
+# EXTRA: options given to every run of the queue (e.g. "--set env.psar.full_brake=threat").
 set -euo pipefail
 out=${OUT:-runs/l27}
 steps=${STEPS:-200000}
 jobs=${JOBS:-2}
+extra_all=${EXTRA:-}
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 mkdir -p "$out"
 
@@ -46,12 +48,12 @@ PY
   # shellcheck disable=SC2086
   nice -n 5 diacc train --variant "$variant" --map train-50 --envs 8 --steps "$steps" \
     --seed "$seed" --config configs/small-learner.toml --set env.psar.horizon=headway \
-    --set torch_threads=1 --set checkpoint_every=5 $extra --no-progress --run-dir "$dir" \
+    --set torch_threads=1 --set checkpoint_every=5 $extra $extra_all --no-progress --run-dir "$dir" \
     $resume > "$dir.log" 2>&1 || { echo "$name: FAILED (see $dir.log)"; return 1; }
   echo "$name: end $(date -u +%H:%M:%S)"
 }
 export -f run_one
-export out steps options
+export out steps options extra_all
 
 queue=("$@")
 if [[ ${#queue[@]} -eq 0 ]]; then

@@ -323,6 +323,8 @@ class ObservationConfig:
 #: Options of :class:`PSARConfig` (see :func:`diacc.psar.psar`).
 FORCE_BRAKE_MODES = ("cancel", "paper")
 HORIZON_MODES = ("stopping", "headway", "paper")
+#: When a CAV may brake beyond its planned rate under the ``"headway"`` horizon (PSARConfig).
+FULL_BRAKE_MODES = ("bound", "threat")
 
 
 @dataclass(frozen=True)
@@ -360,6 +362,7 @@ class PSARConfig:
     min_gap_m: float = 2.0  # "headway": standstill gap kept behind any front obstacle
     cav_time_gap_s: float = 0.3  # "headway": time gap behind a CAV whose command is known
     cooperative_merge: bool = True  # "headway": CAVs open a gap for a CAV asking to merge in
+    full_brake: str = "bound"  # "headway": when to brake beyond the planned rate (FULL_BRAKE_MODES)
 
     def __post_init__(self) -> None:
         if not (self.d_lc_min_m <= self.d_safe_m < self.d_warn_m < self.d_att_m):
@@ -370,6 +373,7 @@ class PSARConfig:
             raise ConfigError(f"PSARConfig.b_max_mps2 must be >= 0, got {self.b_max_mps2}")
         _check_choice("psar.force_brake", self.force_brake, FORCE_BRAKE_MODES)
         _check_choice("psar.horizon", self.horizon, HORIZON_MODES)
+        _check_choice("psar.full_brake", self.full_brake, FULL_BRAKE_MODES)
         if self.min_gap_m < 0 or self.cav_time_gap_s < 0:
             raise ConfigError(
                 f"PSARConfig needs min_gap_m >= 0 and cav_time_gap_s >= 0, got "

@@ -521,9 +521,7 @@ def _headway_car_following(
     other's intent). Returns ``(action, speed change, rule mask, b_lc)``.
     """
     step_s, dv_action = sim.step_s, sim.speed_change_mps
-    # Up to the physical limit: beyond the planned rate only when an HDV ahead brakes
-    # harder than that (every other bound plans with the planned rate).
-    max_brake_mps = sim.cav.decel_mps2 * step_s
+    max_brake_mps = _max_brake_mps(state, fronts, cfg, sim)  # (..., C)
     active = take(state.active, cav_index)
     offset = ACTION_LANE_OFFSET[a]
     changing = active & (offset != 0)
@@ -555,8 +553,40 @@ def _headway_car_following(
     return a, speed_change, mask.astype(np.int8), b_lc_mps2
 
 
+def _max_brake_mps(
+    state: TrafficState, fronts: _FrontObstacles, cfg: PSARConfig, sim: SimConfig
+) -> np.ndarray | float:
+    """(..., C) the largest speed drop a CAV may command in this step (``cfg.full_brake``).
+
+    ``"bound"``: the physical limit whenever the speed bound asks for it.
+    ``"threat"``: the physical limit only under a threat, i.e. when the leader
+    or a vehicle merging in ahead brakes harder than the planned rate (it did
+    in the last step), is a CAV (whose own command may be a full brake), or is
+    closer than ``cfg.min_gap_m``; otherwise at most the planned rate, and a gap
+    that a cut-in shortened is restored over the next steps. Without it, every
+    cut-in inside the headway bound is answered by braking at 5 m/s², an
+    emergency by the metrics' threshold (4.5): on SUMO the CAVs' only
+    safety-critical events (train-50, ``realistic``, shipped agent).
+    """
+    full_mps, planned_mps = sim.cav.decel_mps2 * sim.step_s, sim.cav.safe_decel_mps2 * sim.step_s
+    if cfg.full_brake == "bound":
+        return full_mps
+    threat = np.zeros(fronts.sf_index.shape, bool)  # (..., C)
+    ahead = ((fronts.sf_vehicle, fronts.sf_index), (fronts.merging, fronts.merging_index))
+    for kin, index in ahead:
+        vehicle = np.maximum(index, 0)
+        braking = take(state.accel_mps2, vehicle) < -sim.cav.safe_decel_mps2
+        with np.errstate(invalid="ignore"):
+            close = kin.d_long_m < cfg.min_gap_m
+        threat |= kin.valid & (index >= 0) & (braking | take(state.is_cav, vehicle) | close)
+    return np.where(threat, full_mps, planned_mps)
+
+
 def _end_speed_mps(
-    speed_mps: np.ndarray, proposed_mps: np.ndarray, bound_mps: np.ndarray, max_brake_mps: float
+    speed_mps: np.ndarray,
+    proposed_mps: np.ndarray,
+    bound_mps: np.ndarray,
+    max_brake_mps: np.ndarray | float,
 ) -> np.ndarray:
     """End-of-step speed a CAV commands: its proposal, or the bound (braking <= ``max_brake``)."""
     proposed_end = np.maximum(speed_mps + proposed_mps, 0.0)
@@ -627,7 +657,7 @@ def _headway_bound_mps(
             is followed like an HDV leader.
     """
     step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
-    max_brake_mps = sim.cav.decel_mps2 * step_s  # see _headway_car_following
+    max_brake_mps = _max_brake_mps(state, fronts, cfg, sim)  # (..., C) as the CAVs will brake
     limit_mps = np.array([s.speed_limit_mps for s in road.segments])
 
     def long_speed(vehicles: np.ndarray) -> np.ndarray:

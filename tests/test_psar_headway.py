@@ -75,6 +75,27 @@ def test_behind_an_hdv_one_second_plus_the_standstill_gap():
     assert stop.action.tolist() == [REMAIN]
 
 
+def test_full_brake_threat_restores_a_short_gap_at_the_planned_rate():
+    # An HDV 10 m ahead, 5 m/s slower (it cut in): the headway bound asks for a
+    # speed drop beyond the planned 4 m/s^2. "bound" brakes at the full 5 m/s^2 (an
+    # emergency by the metrics' 4.5 threshold); "threat" brakes at the planned rate
+    # and restores the gap over the next steps, unless the HDV brakes or is too close.
+    x, lane, is_cav, speed = [100.0, 100.0 + LENGTH_M + 10.0], [1, 1], [True, False], [20.0, 15.0]
+    threat = PSARConfig(horizon="headway", full_brake="threat")
+    full = run(x, lane, speed, is_cav, [REMAIN])
+    assert full.rule.tolist() == [FORCE_BRAKE] and full.speed_change_mps[0] == -5.0
+    planned = run(x, lane, speed, is_cav, [REMAIN], threat)
+    assert planned.rule.tolist() == [FORCE_BRAKE] and planned.speed_change_mps[0] == -4.0
+    braking = make_state(x, lane, speed, is_cav=is_cav, accel_mps2=[0.0, -4.5])
+    res = psar(braking, np.array([0]), np.array([REMAIN]), threat, ROAD, SIM)
+    assert res.speed_change_mps[0] == -5.0
+    close = make_state([100.0, 100.0 + LENGTH_M + 1.5], lane, speed, is_cav=is_cav)
+    res = psar(close, np.array([0]), np.array([REMAIN]), threat, ROAD, SIM)
+    assert res.speed_change_mps[0] == -5.0
+    with pytest.raises(ConfigError, match="full_brake"):
+        PSARConfig(full_brake="sometimes")
+
+
 def test_platoon_follows_a_known_leader_closely_front_to_back():
     # Slots listed back to front on purpose: PSAR must still decide the leader first.
     x = [100.0, 100.0 + 1 * (LENGTH_M + 8.0), 100.0 + 2 * (LENGTH_M + 8.0)]
