@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from diacc import cli_scale
-from diacc.config import ACTION_MODES, BACKENDS, HORIZON_MODES, STYLE_PRESETS
+from diacc.config import ACTION_MODES, BACKENDS, FULL_BRAKE_MODES, HORIZON_MODES, STYLE_PRESETS
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.report`, kept here so
 #: that ``--help`` does not import the evaluation stack).
@@ -32,6 +32,7 @@ def _settings(args: argparse.Namespace):
         episode_steps=args.episode_steps,
         style_preset=args.style_preset,
         psar_horizon=args.psar_horizon,
+        psar_full_brake=args.psar_full_brake,
     )
 
 
@@ -74,6 +75,13 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         default=None,
         help="PSAR horizon of every policy with PSAR, baselines and checkpoints alike "
         "(default: the policy's own setting; docs/concepts/psar.md)",
+    )
+    p.add_argument(
+        "--psar-full-brake",
+        choices=FULL_BRAKE_MODES,
+        default=None,
+        help="when PSAR's headway car following may brake beyond the planned rate, for every "
+        "policy with PSAR (default: the policy's own setting; docs/concepts/psar.md)",
     )
 
 

@@ -341,8 +341,14 @@ class PSARConfig:
     ``"stopping"`` (the default before 2026-12-02, kept by every checkpoint and
     result made with it) lengthens the distance thresholds by a safe stopping
     gap, which keeps CAVs ~2.3 s behind HDVs; ``"paper"`` keeps them fixed.
-    ``coordinate_lane_changes`` stops two connected CAVs from changing
-    lanes into each other. ``force_brake="paper", horizon="paper",
+    ``full_brake`` (``"headway"`` only): ``"threat"`` (the default since
+    2026-12-02 evening) brakes beyond the planned rate ``safe_decel_mps2`` only
+    when a vehicle ahead brakes harder, is a CAV or is closer than
+    ``min_gap_m``, and restores a gap a cut-in shortened over several steps;
+    ``"bound"`` (before; kept by checkpoints made with it) brakes up to the
+    physical limit whenever the speed bound asks (each cut-in then counts as an
+    emergency brake in p(SCE)). ``coordinate_lane_changes`` stops two connected
+    CAVs from changing lanes into each other. ``force_brake="paper", horizon="paper",
     coordinate_lane_changes=False`` is the literal pseudocode (the ablation);
     see :func:`diacc.psar.psar`.
     """
@@ -362,7 +368,7 @@ class PSARConfig:
     min_gap_m: float = 2.0  # "headway": standstill gap kept behind any front obstacle
     cav_time_gap_s: float = 0.3  # "headway": time gap behind a CAV whose command is known
     cooperative_merge: bool = True  # "headway": CAVs open a gap for a CAV asking to merge in
-    full_brake: str = "bound"  # "headway": when to brake beyond the planned rate (FULL_BRAKE_MODES)
+    full_brake: str = "threat"  # "headway": when to brake past the planned rate (FULL_BRAKE_MODES)
 
     def __post_init__(self) -> None:
         if not (self.d_lc_min_m <= self.d_safe_m < self.d_warn_m < self.d_att_m):

@@ -412,49 +412,55 @@ def merge_cells(out_dir: Path) -> None:
     atomic_write(out_dir / SPEEDS_FILE, _gzip("".join(parts).encode()))
 
 
-def _horizon_before_default(policy) -> str:
-    """PSAR horizon a policy ran with, unasked, before ``meta.json`` recorded it.
+def _psar_before_recorded(policy) -> dict:
+    """PSAR settings a policy ran with, unasked, before ``meta.json`` recorded them.
 
-    A checkpoint keeps the horizon of its stored config; every other policy
-    took :class:`~diacc.config.PSARConfig`'s default, ``"stopping"`` until the
-    default became ``"headway"`` (2026-12-02).
+    A checkpoint keeps the settings of its stored config; every other policy
+    took :class:`~diacc.config.PSARConfig`'s defaults of the time: horizon
+    ``"stopping"`` until it became ``"headway"``, ``full_brake`` ``"bound"`` until it
+    became ``"threat"`` (both 2026-12-02).
     """
-    return policy.base.psar.horizon if isinstance(policy, CheckpointPolicy) else "stopping"
+    if isinstance(policy, CheckpointPolicy):
+        psar = policy.base.psar
+        return {"psar_horizon": psar.horizon, "psar_full_brake": psar.full_brake}
+    return {"psar_horizon": "stopping", "psar_full_brake": "bound"}
 
 
-def evaluation_meta(policy, cells: list[Cell], settings: EvalSettings) -> tuple[dict, str | None]:
+def evaluation_meta(policy, cells: list[Cell], settings: EvalSettings) -> tuple[dict, dict | None]:
     """What ``meta.json`` records of an evaluation, and how to read an older one.
 
-    Returns ``(meta, horizon_before)``: the policy, backend and settings, the
-    settings with the PSAR horizon in effect (asked for or not, so that no run
-    adds episodes of another horizon to a results directory: the default
-    changed, the directory may be older); ``horizon_before`` is the horizon of
-    a ``meta.json`` that does not name one (None: the policy runs without PSAR).
+    Returns ``(meta, before)``: the policy, backend and settings, the settings
+    with the PSAR horizon and ``full_brake`` in effect (asked for or not, so
+    that no run adds episodes of another PSAR to a results directory: the
+    defaults changed, the directory may be older); ``before`` holds the
+    values a ``meta.json`` that does not name them ran with (None: the
+    policy runs without PSAR).
     """
     meta = {**policy.describe(), **settings.describe()}
     env = policy.env_config(cells[0], settings)  # every cell shares PSAR and simulation
     if not env.use_psar:
         return meta, None
-    meta["settings"] = {**meta["settings"], "psar_horizon": env.psar.horizon}
-    return meta, _horizon_before_default(policy)
+    in_effect = {"psar_horizon": env.psar.horizon, "psar_full_brake": env.psar.full_brake}
+    meta["settings"] = {**meta["settings"], **in_effect}
+    return meta, _psar_before_recorded(policy)
 
 
-def meta_conflict(old: dict, meta: dict, horizon_before: str | None) -> str | None:
+def meta_conflict(old: dict, meta: dict, before: dict | None) -> str | None:
     """The first key in which an existing ``meta.json`` differs from ``meta``, else None."""
-    if horizon_before is not None and isinstance(old.get("settings"), dict):
-        old = {**old, "settings": {"psar_horizon": horizon_before, **old["settings"]}}
+    if before is not None and isinstance(old.get("settings"), dict):
+        old = {**old, "settings": {**before, **old["settings"]}}
     for key in ("policy", "checkpoint", "backend", "settings"):
         if old.get(key) != meta.get(key):
             return key
     return None
 
 
-def _check_meta(out_dir: Path, meta: dict, horizon_before: str | None = None) -> None:
+def _check_meta(out_dir: Path, meta: dict, before: dict | None = None) -> None:
     """Refuse a results directory that holds another evaluation; write ``meta.json``."""
     path = out_dir / META_FILE
     if path.exists():
         old = read_json_object(path, EvaluationError)
-        key = meta_conflict(old, meta, horizon_before)
+        key = meta_conflict(old, meta, before)
         if key is not None:
             raise EvaluationError(
                 f"results directory {out_dir} holds {old.get('policy')} on "
@@ -500,9 +506,9 @@ def evaluate(
     policy = build_policy(spec)  # fail fast on a bad checkpoint, in this process
     for cell in cells:
         policy.env_config(cell, settings)  # fail fast on cells the policy cannot run
-    meta, horizon_before = evaluation_meta(policy, cells, settings)
+    meta, before = evaluation_meta(policy, cells, settings)
     with locked_dir(out_dir, "eval"):  # one writer; an unusable --out is one line
-        _check_meta(out_dir, meta, horizon_before)
+        _check_meta(out_dir, meta, before)
         return _evaluate(
             spec, cells, episodes, out_dir, settings, workers, progress, engine, on_cell, policy
         )

@@ -32,6 +32,7 @@ import numpy as np
 
 from diacc.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import (
+    FULL_BRAKE_MODES,
     HORIZON_MODES,
     STYLE_NAMES,
     VARIANTS,
@@ -76,6 +77,8 @@ class EvalSettings:
     #: PSAR horizon of every policy with PSAR (baselines and checkpoints alike), so that a
     #: comparison's rules and learners are filtered by the same PSAR.
     psar_horizon: str | None = None
+    #: PSAR's ``full_brake`` of every policy with PSAR (:class:`~diacc.config.PSARConfig`).
+    psar_full_brake: str | None = None
 
     def __post_init__(self) -> None:
         if self.episode_steps is not None and self.episode_steps < 1:
@@ -83,6 +86,11 @@ class EvalSettings:
         if self.psar_horizon is not None and self.psar_horizon not in HORIZON_MODES:
             raise PolicyError(
                 f"unknown PSAR horizon {self.psar_horizon!r}; use {', '.join(HORIZON_MODES)}"
+            )
+        if self.psar_full_brake is not None and self.psar_full_brake not in FULL_BRAKE_MODES:
+            raise PolicyError(
+                f"unknown PSAR full_brake {self.psar_full_brake!r}; use "
+                f"{', '.join(FULL_BRAKE_MODES)}"
             )
 
     def apply(self, sim: SimConfig) -> SimConfig:
@@ -94,15 +102,16 @@ class EvalSettings:
         return dataclasses.replace(sim, **changes)
 
     def apply_psar(self, psar: PSARConfig) -> PSARConfig:
-        if self.psar_horizon is None:
-            return psar
-        return dataclasses.replace(psar, horizon=self.psar_horizon)
+        changes = {"horizon": self.psar_horizon, "full_brake": self.psar_full_brake}
+        return dataclasses.replace(psar, **{k: v for k, v in changes.items() if v is not None})
 
     def describe(self) -> dict:
         """What an evaluation's ``meta.json`` records of these settings (and checks on reuse)."""
         settings = {"episode_steps": self.episode_steps, "style_preset": self.style_preset}
         if self.psar_horizon is not None:  # absent otherwise: older results stay reusable
             settings["psar_horizon"] = self.psar_horizon
+        if self.psar_full_brake is not None:
+            settings["psar_full_brake"] = self.psar_full_brake
         return {"backend": self.backend, "settings": settings}
 
 

@@ -203,9 +203,10 @@ def test_checkpoint_policy_greedy_and_deterministic(tmp_path):
 
 
 def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_path):
-    """PSAR's default horizon became "headway" (2026-12-02). A results directory written
-    before, whose meta.json names no horizon, holds "stopping" episodes of a rule-based
-    policy: continuing it unasked would mix horizons. A checkpoint kept its own."""
+    """PSAR's default horizon became "headway" and its full_brake "threat" (2026-12-02).
+    A results directory written before, whose meta.json names neither, holds "stopping"
+    / "bound" episodes of a rule-based policy: continuing it unasked would mix PSARs. A
+    checkpoint kept its own."""
     meta = {"policy": "heuristic", "backend": "highway", "settings": {"episode_steps": 10}}
     meta["settings"]["style_preset"] = None
     old = tmp_path / "heuristic"
@@ -216,15 +217,19 @@ def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_p
     )
     with pytest.raises(EvaluationError, match="other 'settings'"):
         run(PolicySpec("heuristic"), old)
-    run(PolicySpec("heuristic"), old, psar_horizon="stopping")
-    assert json.loads((old / "meta.json").read_text())["settings"]["psar_horizon"] == "stopping"
+    with pytest.raises(EvaluationError, match="other 'settings'"):
+        run(PolicySpec("heuristic"), old, psar_horizon="stopping")
+    run(PolicySpec("heuristic"), old, psar_horizon="stopping", psar_full_brake="bound")
+    settings = json.loads((old / "meta.json").read_text())["settings"]
+    assert (settings["psar_horizon"], settings["psar_full_brake"]) == ("stopping", "bound")
     ckpt = _checkpoint(tmp_path / "run")  # trained (here: made) with today's default
     old_ckpt = tmp_path / "checkpoint"
     old_ckpt.mkdir()
     meta = {**meta, "policy": "diacc", "checkpoint": str(ckpt.resolve())}
     (old_ckpt / "meta.json").write_text(json.dumps(meta))
     run(PolicySpec(str(ckpt)), old_ckpt)
-    assert json.loads((old_ckpt / "meta.json").read_text())["settings"]["psar_horizon"] == "headway"
+    settings = json.loads((old_ckpt / "meta.json").read_text())["settings"]
+    assert (settings["psar_horizon"], settings["psar_full_brake"]) == ("headway", "threat")
 
 
 def test_sampled_actions_are_seeded_and_differ_from_greedy(tmp_path):

@@ -82,7 +82,7 @@ def test_full_brake_threat_restores_a_short_gap_at_the_planned_rate():
     # and restores the gap over the next steps, unless the HDV brakes or is too close.
     x, lane, is_cav, speed = [100.0, 100.0 + LENGTH_M + 10.0], [1, 1], [True, False], [20.0, 15.0]
     threat = PSARConfig(horizon="headway", full_brake="threat")
-    full = run(x, lane, speed, is_cav, [REMAIN])
+    full = run(x, lane, speed, is_cav, [REMAIN], PSARConfig(horizon="headway", full_brake="bound"))
     assert full.rule.tolist() == [FORCE_BRAKE] and full.speed_change_mps[0] == -5.0
     planned = run(x, lane, speed, is_cav, [REMAIN], threat)
     assert planned.rule.tolist() == [FORCE_BRAKE] and planned.speed_change_mps[0] == -4.0

@@ -50,11 +50,16 @@ def test_force_brake_cancels_the_closing_speed_within_the_braking_limit():
     assert res.speed_change_mps.tolist() == pytest.approx([-4.0])  # min(3 + 2, 4 m/s per step)
     res = one_cav(leader, REMAIN, cfg=LITERAL)  # the literal reading: one action step
     assert res.speed_change_mps.tolist() == pytest.approx([-2.0])
-    # "headway" sizes the braking by physics; an HDV ahead that may brake harder than the
-    # planned 4 m/s2 allows up to the CAV's physical limit (5 m/s2) here.
+    # "headway" sizes the braking by physics: at the planned 4 m/s2 while the HDV ahead
+    # does not brake hard (full_brake="threat"), up to the CAV's physical limit (5 m/s2)
+    # once it does, or always with full_brake="bound".
     res = one_cav(leader, REMAIN)
     assert res.action.tolist() == [DECELERATE] and res.rule.tolist() == [FORCE_BRAKE]
-    assert res.speed_change_mps.tolist() == pytest.approx([-SIM.cav.decel_mps2 * SIM.step_s])
+    assert res.speed_change_mps.tolist() == pytest.approx([-SIM.cav.safe_decel_mps2 * SIM.step_s])
+    full = [-SIM.cav.decel_mps2 * SIM.step_s]
+    assert one_cav(leader, REMAIN, accel_mps2=[0.0, -4.5]).speed_change_mps.tolist() == full
+    bound = PSARConfig(full_brake="bound")
+    assert one_cav(leader, REMAIN, cfg=bound).speed_change_mps.tolist() == pytest.approx(full)
     # A proposal that already brakes as hard is left alone only in the literal reading.
     assert one_cav(leader, DECELERATE, cfg=STOPPING).rule.tolist() == [FORCE_BRAKE]
     assert one_cav(leader, DECELERATE).rule.tolist() == [FORCE_BRAKE]

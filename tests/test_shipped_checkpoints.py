@@ -69,6 +69,22 @@ def test_checkpoint_keeps_the_psar_horizon_it_was_trained_with(path):
 
 
 @pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
+def test_checkpoint_keeps_the_full_brake_rule_of_its_time(path):
+    """PSAR's full_brake became "threat" (2026-12-02 evening); every shipped agent was
+    trained before, with "bound", which its stored config lacks and loading must keep."""
+    import torch
+
+    stored = torch.load(path, map_location="cpu", weights_only=True)["config"]
+    assert PSARConfig().full_brake == "threat"
+    policy = build_policy(PolicySpec(str(path), "diacc"))
+    cell = Cell("train-50", 25, 0.4, "D1")
+    kept = stored["env"]["psar"].get("full_brake", "bound")
+    assert policy.env_config(cell, EvalSettings()).psar.full_brake == kept
+    asked = EvalSettings(psar_full_brake="threat")
+    assert policy.env_config(cell, asked).psar.full_brake == "threat"
+
+
+@pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
 def test_checkpoint_keeps_the_learner_it_was_trained_with(path):
     """The default learner became the shipped agents' (hidden 64, 4 minibatches,
     2026-12-02); a checkpoint's stored config decides its sizes, and one that lacked

@@ -96,14 +96,14 @@ def check_existing_evaluations(plan: Plan) -> None:
             continue
         meta = read_json_object(path, ConfigError)
         spec = job_spec(plan, job)
-        wanted, horizon_before = evaluation_meta(
+        wanted, before = evaluation_meta(
             build_policy(spec), list(job.cells), job_settings(plan, job)
         )
         # Actions first: they also change a checkpoint's policy label.
         key = None
         if job.run is not None and meta.get("actions") != action_mode(spec.sampled):
             key = "actions"
-        key = key or meta_conflict(meta, wanted, horizon_before)
+        key = key or meta_conflict(meta, wanted, before)
         if key is not None:
             raise ConfigError(
                 f"{path.parent} holds evaluations with another {key} ({meta.get(key)!r}, "
