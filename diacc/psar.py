@@ -521,7 +521,7 @@ def _headway_car_following(
     other's intent). Returns ``(action, speed change, rule mask, b_lc)``.
     """
     step_s, dv_action = sim.step_s, sim.speed_change_mps
-    max_brake_mps = _max_brake_mps(state, fronts, cfg, sim)  # (..., C)
+    max_brake_mps = _max_brake_mps(state, cav_index, fronts, cfg, sim)  # (..., C)
     active = take(state.active, cav_index)
     offset = ACTION_LANE_OFFSET[a]
     changing = active & (offset != 0)
@@ -554,31 +554,62 @@ def _headway_car_following(
 
 
 def _max_brake_mps(
-    state: TrafficState, fronts: _FrontObstacles, cfg: PSARConfig, sim: SimConfig
+    state: TrafficState,
+    cav_index: np.ndarray,
+    fronts: _FrontObstacles,
+    cfg: PSARConfig,
+    sim: SimConfig,
 ) -> np.ndarray | float:
     """(..., C) the largest speed drop a CAV may command in this step (``cfg.full_brake``).
 
     ``"bound"``: the physical limit whenever the speed bound asks for it.
     ``"threat"``: the physical limit only under a threat, i.e. when the leader
     or a vehicle merging in ahead brakes harder than the planned rate (it did
-    in the last step), is a CAV (whose own command may be a full brake), or is
-    closer than ``cfg.min_gap_m``; otherwise at most the planned rate, and a gap
-    that a cut-in shortened is restored over the next steps. Without it, every
-    cut-in inside the headway bound is answered by braking at 5 m/s², an
-    emergency by the metrics' threshold (4.5): on SUMO the CAVs' only
-    safety-critical events (train-50, ``realistic``, shipped agent).
+    in the last step), is a CAV (whose own command may be a full brake), is
+    closer than ``cfg.min_gap_m``, or is so much slower that braking at the
+    planned rate would not keep ``cfg.min_gap_m`` even if it only went on as
+    it does now (its current deceleration, then the planned rate: a standing
+    HDV approached at speed; learning evidence, train-50 seed 2001644268);
+    otherwise at most the planned rate, and a gap that a cut-in shortened is
+    restored over the next steps. Without it, every cut-in inside the headway
+    bound is answered by braking at 5 m/s², an emergency by the metrics'
+    threshold (4.5): on SUMO the CAVs' only safety-critical events (train-50,
+    ``realistic``, shipped agent).
     """
-    full_mps, planned_mps = sim.cav.decel_mps2 * sim.step_s, sim.cav.safe_decel_mps2 * sim.step_s
+    step_s, planned_mps2 = sim.step_s, sim.cav.safe_decel_mps2
+    full_mps, planned_mps = sim.cav.decel_mps2 * step_s, planned_mps2 * step_s
     if cfg.full_brake == "bound":
         return full_mps
+    ego_mps = np.maximum(take(state.speed_mps, cav_index), 0.0)  # (..., C)
     threat = np.zeros(fronts.sf_index.shape, bool)  # (..., C)
     ahead = ((fronts.sf_vehicle, fronts.sf_index), (fronts.merging, fronts.merging_index))
     for kin, index in ahead:
         vehicle = np.maximum(index, 0)
-        braking = take(state.accel_mps2, vehicle) < -sim.cav.safe_decel_mps2
-        with np.errstate(invalid="ignore"):
+        accel_mps2 = take(state.accel_mps2, vehicle)
+        braking = accel_mps2 < -planned_mps2
+        # The vehicle ahead goes on as now (braking no harder than planned), then brakes
+        # at the planned rate; the CAV brakes at the planned rate from this step on.
+        lead_mps = np.maximum(take(state.speed_mps, vehicle), 0.0)
+        lead_end_mps = np.maximum(lead_mps + np.minimum(accel_mps2, 0.0) * step_s, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            lead_step_m = np.where(
+                lead_mps + accel_mps2 * step_s > 0.0,
+                0.5 * (lead_mps + lead_end_mps) * step_s,
+                lead_mps**2 / (2.0 * np.maximum(-accel_mps2, 1e-9)),  # stops within the step
+            )
             close = kin.d_long_m < cfg.min_gap_m
+            planned_end_mps = safe_end_speed_mps(
+                kin.d_long_m,
+                ego_mps,
+                lead_step_m,
+                lead_end_mps,
+                step_s,
+                planned_mps2,
+                cfg.min_gap_m,
+            )
+            falls_short = planned_end_mps < ego_mps - planned_mps
         threat |= kin.valid & (index >= 0) & (braking | take(state.is_cav, vehicle) | close)
+        threat |= kin.valid & (index >= 0) & falls_short
     return np.where(threat, full_mps, planned_mps)
 
 
@@ -657,7 +688,7 @@ def _headway_bound_mps(
             is followed like an HDV leader.
     """
     step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
-    max_brake_mps = _max_brake_mps(state, fronts, cfg, sim)  # (..., C) as the CAVs will brake
+    max_brake_mps = _max_brake_mps(state, cav_index, fronts, cfg, sim)  # (..., C) as CAVs brake
     limit_mps = np.array([s.speed_limit_mps for s in road.segments])
 
     def long_speed(vehicles: np.ndarray) -> np.ndarray:

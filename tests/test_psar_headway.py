@@ -96,6 +96,36 @@ def test_full_brake_threat_restores_a_short_gap_at_the_planned_rate():
         PSARConfig(full_brake="sometimes")
 
 
+@pytest.mark.parametrize("full_brake", ["bound", "threat"])
+def test_a_cav_that_only_accelerates_stops_behind_a_standing_hdv(full_brake):
+    # Closed loop: a CAV asking to accelerate every step drives up to an HDV
+    # standing in its lane (the end of a jam, say). PSAR must stop it about
+    # min_gap_m behind, from any approach, with either full-brake rule; a "threat"
+    # rule that saw no threat in a standing HDV braked at the planned rate after
+    # the bound had planned a full brake, and hit it (learning evidence, train-50
+    # seed 2001644268; here from 25 m/s and 150 m).
+    cfg = PSARConfig(horizon="headway", full_brake=full_brake)
+    for speed_mps in (8.0, 14.0, 20.0, 25.0):
+        for gap_m in (80.0, 100.0, 120.0, 150.0):  # far enough to stop from any of them
+            x_m, v_mps, accel_mps2 = 100.0, speed_mps, 0.0
+            hdv_x_m = x_m + LENGTH_M + gap_m
+            for _ in range(40):
+                state = make_state(
+                    [x_m, hdv_x_m],
+                    [1, 1],
+                    [v_mps, 0.0],
+                    is_cav=[True, False],
+                    accel_mps2=[accel_mps2, 0.0],
+                )
+                res = psar(state, np.array([0]), np.array([ACCELERATE]), cfg, ROAD, SIM)
+                end_mps = max(v_mps + float(res.speed_change_mps[0]), 0.0)
+                x_m += 0.5 * (v_mps + end_mps) * SIM.step_s  # commands ramp over the step
+                accel_mps2, v_mps = (end_mps - v_mps) / SIM.step_s, end_mps
+                # min_gap_m less the crawl of the last steps (1.44 m at least, measured)
+                assert hdv_x_m - x_m - LENGTH_M >= 1.0, (speed_mps, gap_m)
+            assert v_mps == 0.0
+
+
 def test_platoon_follows_a_known_leader_closely_front_to_back():
     # Slots listed back to front on purpose: PSAR must still decide the leader first.
     x = [100.0, 100.0 + 1 * (LENGTH_M + 8.0), 100.0 + 2 * (LENGTH_M + 8.0)]
