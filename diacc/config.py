@@ -342,9 +342,10 @@ class PSARConfig:
     result made with it) lengthens the distance thresholds by a safe stopping
     gap, which keeps CAVs ~2.3 s behind HDVs; ``"paper"`` keeps them fixed.
     ``full_brake`` (``"headway"`` only): ``"threat"`` (the default since
-    2026-12-02 evening) brakes beyond the planned rate ``safe_decel_mps2`` only
-    when a vehicle ahead brakes harder, is a CAV or is closer than
-    ``min_gap_m``, and restores a gap a cut-in shortened over several steps;
+    2026-12-03) brakes beyond the planned rate ``safe_decel_mps2`` only
+    when a vehicle ahead brakes harder, is a CAV, is closer than
+    ``min_gap_m`` or is so much slower that planned braking falls short, and
+    restores a gap a cut-in shortened over several steps;
     ``"bound"`` (before; kept by checkpoints made with it) brakes up to the
     physical limit whenever the speed bound asks (each cut-in then counts as an
     emergency brake in p(SCE)). ``coordinate_lane_changes`` stops two connected
