@@ -7,8 +7,10 @@
 #
 #   OUT=runs/l27 STEPS=200000 JOBS=2 [EXTRA="--set ..."] bash benchmarks/learning_evidence.sh [NAME ...]
 #
-# NAME is SETTING-VARIANT-sSEED, e.g. options-diacc-s1; SETTING is default, options (every
-# learning option on) or lowent (entropy_coef 0.001 instead of 0.01); default: the queue below.
+# NAME is SETTING-VARIANT-sSEED, e.g. options-diacc-s1; SETTING is default (the learning
+# defaults of 2026-12-02: entropy_coef 0.01), options (every learning option on, with
+# entropy 0.01) or lowent (entropy_coef 0.001, the default since 2026-12-03); default: the
+# queue below.
 # EXTRA: options given to every run of the queue (e.g. "--set env.psar.full_brake=threat").
 set -euo pipefail
 out=${OUT:-runs/l27}
@@ -31,9 +33,9 @@ run_one() {
   variant=${variant%-s*}
   dir="$out/$name"
   case $setting in
-    options) extra=$options ;;
-    default) extra="" ;;
-    lowent) extra="--set entropy_coef=0.001" ;;  # a tenth of the default entropy bonus
+    options) extra="$options --set entropy_coef=0.01" ;;
+    default) extra="--set entropy_coef=0.01" ;;  # the paper's entropy bonus, default until 2026-12-03
+    lowent) extra="--set entropy_coef=0.001" ;;  # a tenth of it: the default since 2026-12-03
     *) echo "unknown setting '$setting' in '$name' (options, default, lowent)" >&2; return 2 ;;
   esac
   if [[ -f $dir/progress.jsonl ]] && python - "$dir" "$steps" <<'PY'
