@@ -190,7 +190,6 @@ class GraphAttention(nn.Module):
         out = self._finish(torch.einsum("bijh,bjhd->bihd", dense, wh))  # (B, N, out)
         return (out, alpha) if return_attention else out
 
-
     def _pool_gathered(self, h_nodes: Tensor, index: Tensor, alpha: Tensor) -> Tensor:
         """Graph output from each node's own key nodes: sum_j alpha_ij h_j, projected
         (the star form), for graphs too large for the dense (N x N) matrix.
