@@ -174,25 +174,32 @@ def test_refilled_slot_acts_from_a_fresh_recurrent_state(tmp_path, short_map):
     torch.testing.assert_close(logits[c], fresh[c])  # ...and is not used
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_tiny_training_and_evaluation_run(backend, tmp_path, short_map):
+def tiny_demand_run(tmp_path, road: str, scenario: Scenario, steps: int, updates: int, **settings):
+    """Train a tiny agent on ``scenario`` (2 envs, ``steps``-step episodes, ``updates``
+    updates, config ``settings`` on top) and play its checkpoint for one episode: the
+    episode's metrics."""
     cfg = override(
         TrainConfig(),
-        {"n_envs": 2, "rollout_steps": 40, "chunk_len": 10, "total_steps": 160, "epochs": 1,
-         "device": "cpu", "env.backend": backend, "env.map": short_map,
-         "env.sim.episode_steps": 40, "model.hidden_dim": 32, "model.gru_hidden": 32,
-         "model.cross_dim": 32, "run_dir": str(tmp_path / "run")},
+        {"n_envs": 2, "rollout_steps": steps, "chunk_len": 10, "total_steps": updates * 2 * steps,
+         "epochs": 1, "device": "cpu", "env.map": road, "env.sim.episode_steps": steps,
+         "model.hidden_dim": 32, "model.gru_hidden": 32, "model.cross_dim": 32,
+         "run_dir": str(tmp_path / "run"), **settings},
     )  # fmt: skip
-    cfg = override(cfg, {"env.scenario": DEMAND})
+    cfg = override(cfg, {"env.scenario": scenario})
     train(cfg, progress=False)
     from diacc.policies import CheckpointPolicy
 
     policy = CheckpointPolicy(tmp_path / "run" / "checkpoint.pt")
     driver = EpisodeDriver(policy, cfg.env)
     try:
-        metrics = play_episode(driver, 11).summary()
+        return play_episode(driver, 11).summary()
     finally:
         driver.close()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_tiny_training_and_evaluation_run(backend, tmp_path, short_map):
+    metrics = tiny_demand_run(tmp_path, short_map, DEMAND, 40, 2, **{"env.backend": backend})
     assert metrics.n_vehicles > 0 and np.isfinite(metrics.mean_speed_mps)
 
 

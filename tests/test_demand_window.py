@@ -10,15 +10,14 @@ import numpy as np
 import pytest
 import torch
 from helpers import SHORT_MAP
+from test_demand import tiny_demand_run
 
 import diacc.models.gat as gat
 import diacc.observation as observation
 import diacc.safety as safety
 from diacc.actions import LANE_RIGHT
-from diacc.algo.mappo import train
-from diacc.config import EnvConfig, EventConfig, ObservationConfig, SimConfig, TrainConfig, override
+from diacc.config import EnvConfig, EventConfig, ObservationConfig, SimConfig
 from diacc.env import BottleneckEnv
-from diacc.episode import EpisodeDriver, play_episode
 from diacc.observation import ObservationBuilder, ObservationError
 from diacc.scenario import Scenario
 from diacc.state import TrafficState, on_road_window
@@ -161,21 +160,6 @@ def test_gat_gathers_large_graphs_as_the_dense_matrix_would(concat, monkeypatch)
 
 def test_demand_training_with_fewer_critic_rows_than_vehicles(tmp_path, short_map):
     """max_vehicles 40 < N = 60: a few updates train, and the checkpoint evaluates."""
-    cfg = override(
-        TrainConfig(),
-        {"n_envs": 2, "rollout_steps": STEPS, "chunk_len": 10, "total_steps": 3 * 2 * STEPS,
-         "epochs": 1, "device": "cpu", "env.backend": "highway", "env.map": short_map,
-         "env.sim.episode_steps": STEPS, "env.obs.max_vehicles": 40, "model.hidden_dim": 32,
-         "model.gru_hidden": 32, "model.cross_dim": 32, "run_dir": str(tmp_path / "run")},
-    )  # fmt: skip
-    cfg = override(cfg, {"env.scenario": DEMAND})
-    train(cfg, progress=False)
-    from diacc.policies import CheckpointPolicy
-
-    policy = CheckpointPolicy(tmp_path / "run" / "checkpoint.pt")
-    driver = EpisodeDriver(policy, cfg.env)
-    try:
-        metrics = play_episode(driver, 11).summary()
-    finally:
-        driver.close()
+    settings = {"env.backend": "highway", "env.obs.max_vehicles": 40}
+    metrics = tiny_demand_run(tmp_path, short_map, DEMAND, STEPS, 3, **settings)
     assert metrics.n_vehicles > 40 and np.isfinite(metrics.mean_speed_mps)
