@@ -10,7 +10,13 @@ the GAT gathers for graphs over 64 nodes. ``full`` turns all of it off, which
 is the code before the window (same results, ``tests/test_highway_window.py``
 and ``tests/test_demand_window.py``): every vehicle stepped and searched, the
 critic padded to all N. Each mode runs in its own process, one after the
-other, and the machine's load average is printed with each::
+other, and the machine's load average is printed with each.
+
+The rollout steps ``--envs`` envs with random actions; the training is
+``--train-envs`` envs, one 600-step rollout per update, the default learner
+but for ``--minibatches``: the full critic's dense GAT over 480 nodes needs
+about 4 GB per attention tensor at the default 4 minibatches (measured: a
+run passed 10 GB and was stopped), so both modes learn in 24 smaller ones::
 
     python benchmarks/demand_training_speed.py --rollout-steps 100 --updates 1
 """
@@ -30,7 +36,7 @@ MODES = ("full", "windowed")
 
 
 def config(args: argparse.Namespace, mode: str, run_dir: str):
-    """The demand training config of the benchmark (8 envs, 600-step episodes)."""
+    """The demand training config of the benchmark (``--train-envs``, 600-step episodes)."""
     from diacc.config import TrainConfig, override
     from diacc.scenario import Scenario
 
@@ -45,8 +51,9 @@ def config(args: argparse.Namespace, mode: str, run_dir: str):
     max_vehicles = scenario.n_vehicles if mode == "full" else args.max_on_road
     cfg = override(
         TrainConfig(),
-        {"n_envs": args.envs, "rollout_steps": args.episode_steps, "device": "cpu",
-         "total_steps": max(args.updates, 1) * args.envs * args.episode_steps, "env.backend": "highway",
+        {"n_envs": args.train_envs, "rollout_steps": args.episode_steps, "device": "cpu",
+         "minibatches": args.minibatches, "env.backend": "highway",
+         "total_steps": max(args.updates, 1) * args.train_envs * args.episode_steps,
          "env.sim.episode_steps": args.episode_steps, "env.sim.style_preset": "zipper",
          "env.obs.max_vehicles": max_vehicles, "run_dir": run_dir},
     )  # fmt: skip
@@ -107,7 +114,9 @@ def measure(args: argparse.Namespace, mode: str) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--envs", type=int, default=8)
+    parser.add_argument("--envs", type=int, default=8, help="envs of the timed rollout")
+    parser.add_argument("--train-envs", type=int, default=4, help="envs of the timed training")
+    parser.add_argument("--minibatches", type=int, default=24, help="learner minibatches")
     parser.add_argument("--inflow", type=float, default=3600.0)
     parser.add_argument("--demand-s", type=float, default=480.0)
     parser.add_argument("--warmup-s", type=float, default=120.0)
@@ -121,26 +130,26 @@ def main() -> None:
     if args.child:
         print(json.dumps(measure(args, args.child)))
         return
+    print(
+        f"{args.inflow:.0f} veh/h for {args.demand_s:.0f} s, {args.episode_steps}-step episodes, "
+        f"{os.cpu_count()} CPU cores; env-steps/s of a {args.rollout_steps}-step rollout of "
+        f"{args.envs} envs and of {args.updates} training update(s) of {args.train_envs} envs"
+    )
+    print(f"{'mode':<9} {'rollout':>8} {'train':>8} {'on road':>8}  load before -> after")
     results = {}
     for mode in args.modes:
         cmd = [sys.executable, __file__, *sys.argv[1:], "--child", mode]
         done = subprocess.run(cmd, capture_output=True, text=True)
         if done.returncode:
             sys.exit(f"{mode} failed:\n{done.stderr}")
-        results[mode] = json.loads(done.stdout.strip().splitlines()[-1])
-    print(
-        f"{args.envs} envs, {args.inflow:.0f} veh/h for {args.demand_s:.0f} s, "
-        f"{args.episode_steps}-step episodes, {os.cpu_count()} CPU cores; env-steps/s"
-    )
-    header = f"{'mode':<9} {'rollout':>8} {'train':>8} {'on road':>8}  load before -> after"
-    print(header)
-    for mode, r in results.items():
+        r = results[mode] = json.loads(done.stdout.strip().splitlines()[-1])
         train_sps = f"{r['train_sps']:8.1f}" if "train_sps" in r else f"{'-':>8}"
         load = " ".join(f"{x:.2f}" for x in r["load_before"])
         load_after = " ".join(f"{x:.2f}" for x in r["load_after"])
         print(
             f"{mode:<9} {r['rollout_sps']:8.1f} {train_sps} {r['max_on_road']:8d}  "
-            f"{load} -> {load_after}"
+            f"{load} -> {load_after}",
+            flush=True,
         )
     if len(results) == 2:
         full, win = results["full"], results["windowed"]

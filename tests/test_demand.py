@@ -218,6 +218,21 @@ def test_warmup_is_not_measured(short_map):
     assert 0 < recorder.summary().n_vehicles < 20  # those on the road after the warm-up
 
 
+def test_episode_that_ends_in_the_warmup_has_an_empty_summary():
+    """A collision may end a training episode before the warm-up: nothing is measured."""
+    from helpers import make_state
+
+    from diacc.config import preset_road
+    from diacc.maps import load_map
+    from diacc.metrics import EpisodeRecorder
+
+    recorder = EpisodeRecorder(preset_road(load_map("train-50"), "realistic"), warmup_s=10.0)
+    recorder.record(make_state([50, 10], [0, 1], segment=[0, 0], time_s=5, step=5))
+    summary = recorder.summary()
+    assert summary.n_vehicles == 0 and math.isnan(summary.mean_speed_mps)
+    assert len(recorder.speed_samples().speed_mps) == 0
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
