@@ -10,15 +10,19 @@ the GAT gathers for graphs over 64 nodes. ``full`` turns all of it off, which
 is the code before the window (same results, ``tests/test_highway_window.py``
 and ``tests/test_demand_window.py``): every vehicle stepped and searched, the
 critic padded to all N. Each mode runs in its own process, one after the
-other, and the machine's load average is printed with each.
+other, and the machine's load average is printed with each. Rates are per
+second of wall time and per second of the process's CPU time: on a machine
+shared with other runs (nice 10) the second is the code's own cost.
 
 The rollout steps ``--envs`` envs with random actions; the training is
 ``--train-envs`` envs, one 600-step rollout per update, the default learner
 but for ``--minibatches``: the full critic's dense GAT over 480 nodes needs
 about 4 GB per attention tensor at the default 4 minibatches (measured: a
-run passed 10 GB and was stopped), so both modes learn in 24 smaller ones::
+run passed 10 GB and was stopped), so both modes learn in 24 smaller ones.
+``--train-modes`` picks the modes that train (by default the windowed one
+alone: a full-mode update is too slow for a shared 2-core machine)::
 
-    python benchmarks/demand_training_speed.py --rollout-steps 100 --updates 1
+    python benchmarks/demand_training_speed.py --rollout-steps 50 --updates 1
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from pathlib import Path
 from tempfile import TemporaryDirectory
 
 MODES = ("full", "windowed")
+KINDS = ("rollout", "train")  # what is timed
 
 
 def config(args: argparse.Namespace, mode: str, run_dir: str):
@@ -82,6 +87,14 @@ def switch_window_off() -> None:
     diacc.models.gat.DENSE_MAX_NODES = 10**9
 
 
+def rates(env_steps: int, start: tuple[float, float]) -> tuple[float, float]:
+    """Env-steps per wall second and per CPU second since ``start`` (wall, CPU)."""
+    return (
+        env_steps / (time.perf_counter() - start[0]),
+        env_steps / (time.process_time() - start[1]),
+    )
+
+
 def measure(args: argparse.Namespace, mode: str) -> dict:
     """Env-steps/s of a rollout (random actions) and of a training run, in this process."""
     import numpy as np
@@ -97,17 +110,17 @@ def measure(args: argparse.Namespace, mode: str) -> dict:
         venv = make_vector_env(cfg.env, args.envs, run_seed=0)
         rng = np.random.default_rng(0)
         n_cavs = venv.reset()[0].alive.shape[-1]
-        start, on_road = time.perf_counter(), 0
+        start, on_road = (time.perf_counter(), time.process_time()), 0
         for _ in range(args.rollout_steps):
             step = venv.step(rng.integers(0, 5, (args.envs, n_cavs)))
             on_road = max(on_road, int(step.critic_state.node_mask.sum(axis=-1).max()))
-        out["rollout_sps"] = args.envs * args.rollout_steps / (time.perf_counter() - start)
+        out["rollout"] = rates(args.envs * args.rollout_steps, start)
         out["max_on_road"] = on_road
         venv.close()
-        if args.updates:
-            start = time.perf_counter()
+        if args.updates and mode in args.train_modes:
+            start = (time.perf_counter(), time.process_time())
             train(cfg, progress=False)
-            out["train_sps"] = cfg.total_steps / (time.perf_counter() - start)
+            out["train"] = rates(cfg.total_steps, start)
     out["load_after"] = os.getloadavg()
     return out
 
@@ -125,6 +138,7 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=1, help="timed training updates (0: none)")
     parser.add_argument("--max-on-road", type=int, default=200, help="windowed max_vehicles")
     parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
+    parser.add_argument("--train-modes", nargs="+", choices=MODES, default=["windowed"])
     parser.add_argument("--child", choices=MODES, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -135,7 +149,10 @@ def main() -> None:
         f"{os.cpu_count()} CPU cores; env-steps/s of a {args.rollout_steps}-step rollout of "
         f"{args.envs} envs and of {args.updates} training update(s) of {args.train_envs} envs"
     )
-    print(f"{'mode':<9} {'rollout':>8} {'train':>8} {'on road':>8}  load before -> after")
+    print(
+        f"{'mode':<9} {'rollout':>15} {'train':>15} {'on road':>8}  load before -> after\n"
+        f"{'':<9} {'wall / CPU s':>15} {'wall / CPU s':>15}"
+    )
     results = {}
     for mode in args.modes:
         cmd = [sys.executable, __file__, *sys.argv[1:], "--child", mode]
@@ -143,19 +160,21 @@ def main() -> None:
         if done.returncode:
             sys.exit(f"{mode} failed:\n{done.stderr}")
         r = results[mode] = json.loads(done.stdout.strip().splitlines()[-1])
-        train_sps = f"{r['train_sps']:8.1f}" if "train_sps" in r else f"{'-':>8}"
+        cells = [f"{r[k][0]:7.1f} /{r[k][1]:6.1f}" if k in r else f"{'-':>15}" for k in KINDS]
         load = " ".join(f"{x:.2f}" for x in r["load_before"])
         load_after = " ".join(f"{x:.2f}" for x in r["load_after"])
         print(
-            f"{mode:<9} {r['rollout_sps']:8.1f} {train_sps} {r['max_on_road']:8d}  "
-            f"{load} -> {load_after}",
+            f"{mode:<9} {cells[0]} {cells[1]} {r['max_on_road']:8d}  {load} -> {load_after}",
             flush=True,
         )
     if len(results) == 2:
         full, win = results["full"], results["windowed"]
-        speedups = [f"rollout x{win['rollout_sps'] / full['rollout_sps']:.1f}"]
-        if "train_sps" in full:
-            speedups.append(f"train x{win['train_sps'] / full['train_sps']:.1f}")
+        speedups = [
+            f"{kind} x{win[kind][0] / full[kind][0]:.1f}"
+            f" (CPU time x{win[kind][1] / full[kind][1]:.1f})"
+            for kind in KINDS
+            if kind in full and kind in win
+        ]
         print("windowed over full: " + ", ".join(speedups))
 
 
