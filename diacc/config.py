@@ -309,7 +309,7 @@ class ObservationConfig:
 
     history_steps: int = ranged(5, 1)  # neighbour trajectories, current step included
     n_neighbours: int = ranged(6, 1)  # nearest vehicles in same and adjacent lanes
-    max_vehicles: int = ranged(40, 1)  # critic pads to this many vehicles
+    max_vehicles: int = ranged(40, 1)  # critic pads to this many vehicles (demand: on the road)
     lane_window_m: float = ranged(100.0, 0, open_low=True)  # lane statistics: ahead and behind
     critic_step_input: bool = True  # the critic's step / T feature (False: always 0)
     road_speed_limits: bool = False  # road table column 4 = segment limit / route max

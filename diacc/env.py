@@ -217,7 +217,12 @@ class BottleneckEnv(ParallelEnv):
             backend = make_backend(self.config.backend, road, self.config.sim)
         self.backend: Backend = backend
         self.road: Map = backend.road
-        self.builder = ObservationBuilder(self.road, self.config.obs, self.config.sim.episode_steps)
+        self.builder = ObservationBuilder(
+            self.road,
+            self.config.obs,
+            self.config.sim.episode_steps,
+            compact_critic=self.config.scenario.kind == "demand",
+        )
         self.n_cavs = self.config.scenario.n_slots  # C agent slots
         self.possible_agents = [f"cav_{k}" for k in range(self.config.scenario.n_cavs)]
         self.agents: list[str] = []

@@ -244,9 +244,16 @@ class EpisodeRecorder:
             self._psar_decisions += int(np.count_nonzero(psar.active))
 
     def speed_samples(self) -> SpeedSamples:
-        """All recorded speed samples of active vehicles, in recording order."""
-        if not self._chunks:
+        """All recorded speed samples of active vehicles, in recording order.
+
+        Empty when every state so far lay in the warm-up: a demand episode that a
+        collision ended before ``warmup_s`` still has its summary (measuring nothing).
+        """
+        if self._first_step is None:
             raise MetricsError("no state recorded yet")
+        if not self._chunks:
+            dtypes = (np.int32, np.int32, np.float64, np.float64, np.int8, bool)
+            return SpeedSamples(*(np.zeros(0, dtype) for dtype in dtypes))
         cols = [np.concatenate(c) for c in zip(*self._chunks, strict=True)]
         return SpeedSamples(*cols)
 

@@ -55,7 +55,11 @@ Critic (:class:`CriticState`, one per environment):
 
 * ``nodes`` (N, 6) and ``node_mask`` (N,): every vehicle: x / route length,
   y / road width, v / v_max, heading, lane / (max_lanes - 1), is_cav.
-  Inactive vehicles and padding rows are zero and masked.
+  Inactive vehicles and padding rows are zero and masked. Row i is vehicle i
+  (a release), or with ``compact_critic`` (a demand scenario, whose V
+  vehicles of the whole episode are mostly not on the road) the rows hold
+  the vehicles on the road, in index order, first: N then bounds the
+  vehicles on the road at once, not V.
 * ``neighbours`` (N, K) int64 and ``neighbour_mask`` (N, K): indices (into
   ``nodes``) of each vehicle's K neighbours, same rule and order as the
   actor's (the actor's HDV and CAV sets together are exactly these).
@@ -82,7 +86,7 @@ from diacc.config import ObservationConfig
 from diacc.errors import DiaccError
 from diacc.lateral_frame import agent_map, is_mirrored, mirror_state
 from diacc.maps import Map
-from diacc.state import TrafficState, take
+from diacc.state import TrafficState, on_road_window, take
 
 NODE_FEATURES = 6
 SELF_FEATURES = 6
@@ -299,7 +303,11 @@ class ObservationBuilder:
     in one call, with the same code and the same results.
     """
 
-    def __init__(self, road: Map, cfg: ObservationConfig, episode_steps: int) -> None:
+    def __init__(
+        self, road: Map, cfg: ObservationConfig, episode_steps: int, compact_critic: bool = False
+    ) -> None:
+        """``compact_critic``: the critic's rows hold the vehicles on the road first
+        (module docstring; the env sets it for demand scenarios)."""
         if len(road.segments) > MAX_SEGMENTS:
             raise ObservationError(
                 f"map {road.name!r} has {len(road.segments)} segments; the observation "
@@ -319,6 +327,7 @@ class ObservationBuilder:
         self.road = road
         self.cfg = cfg
         self.episode_steps = int(episode_steps)
+        self.compact_critic = compact_critic
         self._spec = ObservationSpec.from_config(cfg)
 
         # Static map quantities, computed once.
@@ -542,26 +551,36 @@ class ObservationBuilder:
         active = state.active  # (..., V)
 
         nodes = np.zeros(lead + (n_max, CRITIC_NODE_FEATURES), np.float64)  # (..., N, 6)
-        nodes[..., :n_veh, :] = (
+        node_mask = np.zeros(lead + (n_max,), bool)
+        neighbours = np.zeros(lead + (n_max, k), np.int64)  # (..., N, K)
+        neighbour_mask = np.zeros(lead + (n_max, k), bool)
+        if self.compact_critic:
+            vehicle, row_of = _on_road_rows(active, n_max)  # (..., R), (..., V)
+            n_rows = vehicle.shape[-1]
+            node_mask[..., :n_rows] = take(active, vehicle)
+            nbr_mask = _take_rows(frame.nbr_mask, vehicle) & node_mask[..., :n_rows, None]
+            nbr = take(row_of, _take_rows(frame.nbr, vehicle))  # (..., R, K) neighbours' rows
+            neighbours[..., :n_rows, :] = np.where(nbr_mask, nbr, 0)
+            neighbour_mask[..., :n_rows, :] = nbr_mask
+        else:
+            vehicle, n_rows = np.broadcast_to(np.arange(n_veh), lead + (n_veh,)), n_veh
+            node_mask[..., :n_veh] = active
+            neighbours[..., :n_veh, :] = frame.nbr
+            neighbour_mask[..., :n_veh, :] = frame.nbr_mask
+        nodes[..., :n_rows, :] = (
             np.stack(
                 [
-                    state.x_m / self._route_m,
-                    state.y_m / self._road_w_m,
-                    state.speed_mps / self._v_max_mps,
-                    state.heading_rad,
-                    state.lane / self._lane_norm,
-                    state.is_cav.astype(np.float64),
+                    take(state.x_m, vehicle) / self._route_m,
+                    take(state.y_m, vehicle) / self._road_w_m,
+                    take(state.speed_mps, vehicle) / self._v_max_mps,
+                    take(state.heading_rad, vehicle),
+                    take(state.lane, vehicle) / self._lane_norm,
+                    take(state.is_cav, vehicle).astype(np.float64),
                 ],
                 axis=-1,
             )
-            * active[..., None]
+            * node_mask[..., :n_rows, None]
         )
-        node_mask = np.zeros(lead + (n_max,), bool)
-        node_mask[..., :n_veh] = active
-        neighbours = np.zeros(lead + (n_max, k), np.int64)  # (..., N, K)
-        neighbour_mask = np.zeros(lead + (n_max, k), bool)
-        neighbours[..., :n_veh, :] = frame.nbr
-        neighbour_mask[..., :n_veh, :] = frame.nbr_mask
 
         # Per absolute lane over the whole route: sums over vehicles, in vehicle order.
         lane = np.where(active, state.lane, MAX_LANES).astype(np.int64)  # inactive: spare bin
@@ -627,7 +646,14 @@ class ObservationBuilder:
 
     def _check_state(self, state: TrafficState, expect_vehicles: int | None) -> None:
         n_veh = state.n_vehicles
-        if n_veh > self.cfg.max_vehicles:
+        if self.compact_critic:
+            on_road = int(state.active.sum(axis=-1).max(initial=0))
+            if on_road > self.cfg.max_vehicles:
+                raise ObservationError(
+                    f"{on_road} vehicles are on the road but ObservationConfig.max_vehicles is "
+                    f"{self.cfg.max_vehicles}; raise obs.max_vehicles"
+                )
+        elif n_veh > self.cfg.max_vehicles:
             raise ObservationError(
                 f"state has {n_veh} vehicles but ObservationConfig.max_vehicles is "
                 f"{self.cfg.max_vehicles}; raise obs.max_vehicles"
@@ -648,19 +674,30 @@ class ObservationBuilder:
             )
 
     def _neighbours(self, state: TrafficState) -> tuple[np.ndarray, np.ndarray]:
-        """K nearest active vehicles in same/adjacent lanes for every vehicle, (..., V, K) each."""
-        k, n_veh = self.cfg.n_neighbours, state.n_vehicles
-        x, lane, act = state.x_m, state.lane.astype(np.int64), state.active
+        """K nearest active vehicles in same/adjacent lanes for every vehicle, (..., V, K) each.
+
+        Searched within :func:`~diacc.state.on_road_window` alone (vehicles off
+        the road have no neighbours and are none): the (W, W) distance table
+        scales with the vehicles on the road, not with a demand episode's V.
+        """
+        k = self.cfg.n_neighbours
+        lo, hi = on_road_window(state.active)
+        part = state.vehicles(lo, hi)
+        n_win = hi - lo
+        x, lane, act = part.x_m, part.lane.astype(np.int64), part.active
         i_, j_ = (Ellipsis, slice(None), None), (Ellipsis, None, slice(None))  # [..., i, j]
-        dist = np.abs(x[j_] - x[i_])  # (..., V, V) ego i, other j
-        ok = (np.abs(lane[j_] - lane[i_]) <= 1) & act[j_] & act[i_] & ~np.eye(n_veh, dtype=bool)
+        dist = np.abs(x[j_] - x[i_])  # (..., W, W) ego i, other j
+        ok = (np.abs(lane[j_] - lane[i_]) <= 1) & act[j_] & act[i_] & ~np.eye(n_win, dtype=bool)
         dist = np.where(ok, dist, np.inf)
-        if n_veh < k:  # fewer candidates than slots: pad with never-chosen columns
-            pad = [(0, 0)] * (dist.ndim - 1) + [(0, k - n_veh)]
+        if n_win < k:  # fewer candidates than slots: pad with never-chosen columns
+            pad = [(0, 0)] * (dist.ndim - 1) + [(0, k - n_win)]
             dist = np.pad(dist, pad, constant_values=np.inf)
-        order = np.argsort(dist, axis=-1, kind="stable")[..., :k]  # (..., V, K)
-        mask = np.isfinite(np.take_along_axis(dist, order, axis=-1))  # (..., V, K)
-        return np.where(mask, order, 0).astype(np.int64), mask
+        order = np.argsort(dist, axis=-1, kind="stable")[..., :k]  # (..., W, K)
+        nbr = np.zeros(state.x_m.shape + (k,), np.int64)  # (..., V, K)
+        mask = np.zeros(state.x_m.shape + (k,), bool)
+        mask[..., lo:hi, :] = np.isfinite(np.take_along_axis(dist, order, axis=-1))
+        nbr[..., lo:hi, :] = np.where(mask[..., lo:hi, :], lo + order, 0)
+        return nbr, mask
 
     def _relative_nodes(
         self,
@@ -734,6 +771,28 @@ class ObservationBuilder:
             axis=-1,
         )  # (..., C, 3, 4)
         return stats, exists
+
+
+def _on_road_rows(active: np.ndarray, n_max: int) -> tuple[np.ndarray, np.ndarray]:
+    """The compact critic's rows: vehicles on the road first, in index order.
+
+    Args:
+        active: (..., V) bool, at most ``n_max`` True per env (checked on push).
+
+    Returns:
+        (..., R) int64 vehicle of each row, R = min(V, n_max) (rows past the
+        vehicles on the road hold vehicles off it), and (..., V) int64 row of
+        each vehicle on the road (0 for the others).
+    """
+    n_rows = min(active.shape[-1], n_max)
+    vehicle = np.argsort(~active, axis=-1, kind="stable")[..., :n_rows]  # (..., R)
+    row_of = np.where(active, np.cumsum(active, axis=-1) - 1, 0)  # (..., V)
+    return vehicle.astype(np.int64), row_of
+
+
+def _take_rows(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Rows ``idx`` (..., R) of per-vehicle rows ``values`` (..., V, K): (..., R, K)."""
+    return np.take_along_axis(values, idx[..., None], axis=-2)
 
 
 def _compact(idx: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

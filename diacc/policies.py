@@ -341,8 +341,10 @@ class CheckpointPolicy(Policy):
         self._generator = torch.Generator()
 
     def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
-        n_vehicles = cell.scenario(base=self.base.scenario).n_vehicles
-        if n_vehicles > self.base.obs.max_vehicles:
+        scenario = cell.scenario(base=self.base.scenario)
+        n_vehicles = scenario.n_vehicles
+        # A demand critic holds the vehicles on the road only (compact rows), not all N.
+        if scenario.kind != "demand" and n_vehicles > self.base.obs.max_vehicles:
             raise PolicyError(
                 f"cell {cell.key} has {n_vehicles} vehicles but checkpoint {self.path} "
                 f"observes at most {self.base.obs.max_vehicles}"

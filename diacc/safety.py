@@ -43,7 +43,7 @@ import numpy as np
 from diacc.config import EventConfig
 from diacc.errors import DiaccError
 from diacc.maps import Map
-from diacc.state import TrafficState, take
+from diacc.state import TrafficState, on_road_window, take
 
 
 class SafetyError(DiaccError, ValueError):
@@ -269,17 +269,21 @@ def safety_critical_events(state: TrafficState, cfg: EventConfig) -> SafetyEvent
     ``d_long`` is the bumper gap when headings are 0). A collision counts
     even if the backend removed the vehicle in the same step.
     """
-    everyone = np.broadcast_to(np.arange(state.n_vehicles), state.x_m.shape)  # (..., V)
-    leader = lane_leaders_followers(state, everyone).front[..., SAME_COL]  # (..., V)
-    kin = pair_kinematics(state, everyone, leader)
-    active = state.active
+    # Only vehicles on the road have events or leaders: search their window alone.
+    lo, hi = on_road_window(state.active)
+    part = state.vehicles(lo, hi)
+    everyone = np.broadcast_to(np.arange(hi - lo), part.x_m.shape)  # (..., W)
+    leader = lane_leaders_followers(part, everyone).front[..., SAME_COL]  # (..., W)
+    kin = pair_kinematics(part, everyone, leader)
+    small_gap, low_ttc = np.zeros((2,) + state.x_m.shape, bool)  # (..., V) each
     with np.errstate(invalid="ignore"):
-        small_gap = active & kin.valid & (kin.d_long_m < cfg.sce_min_gap_m)
+        small_gap[..., lo:hi] = part.active & kin.valid & (kin.d_long_m < cfg.sce_min_gap_m)
+    low_ttc[..., lo:hi] = part.active & (kin.ttc_s < cfg.sce_ttc_s)
     return SafetyEvents(
         small_gap=small_gap,
-        low_ttc=active & (kin.ttc_s < cfg.sce_ttc_s),
+        low_ttc=low_ttc,
         collision=state.collided,
-        emergency_brake=active & (state.accel_mps2 < -cfg.emergency_decel_mps2),
+        emergency_brake=state.active & (state.accel_mps2 < -cfg.emergency_decel_mps2),
     )
 
 

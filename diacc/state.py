@@ -136,6 +136,23 @@ class TrafficState:
             out[self.arrivals] = True
         return out
 
+    def vehicles(self, lo: int, hi: int) -> TrafficState:
+        """Vehicles ``lo:hi`` alone (views; vehicle ``lo + i`` is index ``i`` here), without
+        collision or arrival rows: for per-vehicle work restricted to
+        :func:`on_road_window`."""
+        per_vehicle = {
+            name: getattr(self, name)[..., lo:hi]
+            for name in FIELD_DTYPES
+            if name not in ("collisions", "arrivals")
+        }
+        return TrafficState(
+            time_s=self.time_s,
+            step=self.step,
+            collisions=np.zeros((0,) + self.collisions.shape[1:], np.int32),
+            arrivals=np.zeros((0,) + self.arrivals.shape[1:], np.int32),
+            **per_vehicle,
+        )
+
     def copy(self) -> TrafficState:
         return TrafficState(
             **{
@@ -144,6 +161,21 @@ class TrafficState:
                 for v in [getattr(self, f.name)]
             }
         )
+
+
+def on_road_window(active: np.ndarray) -> tuple[int, int]:
+    """Smallest vehicle index window ``lo:hi`` holding every vehicle on the road.
+
+    ``active`` is (V,) or a batch's (E, V); the window is the union over the
+    envs, ``(0, 0)`` when no vehicle is on the road. Vehicles enter in index
+    order and leave roughly so, so in a demand episode (hundreds of vehicles,
+    a few dozen on the road) work restricted to the window scales with the
+    vehicles on the road, not with V.
+    """
+    on_road = active.reshape(-1, active.shape[-1]).any(axis=0)  # (V,)
+    if not on_road.any():
+        return 0, 0
+    return int(np.argmax(on_road)), on_road.size - int(np.argmax(on_road[::-1]))
 
 
 def take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:

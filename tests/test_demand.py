@@ -174,25 +174,32 @@ def test_refilled_slot_acts_from_a_fresh_recurrent_state(tmp_path, short_map):
     torch.testing.assert_close(logits[c], fresh[c])  # ...and is not used
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_tiny_training_and_evaluation_run(backend, tmp_path, short_map):
+def tiny_demand_run(tmp_path, road: str, scenario: Scenario, steps: int, updates: int, **settings):
+    """Train a tiny agent on ``scenario`` (2 envs, ``steps``-step episodes, ``updates``
+    updates, config ``settings`` on top) and play its checkpoint for one episode: the
+    episode's metrics."""
     cfg = override(
         TrainConfig(),
-        {"n_envs": 2, "rollout_steps": 40, "chunk_len": 10, "total_steps": 160, "epochs": 1,
-         "device": "cpu", "env.backend": backend, "env.map": short_map,
-         "env.sim.episode_steps": 40, "model.hidden_dim": 32, "model.gru_hidden": 32,
-         "model.cross_dim": 32, "run_dir": str(tmp_path / "run")},
+        {"n_envs": 2, "rollout_steps": steps, "chunk_len": 10, "total_steps": updates * 2 * steps,
+         "epochs": 1, "device": "cpu", "env.map": road, "env.sim.episode_steps": steps,
+         "model.hidden_dim": 32, "model.gru_hidden": 32, "model.cross_dim": 32,
+         "run_dir": str(tmp_path / "run"), **settings},
     )  # fmt: skip
-    cfg = override(cfg, {"env.scenario": DEMAND})
+    cfg = override(cfg, {"env.scenario": scenario})
     train(cfg, progress=False)
     from diacc.policies import CheckpointPolicy
 
     policy = CheckpointPolicy(tmp_path / "run" / "checkpoint.pt")
     driver = EpisodeDriver(policy, cfg.env)
     try:
-        metrics = play_episode(driver, 11).summary()
+        return play_episode(driver, 11).summary()
     finally:
         driver.close()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_tiny_training_and_evaluation_run(backend, tmp_path, short_map):
+    metrics = tiny_demand_run(tmp_path, short_map, DEMAND, 40, 2, **{"env.backend": backend})
     assert metrics.n_vehicles > 0 and np.isfinite(metrics.mean_speed_mps)
 
 
@@ -209,6 +216,21 @@ def test_warmup_is_not_measured(short_map):
         driver.close()
     assert recorder.speed_samples().time_s.min() >= 19.0
     assert 0 < recorder.summary().n_vehicles < 20  # those on the road after the warm-up
+
+
+def test_episode_that_ends_in_the_warmup_has_an_empty_summary():
+    """A collision may end a training episode before the warm-up: nothing is measured."""
+    from helpers import make_state
+
+    from diacc.config import preset_road
+    from diacc.maps import load_map
+    from diacc.metrics import EpisodeRecorder
+
+    recorder = EpisodeRecorder(preset_road(load_map("train-50"), "realistic"), warmup_s=10.0)
+    recorder.record(make_state([50, 10], [0, 1], segment=[0, 0], time_s=5, step=5))
+    summary = recorder.summary()
+    assert summary.n_vehicles == 0 and math.isnan(summary.mean_speed_mps)
+    assert len(recorder.speed_samples().speed_mps) == 0
 
 
 @pytest.mark.parametrize(

@@ -15,7 +15,10 @@ Two identities keep memory at O(nodes) instead of O(edges x heads x D):
 ``a^T [W h_i || W h_j] = a_q . W h_i + a_k . W h_j`` (scores are per-node
 scalars), and ``sum_j alpha_j W h_j = W sum_j alpha_j h_j`` (the star form
 aggregates raw features and projects once per query; the graph form projects
-once per node and aggregates with a dense (N x N) attention matrix).
+once per node and aggregates with a dense (N x N) attention matrix, or, for
+graphs of more than :data:`DENSE_MAX_NODES` nodes (a demand critic), gathers
+each node's K' key nodes and pools them as the star form does, O(N K') instead
+of O(N^2)).
 
 With ``self_loop`` the query node also attends to itself (standard GAT; the
 paper's node set is ``i ∪ M_i``), so an agent with no neighbours still sees
@@ -30,6 +33,10 @@ from torch import Tensor, nn
 
 from diacc.models.errors import ModelError
 from diacc.models.layers import masked_softmax
+
+#: Critic graphs up to this many nodes aggregate with a dense (N x N) attention matrix
+#: (the paper's cells: fast, and what every trained critic used); larger ones gather.
+DENSE_MAX_NODES = 64
 
 
 class GraphAttention(nn.Module):
@@ -172,6 +179,9 @@ class GraphAttention(nn.Module):
             score_k = torch.cat([score_node[:, :, None], score_k], dim=2)  # (B, N, 1+K, H)
             valid = torch.cat([node_mask[..., None], valid], dim=-1)  # (B, N, 1+K)
         alpha = self._alpha(score_q, score_k, valid)  # (B, N, K', H)
+        if n_nodes > DENSE_MAX_NODES:
+            out = self._pool_gathered(h_nodes, index, alpha)
+            return (out, alpha) if return_attention else out
         # Dense attention matrix A[b, i, j, h]; masked edges carry zero weight.
         dense = torch.zeros(
             n_batch, n_nodes, n_nodes, self.heads, dtype=alpha.dtype, device=alpha.device
@@ -179,6 +189,18 @@ class GraphAttention(nn.Module):
         dense = dense.scatter_add(2, index[..., None].expand(-1, -1, -1, self.heads), alpha)
         out = self._finish(torch.einsum("bijh,bjhd->bihd", dense, wh))  # (B, N, out)
         return (out, alpha) if return_attention else out
+
+    def _pool_gathered(self, h_nodes: Tensor, index: Tensor, alpha: Tensor) -> Tensor:
+        """Graph output from each node's own key nodes: sum_j alpha_ij h_j, projected
+        (the star form), for graphs too large for the dense (N x N) matrix.
+
+        h_nodes (B, N, F) masked; index (B, N, K') key node of each edge (masked
+        edges: any node, with weight 0); alpha (B, N, K', H) -> (B, N, out_features).
+        """
+        n_batch, n_nodes, n_keys = index.shape
+        flat = index.reshape(n_batch, n_nodes * n_keys, 1).expand(-1, -1, h_nodes.shape[-1])
+        keys = torch.gather(h_nodes, 1, flat).view(n_batch, n_nodes, n_keys, -1)  # (B,N,K',F)
+        return self._project_pooled(alpha.transpose(-1, -2) @ keys)  # (B, N, H, F) pooled
 
 
 class GlobalGraphAttention(GraphAttention):

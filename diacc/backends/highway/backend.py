@@ -129,6 +129,12 @@ class HighwayBackend:
     it is a no-op for every env; where some envs need it, its results are
     kept for those envs alone (:func:`_rows_where`), so skipping stays
     invisible in the results.
+
+    A demand episode holds every vehicle of the episode (hundreds) while a few
+    dozen are on the road, so a step moves only the index window of vehicles
+    that are not settled (:meth:`_window`: not long arrived, not still to
+    come), the union over the envs; the results are those of stepping all,
+    bit for bit (``tests/test_highway_window.py``).
     """
 
     name = "highway"
@@ -137,6 +143,11 @@ class HighwayBackend:
     #: Many envs step fastest as rows of one batch (:class:`diacc.vector.BatchedVectorEnv`);
     #: worker processes would only add pickling.
     vector_mode = "batched"
+    #: Step only the index window of vehicles not settled (:meth:`_window`): the same
+    #: results as stepping all; False steps every vehicle (tests compare the two).
+    windowed = True
+    #: Batches of fewer vehicles per env always step all (the window would gain little).
+    window_min_vehicles = 64
 
     def __init__(
         self,
@@ -335,22 +346,17 @@ class HighwayBackend:
         speed_start = state.speed_mps.copy()
         if self.cav_mode == "commanded":
             # NaN: no command, the CAV drives itself this step (diacc.backends.base).
+            # Over all vehicles (cheap), so the leader refreshes are those of a full step.
             commanded = (state.is_cav | params.reported_cav) & ~np.isnan(dv_cmd)  # (E, V)
             caches.leaders_dirty |= (commanded != state.is_cav).any(axis=1)
             state.is_cav = commanded
             dv_cmd = np.where(commanded, dv_cmd, 0.0)
-        self._apply_cav_commands(lane_cmd.astype(np.intp), dv_cmd)
         arrived_before = state.arrived.copy()
-        new_contacts = np.zeros_like(state.contact)  # (E, V, V)
-        demand = state.pending.any()
-        for k in range(self.sim.substeps):
-            if demand:
-                self._insert_due(state.time_s + k * self.dt_s)
-            if k % self._decide_every == 0:
-                self._decide_lane_changes()
-            contact = self._substep()
-            new_contacts |= contact & ~state.contact
-            state.contact = contact
+        lo, hi = self._window()
+        if (lo, hi) == (0, shape[1]):
+            new_contacts = self._step_vehicles(lane_cmd.astype(np.intp), dv_cmd)  # (E, V, V)
+        else:
+            new_contacts = self._step_window(lo, hi, lane_cmd.astype(np.intp), dv_cmd)
         state.time_s += self.sim.step_s
         state.step_count += 1
         accel = (state.speed_mps - speed_start) / self.sim.step_s  # (E, V)
@@ -361,11 +367,88 @@ class HighwayBackend:
                 e,
                 lane,
                 accel[e],
-                np.argwhere(new_contacts[e]).astype(np.int32).reshape(-1, 2),
+                lo + np.argwhere(new_contacts[e]).astype(np.int32).reshape(-1, 2),
                 np.flatnonzero(new_arrivals[e]).astype(np.int32),
             )
             for e in range(self.n_envs)
         ]
+
+    def _step_vehicles(self, lane_cmd: np.ndarray, dv_cmd: np.ndarray) -> np.ndarray:
+        """The sub-steps of a decision step for the vehicles of :attr:`state` (all of them,
+        or the window :meth:`_step_window` put there); commands are (E, V).
+
+        Returns the (E, V, V) contacts that began during the step.
+        """
+        state = self.state
+        self._apply_cav_commands(lane_cmd, dv_cmd)
+        new_contacts = np.zeros_like(state.contact)  # (E, V, V)
+        demand = state.pending.any()
+        for k in range(self.sim.substeps):
+            if demand:
+                self._insert_due(state.time_s + k * self.dt_s)
+            if k % self._decide_every == 0:
+                self._decide_lane_changes()
+            contact = self._substep()
+            new_contacts |= contact & ~state.contact
+            state.contact = contact
+        return new_contacts
+
+    def _window(self) -> tuple[int, int]:
+        """Vehicle index window ``lo:hi`` (the union over the envs) that this step must move.
+
+        Outside it every vehicle of every env is *settled*, so a full step
+        would leave it exactly as it is: arrived (with its heading already
+        zeroed and no merger to yield to, which the next sub-step or decision
+        would still change) or waiting to enter later than this step. Demand
+        vehicles enter in index order and leave roughly so, which keeps the
+        window near the vehicles on the road. ``(0, V)`` when windowing is
+        off (:attr:`windowed`), the batch is small (:attr:`window_min_vehicles`)
+        or nothing is left to move.
+        """
+        state = self.state
+        n = state.x_m.shape[1]
+        if not self.windowed or n < self.window_min_vehicles:
+            return 0, n
+        step_end_s = state.time_s[:, None] + self.sim.step_s + 1e-9  # (E, 1)
+        settled = (state.arrived & (state.heading_rad == 0.0) & (state.yield_to < 0)) | (
+            state.pending & (self.params.depart_s > step_end_s)
+        )  # (E, V)
+        live = ~settled.all(axis=0)  # (V,)
+        if not live.any():
+            return 0, n
+        return int(np.argmax(live)), n - int(np.argmax(live[::-1]))
+
+    def _step_window(
+        self, lo: int, hi: int, lane_cmd: np.ndarray, dv_cmd: np.ndarray
+    ) -> np.ndarray:
+        """:meth:`_step_vehicles` on vehicles ``lo:hi`` alone (:meth:`_window`); the (E, W, W)
+        new contacts, indices relative to ``lo``.
+
+        The three records are swapped for windows of themselves for the step,
+        vehicle indices held in them (``yield_to``, ``leader``) shifted by
+        ``lo``, and the stepped window written back.
+        """
+        full_state, full_params, full_caches = self.state, self.params, self.caches
+        width = hi - lo
+        state, caches = full_state.window(lo, hi), full_caches.window(lo, hi)
+        state.yield_to = np.where(state.yield_to >= 0, state.yield_to - lo, -1)
+        caches.leader = np.clip(caches.leader - lo, 0, width - 1)  # only real ones are read
+        # Cached for vehicles that left the window on the road: not a guard or a lane change
+        # of theirs now (a full step's leader refresh makes them False off the road).
+        caches.guarded = caches.guarded & state.active
+        caches.moving = caches.moving & state.active
+        self.state, self.params, self.caches = state, full_params.window(lo, hi), caches
+        self._set_shape_constants(width)
+        try:
+            new_contacts = self._step_vehicles(lane_cmd[:, lo:hi], dv_cmd[:, lo:hi])
+        finally:
+            self.state, self.params, self.caches = full_state, full_params, full_caches
+            self._set_shape_constants(full_state.x_m.shape[1])
+        state.yield_to = np.where(state.yield_to >= 0, state.yield_to + lo, -1)
+        caches.leader = caches.leader + lo
+        full_state.put_window(lo, hi, state)
+        full_caches.put_window(lo, hi, caches)
+        return new_contacts
 
     # ------------------------------------------------------------ internals
     def _check_single(self) -> None:
@@ -377,19 +460,28 @@ class HighwayBackend:
     def _allocate(self, n: int) -> None:
         """The (E, V) records of the batch (every row is written by :meth:`reset_env`)
         and the constants that follow from the batch's shape."""
-        shape, n_envs = (self.n_envs, n), self.n_envs
+        n_envs = self.n_envs
         self.state = HighwayState.zeros(n_envs, n)
         self.params = HighwayParams.zeros(n_envs, n, self.sim.idm_delta)
         self.caches = HighwayCaches.zeros(n_envs, n)
-        self._no_contact = np.zeros((n_envs, n, n), dtype=bool)
-        self._not_self = ~np.eye(n, dtype=bool)  # (V, V)
-        self._rows = np.broadcast_to(np.arange(n), shape)  # (E, V) own vehicle index
+        self._shape_constants: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._set_shape_constants(n)
         self._sides = np.array([-1, 0, 1])
         # Env index arrays that broadcast against (E, ...) vehicle indices of each rank.
         self._env_index = {
             rank: np.arange(n_envs).reshape((-1,) + (1,) * (rank - 1)) for rank in range(1, 5)
         }
         self._min_accel = -self.model.max_brake_mps2
+
+    def _set_shape_constants(self, n: int) -> None:
+        """The constant arrays of a step over ``n`` vehicles per env (all V, or a window)."""
+        if n not in self._shape_constants:
+            self._shape_constants[n] = (
+                np.zeros((self.n_envs, n, n), dtype=bool),  # (E, n, n) no contact
+                ~np.eye(n, dtype=bool),  # (n, n) j is not i
+                np.broadcast_to(np.arange(n), (self.n_envs, n)),  # (E, n) own vehicle index
+            )
+        self._no_contact, self._not_self, self._rows = self._shape_constants[n]
 
     def _at(self, values: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """``values[e, idx[e, ...]]`` for every env e: (E, V) values, (E, ...) vehicle indices."""

@@ -56,6 +56,35 @@ def _write_rows(target: Any, source: Any, env: int) -> None:
             _write_rows(getattr(target, f.name), getattr(source, f.name), env)
 
 
+def _window_view(a: np.ndarray, lo: int, hi: int) -> np.ndarray:
+    """Vehicles ``lo:hi`` of an (E,), (E, V) or (E, V, V) array: a view; (E,) stays whole."""
+    if a.ndim == 1:
+        return a
+    if a.ndim == 2:
+        return a[:, lo:hi]
+    return a[:, lo:hi, lo:hi]
+
+
+def _write_window(target: Any, source: Any, lo: int, hi: int) -> Any:
+    """Write ``source``, a :meth:`EnvRows.window` of ``target``, back into it.
+
+    (E,) arrays and scalars are taken over whole (they are per env, not per
+    vehicle); returns the value ``target`` should hold afterwards.
+    """
+    if isinstance(target, np.ndarray):
+        if target.ndim == 1:
+            return source
+        _window_view(target, lo, hi)[...] = source
+        return target
+    if dataclasses.is_dataclass(target):
+        for f in dataclasses.fields(target):
+            value = _write_window(getattr(target, f.name), getattr(source, f.name), lo, hi)
+            if not isinstance(target, IdmParams):  # frozen; its arrays are written in place
+                setattr(target, f.name, value)
+        return target
+    return source
+
+
 _Rows = TypeVar("_Rows", bound="EnvRows")
 
 
@@ -78,6 +107,19 @@ class EnvRows:
         Scalar fields (not per env) are left alone.
         """
         _write_rows(self, row, e)
+
+    def window(self: _Rows, lo: int, hi: int) -> _Rows:
+        """Vehicles ``lo:hi`` of every env as a record of views ((E,) fields shared as they are).
+
+        The highway backend steps only this window of vehicles (the others are
+        settled: arrived, or not due to enter); :meth:`put_window` writes a
+        stepped window back.
+        """
+        return _map_arrays(self, lambda a: _window_view(a, lo, hi))
+
+    def put_window(self: _Rows, lo: int, hi: int, part: _Rows) -> None:
+        """Write ``part``, a stepped :meth:`window` ``lo:hi`` of ``self``, back into ``self``."""
+        _write_window(self, part, lo, hi)
 
 
 @dataclass(slots=True)
