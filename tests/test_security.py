@@ -231,9 +231,11 @@ def _signal_ends_every_child(tmp_path, argv, ready, signum=signal.SIGTERM, times
     """
     from test_faults import _descendants as descendants
 
+    # SIGINT as from a terminal: a suite run in the background by a non-interactive shell
+    # ignores SIGINT, and so would the command (POSIX), which would then run on.
     proc = subprocess.Popen(
         [sys.executable, "-m", "diacc.cli", *argv], env=ENV, stderr=subprocess.PIPE, text=True,
-        cwd=tmp_path,
+        cwd=tmp_path, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )  # fmt: skip
     deadline, children = time.monotonic() + 120, {}
     try:
