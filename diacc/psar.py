@@ -535,6 +535,7 @@ def _headway_car_following(
         changing,
         speed_change,
         fronts,
+        max_brake_mps,
         cfg,
         road,
         sim,
@@ -657,6 +658,7 @@ def _headway_bound_mps(
     changing: np.ndarray,
     speed_change_mps: np.ndarray,
     fronts: _FrontObstacles,
+    max_brake_mps: np.ndarray | float,
     cfg: PSARConfig,
     road: Map,
     sim: SimConfig,
@@ -686,9 +688,9 @@ def _headway_bound_mps(
         speed_change_mps: (..., C) commands before car following.
         fronts: what lies ahead (:class:`_FrontObstacles`); the merging vehicle
             is followed like an HDV leader.
+        max_brake_mps: (..., C) the speed drop each CAV may command (:func:`_max_brake_mps`).
     """
     step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
-    max_brake_mps = _max_brake_mps(state, cav_index, fronts, cfg, sim)  # (..., C) as CAVs brake
     limit_mps = np.array([s.speed_limit_mps for s in road.segments])
 
     def long_speed(vehicles: np.ndarray) -> np.ndarray:
