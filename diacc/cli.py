@@ -214,6 +214,21 @@ def _bench_parser(sub) -> None:
         "cooperative, 100 %% CAVs (highway, or --backend)",
     )
     p.add_argument(
+        "--agent",
+        action="append",
+        default=[],
+        metavar="CHECKPOINT",
+        help="a trained agent (checkpoint.pt or run directory) measured by --headroom after "
+        "the references, on the same traffic (repeatable)",
+    )
+    p.add_argument(
+        "--agent-actions",
+        nargs="+",
+        choices=("greedy", "sampled"),
+        default=["greedy"],
+        help="actions of each --agent: argmax, sampled (seeded), or both",
+    )
+    p.add_argument(
         "--scenario",
         choices=SCENARIO_KINDS,
         default="release",
@@ -323,6 +338,8 @@ def cmd_bench(args: argparse.Namespace) -> None:
     given += ["--scenario demand"] * (args.scenario == "demand")
     if given and not (args.headroom and args.scenario == "demand"):
         raise ConfigError(f"{given[0]} needs --headroom with --scenario demand")
+    if args.agent and not args.headroom:
+        raise ConfigError("--agent needs --headroom")
     if args.safety:
         from diacc.bench import safety
 
@@ -373,6 +390,8 @@ def cmd_bench(args: argparse.Namespace) -> None:
             steps=args.episode_steps,
             horizon=args.horizon,
             demand=demand,
+            agents=tuple(args.agent),
+            agent_actions=tuple(args.agent_actions),
         )
         return
     if args.backend == "highway":

@@ -113,3 +113,36 @@ def test_headroom_demand_bad_input(capsys, argv, message):
     # The demand flags belong to --headroom only.
     assert main(["bench", "--headway", "--scenario", "demand"]) == 2
     assert "--scenario demand needs --headroom with" in capsys.readouterr().err
+
+
+SHIPPED = "checkpoints/diacc-train50-realistic-headway-threat-s1.pt"
+
+
+def test_headroom_agent_rows_on_the_references_traffic(tmp_path, capsys):
+    """A checkpoint's rows follow the references on the same seeds, a slot for every CAV,
+    with their change against same-mix; greedy and sampled actions differ."""
+    road = tmp_path / "short.toml"
+    road.write_text(SHORT_MAP)
+    demand = headroom.demand_scenario(3600, demand_s=30, warmup_s=10)
+    references = tuple(r for r in headroom.REFERENCES if r[0] in ("pure HDV", "same-mix"))
+    rows = headroom.run(
+        maps=(str(road),), episodes=1, demand=demand, references=references,
+        agents=(SHIPPED,), agent_actions=("greedy", "sampled"),
+    )  # fmt: skip
+    out = capsys.readouterr().out
+    name = "diacc-train50-realistic-headway-threat-s1"
+    assert [r.label for r in rows] == ["pure HDV", "same-mix", f"{name} greedy", f"{name} sampled"]
+    assert "| delay vs same-mix | throughput vs same-mix |" in out
+    agent = rows[2].values
+    assert agent["unslotted_cav_steps"] == 0.0 and agent["collision"] == 0.0
+    assert agent != rows[1].values  # the CAVs drive differently from the humans in their slots
+    same_mix_delay = rows[1].values["delay_per_vehicle_s"]
+    change = (agent["delay_per_vehicle_s"] - same_mix_delay) / same_mix_delay
+    assert f"{name} greedy |" in out and f"| {change:+.0%} |" in out
+
+
+def test_headroom_agent_bad_input(capsys):
+    assert main(["bench", "--headway", "--agent", SHIPPED]) == 2
+    assert "--agent needs --headroom" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="unknown agent actions 'best'"):
+        headroom.run(agents=(SHIPPED,), agent_actions=("best",))

@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -55,7 +56,8 @@ REFERENCES = (
     ("cooperative", "cooperative", None),
     ("100 % CAVs heuristic", "heuristic", 1.0),
 )
-#: Policies whose CAVs take commands (the others' CAVs do not exist or drive themselves).
+#: Baselines whose CAVs take commands (the others' CAVs do not exist or drive themselves);
+#: a checkpoint's CAVs take them too.
 COMMANDING = ("heuristic",)
 #: Metrics of a row, in print order: (episodes.csv column, header, format).
 METRICS = (
@@ -145,16 +147,20 @@ def make_driver(
     steps: int,
     horizon: str | None = None,
     demand: Scenario | None = None,
+    sampled: bool = False,
 ) -> SlotCountingDriver:
     """The episode driver of one reference on one cell (the caller closes it).
 
-    ``demand``: the demand timing (``demand_s``, ``warmup_s``); the cell carries
-    the inflow. Policies in :data:`COMMANDING` then get a slot for every CAV.
+    ``policy_name``: a baseline or a checkpoint path (``sampled``: its actions drawn
+    from its distribution, else the argmax). ``demand``: the demand timing
+    (``demand_s``, ``warmup_s``); the cell carries the inflow. Policies in
+    :data:`COMMANDING` and checkpoints then get a slot for every CAV.
     """
-    policy = build_policy(PolicySpec(policy_name))
+    spec = PolicySpec(policy_name, sampled=sampled)
+    policy = build_policy(spec)
     if demand is not None:
         slots = demand.cav_slots
-        if policy_name in COMMANDING:
+        if policy_name in COMMANDING or not spec.is_baseline:
             slots = slots_for_every_cav(cell.scenario(base=demand))
         base = dataclasses.replace(demand, cav_slots=slots)
         sim = dataclasses.replace(policy.base.sim, episode_steps=steps)  # EnvConfig checks warm-up
@@ -172,10 +178,13 @@ def measure(
     steps: int,
     horizon: str | None = None,
     demand: Scenario | None = None,
+    sampled: bool = False,
 ) -> dict[str, float]:
     """Mean :data:`METRICS` of ``episodes`` seeded episodes of one policy on one cell,
     and ``unslotted_cav_steps`` (mean per episode); arguments as :func:`make_driver`."""
-    driver = make_driver(backend, cell, policy_name, style_preset, steps, horizon, demand)
+    driver = make_driver(
+        backend, cell, policy_name, style_preset, steps, horizon, demand, sampled
+    )
     rows, unslotted = [], []
     try:
         for k in range(episodes):
@@ -201,8 +210,15 @@ def run(
     horizon: str | None = None,
     references: tuple[tuple[str, str, float | None], ...] = REFERENCES,
     demand: Scenario | None = None,
+    agents: tuple[str, ...] = (),
+    agent_actions: tuple[str, ...] = ("greedy",),
 ) -> list[HeadroomRow]:
     """Measure every reference and print one Markdown table per (backend, map).
+
+    ``agents``: checkpoints (or run directories) measured after the references on
+    the same seeded traffic, one row per agent and entry of ``agent_actions``
+    (``greedy``, ``sampled``), labelled ``<name> <actions>``: trained agents next
+    to what rules and humans reach.
 
     ``demand``: a ``demand`` :class:`Scenario` (:func:`demand_scenario`) instead of
     the one-shot release; then ``maps`` defaults to ``train-50``, ``style_preset``
@@ -221,6 +237,14 @@ def run(
         )
     if episodes < 1 or steps < 1:
         raise ConfigError(f"head-room needs episodes >= 1 and steps >= 1, got {episodes}, {steps}")
+    unknown = [a for a in agent_actions if a not in ("greedy", "sampled")]
+    if unknown:
+        raise ConfigError(f"unknown agent actions {unknown[0]!r}; use greedy or sampled")
+    rows = [(label, name, rho, False) for label, name, rho in references]
+    for path in agents:
+        name = Path(path).parent.name if Path(path).suffix == ".pt" else Path(path).name
+        name = Path(path).stem if name in ("", "checkpoints") else name
+        rows += [(f"{name} {a}", str(path), None, a == "sampled") for a in agent_actions]
     psar_label = horizon or PSARConfig().horizon  # the horizon the table was made with
     if demand is None:
         what = f"one-shot release N = {RELEASE_N}, rho = {RHO}, {MIX}"
@@ -235,6 +259,7 @@ def run(
     )
     headers = [h for _, h, _ in METRICS] + ["unslotted CAV-steps"] * (demand is not None)
     headers += ["delay vs pure HDV", "throughput vs pure HDV"]
+    headers += ["delay vs same-mix", "throughput vs same-mix"]
     out, start = [], time.perf_counter()
     for backend in backends:
         for map_name in maps:
@@ -244,24 +269,26 @@ def run(
             )
             print("| reference | " + " | ".join(headers) + " |")
             print("|---" * (len(headers) + 1) + "|")
-            base = None
-            for label, name, rho in references:
+            base = same_mix = None
+            for label, name, rho, sampled in rows:
                 if demand is None:
                     cell = Cell(map_name, RELEASE_N, RHO if rho is None else rho, MIX)
                 else:
                     share = RHO if rho is None else rho
                     cell = Cell(map_name, demand.n_vehicles, share, MIX, demand.inflow_vph)
                 values = measure(
-                    backend, cell, name, episodes, style_preset, steps, horizon, demand
+                    backend, cell, name, episodes, style_preset, steps, horizon, demand, sampled
                 )
                 out.append(HeadroomRow(backend, map_name, label, episodes, values))
-                base = base or values
+                base = values if name == "pure-hdv" and rho is None else base
+                same_mix = values if name == "same-mix" and rho is None else same_mix
                 cells = [fmt.format(values[key]) for key, _, fmt in METRICS]
                 if demand is not None:
                     self_driving = name == "cooperative"  # its CAVs never take commands
                     cells.append("n/a" if self_driving else f"{values['unslotted_cav_steps']:.0f}")
-                cells.append(_change(values["delay_per_vehicle_s"], base["delay_per_vehicle_s"]))
-                cells.append(_change(values["throughput_vph"], base["throughput_vph"]))
+                for ref in (base, same_mix):
+                    for key in ("delay_per_vehicle_s", "throughput_vph"):
+                        cells.append(_change(values[key], ref[key]) if ref else "n/a")
                 print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
     print(f"({time.perf_counter() - start:.0f} s)")
     return out
