@@ -182,9 +182,7 @@ def measure(
 ) -> dict[str, float]:
     """Mean :data:`METRICS` of ``episodes`` seeded episodes of one policy on one cell,
     and ``unslotted_cav_steps`` (mean per episode); arguments as :func:`make_driver`."""
-    driver = make_driver(
-        backend, cell, policy_name, style_preset, steps, horizon, demand, sampled
-    )
+    driver = make_driver(backend, cell, policy_name, style_preset, steps, horizon, demand, sampled)
     rows, unslotted = [], []
     try:
         for k in range(episodes):
