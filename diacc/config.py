@@ -324,7 +324,7 @@ class ObservationConfig:
 FORCE_BRAKE_MODES = ("cancel", "paper")
 HORIZON_MODES = ("stopping", "headway", "paper")
 #: When a CAV may brake beyond its planned rate under the ``"headway"`` horizon (PSARConfig).
-FULL_BRAKE_MODES = ("bound", "threat")
+FULL_BRAKE_MODES = ("bound", "threat", "known")
 
 
 @dataclass(frozen=True)
@@ -346,6 +346,8 @@ class PSARConfig:
     when a vehicle ahead brakes harder, is a CAV, is closer than
     ``min_gap_m`` or is so much slower that planned braking falls short, and
     restores a gap a cut-in shortened over several steps;
+    ``"known"`` is ``"threat"`` with a CAV leader judged by its known command
+    of this step rather than always a threat;
     ``"bound"`` (before; kept by checkpoints made with it) brakes up to the
     physical limit whenever the speed bound asks (each cut-in then counts as an
     emergency brake in p(SCE)). ``coordinate_lane_changes`` stops two connected

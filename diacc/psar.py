@@ -528,7 +528,7 @@ def _headway_car_following(
     speed_change = action_speed_change_mps(a, dv_action) - b_lc_mps2 * step_s  # (..., C)
     lane = take(state.lane, cav_index).astype(np.int64)
     entering_lane = np.where(changing, lane + offset, asked_lane)  # (..., C) -1: none
-    bound_mps = _headway_bound_mps(
+    bound_mps, max_brake_mps = _headway_bound_mps(
         state,
         cav_index,
         entering_lane,
@@ -576,6 +576,13 @@ def _max_brake_mps(
     bound is answered by braking at 5 m/s², an emergency by the metrics'
     threshold (4.5): on SUMO the CAVs' only safety-critical events (train-50,
     ``realistic``, shipped agent).
+    ``"known"``: as ``"threat"``, but a same-lane leader that is a CAV in an
+    agent slot is not a threat for being a CAV: its command of this step is
+    known, and :func:`_headway_bound_mps` judges it front to back (it brakes
+    harder than planned, is too close, or planned braking falls short behind
+    its known motion). Under ``"threat"`` every CAV behind a CAV may brake at
+    the full rate whenever its bound asks, which on SUMO makes CAV-behind-CAV
+    hard braking the CAVs' remaining safety-critical events.
     """
     step_s, planned_mps2 = sim.step_s, sim.cav.safe_decel_mps2
     full_mps, planned_mps = sim.cav.decel_mps2 * step_s, planned_mps2 * step_s
@@ -584,8 +591,12 @@ def _max_brake_mps(
     ego_mps = np.maximum(take(state.speed_mps, cav_index), 0.0)  # (..., C)
     threat = np.zeros(fronts.sf_index.shape, bool)  # (..., C)
     ahead = ((fronts.sf_vehicle, fronts.sf_index), (fronts.merging, fronts.merging_index))
+    slot_of = _slot_of(state, cav_index)  # (..., V)
     for kin, index in ahead:
         vehicle = np.maximum(index, 0)
+        cav = take(state.is_cav, vehicle)  # (..., C)
+        if cfg.full_brake == "known" and index is fronts.sf_index:
+            cav &= take(slot_of, vehicle) < 0  # a slotted CAV leader: judged by its command
         accel_mps2 = take(state.accel_mps2, vehicle)
         braking = accel_mps2 < -planned_mps2
         # The vehicle ahead goes on as now (braking no harder than planned), then brakes
@@ -609,9 +620,17 @@ def _max_brake_mps(
                 cfg.min_gap_m,
             )
             falls_short = planned_end_mps < ego_mps - planned_mps
-        threat |= kin.valid & (index >= 0) & (braking | take(state.is_cav, vehicle) | close)
+        threat |= kin.valid & (index >= 0) & (braking | cav | close)
         threat |= kin.valid & (index >= 0) & falls_short
     return np.where(threat, full_mps, planned_mps)
+
+
+def _slot_of(state: TrafficState, cav_index: np.ndarray) -> np.ndarray:
+    """(..., V) the agent slot of each vehicle (-1: an HDV, or a CAV without a slot)."""
+    slots = np.broadcast_to(np.arange(cav_index.shape[-1]), cav_index.shape)  # (..., C)
+    slot_of = np.full(state.x_m.shape, -1, np.int64)
+    np.put_along_axis(slot_of, cav_index, slots, axis=-1)
+    return slot_of
 
 
 def _end_speed_mps(
@@ -662,8 +681,10 @@ def _headway_bound_mps(
     cfg: PSARConfig,
     road: Map,
     sim: SimConfig,
-) -> np.ndarray:
-    """(..., C) highest safe end-of-step speed per CAV under the ``"headway"`` horizon.
+) -> tuple[np.ndarray, np.ndarray | float]:
+    """(..., C) highest safe end-of-step speed per CAV under the ``"headway"`` horizon,
+    and the speed drop each CAV may command (``max_brake_mps``, refined under
+    ``full_brake = "known"`` once the CAVs it follows are decided).
 
     Every front obstacle gives a bound (:func:`~diacc.kinematics.safe_end_speed_mps`):
     the same-lane leader, the end of the own lane (not for a CAV leaving it:
@@ -691,6 +712,7 @@ def _headway_bound_mps(
         max_brake_mps: (..., C) the speed drop each CAV may command (:func:`_max_brake_mps`).
     """
     step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
+    full_mps, planned_mps = sim.cav.decel_mps2 * step_s, decel * step_s
     limit_mps = np.array([s.speed_limit_mps for s in road.segments])
 
     def long_speed(vehicles: np.ndarray) -> np.ndarray:
@@ -715,9 +737,7 @@ def _headway_bound_mps(
             )
         return np.where(np.isfinite(gap_m), out, np.inf)
 
-    slots = np.broadcast_to(np.arange(cav_index.shape[-1]), cav_index.shape)  # (..., C)
-    slot_of = np.full(state.x_m.shape, -1, np.int64)  # (..., V) CAV slot of a vehicle, -1: HDV
-    np.put_along_axis(slot_of, cav_index, slots, axis=-1)
+    slot_of = _slot_of(state, cav_index)  # (..., V)
     lead = np.maximum(fronts.sf_index, 0)
     lead_slot = np.where(fronts.sf_vehicle.valid, take(slot_of, lead), -1)  # (..., C)
     lead_gap_m = np.where(fronts.sf_vehicle.valid, fronts.sf_vehicle.d_long_m, np.inf)
@@ -777,7 +797,22 @@ def _headway_bound_mps(
         out = bound(cut_gap_m, step_m, v1, cfg.cav_time_gap_s, own=ego_mps[i_])
         return out.min(-1, initial=np.inf)
 
+    def known_threat(slot: np.ndarray, gap_m: np.ndarray, end_mps: np.ndarray) -> np.ndarray:
+        """(..., C) the CAV in ``slot`` ahead (ending the step at ``end_mps``) is a threat:
+        it brakes harder than planned, is too close, or planned braking falls short."""
+        s = np.maximum(slot, 0)
+        v0, v1 = np.take_along_axis(ego_mps, s, -1), np.take_along_axis(end_mps, s, -1)
+        with np.errstate(invalid="ignore"):
+            planned_end_mps = safe_end_speed_mps(
+                gap_m, ego_mps, 0.5 * (v0 + v1) * step_s, v1, step_s, decel, cfg.min_gap_m
+            )
+        hard = v0 - v1 > planned_mps + 1e-9
+        short = planned_end_mps < ego_mps - planned_mps
+        return (slot >= 0) & (hard | short | (gap_m < cfg.min_gap_m))
+
+    known_leaders = cfg.full_brake == "known"
     cav_limit_mps = limit_mps[take(state.segment, cav_index).astype(np.int64)]
+    brake_mps = np.broadcast_to(np.asarray(max_brake_mps, float), cav_index.shape).copy()
     bound_mps = fixed_mps.copy()
     end_mps = np.zeros(cav_index.shape)  # (..., C) decided end-of-step speed
     decided = ~take(state.active, cav_index)
@@ -792,9 +827,14 @@ def _headway_bound_mps(
         for slot, gap_m in known:
             now = np.minimum(now, behind_known(slot, gap_m, end_mps))
         bound_mps = np.where(ready, now, bound_mps)
+        brake_now = brake_mps
+        if known_leaders:
+            for slot, gap_m in known:
+                brake_now = np.where(known_threat(slot, gap_m, end_mps), full_mps, brake_now)
+            brake_mps = np.where(ready, brake_now, brake_mps)
         # What the backend makes of the command: within the speed limit (lower is safer).
         end_now = np.minimum(
-            _end_speed_mps(ego_mps, speed_change_mps, now, max_brake_mps), cav_limit_mps
+            _end_speed_mps(ego_mps, speed_change_mps, now, brake_now), cav_limit_mps
         )
         end_mps = np.where(ready, end_now, end_mps)
         decided |= ready
@@ -810,4 +850,6 @@ def _headway_bound_mps(
     worst_cut_mps = bound(cut_gap_m, cut_step_m, cut_end_mps, 0.0, own=ego_mps[i_])
     worst_mps = np.minimum(worst_mps, worst_cut_mps.min(-1, initial=np.inf))
     bound_mps = np.where(decided, bound_mps, worst_mps)
-    return bound_mps
+    if not known_leaders:
+        return bound_mps, max_brake_mps
+    return bound_mps, np.where(decided, brake_mps, full_mps)

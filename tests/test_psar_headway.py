@@ -96,7 +96,60 @@ def test_full_brake_threat_restores_a_short_gap_at_the_planned_rate():
         PSARConfig(full_brake="sometimes")
 
 
-@pytest.mark.parametrize("full_brake", ["bound", "threat"])
+def test_full_brake_known_judges_a_cav_leader_by_its_command():
+    # A CAV 4 m behind a CAV leader at 20 / 18 m/s (it cut in): the bound behind the
+    # known leader asks for more than the planned 4 m/s. "threat" counts every CAV
+    # leader as a threat and brakes at the full 5 m/s^2; "known" sees the leader
+    # hold its speed and planned braking keep min_gap_m: 4 m/s^2.
+    x, lane, is_cav = [100.0, 100.0 + LENGTH_M + 4.0], [1, 1], [True, True]
+    speed = [20.0, 18.0]
+    threat = run(x, lane, speed, is_cav, [REMAIN, REMAIN], PSARConfig(full_brake="threat"))
+    known_cfg = PSARConfig(full_brake="known")
+    known = run(x, lane, speed, is_cav, [REMAIN, REMAIN], known_cfg)
+    assert threat.speed_change_mps[0] == -5.0 and known.speed_change_mps[0] == -4.0
+    assert known.rule.tolist() == [FORCE_BRAKE, 0]
+    # The leader brakes harder than planned (a standing HDV 12 m ahead of it): a threat.
+    x3, lane3 = [*x, x[1] + LENGTH_M + 12.0], [1, 1, 1]
+    res = run(x3, lane3, [*speed, 0.0], [True, True, False], [REMAIN, REMAIN], known_cfg)
+    assert res.speed_change_mps[1] == -5.0 and res.speed_change_mps[0] == -5.0
+    # Closer than min_gap_m, or planned braking falls short behind the known motion.
+    close = run([100.0, 100.0 + LENGTH_M + 1.5], lane, speed, is_cav, [REMAIN, REMAIN], known_cfg)
+    assert close.speed_change_mps[0] == -5.0
+    slow = run(x, lane, [20.0, 8.0], is_cav, [REMAIN, REMAIN], known_cfg)
+    assert slow.speed_change_mps[0] == -5.0
+    # The leader's slot is what makes it known: a CAV without one is judged as before.
+    state = make_state(x, lane, speed, is_cav=is_cav)
+    alone = psar(state, np.array([0]), np.array([REMAIN]), known_cfg, ROAD, SIM)
+    assert alone.speed_change_mps[0] == -5.0
+
+
+@pytest.mark.parametrize("full_brake", ["bound", "threat", "known"])
+def test_a_cav_platoon_that_only_accelerates_stops_behind_a_standing_hdv(full_brake):
+    # Closed loop: three CAVs 10 m apart ask to accelerate every step towards an HDV
+    # standing 100 m ahead of the head; every rule must stop all three without contact.
+    cfg = PSARConfig(horizon="headway", full_brake=full_brake)
+    for speed_mps in (14.0, 22.0):
+        x_m = np.array([100.0, 115.0, 130.0])
+        v_mps, accel_mps2 = np.full(3, speed_mps), np.zeros(3)
+        hdv_x_m = x_m[-1] + LENGTH_M + 100.0
+        for _ in range(40):
+            state = make_state(
+                [*x_m, hdv_x_m],
+                [1, 1, 1, 1],
+                [*v_mps, 0.0],
+                is_cav=[True, True, True, False],
+                accel_mps2=[*accel_mps2, 0.0],
+            )
+            res = psar(state, np.arange(3), np.full(3, ACCELERATE), cfg, ROAD, SIM)
+            end_mps = np.maximum(v_mps + res.speed_change_mps, 0.0)
+            x_m = x_m + 0.5 * (v_mps + end_mps) * SIM.step_s
+            accel_mps2, v_mps = (end_mps - v_mps) / SIM.step_s, end_mps
+            gaps_m = np.diff([*x_m, hdv_x_m]) - LENGTH_M
+            assert gaps_m.min() >= 1.0, (speed_mps, gaps_m)
+        assert (v_mps == 0.0).all()
+
+
+@pytest.mark.parametrize("full_brake", ["bound", "threat", "known"])
 def test_a_cav_that_only_accelerates_stops_behind_a_standing_hdv(full_brake):
     # Closed loop: a CAV asking to accelerate every step drives up to an HDV
     # standing in its lane (the end of a jam, say). PSAR must stop it about
