@@ -10,14 +10,16 @@
 #
 # SAMPLED_ON (default highway) lists the backends on which sampled actions are evaluated too;
 # GRID another grid file, e.g. benchmarks/grids/zero-shot-geometry.toml (maps never trained on);
-# PRESET another HDV style preset, e.g. paper-congestion (the paper's stuck cautious drivers).
+# PRESET another HDV style preset, e.g. paper-congestion (the paper's stuck cautious drivers);
+# FULL_BRAKE a PSAR full_brake rule for every policy with PSAR (default: each policy's own).
 set -euo pipefail
 runs=${RUNS:-runs/l27}
 out=${OUT:-runs/l27-eval}
 episodes=${EPISODES:-10}
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 common=(--grid "${GRID:-benchmarks/grids/train-50.toml}" --episodes "$episodes" --style-preset "${PRESET:-realistic}"
-        --episode-steps 330 --psar-horizon headway --no-progress --workers "${WORKERS:-1}")
+        --episode-steps 330 --psar-horizon headway --no-progress --workers "${WORKERS:-1}"
+        ${FULL_BRAKE:+--psar-full-brake "$FULL_BRAKE"})
 for backend in ${BACKENDS:-highway sumo}; do
   for baseline in pure-hdv same-mix heuristic cooperative; do
     nice -n 5 diacc eval --policy "$baseline" --backend "$backend" "${common[@]}" \

@@ -341,13 +341,13 @@ class PSARConfig:
     ``"stopping"`` (the default before 2026-12-02, kept by every checkpoint and
     result made with it) lengthens the distance thresholds by a safe stopping
     gap, which keeps CAVs ~2.3 s behind HDVs; ``"paper"`` keeps them fixed.
-    ``full_brake`` (``"headway"`` only): ``"threat"`` (the default since
-    2026-12-03) brakes beyond the planned rate ``safe_decel_mps2`` only
-    when a vehicle ahead brakes harder, is a CAV, is closer than
+    ``full_brake`` (``"headway"`` only): ``"threat"`` (the default on
+    2026-12-03, kept by checkpoints made with it) brakes beyond the planned
+    rate ``safe_decel_mps2`` only when a vehicle ahead brakes harder, is a CAV, is closer than
     ``min_gap_m`` or is so much slower that planned braking falls short, and
     restores a gap a cut-in shortened over several steps;
-    ``"known"`` is ``"threat"`` with a CAV leader judged by its known command
-    of this step rather than always a threat;
+    ``"known"`` (the default since 2026-12-03, after ``"threat"``) is ``"threat"`` with a CAV leader
+    judged by its known command of this step rather than always a threat;
     ``"bound"`` (before; kept by checkpoints made with it) brakes up to the
     physical limit whenever the speed bound asks (each cut-in then counts as an
     emergency brake in p(SCE)). ``coordinate_lane_changes`` stops two connected
@@ -371,7 +371,7 @@ class PSARConfig:
     min_gap_m: float = 2.0  # "headway": standstill gap kept behind any front obstacle
     cav_time_gap_s: float = 0.3  # "headway": time gap behind a CAV whose command is known
     cooperative_merge: bool = True  # "headway": CAVs open a gap for a CAV asking to merge in
-    full_brake: str = "threat"  # "headway": when to brake past the planned rate (FULL_BRAKE_MODES)
+    full_brake: str = "known"  # "headway": when to brake past the planned rate (FULL_BRAKE_MODES)
 
     def __post_init__(self) -> None:
         if not (self.d_lc_min_m <= self.d_safe_m < self.d_warn_m < self.d_att_m):

@@ -203,7 +203,8 @@ def test_checkpoint_policy_greedy_and_deterministic(tmp_path):
 
 
 def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_path):
-    """PSAR's default horizon became "headway" and its full_brake "threat" (2026-12-02).
+    """PSAR's default horizon became "headway" and its full_brake "threat" (2026-12-02),
+    then "known" (later that day).
     A results directory written before, whose meta.json names neither, holds "stopping"
     / "bound" episodes of a rule-based policy: continuing it unasked would mix PSARs. A
     checkpoint kept its own."""
@@ -229,7 +230,7 @@ def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_p
     (old_ckpt / "meta.json").write_text(json.dumps(meta))
     run(PolicySpec(str(ckpt)), old_ckpt)
     settings = json.loads((old_ckpt / "meta.json").read_text())["settings"]
-    assert (settings["psar_horizon"], settings["psar_full_brake"]) == ("headway", "threat")
+    assert (settings["psar_horizon"], settings["psar_full_brake"]) == ("headway", "known")
 
 
 def test_sampled_actions_are_seeded_and_differ_from_greedy(tmp_path):

@@ -343,7 +343,9 @@ _ENV_SECTIONS_BEFORE_NESTING = ("backend", "map", "sim", "scenario", "obs", "psa
 #: The learner's sizes and minibatches: the small learner since 2026-12-02, the
 #: paper's (:data:`diacc.config.PAPER_LEARNER`) before; every stored config holds
 #: them, so this only keeps a config that lost them on the sizes it meant.
-#: ``env.psar.full_brake``: ``"threat"`` since 2026-12-03, ``"bound"`` before. ``entropy_coef``
+#: ``env.psar.full_brake``: ``"known"`` since the evening of 2026-12-03, ``"threat"``
+#: that morning (every config written since the field exists stores it), ``"bound"``
+#: before. ``entropy_coef``
 #: (in PAPER_LEARNER): 0.001 since 2026-12-03, 0.01 before.
 _OLD_DEFAULTS = {
     "env.psar.horizon": "stopping",
