@@ -146,3 +146,7 @@ def test_headroom_agent_bad_input(capsys):
     assert "--agent needs --headroom" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="unknown agent actions 'best'"):
         headroom.run(agents=(SHIPPED,), agent_actions=("best",))
+    # A missing agent is refused before the references run (they take minutes).
+    assert main(["bench", "--headroom", "--agent", "runs/none/checkpoint.pt"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "diacc: error: checkpoint runs/none/checkpoint.pt does not exist"

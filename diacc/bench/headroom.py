@@ -44,7 +44,7 @@ from diacc.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
 from diacc.maps import load_map
-from diacc.policies import EvalSettings, PolicySpec, build_policy
+from diacc.policies import EvalSettings, PolicySpec, build_policy, parse_policy
 from diacc.scenario import Scenario
 from diacc.state import TrafficState
 
@@ -165,7 +165,9 @@ def make_driver(
         base = dataclasses.replace(demand, cav_slots=slots)
         sim = dataclasses.replace(policy.base.sim, episode_steps=steps)  # EnvConfig checks warm-up
         policy.base = dataclasses.replace(policy.base, scenario=base, sim=sim)
-    settings = EvalSettings(backend, steps, style_preset, psar_horizon=horizon)
+    # Every row under the same PSAR: a checkpoint trained under an older full_brake rule too.
+    full_brake = PSARConfig().full_brake
+    settings = EvalSettings(backend, steps, style_preset, horizon, psar_full_brake=full_brake)
     return SlotCountingDriver(policy, policy.env_config(cell, settings))
 
 
@@ -216,7 +218,7 @@ def run(
     ``agents``: checkpoints (or run directories) measured after the references on
     the same seeded traffic, one row per agent and entry of ``agent_actions``
     (``greedy``, ``sampled``), labelled ``<name> <actions>``: trained agents next
-    to what rules and humans reach.
+    to what rules and humans reach, under the same PSAR (today's ``full_brake``).
 
     ``demand``: a ``demand`` :class:`Scenario` (:func:`demand_scenario`) instead of
     the one-shot release; then ``maps`` defaults to ``train-50``, ``style_preset``
@@ -239,9 +241,9 @@ def run(
     if unknown:
         raise ConfigError(f"unknown agent actions {unknown[0]!r}; use greedy or sampled")
     rows = [(label, name, rho, False) for label, name, rho in references]
-    for path in agents:
-        name = Path(path).parent.name if Path(path).suffix == ".pt" else Path(path).name
-        name = Path(path).stem if name in ("", "checkpoints") else name
+    for agent in agents:  # checked before any episode runs
+        path = Path(parse_policy(str(agent)).name)  # a run directory's checkpoint.pt
+        name = path.stem if path.parent.name in ("", "checkpoints") else path.parent.name
         rows += [(f"{name} {a}", str(path), None, a == "sampled") for a in agent_actions]
     psar_label = horizon or PSARConfig().horizon  # the horizon the table was made with
     if demand is None:
@@ -252,8 +254,8 @@ def run(
             f"(N = {demand.n_vehicles}), warm-up {demand.warmup_s:g} s, rho = {RHO}, {MIX}"
         )
     print(
-        f"head-room: {what}, preset {style_preset}, "
-        f"{episodes} seeded episodes x {steps} steps, PSAR horizon {psar_label}"
+        f"head-room: {what}, preset {style_preset}, {episodes} seeded episodes x {steps} "
+        f"steps, PSAR horizon {psar_label}, full_brake {PSARConfig().full_brake}"
     )
     headers = [h for _, h, _ in METRICS] + ["unslotted CAV-steps"] * (demand is not None)
     headers += ["delay vs pure HDV", "throughput vs pure HDV"]
