@@ -355,23 +355,12 @@ def psar(
     )  # (..., C) i yields to a CAV ahead entering the same lane
     # Nor does a CAV change next to an HDV alongside beyond the target lane: that
     # one may move into the same lane in the same instant, and its intent is unknown.
-    # Behind the CAV, "alongside" reaches as far as the rear check above: an HDV there
-    # that moved in too would be a rear vehicle closer than it can brake for (SUMO,
-    # demand 3600 veh/h: an HDV 6 m behind at 17 m/s and a CAV at 5 m/s entered one
-    # lane from both sides in the same step and collided).
     dx_all_m = state.x_m[..., None, :] - cav_x_m[..., None]  # (..., C, V)
     half_all_m = 0.5 * (state.length_m[..., None, :] + cav_length_m[..., None])
-    reach_m = np.full(dx_all_m.shape, cfg.d_safe_m)  # (..., C, V)
-    if stopping:
-        far_mps = np.maximum(state.speed_mps, 0.0)[..., None, :]  # (..., 1, V)
-        far_margin_m = cfg.d_lc_min_m + safe_gap_m(
-            far_mps, ego_speed_mps[..., None], 0.0, safe_decel
-        )
-        reach_m = np.where(dx_all_m < 0.0, np.maximum(reach_m, far_margin_m), reach_m)
     beyond = (
         (state.active & ~state.is_cav)[..., None, :]  # a CAV's intent is known (above)
         & (state.lane[..., None, :] == (lane + 2 * offset)[..., None])
-        & (np.abs(dx_all_m) - half_all_m <= reach_m)
+        & (np.abs(dx_all_m) - half_all_m <= cfg.d_safe_m)
     ).any(axis=-1)  # (..., C)
     clash |= moving & (offset != 0) & beyond
     cancel |= clash & cfg.coordinate_lane_changes

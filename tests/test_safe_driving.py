@@ -140,25 +140,6 @@ def test_connected_cavs_do_not_change_into_each_other():
     assert res.action.tolist() == [LANE_LEFT, LANE_RIGHT]
 
 
-def test_no_lane_change_while_an_hdv_beyond_the_target_lane_closes_from_behind():
-    # CAV 0 in lane 2 at 5 m/s asks to move right into lane 1; HDV 1 in lane 0, 6.2 m
-    # behind (bumper gap), drives at 17.2 m/s and may move into lane 1 in the same step
-    # (SUMO, demand 3600 veh/h: both did and collided). Were it in lane 1 it would need
-    # 1 m + (17.2^2 - 5^2) / (2 x 4) = 34.9 m to brake for the CAV: the change waits.
-    state = make_state([100.0, 88.8], [2, 0], [5.0, 17.2], is_cav=[True, False])
-    res = psar(state, np.array([0]), np.array([LANE_RIGHT]), DEFAULT, ROAD, SIM)
-    assert res.action.tolist() == [REMAIN] and res.rule.tolist() == [CANCEL_LC]
-    # At the CAV's speed, or 36 m further back, it could brake in time: the change goes.
-    for x_m, speed_mps in ((88.8, 5.0), (52.8, 17.2)):
-        state = make_state([100.0, x_m], [2, 0], [5.0, speed_mps], is_cav=[True, False])
-        res = psar(state, np.array([0]), np.array([LANE_RIGHT]), DEFAULT, ROAD, SIM)
-        assert res.action.tolist() == [LANE_RIGHT], (x_m, speed_mps)
-    # Ahead of the CAV only the alongside zone (d_safe_m) counts, as before.
-    state = make_state([100.0, 111.0], [2, 0], [5.0, 17.2], is_cav=[True, False])
-    res = psar(state, np.array([0]), np.array([LANE_RIGHT]), DEFAULT, ROAD, SIM)
-    assert res.action.tolist() == [LANE_RIGHT]
-
-
 @pytest.mark.parametrize("backend_name", ["highway", "sumo"])
 def test_cav_stops_at_the_end_of_its_lane_and_can_change_later(backend_name):
     """No simulator moves a CAV: in an ending lane it stops with its front at the end."""
