@@ -136,7 +136,9 @@ def main() -> None:
     parser.add_argument("--episode-steps", type=int, default=600)
     parser.add_argument("--rollout-steps", type=int, default=100, help="timed rollout steps")
     parser.add_argument("--updates", type=int, default=1, help="timed training updates (0: none)")
-    parser.add_argument("--max-on-road", type=int, default=200, help="windowed max_vehicles")
+    parser.add_argument(
+        "--max-on-road", type=int, default=320, help="windowed max_vehicles (200 overflow)"
+    )
     parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
     parser.add_argument("--train-modes", nargs="+", choices=MODES, default=["windowed"])
     parser.add_argument("--child", choices=MODES, help=argparse.SUPPRESS)
