@@ -222,6 +222,12 @@ def _bench_parser(sub) -> None:
         "the references, on the same traffic (repeatable)",
     )
     p.add_argument(
+        "--references",
+        default=None,
+        help="comma-separated reference rows of --headroom (default: all): "
+        "pure-hdv, same-mix, heuristic, cooperative, cavs-100 (the heuristic with 100 %% CAVs)",
+    )
+    p.add_argument(
         "--agent-actions",
         nargs="+",
         choices=("greedy", "sampled"),
@@ -338,8 +344,8 @@ def cmd_bench(args: argparse.Namespace) -> None:
     given += ["--scenario demand"] * (args.scenario == "demand")
     if given and not (args.headroom and args.scenario == "demand"):
         raise ConfigError(f"{given[0]} needs --headroom with --scenario demand")
-    if args.agent and not args.headroom:
-        raise ConfigError("--agent needs --headroom")
+    if (args.agent or args.references) and not args.headroom:
+        raise ConfigError(f"{'--agent' if args.agent else '--references'} needs --headroom")
     if args.safety:
         from diacc.bench import safety
 
@@ -392,6 +398,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
             demand=demand,
             agents=tuple(args.agent),
             agent_actions=tuple(args.agent_actions),
+            references=headroom.pick_references(args.references),
         )
         return
     if args.backend == "highway":

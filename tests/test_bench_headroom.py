@@ -146,6 +146,15 @@ def test_headroom_agent_bad_input(capsys):
     assert "--agent needs --headroom" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="unknown agent actions 'best'"):
         headroom.run(agents=(SHIPPED,), agent_actions=("best",))
+    assert headroom.pick_references("same-mix, cavs-100") == (
+        headroom.REFERENCES[1],
+        headroom.REFERENCES[4],
+    )
+    for bad in ("same-mix,humans", ","):
+        with pytest.raises(ConfigError, match="unknown --references entry"):
+            headroom.pick_references(bad)
+    assert main(["bench", "--headway", "--references", "same-mix"]) == 2
+    assert "--references needs --headroom" in capsys.readouterr().err
     # A missing agent is refused before the references run (they take minutes).
     assert main(["bench", "--headroom", "--agent", "runs/none/checkpoint.pt"]) == 2
     err = capsys.readouterr().err.strip()

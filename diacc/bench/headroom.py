@@ -56,6 +56,8 @@ REFERENCES = (
     ("cooperative", "cooperative", None),
     ("100 % CAVs heuristic", "heuristic", 1.0),
 )
+#: Names of the reference rows for ``--references`` (same order as REFERENCES).
+REFERENCE_NAMES = ("pure-hdv", "same-mix", "heuristic", "cooperative", "cavs-100")
 #: Baselines whose CAVs take commands (the others' CAVs do not exist or drive themselves);
 #: a checkpoint's CAVs take them too.
 COMMANDING = ("heuristic",)
@@ -66,6 +68,7 @@ METRICS = (
     ("throughput_vph", "throughput veh/h", "{:.0f}"),
     ("arrived_fraction", "arrived", "{:.0%}"),
     ("p_we", "p(WE)", "{:.1%}"),
+    ("p_sce", "p(SCE)", "{:.1%}"),
     ("collision", "collision eps", "{:.0%}"),
 )
 #: Demand defaults: the committed demand results' (benchmarks/results/demand).
@@ -84,6 +87,20 @@ class HeadroomRow:
     label: str
     episodes: int
     values: dict[str, float]  # METRICS column (+ unslotted_cav_steps) -> mean over episodes
+
+
+def pick_references(names: str | None) -> tuple[tuple[str, str, float | None], ...]:
+    """The reference rows a comma-separated list of :data:`REFERENCE_NAMES` picks (None: all)."""
+    if names is None:
+        return REFERENCES
+    picked = [n.strip() for n in names.split(",") if n.strip()]
+    unknown = [n for n in picked if n not in REFERENCE_NAMES]
+    if unknown or not picked:
+        raise ConfigError(
+            f"unknown --references entry {(unknown or [''])[0]!r}; use some of "
+            f"{', '.join(REFERENCE_NAMES)}"
+        )
+    return tuple(r for n, r in zip(REFERENCE_NAMES, REFERENCES, strict=True) if n in picked)
 
 
 def free_flow_travel_s(map_name: str, style_preset: str) -> float:
