@@ -521,7 +521,8 @@ def _headway_car_following(
     other's intent). Returns ``(action, speed change, rule mask, b_lc)``.
     """
     step_s, dv_action = sim.step_s, sim.speed_change_mps
-    max_brake_mps = _max_brake_mps(state, cav_index, fronts, cfg, sim)  # (..., C)
+    slot_of = _slot_of(state, cav_index)  # (..., V)
+    max_brake_mps = _max_brake_mps(state, cav_index, slot_of, fronts, cfg, sim)  # (..., C)
     active = take(state.active, cav_index)
     offset = ACTION_LANE_OFFSET[a]
     changing = active & (offset != 0)
@@ -534,6 +535,7 @@ def _headway_car_following(
         entering_lane,
         changing,
         speed_change,
+        slot_of,
         fronts,
         max_brake_mps,
         cfg,
@@ -557,6 +559,7 @@ def _headway_car_following(
 def _max_brake_mps(
     state: TrafficState,
     cav_index: np.ndarray,
+    slot_of: np.ndarray,
     fronts: _FrontObstacles,
     cfg: PSARConfig,
     sim: SimConfig,
@@ -591,7 +594,6 @@ def _max_brake_mps(
     ego_mps = np.maximum(take(state.speed_mps, cav_index), 0.0)  # (..., C)
     threat = np.zeros(fronts.sf_index.shape, bool)  # (..., C)
     ahead = ((fronts.sf_vehicle, fronts.sf_index), (fronts.merging, fronts.merging_index))
-    slot_of = _slot_of(state, cav_index)  # (..., V)
     for kin, index in ahead:
         vehicle = np.maximum(index, 0)
         cav = take(state.is_cav, vehicle)  # (..., C)
@@ -676,6 +678,7 @@ def _headway_bound_mps(
     entering_lane: np.ndarray,
     changing: np.ndarray,
     speed_change_mps: np.ndarray,
+    slot_of: np.ndarray,
     fronts: _FrontObstacles,
     max_brake_mps: np.ndarray | float,
     cfg: PSARConfig,
@@ -707,6 +710,7 @@ def _headway_bound_mps(
         entering_lane: (..., C) lane each CAV changes or asks to change into (-1: none).
         changing: (..., C) bool, the CAV changes lanes in this step.
         speed_change_mps: (..., C) commands before car following.
+        slot_of: (..., V) each vehicle's agent slot, -1: none (:func:`_slot_of`).
         fronts: what lies ahead (:class:`_FrontObstacles`); the merging vehicle
             is followed like an HDV leader.
         max_brake_mps: (..., C) the speed drop each CAV may command (:func:`_max_brake_mps`).
@@ -737,7 +741,6 @@ def _headway_bound_mps(
             )
         return np.where(np.isfinite(gap_m), out, np.inf)
 
-    slot_of = _slot_of(state, cav_index)  # (..., V)
     lead = np.maximum(fronts.sf_index, 0)
     lead_slot = np.where(fronts.sf_vehicle.valid, take(slot_of, lead), -1)  # (..., C)
     lead_gap_m = np.where(fronts.sf_vehicle.valid, fronts.sf_vehicle.d_long_m, np.inf)
