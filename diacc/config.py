@@ -615,6 +615,10 @@ class TrainConfig:
     # "team": one value per env, all CAVs share the advantage (paper); "per_agent":
     # a value per CAV slot from its own features beside the global state (docs)
     critic_values: str = one_of("team", ("team", "per_agent"))
+    # maps trained on beside env.map: the envs are split into one contiguous block per
+    # map (diacc.vector.maps_of_envs), so one policy learns several road layouts
+    # (--set extra_maps=train-25,right-50.toml); () trains on env.map alone
+    extra_maps: tuple[str, ...] = ()
     run_dir: str = "runs/diacc"
     env: EnvConfig = field(default_factory=EnvConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -704,6 +708,11 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
 
 def _coerce(current: Any, value: Any, key: str) -> Any:
     kind = type(current)
+    if kind is tuple:  # of strings: "a,b" (--set) or a TOML / JSON list
+        items = value.split(",") if isinstance(value, str) else value
+        if not isinstance(items, list | tuple) or not all(isinstance(v, str) for v in items):
+            raise ConfigError(f"config key {key!r} expects a list of names, got {value!r}")
+        return tuple(v.strip() for v in items if v.strip())
     if isinstance(value, str) and kind is not str:
         try:
             if kind is bool:
@@ -847,6 +856,14 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         raise ConfigError(
             f"rollout_steps {cfg.rollout_steps} must be >= env.sim.episode_steps "
             f"{cfg.env.sim.episode_steps}, so that rollouts hold whole episodes"
+        )
+    maps = (cfg.env.map, *cfg.extra_maps)
+    if len(set(maps)) < len(maps):
+        raise ConfigError(f"extra_maps repeats a map: {', '.join(maps)}")
+    if len(maps) > cfg.n_envs:
+        raise ConfigError(
+            f"{len(maps)} training maps ({', '.join(maps)}) need at least as many envs, "
+            f"got n_envs {cfg.n_envs}"
         )
     sequences = cfg.n_envs * (cfg.rollout_steps // cfg.chunk_len)
     if cfg.minibatches > sequences:

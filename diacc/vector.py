@@ -22,6 +22,12 @@ metrics, and recovery from a crashed simulator.
   (``truncated`` with zero reward, bootstrapped from the last state before the
   crash) and counted in ``restarts``. A worker that keeps dying
   (:data:`MAX_RESTARTS` in a row) ends the run with a one-line error.
+
+A run may train on several maps (``TrainConfig.extra_maps``): the environments
+are split into contiguous blocks, one per map (:func:`maps_of_envs`); a batched
+run steps one :class:`BatchedVectorEnv` per map (a batch shares one road) inside
+a :class:`MapGroupsVectorEnv`. Observations have one layout for every map, so
+the trainer sees E environments as before.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import signal
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -48,6 +54,18 @@ from diacc.threads import worker_environment
 
 #: Restarts of one worker in a row (within one call) before the vector env gives up.
 MAX_RESTARTS = 3
+
+
+def maps_of_envs(maps: tuple[str, ...], n_envs: int) -> list[str]:
+    """The map of each of ``n_envs`` environments: ``maps`` in contiguous, near-equal blocks.
+
+    Blocks (not round-robin) keep a batched group's environments next to each other,
+    so that the groups' steps concatenate in environment order.
+    """
+    if len(maps) > n_envs:
+        raise ValueError(f"{len(maps)} maps need at least as many envs, got {n_envs}")
+    blocks = np.array_split(np.arange(n_envs), len(maps))
+    return [maps[m] for m, block in enumerate(blocks) for _ in block]
 
 
 def episode_seed(run_seed: int, env_index: int, episode: int) -> int:
@@ -227,13 +245,23 @@ class SyncVectorEnv:
 
     ``env_indices`` picks which of the run's environments this object holds
     (all of ``range(n_envs)`` by default); worker processes hold a group each.
+    ``env_maps``: the map of each of the run's environments (``config.map`` for all
+    by default; :func:`maps_of_envs`).
     """
 
     def __init__(
-        self, config: EnvConfig, n_envs: int, run_seed: int, env_indices: list[int] | None = None
+        self,
+        config: EnvConfig,
+        n_envs: int,
+        run_seed: int,
+        env_indices: list[int] | None = None,
+        env_maps: list[str] | None = None,
     ) -> None:
         indices = list(range(n_envs)) if env_indices is None else env_indices
-        self.runners = [EnvRunner(config, run_seed, e) for e in indices]
+        self.runners = [
+            EnvRunner(config if env_maps is None else replace(config, map=env_maps[e]), run_seed, e)
+            for e in indices
+        ]
         self.n_envs, self.n_cavs = len(indices), config.scenario.n_slots
 
     def reset_list(self, first_episode: int | None = None) -> list[tuple[ActorObs, CriticState]]:
@@ -271,17 +299,22 @@ class BatchedVectorEnv(SyncVectorEnv):
     :class:`SyncVectorEnv`'s.
     """
 
-    def __init__(self, config: EnvConfig, n_envs: int, run_seed: int) -> None:
+    def __init__(
+        self, config: EnvConfig, n_envs: int, run_seed: int, env_indices: list[int] | None = None
+    ) -> None:
+        """``env_indices``: the run's envs held (their seeds); ``range(n_envs)`` by default."""
         from diacc.backends.highway.backend import BatchSlot, HighwayBackend
 
         if config.backend != "highway":
             raise ValueError(f"vector mode batched needs the highway backend, not {config.backend}")
+        indices = list(range(n_envs)) if env_indices is None else env_indices
         road = preset_road(load_map(config.map), config.sim.style_preset)
-        self.batch = HighwayBackend(road, config.sim, n_envs=n_envs)
+        self.batch = HighwayBackend(road, config.sim, n_envs=len(indices))
         self.runners = [
-            EnvRunner(config, run_seed, e, BatchSlot(self.batch, e)) for e in range(n_envs)
+            EnvRunner(config, run_seed, e, BatchSlot(self.batch, row))
+            for row, e in enumerate(indices)
         ]
-        self.config, self.n_envs, self.n_cavs = config, n_envs, config.scenario.n_slots
+        self.config, self.n_envs, self.n_cavs = config, len(indices), config.scenario.n_slots
 
     def step_list(self, actions: np.ndarray) -> list[EnvStep]:  # actions (E, C)
         envs = [r.env for r in self.runners]
@@ -315,16 +348,56 @@ class BatchedVectorEnv(SyncVectorEnv):
         ]
 
 
+class MapGroupsVectorEnv(SyncVectorEnv):
+    """Environments on several maps: one :class:`BatchedVectorEnv` per map, stepped in turn.
+
+    A batched simulator shares one road, so each map gets its own batch, holding a
+    contiguous block of the run's environments (:func:`maps_of_envs`); their steps
+    concatenate in environment order.
+    """
+
+    def __init__(self, config: EnvConfig, n_envs: int, run_seed: int, env_maps: list[str]) -> None:
+        maps = list(dict.fromkeys(env_maps))  # in order of first appearance
+        self.groups = [
+            BatchedVectorEnv(
+                replace(config, map=m),
+                n_envs,
+                run_seed,
+                [e for e in range(n_envs) if env_maps[e] == m],
+            )
+            for m in maps
+        ]
+        self.runners = [r for g in self.groups for r in g.runners]
+        self.n_envs, self.n_cavs = n_envs, config.scenario.n_slots
+
+    def reset_list(self, first_episode: int | None = None) -> list[tuple[ActorObs, CriticState]]:
+        return [pair for g in self.groups for pair in g.reset_list(first_episode)]
+
+    def step_list(self, actions: np.ndarray) -> list[EnvStep]:  # actions (E, C)
+        steps, start = [], 0
+        for g in self.groups:
+            steps += g.step_list(actions[start : start + g.n_envs])
+            start += g.n_envs
+        return steps
+
+
 def _stack_pairs(pairs: list[tuple[ActorObs, CriticState]]) -> tuple[ActorObs, CriticState]:
     return stack([p[0] for p in pairs]), stack([p[1] for p in pairs])
 
 
-def _worker(conn, config: EnvConfig, run_seed: int, env_indices: list[int], episode: int) -> None:
+def _worker(
+    conn,
+    config: EnvConfig,
+    run_seed: int,
+    env_indices: list[int],
+    episode: int,
+    env_maps: list[str] | None = None,
+) -> None:
     # Ctrl-C is for the trainer, which stops at the next update boundary; the
     # worker (and the SUMO processes it starts, which inherit this) carries on.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     join_parent_log()  # e.g. a SUMO worker restarted at reset
-    group = SyncVectorEnv(config, 0, run_seed, env_indices)
+    group = SyncVectorEnv(config, 0, run_seed, env_indices, env_maps)
     for runner in group.runners:
         runner.episode = episode
     try:
@@ -353,9 +426,14 @@ class ProcessVectorEnv:
     """
 
     def __init__(
-        self, config: EnvConfig, n_envs: int, run_seed: int, n_workers: int | None = None
+        self,
+        config: EnvConfig,
+        n_envs: int,
+        run_seed: int,
+        n_workers: int | None = None,
+        env_maps: list[str] | None = None,
     ) -> None:
-        self.config, self.run_seed = config, run_seed
+        self.config, self.run_seed, self.env_maps = config, run_seed, env_maps
         self.n_envs, self.n_cavs = n_envs, config.scenario.n_slots
         n_workers = min(n_envs, n_workers or os.cpu_count() or 1)
         self.groups = [g.tolist() for g in np.array_split(np.arange(n_envs), n_workers)]
@@ -373,7 +451,7 @@ class ProcessVectorEnv:
         parent, child = self.ctx.Pipe()
         proc = self.ctx.Process(
             target=_worker,
-            args=(child, self.config, self.run_seed, self.groups[w], episode),
+            args=(child, self.config, self.run_seed, self.groups[w], episode, self.env_maps),
             daemon=True,
         )
         with worker_environment():  # one library thread per worker (diacc.threads)
@@ -480,21 +558,31 @@ class ProcessVectorEnv:
                 w.kill()
 
 
-def make_vector_env(config: EnvConfig, n_envs: int, run_seed: int, mode: str = "auto"):
+def make_vector_env(
+    config: EnvConfig,
+    n_envs: int,
+    run_seed: int,
+    mode: str = "auto",
+    extra_maps: tuple[str, ...] = (),
+):
     """``mode``: ``sync``, ``batched``, ``process`` or ``auto`` (the backend's ``vector_mode``).
 
     ``auto`` steps a single environment on its own (``sync``): a batch of one
     gives the same results but pays the batching (measured x0.70 env-steps/s,
-    ``diacc bench --env-batch``).
+    ``diacc bench --env-batch``). ``extra_maps``: maps beside ``config.map`` that
+    the environments are split over (:func:`maps_of_envs`).
     """
+    env_maps = maps_of_envs((config.map, *extra_maps), n_envs) if extra_maps else None
     if mode == "auto":
         mode = backend_class(config.backend).vector_mode
         if mode == "batched" and n_envs == 1:
             mode = "sync"
     if mode == "sync":
-        return SyncVectorEnv(config, n_envs, run_seed)
+        return SyncVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
     if mode == "batched":
-        return BatchedVectorEnv(config, n_envs, run_seed)
+        if env_maps is None:
+            return BatchedVectorEnv(config, n_envs, run_seed)
+        return MapGroupsVectorEnv(config, n_envs, run_seed, env_maps)
     if mode == "process":
-        return ProcessVectorEnv(config, n_envs, run_seed)
+        return ProcessVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
     raise ValueError(f"unknown vector mode {mode!r}; choose sync, batched, process or auto")

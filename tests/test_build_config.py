@@ -138,3 +138,27 @@ def test_ranges_are_checked_when_any_config_is_built():
     # bounds are inclusive where the field allows them
     assert TrainConfig(gamma=1.0, entropy_coef=0.0).gamma == 1.0
     assert SimConfig(speed_change_mps=0.0).speed_change_mps == 0.0
+
+
+def test_extra_maps_from_set_and_file_and_their_checks(tmp_path):
+    cfg = build_train_config(map="train-50", sets=["extra_maps=train-25, test-50"])
+    assert cfg.extra_maps == ("train-25", "test-50")
+    path = _toml(tmp_path, 'extra_maps = ["train-25"]\n')
+    assert build_train_config(path).extra_maps == ("train-25",)
+    with pytest.raises(ConfigError, match="extra_maps' expects a list of names"):
+        override(TrainConfig(), {"extra_maps": 3})
+    with pytest.raises(ConfigError, match="repeats a map"):
+        validate(build_train_config(map="train-50", sets=["extra_maps=train-50"]))
+    with pytest.raises(
+        ConfigError, match="3 training maps .* need at least as many envs, got n_envs 2"
+    ):
+        validate(build_train_config(envs=2, sets=["extra_maps=train-50,test-25"]))
+
+
+def test_train_cli_names_an_unknown_extra_map(tmp_path, capsys):
+    run = tmp_path / "run"
+    argv = ["train", "--out", str(run), "--set", "extra_maps=nowhere", "--no-progress"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("diacc: error: unknown map 'nowhere'") and "\n" not in err
+    assert not run.exists()

@@ -9,7 +9,7 @@ import pytest
 import torch
 from helpers import SHORT_MAP
 
-from diacc.algo.checkpoint import CheckpointError, load_checkpoint
+from diacc.algo.checkpoint import CheckpointError, config_from_checkpoint, load_checkpoint
 from diacc.algo.mappo import (
     collect_rollout,
     evaluate_batch,
@@ -141,6 +141,32 @@ def test_resume_matches_uninterrupted_run(tmp_path):
 
     last = [json.loads(lines[-1]) for lines in logs]
     assert last[0]["policy_loss"] == pytest.approx(last[1]["policy_loss"], rel=1e-5, abs=1e-7)
+
+
+def test_training_on_two_maps_resumes_exactly_and_differs_from_one(tmp_path):
+    """extra_maps: env 1 drives a second road (lanes dropping on the right); a
+    split run resumes to the same weights, and the second map changes training."""
+    right = tmp_path / "right.toml"
+    right.write_text(
+        SHORT_MAP.replace('name = "short"', 'name = "short-right"\ndrop_side = "right"')
+    )
+    runs = {}
+    for name, stop in (("a", None), ("b", 1)):
+        cfg = tiny_config(tmp_path / name, extra_maps=(str(right),))
+        train(cfg, progress=False, stop_after_updates=stop)
+        if stop:
+            train(cfg, resume=True, progress=False)
+        runs[name] = load_checkpoint(tmp_path / name / "run" / "checkpoint.pt")
+    one_map = tiny_config(tmp_path / "c")
+    train(one_map, progress=False)
+    runs["c"] = load_checkpoint(tmp_path / "c" / "run" / "checkpoint.pt")
+    assert config_from_checkpoint(runs["a"]).extra_maps == (str(right),)
+    for name, tensor in runs["a"]["actor"].items():
+        assert torch.allclose(tensor, runs["b"]["actor"][name], atol=1e-6), name
+    assert any(
+        not torch.equal(tensor, runs["c"]["actor"][name])
+        for name, tensor in runs["a"]["actor"].items()
+    )
 
 
 def test_bad_checkpoints_give_one_line_errors(tmp_path):

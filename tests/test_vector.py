@@ -14,10 +14,12 @@ from diacc.env import EnvConfig
 from diacc.scenario import Scenario
 from diacc.vector import (
     BatchedVectorEnv,
+    MapGroupsVectorEnv,
     ProcessVectorEnv,
     SyncVectorEnv,
     episode_seed,
     make_vector_env,
+    maps_of_envs,
 )
 
 CONFIG = EnvConfig(scenario=Scenario(n_vehicles=10, cav_penetration=0.3))
@@ -101,6 +103,50 @@ def test_batched_simulator_matches_envs_stepped_alone(map_name, n_vehicles, use_
         batched.close()
     # Resets were compared, and without PSAR's filter collisions too.
     assert ended >= 2 * n_envs and (use_psar or collided >= 1)
+
+
+def test_maps_of_envs_are_contiguous_blocks():
+    assert maps_of_envs(("a",), 3) == ["a", "a", "a"]
+    assert maps_of_envs(("a", "b"), 5) == ["a", "a", "a", "b", "b"]
+    with pytest.raises(ValueError, match="2 maps need at least as many envs"):
+        maps_of_envs(("a", "b"), 1)
+
+
+def test_envs_on_several_maps_match_per_env_envs_and_single_map_runs():
+    """Two maps, three envs: the batched groups give every field of every step
+    as per-env envs do, and each env as a run on its map alone (same seeds)."""
+    config = EnvConfig(
+        map="train-50", scenario=Scenario(n_vehicles=12), sim=SimConfig(episode_steps=20)
+    )
+    n_envs, steps = 3, 45
+    grouped = make_vector_env(config, n_envs, 3, "batched", extra_maps=("test-25",))
+    alone = make_vector_env(config, n_envs, 3, "sync", extra_maps=("test-25",))
+    singles = {
+        m: SyncVectorEnv(dataclasses.replace(config, map=m), n_envs, 3)
+        for m in ("train-50", "test-25")
+    }
+    assert isinstance(grouped, MapGroupsVectorEnv)
+    assert [r.env.road.name for r in grouped.runners] == ["train-50", "train-50", "test-25"]
+    try:
+        assert_same(grouped.reset(first_episode=0), alone.reset(first_episode=0), "reset")
+        for env in singles.values():
+            env.reset(first_episode=0)
+        rng = np.random.default_rng(2)
+        ended = 0
+        for t in range(steps):
+            actions = rng.integers(0, 5, (n_envs, grouped.n_cavs))
+            a, b = grouped.step(actions), alone.step(actions)
+            assert_same(a, b, f"step {t}")
+            ended += int((a.terminated | a.truncated).sum())
+            one = {m: env.step(actions) for m, env in singles.items()}
+            for e, m in enumerate(["train-50", "train-50", "test-25"]):
+                np.testing.assert_array_equal(
+                    a.actor_obs.self_state[e], one[m].actor_obs.self_state[e]
+                )
+    finally:
+        for env in (grouped, alone, *singles.values()):
+            env.close()
+    assert ended >= n_envs  # automatic resets compared too
 
 
 def test_auto_mode_batches_highway_only():

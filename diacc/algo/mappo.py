@@ -613,7 +613,8 @@ def train(
     validate(cfg)
     # The first vehicles' placement checks that the scenario fits the map, before anything
     # is written (it used to fail in the first reset, after config.json and tb/ existed).
-    draw_population(cfg.env.scenario, load_map(cfg.env.map), cfg.seed)
+    for road_map in (cfg.env.map, *cfg.extra_maps):
+        draw_population(cfg.env.scenario, load_map(road_map), cfg.seed)
     device = resolve_device(cfg.device)
     run_dir = Path(cfg.run_dir)
     with locked_dir(run_dir, "train"):
@@ -677,7 +678,7 @@ def _train_loop(
     ckpt_path = run_dir / "checkpoint.pt"
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     saved_update = first_update if first_update else None
-    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed, cfg.vector)
+    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed, cfg.vector, cfg.extra_maps)
     # purge_step: TensorBoard drops the events a resumed run logged after its checkpoint.
     # It reads event files in name order, and names start with the creation second:
     # a resumed file must not share its second with the interrupted run's last file.
