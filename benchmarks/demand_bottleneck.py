@@ -4,7 +4,7 @@ Runs the backends directly (no agents: every vehicle an HDV), one seeded
 episode per (traffic, backend, inflow, seed), and prints one JSON line each.
 Traffic ``pure-hdv``: every vehicle drawn as an HDV of the mix; ``same-mix``:
 the draw of a 40 % CAV cell with its CAV slots driven by normal human drivers
-(:attr:`diacc.scenario.Scenario.cav_slot_style`). What it measures, after
+(:attr:`diacc.sim.scenario.Scenario.cav_slot_style`). What it measures, after
 ``--warmup-s``:
 
 * ``outflow_vph``: vehicles crossing the end of the reduction segment, per hour.
@@ -32,12 +32,12 @@ import time
 
 import numpy as np
 
-from diacc.backends.base import CavCommands, make_backend
 from diacc.bench import write_json_lines
 from diacc.config import EventConfig, SimConfig, preset_road
-from diacc.maps import load_map
 from diacc.metrics import EpisodeRecorder
-from diacc.scenario import Scenario
+from diacc.sim.backends.base import CavCommands, make_backend
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
 
 BIN_S = 30.0
 STANDING_MPS = 0.5

@@ -29,7 +29,7 @@ import numpy as np
 
 from diacc.bench import headroom, write_json_lines
 from diacc.grid import Cell
-from diacc.scenario import draw_population
+from diacc.sim.scenario import draw_population
 
 BIN_S = 30.0
 #: reference label -> (policy, CAV share)

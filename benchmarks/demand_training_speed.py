@@ -4,7 +4,7 @@ A demand episode holds every vehicle of the episode (480 at 3600 veh/h for
 480 s) while a few dozen to ~150 are on the road. ``windowed`` is the code as it is:
 the highway backend steps the vehicles not settled
 (``HighwayBackend._window``), the neighbour search and safety events look at
-the on-road window (``diacc.state.on_road_window``), the critic holds the
+the on-road window (``diacc.sim.state.on_road_window``), the critic holds the
 on-road vehicles first (so ``obs.max_vehicles`` bounds those on the road) and
 the GAT gathers for graphs over 64 nodes. ``full`` turns all of it off, which
 is the code before the window (same results, ``tests/test_highway_window.py``
@@ -43,7 +43,7 @@ KINDS = ("rollout", "train")  # what is timed
 def config(args: argparse.Namespace, mode: str, run_dir: str):
     """The demand training config of the benchmark (``--train-envs``, 600-step episodes)."""
     from diacc.config import TrainConfig, override
-    from diacc.scenario import Scenario
+    from diacc.sim.scenario import Scenario
 
     scenario = Scenario(
         kind="demand",
@@ -71,7 +71,7 @@ def switch_window_off() -> None:
     import diacc.models.gat
     import diacc.observation
     import diacc.safety
-    from diacc.backends.highway.backend import HighwayBackend
+    from diacc.sim.backends.highway.backend import HighwayBackend
 
     def every_vehicle(active):
         return 0, active.shape[-1]

@@ -14,9 +14,9 @@ import time
 import numpy as np
 
 from diacc.config import CAV_STYLE, ObservationConfig
-from diacc.maps import Map, load_map
 from diacc.observation import ObservationBuilder
-from diacc.state import TrafficState
+from diacc.sim.maps import Map, load_map
+from diacc.sim.state import TrafficState
 
 
 def random_state(

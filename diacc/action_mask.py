@@ -30,10 +30,10 @@ import numpy as np
 from diacc.actions import ACTION_NAMES, REMAIN
 from diacc.config import EnvConfig
 from diacc.lateral_frame import MIRRORED_ACTION, is_mirrored
-from diacc.maps import Map
 from diacc.observation import ActorObs
 from diacc.psar import psar
-from diacc.state import TrafficState, take
+from diacc.sim.maps import Map
+from diacc.sim.state import TrafficState, take
 
 
 def psar_action_mask(

@@ -2,7 +2,7 @@
 
 One small module because the environment, PSAR, the baselines and the
 renderer all speak in these codes; the environment turns them into
-:class:`~diacc.backends.base.CavCommands`.
+:class:`~diacc.sim.backends.base.CavCommands`.
 """
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from diacc.config import SimConfig
-from diacc.kinematics import lane_change_reach_m
-from diacc.maps import Map
-from diacc.state import TrafficState, take
+from diacc.sim.kinematics import lane_change_reach_m
+from diacc.sim.maps import Map
+from diacc.sim.state import TrafficState, take
 
 REMAIN, LANE_LEFT, LANE_RIGHT, ACCELERATE, DECELERATE = 0, 1, 2, 3, 4
 ACTION_NAMES = ("remain", "left", "right", "accelerate", "decelerate")

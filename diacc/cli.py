@@ -32,7 +32,7 @@ from diacc.config import (
     build_train_config,
 )
 from diacc.errors import DiaccError
-from diacc.scenario import SCENARIO_KINDS
+from diacc.sim.scenario import SCENARIO_KINDS
 
 DESCRIPTION = """\
 diacc: multi-agent reinforcement learning for connected automated vehicles
@@ -153,7 +153,7 @@ def _train_parser(sub) -> None:
 def cmd_train(args: argparse.Namespace) -> None:
     from diacc.algo.mappo import train
     from diacc.console import print_config
-    from diacc.maps import load_map
+    from diacc.sim.maps import load_map
 
     cfg = build_train_config(
         args.config,
@@ -472,7 +472,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     from diacc.console import metric_lines, print_lines
     from diacc.episode import EpisodeDriver, play_episode
     from diacc.policies import Policy
-    from diacc.scenario import Scenario
+    from diacc.sim.scenario import Scenario
 
     if args.episode_steps < 1:
         raise ConfigError(f"--episode-steps must be >= 1, got {args.episode_steps}")

@@ -183,9 +183,9 @@ def add_parsers(sub) -> None:
 def cmd_sweep(args: argparse.Namespace) -> None:
     from diacc.config import build_train_config
     from diacc.console import fmt, plural, print_config
-    from diacc.maps import load_map
     from diacc.plots import plot_curves
     from diacc.scaleout import check_run_dirs, run_sweep, sweep_configs
+    from diacc.sim.maps import load_map
     from diacc.sweepaxes import axis_texts, sweep_settings
 
     variants, maps = _csv_list(args.variants), _csv_list(args.maps)

@@ -27,10 +27,10 @@ from pathlib import Path
 from typing import Any
 
 from diacc.errors import DiaccError
-from diacc.maps import Map
+from diacc.sim.maps import Map
 
 # Style codes and mixes live with the scenario; re-exported here for convenience.
-from diacc.scenario import (  # noqa: F401
+from diacc.sim.scenario import (  # noqa: F401
     AGGRESSIVE,
     CAUTIOUS,
     CAV_STYLE,
@@ -494,7 +494,7 @@ class EnvConfig:
                 f"({self.sim.episode_steps} steps of {self.sim.step_s:g} s = {episode_s:g} s)"
             )
         _check_fields(self)
-        # Scenario (diacc.scenario) checks its own ranges; finiteness is checked here.
+        # Scenario (diacc.sim.scenario) checks its own ranges; finiteness is checked here.
         _check_fields(self.scenario, "scenario.")
 
 
@@ -788,7 +788,7 @@ def build_train_config(
 
 def default_run_dir(cfg: TrainConfig) -> str:
     """``runs/<variant>-<backend>-<map>-s<seed>``: where a run goes that names no directory."""
-    from diacc.maps import map_tag
+    from diacc.sim.maps import map_tag
 
     return f"runs/{cfg.variant}-{cfg.env.backend}-{map_tag(cfg.env.map)}-s{cfg.seed}"
 

@@ -29,7 +29,7 @@ arrival) and is free from the next step on. A refilled slot is flagged in
 afresh. An empty slot points at a vehicle that is not on the road, so every
 consumer of ``cav_index`` sees it dead (``alive`` False) without knowing
 about slots. CAVs that find no free slot (more than ``cav_slots`` at once)
-drive themselves meanwhile (no command, :mod:`diacc.backends.base`) and are
+drive themselves meanwhile (no command, :mod:`diacc.sim.backends.base`) and are
 counted in :attr:`BottleneckEnv.unserved_cavs`.
 PettingZoo names agents by CAV, not slot: ``possible_agents`` are
 ``cav_0 .. cav_{K-1}`` for the K CAVs of the episode in order of entry, and
@@ -62,17 +62,17 @@ from diacc.actions import (
     action_speed_change_mps,
     lane_change_allowed,
 )
-from diacc.backends.base import Backend, CavCommands, make_backend
 from diacc.config import EnvConfig, preset_road
 from diacc.errors import DiaccError
 from diacc.lateral_frame import is_mirrored, mirror_actions
-from diacc.maps import Map, load_map
 from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.psar import PSARResult, psar
 from diacc.reward import RewardTerms, reward
+from diacc.sim.backends.base import Backend, CavCommands, make_backend
+from diacc.sim.maps import Map, load_map
+from diacc.sim.state import TrafficState, take
 from diacc.spaces import agent_observation, check_format, observation_space, state_space
-from diacc.state import TrafficState, take
 
 __all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "RenderModeError", "StepResult", "aec_env"]
 
@@ -128,7 +128,7 @@ def decide(
     """PSAR's refinement of the proposed actions and the backend commands they make.
 
     Steps 1-3 of the module docstring, for one state with (C,) ``cav_index`` and
-    ``actions``, or for a batch of states with (E, C) ones (:mod:`diacc.state`).
+    ``actions``, or for a batch of states with (E, C) ones (:mod:`diacc.sim.state`).
     """
     proposed = np.asarray(actions, dtype=np.int64).reshape(cav_index.shape)
     # The agents act in their lateral frame (diacc.lateral_frame), PSAR and the backend
@@ -159,7 +159,7 @@ def decide(
     np.add.at(lane_change, where, ACTION_LANE_OFFSET[executed].astype(np.int8))
     np.add.at(speed_change, where, speed_change_mps)
     # CAVs on the road without a slot (demand: more than cav_slots at once) drive
-    # themselves: NaN is "no command" (diacc.backends.base).
+    # themselves: NaN is "no command" (diacc.sim.backends.base).
     driven = np.zeros(state.x_m.shape, bool)  # (..., V)
     np.logical_or.at(driven, where, alive)
     speed_change[state.is_cav & state.active & ~driven] = np.nan
@@ -228,8 +228,8 @@ class BottleneckEnv(ParallelEnv):
         self.agents: list[str] = []
         self.temperature = self.config.reward.tau_init
         self.state_: TrafficState | None = None
-        self._viewer = None  # diacc.viewer.Viewer, made by the first render()
-        self._window = None  # diacc.viewer.Window of render_mode "human"
+        self._viewer = None  # diacc.sim.viewer.Viewer, made by the first render()
+        self._window = None  # diacc.sim.viewer.Window of render_mode "human"
         self._recorder: EpisodeRecorder | None = None  # episode metrics of the dict API
         self._seed: int | None = None
         # Spaces are the same for every agent: built once, returned as the same object.
@@ -444,7 +444,7 @@ class BottleneckEnv(ParallelEnv):
 
     def render(self) -> np.ndarray | None:
         """What ``render_mode`` asks for: ``"rgb_array"`` returns an RGB frame (H, W, 3)
-        uint8 of the current state (:class:`diacc.viewer.Viewer`), ``"human"`` shows
+        uint8 of the current state (:class:`diacc.sim.viewer.Viewer`), ``"human"`` shows
         it in a window and returns ``None``. Without a render mode there is nothing
         to render: a one-line :class:`RenderModeError` (Gymnasium only warns, which
         hides the mistake)."""
@@ -456,14 +456,14 @@ class BottleneckEnv(ParallelEnv):
         if self.state_ is None:
             return None
         if self._viewer is None:
-            from diacc.viewer import Viewer
+            from diacc.sim.viewer import Viewer
 
             self._viewer = Viewer(self.road, self.config.sim)
         frame = self._viewer.draw(self.state_)
         if self.render_mode == "rgb_array":
             return frame
         if self._window is None:
-            from diacc.viewer import Window
+            from diacc.sim.viewer import Window
 
             self._window = Window(f"diacc {self.config.map} ({self.config.backend})")
         self._window.show(frame)
@@ -494,7 +494,7 @@ def check_render_mode(render_mode: str | None) -> str | None:
             f"unknown render_mode {render_mode!r}; use one of: {', '.join(modes)} (or None)"
         )
     if render_mode == "human":
-        from diacc.viewer import display_available
+        from diacc.sim.viewer import display_available
 
         if not display_available():
             raise RenderModeError(

@@ -22,7 +22,7 @@ from diacc.env import BottleneckEnv
 from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs
 from diacc.psar import PSARResult
-from diacc.state import TrafficState
+from diacc.sim.state import TrafficState
 
 
 class CavPolicy(Protocol):

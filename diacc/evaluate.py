@@ -40,16 +40,16 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from diacc.backends.base import BackendError
 from diacc.episode import EpisodeDriver, play_episode
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_write
 from diacc.grid import CELL_KEYS, Cell, make_cell
-from diacc.maps import SEGMENT_KINDS
 from diacc.metrics import SpeedSamples
 from diacc.policies import CheckpointPolicy, EvalSettings, PolicySpec, build_policy
 from diacc.psar import RULE_NAMES
 from diacc.runlog import locked_dir, log, run_log
+from diacc.sim.backends.base import BackendError
+from diacc.sim.maps import SEGMENT_KINDS
 from diacc.threads import default_threads, worker_environment
 from diacc.tomlfile import read_json_object
 from diacc.workpool import map_resilient

@@ -20,7 +20,7 @@ A :class:`Cell` is one traffic condition of paper Tables II-III. Grids:
       cav_penetration = 0.2
       style_mix = "D3"
 
-  A cell with ``inflow_vph`` is a ``demand`` cell (:mod:`diacc.scenario`):
+  A cell with ``inflow_vph`` is a ``demand`` cell (:mod:`diacc.sim.scenario`):
   vehicles enter at that rate over the run's ``scenario.demand_s`` (its
   warm-up and agent slots too), and ``n_vehicles`` may be left out (it
   follows from the inflow).
@@ -48,8 +48,8 @@ from pathlib import Path
 import numpy as np
 
 from diacc.errors import DiaccError
-from diacc.maps import MapError, load_map, map_tag
-from diacc.scenario import STYLE_MIXES, Scenario, ScenarioError, draw_population
+from diacc.sim.maps import MapError, load_map, map_tag
+from diacc.sim.scenario import STYLE_MIXES, Scenario, ScenarioError, draw_population
 from diacc.tomlfile import read_toml
 
 #: Named grids (see module docstring).
@@ -100,7 +100,7 @@ class Cell:
         """:attr:`key` made safe as a file name inside ``--out``.
 
         A shipped map's cell keeps its key; a map file's path is replaced by
-        its stem and content hash (:func:`~diacc.maps.map_tag`): an absolute
+        its stem and content hash (:func:`~diacc.sim.maps.map_tag`): an absolute
         path once wrote the results next to the map file, a relative one
         crashed after the episodes ran. (:attr:`key` itself stays the cell's
         identity, from which its seeds are drawn.)

@@ -37,8 +37,8 @@ import numpy as np
 
 from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import LATERAL_FRAMES
-from diacc.maps import Map
-from diacc.state import TrafficState
+from diacc.sim.maps import Map
+from diacc.sim.state import TrafficState
 
 __all__ = ["LATERAL_FRAMES", "agent_map", "is_mirrored", "mirror_actions", "mirror_state"]
 

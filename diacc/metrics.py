@@ -50,10 +50,10 @@ import numpy as np
 
 from diacc.config import EventConfig
 from diacc.errors import DiaccError
-from diacc.maps import SEGMENT_KINDS, Map
 from diacc.psar import RULE_NAMES, PSARResult, rule_counts
 from diacc.safety import safety_critical_events, waiting_events
-from diacc.state import TrafficState
+from diacc.sim.maps import SEGMENT_KINDS, Map
+from diacc.sim.state import TrafficState
 
 
 class MetricsError(DiaccError, ValueError):
@@ -98,7 +98,7 @@ class SpeedSamples:
     step: np.ndarray  # (S,) int32
     time_s: np.ndarray  # (S,) float64
     speed_mps: np.ndarray  # (S,) float64
-    segment_kind: np.ndarray  # (S,) int8 index into diacc.maps.SEGMENT_KINDS
+    segment_kind: np.ndarray  # (S,) int8 index into diacc.sim.maps.SEGMENT_KINDS
     is_cav: np.ndarray  # (S,) bool
 
     COLUMNS = ("vehicle", "step", "time_s", "speed_mps", "segment_kind", "is_cav")

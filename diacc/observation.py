@@ -1,7 +1,7 @@
 """Shared observation builder: TrafficState -> actor observations and critic state.
 
-The builder only reads :class:`~diacc.state.TrafficState` arrays and the
-:class:`~diacc.maps.Map`; it never knows which backend produced the state.
+The builder only reads :class:`~diacc.sim.state.TrafficState` arrays and the
+:class:`~diacc.sim.maps.Map`; it never knows which backend produced the state.
 
 Layout (C = CAVs of the scenario, K = ``n_neighbours`` (6), T =
 ``history_steps`` (5, oldest first, current last), N = ``max_vehicles``,
@@ -85,8 +85,8 @@ import numpy as np
 from diacc.config import ObservationConfig
 from diacc.errors import DiaccError
 from diacc.lateral_frame import agent_map, is_mirrored, mirror_state
-from diacc.maps import Map
-from diacc.state import TrafficState, on_road_window, take
+from diacc.sim.maps import Map
+from diacc.sim.state import TrafficState, on_road_window, take
 
 NODE_FEATURES = 6
 SELF_FEATURES = 6
@@ -676,7 +676,7 @@ class ObservationBuilder:
     def _neighbours(self, state: TrafficState) -> tuple[np.ndarray, np.ndarray]:
         """K nearest active vehicles in same/adjacent lanes for every vehicle, (..., V, K) each.
 
-        Searched within :func:`~diacc.state.on_road_window` alone (vehicles off
+        Searched within :func:`~diacc.sim.state.on_road_window` alone (vehicles off
         the road have no neighbours and are none): the (W, W) distance table
         scales with the vehicles on the road, not with a demand episode's V.
         """

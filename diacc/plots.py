@@ -28,7 +28,7 @@ import numpy as np
 
 from diacc.errors import DiaccError
 from diacc.evaluate import SPEEDS_FILE, load_episodes, read_csv
-from diacc.maps import SEGMENT_KINDS
+from diacc.sim.maps import SEGMENT_KINDS
 from diacc.tomlfile import read_json_object
 
 #: Panel title -> progress keys tried in order (first one a run has is used).

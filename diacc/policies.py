@@ -43,8 +43,8 @@ from diacc.config import (
 )
 from diacc.errors import DiaccError
 from diacc.grid import Cell
-from diacc.maps import Map
 from diacc.observation import ActorObs
+from diacc.sim.maps import Map
 
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
 #: ``normal`` human model; ``same-mix:<style>`` by another style (:data:`STYLE_NAMES`).
@@ -240,7 +240,7 @@ class CooperativePolicy(Policy):
 
     On SUMO the CAVs are CACC vehicles with ``lcCooperative = 1``; on highway
     they run the HDV IDM/MOBIL code with a CACC-like parameter set (see
-    :class:`~diacc.backends.highway.backend.HighwayBackend`).
+    :class:`~diacc.sim.backends.highway.backend.HighwayBackend`).
     """
 
     label = "cooperative"

@@ -25,8 +25,6 @@ from diacc.actions import (
     lane_change_allowed,
 )
 from diacc.config import STYLE_PRESETS, PSARConfig, SimConfig
-from diacc.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
-from diacc.maps import Map
 from diacc.safety import (
     SAME_COL,
     PairKinematics,
@@ -36,7 +34,9 @@ from diacc.safety import (
     lane_leaders_followers,
     pair_kinematics,
 )
-from diacc.state import TrafficState, take
+from diacc.sim.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
+from diacc.sim.maps import Map
+from diacc.sim.state import TrafficState, take
 
 #: Rule codes of :attr:`PSARResult.rule`.
 RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
@@ -147,7 +147,7 @@ def psar(
     * Horizon (``cfg.horizon``): ``"stopping"`` (the default before 2026-12-02)
       lengthens d_warn and d_att, and the lane-change cancel distance d_LC,min to the target-lane
       front and rear vehicles, by Gipps' safe gap
-      (:func:`~diacc.kinematics.safe_gap_m`): one decision step of reaction,
+      (:func:`~diacc.sim.kinematics.safe_gap_m`): one decision step of reaction,
       then braking at the CAV's planned deceleration while the vehicle ahead
       brakes as hard (a rear HDV reacts at once, a rear CAV after a step).
       The authors' distances come from a 15 m/s road; at 25 m/s a CAV needs
@@ -179,7 +179,7 @@ def psar(
       heuristic on train-50 and test-50, ``paper-congestion``, 330 steps).
     * Inactive CAVs keep their proposed action with rule NONE.
 
-    A batch of states ((E, V) arrays, :class:`~diacc.state.TrafficState`) is
+    A batch of states ((E, V) arrays, :class:`~diacc.sim.state.TrafficState`) is
     filtered in one call with (E, C) slots and actions; every CAV only ever
     meets vehicles of its own env, and the results are those of E calls.
 
@@ -188,7 +188,7 @@ def psar(
         cav_index: (..., C) vehicle indices of the CAV slots.
         proposed_action: (..., C) int actions in 0..4.
         cfg: PSAR thresholds and options.
-        road: the :class:`~diacc.maps.Map`.
+        road: the :class:`~diacc.sim.maps.Map`.
         sim: step length, action size and CAV braking limit (default
             :class:`~diacc.config.SimConfig`).
 
@@ -689,7 +689,7 @@ def _headway_bound_mps(
     and the speed drop each CAV may command (``max_brake_mps``, refined under
     ``full_brake = "known"`` once the CAVs it follows are decided).
 
-    Every front obstacle gives a bound (:func:`~diacc.kinematics.safe_end_speed_mps`):
+    Every front obstacle gives a bound (:func:`~diacc.sim.kinematics.safe_end_speed_mps`):
     the same-lane leader, the end of the own lane (not for a CAV leaving it:
     the road checked the change's reach) and each CAV ahead that changes,
     or asks to change, into the lane in this step (each one, not only the

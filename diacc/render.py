@@ -1,7 +1,7 @@
 """One episode of any policy as an animated GIF.
 
-Frames come from :class:`diacc.viewer.Viewer` (highway-env's road renderer),
-which draws the :class:`~diacc.state.TrafficState` whichever backend made it,
+Frames come from :class:`diacc.sim.viewer.Viewer` (highway-env's road renderer),
+which draws the :class:`~diacc.sim.state.TrafficState` whichever backend made it,
 so both backends' GIFs look alike. CAVs and the three HDV styles have
 distinct colours, crashed vehicles are red, and CAVs whose action PSAR changed
 in the step leading to a frame are outlined (``highlight``).
@@ -25,7 +25,7 @@ from diacc.episode import EpisodeDriver
 from diacc.errors import DiaccError
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, Policy, PolicySpec, build_policy
-from diacc.state import TrafficState
+from diacc.sim.state import TrafficState
 
 #: Pixels per metre of each view: the bottleneck view zooms in (cars ~40 x 16 px).
 VIEW_SCALE_PX_PER_M = {"traffic": 4.0, "bottleneck": 8.0}
@@ -45,8 +45,8 @@ class RenderResult:
 
 def _legend_entries() -> list[tuple[str, tuple[int, int, int], bool]]:
     """(label, RGB, outline only) of the legend, in the renderer's own colours."""
-    from diacc.scenario import STYLE_NAMES
-    from diacc.viewer import (
+    from diacc.sim.scenario import STYLE_NAMES
+    from diacc.sim.viewer import (
         CAV_COLOR,
         CRASHED_COLOR,
         HIGHLIGHT_COLOR,
@@ -171,7 +171,7 @@ def render_episode(
         raise RenderError(f"--fps must be > 0, got {fps}")
     if view not in VIEW_SCALE_PX_PER_M:
         raise RenderError(f"unknown --view {view!r}; use one of: {', '.join(VIEW_SCALE_PX_PER_M)}")
-    from diacc.viewer import Viewer
+    from diacc.sim.viewer import Viewer
 
     _, driver = episode_driver(spec, cell, steps, settings)
     max_steps = driver.cfg.sim.episode_steps  # the GIF's episode ends there

@@ -40,7 +40,7 @@ literally, docs/concepts/learning-options.md):
   over *all* vehicles, the flow metrics' delay per second and vehicle.
 
 :func:`reward` also scores a batch of E states ((E, V) arrays,
-:mod:`diacc.state`) in one call: every per-CAV array then has a leading env
+:mod:`diacc.sim.state`) in one call: every per-CAV array then has a leading env
 axis and every scalar is an (E,) array; entry ``e`` is env ``e``'s reward.
 """
 
@@ -52,9 +52,9 @@ import numpy as np
 
 from diacc.config import RewardConfig
 from diacc.errors import DiaccError
-from diacc.maps import Map
 from diacc.safety import SAME_COL, lane_leaders_followers, pair_kinematics
-from diacc.state import TrafficState, take
+from diacc.sim.maps import Map
+from diacc.sim.state import TrafficState, take
 
 
 class RewardError(DiaccError, ValueError):

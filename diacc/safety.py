@@ -2,7 +2,7 @@
 
 PSAR (:mod:`diacc.psar`) and the event detectors below both measure traffic
 with these functions, so a "risk" means the same to the filter and to the
-metrics. Everything here reads :class:`~diacc.state.TrafficState` arrays
+metrics. Everything here reads :class:`~diacc.sim.state.TrafficState` arrays
 only, so it works the same for every backend, and is vectorised over
 vehicles (a ``(Q, 3, V)`` masked matrix for the neighbour search), never a
 Python loop over vehicles. A batch of states ((E, V) arrays) is handled by
@@ -42,8 +42,8 @@ import numpy as np
 
 from diacc.config import EventConfig
 from diacc.errors import DiaccError
-from diacc.maps import Map
-from diacc.state import TrafficState, on_road_window, take
+from diacc.sim.maps import Map
+from diacc.sim.state import TrafficState, on_road_window, take
 
 
 class SafetyError(DiaccError, ValueError):

@@ -37,8 +37,8 @@ from diacc.config import ConfigError, TrainConfig, override
 from diacc.errors import DiaccError
 from diacc.evaluate import CellTask, CellTaskResult, run_tasks_here
 from diacc.grid import Cell
-from diacc.maps import map_tag
 from diacc.policies import EvalSettings, PolicySpec
+from diacc.sim.maps import map_tag
 from diacc.sweepaxes import Setting
 from diacc.tomlfile import read_json_object
 

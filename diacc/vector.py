@@ -11,7 +11,7 @@ metrics, and recovery from a crashed simulator.
 * :class:`BatchedVectorEnv` (``highway`` only, its default) is the same with
   one batched simulator for all environments: PSAR, observations and rewards
   are still per environment, but the simulation of all E envs is one
-  :meth:`~diacc.backends.highway.backend.HighwayBackend.step_batch` call,
+  :meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step_batch` call,
   with the same results per env as E simulators
   (``tests/test_vector.py``). Pipes would cost more than they save here.
 * :class:`ProcessVectorEnv` splits the environments into one group per
@@ -40,16 +40,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from diacc.action_mask import with_action_mask
-from diacc.backends.base import Backend, BackendError, backend_class
 from diacc.config import preset_road
 from diacc.env import BottleneckEnv, EnvConfig, StepResult, decide
-from diacc.maps import load_map
 from diacc.metrics import EpisodeRecorder
 from diacc.observation import ActorObs, CriticState, ObservationBuilder, stack, unstack
 from diacc.reward import reward
 from diacc.runlog import join_parent_log, log
 from diacc.safety import safety_critical_events
-from diacc.state import TrafficState
+from diacc.sim.backends.base import Backend, BackendError, backend_class
+from diacc.sim.maps import load_map
+from diacc.sim.state import TrafficState
 from diacc.threads import worker_environment
 
 #: Restarts of one worker in a row (within one call) before the vector env gives up.
@@ -291,7 +291,7 @@ class BatchedVectorEnv(SyncVectorEnv):
 
     Each step: one :func:`~diacc.env.decide` call turns all envs' actions into
     commands (PSAR on the batch of their states), one
-    :meth:`~diacc.backends.highway.backend.HighwayBackend.step_batch` call
+    :meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step_batch` call
     simulates all envs, and one call each builds every env's observations
     (:meth:`ObservationBuilder.observe_batch`), rewards
     (:func:`~diacc.reward.reward`) and safety events for the metrics; each env
@@ -303,7 +303,7 @@ class BatchedVectorEnv(SyncVectorEnv):
         self, config: EnvConfig, n_envs: int, run_seed: int, env_indices: list[int] | None = None
     ) -> None:
         """``env_indices``: the run's envs held (their seeds); ``range(n_envs)`` by default."""
-        from diacc.backends.highway.backend import BatchSlot, HighwayBackend
+        from diacc.sim.backends.highway.backend import BatchSlot, HighwayBackend
 
         if config.backend != "highway":
             raise ValueError(f"vector mode batched needs the highway backend, not {config.backend}")

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from diacc.config import CAV_STYLE, NORMAL
-from diacc.state import TrafficState, validate_state
+from diacc.sim.state import TrafficState, validate_state
 
 
 def make_state(
@@ -37,7 +37,7 @@ def make_state(
     """Build a valid :class:`TrafficState` from per-vehicle lists or scalars.
 
     Scalars are broadcast to every vehicle. ``y_m`` defaults to the centre of
-    each vehicle's lane. The result passes :func:`diacc.state.validate_state`.
+    each vehicle's lane. The result passes :func:`diacc.sim.state.validate_state`.
     """
     n = len(x_m)
 

@@ -12,8 +12,8 @@ from helpers import make_state
 from diacc.action_mask import masked_logits, psar_action_mask
 from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import ConfigError, EnvConfig, TrainConfig, validate
-from diacc.maps import load_map
-from diacc.state import TrafficState
+from diacc.sim.maps import load_map
+from diacc.sim.state import TrafficState
 
 ROAD = load_map("train-25")  # 4 lanes at x = 100 m
 CFG = EnvConfig(psar_actions="masked")

@@ -10,7 +10,6 @@ from diacc.config import CAV_STYLE, NORMAL, STYLE_NAMES
 from diacc.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
-from diacc.maps import load_map
 from diacc.observation import ActorObs
 from diacc.policies import (
     HEURISTIC_LEAVE_M,
@@ -22,7 +21,8 @@ from diacc.policies import (
     heuristic_actions,
     parse_policy,
 )
-from diacc.scenario import Scenario, ScenarioError, draw_population
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario, ScenarioError, draw_population
 
 CELL = Cell("train-50", 20, 0.4, "D1")
 

@@ -11,16 +11,16 @@ from dataclasses import fields
 import numpy as np
 import pytest
 
-from diacc.backends.base import CavCommands
-from diacc.backends.highway.backend import HighwayBackend
 from diacc.config import EnvConfig, preset_road
-from diacc.maps import load_map
 from diacc.observation import ObservationBuilder, unstack
 from diacc.psar import psar
 from diacc.reward import reward
 from diacc.safety import safety_critical_events
-from diacc.scenario import Scenario
-from diacc.state import TrafficState
+from diacc.sim.backends.base import CavCommands
+from diacc.sim.backends.highway.backend import HighwayBackend
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
+from diacc.sim.state import TrafficState
 
 N_ENVS, N_VEHICLES, N_CAVS = 3, 25, 10
 

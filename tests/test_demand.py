@@ -12,15 +12,15 @@ from pettingzoo.test import parallel_api_test
 
 from diacc.actions import LANE_RIGHT
 from diacc.algo.mappo import collect_rollout, make_agent, seed_everything, train
-from diacc.backends.base import CavCommands, make_backend
 from diacc.config import ConfigError, EnvConfig, SimConfig, TrainConfig, override
 from diacc.env import BottleneckEnv
 from diacc.episode import EpisodeDriver, play_episode
-from diacc.maps import parse_map
 from diacc.models.inputs import to_tensors
 from diacc.observation import unstack
 from diacc.policies import ScriptedPolicy
-from diacc.scenario import Scenario, ScenarioError, draw_population
+from diacc.sim.backends.base import CavCommands, make_backend
+from diacc.sim.maps import parse_map
+from diacc.sim.scenario import Scenario, ScenarioError, draw_population
 from diacc.vector import make_vector_env
 
 BACKENDS = ["highway", "sumo"]
@@ -223,8 +223,8 @@ def test_episode_that_ends_in_the_warmup_has_an_empty_summary():
     from helpers import make_state
 
     from diacc.config import preset_road
-    from diacc.maps import load_map
     from diacc.metrics import EpisodeRecorder
+    from diacc.sim.maps import load_map
 
     recorder = EpisodeRecorder(preset_road(load_map("train-50"), "realistic"), warmup_s=10.0)
     recorder.record(make_state([50, 10], [0, 1], segment=[0, 0], time_s=5, step=5))
@@ -307,8 +307,8 @@ def test_flows_count_the_window_after_the_warm_up():
     from helpers import make_state
 
     from diacc.config import preset_road
-    from diacc.maps import load_map
     from diacc.metrics import EpisodeRecorder
+    from diacc.sim.maps import load_map
 
     road = preset_road(load_map("train-50"), "realistic")  # reduction ends at 800 m
     recorder = EpisodeRecorder(road, warmup_s=10.0)

@@ -19,8 +19,8 @@ from diacc.actions import LANE_RIGHT
 from diacc.config import EnvConfig, EventConfig, ObservationConfig, SimConfig
 from diacc.env import BottleneckEnv
 from diacc.observation import ObservationBuilder, ObservationError
-from diacc.scenario import Scenario
-from diacc.state import TrafficState, on_road_window
+from diacc.sim.scenario import Scenario
+from diacc.sim.state import TrafficState, on_road_window
 
 #: 60 vehicles over 60 s on a 160 m road: about ten on the road at once.
 DEMAND = Scenario(kind="demand", inflow_vph=3600, demand_s=60, cav_penetration=0.4, cav_slots=4)

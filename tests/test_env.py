@@ -8,7 +8,7 @@ from pettingzoo.test import parallel_api_test
 
 from diacc.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.env import BottleneckEnv, EnvConfig
-from diacc.scenario import Scenario
+from diacc.sim.scenario import Scenario
 
 BACKENDS = ["highway", "sumo"]
 

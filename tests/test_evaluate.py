@@ -19,8 +19,8 @@ from diacc.config import ModelConfig, TrainConfig
 from diacc.env import BottleneckEnv
 from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, EvaluationError, evaluate, read_csv
 from diacc.grid import Cell, GridError, load_grid
-from diacc.maps import SEGMENT_KINDS
 from diacc.policies import EvalSettings, PolicySpec
+from diacc.sim.maps import SEGMENT_KINDS
 
 SMALL = Cell("train-50", 10, 0.4, "D1")
 GRID_TOML = """
@@ -320,10 +320,10 @@ def test_cli_eval_writes_results(tmp_path, capsys):
 
 # -------------------------------------------------------------- highway cooperative CAVs
 def test_highway_cooperative_cavs_drive_themselves():
-    from diacc.backends.base import CavCommands
-    from diacc.backends.highway.backend import HighwayBackend
     from diacc.config import ConfigError, SimConfig
-    from diacc.maps import load_map
+    from diacc.sim.backends.base import CavCommands
+    from diacc.sim.backends.highway.backend import HighwayBackend
+    from diacc.sim.maps import load_map
 
     road, sim = load_map("train-50"), SimConfig()
     scenario = SMALL.scenario()

@@ -358,7 +358,7 @@ def test_case9_sumo_worker_killed_during_eval_reruns_its_episode(files, tmp_path
     proc = _popen(*args, "--out", str(out))
 
     def sumo_worker():
-        return [p for p, cmd in _descendants(proc.pid) if "diacc.backends.sumo.worker" in cmd]
+        return [p for p, cmd in _descendants(proc.pid) if "diacc.sim.backends.sumo.worker" in cmd]
 
     seen: dict[int, float] = {}
 
@@ -382,10 +382,10 @@ def test_case9_sumo_worker_killed_during_eval_reruns_its_episode(files, tmp_path
 
 
 def test_case9_sumo_worker_dead_at_reset_is_restarted_and_logged(caplog):
-    from diacc.backends.sumo.backend import SumoBackend
     from diacc.config import SimConfig
-    from diacc.maps import load_map
-    from diacc.scenario import Scenario
+    from diacc.sim.backends.sumo.backend import SumoBackend
+    from diacc.sim.maps import load_map
+    from diacc.sim.scenario import Scenario
 
     backend = SumoBackend(load_map("train-25"), SimConfig())
     scenario = Scenario(n_vehicles=5, cav_penetration=0.0)

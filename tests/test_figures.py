@@ -91,7 +91,7 @@ def test_tick_step_gives_round_readable_scales():
 def test_bottleneck_view_zooms_on_the_lane_drop(tmp_path):
     import diacc
     from diacc.render import VIEW_SCALE_PX_PER_M, RenderError, render_episode
-    from diacc.viewer import Viewer
+    from diacc.sim.viewer import Viewer
 
     env = diacc.parallel_env(map="train-50", scenario={"n_vehicles": 8})
     try:

@@ -7,13 +7,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from diacc.backends.base import Backend, CavCommands
-from diacc.backends.highway.backend import HighwayBackend
 from diacc.config import AGGRESSIVE, CAUTIOUS, STYLE_PRESETS, SimConfig
-from diacc.maps import load_map
-from diacc.scenario import Scenario
-from diacc.state import validate_state
-from diacc.viewer import Viewer
+from diacc.sim.backends.base import Backend, CavCommands
+from diacc.sim.backends.highway.backend import HighwayBackend
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
+from diacc.sim.state import validate_state
+from diacc.sim.viewer import Viewer
 
 SIM = SimConfig()
 

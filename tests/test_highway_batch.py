@@ -7,12 +7,12 @@ from dataclasses import fields
 import numpy as np
 import pytest
 
-from diacc.backends.base import BackendError, CavCommands
-from diacc.backends.highway.backend import HighwayBackend
 from diacc.config import SimConfig, preset_road
-from diacc.maps import load_map
-from diacc.scenario import Scenario
-from diacc.state import TrafficState
+from diacc.sim.backends.base import BackendError, CavCommands
+from diacc.sim.backends.highway.backend import HighwayBackend
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
+from diacc.sim.state import TrafficState
 
 N_VEHICLES, N_CAVS, EPISODE_STEPS = 25, 10, 40
 

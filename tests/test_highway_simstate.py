@@ -8,11 +8,11 @@ from dataclasses import fields, is_dataclass
 import numpy as np
 from test_highway_batch import assert_same_state
 
-from diacc.backends.base import CavCommands
-from diacc.backends.highway.backend import HighwayBackend
 from diacc.config import SimConfig, preset_road
-from diacc.maps import load_map
-from diacc.scenario import Scenario
+from diacc.sim.backends.base import CavCommands
+from diacc.sim.backends.highway.backend import HighwayBackend
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
 
 N_ENVS, N_VEHICLES = 2, 25
 #: Vehicles enter while the batch runs, so pending/departure fields take part.

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from test_highway_batch import assert_same_state
 
-from diacc.backends.base import CavCommands
-from diacc.backends.highway.backend import HighwayBackend
 from diacc.config import SimConfig, preset_road
-from diacc.maps import load_map
-from diacc.scenario import Scenario
+from diacc.sim.backends.base import CavCommands
+from diacc.sim.backends.highway.backend import HighwayBackend
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
 
 #: About 90 vehicles, the first ones arrive after about 60 s: the window moves at both ends.
 DEMAND = Scenario(kind="demand", inflow_vph=3600, demand_s=90, cav_penetration=0.4, cav_slots=6)

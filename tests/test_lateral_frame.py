@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from diacc.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
-from diacc.backends.base import make_backend
 from diacc.config import ConfigError, EnvConfig, ObservationConfig
 from diacc.env import BottleneckEnv, decide
 from diacc.episode import EpisodeDriver, play_episode
 from diacc.lateral_frame import agent_map, is_mirrored, mirror_actions, mirror_state
-from diacc.maps import load_map
 from diacc.observation import ObservationBuilder
 from diacc.policies import build_policy, parse_policy
+from diacc.sim.backends.base import make_backend
+from diacc.sim.maps import load_map
 
 LEFT_DROP = load_map("train-50")  # lanes 2 and 3 end at 800 m
 RIGHT_DROP = dataclasses.replace(LEFT_DROP, drop_side="right")  # lanes 0 and 1 end there

@@ -19,7 +19,7 @@ from diacc.algo.mappo import make_agent, train
 from diacc.config import TrainConfig, override
 from diacc.episode import EpisodeDriver
 from diacc.models.inputs import to_tensors
-from diacc.scenario import Scenario
+from diacc.sim.scenario import Scenario
 
 HELD_OUT_SEEDS = range(10_000, 10_030)
 

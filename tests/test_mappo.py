@@ -21,7 +21,7 @@ from diacc.algo.mappo import (
     train,
 )
 from diacc.config import TrainConfig, override
-from diacc.scenario import Scenario
+from diacc.sim.scenario import Scenario
 from diacc.vector import make_vector_env
 
 TINY = {

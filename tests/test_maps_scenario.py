@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from diacc.config import ConfigError, TrainConfig, override
-from diacc.maps import MapError, available_maps, load_map, parse_map
-from diacc.scenario import Scenario, ScenarioError, draw_population
+from diacc.sim.maps import MapError, available_maps, load_map, parse_map
+from diacc.sim.scenario import Scenario, ScenarioError, draw_population
 
 GOOD = {
     "name": "t",

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from helpers import make_state
 
-from diacc.maps import load_map
 from diacc.metrics import EpisodeRecorder, MetricsError
 from diacc.psar import PSARResult
+from diacc.sim.maps import load_map
 
 ROAD = load_map("train-25")  # segments: multilane 0-500, reduction25 500-800, multilane
 CAV = [True, True, False, False]

@@ -405,8 +405,8 @@ def test_every_variant_runs_on_builder_observations():
     from helpers import make_state
 
     from diacc.config import ObservationConfig
-    from diacc.maps import load_map
     from diacc.observation import ObservationBuilder, stack
+    from diacc.sim.maps import load_map
 
     road, obs_cfg = load_map("train-25"), ObservationConfig()
     rng = np.random.default_rng(16)

@@ -6,9 +6,7 @@ import helpers
 import numpy as np
 import pytest
 
-from diacc.backends.base import CavCommands, make_backend
 from diacc.config import ObservationConfig, SimConfig
-from diacc.maps import load_map, parse_map
 from diacc.observation import (
     DX_SCALE_M,
     FEATURE_CLIP,
@@ -20,8 +18,10 @@ from diacc.observation import (
     ObservationError,
     ObservationSpec,
 )
-from diacc.scenario import Scenario
-from diacc.state import TrafficState
+from diacc.sim.backends.base import CavCommands, make_backend
+from diacc.sim.maps import load_map, parse_map
+from diacc.sim.scenario import Scenario
+from diacc.sim.state import TrafficState
 
 CFG = ObservationConfig()
 K, T = CFG.n_neighbours, CFG.history_steps

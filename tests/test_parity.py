@@ -27,12 +27,12 @@ from dataclasses import fields
 import numpy as np
 import pytest
 
-from diacc.backends.base import CavCommands, make_backend
 from diacc.config import SimConfig, preset_road
-from diacc.maps import load_map
 from diacc.metrics import EpisodeRecorder
-from diacc.scenario import Scenario
-from diacc.state import FIELD_DTYPES, validate_state
+from diacc.sim.backends.base import CavCommands, make_backend
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
+from diacc.sim.state import FIELD_DTYPES, validate_state
 
 SIM = SimConfig()
 SEEDS = (0, 1, 2)

@@ -169,7 +169,7 @@ def test_gif_has_expected_frames(tmp_path, backend):
 
 def test_gif_frames_carry_stamp_and_legend(tmp_path):
     from diacc.render import annotate, step_stamp
-    from diacc.viewer import CAV_COLOR, CRASHED_COLOR
+    from diacc.sim.viewer import CAV_COLOR, CRASHED_COLOR
 
     render_episode(
         PolicySpec("pure-hdv"), CELL, tmp_path / "ep.gif", steps=2, settings=EvalSettings()

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from diacc.config import TrainConfig, _leaves, override, validate
 from diacc.errors import DiaccError
 from diacc.grid import Cell, load_grid
-from diacc.maps import Map, load_map
+from diacc.sim.maps import Map, load_map
 
 SETTINGS = settings(
     max_examples=60, deadline=2000, suppress_health_check=[HealthCheck.too_slow], derandomize=True

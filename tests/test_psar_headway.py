@@ -1,7 +1,7 @@
 """PSAR's ``"headway"`` horizon: human-like gaps behind HDVs, close ones behind known CAVs.
 
 Every case has a gap that can be computed by hand from
-:func:`diacc.kinematics.safe_end_speed_mps` (see the comments): CAVs act
+:func:`diacc.sim.kinematics.safe_end_speed_mps` (see the comments): CAVs act
 once per 1 s step, plan braking at 4 m/s^2, keep ``min_gap_m`` = 2 m and,
 behind a CAV whose command is known, ``cav_time_gap_s`` = 0.3 s.
 """
@@ -16,9 +16,9 @@ from helpers import make_state
 
 from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import ConfigError, PSARConfig, SimConfig
-from diacc.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
-from diacc.maps import load_map
 from diacc.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, _exit_room_m, psar
+from diacc.sim.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
+from diacc.sim.maps import load_map
 
 ROAD = load_map("train-25")
 SIM = SimConfig()
@@ -274,10 +274,10 @@ def test_unknown_horizon_is_a_one_line_error():
 def test_a_batch_of_states_is_refined_as_each_state_alone():
     from dataclasses import fields
 
-    from diacc.backends.base import CavCommands
-    from diacc.backends.highway.backend import HighwayBackend
-    from diacc.scenario import Scenario
-    from diacc.state import TrafficState
+    from diacc.sim.backends.base import CavCommands
+    from diacc.sim.backends.highway.backend import HighwayBackend
+    from diacc.sim.scenario import Scenario
+    from diacc.sim.state import TrafficState
 
     road = load_map("train-50")
     backend = HighwayBackend(road, SIM, n_envs=3)

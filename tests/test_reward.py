@@ -9,8 +9,8 @@ import pytest
 from helpers import make_state
 
 from diacc.config import ConfigError, RewardConfig, TrainConfig, override
-from diacc.maps import load_map
 from diacc.reward import RewardError, reward, softmin_weights, temperature
+from diacc.sim.maps import load_map
 
 CFG = RewardConfig()
 ROAD = load_map("train-25")  # 25 m/s everywhere

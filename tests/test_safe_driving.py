@@ -12,12 +12,12 @@ import pytest
 from helpers import make_state
 
 from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
-from diacc.backends.base import CavCommands, make_backend
 from diacc.config import PSARConfig, SimConfig
-from diacc.kinematics import braking_step, safe_gap_m
-from diacc.maps import load_map
 from diacc.psar import CANCEL_LC, FORCE_BRAKE, psar
-from diacc.scenario import Scenario
+from diacc.sim.backends.base import CavCommands, make_backend
+from diacc.sim.kinematics import braking_step, safe_gap_m
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
 
 ROAD = load_map("train-25")  # lane 3 ends at 500 m
 SIM = SimConfig()  # CAV safe braking 4 m/s2, actions +-2 m/s per 1 s step

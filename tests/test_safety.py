@@ -10,7 +10,6 @@ from helpers import make_state
 
 from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import ConfigError, EventConfig, PSARConfig
-from diacc.maps import load_map
 from diacc.psar import (
     CANCEL_LC,
     DECEL_LC,
@@ -28,6 +27,7 @@ from diacc.safety import (
     safety_critical_events,
     waiting_events,
 )
+from diacc.sim.maps import load_map
 
 # Algorithm 1 read literally (fixed thresholds, Force-Brake = action 4): the cases below
 # check the pseudocode line by line; the default options are tested further down.

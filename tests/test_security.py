@@ -23,7 +23,7 @@ import torch
 from diacc.algo import checkpoint
 from diacc.algo.checkpoint import CheckpointError, convert_checkpoint, load_checkpoint
 from diacc.cli import main
-from diacc.maps import map_tag
+from diacc.sim.maps import map_tag
 
 SHIPPED = sorted((Path(__file__).resolve().parent.parent / "checkpoints").glob("*.pt"))[0]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -182,8 +182,8 @@ def test_cell_results_stay_inside_out(tmp_path, monkeypatch, capsys, where):
 
 # ----------------------------------------------------------------------------- 4: SUMO cache
 def test_sumo_cache_names_come_from_content(tmp_path, caplog):
-    from diacc.backends.sumo.net import _complete_network, build_network
-    from diacc.maps import parse_map
+    from diacc.sim.backends.sumo.net import _complete_network, build_network
+    from diacc.sim.maps import parse_map
     from diacc.tomlfile import read_toml
 
     source = tmp_path / "m.toml"
@@ -337,7 +337,7 @@ def _naive_lane_end_m(road) -> np.ndarray:
 
 
 def test_lane_end_is_linear_in_segments():
-    from diacc.maps import Map, Segment
+    from diacc.sim.maps import Map, Segment
 
     lanes = [3, 2, 3, 1, 3]
     segments = tuple(Segment("multilane", 10.0, lanes[i % len(lanes)], 20.0) for i in range(60_000))

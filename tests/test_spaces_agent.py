@@ -9,7 +9,7 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 import diacc
-from diacc import viewer
+from diacc.sim import viewer
 from diacc.env import INFO_METRICS, RenderModeError
 from diacc.episode import EpisodeDriver
 from diacc.observation import ObservationSpec

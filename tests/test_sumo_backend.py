@@ -17,15 +17,15 @@ import pytest
 import sumolib
 from helpers import make_state
 
-from diacc.backends.base import Backend, BackendError, CavCommands
-from diacc.backends.sumo import wire
-from diacc.backends.sumo.backend import SumoBackend
-from diacc.backends.sumo.net import build_network, lane_ids
 from diacc.config import ConfigError, SimConfig
-from diacc.maps import available_maps, load_map
-from diacc.scenario import Scenario, draw_population
-from diacc.state import validate_state
-from diacc.viewer import Viewer
+from diacc.sim.backends.base import Backend, BackendError, CavCommands
+from diacc.sim.backends.sumo import wire
+from diacc.sim.backends.sumo.backend import SumoBackend
+from diacc.sim.backends.sumo.net import build_network, lane_ids
+from diacc.sim.maps import available_maps, load_map
+from diacc.sim.scenario import Scenario, draw_population
+from diacc.sim.state import validate_state
+from diacc.sim.viewer import Viewer
 
 SIM = SimConfig()
 
@@ -213,10 +213,10 @@ def test_no_worker_left_after_close_or_interpreter_exit(tmp_path):
 
     script = textwrap.dedent(
         """
-        from diacc.backends.sumo.backend import SumoBackend
+        from diacc.sim.backends.sumo.backend import SumoBackend
         from diacc.config import SimConfig
-        from diacc.maps import load_map
-        from diacc.scenario import Scenario
+        from diacc.sim.maps import load_map
+        from diacc.sim.scenario import Scenario
         backend = SumoBackend(load_map("train-25"), SimConfig())
         backend.reset(Scenario(n_vehicles=5), seed=0)
         print(backend.worker_pid, flush=True)

@@ -11,7 +11,7 @@ import pytest
 
 from diacc.config import SimConfig
 from diacc.env import EnvConfig
-from diacc.scenario import Scenario
+from diacc.sim.scenario import Scenario
 from diacc.vector import (
     BatchedVectorEnv,
     MapGroupsVectorEnv,

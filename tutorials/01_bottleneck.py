@@ -37,12 +37,12 @@ matplotlib.use("Agg")  # no display needed; figures are saved as PNG
 import matplotlib.pyplot as plt
 import numpy as np
 
-from diacc.backends.base import CavCommands, make_backend
 from diacc.console import metric_lines, print_lines
-from diacc.maps import available_maps, load_map
 from diacc.metrics import EpisodeRecorder
-from diacc.scenario import Scenario
-from diacc.viewer import Viewer
+from diacc.sim.backends.base import CavCommands, make_backend
+from diacc.sim.maps import available_maps, load_map
+from diacc.sim.scenario import Scenario
+from diacc.sim.viewer import Viewer
 
 OUT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out")) / "01_bottleneck"
 OUT.mkdir(parents=True, exist_ok=True)

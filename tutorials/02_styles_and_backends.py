@@ -38,11 +38,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from diacc.backends.base import CavCommands, make_backend
 from diacc.config import STYLE_MIXES, STYLE_NAMES, STYLE_PRESETS, SimConfig
-from diacc.maps import load_map
 from diacc.safety import SAME_COL, lane_leaders_followers, pair_kinematics
-from diacc.scenario import Scenario
+from diacc.sim.backends.base import CavCommands, make_backend
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
 
 OUT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out")) / "02_styles_and_backends"
 OUT.mkdir(parents=True, exist_ok=True)

@@ -48,10 +48,10 @@ from matplotlib.patches import Rectangle
 
 from diacc.actions import ACCELERATE, ACTION_NAMES, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import CAV_STYLE, NORMAL, PSARConfig, SimConfig
-from diacc.maps import load_map
 from diacc.psar import RULE_BITS, RULE_NAMES, psar
 from diacc.safety import LANE_OFFSETS, lane_leaders_followers, pair_kinematics
-from diacc.state import TrafficState, validate_state
+from diacc.sim.maps import load_map
+from diacc.sim.state import TrafficState, validate_state
 
 OUT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out")) / "04_safety_first"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -65,7 +65,7 @@ print(cfg)
 # ## Building a traffic state by hand
 #
 # A `TrafficState` is a dataclass of `(V,)` arrays, one entry per vehicle, in
-# the coordinate convention of `diacc.state`: `x_m` is the vehicle centre
+# the coordinate convention of `diacc.sim.state`: `x_m` is the vehicle centre
 # along the route, lane 0 is the rightmost lane, `y_m` is the lane centre.
 # `validate_state` checks dtypes and shapes, the same check every backend's
 # output passes.

@@ -70,7 +70,6 @@ from diacc.config import TrainConfig, validate
 from diacc.console import TrainProgress
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_write
-from diacc.maps import load_map
 from diacc.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_networks
@@ -78,7 +77,8 @@ from diacc.observation import ObservationSpec, stack, unstack
 from diacc.psar import RULE_NAMES, rule_counts
 from diacc.reward import temperature
 from diacc.runlog import claim_run_dir, config_digest, locked_dir, log, run_log
-from diacc.scenario import draw_population
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import draw_population
 from diacc.threads import set_torch_threads
 from diacc.vector import make_vector_env
 

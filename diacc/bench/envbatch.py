@@ -26,10 +26,10 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from diacc.backends.base import CavCommands
-from diacc.backends.highway.backend import HighwayBackend
 from diacc.config import EnvConfig, SimConfig, preset_road
-from diacc.maps import load_map
+from diacc.sim.backends.base import CavCommands
+from diacc.sim.backends.highway.backend import HighwayBackend
+from diacc.sim.maps import load_map
 from diacc.vector import make_vector_env
 
 #: Actions of the timed steps: mostly keep lane with speed changes, as PSAR-filtered

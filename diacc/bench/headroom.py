@@ -8,7 +8,7 @@ baseline, and the heuristic with **100 % CAVs**. If 100 % CAVs cannot beat
 pure HDV, there is nothing to learn and the scenario or PSAR must change
 first (issue 26).
 
-Two scenario kinds (:mod:`diacc.scenario`):
+Two scenario kinds (:mod:`diacc.sim.scenario`):
 
 * ``release`` (default): the paper's one-shot release, N = 25, rho = 0.4,
   D1, on ``train-25`` and ``train-50``.
@@ -43,10 +43,10 @@ from diacc.config import STYLE_PRESETS, ConfigError, PSARConfig, preset_road
 from diacc.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
-from diacc.maps import load_map
 from diacc.policies import EvalSettings, PolicySpec, build_policy, parse_policy
-from diacc.scenario import Scenario
-from diacc.state import TrafficState
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
+from diacc.sim.state import TrafficState
 
 #: Reference rows: (label, policy name, CAV share; None = the cell's rho).
 REFERENCES = (

@@ -23,7 +23,7 @@ from diacc.episode import EpisodeDriver
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, ScriptedPolicy
 from diacc.safety import SAME_COL, lane_leaders_followers, pair_kinematics
-from diacc.state import TrafficState
+from diacc.sim.state import TrafficState
 
 #: Vehicles slower than this are queueing, not following; their time gap means nothing.
 MOVING_MPS = 5.0

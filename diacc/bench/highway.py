@@ -20,11 +20,11 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from diacc.backends.base import CavCommands
-from diacc.backends.highway.backend import HighwayBackend
 from diacc.config import SimConfig
-from diacc.maps import load_map
-from diacc.scenario import Scenario
+from diacc.sim.backends.base import CavCommands
+from diacc.sim.backends.highway.backend import HighwayBackend
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario
 
 N_CAVS = 10
 

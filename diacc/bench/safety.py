@@ -33,8 +33,8 @@ from diacc.config import BACKENDS, PSARConfig, SimConfig
 from diacc.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
-from diacc.maps import available_maps
 from diacc.policies import SCRIPTED, EvalSettings, ScriptedPolicy
+from diacc.sim.maps import available_maps
 
 #: Policies of the benchmark: each script with PSAR, then without.
 POLICIES = tuple(SCRIPTED) + tuple(f"{name}-nopsar" for name in SCRIPTED)

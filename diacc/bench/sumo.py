@@ -3,7 +3,7 @@
 Both sides run in the same invocation on the same generated network with the
 same SUMO options, the same population (N = 25 HDVs, ``train-50``), the same
 sub-stepping and the same libsumo calls a TrafficState needs
-(:mod:`diacc.backends.sumo.worker`): one subscription read of the worker's
+(:mod:`diacc.sim.backends.sumo.worker`): one subscription read of the worker's
 ``STATE_VARIABLES`` (lane, lane position, lateral offset, speed and angle) for
 every vehicle per decision step (vehicles missing from it have arrived) and
 the collision list after every sub-step. The population has no CAVs, so
@@ -32,13 +32,13 @@ import os
 import time
 from pathlib import Path
 
-from diacc.backends.base import CavCommands
-from diacc.backends.sumo.backend import SumoBackend
-from diacc.backends.sumo.net import ROUTE_ID
-from diacc.backends.sumo.vtypes import HDV_TYPES
 from diacc.config import SimConfig
-from diacc.maps import load_map
-from diacc.scenario import Scenario, draw_population
+from diacc.sim.backends.base import CavCommands
+from diacc.sim.backends.sumo.backend import SumoBackend
+from diacc.sim.backends.sumo.net import ROUTE_ID
+from diacc.sim.backends.sumo.vtypes import HDV_TYPES
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario, draw_population
 
 MAP_NAME = "train-50"
 N_VEHICLES = 25
@@ -92,7 +92,7 @@ class _RawLoop:
         import libsumo
         import sumolib
 
-        from diacc.backends.sumo.worker import STATE_VARIABLES, SumoSim
+        from diacc.sim.backends.sumo.worker import STATE_VARIABLES, SumoSim
 
         spec = backend._spec  # same network, vTypes and options as the backend's worker
         self.ls, self.args, self.sim = libsumo, SumoSim(spec)._args(seed), spec.sim

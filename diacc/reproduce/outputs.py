@@ -33,7 +33,6 @@ import numpy as np
 
 from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, csv_text, load_episodes
 from diacc.grid import CELL_KEYS, Cell
-from diacc.maps import SEGMENT_KINDS
 from diacc.plots import PlotError
 from diacc.report import FLOW_ROWS
 from diacc.reproduce.plan import (
@@ -45,6 +44,7 @@ from diacc.reproduce.plan import (
     reduction_of,
 )
 from diacc.reproduce.stages import row_cell_key
+from diacc.sim.maps import SEGMENT_KINDS
 
 #: Table rows: the paper's three, the share of episodes ending in a collision, the flow rows.
 TABLE_ROWS = ("speed", "p_we", "p_sce", "collision", *FLOW_ROWS)

@@ -36,8 +36,8 @@ from diacc.config import (
     override,
 )
 from diacc.grid import GRID_NAMES, Cell, load_grid
-from diacc.maps import load_map, map_tag
 from diacc.policies import BASELINES
+from diacc.sim.maps import load_map, map_tag
 from diacc.sweepaxes import Setting
 
 #: Non-learning columns of every table: the :data:`diacc.policies.BASELINES` (pure

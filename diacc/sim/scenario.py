@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from diacc.errors import DiaccError
-from diacc.maps import Map
+from diacc.sim.maps import Map
 
 STYLE_NAMES = ("aggressive", "normal", "cautious")
 AGGRESSIVE, NORMAL, CAUTIOUS = 0, 1, 2

@@ -26,7 +26,7 @@ Modelling choices (documented here because both backends must agree on them):
   (the ``paper`` presets' cautious drivers): like LC2013 on SUMO they make no
   lane change for the lane end and stop at it. A last-resort guard keeps an HDV behind its HDV
   leader; its use is counted in ``stats["guard_events"]`` (0 in practice).
-* **CAVs** follow their commands exactly (see :mod:`diacc.backends.base`);
+* **CAVs** follow their commands exactly (see :mod:`diacc.sim.backends.base`);
   one without a command (NaN) drives itself for the step like a cooperative
   CAV (below), and so does a CAV that has just entered, until its first step.
   A commanded change is made only if :meth:`Map.lane_change_allowed` says
@@ -37,7 +37,7 @@ Modelling choices (documented here because both backends must agree on them):
 * **HDV lane changes respect CAVs**: MOBIL and the forced merge accept a gap
   in front of a CAV only if the CAV, holding its commanded speed for the
   step and then braking at ``cav.safe_decel_mps2``, stays ``cav.min_gap_m`` behind
-  (:func:`diacc.kinematics.safe_gap_m`, the margin PSAR uses); IDM's view
+  (:func:`diacc.sim.kinematics.safe_gap_m`, the margin PSAR uses); IDM's view
   of the follower would assume it brakes at once.
 * **Cooperative CAVs** (``SimConfig.cav_mode="cooperative"``, the paper's non-learning
   "cooperative" baseline; SUMO uses CACC with ``lcCooperative = 1``): CAVs
@@ -67,20 +67,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.backends.base import BackendError, CavCommands
-from diacc.backends.highway.models import (
+from diacc.config import STYLE_PRESETS, SimConfig
+from diacc.sim.backends.base import BackendError, CavCommands
+from diacc.sim.backends.highway.models import (
     HighwayModel,
     IdmParams,
     box_contacts,
     idm_accel,
 )
-from diacc.backends.highway.road import LaneTables, build_road_network
-from diacc.backends.highway.simstate import HighwayCaches, HighwayParams, HighwayState
-from diacc.config import STYLE_PRESETS, SimConfig
-from diacc.kinematics import lane_change_reach_m, safe_gap_m
-from diacc.maps import Map
-from diacc.scenario import Scenario, draw_population
-from diacc.state import TrafficState
+from diacc.sim.backends.highway.road import LaneTables, build_road_network
+from diacc.sim.backends.highway.simstate import HighwayCaches, HighwayParams, HighwayState
+from diacc.sim.kinematics import lane_change_reach_m, safe_gap_m
+from diacc.sim.maps import Map
+from diacc.sim.scenario import Scenario, draw_population
+from diacc.sim.state import TrafficState
 
 _EMPTY_PAIRS = np.zeros((0, 2), dtype=np.int32)
 
@@ -113,7 +113,7 @@ class HighwayBackend:
     One object simulates ``n_envs`` environments of the same map and
     scenario, each its own block of (V,) rows in (E, V) arrays: every sub-step
     updates all vehicles of all envs at once, and nothing couples two envs.
-    The :class:`~diacc.backends.base.Backend` methods :meth:`reset` and
+    The :class:`~diacc.sim.backends.base.Backend` methods :meth:`reset` and
     :meth:`step` are the E = 1 case; a batch is reset env by env
     (:meth:`reset_env`) and stepped together (:meth:`step_batch`), with the
     same results per env as E separate backends (``tests/test_highway_batch.py``).
@@ -345,7 +345,7 @@ class HighwayBackend:
             )
         speed_start = state.speed_mps.copy()
         if self.cav_mode == "commanded":
-            # NaN: no command, the CAV drives itself this step (diacc.backends.base).
+            # NaN: no command, the CAV drives itself this step (diacc.sim.backends.base).
             # Over all vehicles (cheap), so the leader refreshes are those of a full step.
             commanded = (state.is_cav | params.reported_cav) & ~np.isnan(dv_cmd)  # (E, V)
             caches.leaders_dirty |= (commanded != state.is_cav).any(axis=1)

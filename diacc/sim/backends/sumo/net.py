@@ -1,4 +1,4 @@
-"""SUMO network files generated from a :class:`~diacc.maps.Map`.
+"""SUMO network files generated from a :class:`~diacc.sim.maps.Map`.
 
 The map is the single description of the road; this module turns it into
 plain SUMO node/edge/connection XML and runs the ``netconvert`` binary of the
@@ -36,10 +36,10 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
-from diacc.backends.base import BackendError
 from diacc.fileio import atomic_write
-from diacc.maps import Map
 from diacc.runlog import log
+from diacc.sim.backends.base import BackendError
+from diacc.sim.maps import Map
 
 #: Route id used by every vehicle; it covers all edges of the map.
 ROUTE_ID = "route"

@@ -1,6 +1,6 @@
 """The highway backend's simulator state as typed (E, V) arrays, one row per env.
 
-:class:`~diacc.backends.highway.backend.HighwayBackend` keeps everything it
+:class:`~diacc.sim.backends.highway.backend.HighwayBackend` keeps everything it
 knows about the vehicles of a batch in three records, split by who writes
 them and when:
 
@@ -31,7 +31,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from diacc.backends.highway.models import IdmParams
+from diacc.sim.backends.highway.models import IdmParams
 
 
 def _map_arrays(value: Any, fn: Callable[[np.ndarray], np.ndarray]) -> Any:

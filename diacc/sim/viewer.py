@@ -1,6 +1,6 @@
 """Offscreen frames of any backend's TrafficState, drawn by highway-env's own renderer.
 
-The viewer reads only the :class:`~diacc.state.TrafficState` and the map, so
+The viewer reads only the :class:`~diacc.sim.state.TrafficState` and the map, so
 an episode looks the same whichever simulator produced it (``diacc render``,
 ``BottleneckEnv.render``). highway-env's viewer opens a display; with SDL's
 dummy driver its frames come out black. Here we set the dummy
@@ -32,10 +32,10 @@ from highway_env.road.road import Road  # noqa: E402
 from highway_env.vehicle.graphics import VehicleGraphics  # noqa: E402
 from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
 
-from diacc.backends.highway.road import build_road_network, to_highway_env_y  # noqa: E402
 from diacc.config import AGGRESSIVE, CAUTIOUS, NORMAL, SimConfig  # noqa: E402
-from diacc.maps import Map  # noqa: E402
-from diacc.state import TrafficState  # noqa: E402
+from diacc.sim.backends.highway.road import build_road_network, to_highway_env_y  # noqa: E402
+from diacc.sim.maps import Map  # noqa: E402
+from diacc.sim.state import TrafficState  # noqa: E402
 
 #: Vehicle colours (RGB): CAVs green as highway-env's ego, HDVs by style.
 CAV_COLOR = VehicleGraphics.EGO_COLOR

@@ -1,4 +1,4 @@
-"""Simulator backends: the protocol (:mod:`diacc.backends.base`) and its
+"""Simulator backends: the protocol (:mod:`diacc.sim.backends.base`) and its
 implementations, one package each (``highway``, ``sumo``).
 
 The implementations are registered here, by name, with a function that imports
@@ -9,17 +9,17 @@ highway-env nor libsumo.
 
 from __future__ import annotations
 
-from diacc.backends.base import Backend, register_backend
+from diacc.sim.backends.base import Backend, register_backend
 
 
 def _highway() -> type[Backend]:
-    from diacc.backends.highway.backend import HighwayBackend
+    from diacc.sim.backends.highway.backend import HighwayBackend
 
     return HighwayBackend
 
 
 def _sumo() -> type[Backend]:
-    from diacc.backends.sumo.backend import SumoBackend
+    from diacc.sim.backends.sumo.backend import SumoBackend
 
     return SumoBackend
 

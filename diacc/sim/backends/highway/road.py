@@ -23,7 +23,7 @@ import numpy as np
 from highway_env.road.lane import LineType, StraightLane
 from highway_env.road.road import RoadNetwork
 
-from diacc.maps import Map
+from diacc.sim.maps import Map
 
 
 def road_width_m(road: Map) -> float:

@@ -6,7 +6,7 @@ Coordinate convention (identical for all backends)
   metres from the route start (0 .. ``Map.length_m``).
 * ``y_m``: lateral position of the vehicle's centre, metres to the *left* of
   the right edge of the widest cross-section. The centre line of absolute
-  lane ``l`` is at ``(l + 0.5) * lane_width_m`` (see :mod:`diacc.maps`).
+  lane ``l`` is at ``(l + 0.5) * lane_width_m`` (see :mod:`diacc.sim.maps`).
 * ``heading_rad``: angle to the route direction, positive when turning left
   (counter-clockwise with x forward and y left).
 * ``lane``: absolute lane index, 0 = rightmost lane of the widest section.
@@ -18,7 +18,7 @@ A vehicle is ``active`` while it is on the road. It becomes ``arrived`` when
 its centre passes the route end, and is then inactive for ever; its other
 fields keep their last values. In a ``demand`` scenario a vehicle that has
 not entered yet is *pending*: neither active nor arrived, at its entry slot
-(:mod:`diacc.scenario`). Inactive entries must be masked by consumers.
+(:mod:`diacc.sim.scenario`). Inactive entries must be masked by consumers.
 
 Batches
 -------

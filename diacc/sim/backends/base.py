@@ -1,11 +1,11 @@
 """The Backend protocol: what every simulator behind diacc must offer.
 
-A backend owns one simulation of one :class:`~diacc.maps.Map`. It is reset
-with a :class:`~diacc.scenario.Scenario` and a seed, stepped with commands for
+A backend owns one simulation of one :class:`~diacc.sim.maps.Map`. It is reset
+with a :class:`~diacc.sim.scenario.Scenario` and a seed, stepped with commands for
 the CAVs (HDVs drive themselves), and returns a
-:class:`~diacc.state.TrafficState` in the shared coordinate convention.
+:class:`~diacc.sim.state.TrafficState` in the shared coordinate convention.
 Everything past the backend (observations, PSAR, metrics, the viewer
-:mod:`diacc.viewer`) reads only that state, so nothing else needs to know
+:mod:`diacc.sim.viewer`) reads only that state, so nothing else needs to know
 which simulator runs. Each backend is a package: ``highway/`` and ``sumo/``.
 
 CAV command semantics, identical on every backend:
@@ -20,7 +20,7 @@ CAV command semantics, identical on every backend:
   the policy and PSAR carry safety (SUMO ``speedMode 0``).
 * No simulator moves a CAV: a CAV still in a lane that ends stops with its
   front at the lane end and may change lanes later. A lane change is made
-  only where :meth:`diacc.maps.Map.lane_change_allowed` allows it (the rule
+  only where :meth:`diacc.sim.maps.Map.lane_change_allowed` allows it (the rule
   PSAR applies too).
 
 * ``speed_change_mps[i] = NaN``: no command: the CAV drives itself this step
@@ -42,9 +42,9 @@ import numpy as np
 
 from diacc.config import BACKENDS, SimConfig
 from diacc.errors import DiaccError
-from diacc.maps import Map
-from diacc.scenario import Scenario
-from diacc.state import TrafficState
+from diacc.sim.maps import Map
+from diacc.sim.scenario import Scenario
+from diacc.sim.state import TrafficState
 
 
 class BackendError(DiaccError, RuntimeError):
@@ -84,7 +84,7 @@ class Backend(Protocol):
 
 
 #: Backend name -> a function that imports and returns its class. The package
-#: :mod:`diacc.backends` fills it (its ``__init__`` runs before this module is
+#: :mod:`diacc.sim.backends` fills it (its ``__init__`` runs before this module is
 #: used), so this protocol module never imports an implementation, and a
 #: simulator (highway-env, libsumo) is loaded only when its backend is asked for.
 _LOADERS: dict[str, Callable[[], type[Backend]]] = {}

@@ -4,7 +4,7 @@ libsumo keeps one simulation per process, so each :class:`SumoBackend` starts
 its own worker process and talks to it over a socket pair wrapped in a
 ``multiprocessing.connection.Connection`` (pickled messages; each step in the
 compact encoding of :mod:`.wire`). The worker is a
-fresh interpreter (``python -m diacc.backends.sumo.worker``), never a fork, so
+fresh interpreter (``python -m diacc.sim.backends.sumo.worker``), never a fork, so
 it is safe after torch or libsumo were imported here. It is started with
 ``subprocess`` rather than a ``multiprocessing`` ``spawn`` context because
 ``spawn`` re-runs the caller's main script in the child, which breaks every
@@ -41,21 +41,21 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.backends.base import BackendError, CavCommands
-from diacc.backends.sumo import wire
-from diacc.backends.sumo.net import build_network
-from diacc.backends.sumo.vtypes import vtypes_key, vtypes_xml
-from diacc.backends.sumo.worker import WorkerSpec
 from diacc.config import SimConfig
 from diacc.fileio import atomic_write
-from diacc.maps import Map
 from diacc.runlog import log
-from diacc.scenario import Scenario, draw_population
-from diacc.state import TrafficState
+from diacc.sim.backends.base import BackendError, CavCommands
+from diacc.sim.backends.sumo import wire
+from diacc.sim.backends.sumo.net import build_network
+from diacc.sim.backends.sumo.vtypes import vtypes_key, vtypes_xml
+from diacc.sim.backends.sumo.worker import WorkerSpec
+from diacc.sim.maps import Map
+from diacc.sim.scenario import Scenario, draw_population
+from diacc.sim.state import TrafficState
 from diacc.threads import worker_env
 
 #: Folder holding the ``diacc`` package, put on the worker's PYTHONPATH.
-_PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
+_PACKAGE_ROOT = str(Path(__file__).resolve().parents[4])
 #: Seconds to wait for a worker to start SUMO (spawning an interpreter and
 #: importing libsumo takes about a second on a quiet machine).
 START_TIMEOUT_S = 120.0
@@ -98,7 +98,7 @@ class SumoBackend:
         )
         try:
             proc = subprocess.Popen(
-                [sys.executable, "-m", "diacc.backends.sumo.worker", str(child_fd)],
+                [sys.executable, "-m", "diacc.sim.backends.sumo.worker", str(child_fd)],
                 pass_fds=(child_fd,),
                 stdin=subprocess.DEVNULL,
                 env=env,

@@ -1,7 +1,7 @@
 """The libsumo simulation that runs inside one worker process.
 
 libsumo holds one simulation per process (a second start silently replaces the first), so every
-:class:`~diacc.backends.sumo.backend.SumoBackend` owns a worker process that runs
+:class:`~diacc.sim.backends.sumo.backend.SumoBackend` owns a worker process that runs
 :func:`worker_main`. The worker owns a :class:`SumoSim` and answers three
 requests over a ``multiprocessing.connection.Connection`` (a socket pair
 whose child end is passed as a file descriptor number on the command line):
@@ -26,15 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.backends.sumo import wire
-from diacc.backends.sumo.net import ROUTE_ID, lane_ids
-from diacc.backends.sumo.vtypes import CAV_TYPE, HDV_TYPES
 from diacc.config import SimConfig
 from diacc.errors import DiaccError
-from diacc.kinematics import lane_change_reach_m
-from diacc.maps import Map
-from diacc.scenario import Population
-from diacc.state import TrafficState
+from diacc.sim.backends.sumo import wire
+from diacc.sim.backends.sumo.net import ROUTE_ID, lane_ids
+from diacc.sim.backends.sumo.vtypes import CAV_TYPE, HDV_TYPES
+from diacc.sim.kinematics import lane_change_reach_m
+from diacc.sim.maps import Map
+from diacc.sim.scenario import Population
+from diacc.sim.state import TrafficState
 
 #: laneChangeMode of commanded CAVs: 0 = no lane change of SUMO's own (strategic,
 #: cooperative, speed gain, keep right all off) and TraCI changes executed without
@@ -370,6 +370,6 @@ if __name__ == "__main__":  # pragma: no cover - the worker process entry point
     from multiprocessing.connection import Connection
 
     # Import by name so that pickled specs and this code share one module object.
-    from diacc.backends.sumo.worker import worker_main as _main
+    from diacc.sim.backends.sumo.worker import worker_main as _main
 
     _main(Connection(int(sys.argv[1])))

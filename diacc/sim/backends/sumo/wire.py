@@ -1,7 +1,7 @@
 """Compact encoding of the per-step messages between SumoBackend and its worker.
 
 A decision step is one round trip over the worker's pipe. Pickling and
-unpickling the reply, a :class:`~diacc.state.TrafficState` dataclass of 16
+unpickling the reply, a :class:`~diacc.sim.state.TrafficState` dataclass of 16
 small arrays, cost 60-100 us per step (measured: about as much as all the
 Python work of the worker's step), and the command tuple another 10-25 us;
 this encoding costs about 15 and 2 us. So the two messages of every step
@@ -11,7 +11,7 @@ travel as raw bytes:
   ``speed_change_mps`` as float64, one value per vehicle;
 * state reply (to a step or a reset): :data:`STATE_REPLY`, a header
   (``time_s``; ``step``, vehicle, collision and arrival counts), then every
-  array of :data:`~diacc.state.FIELD_DTYPES` as raw bytes, widest dtype first,
+  array of :data:`~diacc.sim.state.FIELD_DTYPES` as raw bytes, widest dtype first,
   so that each array decodes as an aligned view of one buffer.
 
 The rare messages (spec, reset, close, errors) stay pickled tuples. A pickle
@@ -26,7 +26,7 @@ import struct
 
 import numpy as np
 
-from diacc.state import FIELD_DTYPES, TrafficState
+from diacc.sim.state import FIELD_DTYPES, TrafficState
 
 STEP_REQUEST = b"s"
 STATE_REPLY = b"S"

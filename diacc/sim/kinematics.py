@@ -1,7 +1,7 @@
 """Braking physics shared by PSAR and the simulators' lane-change rules.
 
 A CAV acts once per decision step and holds its commanded speed change for
-the whole step (:mod:`diacc.backends.base`). Whoever judges whether a gap in
+the whole step (:mod:`diacc.sim.backends.base`). Whoever judges whether a gap in
 front of a CAV is safe -- PSAR deciding when to brake, or an HDV deciding
 whether it may cut in -- must therefore allow for one step of *reaction*
 and then for braking at the CAV's deceleration limit while the vehicle ahead
@@ -41,7 +41,7 @@ def lane_change_reach_m(speed_mps: np.ndarray, step_s: float, length_m: np.ndarr
     """Road a vehicle needs ahead of its centre to complete a one-step lane change.
 
     The distance it covers during the step plus its own length; used with
-    :meth:`diacc.maps.Map.lane_change_allowed` by PSAR and both backends.
+    :meth:`diacc.sim.maps.Map.lane_change_allowed` by PSAR and both backends.
     """
     return np.asarray(speed_mps) * step_s + np.asarray(length_m)
 

@@ -30,7 +30,7 @@ from diacc.errors import DiaccError
 from diacc.tomlfile import read_toml
 
 #: Folder with the shipped map descriptions (``maps/`` at the repository root).
-MAPS_DIR = Path(__file__).resolve().parent.parent / "maps"
+MAPS_DIR = Path(__file__).resolve().parents[2] / "maps"
 
 SEGMENT_KINDS = ("multilane", "reduction25", "reduction50")
 DROP_SIDES = ("left", "right")
@@ -150,7 +150,7 @@ class Map:
         vehicle's ``segment`` and does not end within ``reach_m`` ahead of
         the vehicle's centre ``x_m`` (callers pass the distance covered during
         the change plus the vehicle length, see
-        :func:`diacc.kinematics.lane_change_reach_m`). ``offset == 0`` is not a
+        :func:`diacc.sim.kinematics.lane_change_reach_m`). ``offset == 0`` is not a
         lane change and gives False. Arrays broadcast; returns bool.
         """
         segment = np.asarray(segment, dtype=np.int64)
