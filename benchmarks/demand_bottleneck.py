@@ -16,7 +16,7 @@ the draw of a 40 % CAV cell with its CAV slots driven by normal human drivers
 * ``max_lane_end_wait_s``: longest a vehicle stood (< 0.5 m/s) within 50 m of
   the end of its lane.
 * speed, p(WE), throughput past the reduction, delay per vehicle, arrived share:
-  :class:`diacc.metrics.EpisodeRecorder` (its ``throughput_vph`` is ``outflow_vph``
+  :class:`diacc.envs.metrics.EpisodeRecorder` (its ``throughput_vph`` is ``outflow_vph``
   counted by the recorder).
 
 The committed results/demand/humans.jsonl (benchmarks/README.md):
@@ -34,7 +34,7 @@ import numpy as np
 
 from diacc.bench import write_json_lines
 from diacc.config import EventConfig, SimConfig, preset_road
-from diacc.metrics import EpisodeRecorder
+from diacc.envs.metrics import EpisodeRecorder
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario

@@ -67,23 +67,23 @@ def config(args: argparse.Namespace, mode: str, run_dir: str):
 
 def switch_window_off() -> None:
     """Every vehicle stepped, searched and given a critic row: the code before the window."""
-    import diacc.env
+    import diacc.envs.env
+    import diacc.envs.observation
+    import diacc.envs.safety
     import diacc.models.gat
-    import diacc.observation
-    import diacc.safety
     from diacc.sim.backends.highway.backend import HighwayBackend
 
     def every_vehicle(active):
         return 0, active.shape[-1]
 
-    class FullCritic(diacc.observation.ObservationBuilder):
+    class FullCritic(diacc.envs.observation.ObservationBuilder):
         def __init__(self, road, cfg, episode_steps, compact_critic=False):
             super().__init__(road, cfg, episode_steps, compact_critic=False)
 
     HighwayBackend.windowed = False
-    diacc.observation.on_road_window = every_vehicle
-    diacc.safety.on_road_window = every_vehicle
-    diacc.env.ObservationBuilder = FullCritic
+    diacc.envs.observation.on_road_window = every_vehicle
+    diacc.envs.safety.on_road_window = every_vehicle
+    diacc.envs.env.ObservationBuilder = FullCritic
     diacc.models.gat.DENSE_MAX_NODES = 10**9
 
 
@@ -100,7 +100,7 @@ def measure(args: argparse.Namespace, mode: str) -> dict:
     import numpy as np
 
     from diacc.algo.mappo import train
-    from diacc.vector import make_vector_env
+    from diacc.envs.vector import make_vector_env
 
     if mode == "full":
         switch_window_off()

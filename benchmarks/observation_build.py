@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from diacc.config import CAV_STYLE, ObservationConfig
-from diacc.observation import ObservationBuilder
+from diacc.envs.observation import ObservationBuilder
 from diacc.sim.maps import Map, load_map
 from diacc.sim.state import TrafficState
 

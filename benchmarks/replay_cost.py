@@ -19,7 +19,7 @@ import sys, time, torch, numpy as np
 torch.set_num_threads(1)
 from diacc.models.registry import build_networks
 from diacc.config import ModelConfig, ObservationConfig
-from diacc.observation import ObservationSpec
+from diacc.envs.observation import ObservationSpec
 from diacc.models.synthetic import random_critic_state, random_actor_obs
 from diacc.models.inputs import to_tensors
 spec = ObservationSpec.from_config(ObservationConfig())

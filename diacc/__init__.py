@@ -14,7 +14,6 @@ The factories import the simulator stack only when called, so ``import diacc``
 
 from __future__ import annotations
 
-import sys
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
@@ -24,7 +23,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from pathlib import Path
 
     from diacc.agent import TrainedPolicy
-    from diacc.env import BottleneckEnv
+    from diacc.envs.env import BottleneckEnv
 
 
 def parallel_env(
@@ -34,14 +33,14 @@ def parallel_env(
 
     ``render_mode``: ``None``, ``"rgb_array"`` or ``"human"``;
     ``observation_format``: ``"dict"`` (graph structure as named arrays) or
-    ``"flat"`` (one float32 vector, for SB3/SuperSuit; :func:`diacc.spaces.unflatten`
-    restores the dict). ``config`` holds fields of :class:`diacc.env.EnvConfig` (``backend``,
+    ``"flat"`` (one float32 vector, for SB3/SuperSuit; :func:`diacc.envs.spaces.unflatten`
+    restores the dict). ``config`` holds fields of :class:`diacc.config.EnvConfig` (``backend``,
     ``map``, ``use_psar``, ...); nested sections take a dict or their dataclass,
     e.g. ``scenario={"n_vehicles": 12, "cav_penetration": 0.25}``. Unknown keys
     raise :class:`diacc.config.ConfigError`.
     """
     from diacc.config import override
-    from diacc.env import BottleneckEnv, EnvConfig
+    from diacc.envs.env import BottleneckEnv, EnvConfig
 
     return BottleneckEnv(
         override(EnvConfig(), config),
@@ -58,16 +57,12 @@ def load_policy(path: str | Path, sampled: bool = False) -> TrainedPolicy:
     return TrainedPolicy(path, sampled=sampled)
 
 
-def __getattr__(name: str) -> Any:
-    """``diacc.env`` is the :mod:`diacc.env` module, which is callable as PettingZoo's
-    AEC factory: ``diacc.env(**config)`` (see :class:`diacc.env.CallableEnvModule`).
+def env(render_mode: str | None = None, observation_format: str = "dict", **config: Any):
+    """The bottleneck environment as a PettingZoo ``AECEnv`` (PettingZoo's ``env()``
+    factory): :func:`parallel_env` with the same arguments, turned into an AEC env by
+    PettingZoo's own parallel->AEC wrapper."""
+    from pettingzoo.utils.conversions import parallel_to_aec
 
-    A submodule named ``env`` and a factory named ``env`` cannot both be the
-    package attribute (importing the submodule rebinds it), so the module is
-    the factory.
-    """
-    if name == "env":
-        import diacc.env  # noqa: F401 - binds sys.modules['diacc.env']
-
-        return sys.modules["diacc.env"]
-    raise AttributeError(f"module 'diacc' has no attribute {name!r}")
+    return parallel_to_aec(
+        parallel_env(render_mode=render_mode, observation_format=observation_format, **config)
+    )

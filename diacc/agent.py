@@ -16,7 +16,7 @@ The actor is recurrent (a GRU per CAV): :class:`TrainedPolicy` keeps one
 hidden state per agent name, starts it at zero the first time it sees the
 agent, and forgets agents that no longer appear (PettingZoo never revives
 them). Observations may be in the ``"dict"`` or the ``"flat"`` format
-(:mod:`diacc.spaces`).
+(:mod:`diacc.envs.spaces`).
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Any
 
 from diacc.config import EnvConfig, override
-from diacc.observation import ObservationSpec
-from diacc.spaces import SpaceError, actor_obs_from_rows
+from diacc.envs.observation import ObservationSpec
+from diacc.envs.spaces import SpaceError, actor_obs_from_rows
 
 __all__ = ["TrainedPolicy"]
 
@@ -67,7 +67,7 @@ class TrainedPolicy:
         """A ``ParallelEnv`` with the config the agent was trained with (PSAR as its
         variant uses it), changed by ``config`` (dotted or nested keys, as
         :func:`diacc.parallel_env`)."""
-        from diacc.env import BottleneckEnv
+        from diacc.envs.env import BottleneckEnv
 
         return BottleneckEnv(
             override(self.env_config, config),

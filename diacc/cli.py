@@ -470,7 +470,7 @@ def _simulate_parser(sub) -> None:
 def cmd_simulate(args: argparse.Namespace) -> None:
     from diacc.config import ObservationConfig
     from diacc.console import metric_lines, print_lines
-    from diacc.episode import EpisodeDriver, play_episode
+    from diacc.envs.episode import EpisodeDriver, play_episode
     from diacc.policies import Policy
     from diacc.sim.scenario import Scenario
 

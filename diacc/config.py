@@ -285,18 +285,18 @@ class SimConfig:
 # --------------------------------------------------------------------------
 # Observation, safety, reward
 # --------------------------------------------------------------------------
-#: Values of ``ObservationConfig.lateral_frame`` (:mod:`diacc.lateral_frame`).
+#: Values of ``ObservationConfig.lateral_frame`` (:mod:`diacc.envs.lateral_frame`).
 LATERAL_FRAMES = ("drop-left", "world")
 
 
 @dataclass(frozen=True)
 class ObservationConfig:
-    """Sizes of the observation layout (:mod:`diacc.observation`) and three options.
+    """Sizes of the observation layout (:mod:`diacc.envs.observation`) and three options.
 
     The options keep the layout (so every network and shipped checkpoint fits).
     ``lateral_frame = "drop-left"`` (default) shows a road that drops its right
     lanes mirrored, so agents trained on left drops know where the lanes end
-    (:mod:`diacc.lateral_frame`; the identity on every shipped map); ``"world"``
+    (:mod:`diacc.envs.lateral_frame`; the identity on every shipped map); ``"world"``
     is the literal reading. The two others default to the paper's observation.
     ``critic_step_input=False`` zeroes
     the critic's step / episode-length feature: with 100-step training and
@@ -313,14 +313,14 @@ class ObservationConfig:
     lane_window_m: float = ranged(100.0, 0, open_low=True)  # lane statistics: ahead and behind
     critic_step_input: bool = True  # the critic's step / T feature (False: always 0)
     road_speed_limits: bool = False  # road table column 4 = segment limit / route max
-    # "drop-left": a road dropping its right lanes is seen mirrored (diacc.lateral_frame)
+    # "drop-left": a road dropping its right lanes is seen mirrored (diacc.envs.lateral_frame)
     lateral_frame: str = one_of("drop-left", LATERAL_FRAMES)
 
     def __post_init__(self) -> None:
         _check_fields(self)
 
 
-#: Options of :class:`PSARConfig` (see :func:`diacc.psar.psar`).
+#: Options of :class:`PSARConfig` (see :func:`diacc.envs.psar.psar`).
 FORCE_BRAKE_MODES = ("cancel", "paper")
 HORIZON_MODES = ("stopping", "headway", "paper")
 #: When a CAV may brake beyond its planned rate under the ``"headway"`` horizon (PSARConfig).
@@ -353,7 +353,7 @@ class PSARConfig:
     emergency brake in p(SCE)). ``coordinate_lane_changes`` stops two connected
     CAVs from changing lanes into each other. ``force_brake="paper", horizon="paper",
     coordinate_lane_changes=False`` is the literal pseudocode (the ablation);
-    see :func:`diacc.psar.psar`.
+    see :func:`diacc.envs.psar.psar`.
     """
 
     d_lc_min_m: float = 1.0
@@ -404,7 +404,7 @@ class EventConfig:
         _check_fields(self)
 
 
-#: Options of :class:`RewardConfig` (see :mod:`diacc.reward`); the first is the paper's.
+#: Options of :class:`RewardConfig` (see :mod:`diacc.envs.reward`); the first is the paper's.
 CLOSENESS_MODES = ("centre", "bumper")
 EXIT_BONUS_SCALES = ("per_cav", "fleet")
 
@@ -420,7 +420,7 @@ class RewardConfig:
     moves both together; ``--sweep env.reward.w_ego=...`` alone keeps w_g.
 
     The last four fields are options that default to the paper's reading
-    (:mod:`diacc.reward`, docs/concepts/learning-options.md): ``closeness``,
+    (:mod:`diacc.envs.reward`, docs/concepts/learning-options.md): ``closeness``,
     ``warning_ttc_s`` (used by ``closeness="bumper"``), ``exit_bonus_scale``
     and ``delay_weight``.
     """
@@ -441,7 +441,7 @@ class RewardConfig:
     tau_init: float = ranged(2.0, 0, open_low=True)
     tau_final: float = ranged(0.05, 0, open_low=True)
     tau_anneal_fraction: float = ranged(0.5, 0, 1, open_low=True)  # of the training steps
-    # ---- options (diacc.reward; docs/concepts/learning-options.md); defaults: the paper
+    # ---- options (diacc.envs.reward; docs/concepts/learning-options.md); defaults: the paper
     closeness: str = "centre"  # "centre" (paper) or "bumper": gap and TTC to lane leader/follower
     # "bumper": TTC to the same-lane leader that starts the warning
     warning_ttc_s: float = ranged(3.0, 0, open_low=True)
@@ -453,7 +453,7 @@ class RewardConfig:
         _check_choice("env.reward.closeness", self.closeness, CLOSENESS_MODES)
         _check_choice("env.reward.exit_bonus_scale", self.exit_bonus_scale, EXIT_BONUS_SCALES)
         _check_fields(self)
-        # the warning term divides by their difference (diacc.reward)
+        # the warning term divides by their difference (diacc.envs.reward)
         if not 0.0 < self.collision_distance_m < self.warning_distance_m:
             raise ConfigError(
                 "RewardConfig needs 0 < collision_distance_m < warning_distance_m, got "
@@ -462,7 +462,7 @@ class RewardConfig:
 
 
 BACKENDS = ("highway", "sumo")
-#: How the actor's actions meet PSAR (:mod:`diacc.action_mask`,
+#: How the actor's actions meet PSAR (:mod:`diacc.envs.action_mask`,
 #: docs/concepts/learning-options.md): "proposed" trains on the proposed action (the paper read
 #: literally), "executed" on the action PSAR executed, "masked" samples only
 #: actions PSAR would execute unchanged.
@@ -616,7 +616,7 @@ class TrainConfig:
     # a value per CAV slot from its own features beside the global state (docs)
     critic_values: str = one_of("team", ("team", "per_agent"))
     # maps trained on beside env.map: the envs are split into one contiguous block per
-    # map (diacc.vector.maps_of_envs), so one policy learns several road layouts
+    # map (diacc.envs.vector.maps_of_envs), so one policy learns several road layouts
     # (--set extra_maps=train-25,right-50.toml); () trains on env.map alone
     extra_maps: tuple[str, ...] = ()
     run_dir: str = "runs/diacc"

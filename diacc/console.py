@@ -11,7 +11,7 @@ import dataclasses
 import math
 from typing import Any
 
-from diacc.metrics import EpisodeMetrics
+from diacc.envs.metrics import EpisodeMetrics
 
 NA = "n/a"
 

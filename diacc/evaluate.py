@@ -21,7 +21,7 @@ recomputed; a dead pool worker costs a retry of its task
 (:func:`run_cell_task`). Each recovery is logged, so results are complete
 and equal to an unfaulted run's, or the command ends with a one-line error.
 
-Episodes are played by :class:`diacc.episode.EpisodeDriver`, so they end
+Episodes are played by :class:`diacc.envs.episode.EpisodeDriver`, so they end
 like training episodes: on a collision, when every vehicle has left, or
 after ``episode_steps``.
 """
@@ -40,13 +40,13 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from diacc.episode import EpisodeDriver, play_episode
+from diacc.envs.episode import EpisodeDriver, play_episode
+from diacc.envs.metrics import SpeedSamples
+from diacc.envs.psar import RULE_NAMES
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_write
 from diacc.grid import CELL_KEYS, Cell, make_cell
-from diacc.metrics import SpeedSamples
 from diacc.policies import CheckpointPolicy, EvalSettings, PolicySpec, build_policy
-from diacc.psar import RULE_NAMES
 from diacc.runlog import locked_dir, log, run_log
 from diacc.sim.backends.base import BackendError
 from diacc.sim.maps import SEGMENT_KINDS

@@ -1,7 +1,7 @@
 """Policies the evaluator runs: non-learning baselines, scripted CAVs and checkpoints.
 
 Every policy answers the same two questions, and every episode is played
-through the environment (:mod:`diacc.episode`), so the evaluator treats a
+through the environment (:mod:`diacc.envs.episode`), so the evaluator treats a
 baseline exactly like a checkpoint:
 
 * :meth:`Policy.env_config`: which environment a grid cell means for it
@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import (
     FULL_BRAKE_MODES,
     HORIZON_MODES,
@@ -41,9 +40,10 @@ from diacc.config import (
     SimConfig,
     TrainConfig,
 )
+from diacc.envs.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.envs.observation import ActorObs
 from diacc.errors import DiaccError
 from diacc.grid import Cell
-from diacc.observation import ActorObs
 from diacc.sim.maps import Map
 
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
@@ -171,7 +171,8 @@ class Policy:
         )
 
     def use_road(self, road: Map) -> None:
-        """The road of the episodes to come (:class:`~diacc.episode.EpisodeDriver` calls it)."""
+        """The road of the episodes to come (:class:`~diacc.envs.episode.EpisodeDriver`
+        calls it)."""
 
     def begin_episode(self, n_cavs: int, seed: int) -> None:
         """Forget any recurrent state (called before the first :meth:`act`)."""
@@ -360,7 +361,7 @@ class CheckpointPolicy(Policy):
     def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
         import torch
 
-        from diacc.action_mask import masked_logits
+        from diacc.envs.action_mask import masked_logits
         from diacc.models.inputs import to_tensors
 
         n_cavs = actor_obs.alive.shape[0]

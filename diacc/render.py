@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.episode import EpisodeDriver
+from diacc.envs.episode import EpisodeDriver
 from diacc.errors import DiaccError
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, Policy, PolicySpec, build_policy
@@ -68,7 +68,7 @@ def step_stamp(
     state: TrafficState, max_steps: int, psar_rule: np.ndarray | None
 ) -> tuple[str, str]:
     """(time / step / crash line, PSAR line) under a frame; ``psar_rule`` (V,) None: no PSAR."""
-    from diacc.psar import RULE_NAMES
+    from diacc.envs.psar import RULE_NAMES
 
     crash = (
         "crash: vehicles "

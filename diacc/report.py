@@ -11,7 +11,7 @@ grid cell the paper's three rows, plus two optional ones (``rows``):
   shares (population std, ddof = 0).
 * optional **Collision (%)**: share of episodes that ended in a collision;
   **Arrived (%)**: mean share of vehicles that reached the route end;
-  the flow rows (:data:`FLOW_ROWS`, definitions in :mod:`diacc.metrics`),
+  the flow rows (:data:`FLOW_ROWS`, definitions in :mod:`diacc.envs.metrics`),
   each mean +- std over episodes: **Throughput (veh/h)**, **Delay (s/veh)**,
   **Arrived speed (m/s)**, **Travel time (s)** (of arrived vehicles),
   **Never arrived (%)**.

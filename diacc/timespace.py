@@ -4,7 +4,7 @@ One dot per (vehicle, decision step), at (time, position), coloured by speed
 (red slow, green free flow); the reduction segments are shaded, so a queue
 shows as a red streak growing backwards from the lane drop. A second panel
 gives the mean speed per 25 m of road. The episode is played through the
-environment (:class:`~diacc.episode.EpisodeDriver`) by any policy, on either
+environment (:class:`~diacc.envs.episode.EpisodeDriver`) by any policy, on either
 backend, so ``diacc plot timespace`` draws pure-HDV traffic and a trained
 agent alike. Tutorial 1 builds the same figure by hand.
 """

@@ -1,4 +1,4 @@
-"""PSAR-aware action masks (diacc.action_mask) and the ``env.psar_actions`` option."""
+"""PSAR-aware action masks (diacc.envs.action_mask) and the ``env.psar_actions`` option."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import pytest
 import torch
 from helpers import make_state
 
-from diacc.action_mask import masked_logits, psar_action_mask
-from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import ConfigError, EnvConfig, TrainConfig, validate
+from diacc.envs.action_mask import masked_logits, psar_action_mask
+from diacc.envs.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.sim.maps import load_map
 from diacc.sim.state import TrafficState
 
@@ -107,8 +107,8 @@ def test_psar_actions_option_is_checked():
 def test_env_observation_carries_the_mask_only_when_masked(backend):
     """Masked: PSAR executes every allowed proposal but lane changes (which it
     may still cancel for another CAV's change); unmasked: all True."""
-    from diacc.actions import ACTION_LANE_OFFSET
-    from diacc.env import BottleneckEnv
+    from diacc.envs.actions import ACTION_LANE_OFFSET
+    from diacc.envs.env import BottleneckEnv
 
     for mode in ("proposed", "masked"):
         env = BottleneckEnv(dataclasses.replace(EnvConfig(backend=backend), psar_actions=mode))

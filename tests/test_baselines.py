@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from diacc.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT
 from diacc.config import CAV_STYLE, NORMAL, STYLE_NAMES
-from diacc.episode import EpisodeDriver
+from diacc.envs.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT
+from diacc.envs.episode import EpisodeDriver
+from diacc.envs.observation import ActorObs
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
-from diacc.observation import ActorObs
 from diacc.policies import (
     HEURISTIC_LEAVE_M,
     EvalSettings,

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from diacc.config import EnvConfig, preset_road
-from diacc.observation import ObservationBuilder, unstack
-from diacc.psar import psar
-from diacc.reward import reward
-from diacc.safety import safety_critical_events
+from diacc.envs.observation import ObservationBuilder, unstack
+from diacc.envs.psar import psar
+from diacc.envs.reward import reward
+from diacc.envs.safety import safety_critical_events
 from diacc.sim.backends.base import CavCommands
 from diacc.sim.backends.highway.backend import HighwayBackend
 from diacc.sim.maps import load_map

@@ -10,18 +10,18 @@ import torch
 from helpers import SHORT_MAP
 from pettingzoo.test import parallel_api_test
 
-from diacc.actions import LANE_RIGHT
 from diacc.algo.mappo import collect_rollout, make_agent, seed_everything, train
 from diacc.config import ConfigError, EnvConfig, SimConfig, TrainConfig, override
-from diacc.env import BottleneckEnv
-from diacc.episode import EpisodeDriver, play_episode
+from diacc.envs.actions import LANE_RIGHT
+from diacc.envs.env import BottleneckEnv
+from diacc.envs.episode import EpisodeDriver, play_episode
+from diacc.envs.observation import unstack
+from diacc.envs.vector import make_vector_env
 from diacc.models.inputs import to_tensors
-from diacc.observation import unstack
 from diacc.policies import ScriptedPolicy
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import parse_map
 from diacc.sim.scenario import Scenario, ScenarioError, draw_population
-from diacc.vector import make_vector_env
 
 BACKENDS = ["highway", "sumo"]
 
@@ -223,7 +223,7 @@ def test_episode_that_ends_in_the_warmup_has_an_empty_summary():
     from helpers import make_state
 
     from diacc.config import preset_road
-    from diacc.metrics import EpisodeRecorder
+    from diacc.envs.metrics import EpisodeRecorder
     from diacc.sim.maps import load_map
 
     recorder = EpisodeRecorder(preset_road(load_map("train-50"), "realistic"), warmup_s=10.0)
@@ -307,7 +307,7 @@ def test_flows_count_the_window_after_the_warm_up():
     from helpers import make_state
 
     from diacc.config import preset_road
-    from diacc.metrics import EpisodeRecorder
+    from diacc.envs.metrics import EpisodeRecorder
     from diacc.sim.maps import load_map
 
     road = preset_road(load_map("train-50"), "realistic")  # reduction ends at 800 m

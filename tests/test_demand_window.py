@@ -12,13 +12,13 @@ import torch
 from helpers import SHORT_MAP
 from test_demand import tiny_demand_run
 
+import diacc.envs.observation as observation
+import diacc.envs.safety as safety
 import diacc.models.gat as gat
-import diacc.observation as observation
-import diacc.safety as safety
-from diacc.actions import LANE_RIGHT
 from diacc.config import EnvConfig, EventConfig, ObservationConfig, SimConfig
-from diacc.env import BottleneckEnv
-from diacc.observation import ObservationBuilder, ObservationError
+from diacc.envs.actions import LANE_RIGHT
+from diacc.envs.env import BottleneckEnv
+from diacc.envs.observation import ObservationBuilder, ObservationError
 from diacc.sim.scenario import Scenario
 from diacc.sim.state import TrafficState, on_road_window
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from diacc.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
-from diacc.env import BottleneckEnv, EnvConfig
+from diacc.envs.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.envs.env import BottleneckEnv, EnvConfig
 from diacc.sim.scenario import Scenario
 
 BACKENDS = ["highway", "sumo"]

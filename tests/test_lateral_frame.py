@@ -1,4 +1,4 @@
-"""The agents' lateral frame (diacc.lateral_frame): a right-drop road is seen as its mirror."""
+"""The agents' lateral frame (diacc.envs.lateral_frame): a right-drop road is seen as its mirror."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from diacc.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import ConfigError, EnvConfig, ObservationConfig
-from diacc.env import BottleneckEnv, decide
-from diacc.episode import EpisodeDriver, play_episode
-from diacc.lateral_frame import agent_map, is_mirrored, mirror_actions, mirror_state
-from diacc.observation import ObservationBuilder
+from diacc.envs.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.envs.env import BottleneckEnv, decide
+from diacc.envs.episode import EpisodeDriver, play_episode
+from diacc.envs.lateral_frame import agent_map, is_mirrored, mirror_actions, mirror_state
+from diacc.envs.observation import ObservationBuilder
 from diacc.policies import build_policy, parse_policy
 from diacc.sim.backends.base import make_backend
 from diacc.sim.maps import load_map

@@ -17,7 +17,7 @@ import torch
 from diacc.algo.checkpoint import load_checkpoint, restore
 from diacc.algo.mappo import make_agent, train
 from diacc.config import TrainConfig, override
-from diacc.episode import EpisodeDriver
+from diacc.envs.episode import EpisodeDriver
 from diacc.models.inputs import to_tensors
 from diacc.sim.scenario import Scenario
 

@@ -64,7 +64,7 @@ def test_tiny_training_with_every_option_and_masked_evaluation(tmp_path):
     assert len(rows) == 2 and all(np.isfinite(r["value_loss"]) for r in rows)
     policy = CheckpointPolicy(run / "checkpoint.pt")
     assert policy.train_config.critic_values == "per_agent"
-    from diacc.env import BottleneckEnv
+    from diacc.envs.env import BottleneckEnv
 
     env = BottleneckEnv(policy.base)
     actor, _ = env.reset_arrays(seed=5)

@@ -21,8 +21,8 @@ from diacc.algo.mappo import (
     train,
 )
 from diacc.config import TrainConfig, override
+from diacc.envs.vector import make_vector_env
 from diacc.sim.scenario import Scenario
-from diacc.vector import make_vector_env
 
 TINY = {
     "n_envs": 2,

@@ -1,4 +1,4 @@
-"""Tests of diacc.metrics on a hand-built three-step episode."""
+"""Tests of diacc.envs.metrics on a hand-built three-step episode."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from helpers import make_state
 
-from diacc.metrics import EpisodeRecorder, MetricsError
-from diacc.psar import PSARResult
+from diacc.envs.metrics import EpisodeRecorder, MetricsError
+from diacc.envs.psar import PSARResult
 from diacc.sim.maps import load_map
 
 ROAD = load_map("train-25")  # segments: multilane 0-500, reduction25 500-800, multilane

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from diacc.config import VARIANTS, ModelConfig, ObservationConfig
+from diacc.envs.observation import N_ACTIONS, ObservationSpec
 from diacc.models.errors import ModelError
 from diacc.models.gat import GraphAttention
 from diacc.models.inputs import to_tensors
@@ -17,7 +18,6 @@ from diacc.models.mlp import MLPActor
 from diacc.models.registry import build_networks
 from diacc.models.synthetic import random_actor_obs, random_critic_state
 from diacc.models.taie import TAIE, DIADMActor
-from diacc.observation import N_ACTIONS, ObservationSpec
 
 CFG = ModelConfig(hidden_dim=32, gat_heads=2, cross_heads=4, cross_dim=16, gru_hidden=24)
 SPEC = ObservationSpec.from_config(ObservationConfig())
@@ -405,7 +405,7 @@ def test_every_variant_runs_on_builder_observations():
     from helpers import make_state
 
     from diacc.config import ObservationConfig
-    from diacc.observation import ObservationBuilder, stack
+    from diacc.envs.observation import ObservationBuilder, stack
     from diacc.sim.maps import load_map
 
     road, obs_cfg = load_map("train-25"), ObservationConfig()

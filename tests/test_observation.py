@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from diacc.config import ObservationConfig, SimConfig
-from diacc.observation import (
+from diacc.envs.observation import (
     DX_SCALE_M,
     FEATURE_CLIP,
     MAX_LANES,

@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 from diacc.config import SimConfig, preset_road
-from diacc.metrics import EpisodeRecorder
+from diacc.envs.metrics import EpisodeRecorder
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario

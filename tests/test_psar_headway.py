@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from helpers import make_state
 
-from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import ConfigError, PSARConfig, SimConfig
-from diacc.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, _exit_room_m, psar
+from diacc.envs.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.envs.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, _exit_room_m, psar
 from diacc.sim.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
 from diacc.sim.maps import load_map
 

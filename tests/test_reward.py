@@ -1,4 +1,4 @@
-"""Tests of diacc.reward against hand computations."""
+"""Tests of diacc.envs.reward against hand computations."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from helpers import make_state
 
 from diacc.config import ConfigError, RewardConfig, TrainConfig, override
-from diacc.reward import RewardError, reward, softmin_weights, temperature
+from diacc.envs.reward import RewardError, reward, softmin_weights, temperature
 from diacc.sim.maps import load_map
 
 CFG = RewardConfig()

@@ -1,7 +1,7 @@
 """Collision-free driving is possible: PSAR's physical options, lane ends, HDVs and CAVs.
 
 The literal Algorithm 1 is tested line by line in ``test_safety.py``; this
-file tests what the default options add (see :func:`diacc.psar.psar`) and
+file tests what the default options add (see :func:`diacc.envs.psar.psar`) and
 that both simulators treat CAVs the way PSAR assumes.
 """
 
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from helpers import make_state
 
-from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import PSARConfig, SimConfig
-from diacc.psar import CANCEL_LC, FORCE_BRAKE, psar
+from diacc.envs.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.envs.psar import CANCEL_LC, FORCE_BRAKE, psar
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.kinematics import braking_step, safe_gap_m
 from diacc.sim.maps import load_map

@@ -1,4 +1,5 @@
-"""Tests of diacc.safety (neighbour search, gap/TTC, events) and diacc.psar (Algorithm 1)."""
+"""Tests of diacc.envs.safety (neighbour search, gap/TTC, events) and diacc.envs.psar
+(Algorithm 1)."""
 
 from __future__ import annotations
 
@@ -8,9 +9,9 @@ import numpy as np
 import pytest
 from helpers import make_state
 
-from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import ConfigError, EventConfig, PSARConfig
-from diacc.psar import (
+from diacc.envs.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.envs.psar import (
     CANCEL_LC,
     DECEL_LC,
     FORCE_BRAKE,
@@ -20,7 +21,7 @@ from diacc.psar import (
     psar,
     rule_counts,
 )
-from diacc.safety import (
+from diacc.envs.safety import (
     SafetyError,
     lane_leaders_followers,
     pair_kinematics,

@@ -13,7 +13,7 @@ import pytest
 
 from diacc.algo.checkpoint import config_from_checkpoint
 from diacc.config import PSARConfig
-from diacc.episode import EpisodeDriver
+from diacc.envs.episode import EpisodeDriver
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec, build_policy
 

@@ -10,11 +10,11 @@ from pettingzoo.test import parallel_api_test
 
 import diacc
 from diacc.sim import viewer
-from diacc.env import INFO_METRICS, RenderModeError
-from diacc.episode import EpisodeDriver
-from diacc.observation import ObservationSpec
+from diacc.envs.env import INFO_METRICS, RenderModeError
+from diacc.envs.episode import EpisodeDriver
+from diacc.envs.observation import ObservationSpec
+from diacc.envs.spaces import SpaceError, unflatten
 from diacc.policies import CheckpointPolicy, PolicyError
-from diacc.spaces import SpaceError, unflatten
 
 SMALL = {"scenario": {"n_vehicles": 8, "cav_penetration": 0.25}}
 CHECKPOINT = "checkpoints/diacc-train50-paper-congestion-s1.pt"

@@ -22,11 +22,11 @@ from diacc.config import (
     override,
     validate,
 )
+from diacc.envs.observation import ObservationSpec
 from diacc.models.inputs import to_tensors
 from diacc.models.layers import embed_all, embed_present, mlp
 from diacc.models.registry import build_networks
 from diacc.models.synthetic import random_actor_obs, random_critic_state
-from diacc.observation import ObservationSpec
 from diacc.threads import (
     WORKER_THREAD_VARS,
     default_threads,

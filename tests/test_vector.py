@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 
 from diacc.config import SimConfig
-from diacc.env import EnvConfig
-from diacc.sim.scenario import Scenario
-from diacc.vector import (
+from diacc.envs.env import EnvConfig
+from diacc.envs.vector import (
     BatchedVectorEnv,
     MapGroupsVectorEnv,
     ProcessVectorEnv,
@@ -21,6 +20,7 @@ from diacc.vector import (
     make_vector_env,
     maps_of_envs,
 )
+from diacc.sim.scenario import Scenario
 
 CONFIG = EnvConfig(scenario=Scenario(n_vehicles=10, cav_penetration=0.3))
 

@@ -38,7 +38,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from diacc.console import metric_lines, print_lines
-from diacc.metrics import EpisodeRecorder
+from diacc.envs.metrics import EpisodeRecorder
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import available_maps, load_map
 from diacc.sim.scenario import Scenario

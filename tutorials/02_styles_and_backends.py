@@ -39,7 +39,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from diacc.config import STYLE_MIXES, STYLE_NAMES, STYLE_PRESETS, SimConfig
-from diacc.safety import SAME_COL, lane_leaders_followers, pair_kinematics
+from diacc.envs.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario

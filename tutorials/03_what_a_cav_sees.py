@@ -40,15 +40,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from diacc.actions import ACCELERATE
-from diacc.env import ACTION_NAMES, BottleneckEnv, EnvConfig
-from diacc.observation import COUNT_SCALE, DENSITY_SCALE_VEH_PER_KM, DX_SCALE_M
+from diacc.envs.actions import ACCELERATE
+from diacc.envs.env import ACTION_NAMES, BottleneckEnv, EnvConfig
+from diacc.envs.observation import COUNT_SCALE, DENSITY_SCALE_VEH_PER_KM, DX_SCALE_M
 
 OUT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out")) / "03_what_a_cav_sees"
 OUT.mkdir(parents=True, exist_ok=True)
 
 # Feature order of a neighbour node and of a lane-statistics row (see the
-# docstring of diacc.observation, which fixes the layout).
+# docstring of diacc.envs.observation, which fixes the layout).
 NODE_FEATURES = ("dx", "dy", "dv", "heading", "v", "is_cav")
 LANE_FEATURES = ("count", "density", "mean speed", "CAV share")
 LANE_SLOTS = ("ego lane", "left lane", "right lane")

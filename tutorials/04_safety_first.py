@@ -30,7 +30,7 @@
 #   range and closing: `accelerate` becomes `remain`.
 #
 # Here we build small dangerous situations **by hand** as `TrafficState`
-# arrays, run `diacc.psar.psar` on them and see which rule fires and why.
+# arrays, run `diacc.envs.psar.psar` on them and see which rule fires and why.
 # First with Algorithm 1 read *literally*, then with diacc's defaults, which
 # add what the pseudocode needs to actually prevent collisions on a 25 m/s
 # road (last section).
@@ -46,10 +46,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Rectangle
 
-from diacc.actions import ACCELERATE, ACTION_NAMES, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import CAV_STYLE, NORMAL, PSARConfig, SimConfig
-from diacc.psar import RULE_BITS, RULE_NAMES, psar
-from diacc.safety import LANE_OFFSETS, lane_leaders_followers, pair_kinematics
+from diacc.envs.actions import ACCELERATE, ACTION_NAMES, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.envs.psar import RULE_BITS, RULE_NAMES, psar
+from diacc.envs.safety import LANE_OFFSETS, lane_leaders_followers, pair_kinematics
 from diacc.sim.maps import load_map
 from diacc.sim.state import TrafficState, validate_state
 

@@ -41,8 +41,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from diacc.config import RewardConfig, TrainConfig
-from diacc.env import BottleneckEnv, EnvConfig
-from diacc.reward import reward, softmin_weights, temperature
+from diacc.envs.env import BottleneckEnv, EnvConfig
+from diacc.envs.reward import reward, softmin_weights, temperature
 
 OUT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out")) / "05_rewards"
 OUT.mkdir(parents=True, exist_ok=True)

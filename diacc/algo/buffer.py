@@ -3,7 +3,7 @@
 Shapes: S rollout steps, E environments, C CAV slots per environment. The
 team reward, the critic's value and the episode flags are per environment
 (S, E); actions, log-probabilities and the alive mask are per CAV (S, E, C).
-Observations are stored as stacked containers (see :mod:`diacc.observation`).
+Observations are stored as stacked containers (see :mod:`diacc.envs.observation`).
 """
 
 from __future__ import annotations

@@ -27,10 +27,10 @@ import torch
 
 from diacc.algo.agent import Agent
 from diacc.config import PAPER_LEARNER, TrainConfig, override
+from diacc.envs.observation import ObservationSpec
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_target
 from diacc.models.registry import build_networks
-from diacc.observation import ObservationSpec
 
 
 class CheckpointError(DiaccError, RuntimeError):

@@ -11,7 +11,7 @@ then ``epochs`` passes of PPO over it:
   (:mod:`diacc.models.agent_value`), with GAE per agent.
 * **Actions** meet PSAR as ``env.psar_actions`` says: the proposed action's
   log-prob (paper), the executed one's, or sampling among the actions PSAR
-  would execute unchanged (``ActorObs.action_mask``, :mod:`diacc.action_mask`).
+  would execute unchanged (``ActorObs.action_mask``, :mod:`diacc.envs.action_mask`).
 * **GAE** (lambda 0.95, gamma 0.99) on de-normalised values, keeping
   termination (no bootstrap) and truncation (bootstrap) apart.
 * **Recurrent training** on chunks of ``chunk_len`` steps, each started from
@@ -19,7 +19,7 @@ then ``epochs`` passes of PPO over it:
   episode starts inside a chunk.
 * **Death masking**: CAVs that have left (or were never on the road) add
   nothing to any actor loss.
-* **Agent slots refill** (``demand`` scenarios, :mod:`diacc.env`): a slot
+* **Agent slots refill** (``demand`` scenarios, :mod:`diacc.envs.env`): a slot
   that a new CAV takes starts from a zero actor hidden state, in the rollout
   and in the chunked replay (``agent_start``), as at an episode start. The
   advantage is the team's, per environment, so the previous occupant needs no
@@ -53,7 +53,6 @@ import torch
 import torch.nn.functional as F
 from torch.utils.tensorboard import SummaryWriter
 
-from diacc.action_mask import masked_logits
 from diacc.algo.agent import Agent
 from diacc.algo.buffer import Rollout, compute_gae
 from diacc.algo.checkpoint import (
@@ -68,19 +67,20 @@ from diacc.algo.checkpoint import (
 from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig, validate
 from diacc.console import TrainProgress
+from diacc.envs.action_mask import masked_logits
+from diacc.envs.observation import ObservationSpec, stack, unstack
+from diacc.envs.psar import RULE_NAMES, rule_counts
+from diacc.envs.reward import temperature
+from diacc.envs.vector import make_vector_env
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_write
 from diacc.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_networks
-from diacc.observation import ObservationSpec, stack, unstack
-from diacc.psar import RULE_NAMES, rule_counts
-from diacc.reward import temperature
 from diacc.runlog import claim_run_dir, config_digest, locked_dir, log, run_log
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import draw_population
 from diacc.threads import set_torch_threads
-from diacc.vector import make_vector_env
 
 #: Episode-counter stride per update: update u uses episode seeds u*stride, u*stride+1, ...
 EPISODES_PER_UPDATE = 1000

@@ -4,9 +4,9 @@ What the trainer's rollout pays per env-step apart from the networks: the
 simulator, PSAR, the observations, the reward and the episode recorder,
 i.e. :meth:`VectorStep` of the vector env with seeded random actions. Each
 row times ``E`` environments for the same number of vector steps, first as
-:class:`~diacc.vector.SyncVectorEnv` (today's per-env path: every env its own
+:class:`~diacc.envs.vector.SyncVectorEnv` (today's per-env path: every env its own
 simulator, stepped one after another) and then as
-:class:`~diacc.vector.BatchedVectorEnv` (one batched ``highway`` simulator for
+:class:`~diacc.envs.vector.BatchedVectorEnv` (one batched ``highway`` simulator for
 all E envs); a second pair of columns times the simulator alone
 (:meth:`HighwayBackend.step` of E backends vs one
 :meth:`HighwayBackend.step_batch`). One process, one thread: the figures
@@ -27,10 +27,10 @@ from rich.console import Console
 from rich.table import Table
 
 from diacc.config import EnvConfig, SimConfig, preset_road
+from diacc.envs.vector import make_vector_env
 from diacc.sim.backends.base import CavCommands
 from diacc.sim.backends.highway.backend import HighwayBackend
 from diacc.sim.maps import load_map
-from diacc.vector import make_vector_env
 
 #: Actions of the timed steps: mostly keep lane with speed changes, as PSAR-filtered
 #: policies do (the same distribution as :data:`diacc.bench.highway.ACTION_PROBS`).

@@ -24,7 +24,7 @@ Two scenario kinds (:mod:`diacc.sim.scenario`):
   CAV-steps`` counts steps at which a CAV on the road lacked a slot; it is
   0 for those rows, checked.
 
-Metrics are the evaluator's (:mod:`diacc.metrics`): mean speed, delay per
+Metrics are the evaluator's (:mod:`diacc.envs.metrics`): mean speed, delay per
 vehicle against free-flow travel, throughput past the bottleneck, arrived
 share, p(WE) and the share of episodes with a collision; means over seeded
 episodes (seeds as ``diacc eval``).
@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from diacc.config import STYLE_PRESETS, ConfigError, PSARConfig, preset_road
-from diacc.episode import EpisodeDriver
+from diacc.envs.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, PolicySpec, build_policy, parse_policy
@@ -139,7 +139,7 @@ class SlotCountingDriver(EpisodeDriver):
     """An :class:`EpisodeDriver` that counts CAV-steps without an agent slot.
 
     In a demand episode a CAV that finds every slot taken drives itself
-    (:mod:`diacc.env`), which would make a heuristic row partly a human one;
+    (:mod:`diacc.envs.env`), which would make a heuristic row partly a human one;
     this count shows that it never happened.
     """
 

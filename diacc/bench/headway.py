@@ -19,10 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from diacc.config import BACKENDS, HORIZON_MODES
-from diacc.episode import EpisodeDriver
+from diacc.envs.episode import EpisodeDriver
+from diacc.envs.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.grid import Cell
 from diacc.policies import EvalSettings, ScriptedPolicy
-from diacc.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.sim.state import TrafficState
 
 #: Vehicles slower than this are queueing, not following; their time gap means nothing.

@@ -25,10 +25,10 @@ from diacc.config import (
     TrainConfig,
     override,
 )
+from diacc.envs.observation import ObservationSpec
 from diacc.models.inputs import to_tensors
 from diacc.models.registry import build_networks, parameter_count
 from diacc.models.synthetic import random_actor_obs, random_critic_state
-from diacc.observation import ObservationSpec
 
 
 def _chunked(tensors: dict[str, torch.Tensor], chunk_len: int) -> dict[str, torch.Tensor]:

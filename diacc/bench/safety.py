@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from diacc.config import BACKENDS, PSARConfig, SimConfig
-from diacc.episode import EpisodeDriver
+from diacc.envs.episode import EpisodeDriver
 from diacc.evaluate import run_episode
 from diacc.grid import Cell
 from diacc.policies import SCRIPTED, EvalSettings, ScriptedPolicy

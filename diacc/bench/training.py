@@ -15,7 +15,7 @@ wall time of the paper's 3 M-step run from the measured rate. Rows:
 * **vector** (on the paper learner, as the recorded figures were measured):
   ``per-env envs``, the environments stepped one after another
   (``vector = "sync"``), next to ``thread policy``, where ``highway`` runs
-  all envs on one batched simulator (:class:`diacc.vector.BatchedVectorEnv`);
+  all envs on one batched simulator (:class:`diacc.envs.vector.BatchedVectorEnv`);
 * **threads** (paper learner too): torch's default intra-op threads (one per core) against
   :func:`diacc.threads.default_threads`, alone and **with a competing
   CPU-bound process** (a busy loop for their duration).

@@ -23,10 +23,10 @@ import torch
 from torch import Tensor, nn
 
 from diacc.config import ModelConfig
+from diacc.envs.observation import SELF_FEATURES
 from diacc.models.inputs import TensorDict, merge_leading, require
 from diacc.models.layers import VALUE_GAIN, mlp, orthogonal_init
 from diacc.models.recurrent import RecurrentNet
-from diacc.observation import SELF_FEATURES
 
 #: Key of the per-slot features in the critic's input: (..., C, AGENT_FEATURES).
 AGENT_KEY = "agent_self"

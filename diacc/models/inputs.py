@@ -14,8 +14,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from diacc.envs.observation import ActorObs, CriticState
 from diacc.models.errors import ModelError
-from diacc.observation import ActorObs, CriticState
 
 TensorDict = dict[str, Tensor]
 

@@ -1,6 +1,6 @@
 """ITDR (Integrated Traffic Dynamics Representation) and the C-IEC critic (paper Sec. C-IEC).
 
-Per environment (one :class:`~diacc.observation.CriticState`):
+Per environment (one :class:`~diacc.envs.observation.CriticState`):
 
 1. static road MLP over the road table, dynamic traffic MLP over the masked
    per-lane statistics, lane mask and traffic globals; concatenated they are
@@ -22,13 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from diacc.config import ModelConfig
-from diacc.models.attention import CrossAttention
-from diacc.models.errors import ModelError
-from diacc.models.gat import GlobalGraphAttention
-from diacc.models.inputs import TensorDict
-from diacc.models.layers import VALUE_GAIN, embed_present, mlp
-from diacc.models.recurrent import Encoder, RecurrentNet
-from diacc.observation import (
+from diacc.envs.observation import (
     CRITIC_KEYS,
     CRITIC_NODE_FEATURES,
     LANE_FEATURES,
@@ -38,6 +32,12 @@ from diacc.observation import (
     TRAFFIC_FEATURES,
     ObservationSpec,
 )
+from diacc.models.attention import CrossAttention
+from diacc.models.errors import ModelError
+from diacc.models.gat import GlobalGraphAttention
+from diacc.models.inputs import TensorDict
+from diacc.models.layers import VALUE_GAIN, embed_present, mlp
+from diacc.models.recurrent import Encoder, RecurrentNet
 
 
 def trim_padded_nodes(state: TensorDict) -> TensorDict:

@@ -12,16 +12,16 @@ import torch
 from torch import Tensor
 
 from diacc.config import ModelConfig
-from diacc.models.errors import ModelError
-from diacc.models.inputs import TensorDict
-from diacc.models.layers import POLICY_GAIN, VALUE_GAIN, mlp, one_hot
-from diacc.models.recurrent import Encoder, RecurrentNet
-from diacc.observation import (
+from diacc.envs.observation import (
     ACTOR_KEYS,
     CRITIC_KEYS,
     N_ACTIONS,
     ObservationSpec,
 )
+from diacc.models.errors import ModelError
+from diacc.models.inputs import TensorDict
+from diacc.models.layers import POLICY_GAIN, VALUE_GAIN, mlp, one_hot
+from diacc.models.recurrent import Encoder, RecurrentNet
 
 
 def actor_flat_dim(spec: ObservationSpec) -> int:

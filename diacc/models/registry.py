@@ -10,12 +10,12 @@ from collections.abc import Callable
 from torch import nn
 
 from diacc.config import VARIANT_TABLE, VARIANTS, ModelConfig
+from diacc.envs.observation import ObservationSpec
 from diacc.models.errors import ModelError
 from diacc.models.itdr import CIECCritic
 from diacc.models.mlp import MLPActor, MLPCritic
 from diacc.models.recurrent import RecurrentNet
 from diacc.models.taie import DIADMActor
-from diacc.observation import ObservationSpec
 
 _Builder = Callable[[ModelConfig, ObservationSpec], RecurrentNet]
 _ACTORS: dict[str, _Builder] = {"mlp": MLPActor, "diadm": DIADMActor}

@@ -1,6 +1,6 @@
 """Random but well-formed observation containers, for tests and benchmarks.
 
-They follow the documented layout of :mod:`diacc.observation` (padding zero and
+They follow the documented layout of :mod:`diacc.envs.observation` (padding zero and
 masked, valid neighbours first, neighbour indices pointing at other active
 vehicles) without needing a simulator, so network properties can be checked
 in isolation. Values are standard-normal, not physically plausible.
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from diacc.observation import (
+from diacc.envs.observation import (
     CRITIC_NODE_FEATURES,
     LANE_FEATURES,
     MAX_LANES,

@@ -1,6 +1,6 @@
 """TAIE (Trajectory-Aware Interaction Encoder) and the D-IADM actor (paper Sec. D-IADM).
 
-Per CAV (one row of :class:`~diacc.observation.ActorObs`):
+Per CAV (one row of :class:`~diacc.envs.observation.ActorObs`):
 
 1. node embedding: each node's history (T x NODE_FEATURES, flattened) -> MLP;
 2. CAV-HDV graph: GAT over the star graph ego -> HDV neighbours -> ``f_H``;
@@ -22,16 +22,16 @@ import torch
 from torch import Tensor
 
 from diacc.config import ModelConfig
+from diacc.envs.observation import (
+    ACTOR_KEYS,
+    N_ACTIONS,
+    ObservationSpec,
+)
 from diacc.models.errors import ModelError
 from diacc.models.gat import GraphAttention
 from diacc.models.inputs import TensorDict
 from diacc.models.layers import POLICY_GAIN, embed_present, mlp, one_hot
 from diacc.models.recurrent import Encoder, RecurrentNet
-from diacc.observation import (
-    ACTOR_KEYS,
-    N_ACTIONS,
-    ObservationSpec,
-)
 
 
 class TAIE(Encoder):

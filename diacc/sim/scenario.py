@@ -149,7 +149,7 @@ class Scenario:
     def n_slots(self) -> int:
         """Agent slots C: every CAV has its own in a release; in a demand scenario at
         most ``cav_slots`` CAVs at once, a slot reused when its CAV leaves
-        (:class:`diacc.env.BottleneckEnv`)."""
+        (:class:`diacc.envs.env.BottleneckEnv`)."""
         if self.kind == "demand":
             return min(self.cav_slots, self.n_cavs)
         return self.n_cavs

@@ -27,7 +27,7 @@ CAV command semantics, identical on every backend:
   (car following and lane changes of its vType with the simulator's own
   safety, like the cooperative baseline's CAVs). A CAV of a ``demand``
   scenario drives itself from its entry until the step it first gets a
-  command, and while it holds no agent slot (:mod:`diacc.env`).
+  command, and while it holds no agent slot (:mod:`diacc.envs.env`).
 
 Entries of HDVs in the command arrays are ignored.
 """
@@ -71,7 +71,7 @@ class Backend(Protocol):
     name: str
     #: Simulator version recorded with results ("" where diacc's own code simulates).
     version: str
-    #: How a vector of environments on this backend steps best (:mod:`diacc.vector`).
+    #: How a vector of environments on this backend steps best (:mod:`diacc.envs.vector`).
     vector_mode: Literal["sync", "batched", "process"]
     road: Map
     sim: SimConfig

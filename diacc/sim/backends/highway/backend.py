@@ -140,7 +140,7 @@ class HighwayBackend:
     name = "highway"
     #: diacc's own NumPy dynamics, versioned with diacc (results record "").
     version = ""
-    #: Many envs step fastest as rows of one batch (:class:`diacc.vector.BatchedVectorEnv`);
+    #: Many envs step fastest as rows of one batch (:class:`diacc.envs.vector.BatchedVectorEnv`);
     #: worker processes would only add pickling.
     vector_mode = "batched"
     #: Step only the index window of vehicles not settled (:meth:`_window`): the same
@@ -966,9 +966,9 @@ class HighwayBackend:
 class BatchSlot:
     """One env of a :class:`HighwayBackend` batch, seen through the Backend protocol.
 
-    Lets a :class:`~diacc.env.BottleneckEnv` run on its row of a batch: it
+    Lets a :class:`~diacc.envs.env.BottleneckEnv` run on its row of a batch: it
     resets its own env, while the batch is stepped as a whole by whoever owns
-    it (:class:`diacc.vector.BatchedVectorEnv`) and the env is handed the
+    it (:class:`diacc.envs.vector.BatchedVectorEnv`) and the env is handed the
     resulting state (:meth:`BottleneckEnv.advance`).
     """
 

@@ -10,7 +10,7 @@ order of their vehicle indices. Each step:
    ``diacc-nopsar`` ablation);
 3. the refined action becomes a backend command (lane change +-1, speed change
    +-``speed_change_mps``; Decel-LC brakes by ``b_lc`` during its lane change,
-   Force-Brake by what PSAR asks, see :func:`diacc.psar.psar`). A lane
+   Force-Brake by what PSAR asks, see :func:`diacc.envs.psar.psar`). A lane
    change the road does not allow here is not made, with or without PSAR;
 4. the backend advances one decision step and returns a TrafficState, from
    which the observations, the team reward and the events are built.
@@ -39,45 +39,42 @@ Two APIs share the same code path: the PettingZoo dict API (``reset`` /
 ``step``) for users and API tests, and the batched API (:meth:`reset_arrays` /
 :meth:`step_arrays`) that the trainer uses to avoid per-agent dicts. A step is
 :meth:`decide` (steps 1-3), the backend's step, then :meth:`advance` (step 4):
-a vector of envs over one batched backend (:mod:`diacc.vector`) calls the two
+a vector of envs over one batched backend (:mod:`diacc.envs.vector`) calls the two
 halves around a single batched backend step.
 """
 
 from __future__ import annotations
 
-import sys
-import types
 from dataclasses import dataclass, fields
-from typing import Any
 
 import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from diacc.action_mask import with_action_mask
-from diacc.actions import (
+from diacc.config import EnvConfig, preset_road
+from diacc.envs.action_mask import with_action_mask
+from diacc.envs.actions import (
     ACTION_LANE_OFFSET,
     ACTION_NAMES,
     REMAIN,
     action_speed_change_mps,
     lane_change_allowed,
 )
-from diacc.config import EnvConfig, preset_road
+from diacc.envs.lateral_frame import is_mirrored, mirror_actions
+from diacc.envs.metrics import EpisodeRecorder
+from diacc.envs.observation import ActorObs, CriticState, ObservationBuilder
+from diacc.envs.psar import PSARResult, psar
+from diacc.envs.reward import RewardTerms, reward
+from diacc.envs.spaces import agent_observation, check_format, observation_space, state_space
 from diacc.errors import DiaccError
-from diacc.lateral_frame import is_mirrored, mirror_actions
-from diacc.metrics import EpisodeRecorder
-from diacc.observation import ActorObs, CriticState, ObservationBuilder
-from diacc.psar import PSARResult, psar
-from diacc.reward import RewardTerms, reward
 from diacc.sim.backends.base import Backend, CavCommands, make_backend
 from diacc.sim.maps import Map, load_map
 from diacc.sim.state import TrafficState, take
-from diacc.spaces import agent_observation, check_format, observation_space, state_space
 
-__all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "RenderModeError", "StepResult", "aec_env"]
+__all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "RenderModeError", "StepResult"]
 
 #: The episode-end metrics every agent's ``infos`` carries on the last step (see
-#: :meth:`BottleneckEnv.step`), a subset of :class:`diacc.metrics.EpisodeMetrics`.
+#: :meth:`BottleneckEnv.step`), a subset of :class:`diacc.envs.metrics.EpisodeMetrics`.
 INFO_METRICS = (
     "mean_speed_mps",
     "mean_cav_speed_mps",
@@ -131,7 +128,7 @@ def decide(
     ``actions``, or for a batch of states with (E, C) ones (:mod:`diacc.sim.state`).
     """
     proposed = np.asarray(actions, dtype=np.int64).reshape(cav_index.shape)
-    # The agents act in their lateral frame (diacc.lateral_frame), PSAR and the backend
+    # The agents act in their lateral frame (diacc.envs.lateral_frame), PSAR and the backend
     # in the world's: ``world`` is what the agents asked for, in the world's frame.
     mirrored = is_mirrored(road, config.obs.lateral_frame)
     world = mirror_actions(proposed) if mirrored else proposed
@@ -208,7 +205,7 @@ class BottleneckEnv(ParallelEnv):
         one of ``config.backend`` on ``config.map``. ``render_mode``: ``None``,
         ``"rgb_array"`` (:meth:`render` returns a frame) or ``"human"`` (a window,
         refreshed every step; refused without a display). ``observation_format``:
-        ``"dict"`` or ``"flat"`` (:mod:`diacc.spaces`)."""
+        ``"dict"`` or ``"flat"`` (:mod:`diacc.envs.spaces`)."""
         self.config = config or EnvConfig()
         self.render_mode = check_render_mode(render_mode)
         self.observation_format = check_format(observation_format)
@@ -327,7 +324,7 @@ class BottleneckEnv(ParallelEnv):
     ) -> StepResult:
         """The step's result, given the observations and the reward of the state
         :meth:`enter` entered (which :meth:`ObservationBuilder.observe_batch` and
-        :func:`~diacc.reward.reward` compute for many envs at once)."""
+        :func:`~diacc.envs.reward.reward` compute for many envs at once)."""
         # Every vehicle gone: none on the road and none still to enter (demand).
         terminated = bool(len(state.collisions) > 0 or state.arrived.all())
         truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
@@ -363,7 +360,7 @@ class BottleneckEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ PettingZoo API
     def observation_space(self, agent: str) -> gymnasium.spaces.Space:
-        """One agent's observation space (:mod:`diacc.spaces`; no reset needed)."""
+        """One agent's observation space (:mod:`diacc.envs.spaces`; no reset needed)."""
         return self._observation_space
         spec = self.builder.spec()
         spaces = {}
@@ -502,31 +499,3 @@ def check_render_mode(render_mode: str | None) -> str | None:
                 "use render_mode='rgb_array' and save the frames"
             )
     return render_mode
-
-
-# ---------------------------------------------------------------------- AEC entry point
-def aec_env(render_mode: str | None = None, observation_format: str = "dict", **config: Any):
-    """The environment as a PettingZoo ``AECEnv``, by PettingZoo's own parallel->AEC wrapper."""
-    from pettingzoo.utils.conversions import parallel_to_aec
-
-    from diacc import parallel_env
-
-    env = parallel_env(render_mode=render_mode, observation_format=observation_format, **config)
-    return parallel_to_aec(env)
-
-
-class CallableEnvModule(types.ModuleType):
-    """This module, callable: ``diacc.env(**config)`` is PettingZoo's ``env()`` factory.
-
-    PettingZoo's convention names the AEC factory ``env``, the name this module
-    already has as ``diacc.env``; making the module callable keeps both
-    ``from diacc.env import EnvConfig`` and ``diacc.env(map="train-50")`` working.
-    """
-
-    def __call__(
-        self, render_mode: str | None = None, observation_format: str = "dict", **config: Any
-    ):
-        return aec_env(render_mode=render_mode, observation_format=observation_format, **config)
-
-
-sys.modules[__name__].__class__ = CallableEnvModule

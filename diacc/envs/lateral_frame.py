@@ -16,13 +16,13 @@ trained on the shipped maps behave exactly as before there.
 
 Where the reflection happens (and nowhere else):
 
-* :class:`~diacc.observation.ObservationBuilder` observes the mirrored state on
+* :class:`~diacc.envs.observation.ObservationBuilder` observes the mirrored state on
   the mirrored map (actor and critic alike);
-* :func:`~diacc.env.decide` turns the agents' actions into the world's before
+* :func:`~diacc.envs.env.decide` turns the agents' actions into the world's before
   PSAR and the backend, and PSAR's executed actions back, so every action the
   environment speaks (proposed, refined, action memory, the PettingZoo
   ``refined_action``) is in the agents' frame;
-* :func:`~diacc.action_mask.with_action_mask` swaps the mask's left/right columns.
+* :func:`~diacc.envs.action_mask.with_action_mask` swaps the mask's left/right columns.
 
 The backend, PSAR, reward, metrics and renderer all keep the world frame.
 ``lateral_frame = "world"`` is the literal reading: observations and actions in
@@ -35,8 +35,8 @@ import dataclasses
 
 import numpy as np
 
-from diacc.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.config import LATERAL_FRAMES
+from diacc.envs.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.sim.maps import Map
 from diacc.sim.state import TrafficState
 

@@ -2,7 +2,7 @@
 
 Evaluation, the non-learning baselines, ``diacc simulate``, ``diacc render``,
 the safety benchmark and the tests drive :class:`EpisodeDriver`; training
-steps the same environment in vectors (:mod:`diacc.vector`). So an episode
+steps the same environment in vectors (:mod:`diacc.envs.vector`). So an episode
 always ends by the environment's rule (:meth:`BottleneckEnv.step_arrays`:
 a collision, every vehicle gone, or ``episode_steps``), written once.
 
@@ -18,10 +18,10 @@ from typing import Protocol
 import numpy as np
 
 from diacc.config import EnvConfig
-from diacc.env import BottleneckEnv
-from diacc.metrics import EpisodeRecorder
-from diacc.observation import ActorObs
-from diacc.psar import PSARResult
+from diacc.envs.env import BottleneckEnv
+from diacc.envs.metrics import EpisodeRecorder
+from diacc.envs.observation import ActorObs
+from diacc.envs.psar import PSARResult
 from diacc.sim.state import TrafficState
 
 
@@ -42,7 +42,7 @@ class EpisodeDriver:
         self.road, self.backend = self.env.road, self.env.backend
         self.state: TrafficState | None = None
         use_road = getattr(policy, "use_road", None)  # optional: policies that read the map
-        if use_road is not None:  # the map as the agents see it (diacc.lateral_frame)
+        if use_road is not None:  # the map as the agents see it (diacc.envs.lateral_frame)
             use_road(self.env.builder.road)
 
     def reset(self, seed: int) -> TrafficState:

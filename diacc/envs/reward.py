@@ -51,8 +51,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from diacc.config import RewardConfig
+from diacc.envs.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.errors import DiaccError
-from diacc.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.sim.maps import Map
 from diacc.sim.state import TrafficState, take
 

@@ -1,6 +1,6 @@
 """The observation and state spaces diacc shows to PettingZoo and its wrappers.
 
-Internally an agent's observation is a row of :class:`~diacc.observation.ActorObs`
+Internally an agent's observation is a row of :class:`~diacc.envs.observation.ActorObs`
 (boolean masks, a 0-d ``alive`` flag, int64 action codes). Wrappers are
 stricter than PettingZoo's own API test: TorchRL builds its specs from
 ``MultiBinary.n`` and fails on a tuple or a 0-d shape, SuperSuit's
@@ -26,10 +26,10 @@ from dataclasses import fields
 import gymnasium
 import numpy as np
 
+from diacc.envs.observation import ActorObs, ObservationSpec
 from diacc.errors import DiaccError
-from diacc.observation import ActorObs, ObservationSpec
 
-#: Observation formats of :class:`~diacc.env.BottleneckEnv` (``observation_format``).
+#: Observation formats of :class:`~diacc.envs.env.BottleneckEnv` (``observation_format``).
 OBSERVATION_FORMATS = ("dict", "flat")
 #: Field order of an agent's observation (and of the flat vector).
 FIELD_ORDER = tuple(f.name for f in fields(ActorObs))

@@ -1,6 +1,6 @@
 """Safety geometry on a TrafficState: lane neighbours, gap/TTC, and the metrics' events.
 
-PSAR (:mod:`diacc.psar`) and the event detectors below both measure traffic
+PSAR (:mod:`diacc.envs.psar`) and the event detectors below both measure traffic
 with these functions, so a "risk" means the same to the filter and to the
 metrics. Everything here reads :class:`~diacc.sim.state.TrafficState` arrays
 only, so it works the same for every backend, and is vectorised over

@@ -47,7 +47,7 @@ Actor (:class:`ActorObs`, one row per CAV slot):
 * ``action_mask`` (C, 5) bool: the actions the actor may sample (PettingZoo's
   ``action_mask``). All True here; the environment narrows it to the actions
   PSAR would execute unchanged when ``EnvConfig.psar_actions = "masked"``
-  (:mod:`diacc.action_mask`). Not a network input.
+  (:mod:`diacc.envs.action_mask`). Not a network input.
 * ``alive`` (C,) bool: the CAV is on the road. Every other field of a row
   whose CAV is not alive is zero (masks False), except ``action_memory``.
 
@@ -83,8 +83,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from diacc.config import ObservationConfig
+from diacc.envs.lateral_frame import agent_map, is_mirrored, mirror_state
 from diacc.errors import DiaccError
-from diacc.lateral_frame import agent_map, is_mirrored, mirror_state
 from diacc.sim.maps import Map
 from diacc.sim.state import TrafficState, on_road_window, take
 
@@ -128,7 +128,7 @@ class ActorObs:
     lane_mask: np.ndarray  # (C, 3) bool
     road: np.ndarray  # (C, ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS) float32
     action_memory: np.ndarray  # (C, 2) int64
-    action_mask: np.ndarray  # (C, N_ACTIONS) bool legal actions (diacc.action_mask); all True
+    action_mask: np.ndarray  # (C, N_ACTIONS) bool legal actions (diacc.envs.action_mask); all True
     alive: np.ndarray  # (C,) bool
 
 
@@ -320,7 +320,7 @@ class ObservationBuilder:
             )
         if episode_steps < 1:
             raise ObservationError(f"episode_steps must be >= 1, got {episode_steps}")
-        # The agents' frame (diacc.lateral_frame): every state is observed reflected when
+        # The agents' frame (diacc.envs.lateral_frame): every state is observed reflected when
         # the road drops its right lanes; ``road`` is then the mirrored map.
         self.mirrored = is_mirrored(road, cfg.lateral_frame)
         road = agent_map(road, cfg.lateral_frame)

@@ -1,7 +1,7 @@
 """Many environments stepped as one batch: in-process or in worker processes.
 
 All flavours run the same :class:`EnvRunner` per environment, which adds
-what the trainer needs around :class:`~diacc.env.BottleneckEnv`: automatic
+what the trainer needs around :class:`~diacc.envs.env.BottleneckEnv`: automatic
 reset with per-episode seeds derived from the run seed, the final critic
 state of each finished episode (to bootstrap truncated episodes), episode
 metrics, and recovery from a crashed simulator.
@@ -39,14 +39,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from diacc.action_mask import with_action_mask
 from diacc.config import preset_road
-from diacc.env import BottleneckEnv, EnvConfig, StepResult, decide
-from diacc.metrics import EpisodeRecorder
-from diacc.observation import ActorObs, CriticState, ObservationBuilder, stack, unstack
-from diacc.reward import reward
+from diacc.envs.action_mask import with_action_mask
+from diacc.envs.env import BottleneckEnv, EnvConfig, StepResult, decide
+from diacc.envs.metrics import EpisodeRecorder
+from diacc.envs.observation import ActorObs, CriticState, ObservationBuilder, stack, unstack
+from diacc.envs.reward import reward
+from diacc.envs.safety import safety_critical_events
 from diacc.runlog import join_parent_log, log
-from diacc.safety import safety_critical_events
 from diacc.sim.backends.base import Backend, BackendError, backend_class
 from diacc.sim.maps import load_map
 from diacc.sim.state import TrafficState
@@ -289,12 +289,12 @@ class SyncVectorEnv:
 class BatchedVectorEnv(SyncVectorEnv):
     """Environments whose simulations are rows of one batched ``highway`` backend.
 
-    Each step: one :func:`~diacc.env.decide` call turns all envs' actions into
+    Each step: one :func:`~diacc.envs.env.decide` call turns all envs' actions into
     commands (PSAR on the batch of their states), one
     :meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step_batch` call
     simulates all envs, and one call each builds every env's observations
     (:meth:`ObservationBuilder.observe_batch`), rewards
-    (:func:`~diacc.reward.reward`) and safety events for the metrics; each env
+    (:func:`~diacc.envs.reward.reward`) and safety events for the metrics; each env
     then decides whether its episode ended. Results are the same as
     :class:`SyncVectorEnv`'s.
     """

@@ -12,7 +12,7 @@ Definitions:
   samples, as "mean +- std over all vehicles and steps" in the paper.
 * ``p_we`` / ``p_sce``: share of the vehicles ever seen on the road that had
   at least one waiting event / safety-critical event
-  (:func:`diacc.safety.waiting_events`, :func:`diacc.safety.safety_critical_events`).
+  (:func:`diacc.envs.safety.waiting_events`, :func:`diacc.envs.safety.safety_critical_events`).
 * ``n_collisions``: distinct unordered vehicle pairs that collided during the
   episode (a pair still overlapping on the next step is not counted twice);
   ``n_hdv_collisions`` counts the pairs of two HDVs among them.
@@ -30,7 +30,7 @@ Definitions:
   ``mean_arrived_speed_mps``: mean of the speed samples of vehicles that
   arrived; ``never_arrived_fraction`` = 1 - ``arrived_fraction``.
 * PSAR fire rate per rule: CAV decisions where the rule took effect
-  (:attr:`diacc.psar.PSARResult.rule_mask`) / decisions of active CAVs.
+  (:attr:`diacc.envs.psar.PSARResult.rule_mask`) / decisions of active CAVs.
 * Warm-up (``warmup_s``, demand scenarios): states before it add no speed
   sample, event, collision or PSAR count, and vehicles count as seen only
   once on the road after it; travel times are those of vehicles that entered
@@ -49,9 +49,9 @@ from pathlib import Path
 import numpy as np
 
 from diacc.config import EventConfig
+from diacc.envs.psar import RULE_NAMES, PSARResult, rule_counts
+from diacc.envs.safety import safety_critical_events, waiting_events
 from diacc.errors import DiaccError
-from diacc.psar import RULE_NAMES, PSARResult, rule_counts
-from diacc.safety import safety_critical_events, waiting_events
 from diacc.sim.maps import SEGMENT_KINDS, Map
 from diacc.sim.state import TrafficState
 

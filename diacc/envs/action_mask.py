@@ -6,7 +6,7 @@ that never happened (measured: PSAR rewrote 27-41 % of the shipped agents'
 decisions). Masking them out of the distribution before sampling makes the
 sampled action the executed one and lets greedy evaluation pick the best
 *allowed* action instead of repeating a suppressed one (the deadlock at lane
-ends). The mask runs PSAR (:func:`diacc.psar.psar`, unchanged) once on all
+ends). The mask runs PSAR (:func:`diacc.envs.psar.psar`, unchanged) once on all
 5 candidates for all CAVs of all envs (the state tiled five times), on the
 state the decision is taken in:
 
@@ -27,11 +27,11 @@ import dataclasses
 
 import numpy as np
 
-from diacc.actions import ACTION_NAMES, REMAIN
 from diacc.config import EnvConfig
-from diacc.lateral_frame import MIRRORED_ACTION, is_mirrored
-from diacc.observation import ActorObs
-from diacc.psar import psar
+from diacc.envs.actions import ACTION_NAMES, REMAIN
+from diacc.envs.lateral_frame import MIRRORED_ACTION, is_mirrored
+from diacc.envs.observation import ActorObs
+from diacc.envs.psar import psar
 from diacc.sim.maps import Map
 from diacc.sim.state import TrafficState, take
 
@@ -41,7 +41,7 @@ def psar_action_mask(
 ) -> np.ndarray:
     """(..., C, 5) bool: candidate actions PSAR would execute unchanged (module docstring).
 
-    ``state`` and ``cav_index`` as for :func:`diacc.psar.psar`: one state with
+    ``state`` and ``cav_index`` as for :func:`diacc.envs.psar.psar`: one state with
     (C,) slots, or a batch of states with (E, C) ones.
     """
     cfg = dataclasses.replace(config.psar, coordinate_lane_changes=False)
@@ -69,7 +69,7 @@ def with_action_mask(
     """``actor`` with its ``action_mask`` set as ``config.psar_actions`` asks (in place).
 
     ``state`` and ``road`` are the world's; the mask is in the agents' lateral
-    frame, like the actions it masks (:mod:`diacc.lateral_frame`).
+    frame, like the actions it masks (:mod:`diacc.envs.lateral_frame`).
     """
     if config.psar_actions == "masked":
         mask = psar_action_mask(state, cav_index, config, road)  # (..., C, 5) world frame

@@ -2,7 +2,7 @@
 
 The actor proposes one action per CAV; :func:`psar` refines it with four
 rules (Cancel-LC, Decel-LC, Force-Brake, Suppress-Accel) from the gaps and
-TTCs of :mod:`diacc.safety`, and reports which rules took effect
+TTCs of :mod:`diacc.envs.safety`, and reports which rules took effect
 (:class:`PSARResult`), which the metrics and the training logs count
 (:func:`rule_counts`). Options and thresholds: :class:`~diacc.config.PSARConfig`.
 """
@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.actions import (
+from diacc.config import STYLE_PRESETS, PSARConfig, SimConfig
+from diacc.envs.actions import (
     ACCELERATE,
     ACTION_LANE_OFFSET,
     ACTION_NAMES,
@@ -24,8 +25,7 @@ from diacc.actions import (
     action_speed_change_mps,
     lane_change_allowed,
 )
-from diacc.config import STYLE_PRESETS, PSARConfig, SimConfig
-from diacc.safety import (
+from diacc.envs.safety import (
     SAME_COL,
     PairKinematics,
     SafetyError,
