@@ -20,8 +20,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from test_mappo import tiny_config  # noqa: E402
 
-from diacc.algo.checkpoint import load_checkpoint  # noqa: E402
-from diacc.algo.mappo import train  # noqa: E402
+from diacc.learn.checkpoint import load_checkpoint  # noqa: E402
+from diacc.learn.mappo import train  # noqa: E402
 
 
 def main() -> None:

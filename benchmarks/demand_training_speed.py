@@ -70,7 +70,7 @@ def switch_window_off() -> None:
     import diacc.envs.env
     import diacc.envs.observation
     import diacc.envs.safety
-    import diacc.models.gat
+    import diacc.learn.models.gat
     from diacc.sim.backends.highway.backend import HighwayBackend
 
     def every_vehicle(active):
@@ -84,7 +84,7 @@ def switch_window_off() -> None:
     diacc.envs.observation.on_road_window = every_vehicle
     diacc.envs.safety.on_road_window = every_vehicle
     diacc.envs.env.ObservationBuilder = FullCritic
-    diacc.models.gat.DENSE_MAX_NODES = 10**9
+    diacc.learn.models.gat.DENSE_MAX_NODES = 10**9
 
 
 def rates(env_steps: int, start: tuple[float, float]) -> tuple[float, float]:
@@ -99,8 +99,8 @@ def measure(args: argparse.Namespace, mode: str) -> dict:
     """Env-steps/s of a rollout (random actions) and of a training run, in this process."""
     import numpy as np
 
-    from diacc.algo.mappo import train
     from diacc.envs.vector import make_vector_env
+    from diacc.learn.mappo import train
 
     if mode == "full":
         switch_window_off()

@@ -17,11 +17,11 @@ import sys
 code = r"""
 import sys, time, torch, numpy as np
 torch.set_num_threads(1)
-from diacc.models.registry import build_networks
+from diacc.learn.models.registry import build_networks
 from diacc.config import ModelConfig, ObservationConfig
 from diacc.envs.observation import ObservationSpec
-from diacc.models.synthetic import random_critic_state, random_actor_obs
-from diacc.models.inputs import to_tensors
+from diacc.learn.models.synthetic import random_critic_state, random_actor_obs
+from diacc.learn.models.inputs import to_tensors
 spec = ObservationSpec.from_config(ObservationConfig())
 torch.manual_seed(0)
 actor, critic = build_networks("diacc", ModelConfig(hidden_dim=64, gru_hidden=64), spec)

@@ -84,7 +84,7 @@ class TrainedPolicy:
         """One action per agent in ``observations`` (PettingZoo's dict of agent -> obs)."""
         import torch
 
-        from diacc.models.inputs import to_tensors
+        from diacc.learn.models.inputs import to_tensors
 
         agents = list(observations)
         self._hidden = {a: h for a, h in self._hidden.items() if a in observations}

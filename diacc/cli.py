@@ -151,8 +151,8 @@ def _train_parser(sub) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    from diacc.algo.mappo import train
     from diacc.console import print_config
+    from diacc.learn.mappo import train
     from diacc.sim.maps import load_map
 
     cfg = build_train_config(
@@ -305,7 +305,7 @@ def _bench_parser(sub) -> None:
 def bench_device(name: str | None) -> str:
     """The concrete torch device (``cpu``, ``cuda``) of ``--device``, so that the
     benchmark tables name the device they measured, not ``auto``."""
-    from diacc.algo.mappo import resolve_device
+    from diacc.learn.mappo import resolve_device
 
     return str(resolve_device(name or TrainConfig.device))
 
@@ -520,7 +520,7 @@ def _convert_parser(sub) -> None:
 
 
 def cmd_convert(args: argparse.Namespace) -> None:
-    from diacc.algo.checkpoint import convert_checkpoint
+    from diacc.learn.checkpoint import convert_checkpoint
 
     for path in args.paths:
         dst = path.with_name(f"{path.stem}{args.suffix}{path.suffix}")

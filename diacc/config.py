@@ -543,7 +543,7 @@ class Variant:
     """One row of the paper's ablation: which actor, which critic, PSAR on or off.
 
     Networks are named, not imported, so that configs stay free of torch;
-    :mod:`diacc.models.registry` maps the names to classes.
+    :mod:`diacc.learn.models.registry` maps the names to classes.
     """
 
     name: str

@@ -154,7 +154,7 @@ def run_groups(run_dirs: list[Path]) -> dict[Path, str]:
     never are. Keys missing from some run's ``config.json`` (it predates them)
     are not compared.
     """
-    from diacc.algo.checkpoint import flatten_config
+    from diacc.learn.checkpoint import flatten_config
     from diacc.sweepaxes import format_value, short_keys
 
     configs = {}

@@ -325,7 +325,7 @@ class CheckpointPolicy(Policy):
     def __init__(self, path: str | Path, variant: str | None = None, sampled: bool = False) -> None:
         import torch
 
-        from diacc.algo.checkpoint import load_actor
+        from diacc.learn.checkpoint import load_actor
 
         self.path = Path(path)
         if variant is not None and variant not in VARIANTS:
@@ -362,7 +362,7 @@ class CheckpointPolicy(Policy):
         import torch
 
         from diacc.envs.action_mask import masked_logits
-        from diacc.models.inputs import to_tensors
+        from diacc.learn.models.inputs import to_tensors
 
         n_cavs = actor_obs.alive.shape[0]
         start = torch.as_tensor(np.broadcast_to(first_step, (n_cavs,)).copy())  # (C,) bool

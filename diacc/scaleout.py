@@ -234,11 +234,11 @@ def stored_config_changes(cfg: TrainConfig) -> list[str]:
     both only under the settings it was trained with, or the results would be
     reported under settings they were not made with. Fields added to the
     config after the run was trained count as their defaults (of that time:
-    :func:`~diacc.algo.checkpoint.config_from_checkpoint`), so a run trained
+    :func:`~diacc.learn.checkpoint.config_from_checkpoint`), so a run trained
     with the ``stopping`` horizon is not continued under today's ``headway``.
     """
-    from diacc.algo.checkpoint import config_from_checkpoint
-    from diacc.algo.mappo import check_resume_config
+    from diacc.learn.checkpoint import config_from_checkpoint
+    from diacc.learn.mappo import check_resume_config
 
     path = Path(cfg.run_dir) / "config.json"
     if not path.exists():
@@ -256,7 +256,7 @@ def train_run(cfg: TrainConfig, progress: bool = False) -> SweepRun:
 
     ``progress`` shows the trainer's progress bar (a run in the foreground).
     """
-    from diacc.algo.mappo import train
+    from diacc.learn.mappo import train
 
     run_dir = Path(cfg.run_dir)
     base = {"variant": cfg.variant, "map": cfg.env.map, "seed": cfg.seed, "run_dir": cfg.run_dir}

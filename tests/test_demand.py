@@ -10,14 +10,14 @@ import torch
 from helpers import SHORT_MAP
 from pettingzoo.test import parallel_api_test
 
-from diacc.algo.mappo import collect_rollout, make_agent, seed_everything, train
 from diacc.config import ConfigError, EnvConfig, SimConfig, TrainConfig, override
 from diacc.envs.actions import LANE_RIGHT
 from diacc.envs.env import BottleneckEnv
 from diacc.envs.episode import EpisodeDriver, play_episode
 from diacc.envs.observation import unstack
 from diacc.envs.vector import make_vector_env
-from diacc.models.inputs import to_tensors
+from diacc.learn.mappo import collect_rollout, make_agent, seed_everything, train
+from diacc.learn.models.inputs import to_tensors
 from diacc.policies import ScriptedPolicy
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import parse_map

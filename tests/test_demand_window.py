@@ -14,7 +14,7 @@ from test_demand import tiny_demand_run
 
 import diacc.envs.observation as observation
 import diacc.envs.safety as safety
-import diacc.models.gat as gat
+import diacc.learn.models.gat as gat
 from diacc.config import EnvConfig, EventConfig, ObservationConfig, SimConfig
 from diacc.envs.actions import LANE_RIGHT
 from diacc.envs.env import BottleneckEnv

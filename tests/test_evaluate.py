@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.algo.checkpoint import save_checkpoint
-from diacc.algo.mappo import make_agent
 from diacc.cli import main
 from diacc.config import ModelConfig, TrainConfig
 from diacc.envs.env import BottleneckEnv
 from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, EvaluationError, evaluate, read_csv
 from diacc.grid import Cell, GridError, load_grid
+from diacc.learn.checkpoint import save_checkpoint
+from diacc.learn.mappo import make_agent
 from diacc.policies import EvalSettings, PolicySpec
 from diacc.sim.maps import SEGMENT_KINDS
 

@@ -199,7 +199,7 @@ def test_case2_vector_worker_killed_during_the_update(tmp_path, monkeypatch):
     """A process-vector worker killed while idle (PPO update): replaced, logged, run completes."""
     from test_mappo import tiny_config
 
-    from diacc.algo import mappo
+    from diacc.learn import mappo
 
     made, killed = [], []
     real_make, real_update = mappo.make_vector_env, mappo.ppo_update
@@ -231,7 +231,7 @@ def test_case3_nonfinite_gradient_stops_before_the_update(tmp_path, monkeypatch)
     """A NaN gradient in update 2: one-line error naming it; update 1's checkpoint intact."""
     from test_mappo import tiny_config
 
-    from diacc.algo import checkpoint, mappo
+    from diacc.learn import checkpoint, mappo
 
     cfg = tiny_config(tmp_path, checkpoint_every=1, total_steps=80)
     backward_calls = []

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.algo.buffer import compute_gae
-from diacc.algo.valuenorm import ValueNorm
+from diacc.learn.buffer import compute_gae
+from diacc.learn.valuenorm import ValueNorm
 
 REWARDS = np.array([[1.0], [2.0], [3.0]])
 VALUES = np.array([[0.5], [0.4], [0.3]])

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.algo.checkpoint import load_checkpoint, restore
-from diacc.algo.mappo import make_agent, train
 from diacc.config import TrainConfig, override
 from diacc.envs.episode import EpisodeDriver
-from diacc.models.inputs import to_tensors
+from diacc.learn.checkpoint import load_checkpoint, restore
+from diacc.learn.mappo import make_agent, train
+from diacc.learn.models.inputs import to_tensors
 from diacc.sim.scenario import Scenario
 
 HELD_OUT_SEEDS = range(10_000, 10_030)

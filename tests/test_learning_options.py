@@ -8,8 +8,8 @@ import numpy as np
 import torch
 from test_mappo import rollout_batch, tiny_config
 
-from diacc.algo.mappo import evaluate_batch, train
 from diacc.config import override
+from diacc.learn.mappo import evaluate_batch, train
 from diacc.policies import CheckpointPolicy
 
 ALL_OPTIONS = {
@@ -78,9 +78,9 @@ def test_tiny_training_with_every_option_and_masked_evaluation(tmp_path):
 
 def test_per_agent_gae_is_the_team_gae_of_each_slot():
     """GAE per agent = the team GAE run on each slot's values, with the shared reward."""
-    from diacc.algo.buffer import Rollout, compute_gae
-    from diacc.algo.mappo import rollout_gae
     from diacc.config import TrainConfig
+    from diacc.learn.buffer import Rollout, compute_gae
+    from diacc.learn.mappo import rollout_gae
 
     rng = np.random.default_rng(0)
     S, E, C = 6, 2, 3

@@ -9,8 +9,10 @@ import pytest
 import torch
 from helpers import SHORT_MAP
 
-from diacc.algo.checkpoint import CheckpointError, config_from_checkpoint, load_checkpoint
-from diacc.algo.mappo import (
+from diacc.config import TrainConfig, override
+from diacc.envs.vector import make_vector_env
+from diacc.learn.checkpoint import CheckpointError, config_from_checkpoint, load_checkpoint
+from diacc.learn.mappo import (
     collect_rollout,
     evaluate_batch,
     make_agent,
@@ -20,8 +22,6 @@ from diacc.algo.mappo import (
     seed_everything,
     train,
 )
-from diacc.config import TrainConfig, override
-from diacc.envs.vector import make_vector_env
 from diacc.sim.scenario import Scenario
 
 TINY = {

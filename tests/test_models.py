@@ -10,14 +10,14 @@ import torch
 
 from diacc.config import VARIANTS, ModelConfig, ObservationConfig
 from diacc.envs.observation import N_ACTIONS, ObservationSpec
-from diacc.models.errors import ModelError
-from diacc.models.gat import GraphAttention
-from diacc.models.inputs import to_tensors
-from diacc.models.itdr import ITDR, CIECCritic
-from diacc.models.mlp import MLPActor
-from diacc.models.registry import build_networks
-from diacc.models.synthetic import random_actor_obs, random_critic_state
-from diacc.models.taie import TAIE, DIADMActor
+from diacc.learn.models.errors import ModelError
+from diacc.learn.models.gat import GraphAttention
+from diacc.learn.models.inputs import to_tensors
+from diacc.learn.models.itdr import ITDR, CIECCritic
+from diacc.learn.models.mlp import MLPActor
+from diacc.learn.models.registry import build_networks
+from diacc.learn.models.synthetic import random_actor_obs, random_critic_state
+from diacc.learn.models.taie import TAIE, DIADMActor
 
 CFG = ModelConfig(hidden_dim=32, gat_heads=2, cross_heads=4, cross_dim=16, gru_hidden=24)
 SPEC = ObservationSpec.from_config(ObservationConfig())
@@ -440,7 +440,7 @@ def test_every_variant_runs_on_builder_observations():
 # ---------------------------------------------------------------- cheaper forms, same maths
 def test_cross_attention_matches_the_per_head_formula():
     """The fused K/V product and elementwise scores equal softmax(q k^T / sqrt(d)) v per head."""
-    from diacc.models.attention import CrossAttention
+    from diacc.learn.models.attention import CrossAttention
 
     torch.manual_seed(5)
     layer = CrossAttention(12, 6, 16, 4)
@@ -465,7 +465,7 @@ def test_cross_attention_matches_the_per_head_formula():
 
 def test_trimming_padded_node_slots_changes_no_output_or_gradient(monkeypatch):
     """ITDR cuts the node slots behind the last vehicle; outputs and gradients stay the same."""
-    import diacc.models.itdr as itdr
+    import diacc.learn.models.itdr as itdr
 
     state = _critic_state(6, seed=11, min_active=3)
     state["node_mask"][:, 20:] = False  # vehicles in the first 20 of 40 slots only

@@ -6,9 +6,9 @@ import re
 
 from test_mappo import tiny_config
 
-from diacc.algo.mappo import train
 from diacc.config import TrainConfig, override
 from diacc.console import TrainProgress
+from diacc.learn.mappo import train
 from diacc.runlog import config_digest
 
 

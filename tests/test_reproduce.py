@@ -72,7 +72,7 @@ def _table_speed(markdown: str, backend: str, column: str) -> float:
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """A finished tiny reproduction whose diacc run was interrupted once; (out, stdout)."""
-    from diacc.algo.mappo import train
+    from diacc.learn.mappo import train
 
     out = tmp_path_factory.mktemp("reproduce") / "tiny"
     config, notes = resolve_config("tiny", out_dir=out)

@@ -11,11 +11,11 @@ ray = pytest.importorskip(
     "ray", reason='Ray is not installed (optional extra: pip install -e ".[ray]")'
 )
 
-from diacc.algo.mappo import TIMING_KEYS  # noqa: E402
 from diacc.cli import main  # noqa: E402
 from diacc.config import TrainConfig, override  # noqa: E402
 from diacc.evaluate import evaluate  # noqa: E402
 from diacc.grid import make_cell  # noqa: E402
+from diacc.learn.mappo import TIMING_KEYS  # noqa: E402
 from diacc.policies import EvalSettings, parse_policy  # noqa: E402
 from diacc.scaleout import RayEngine, run_sweep, sweep_configs  # noqa: E402
 

@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 import torch
 
-from diacc.algo import checkpoint
-from diacc.algo.checkpoint import CheckpointError, convert_checkpoint, load_checkpoint
 from diacc.cli import main
+from diacc.learn import checkpoint
+from diacc.learn.checkpoint import CheckpointError, convert_checkpoint, load_checkpoint
 from diacc.sim.maps import map_tag
 
 SHIPPED = sorted((Path(__file__).resolve().parent.parent / "checkpoints").glob("*.pt"))[0]
@@ -118,7 +118,7 @@ def test_old_format_is_refused_with_the_command_that_converts_it(tmp_path, shipp
 def test_a_failed_checkpoint_write_keeps_the_old_file_and_no_tmp(tmp_path, monkeypatch):
     from test_mappo import tiny_config
 
-    from diacc.algo.mappo import make_agent
+    from diacc.learn.mappo import make_agent
 
     cfg = tiny_config(tmp_path)
     agent = make_agent(cfg, torch.device("cpu"))

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from diacc.algo.checkpoint import config_from_checkpoint
 from diacc.config import PSARConfig
 from diacc.envs.episode import EpisodeDriver
 from diacc.grid import Cell
+from diacc.learn.checkpoint import config_from_checkpoint
 from diacc.policies import EvalSettings, PolicySpec, build_policy
 
 CHECKPOINTS = sorted((Path(__file__).resolve().parent.parent / "checkpoints").glob("*.pt"))

@@ -13,7 +13,6 @@ import pytest
 import torch
 from test_mappo import tiny_config
 
-from diacc.algo import checkpoint, mappo
 from diacc.config import (
     ConfigError,
     ModelConfig,
@@ -23,10 +22,11 @@ from diacc.config import (
     validate,
 )
 from diacc.envs.observation import ObservationSpec
-from diacc.models.inputs import to_tensors
-from diacc.models.layers import embed_all, embed_present, mlp
-from diacc.models.registry import build_networks
-from diacc.models.synthetic import random_actor_obs, random_critic_state
+from diacc.learn import checkpoint, mappo
+from diacc.learn.models.inputs import to_tensors
+from diacc.learn.models.layers import embed_all, embed_present, mlp
+from diacc.learn.models.registry import build_networks
+from diacc.learn.models.synthetic import random_actor_obs, random_critic_state
 from diacc.threads import (
     WORKER_THREAD_VARS,
     default_threads,

@@ -42,11 +42,11 @@ import matplotlib.pyplot as plt
 import torch
 
 from diacc import cli
-from diacc.algo.checkpoint import save_checkpoint
-from diacc.algo.mappo import make_agent, seed_everything, train
 from diacc.config import TrainConfig, override
 from diacc.evaluate import evaluate, load_episodes
 from diacc.grid import make_cell
+from diacc.learn.checkpoint import save_checkpoint
+from diacc.learn.mappo import make_agent, seed_everything, train
 from diacc.plots import plot_curves, plot_speeds, read_progress
 from diacc.policies import EvalSettings, parse_policy
 

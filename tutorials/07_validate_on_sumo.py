@@ -43,11 +43,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from diacc import cli
-from diacc.algo.mappo import train
 from diacc.config import TrainConfig, override
 from diacc.console import fmt
 from diacc.evaluate import evaluate, load_episodes
 from diacc.grid import make_cell
+from diacc.learn.mappo import train
 from diacc.plots import plot_speeds
 from diacc.policies import EvalSettings, parse_policy
 from diacc.render import render_episode

@@ -26,9 +26,9 @@ from diacc.config import (
     override,
 )
 from diacc.envs.observation import ObservationSpec
-from diacc.models.inputs import to_tensors
-from diacc.models.registry import build_networks, parameter_count
-from diacc.models.synthetic import random_actor_obs, random_critic_state
+from diacc.learn.models.inputs import to_tensors
+from diacc.learn.models.registry import build_networks, parameter_count
+from diacc.learn.models.synthetic import random_actor_obs, random_critic_state
 
 
 def _chunked(tensors: dict[str, torch.Tensor], chunk_len: int) -> dict[str, torch.Tensor]:

@@ -1,6 +1,6 @@
 """End-to-end training throughput: rollout + PPO update, env-steps per second.
 
-Runs a few real updates of :func:`diacc.algo.mappo.train` per configuration,
+Runs a few real updates of :func:`diacc.learn.mappo.train` per configuration,
 in this process, one configuration after another in one run, and projects the
 wall time of the paper's 3 M-step run from the measured rate. Rows:
 
@@ -56,10 +56,10 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from diacc.algo import mappo
-from diacc.algo.mappo import train
 from diacc.config import PAPER_LEARNER, EnvConfig, TrainConfig, override
 from diacc.errors import DiaccError
+from diacc.learn import mappo
+from diacc.learn.mappo import train
 
 PAPER_STEPS = 3_000_000
 #: The smaller networks of the learner-cost rows (the paper: hidden sizes "of the order 64-256").

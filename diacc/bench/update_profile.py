@@ -3,7 +3,7 @@
 The update is the learner's whole cost and it scales with samples, so this
 profile decides what to make cheaper. It collects one real rollout (highway,
 the default scenario), cuts it into the update's batch and runs
-:func:`diacc.algo.mappo.ppo_update` once with timing hooks on the networks'
+:func:`diacc.learn.mappo.ppo_update` once with timing hooks on the networks'
 parts (embeddings, the GATs, context/fusion MLPs, cross-attention, GRU cells,
 heads). Forward time of a part runs from its forward pre-hook to its forward
 hook; backward time from its backward pre-hook (gradient of the output ready)
@@ -32,8 +32,8 @@ from contextlib import contextmanager
 import torch
 from torch import nn
 
-from diacc.algo import mappo
 from diacc.config import PAPER_LEARNER, EnvConfig, TrainConfig, override
+from diacc.learn import mappo
 from diacc.threads import set_torch_threads
 
 #: Networks' parts that are timed, by attribute path from the actor / critic.

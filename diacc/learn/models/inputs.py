@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from diacc.envs.observation import ActorObs, CriticState
-from diacc.models.errors import ModelError
+from diacc.learn.models.errors import ModelError
 
 TensorDict = dict[str, Tensor]
 

@@ -8,7 +8,7 @@ then ``epochs`` passes of PPO over it:
 * **Critic** is centralised: one value per environment from the critic state,
   because the team reward R_t is shared by all CAVs (paper eq. reward_all);
   ``critic_values="per_agent"`` values each CAV slot instead
-  (:mod:`diacc.models.agent_value`), with GAE per agent.
+  (:mod:`diacc.learn.models.agent_value`), with GAE per agent.
 * **Actions** meet PSAR as ``env.psar_actions`` says: the proposed action's
   log-prob (paper), the executed one's, or sampling among the actions PSAR
   would execute unchanged (``ActorObs.action_mask``, :mod:`diacc.envs.action_mask`).
@@ -53,18 +53,6 @@ import torch
 import torch.nn.functional as F
 from torch.utils.tensorboard import SummaryWriter
 
-from diacc.algo.agent import Agent
-from diacc.algo.buffer import Rollout, compute_gae
-from diacc.algo.checkpoint import (
-    CheckpointError,
-    config_from_checkpoint,
-    flatten_config,
-    load_checkpoint,
-    restore,
-    save_checkpoint,
-    set_rng_state,
-)
-from diacc.algo.valuenorm import ValueNorm
 from diacc.config import TrainConfig, validate
 from diacc.console import TrainProgress
 from diacc.envs.action_mask import masked_logits
@@ -74,9 +62,21 @@ from diacc.envs.reward import temperature
 from diacc.envs.vector import make_vector_env
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_write
-from diacc.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
-from diacc.models.inputs import to_tensors
-from diacc.models.registry import build_networks
+from diacc.learn.agent import Agent
+from diacc.learn.buffer import Rollout, compute_gae
+from diacc.learn.checkpoint import (
+    CheckpointError,
+    config_from_checkpoint,
+    flatten_config,
+    load_checkpoint,
+    restore,
+    save_checkpoint,
+    set_rng_state,
+)
+from diacc.learn.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
+from diacc.learn.models.inputs import to_tensors
+from diacc.learn.models.registry import build_networks
+from diacc.learn.valuenorm import ValueNorm
 from diacc.runlog import claim_run_dir, config_digest, locked_dir, log, run_log
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import draw_population

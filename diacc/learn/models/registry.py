@@ -11,11 +11,11 @@ from torch import nn
 
 from diacc.config import VARIANT_TABLE, VARIANTS, ModelConfig
 from diacc.envs.observation import ObservationSpec
-from diacc.models.errors import ModelError
-from diacc.models.itdr import CIECCritic
-from diacc.models.mlp import MLPActor, MLPCritic
-from diacc.models.recurrent import RecurrentNet
-from diacc.models.taie import DIADMActor
+from diacc.learn.models.errors import ModelError
+from diacc.learn.models.itdr import CIECCritic
+from diacc.learn.models.mlp import MLPActor, MLPCritic
+from diacc.learn.models.recurrent import RecurrentNet
+from diacc.learn.models.taie import DIADMActor
 
 _Builder = Callable[[ModelConfig, ObservationSpec], RecurrentNet]
 _ACTORS: dict[str, _Builder] = {"mlp": MLPActor, "diadm": DIADMActor}

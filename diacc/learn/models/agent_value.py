@@ -24,9 +24,9 @@ from torch import Tensor, nn
 
 from diacc.config import ModelConfig
 from diacc.envs.observation import SELF_FEATURES
-from diacc.models.inputs import TensorDict, merge_leading, require
-from diacc.models.layers import VALUE_GAIN, mlp, orthogonal_init
-from diacc.models.recurrent import RecurrentNet
+from diacc.learn.models.inputs import TensorDict, merge_leading, require
+from diacc.learn.models.layers import VALUE_GAIN, mlp, orthogonal_init
+from diacc.learn.models.recurrent import RecurrentNet
 
 #: Key of the per-slot features in the critic's input: (..., C, AGENT_FEATURES).
 AGENT_KEY = "agent_self"

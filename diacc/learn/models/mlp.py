@@ -18,10 +18,10 @@ from diacc.envs.observation import (
     N_ACTIONS,
     ObservationSpec,
 )
-from diacc.models.errors import ModelError
-from diacc.models.inputs import TensorDict
-from diacc.models.layers import POLICY_GAIN, VALUE_GAIN, mlp, one_hot
-from diacc.models.recurrent import Encoder, RecurrentNet
+from diacc.learn.models.errors import ModelError
+from diacc.learn.models.inputs import TensorDict
+from diacc.learn.models.layers import POLICY_GAIN, VALUE_GAIN, mlp, one_hot
+from diacc.learn.models.recurrent import Encoder, RecurrentNet
 
 
 def actor_flat_dim(spec: ObservationSpec) -> int:

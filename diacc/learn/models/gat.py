@@ -31,8 +31,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from diacc.models.errors import ModelError
-from diacc.models.layers import masked_softmax
+from diacc.learn.models.errors import ModelError
+from diacc.learn.models.layers import masked_softmax
 
 #: Critic graphs up to this many nodes aggregate with a dense (N x N) attention matrix
 #: (the paper's cells: fast, and what every trained critic used); larger ones gather.

@@ -25,12 +25,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from diacc.algo.agent import Agent
 from diacc.config import PAPER_LEARNER, TrainConfig, override
 from diacc.envs.observation import ObservationSpec
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_target
-from diacc.models.registry import build_networks
+from diacc.learn.agent import Agent
+from diacc.learn.models.registry import build_networks
 
 
 class CheckpointError(DiaccError, RuntimeError):

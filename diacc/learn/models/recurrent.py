@@ -12,8 +12,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from diacc.models.inputs import TensorDict, merge_leading, require
-from diacc.models.layers import orthogonal_init
+from diacc.learn.models.inputs import TensorDict, merge_leading, require
+from diacc.learn.models.layers import orthogonal_init
 
 
 class Encoder(nn.Module):

@@ -1,7 +1,7 @@
 """The learner's state: networks, optimiser and value normaliser (:class:`Agent`).
 
-Its own module because both the trainer (:mod:`diacc.algo.mappo`, which builds
-and updates it) and the checkpoint files (:mod:`diacc.algo.checkpoint`, which
+Its own module because both the trainer (:mod:`diacc.learn.mappo`, which builds
+and updates it) and the checkpoint files (:mod:`diacc.learn.checkpoint`, which
 save and restore it) need it, and the trainer imports the checkpoint module:
 with the class here neither imports the other.
 """
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from diacc.algo.valuenorm import ValueNorm
+from diacc.learn.valuenorm import ValueNorm
 
 
 @dataclass
@@ -21,7 +21,7 @@ class Agent:
     """Everything that learns or is saved: networks, optimiser, value normaliser.
 
     ``actor``, ``critic`` and ``value_norm`` are the learner, on the update's
-    device. Rollouts use ``rollout_*`` on :data:`diacc.algo.mappo.ROLLOUT_DEVICE`: the same
+    device. Rollouts use ``rollout_*`` on :data:`diacc.learn.mappo.ROLLOUT_DEVICE`: the same
     modules when the learner is on the CPU, else CPU copies that
     :meth:`sync_rollout` refreshes. The update replays sequences through
     :meth:`replay_actor` / :meth:`replay_critic`: the learner's

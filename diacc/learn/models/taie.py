@@ -27,11 +27,11 @@ from diacc.envs.observation import (
     N_ACTIONS,
     ObservationSpec,
 )
-from diacc.models.errors import ModelError
-from diacc.models.gat import GraphAttention
-from diacc.models.inputs import TensorDict
-from diacc.models.layers import POLICY_GAIN, embed_present, mlp, one_hot
-from diacc.models.recurrent import Encoder, RecurrentNet
+from diacc.learn.models.errors import ModelError
+from diacc.learn.models.gat import GraphAttention
+from diacc.learn.models.inputs import TensorDict
+from diacc.learn.models.layers import POLICY_GAIN, embed_present, mlp, one_hot
+from diacc.learn.models.recurrent import Encoder, RecurrentNet
 
 
 class TAIE(Encoder):

@@ -32,12 +32,12 @@ from diacc.envs.observation import (
     TRAFFIC_FEATURES,
     ObservationSpec,
 )
-from diacc.models.attention import CrossAttention
-from diacc.models.errors import ModelError
-from diacc.models.gat import GlobalGraphAttention
-from diacc.models.inputs import TensorDict
-from diacc.models.layers import VALUE_GAIN, embed_present, mlp
-from diacc.models.recurrent import Encoder, RecurrentNet
+from diacc.learn.models.attention import CrossAttention
+from diacc.learn.models.errors import ModelError
+from diacc.learn.models.gat import GlobalGraphAttention
+from diacc.learn.models.inputs import TensorDict
+from diacc.learn.models.layers import VALUE_GAIN, embed_present, mlp
+from diacc.learn.models.recurrent import Encoder, RecurrentNet
 
 
 def trim_padded_nodes(state: TensorDict) -> TensorDict:

@@ -14,8 +14,8 @@ import math
 import torch
 from torch import Tensor, nn
 
-from diacc.models.errors import ModelError
-from diacc.models.layers import masked_softmax
+from diacc.learn.models.errors import ModelError
+from diacc.learn.models.layers import masked_softmax
 
 
 class CrossAttention(nn.Module):

@@ -4,10 +4,10 @@ Entry points: :func:`build_networks` pairs networks per variant and
 :func:`to_tensors` turns observation containers into the tensor dicts they take.
 """
 
-from diacc.models.errors import ModelError
-from diacc.models.inputs import merge_leading, to_tensors
-from diacc.models.recurrent import RecurrentNet
-from diacc.models.registry import build_networks, parameter_count
+from diacc.learn.models.errors import ModelError
+from diacc.learn.models.inputs import merge_leading, to_tensors
+from diacc.learn.models.recurrent import RecurrentNet
+from diacc.learn.models.registry import build_networks, parameter_count
 
 __all__ = [
     "ModelError",
