@@ -32,9 +32,9 @@ import time
 
 import numpy as np
 
-from diacc.bench import write_json_lines
 from diacc.config import EventConfig, SimConfig, preset_road
 from diacc.envs.metrics import EpisodeRecorder
+from diacc.experiments.bench import write_json_lines
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario

@@ -3,7 +3,7 @@
 ``diacc bench --headroom --scenario demand`` reports throughput past the
 reduction. That throughput cannot exceed the flow that gets onto the road,
 so this script measures both, per (backend, inflow, reference, seed), with
-the bench's own drivers (:func:`diacc.bench.headroom.make_driver`: the
+the bench's own drivers (:func:`diacc.experiments.bench.headroom.make_driver`: the
 heuristic drives every CAV), after ``--warmup-s``:
 
 * ``entry_vph``: vehicles that entered the route, per hour;
@@ -27,8 +27,8 @@ import time
 
 import numpy as np
 
-from diacc.bench import headroom, write_json_lines
-from diacc.grid import Cell
+from diacc.experiments.bench import headroom, write_json_lines
+from diacc.experiments.grid import Cell
 from diacc.sim.scenario import draw_population
 
 BIN_S = 30.0

@@ -28,7 +28,7 @@ import re
 import statistics
 from pathlib import Path
 
-from diacc.reproduce.plan import BASELINE_COLUMNS
+from diacc.experiments.reproduce.plan import BASELINE_COLUMNS
 
 RUN_NAME = re.compile(
     r"^(?P<setting>[a-z]+)-(?P<variant>[a-z-]+)-s(?P<seed>\d+)-(?P<actions>greedy|sampled)$"

@@ -22,8 +22,8 @@ __all__ = ["__version__", "env", "load_policy", "parallel_env"]
 if TYPE_CHECKING:  # pragma: no cover
     from pathlib import Path
 
-    from diacc.agent import TrainedPolicy
     from diacc.envs.env import BottleneckEnv
+    from diacc.experiments.agent import TrainedPolicy
 
 
 def parallel_env(
@@ -51,8 +51,8 @@ def parallel_env(
 
 def load_policy(path: str | Path, sampled: bool = False) -> TrainedPolicy:
     """A trained agent that acts on PettingZoo observations, keeping each agent's
-    recurrent state (:class:`diacc.agent.TrainedPolicy`); greedy, or ``sampled``."""
-    from diacc.agent import TrainedPolicy
+    recurrent state (:class:`diacc.experiments.agent.TrainedPolicy`); greedy, or ``sampled``."""
+    from diacc.experiments.agent import TrainedPolicy
 
     return TrainedPolicy(path, sampled=sampled)
 

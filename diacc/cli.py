@@ -347,7 +347,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
     if (args.agent or args.references) and not args.headroom:
         raise ConfigError(f"{'--agent' if args.agent else '--references'} needs --headroom")
     if args.safety:
-        from diacc.bench import safety
+        from diacc.experiments.bench import safety
 
         backends = (args.backend,) if args.backend else BACKENDS
         policies = safety.POLICIES
@@ -369,7 +369,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
         )
         return
     if args.headway:
-        from diacc.bench import headway
+        from diacc.experiments.bench import headway
 
         headway.run(
             backends=(args.backend,) if args.backend else BACKENDS,
@@ -379,7 +379,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
         )
         return
     if args.headroom:
-        from diacc.bench import headroom
+        from diacc.experiments.bench import headroom
 
         demand = None
         if args.scenario == "demand":
@@ -402,27 +402,27 @@ def cmd_bench(args: argparse.Namespace) -> None:
         )
         return
     if args.backend == "highway":
-        from diacc.bench import highway
+        from diacc.experiments.bench import highway
 
         highway.run(**({"steps": args.timing_steps} if args.timing_steps else {}))
         ran = True
     if args.backend == "sumo":
-        from diacc.bench import sumo
+        from diacc.experiments.bench import sumo
 
         sumo.run(**({"steps": args.timing_steps} if args.timing_steps else {}))
         ran = True
     if args.models:
-        from diacc.bench import models
+        from diacc.experiments.bench import models
 
         models.run(device=bench_device(args.device))
         ran = True
     if args.training:
-        from diacc.bench import training
+        from diacc.experiments.bench import training
 
         training.run(device=bench_device(args.device))
         ran = True
     if args.env_batch:
-        from diacc.bench import envbatch
+        from diacc.experiments.bench import envbatch
 
         envbatch.run(**({"steps": args.timing_steps} if args.timing_steps else {}))
         ran = True
@@ -471,7 +471,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     from diacc.config import ObservationConfig
     from diacc.console import metric_lines, print_lines
     from diacc.envs.episode import EpisodeDriver, play_episode
-    from diacc.policies import Policy
+    from diacc.experiments.policies import Policy
     from diacc.sim.scenario import Scenario
 
     if args.episode_steps < 1:

@@ -13,7 +13,7 @@ from pathlib import Path
 from diacc import cli_scale
 from diacc.config import ACTION_MODES, BACKENDS, FULL_BRAKE_MODES, HORIZON_MODES, STYLE_PRESETS
 
-#: How ``diacc table`` marks entries (the rule of :mod:`diacc.report`, kept here so
+#: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so
 #: that ``--help`` does not import the evaluation stack).
 TABLE_RULES = """\
 Per row the best value is bold and the second best underlined (italic in
@@ -25,7 +25,7 @@ pure HDV. LaTeX output needs \\usepackage{booktabs} and \\usepackage{multirow}."
 
 
 def _settings(args: argparse.Namespace):
-    from diacc.policies import EvalSettings
+    from diacc.experiments.policies import EvalSettings
 
     return EvalSettings(
         backend=args.backend,
@@ -202,7 +202,7 @@ def _episode_args(p: argparse.ArgumentParser) -> None:
 
 
 def _episode_cell(args: argparse.Namespace):
-    from diacc.grid import make_cell
+    from diacc.experiments.grid import make_cell
 
     traffic = {
         "map": args.map,
@@ -214,9 +214,9 @@ def _episode_cell(args: argparse.Namespace):
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
-    from diacc.evaluate import evaluate
-    from diacc.grid import load_grid
-    from diacc.policies import parse_policy
+    from diacc.experiments.evaluate import evaluate
+    from diacc.experiments.grid import load_grid
+    from diacc.experiments.policies import parse_policy
 
     spec = parse_policy(args.policy, args.variant, args.actions == "sampled")
     cells = load_grid(args.grid)
@@ -237,7 +237,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
 
 def cmd_table(args: argparse.Namespace) -> None:
-    from diacc.report import build_table, expand_rows, render_table
+    from diacc.experiments.report import build_table, expand_rows, render_table
 
     rows = expand_rows(args.rows)
     text = render_table(build_table(args.results, args.speed_std, rows), args.format)
@@ -250,13 +250,13 @@ def cmd_table(args: argparse.Namespace) -> None:
 
 
 def cmd_plot(args: argparse.Namespace) -> None:
-    from diacc import plots
+    from diacc.experiments import plots
 
     if args.plot_kind == "curves":
         paths = plots.plot_curves(args.runs, args.out, smooth=args.smooth)
     elif args.plot_kind == "timespace":
-        from diacc.policies import parse_policy
-        from diacc.timespace import plot_timespace
+        from diacc.experiments.policies import parse_policy
+        from diacc.experiments.timespace import plot_timespace
 
         spec = parse_policy(args.policy, args.variant, args.actions == "sampled")
         cell = _episode_cell(args)
@@ -267,8 +267,8 @@ def cmd_plot(args: argparse.Namespace) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> None:
-    from diacc.policies import parse_policy
-    from diacc.render import render_episode
+    from diacc.experiments.policies import parse_policy
+    from diacc.experiments.render import render_episode
 
     spec = parse_policy(args.policy, args.variant, args.actions == "sampled")
     cell = _episode_cell(args)

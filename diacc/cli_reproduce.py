@@ -22,15 +22,15 @@ from diacc.config import (
     ConfigError,
     TrainConfig,
 )
-from diacc.grid import GRID_NAMES
-from diacc.reproduce.plan import DEFAULT_GRIDS
-from diacc.sweepaxes import STUDIES
+from diacc.experiments.grid import GRID_NAMES
+from diacc.experiments.reproduce.plan import DEFAULT_GRIDS
+from diacc.experiments.sweepaxes import STUDIES
 
 
 def _epilog() -> str:
     import textwrap
 
-    from diacc.reproduce.plan import BUDGET_PURPOSE, BUDGETS, describe_budget
+    from diacc.experiments.reproduce.plan import BUDGET_PURPOSE, BUDGETS, describe_budget
 
     lines = ["budgets (explicit options override the preset's value):"]
     for name, budget in BUDGETS.items():
@@ -163,9 +163,9 @@ def _names(text: str) -> tuple[str, ...]:
 
 
 def cmd_reproduce(args: argparse.Namespace) -> None:
-    from diacc.reproduce.pipeline import reproduce
-    from diacc.reproduce.plan import Execution, describe_plan, make_plan, resolve_config
-    from diacc.sweepaxes import axis_texts, sweep_settings
+    from diacc.experiments.reproduce.pipeline import reproduce
+    from diacc.experiments.reproduce.plan import Execution, describe_plan, make_plan, resolve_config
+    from diacc.experiments.sweepaxes import axis_texts, sweep_settings
 
     if args.jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")

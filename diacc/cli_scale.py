@@ -2,7 +2,7 @@
 parser helpers every command module shares (:func:`add_command`, :func:`add_out_arg`).
 
 Registered by :mod:`diacc.cli`; ``diacc eval`` takes the engine options too.
-Ray is imported only when ``--engine ray`` is chosen (:mod:`diacc.scaleout`).
+Ray is imported only when ``--engine ray`` is chosen (:mod:`diacc.experiments.scaleout`).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import dataclasses
 from pathlib import Path
 
 from diacc.config import BACKENDS, VARIANTS, ConfigError, EnvConfig, TrainConfig
-from diacc.sweepaxes import STUDIES
+from diacc.experiments.sweepaxes import STUDIES
 
 #: ``--device`` choices: those of :attr:`TrainConfig.device <diacc.config.TrainConfig>`.
 DEVICES = next(f for f in dataclasses.fields(TrainConfig) if f.name == "device").metadata["choices"]
@@ -84,7 +84,7 @@ def eval_engine(args: argparse.Namespace):
         if args.ray_address or args.ray_cpus:
             raise ConfigError("--ray-address / --ray-cpus need --engine ray")
         return None
-    from diacc.scaleout import RayEngine
+    from diacc.experiments.scaleout import RayEngine
 
     return RayEngine(args.ray_address, args.ray_cpus)
 
@@ -183,10 +183,10 @@ def add_parsers(sub) -> None:
 def cmd_sweep(args: argparse.Namespace) -> None:
     from diacc.config import build_train_config
     from diacc.console import fmt, plural, print_config
-    from diacc.plots import plot_curves
-    from diacc.scaleout import check_run_dirs, run_sweep, sweep_configs
+    from diacc.experiments.plots import plot_curves
+    from diacc.experiments.scaleout import check_run_dirs, run_sweep, sweep_configs
+    from diacc.experiments.sweepaxes import axis_texts, sweep_settings
     from diacc.sim.maps import load_map
-    from diacc.sweepaxes import axis_texts, sweep_settings
 
     variants, maps = _csv_list(args.variants), _csv_list(args.maps)
     seeds = _csv_list(args.seeds, int)

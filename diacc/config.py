@@ -416,7 +416,7 @@ class RewardConfig:
     ``w_global`` is not derived from ``w_ego``: each is its own field. The paper
     ties them as w_g = 1 - w_e in its w_e-selection study (a larger w_e means
     "the reduced weight on the global reward"; its best w_e = 0.6 goes with
-    the default w_g = 0.4), so ``--study w_e`` (:data:`diacc.sweepaxes.STUDIES`)
+    the default w_g = 0.4), so ``--study w_e`` (:data:`diacc.experiments.sweepaxes.STUDIES`)
     moves both together; ``--sweep env.reward.w_ego=...`` alone keeps w_g.
 
     The last four fields are options that default to the paper's reading

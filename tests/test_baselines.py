@@ -9,9 +9,9 @@ from diacc.config import CAV_STYLE, NORMAL, STYLE_NAMES
 from diacc.envs.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT
 from diacc.envs.episode import EpisodeDriver
 from diacc.envs.observation import ActorObs
-from diacc.evaluate import run_episode
-from diacc.grid import Cell
-from diacc.policies import (
+from diacc.experiments.evaluate import run_episode
+from diacc.experiments.grid import Cell
+from diacc.experiments.policies import (
     HEURISTIC_LEAVE_M,
     EvalSettings,
     PolicyError,

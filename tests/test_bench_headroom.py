@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from helpers import SHORT_MAP, make_state
 
-from diacc.bench import headroom, headway
 from diacc.cli import main
 from diacc.config import ConfigError
-from diacc.evaluate import run_episode
-from diacc.grid import Cell
-from diacc.policies import EvalSettings, PolicySpec, build_policy
+from diacc.experiments.bench import headroom, headway
+from diacc.experiments.evaluate import run_episode
+from diacc.experiments.grid import Cell
+from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy
 
 
 def test_time_gaps_by_pair_class():

@@ -24,7 +24,7 @@ from diacc.config import (
     override,
     validate,
 )
-from diacc.sweepaxes import sweep_settings
+from diacc.experiments.sweepaxes import sweep_settings
 
 
 def _toml(tmp_path, text: str):

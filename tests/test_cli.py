@@ -220,7 +220,7 @@ def test_bench_former_steps_keeps_its_meaning(argv, episode_steps, timing_steps)
 
 
 def test_bench_envbatch_timing_steps_and_its_former_name():
-    from diacc.bench import envbatch
+    from diacc.experiments.bench import envbatch
 
     parser = envbatch.build_parser()
     assert parser.parse_args([]).timing_steps == 60

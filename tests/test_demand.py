@@ -16,9 +16,9 @@ from diacc.envs.env import BottleneckEnv
 from diacc.envs.episode import EpisodeDriver, play_episode
 from diacc.envs.observation import unstack
 from diacc.envs.vector import make_vector_env
+from diacc.experiments.policies import ScriptedPolicy
 from diacc.learn.mappo import collect_rollout, make_agent, seed_everything, train
 from diacc.learn.models.inputs import to_tensors
-from diacc.policies import ScriptedPolicy
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import parse_map
 from diacc.sim.scenario import Scenario, ScenarioError, draw_population
@@ -187,7 +187,7 @@ def tiny_demand_run(tmp_path, road: str, scenario: Scenario, steps: int, updates
     )  # fmt: skip
     cfg = override(cfg, {"env.scenario": scenario})
     train(cfg, progress=False)
-    from diacc.policies import CheckpointPolicy
+    from diacc.experiments.policies import CheckpointPolicy
 
     policy = CheckpointPolicy(tmp_path / "run" / "checkpoint.pt")
     driver = EpisodeDriver(policy, cfg.env)
@@ -258,7 +258,7 @@ def test_warmup_longer_than_the_episode_is_an_error():
 
 
 def test_grid_sweeps_inflow(tmp_path):
-    from diacc.grid import GridError, load_grid
+    from diacc.experiments.grid import GridError, load_grid
 
     grid = tmp_path / "demand.toml"
     grid.write_text(

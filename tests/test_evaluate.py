@@ -15,11 +15,17 @@ import torch
 from diacc.cli import main
 from diacc.config import ModelConfig, TrainConfig
 from diacc.envs.env import BottleneckEnv
-from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, EvaluationError, evaluate, read_csv
-from diacc.grid import Cell, GridError, load_grid
+from diacc.experiments.evaluate import (
+    EPISODES_FILE,
+    SPEEDS_FILE,
+    EvaluationError,
+    evaluate,
+    read_csv,
+)
+from diacc.experiments.grid import Cell, GridError, load_grid
+from diacc.experiments.policies import EvalSettings, PolicySpec
 from diacc.learn.checkpoint import save_checkpoint
 from diacc.learn.mappo import make_agent
-from diacc.policies import EvalSettings, PolicySpec
 from diacc.sim.maps import SEGMENT_KINDS
 
 SMALL = Cell("train-50", 10, 0.4, "D1")
@@ -236,7 +242,7 @@ def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_p
 def test_sampled_actions_are_seeded_and_differ_from_greedy(tmp_path):
     """``--actions sampled``: the same episode seed draws the same actions, and an
     untrained actor's samples are not its argmax."""
-    from diacc.policies import build_policy
+    from diacc.experiments.policies import build_policy
 
     policy = build_policy(PolicySpec(str(_checkpoint(tmp_path / "run")), sampled=True))
     greedy = build_policy(PolicySpec(str(tmp_path / "run" / "checkpoint.pt")))

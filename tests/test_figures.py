@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from diacc.cli import main
-from diacc.evaluate import evaluate
-from diacc.grid import Cell
-from diacc.plots import plot_speeds
-from diacc.policies import EvalSettings, PolicySpec
-from diacc.render import tick_step_m
-from diacc.timespace import Trajectories, speed_profile
+from diacc.experiments.evaluate import evaluate
+from diacc.experiments.grid import Cell
+from diacc.experiments.plots import plot_speeds
+from diacc.experiments.policies import EvalSettings, PolicySpec
+from diacc.experiments.render import tick_step_m
+from diacc.experiments.timespace import Trajectories, speed_profile
 
 
 def test_speed_profile_averages_active_samples_per_bin():
@@ -59,9 +59,9 @@ def test_speed_figures_one_per_map_with_a_caption(tmp_path, monkeypatch):
         progress=False,
     )
     captions = []
-    import diacc.plots
+    import diacc.experiments.plots
 
-    real_save = diacc.plots._save
+    real_save = diacc.experiments.plots._save
 
     def spy(fig, out):
         captions.append(fig.texts[-1].get_text())
@@ -69,7 +69,7 @@ def test_speed_figures_one_per_map_with_a_caption(tmp_path, monkeypatch):
             assert ax.get_ylabel() == "density (per m/s)" and ax.get_legend() is not None
         return real_save(fig, out)
 
-    monkeypatch.setattr(diacc.plots, "_save", spy)
+    monkeypatch.setattr(diacc.experiments.plots, "_save", spy)
     paths = plot_speeds([tmp_path / "hdv"], tmp_path / "speeds")
     assert [p.name for p in paths] == [
         "speeds-train-25.png",
@@ -90,7 +90,7 @@ def test_tick_step_gives_round_readable_scales():
 
 def test_bottleneck_view_zooms_on_the_lane_drop(tmp_path):
     import diacc
-    from diacc.render import VIEW_SCALE_PX_PER_M, RenderError, render_episode
+    from diacc.experiments.render import VIEW_SCALE_PX_PER_M, RenderError, render_episode
     from diacc.sim.viewer import Viewer
 
     env = diacc.parallel_env(map="train-50", scenario={"n_vehicles": 8})

@@ -13,7 +13,7 @@ from diacc.envs.env import BottleneckEnv, decide
 from diacc.envs.episode import EpisodeDriver, play_episode
 from diacc.envs.lateral_frame import agent_map, is_mirrored, mirror_actions, mirror_state
 from diacc.envs.observation import ObservationBuilder
-from diacc.policies import build_policy, parse_policy
+from diacc.experiments.policies import build_policy, parse_policy
 from diacc.sim.backends.base import make_backend
 from diacc.sim.maps import load_map
 

@@ -9,8 +9,8 @@ import torch
 from test_mappo import rollout_batch, tiny_config
 
 from diacc.config import override
+from diacc.experiments.policies import CheckpointPolicy
 from diacc.learn.mappo import evaluate_batch, train
-from diacc.policies import CheckpointPolicy
 
 ALL_OPTIONS = {
     "critic_values": "per_agent",

@@ -392,7 +392,7 @@ def test_bad_inputs_raise_one_line_errors():
 
 
 def test_models_benchmark_runs_small():
-    from diacc.bench.models import run
+    from diacc.experiments.bench.models import run
 
     figures = run("cpu", n_envs=2, n_cavs=3, rollout_steps=4, chunk_len=2, repeats=1)
     assert set(figures["params"]) == set(VARIANTS)

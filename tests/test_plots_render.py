@@ -11,11 +11,11 @@ import pytest
 
 from diacc.cli import main
 from diacc.config import TrainConfig, override
-from diacc.evaluate import evaluate
-from diacc.grid import Cell
-from diacc.plots import PlotError, gaussian_kde, group_curves, read_progress
-from diacc.policies import EvalSettings, PolicySpec
-from diacc.render import RenderError, render_episode
+from diacc.experiments.evaluate import evaluate
+from diacc.experiments.grid import Cell
+from diacc.experiments.plots import PlotError, gaussian_kde, group_curves, read_progress
+from diacc.experiments.policies import EvalSettings, PolicySpec
+from diacc.experiments.render import RenderError, render_episode
 
 CELL = Cell("train-50", 10, 0.4, "D1")
 
@@ -91,7 +91,7 @@ def test_curves_mean_and_band_over_seeds(tmp_path):
 
 def test_curves_keep_settings_apart_and_plot_the_mean_ego_reward(tmp_path):
     """Runs that differ only in a setting are separate curves (a sweep's); seeds pool."""
-    from diacc.plots import CURVE_PANELS
+    from diacc.experiments.plots import CURVE_PANELS
 
     dirs = []
     for tau, offset in ((0.05, 0.0), (0.5, 4.0)):
@@ -168,7 +168,7 @@ def test_gif_has_expected_frames(tmp_path, backend):
 
 
 def test_gif_frames_carry_stamp_and_legend(tmp_path):
-    from diacc.render import annotate, step_stamp
+    from diacc.experiments.render import annotate, step_stamp
     from diacc.sim.viewer import CAV_COLOR, CRASHED_COLOR
 
     render_episode(
@@ -191,7 +191,7 @@ def test_gif_frames_carry_stamp_and_legend(tmp_path):
 
 
 def test_curve_axes_legends_and_single_seed(tmp_path, monkeypatch):
-    from diacc.plots import _y_limits
+    from diacc.experiments.plots import _y_limits
 
     assert _y_limits("Collision rate", 1.0, 1.0) == (-0.03, 1.03)  # a flat 1.00 keeps [0, 1]
     assert _y_limits("Global reward", 1.0, 1.0) == pytest.approx((0.95, 1.05))
@@ -199,7 +199,7 @@ def test_curve_axes_legends_and_single_seed(tmp_path, monkeypatch):
     _run(tmp_path / "a1", "diacc", 1, 0.0)
     _run(tmp_path / "b1", "mappo", 1, 5.0)
     _run(tmp_path / "b2", "mappo", 2, 5.0)
-    from diacc.plots import plot_curves
+    from diacc.experiments.plots import plot_curves
 
     captured = {}
     import matplotlib.figure

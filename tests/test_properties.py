@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from diacc.config import TrainConfig, _leaves, override, validate
 from diacc.errors import DiaccError
-from diacc.grid import Cell, load_grid
+from diacc.experiments.grid import Cell, load_grid
 from diacc.sim.maps import Map, load_map
 
 SETTINGS = settings(

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from diacc.cli import main
-from diacc.report import build_table, render_table
+from diacc.experiments.report import build_table, render_table
 
 COLUMNS = [
     "policy",

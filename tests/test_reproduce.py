@@ -23,8 +23,8 @@ from pathlib import Path
 import pytest
 
 from diacc.cli import main
-from diacc.reproduce.plan import BUDGETS, grid_cells, make_plan, resolve_config
-from diacc.reproduce.stages import row_cell_key
+from diacc.experiments.reproduce.plan import BUDGETS, grid_cells, make_plan, resolve_config
+from diacc.experiments.reproduce.stages import row_cell_key
 
 TINY = ["reproduce", "--budget", "tiny", "--no-progress"]
 #: What the tiny budget writes besides runs/ and eval/.
@@ -309,7 +309,7 @@ def test_sweep_gives_each_setting_its_runs_columns_and_curves(tmp_path, capsys):
     assert "training: 4 runs = 1 variant x 1 map x 4 settings x 1 seed" in stdout
     assert "setting tau_init=10, tau_final=10" in stdout and "transfer off" in stdout
     config, notes = resolve_config("tiny", variants=("diacc",))
-    from diacc.sweepaxes import sweep_settings
+    from diacc.experiments.sweepaxes import sweep_settings
 
     plan = make_plan(config, notes)
     settings = sweep_settings(plan.train_config(plan.runs[0]), ["env.reward.tau_final=0.05,0.5"])
@@ -321,7 +321,7 @@ def test_sweep_gives_each_setting_its_runs_columns_and_curves(tmp_path, capsys):
     assert [r.column for r in plan.runs] == ["diacc tau_final=0.05", "diacc tau_final=0.5"]
     assert [plan.train_config(r).env.reward.tau_final for r in plan.runs] == [0.05, 0.5]
     assert {j.policy for j in plan.jobs} >= {r.name for r in plan.runs}
-    from diacc.reproduce.outputs import _learned_columns
+    from diacc.experiments.reproduce.outputs import _learned_columns
 
     columns = _learned_columns(plan)  # one table column per setting, never pooled
     assert {label: [n for n, _ in members] for label, members in columns.items()} == {

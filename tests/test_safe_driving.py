@@ -171,7 +171,7 @@ def test_cav_stops_at_the_end_of_its_lane_and_can_change_later(backend_name):
 @pytest.mark.parametrize("backend_name", ["highway", "sumo"])
 def test_safety_benchmark_small(backend_name):
     """CI-sized ``diacc bench --safety``: PSAR keeps scripted CAVs collision-free."""
-    from diacc.bench.safety import run
+    from diacc.experiments.bench.safety import run
 
     rows = run(backends=(backend_name,), maps=("train-50",), policies=("accelerate",), episodes=2)
     (row,) = rows
@@ -182,7 +182,7 @@ def test_safety_benchmark_small(backend_name):
 @pytest.mark.parametrize("backend_name", ["highway", "sumo"])
 def test_safety_benchmark_heuristic_congested(backend_name, capsys):
     """The heuristic under PSAR in the congested preset (the bench's second setting)."""
-    from diacc.bench.safety import run
+    from diacc.experiments.bench.safety import run
 
     rows = run(
         backends=(backend_name,),

@@ -13,11 +13,11 @@ ray = pytest.importorskip(
 
 from diacc.cli import main  # noqa: E402
 from diacc.config import TrainConfig, override  # noqa: E402
-from diacc.evaluate import evaluate  # noqa: E402
-from diacc.grid import make_cell  # noqa: E402
+from diacc.experiments.evaluate import evaluate  # noqa: E402
+from diacc.experiments.grid import make_cell  # noqa: E402
+from diacc.experiments.policies import EvalSettings, parse_policy  # noqa: E402
+from diacc.experiments.scaleout import RayEngine, run_sweep, sweep_configs  # noqa: E402
 from diacc.learn.mappo import TIMING_KEYS  # noqa: E402
-from diacc.policies import EvalSettings, parse_policy  # noqa: E402
-from diacc.scaleout import RayEngine, run_sweep, sweep_configs  # noqa: E402
 
 #: progress.jsonl keys that measure time, not learning
 

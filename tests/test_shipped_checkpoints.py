@@ -13,9 +13,9 @@ import pytest
 
 from diacc.config import PSARConfig
 from diacc.envs.episode import EpisodeDriver
-from diacc.grid import Cell
+from diacc.experiments.grid import Cell
+from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy
 from diacc.learn.checkpoint import config_from_checkpoint
-from diacc.policies import EvalSettings, PolicySpec, build_policy
 
 CHECKPOINTS = sorted((Path(__file__).resolve().parent.parent / "checkpoints").glob("*.pt"))
 

@@ -9,12 +9,12 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 import diacc
-from diacc.sim import viewer
 from diacc.envs.env import INFO_METRICS, RenderModeError
 from diacc.envs.episode import EpisodeDriver
 from diacc.envs.observation import ObservationSpec
 from diacc.envs.spaces import SpaceError, unflatten
-from diacc.policies import CheckpointPolicy, PolicyError
+from diacc.experiments.policies import CheckpointPolicy, PolicyError
+from diacc.sim import viewer
 
 SMALL = {"scenario": {"n_vehicles": 8, "cav_penetration": 0.25}}
 CHECKPOINT = "checkpoints/diacc-train50-paper-congestion-s1.pt"

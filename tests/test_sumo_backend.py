@@ -302,7 +302,7 @@ def test_cav_driving_into_leader_reports_collision(cav_backend):
 
 
 def test_benchmark_runs_and_reports_rates():
-    from diacc.bench.sumo import run
+    from diacc.experiments.bench.sumo import run
 
     result = run(steps=20, seed=0)
     for key in (

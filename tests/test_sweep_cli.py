@@ -32,7 +32,7 @@ def test_tau_sweep_keeps_each_setting_apart(tmp_path, capsys):
     skips them; the same dirs with another setting are refused, not skipped."""
     import json
 
-    from diacc.plots import group_curves
+    from diacc.experiments.plots import group_curves
 
     argv = ["sweep", "--variants", "diacc", "--seeds", "1", "--steps", "200", "--envs", "1"]
     # --out-dir: the old name of --out, still accepted
@@ -85,7 +85,7 @@ def test_sweep_rejects_bad_input(tmp_path, capsys):
 def test_studies_are_the_papers():
     """tau: annealed 2 -> 0.05 against fixed 0.05, 2, 10; w_e: w_g = 1 - w_e throughout."""
     from diacc.config import TrainConfig
-    from diacc.sweepaxes import STUDIES, sweep_settings
+    from diacc.experiments.sweepaxes import STUDIES, sweep_settings
 
     tau = [s.changes for s in sweep_settings(TrainConfig(), [STUDIES["tau"]])]
     assert [(c["env.reward.tau_init"], c["env.reward.tau_final"]) for c in tau] == [

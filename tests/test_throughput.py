@@ -254,7 +254,7 @@ def test_training_bench_rows_and_core_shares(tmp_path):
     learner configs/paper-learner.toml; every row runs, shares add up."""
     from pathlib import Path
 
-    from diacc.bench import training
+    from diacc.experiments.bench import training
     from diacc.tomlfile import read_toml
 
     toml = read_toml(Path(__file__).parents[1] / "configs" / "small-learner.toml", ValueError)

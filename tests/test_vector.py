@@ -203,7 +203,7 @@ def test_sumo_crash_inside_a_rollout_is_a_truncation():
 
 
 def test_env_batch_bench_reports_both_paths():
-    from diacc.bench import envbatch
+    from diacc.experiments.bench import envbatch
 
     (row,) = envbatch.run(envs=(2,), steps=2)
     assert row["envs"] == 2

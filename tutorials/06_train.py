@@ -43,12 +43,12 @@ import torch
 
 from diacc import cli
 from diacc.config import TrainConfig, override
-from diacc.evaluate import evaluate, load_episodes
-from diacc.grid import make_cell
+from diacc.experiments.evaluate import evaluate, load_episodes
+from diacc.experiments.grid import make_cell
+from diacc.experiments.plots import plot_curves, plot_speeds, read_progress
+from diacc.experiments.policies import EvalSettings, parse_policy
 from diacc.learn.checkpoint import save_checkpoint
 from diacc.learn.mappo import make_agent, seed_everything, train
-from diacc.plots import plot_curves, plot_speeds, read_progress
-from diacc.policies import EvalSettings, parse_policy
 
 OUT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out")) / "06_train"
 OUT.mkdir(parents=True, exist_ok=True)

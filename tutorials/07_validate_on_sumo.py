@@ -45,12 +45,12 @@ import matplotlib.pyplot as plt
 from diacc import cli
 from diacc.config import TrainConfig, override
 from diacc.console import fmt
-from diacc.evaluate import evaluate, load_episodes
-from diacc.grid import make_cell
+from diacc.experiments.evaluate import evaluate, load_episodes
+from diacc.experiments.grid import make_cell
+from diacc.experiments.plots import plot_speeds
+from diacc.experiments.policies import EvalSettings, parse_policy
+from diacc.experiments.render import render_episode
 from diacc.learn.mappo import train
-from diacc.plots import plot_speeds
-from diacc.policies import EvalSettings, parse_policy
-from diacc.render import render_episode
 
 ROOT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out"))
 OUT = ROOT / "07_validate_on_sumo"

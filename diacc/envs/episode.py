@@ -26,7 +26,8 @@ from diacc.sim.state import TrafficState
 
 
 class CavPolicy(Protocol):
-    """What drives the CAVs of an episode (:class:`diacc.policies.Policy` and test doubles)."""
+    """What drives the CAVs of an episode (:class:`diacc.experiments.policies.Policy` and
+    test doubles)."""
 
     def begin_episode(self, n_cavs: int, seed: int) -> None: ...
 

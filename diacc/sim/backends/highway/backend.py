@@ -6,7 +6,7 @@ traffic itself lives in (E, V) NumPy arrays (the typed records of
 env), and every sub-step updates all vehicles of all envs at once
 (:mod:`.models`): no Python loop over vehicles or envs in ``step``. This
 is what makes the backend 100x+ faster than stock multi-agent ``highway-v0``
-(``diacc.bench.highway``).
+(``diacc.experiments.bench.highway``).
 
 Modelling choices (documented here because both backends must agree on them):
 

@@ -1,8 +1,8 @@
 """The three stages of ``diacc reproduce`` in order, with the manifest kept up to date.
 
-1. training (:func:`diacc.reproduce.stages.train_all`),
-2. evaluation (:func:`diacc.reproduce.stages.evaluate_all`),
-3. outputs (:func:`diacc.reproduce.outputs.write_outputs`), skipped when
+1. training (:func:`diacc.experiments.reproduce.stages.train_all`),
+2. evaluation (:func:`diacc.experiments.reproduce.stages.evaluate_all`),
+3. outputs (:func:`diacc.experiments.reproduce.outputs.write_outputs`), skipped when
    their inputs have not changed since the last time they were written.
 
 Each stage skips what is already done, so running the same command again
@@ -14,10 +14,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from diacc.reproduce.manifest import MANIFEST_FILE, Manifest
-from diacc.reproduce.outputs import inputs_fingerprint, write_outputs
-from diacc.reproduce.plan import Execution, Plan
-from diacc.reproduce.stages import (
+from diacc.experiments.reproduce.manifest import MANIFEST_FILE, Manifest
+from diacc.experiments.reproduce.outputs import inputs_fingerprint, write_outputs
+from diacc.experiments.reproduce.plan import Execution, Plan
+from diacc.experiments.reproduce.stages import (
     Say,
     check_existing_evaluations,
     check_existing_runs,

@@ -46,8 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.evaluate import EvaluationError, csv_text, load_episodes
-from diacc.grid import CELL_KEYS, Cell
+from diacc.experiments.evaluate import EvaluationError, csv_text, load_episodes
+from diacc.experiments.grid import CELL_KEYS, Cell
 
 #: (key, row label, higher is better, episodes.csv column, display scale); shares
 #: are shown in percent (scale 100). Results written before a column existed lack

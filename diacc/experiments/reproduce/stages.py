@@ -1,13 +1,13 @@
 """Training and evaluation stages of ``diacc reproduce``, on the sweep and eval machinery.
 
-* **Training**: every run of the plan through :func:`diacc.scaleout.train_run`
+* **Training**: every run of the plan through :func:`diacc.experiments.scaleout.train_run`
   (a finished run is skipped, an interrupted one resumed from its
   checkpoint): one after the other in this process (with the trainer's
-  progress bar), in ``jobs`` worker processes (:func:`diacc.workpool.map_resilient`:
+  progress bar), in ``jobs`` worker processes (:func:`diacc.experiments.workpool.map_resilient`:
   a dead worker costs a retry, never a hang), or as Ray tasks
-  (:func:`diacc.scaleout.run_sweep`).
+  (:func:`diacc.experiments.scaleout.run_sweep`).
 * **Evaluation**: every (policy, backend) job through
-  :func:`diacc.evaluate.evaluate`, which skips finished cells and recomputes
+  :func:`diacc.experiments.evaluate.evaluate`, which skips finished cells and recomputes
   damaged ones. A job whose cells are all intact is not even started (no
   checkpoint loading, no re-merge), so a finished reproduction re-runs in
   seconds. Results of a checkpoint that has since trained further are
@@ -24,7 +24,7 @@ from typing import Any
 
 from diacc.config import ConfigError, TrainConfig
 from diacc.console import plural
-from diacc.evaluate import (
+from diacc.experiments.evaluate import (
     EPISODES_FILE,
     META_FILE,
     SPEEDS_FILE,
@@ -32,10 +32,10 @@ from diacc.evaluate import (
     evaluate,
     read_csv,
 )
-from diacc.grid import Cell
-from diacc.policies import EvalSettings, PolicySpec, action_mode
-from diacc.reproduce.plan import EvalJob, Execution, Plan
-from diacc.scaleout import (
+from diacc.experiments.grid import Cell
+from diacc.experiments.policies import EvalSettings, PolicySpec, action_mode
+from diacc.experiments.reproduce.plan import EvalJob, Execution, Plan
+from diacc.experiments.scaleout import (
     SweepRun,
     check_run_dirs,
     planned_steps,
@@ -43,9 +43,9 @@ from diacc.scaleout import (
     run_sweep,
     train_run,
 )
+from diacc.experiments.workpool import map_resilient
 from diacc.threads import worker_environment
 from diacc.tomlfile import read_json_object
-from diacc.workpool import map_resilient
 
 #: Where a stage's one-line progress messages go (``print`` in the CLI).
 Say = Callable[[str], None]
@@ -74,7 +74,7 @@ def _train_pool(configs: list[TrainConfig], jobs: int) -> Iterator[SweepRun]:
 
 def check_existing_runs(plan: Plan) -> None:
     """One-line :class:`ConfigError` if a run directory holds a run with other settings
-    (:func:`diacc.scaleout.check_run_dirs`)."""
+    (:func:`diacc.experiments.scaleout.check_run_dirs`)."""
     check_run_dirs([plan.train_config(run) for run in plan.runs])
 
 
@@ -83,12 +83,12 @@ def check_existing_evaluations(plan: Plan) -> None:
 
     The counterpart of :func:`check_existing_runs` for what only evaluation
     reads (``--episode-steps``, ``--actions``): a complete job is skipped
-    without running :func:`~diacc.evaluate.evaluate`, whose own check would
+    without running :func:`~diacc.experiments.evaluate.evaluate`, whose own check would
     never see the change, so the tables would report greedy results as
     sampled ones.
     """
-    from diacc.evaluate import META_FILE, evaluation_meta, meta_conflict
-    from diacc.policies import build_policy
+    from diacc.experiments.evaluate import META_FILE, evaluation_meta, meta_conflict
+    from diacc.experiments.policies import build_policy
 
     for job in plan.jobs:
         path = plan.eval_dir(job) / META_FILE
@@ -155,7 +155,7 @@ def row_cell_key(row: dict[str, str]) -> str:
 def is_complete(out_dir: Path, cells: tuple[Cell, ...], episodes: int) -> bool:
     """Whether every cell is intact with exactly ``episodes`` episodes and merged.
 
-    :func:`diacc.evaluate.merge_cells` writes the merged episodes file, then
+    :func:`diacc.experiments.evaluate.merge_cells` writes the merged episodes file, then
     the merged speeds file: a speeds file older than the episodes file (or
     none) means a merge was cut short, and the job is handed to ``evaluate``,
     which merges again. (A copy that reorders modification times only costs
@@ -277,7 +277,7 @@ def evaluate_all(
     """
     engine = None
     if execution.engine == "ray":
-        from diacc.scaleout import RayEngine
+        from diacc.experiments.scaleout import RayEngine
 
         engine = RayEngine(execution.ray_address, execution.ray_cpus)
     episodes = plan.config.budget.episodes_per_cell

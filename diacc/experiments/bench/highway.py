@@ -9,7 +9,7 @@ its own episode ends (ours: collision, all arrived or ``episode_steps``). Only
 back, so machine load affects both alike. Our side builds no observation (that
 is the environment's job); stock's step includes its Kinematics observation.
 
-Run: ``python -m diacc.bench.highway``.
+Run: ``python -m diacc.experiments.bench.highway``.
 """
 
 from __future__ import annotations

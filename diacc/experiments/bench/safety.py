@@ -1,17 +1,17 @@
 """``diacc bench --safety``: can scripted CAVs cross the bottleneck without collisions?
 
-Scripted policies (:class:`~diacc.policies.ScriptedPolicy`: always
+Scripted policies (:class:`~diacc.experiments.policies.ScriptedPolicy`: always
 ``remain``, always ``accelerate``, uniform ``random``, and the ``heuristic``
 that accelerates and leaves an ending lane early) drive the CAVs of the
 paper's training scenario (N = 25, rho = 0.4, D1) with and without PSAR, on
 every map and backend, through the same episode driver as evaluation
-(:func:`diacc.evaluate.run_episode`). A policy that knows nothing about
+(:func:`diacc.experiments.evaluate.run_episode`). A policy that knows nothing about
 traffic is the hardest test of the safety layer: whatever it proposes, PSAR
 should keep it out of collisions, and HDVs should never collide with each
 other. Per (backend, map, policy) it prints the collision-free share of
 episodes, the number of HDV-HDV collision pairs, the mean speed of all
 vehicles, p(SCE) and the arrived fraction. The HDV style preset and the
-episode length are the evaluation's (:class:`~diacc.policies.EvalSettings`,
+episode length are the evaluation's (:class:`~diacc.experiments.policies.EvalSettings`,
 ``--style-preset`` and ``--episode-steps``), so the congested ``paper-congestion``
 runs with 330-step episodes are benchmarked too.
 
@@ -31,9 +31,9 @@ import numpy as np
 
 from diacc.config import BACKENDS, PSARConfig, SimConfig
 from diacc.envs.episode import EpisodeDriver
-from diacc.evaluate import run_episode
-from diacc.grid import Cell
-from diacc.policies import SCRIPTED, EvalSettings, ScriptedPolicy
+from diacc.experiments.evaluate import run_episode
+from diacc.experiments.grid import Cell
+from diacc.experiments.policies import SCRIPTED, EvalSettings, ScriptedPolicy
 from diacc.sim.maps import available_maps
 
 #: Policies of the benchmark: each script with PSAR, then without.

@@ -1,7 +1,7 @@
 """A trained agent for Python users: acts on PettingZoo observations, keeps its memory.
 
 The evaluator drives checkpoints through the batched :class:`ActorObs`
-(:class:`diacc.policies.CheckpointPolicy`). Someone holding a
+(:class:`diacc.experiments.policies.CheckpointPolicy`). Someone holding a
 ``diacc.parallel_env`` has a dict of per-agent observations instead, and
 agents that leave the road mid-episode. :func:`load_policy` gives them::
 
@@ -44,7 +44,7 @@ class TrainedPolicy:
     def __init__(self, path: str | Path, sampled: bool = False) -> None:
         import torch
 
-        from diacc.policies import PolicyError, build_policy, parse_policy
+        from diacc.experiments.policies import PolicyError, build_policy, parse_policy
 
         spec = parse_policy(str(path), sampled=sampled)
         if spec.is_baseline or spec.is_scripted:

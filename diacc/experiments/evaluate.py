@@ -12,12 +12,12 @@ A results directory holds one policy on one backend::
 A cell's files are written (atomically) only once all its K episodes are in,
 so an interrupted run loses at most the cells in flight, and re-running the
 same command skips every finished cell. Episode seeds depend on the cell and
-the episode number only (:meth:`diacc.grid.Cell.seed`), so every policy meets
+the episode number only (:meth:`diacc.experiments.grid.Cell.seed`), so every policy meets
 exactly the same traffic draws and results do not depend on ``--workers``.
 
 Faults: a cell whose files are damaged (truncated, edited) is reported and
 recomputed; a dead pool worker costs a retry of its task
-(:mod:`diacc.workpool`); a dead simulator a retry of its episode
+(:mod:`diacc.experiments.workpool`); a dead simulator a retry of its episode
 (:func:`run_cell_task`). Each recovery is logged, so results are complete
 and equal to an unfaulted run's, or the command ends with a one-line error.
 
@@ -44,15 +44,15 @@ from diacc.envs.episode import EpisodeDriver, play_episode
 from diacc.envs.metrics import SpeedSamples
 from diacc.envs.psar import RULE_NAMES
 from diacc.errors import DiaccError
+from diacc.experiments.grid import CELL_KEYS, Cell, make_cell
+from diacc.experiments.policies import CheckpointPolicy, EvalSettings, PolicySpec, build_policy
+from diacc.experiments.workpool import map_resilient
 from diacc.fileio import atomic_write
-from diacc.grid import CELL_KEYS, Cell, make_cell
-from diacc.policies import CheckpointPolicy, EvalSettings, PolicySpec, build_policy
 from diacc.runlog import locked_dir, log, run_log
 from diacc.sim.backends.base import BackendError
 from diacc.sim.maps import SEGMENT_KINDS
 from diacc.threads import default_threads, worker_environment
 from diacc.tomlfile import read_json_object
-from diacc.workpool import map_resilient
 
 META_FILE = "meta.json"
 EPISODES_FILE = "episodes.csv"
@@ -491,7 +491,7 @@ def evaluate(
     """Evaluate a policy on every cell for ``episodes`` seeded episodes (see module docstring).
 
     ``engine`` runs the cell tasks (default :func:`run_local`; or
-    :class:`diacc.scaleout.RayEngine`, one Ray task per cell); recoveries it
+    :class:`diacc.experiments.scaleout.RayEngine`, one Ray task per cell); recoveries it
     reports, and damaged cell files found here, are logged to stderr and to
     ``<out_dir>/eval.log``. ``on_cell`` is called with each cell and its
     episodes once its files are written (``diacc reproduce`` prints a line).

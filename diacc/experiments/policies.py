@@ -43,7 +43,7 @@ from diacc.config import (
 from diacc.envs.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.envs.observation import ActorObs
 from diacc.errors import DiaccError
-from diacc.grid import Cell
+from diacc.experiments.grid import Cell
 from diacc.sim.maps import Map
 
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the

@@ -21,8 +21,8 @@ import numpy as np
 from diacc.config import BACKENDS, HORIZON_MODES
 from diacc.envs.episode import EpisodeDriver
 from diacc.envs.safety import SAME_COL, lane_leaders_followers, pair_kinematics
-from diacc.grid import Cell
-from diacc.policies import EvalSettings, ScriptedPolicy
+from diacc.experiments.grid import Cell
+from diacc.experiments.policies import EvalSettings, ScriptedPolicy
 from diacc.sim.state import TrafficState
 
 #: Vehicles slower than this are queueing, not following; their time gap means nothing.

@@ -23,7 +23,8 @@ wall-time ratio also counts the waits for the scheduler to wake the worker
 and then the caller at every step, which the raw loop never has; the CPU
 ratio is what our code itself costs.
 
-Run: ``diacc bench --backend sumo [--timing-steps N]`` or ``python -m diacc.bench.sumo``.
+Run: ``diacc bench --backend sumo [--timing-steps N]`` or
+``python -m diacc.experiments.bench.sumo``.
 """
 
 from __future__ import annotations

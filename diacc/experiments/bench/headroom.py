@@ -41,9 +41,9 @@ import numpy as np
 
 from diacc.config import STYLE_PRESETS, ConfigError, PSARConfig, preset_road
 from diacc.envs.episode import EpisodeDriver
-from diacc.evaluate import run_episode
-from diacc.grid import Cell
-from diacc.policies import EvalSettings, PolicySpec, build_policy, parse_policy
+from diacc.experiments.evaluate import run_episode
+from diacc.experiments.grid import Cell
+from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy, parse_policy
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario
 from diacc.sim.state import TrafficState

@@ -18,7 +18,7 @@ learner runs on one thread, so they are its work, and they stay comparable on
 a machine shared with other jobs, where wall-clock times swing with the load.
 Hooks add a few microseconds per call.
 
-``python -m diacc.bench.update_profile --envs 16 --rollout-steps 50``
+``python -m diacc.experiments.bench.update_profile --envs 16 --rollout-steps 50``
 """
 
 from __future__ import annotations

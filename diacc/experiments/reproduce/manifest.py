@@ -21,8 +21,8 @@ from importlib import metadata
 from typing import Any
 
 from diacc import __version__
+from diacc.experiments.reproduce.plan import Plan
 from diacc.fileio import atomic_write
-from diacc.reproduce.plan import Plan
 
 MANIFEST_FILE = "manifest.json"
 #: Distributions whose versions change results (simulators, learning stack).

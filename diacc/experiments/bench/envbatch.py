@@ -13,7 +13,7 @@ all E envs); a second pair of columns times the simulator alone
 are per core. Automatic resets are included (short episodes make them
 frequent, as in training), the start-up is not.
 
-``python -m diacc.bench.envbatch --envs 1 4 16``; ``diacc bench --env-batch``.
+``python -m diacc.experiments.bench.envbatch --envs 1 4 16``; ``diacc bench --env-batch``.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from diacc.sim.backends.highway.backend import HighwayBackend
 from diacc.sim.maps import load_map
 
 #: Actions of the timed steps: mostly keep lane with speed changes, as PSAR-filtered
-#: policies do (the same distribution as :data:`diacc.bench.highway.ACTION_PROBS`).
+#: policies do (the same distribution as :data:`diacc.experiments.bench.highway.ACTION_PROBS`).
 ACTION_PROBS = (0.5, 0.05, 0.05, 0.2, 0.2)
 
 
@@ -147,7 +147,7 @@ def run(envs: tuple[int, ...] = (1, 4, 16), steps: int = 60, seed: int = 0) -> l
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """``python -m diacc.bench.envbatch``'s options."""
+    """``python -m diacc.experiments.bench.envbatch``'s options."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--envs", type=int, nargs="+", default=[1, 4, 16])
     p.add_argument(

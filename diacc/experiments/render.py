@@ -23,8 +23,8 @@ import numpy as np
 
 from diacc.envs.episode import EpisodeDriver
 from diacc.errors import DiaccError
-from diacc.grid import Cell
-from diacc.policies import EvalSettings, Policy, PolicySpec, build_policy
+from diacc.experiments.grid import Cell
+from diacc.experiments.policies import EvalSettings, Policy, PolicySpec, build_policy
 from diacc.sim.state import TrafficState
 
 #: Pixels per metre of each view: the bottleneck view zooms in (cars ~40 x 16 px).

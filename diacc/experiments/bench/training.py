@@ -34,9 +34,9 @@ shown beside it.
 The first update of every configuration pays start-up and is left out.
 ``--device cuda`` puts the learner on CUDA (rollouts stay on the CPU).
 
-``diacc bench --training``; ``python -m diacc.bench.training --envs 16
+``diacc bench --training``; ``python -m diacc.experiments.bench.training --envs 16
 --only learners``; ``--vector-only`` (= ``--only vector``) for the first
-two vector rows; ``--profile`` for :mod:`diacc.bench.update_profile`.
+two vector rows; ``--profile`` for :mod:`diacc.experiments.bench.update_profile`.
 """
 
 from __future__ import annotations
@@ -360,13 +360,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument(
         "--profile",
         action="store_true",
-        help="per-module profile of one PPO update instead (diacc.bench.update_profile)",
+        help="per-module profile of one PPO update instead "
+        "(diacc.experiments.bench.update_profile)",
     )
     args = p.parse_args(argv)
     # a missing CUDA device fails before any row runs; the table names cpu or cuda, not auto
     device = str(mappo.resolve_device(args.device))
     if args.profile:
-        from diacc.bench import update_profile
+        from diacc.experiments.bench import update_profile
 
         update_profile.main(
             ["--envs", str(args.envs[0]), "--rollout-steps", str(args.rollout_steps)]

@@ -5,9 +5,9 @@ Ray is optional (``pip install -e ".[ray]"``); without it the local engines
 sweep``) do the same work on one machine. With ``--engine ray``:
 
 * ``diacc eval``: every grid cell is one Ray task that plays the cell's K
-  seeded episodes (:func:`diacc.evaluate.run_tasks_here`) and sends the results back; the
-  driver writes the files, so results need no shared filesystem. Seeds depend
-  on (cell, episode) only, so the files are identical to a local run's.
+  seeded episodes (:func:`diacc.experiments.evaluate.run_tasks_here`) and sends the
+  results back; the driver writes the files, so results need no shared filesystem.
+  Seeds depend on (cell, episode) only, so the files are identical to a local run's.
 * ``diacc sweep``: every (variant, map, setting, seed) run is one Ray task that calls
   the trainer. Run directories are written where the task runs: on a cluster,
   put ``--out`` on a filesystem all machines share (NFS), or collect the
@@ -35,11 +35,11 @@ from typing import Any
 
 from diacc.config import ConfigError, TrainConfig, override
 from diacc.errors import DiaccError
-from diacc.evaluate import CellTask, CellTaskResult, run_tasks_here
-from diacc.grid import Cell
-from diacc.policies import EvalSettings, PolicySpec
+from diacc.experiments.evaluate import CellTask, CellTaskResult, run_tasks_here
+from diacc.experiments.grid import Cell
+from diacc.experiments.policies import EvalSettings, PolicySpec
+from diacc.experiments.sweepaxes import Setting
 from diacc.sim.maps import map_tag
-from diacc.sweepaxes import Setting
 from diacc.tomlfile import read_json_object
 
 ENGINES = ("local", "ray")
@@ -122,7 +122,8 @@ def _run_cell(spec: PolicySpec, settings: EvalSettings, tasks: list[CellTask]):
 
 @dataclass(frozen=True)
 class RayEngine:
-    """Evaluation engine for :func:`diacc.evaluate.evaluate`: one Ray task per grid cell."""
+    """Evaluation engine for :func:`diacc.experiments.evaluate.evaluate`: one Ray task per
+    grid cell."""
 
     address: str | None = None
     num_cpus: int | None = None  # of the local instance (all CPUs if None)

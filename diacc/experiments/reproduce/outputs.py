@@ -8,15 +8,15 @@ over in memory from the stages, so the outputs can be rebuilt at any time.
   ``--sweep`` setting, labelled with its values) that pools the
   episodes of all its seeds (and, per cell, of the checkpoints trained on a
   map with that cell's lane reduction). The table code is
-  :mod:`diacc.report`'s (:func:`~diacc.report.table_from_results`), so
+  :mod:`diacc.experiments.report`'s (:func:`~diacc.experiments.report.table_from_results`), so
   emphasis, reference column and captions follow ``diacc table``.
 * **Tables**: Table II = the ``train`` grid, Table III = the ``zero-shot``
   grid (the paper's five zero-shot rows per test map; ``table3-product`` for
   the ``zero-shot-product`` grid when asked for), one table per evaluation
   backend, Markdown and LaTeX.
 * **Figures**: training curves per training map (mean and +-1 std band over
-  seeds, :func:`diacc.plots.plot_curves`) and per-segment speed box plots and
-  KDEs per backend and map (:func:`diacc.plots.draw_speeds`).
+  seeds, :func:`diacc.experiments.plots.plot_curves`) and per-segment speed box plots and
+  KDEs per backend and map (:func:`diacc.experiments.plots.draw_speeds`).
 * **Transfer**: SUMO speed of pure HDV, of diacc trained on the training
   backend, and of diacc trained on SUMO; the share of the SUMO-trained
   policy's speed gain that the other keeps.
@@ -31,11 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.evaluate import EPISODES_FILE, SPEEDS_FILE, csv_text, load_episodes
-from diacc.grid import CELL_KEYS, Cell
-from diacc.plots import PlotError
-from diacc.report import FLOW_ROWS
-from diacc.reproduce.plan import (
+from diacc.experiments.evaluate import EPISODES_FILE, SPEEDS_FILE, csv_text, load_episodes
+from diacc.experiments.grid import CELL_KEYS, Cell
+from diacc.experiments.plots import PlotError
+from diacc.experiments.report import FLOW_ROWS
+from diacc.experiments.reproduce.plan import (
     BASELINE_COLUMNS,
     TRANSFER_BACKEND,
     TRANSFER_VARIANT,
@@ -43,7 +43,7 @@ from diacc.reproduce.plan import (
     RunSpec,
     reduction_of,
 )
-from diacc.reproduce.stages import row_cell_key
+from diacc.experiments.reproduce.stages import row_cell_key
 from diacc.sim.maps import SEGMENT_KINDS
 
 #: Table rows: the paper's three, the share of episodes ending in a collision, the flow rows.
@@ -74,7 +74,7 @@ class _Results:
 
     def speeds(self, backend: str, policy: str) -> dict[str, dict[str, np.ndarray]]:
         """Map -> segment kind -> speed samples of one directory, read once."""
-        from diacc.plots import load_speeds_by_map
+        from diacc.experiments.plots import load_speeds_by_map
 
         path = self.plan.config.out_dir / "eval" / backend / policy
         if path not in self._speeds:
@@ -133,7 +133,7 @@ def _pool_note(plan: Plan) -> str:
 
 def write_tables(plan: Plan, results: _Results | None = None) -> list[Path]:
     """``tables/table2.{md,tex}`` and ``tables/table3.{md,tex}`` for the grids evaluated."""
-    from diacc.report import table_from_results, to_latex, to_markdown
+    from diacc.experiments.report import table_from_results, to_latex, to_markdown
 
     results = results or _Results(plan)
     out = plan.config.out_dir / "tables"
@@ -174,7 +174,7 @@ def _pooled_speeds(
 def write_figures(plan: Plan, results: _Results | None = None) -> list[Path]:
     """Training curves per training map; speed distributions per backend and evaluated map."""
     from diacc.console import plural
-    from diacc.plots import draw_speeds, plot_curves
+    from diacc.experiments.plots import draw_speeds, plot_curves
 
     results = results or _Results(plan)
     cfg = plan.config
@@ -226,7 +226,7 @@ class TransferRow:
 
 def transfer_rows(plan: Plan, results: _Results | None = None) -> list[TransferRow]:
     """Speeds on SUMO of pure HDV and of both diacc trainings, per transfer cell."""
-    from diacc.report import table_from_results
+    from diacc.experiments.report import table_from_results
 
     results = results or _Results(plan)
     source, target = (list(side) for side in zip(*plan.transfer_pairs, strict=True))

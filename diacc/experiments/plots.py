@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from diacc.errors import DiaccError
-from diacc.evaluate import SPEEDS_FILE, load_episodes, read_csv
+from diacc.experiments.evaluate import SPEEDS_FILE, load_episodes, read_csv
 from diacc.sim.maps import SEGMENT_KINDS
 from diacc.tomlfile import read_json_object
 
@@ -154,8 +154,8 @@ def run_groups(run_dirs: list[Path]) -> dict[Path, str]:
     never are. Keys missing from some run's ``config.json`` (it predates them)
     are not compared.
     """
+    from diacc.experiments.sweepaxes import format_value, short_keys
     from diacc.learn.checkpoint import flatten_config
-    from diacc.sweepaxes import format_value, short_keys
 
     configs = {}
     for d in run_dirs:

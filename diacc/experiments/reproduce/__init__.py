@@ -4,7 +4,7 @@
   (training runs, evaluation jobs, cells); pure and cheap, so the plan is
   printed before any work starts.
 * :mod:`.stages`: training and evaluation, reusing the sweep and evaluation
-  machinery (:mod:`diacc.scaleout`, :mod:`diacc.evaluate`).
+  machinery (:mod:`diacc.experiments.scaleout`, :mod:`diacc.experiments.evaluate`).
 * :mod:`.outputs`: Tables II/III, figures and the sim-to-sim transfer report,
   all computed from the evaluation files.
 * :mod:`.manifest`: ``manifest.json``: invocations, versions, plan, and which

@@ -35,12 +35,12 @@ from diacc.config import (
     build_train_config,
     override,
 )
-from diacc.grid import GRID_NAMES, Cell, load_grid
-from diacc.policies import BASELINES
+from diacc.experiments.grid import GRID_NAMES, Cell, load_grid
+from diacc.experiments.policies import BASELINES
+from diacc.experiments.sweepaxes import Setting
 from diacc.sim.maps import load_map, map_tag
-from diacc.sweepaxes import Setting
 
-#: Non-learning columns of every table: the :data:`diacc.policies.BASELINES` (pure
+#: Non-learning columns of every table: the :data:`diacc.experiments.policies.BASELINES` (pure
 #: HDV, the same vehicles with human drivers in the CAV slots, what a CAV policy's
 #: control is measured against, and cooperative CAVs) and the scripted heuristic
 #: under PSAR.
@@ -214,7 +214,7 @@ class Plan:
 
     def planned_steps(self, run: RunSpec) -> int:
         """Environment steps the run will have taken when done (whole updates)."""
-        from diacc.scaleout import planned_steps
+        from diacc.experiments.scaleout import planned_steps
 
         return planned_steps(self.train_config(run))
 

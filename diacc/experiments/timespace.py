@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.grid import Cell
-from diacc.plots import PlotError, _pyplot, _save
-from diacc.policies import EvalSettings, PolicySpec
-from diacc.render import episode_driver
+from diacc.experiments.grid import Cell
+from diacc.experiments.plots import PlotError, _pyplot, _save
+from diacc.experiments.policies import EvalSettings, PolicySpec
+from diacc.experiments.render import episode_driver
 from diacc.sim.maps import Map
 
 #: Width of the speed-profile bins along the road.
