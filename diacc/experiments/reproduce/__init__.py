@@ -11,6 +11,6 @@
   stages are finished.
 * :mod:`.pipeline`: the stages in order, each skipping what is done.
 
-The command line is :mod:`diacc.cli_reproduce`; docs/guide/reproducing.md
+The command line is :mod:`diacc.cli.reproduce`; docs/guide/reproducing.md
 has the budgets and the output layout.
 """

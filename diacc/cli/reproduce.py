@@ -12,7 +12,7 @@ import dataclasses
 import functools
 from pathlib import Path
 
-from diacc import cli_scale
+from diacc.cli import scale as cli_scale
 from diacc.config import (
     ACTION_MODES,
     BACKENDS,

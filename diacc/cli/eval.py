@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from diacc import cli_scale
+from diacc.cli import scale as cli_scale
 from diacc.config import ACTION_MODES, BACKENDS, FULL_BRAKE_MODES, HORIZON_MODES, STYLE_PRESETS
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so

@@ -1,6 +1,11 @@
 """Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | simulate |
 bench | convert-checkpoint``.
 
+This module holds :func:`main` (also ``python -m diacc.cli``) and ``train``, ``bench``,
+``simulate``, ``convert-checkpoint``; :mod:`.eval` has ``eval``, ``table``, ``plot``,
+``render``; :mod:`.scale` ``sweep``; :mod:`.reproduce` ``reproduce``. The command line
+sits above every other layer and nothing in ``diacc`` imports it.
+
 Every command turns known failures (bad map, backend, config key, checkpoint,
 crashed simulator: a :class:`~diacc.errors.DiaccError`) into a one-line
 ``diacc: error: ...`` message and exit code 2 (set ``DIACC_DEBUG=1`` to see
@@ -19,7 +24,10 @@ import sys
 import threading
 from pathlib import Path
 
-from diacc import __version__, cli_eval, cli_reproduce, cli_scale
+from diacc import __version__
+from diacc.cli import eval as cli_eval
+from diacc.cli import reproduce as cli_reproduce
+from diacc.cli import scale as cli_scale
 from diacc.config import (
     BACKENDS,
     HORIZON_MODES,
@@ -613,7 +621,3 @@ def _run(args: argparse.Namespace) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
