@@ -1,4 +1,5 @@
-"""Package structure (issue 24): one error base, no import circles.
+"""Package structure (issue 24): one error base, no import circles, layers that import
+downwards only.
 
 Every exception class diacc defines is a :class:`~diacc.errors.DiaccError`
 (keeping its builtin base), so the command line prints it as one line; only
@@ -86,3 +87,50 @@ def test_no_import_circles():
 
     for module in sorted(graph):
         walk(module, [])
+
+
+#: The layer packages in data-flow order, lowest first: a module imports modules of its
+#: own layer and of those below, never of one above (even lazily).
+LAYERS = ("diacc.sim", "diacc.envs", "diacc.learn", "diacc.experiments", "diacc.cli")
+#: The top-level modules, each with the highest layer it may import (None: none).
+SHARED = {
+    "diacc.errors": None,
+    "diacc.tomlfile": None,
+    "diacc.fileio": None,
+    "diacc.runlog": None,
+    "diacc.threads": None,
+    "diacc.config": "diacc.sim",  # the Map and Scenario a config names
+    "diacc.console": "diacc.envs",  # prints EpisodeMetrics (learn and experiments use it)
+    "diacc": "diacc.experiments",  # parallel_env, env, load_policy: lazy, on call
+}
+
+
+def _rank(module: str) -> int:
+    """Index of the module's layer in LAYERS; -1 for a top-level module."""
+    return next((i for i, p in enumerate(LAYERS) if f"{module}.".startswith(f"{p}.")), -1)
+
+
+def _upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    """``"X imports Y"`` for every import of a layer above the importer's (above the
+    ceiling SHARED gives a top-level module)."""
+    upward = []
+    for module, imported in sorted(graph.items()):
+        ceiling = _rank(module)
+        if ceiling < 0:
+            ceiling = -1 if SHARED[module] is None else LAYERS.index(SHARED[module])
+        upward += [f"{module} imports {n}" for n in sorted(imported) if _rank(n) > ceiling]
+    return upward
+
+
+def test_layers_import_downwards():
+    """sim never imports envs, learn, experiments or cli; envs never learn, experiments
+    or cli; learn never experiments or cli; experiments never cli. A new top-level
+    module has to go into a layer or be listed in SHARED with its ceiling."""
+    graph = _import_graph()
+    assert {m for m in graph if _rank(m) < 0} == set(SHARED)
+    assert {LAYERS[_rank(m)] for m in graph if _rank(m) >= 0} == set(LAYERS)
+    assert _upward_imports(graph) == []
+    # the check sees a lazy upward import (as the AST finds it)
+    assert _upward_imports({"diacc.sim.maps": {"diacc.envs.env"}}) == [
+        "diacc.sim.maps imports diacc.envs.env"
+    ]
