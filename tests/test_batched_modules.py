@@ -14,7 +14,7 @@ import pytest
 from diacc.config import EnvConfig, preset_road
 from diacc.envs.observation import ObservationBuilder, unstack
 from diacc.envs.psar import psar
-from diacc.envs.reward import reward
+from diacc.envs.reward import reward_terms, team_reward
 from diacc.envs.safety import safety_critical_events
 from diacc.sim.backends.base import CavCommands
 from diacc.sim.backends.highway.backend import HighwayBackend
@@ -29,7 +29,7 @@ def assert_fields_equal(batch, singles) -> None:
     for e, single in enumerate(singles):
         for f in fields(single):
             a, b = getattr(single, f.name), getattr(batch, f.name)
-            b = b if f.name == "tau" else b[e]
+            b = b[e]
             assert np.array_equal(a, b) and np.asarray(a).dtype == np.asarray(b).dtype, (e, f.name)
 
 
@@ -68,9 +68,16 @@ def test_psar_reward_and_events_of_a_batch(episode):
         ]
         assert_fields_equal(psar(batch, cav_index, actions, config.psar, road, config.sim), singles)
         singles = [
-            reward(s, c, road, 0.3, config.reward) for s, c in zip(states, cav_index, strict=True)
+            reward_terms(s, c, road, config.reward) for s, c in zip(states, cav_index, strict=True)
         ]
-        assert_fields_equal(reward(batch, cav_index, road, 0.3, config.reward), singles)
+        terms = reward_terms(batch, cav_index, road, config.reward)
+        assert_fields_equal(terms, singles)
+        parts = ("ego", "alive", "global_reward", "completion", "delay")
+        team = team_reward(*(getattr(terms, p) for p in parts), 0.3, config.reward)
+        singles = [
+            team_reward(*(getattr(t, p) for p in parts), 0.3, config.reward) for t in singles
+        ]
+        assert_fields_equal(team, singles)
         events = safety_critical_events(batch, config.events)
         singles = [safety_critical_events(s, config.events) for s in states]
         assert_fields_equal(events, singles)

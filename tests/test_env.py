@@ -8,6 +8,7 @@ from pettingzoo.test import parallel_api_test
 
 from diacc.envs.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.envs.env import BottleneckEnv, EnvConfig
+from diacc.envs.reward import team_reward
 from diacc.sim.scenario import Scenario
 
 BACKENDS = ["highway", "sumo"]
@@ -83,8 +84,13 @@ def test_batched_api_shapes_and_reward(backend):
         assert actor.self_state.shape[0] == env.n_cavs == 10
         assert critic.nodes.shape == (40, actor.ego_hist.shape[-1])
         out = env.step_arrays(np.zeros(env.n_cavs, np.int64))
-        assert np.isfinite(out.reward) and out.alive.shape == (10,)
-        assert set(out.reward_terms) >= {"ego_softmin", "global", "completion", "individual"}
+        assert np.isfinite(out.reward) and out.alive.shape == (10,) and out.ego.shape == (10,)
+        assert set(out.reward_terms) >= {"global", "completion", "individual", "delay"}
+        # The temperature's parts are the trainer's (diacc.learn.mappo), not the env's.
+        assert not {"ego_softmin", "tau"} & set(out.reward_terms)
+        parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
+        team = team_reward(*parts, env.temperature, env.config.reward)
+        assert out.reward == team.total and env.temperature == env.config.reward.tau_init
         np.testing.assert_array_equal(out.actor_obs.action_memory[:, 0], 0)
     finally:
         env.close()
@@ -107,3 +113,23 @@ def test_same_seed_same_episode():
     env.close()
     assert runs[0][0] == runs[1][0]
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
+
+
+def test_pettingzoo_rewards_use_the_envs_own_temperature():
+    """The env scores its PettingZoo rewards at :attr:`BottleneckEnv.temperature`
+    (``tau_init``); a trainer that anneals tau makes the team reward from the terms."""
+    env = BottleneckEnv(EnvConfig())
+    actions = np.random.default_rng(1).integers(0, 5, (8, env.n_cavs))
+    runs = {}
+    try:
+        for tau in (env.config.reward.tau_init, 0.05):
+            env.temperature = tau
+            env.reset_arrays(seed=4)
+            runs[tau] = [env.step_arrays(a) for a in actions]
+    finally:
+        env.close()
+    hot, cold = runs.values()
+    for a, b in zip(hot, cold, strict=True):
+        np.testing.assert_array_equal(a.ego, b.ego)  # the terms need no temperature
+        assert (a.global_reward, a.completion, a.delay) == (b.global_reward, b.completion, b.delay)
+    assert [a.reward for a in hot] != [b.reward for b in cold]

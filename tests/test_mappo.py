@@ -10,6 +10,7 @@ import torch
 from helpers import SHORT_MAP
 
 from diacc.config import TrainConfig, override
+from diacc.envs.reward import temperature
 from diacc.envs.vector import make_vector_env
 from diacc.learn.checkpoint import CheckpointError, config_from_checkpoint, load_checkpoint
 from diacc.learn.mappo import (
@@ -55,7 +56,7 @@ def rollout_batch(cfg: TrainConfig):
     agent = make_agent(cfg, torch.device("cpu"))
     envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
-        roll, next_value, stats = collect_rollout(agent, envs, cfg, 0)
+        roll, next_value, stats = collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
     finally:
         envs.close()
     adv, ret = rollout_gae(roll, next_value, cfg)
@@ -122,6 +123,63 @@ def test_dead_steps_contribute_nothing(rollout_and_batch):
         ppo_update(a, b, cfg, 4)
         results.append(torch.cat([p.detach().ravel() for p in a.actor.parameters()]))
     assert torch.equal(results[0], results[1])
+
+
+def _rollout_at(cfg: TrainConfig, tau: float):
+    """One seeded rollout of a fresh agent at softmin temperature ``tau``."""
+    seed_everything(cfg.seed)
+    agent = make_agent(cfg, torch.device("cpu"))
+    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
+    try:
+        return collect_rollout(agent, envs, cfg, 0, tau)
+    finally:
+        envs.close()
+
+
+def test_the_learners_temperature_makes_the_rollouts_rewards(tmp_path):
+    """Same seed, two temperatures: the same transitions, other team rewards; the
+    episode returns sum the team rewards the learner made."""
+    cfg = tiny_config(tmp_path)
+    (hot, _, hot_stats), (cold, _, cold_stats) = (_rollout_at(cfg, tau) for tau in (2.0, 0.05))
+    np.testing.assert_array_equal(hot.actions, cold.actions)
+    np.testing.assert_array_equal(hot.alive, cold.alive)
+    assert not np.array_equal(hot.rewards, cold.rewards)
+    assert (cold.rewards <= hot.rewards + 1e-12).all()  # the softmin leans to the worst CAV
+    assert hot_stats.reward_terms["tau"] == [2.0] * cfg.rollout_steps
+    assert cold_stats.reward_terms["tau"] == [0.05] * cfg.rollout_steps
+    assert hot_stats.reward_terms["global"] == cold_stats.reward_terms["global"]
+    for roll, stats in ((hot, hot_stats), (cold, cold_stats)):
+        acc, returns = np.zeros(cfg.n_envs), []
+        for t in range(cfg.rollout_steps):
+            acc += roll.rewards[t]
+            for e in np.flatnonzero(roll.terminated[t] | roll.truncated[t]):
+                returns.append(float(acc[e]))
+                acc[e] = 0.0
+        assert len(stats.episodes) >= cfg.n_envs
+        assert [ep["return"] for ep in stats.episodes] == returns
+        assert list(stats.episodes[0])[:2] == ["return", "length"]  # progress.jsonl's order
+
+
+def test_training_passes_the_annealed_temperature_to_each_rollout(tmp_path, monkeypatch):
+    from diacc.learn import mappo
+
+    cfg = tiny_config(tmp_path, **{"env.reward.tau_anneal_fraction": 0.5})
+    taus, real = [], mappo.collect_rollout
+
+    def spy(agent, envs, cfg, update, tau, sync=True):
+        taus.append(tau)
+        return real(agent, envs, cfg, update, tau, sync)
+
+    monkeypatch.setattr(mappo, "collect_rollout", spy)
+    train(cfg, progress=False)
+    steps = cfg.rollout_steps * cfg.n_envs  # 40 of 80: the schedule ends after the first
+    assert taus == [temperature(0, 80, cfg.env.reward), temperature(steps, 80, cfg.env.reward)]
+    assert taus == pytest.approx([2.0, 0.05])
+    import json
+
+    rows = [json.loads(line) for line in (tmp_path / "run" / "progress.jsonl").open()]
+    assert [row["tau"] for row in rows] == taus
+    assert [row["reward/tau"] for row in rows] == pytest.approx(taus)
 
 
 def test_resume_matches_uninterrupted_run(tmp_path):

@@ -1,4 +1,4 @@
-"""Tests of diacc.envs.reward against hand computations."""
+"""Tests of diacc.envs.reward against hand computations, and of the team reward's aggregation."""
 
 from __future__ import annotations
 
@@ -9,7 +9,14 @@ import pytest
 from helpers import make_state
 
 from diacc.config import ConfigError, RewardConfig, TrainConfig, override
-from diacc.envs.reward import RewardError, reward, softmin_weights, temperature
+from diacc.envs.reward import (
+    RewardError,
+    RewardTerms,
+    reward_terms,
+    softmin_weights,
+    team_reward,
+    temperature,
+)
 from diacc.sim.maps import load_map
 
 CFG = RewardConfig()
@@ -18,6 +25,13 @@ ROAD = load_map("train-25")  # 25 m/s everywhere
 
 def sigmoid(z: float) -> float:
     return 1.0 / (1.0 + math.exp(-z))
+
+
+def team(terms: RewardTerms, tau: float, cfg: RewardConfig = CFG):
+    """The team reward of ``terms`` at ``tau``."""
+    return team_reward(
+        terms.ego, terms.alive, terms.global_reward, terms.completion, terms.delay, tau, cfg
+    )
 
 
 # ---------------------------------------------------------------- softmin
@@ -73,7 +87,7 @@ def test_temperature_schedule_endpoints_and_midpoint():
 # ---------------------------------------------------------------- ego terms
 def test_speed_and_time_penalty_terms():
     state = make_state([100.0, 300.0], [0, 1], [20.0, 4.0], is_cav=True)
-    terms = reward(state, np.array([0, 1]), ROAD, 1.0, CFG)
+    terms = reward_terms(state, np.array([0, 1]), ROAD, CFG)
     assert terms.speed == pytest.approx([-5.0 / 25.0 + 1.0, -21.0 / 25.0 + 1.0])
     assert terms.time_penalty == pytest.approx([sigmoid(15.0) - 1.0, sigmoid(-1.0) - 1.0])
     assert terms.warning.tolist() == [0.0, 0.0] and terms.collision.tolist() == [0.0, 0.0]
@@ -90,7 +104,7 @@ def test_warning_and_collision_terms_by_centre_distance():
     state = make_state(
         x, lane, 25.0, is_cav=[True, False, False, False, False], active=[True] * 4 + [False]
     )
-    terms = reward(state, np.array([0]), ROAD, 1.0, CFG)
+    terms = reward_terms(state, np.array([0]), ROAD, CFG)
     d_w, d_c = 3.0, 1.5
     warning = -(d_w - 2.5) / (d_w - d_c) - (d_w - 1.2) / (d_w - d_c)
     collision = -(d_c - 1.2) / d_c - 10.0
@@ -102,7 +116,7 @@ def test_warning_and_collision_terms_by_centre_distance():
 
 def test_reported_collision_adds_fixed_penalty_beyond_collision_distance():
     state = make_state([100.0, 104.0], [0, 0], 20.0, is_cav=[True, False], collisions=[(1, 0)])
-    terms = reward(state, np.array([0]), ROAD, 1.0, CFG)
+    terms = reward_terms(state, np.array([0]), ROAD, CFG)
     assert terms.collision[0] == pytest.approx(-10.0)  # distance part clipped at 0
     assert terms.warning[0] == 0.0  # 4 m > d_w
 
@@ -121,19 +135,20 @@ def test_total_reward_combines_softmin_global_and_completion():
         arrivals=[2, 3],
     )
     tau = 0.7
-    terms = reward(state, np.array([0, 1, 2]), ROAD, tau, CFG)
+    terms = reward_terms(state, np.array([0, 1, 2]), ROAD, CFG)
+    total = team(terms, tau)
     r0 = 5.0 * (1 - 15 / 25) + sigmoid(5.0) - 1.0
     r1 = 5.0 * (1 - 3 / 25) + sigmoid(17.0) - 1.0
     assert terms.ego == pytest.approx([r0, r1, 0.0])
     assert terms.alive.tolist() == [True, True, False]
     w0 = math.exp(-r0 / tau) / (math.exp(-r0 / tau) + math.exp(-r1 / tau))
-    assert terms.softmin_weight == pytest.approx([w0, 1 - w0, 0.0])
+    assert total.softmin_weight == pytest.approx([w0, 1 - w0, 0.0])
     ego_bar = w0 * r0 + (1 - w0) * r1
     r_g = -abs(16.0 - 25.0) / 25.0 + 1.0
-    assert terms.ego_softmin == pytest.approx(ego_bar)
+    assert total.ego_softmin == pytest.approx(ego_bar)
     assert terms.global_reward == pytest.approx(r_g)
     assert terms.completion == pytest.approx(20.0)
-    assert terms.total == pytest.approx(0.6 * ego_bar + 0.4 * r_g + 20.0)
+    assert total.total == pytest.approx(0.6 * ego_bar + 0.4 * r_g + 20.0)
 
 
 def test_no_cav_on_road_gives_only_completion():
@@ -147,9 +162,10 @@ def test_no_cav_on_road_gives_only_completion():
         segment=2,
         arrivals=[0, 1],
     )
-    terms = reward(state, np.array([0, 1]), ROAD, 1.0, CFG)
-    assert terms.ego_softmin == 0.0 and terms.global_reward == 0.0
-    assert terms.total == pytest.approx(40.0)
+    terms = reward_terms(state, np.array([0, 1]), ROAD, CFG)
+    total = team(terms, 1.0)
+    assert total.ego_softmin == 0.0 and terms.global_reward == 0.0
+    assert total.total == pytest.approx(40.0)
 
 
 def test_reward_config_rejects_bad_distances():
@@ -172,20 +188,20 @@ def test_bumper_closeness_uses_lane_gaps_and_leader_ttc():
         is_cav=[True] + [False] * 3,
     )
     cfg = RewardConfig(closeness="bumper", warning_ttc_s=3.0)
-    terms = reward(state, np.array([0]), ROAD, 1.0, cfg)
+    terms = reward_terms(state, np.array([0]), ROAD, cfg)
     d_w, d_c = 3.0, 1.5
     ttc = 2.5 / 10.0  # gap / closing speed
     warning = -(d_w - 2.5) / (d_w - d_c) - (d_w - 1.0) / (d_w - d_c) - (3.0 - ttc) / 3.0
     assert terms.warning[0] == pytest.approx(warning)
     assert terms.collision[0] == pytest.approx(-(d_c - 1.0) / d_c - 10.0)
     # The paper's centre distances: 7.5, 3.2 and 6 m, nothing fires.
-    literal = reward(state, np.array([0]), ROAD, 1.0, CFG)
+    literal = reward_terms(state, np.array([0]), ROAD, CFG)
     assert literal.warning[0] == 0.0 and literal.collision[0] == 0.0
 
 
 def test_bumper_closeness_quiet_without_close_vehicles():
     state = make_state([100.0, 140.0], [0, 0], [20.0, 25.0], is_cav=[True, False])
-    terms = reward(state, np.array([0]), ROAD, 1.0, RewardConfig(closeness="bumper"))
+    terms = reward_terms(state, np.array([0]), ROAD, RewardConfig(closeness="bumper"))
     assert terms.warning[0] == 0.0 and terms.collision[0] == 0.0  # 35 m gap, opening
 
 
@@ -201,13 +217,16 @@ def test_fleet_exit_bonus_and_delay_term():
         arrivals=[0],
     )
     cav = np.array([0, 1, 2, 3])
-    per_cav = reward(state, cav, ROAD, 1.0, CFG)
-    fleet = reward(state, cav, ROAD, 1.0, RewardConfig(exit_bonus_scale="fleet"))
+    per_cav = reward_terms(state, cav, ROAD, CFG)
+    fleet = reward_terms(state, cav, ROAD, RewardConfig(exit_bonus_scale="fleet"))
     assert per_cav.completion == pytest.approx(20.0) and fleet.completion == pytest.approx(5.0)
     rate = (1.0 - 15.0 / 25.0) / 5  # only the HDV is slower than the limit; V = 5
     assert per_cav.delay == pytest.approx(-rate)  # logged, but weight 0 by default
-    delayed = reward(state, cav, ROAD, 1.0, RewardConfig(delay_weight=2.0))
-    assert delayed.total == pytest.approx(per_cav.total - 2.0 * rate)
+    delayed_cfg = RewardConfig(delay_weight=2.0)
+    delayed = reward_terms(state, cav, ROAD, delayed_cfg)
+    assert team(delayed, 1.0, delayed_cfg).total == pytest.approx(
+        team(per_cav, 1.0).total - 2.0 * rate
+    )
 
 
 def test_reward_options_rejected_when_unknown():
@@ -217,3 +236,53 @@ def test_reward_options_rejected_when_unknown():
         RewardConfig(closeness="overlap")
     with pytest.raises(ConfigError, match="exit_bonus_scale"):
         RewardConfig(exit_bonus_scale="half")
+
+
+# ---------------------------------------------------------------- team reward (aggregation)
+def _old_team_reward(ego, alive, global_reward, completion, delay, tau, cfg):
+    """The aggregation as ``reward()`` did it for one env before the temperature moved to
+    the learner (its lines, copied): weights, ego_softmin and total."""
+    weights = softmin_weights(ego, alive, tau)  # (..., C)
+    ego_softmin = np.sum(weights * ego, axis=-1)  # (...,)
+    total = (
+        cfg.w_ego * ego_softmin
+        + cfg.w_global * global_reward
+        + completion
+        + cfg.delay_weight * delay
+    )
+    return weights, float(ego_softmin), float(total)
+
+
+def test_team_reward_of_a_batch_equals_per_env_calls_and_the_old_total():
+    rng = np.random.default_rng(7)
+    cfg = RewardConfig(w_ego=0.7, w_global=0.3, delay_weight=1.5)
+    for shape in ((5, 10), (2, 3, 4)):
+        alive = rng.random(shape) < 0.6
+        alive[0] = False  # an env without CAVs on the road
+        ego = np.where(alive, rng.normal(0.0, 4.0, shape), 0.0)
+        lead = shape[:-1]
+        g, c, d = rng.normal(size=lead), 20.0 * rng.integers(0, 3, lead), -rng.random(lead)
+        for tau in (2.0, 0.3, 0.05):
+            batch = team_reward(ego, alive, g, c, d, tau, cfg)
+            assert batch.softmin_weight.shape == shape and batch.total.shape == lead
+            for idx in np.ndindex(*lead):
+                one = team_reward(ego[idx], alive[idx], float(g[idx]), c[idx], d[idx], tau, cfg)
+                assert isinstance(one.total, float) and isinstance(one.ego_softmin, float)
+                old = _old_team_reward(
+                    ego[idx], alive[idx], np.asarray(g[idx]), c[idx], d[idx], tau, cfg
+                )
+                # bit for bit: per env, in the batch, and as before the split
+                assert np.array_equal(one.softmin_weight, old[0])
+                assert (one.ego_softmin, one.total) == old[1:]
+                assert np.array_equal(batch.softmin_weight[idx], one.softmin_weight)
+                assert (batch.ego_softmin[idx], batch.total[idx]) == (one.ego_softmin, one.total)
+    with pytest.raises(RewardError, match="temperature"):
+        team_reward(np.zeros(2), np.ones(2, bool), 0.0, 0.0, 0.0, 0.0, cfg)
+
+
+def test_team_reward_depends_on_the_temperature_only_through_the_softmin():
+    state = make_state([100.0, 400.0], [0, 1], [10.0, 22.0], is_cav=True)
+    terms = reward_terms(state, np.array([0, 1]), ROAD, CFG)
+    hot, cold = team(terms, CFG.tau_init), team(terms, CFG.tau_final)
+    assert cold.ego_softmin < hot.ego_softmin < terms.ego.mean() + 1e-12  # worst CAV weighs more
+    assert hot.total - cold.total == pytest.approx(CFG.w_ego * (hot.ego_softmin - cold.ego_softmin))

@@ -125,7 +125,7 @@ def tiny_batch(tmp_path_factory):
     agent = mappo.make_agent(cfg, torch.device("cpu"))
     envs = mappo.make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
-        roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0)
+        roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
     finally:
         envs.close()
     adv, ret = mappo.rollout_gae(roll, next_value, cfg)
@@ -225,9 +225,9 @@ def test_overlapped_training_is_reproducible_lagged_and_resumes_exactly(tmp_path
     calls = []
     real = mappo.collect_rollout
 
-    def spy(agent, envs, cfg, update, sync=True):
+    def spy(agent, envs, cfg, update, tau, sync=True):
         calls.append((update, sync))
-        return real(agent, envs, cfg, update, sync)
+        return real(agent, envs, cfg, update, tau, sync)
 
     monkeypatch.setattr(mappo, "collect_rollout", spy)
     extra = {"total_steps": 160, "checkpoint_every": 2}  # 4 updates of 40 steps

@@ -25,13 +25,15 @@ from diacc.sim.scenario import Scenario
 CONFIG = EnvConfig(scenario=Scenario(n_vehicles=10, cav_penetration=0.3))
 
 
-def _run(envs, steps: int = 5):
+def _run(envs, steps: int = 5, outs: list | None = None):
     actor, _ = envs.reset(first_episode=0)
     xs = [actor.self_state.copy()]
     rng = np.random.default_rng(0)
     for _ in range(steps):
         out = envs.step(rng.integers(0, 5, (envs.n_envs, envs.n_cavs)))
         xs.append(out.actor_obs.self_state.copy())
+        if outs is not None:
+            outs.append(out)
     return np.stack(xs)
 
 
@@ -44,12 +46,14 @@ def test_episode_seeds_are_distinct_and_reproducible():
 def test_process_workers_match_in_process_envs():
     sync = SyncVectorEnv(CONFIG, 2, run_seed=5)
     procs = ProcessVectorEnv(CONFIG, 2, run_seed=5)
+    in_process, in_workers = [], []
     try:
-        a, b = _run(sync), _run(procs)
+        a, b = _run(sync, outs=in_process), _run(procs, outs=in_workers)
     finally:
         sync.close()
         procs.close()
     np.testing.assert_array_equal(a, b)
+    assert_same(in_process, in_workers, "steps")  # reward terms and episodes included
     assert not np.array_equal(a[:, 0], a[:, 1]), "the two envs must get different seeds"
 
 
@@ -97,7 +101,7 @@ def test_batched_simulator_matches_envs_stepped_alone(map_name, n_vehicles, use_
             a, b = alone.step(actions), batched.step(actions)
             assert_same(a, b, f"step {t}")
             ended += int((a.terminated | a.truncated).sum())
-            collided += sum(e["collision"] for e in a.episodes)
+            collided += sum(e["collision"] for e in a.episodes.values())
     finally:
         alone.close()
         batched.close()
@@ -173,7 +177,8 @@ def test_crashed_worker_is_restarted_and_its_episode_cut():
         out = envs.step(np.zeros((2, envs.n_cavs), np.int64))
         assert out.restarts == 1 and envs.restarts == 1
         # A crash is a truncation, bootstrapped from the last state before it.
-        assert out.truncated[1] and not out.terminated[1] and out.reward[1] == 0.0
+        assert out.truncated[1] and not out.terminated[1] and out.restarted.tolist() == [0, 1]
+        assert not out.ego[1].any() and out.global_reward[1] == out.completion[1] == 0.0
         assert out.final_critic_state[1] is not None and not out.alive[1].any()
         assert out.actor_obs.alive[1].all(), "the restarted env starts a fresh episode"
         out = envs.step(np.zeros((2, envs.n_cavs), np.int64))  # and keeps running
@@ -193,7 +198,8 @@ def test_sumo_crash_inside_a_rollout_is_a_truncation():
         os.kill(envs.runners[0].env.backend.worker_pid, signal.SIGKILL)
         out = envs.step(np.zeros((1, envs.n_cavs), np.int64))
         assert out.restarts == 1
-        assert out.truncated[0] and not out.terminated[0] and out.reward[0] == 0.0
+        assert out.truncated[0] and not out.terminated[0] and out.restarted[0]
+        assert not out.ego[0].any() and out.global_reward[0] == out.completion[0] == 0.0
         final = out.final_critic_state[0]
         np.testing.assert_array_equal(final.nodes, before.critic_state.nodes[0])
         out = envs.step(np.zeros((1, envs.n_cavs), np.int64))  # the next episode runs

@@ -26,6 +26,10 @@
 #   The team is then judged by its worst-off member, which pushes CAVs to help
 #   the one stuck behind a merge instead of racing ahead;
 # * `tau` is annealed linearly from 2 to 0.05 over the first half of training.
+#   The temperature is the learner's: an environment step returns the terms
+#   that need none (`reward_terms`), and the trainer aggregates them with
+#   `team_reward` at the temperature of its current update. (The PettingZoo
+#   env's own `rewards` use a fixed temperature, `env.temperature` = `tau_init`.)
 #
 # We plot the weights against `tau`, the schedule over training, and the
 # reward terms of a real traffic state.
@@ -42,7 +46,7 @@ import numpy as np
 
 from diacc.config import RewardConfig, TrainConfig
 from diacc.envs.env import BottleneckEnv, EnvConfig
-from diacc.envs.reward import reward, softmin_weights, temperature
+from diacc.envs.reward import reward_terms, softmin_weights, team_reward, temperature
 
 OUT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out")) / "05_rewards"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -118,10 +122,11 @@ print("wrote", softmin_png)
 # %% [markdown]
 # ## The reward of a real traffic state
 #
-# `reward(state, cav_index, road, tau, cfg)` returns every term per CAV. We
-# drive the CAVs with random actions (what an untrained actor does) for up to
-# 30 steps, then score the last state at the start and at the end of the
-# schedule. Random driving soon ends in a collision, even behind PSAR (see
+# `reward_terms(state, cav_index, road, cfg)` returns every term per CAV, and
+# `team_reward(ego, alive, global_reward, completion, delay, tau, cfg)` makes the
+# team reward of them at a temperature. We drive the CAVs with random actions
+# (what an untrained actor does) for up to 30 steps, then score the last state
+# at the start and at the end of the schedule. Random driving soon ends in a collision, even behind PSAR (see
 # the end of tutorial 4): the CAVs involved get the collision penalty
 # `p_ec = -10`, and at a low temperature that one CAV is nearly all of the
 # team's ego reward. This is exactly the pressure the softmin is meant to
@@ -136,20 +141,21 @@ for _ in range(30):
     if out.terminated or out.truncated:
         break
 state = out.state
-terms = {
-    tau: reward(state, env.cav_index, env.road, tau, cfg) for tau in (cfg.tau_init, cfg.tau_final)
-}
+t = reward_terms(state, env.cav_index, env.road, cfg)
 env.close()
+terms = {
+    tau: team_reward(t.ego, t.alive, t.global_reward, t.completion, t.delay, tau, cfg)
+    for tau in (cfg.tau_init, cfg.tau_final)
+}
 
-t = terms[cfg.tau_init]
 cavs = np.flatnonzero(t.alive)
 print(f"plain mean of the ego rewards: {t.ego[cavs].mean():+.3f}")
 print(f"t = {state.time_s:.0f} s, {cavs.size} CAVs on the road")
 print("collided pairs (vehicle indices):", state.collisions.tolist())
 for tau, tt in terms.items():
     print(
-        f"tau = {tau:4.2f}: ego (softmin) {tt.ego_softmin:+.3f}, global {tt.global_reward:+.3f}, "
-        f"completion {tt.completion:.0f}, total R = {tt.total:+.3f}"
+        f"tau = {tau:4.2f}: ego (softmin) {tt.ego_softmin:+.3f}, global {t.global_reward:+.3f}, "
+        f"completion {t.completion:.0f}, total R = {tt.total:+.3f}"
     )
 
 fig, (ax_terms, ax_wt) = plt.subplots(1, 2, figsize=(13, 4.2))

@@ -13,7 +13,17 @@ order of their vehicle indices. Each step:
    Force-Brake by what PSAR asks, see :func:`diacc.envs.psar.psar`). A lane
    change the road does not allow here is not made, with or without PSAR;
 4. the backend advances one decision step and returns a TrafficState, from
-   which the observations, the team reward and the events are built.
+   which the observations, the reward and the events are built.
+
+**Reward and temperature.** The step's reward terms
+(:func:`~diacc.envs.reward.reward_terms`: each CAV's ego reward, the global,
+completion and delay terms) need no temperature and are what
+:class:`StepResult` carries for a trainer. The team reward
+``StepResult.reward`` (and the PettingZoo ``rewards``) aggregates them with
+:func:`~diacc.envs.reward.team_reward` at the env's own softmin temperature
+:attr:`BottleneckEnv.temperature`, ``tau_init`` unless set; the env never
+anneals it. A trainer that anneals tau (:mod:`diacc.learn.mappo`) ignores
+``reward`` and makes the team reward from the terms at its own temperature.
 
 The episode terminates on a collision or when every vehicle has left, and is
 truncated at ``episode_steps``. A CAV that has left the route is done and is
@@ -64,7 +74,7 @@ from diacc.envs.lateral_frame import is_mirrored, mirror_actions
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.envs.psar import PSARResult, psar
-from diacc.envs.reward import RewardTerms, reward
+from diacc.envs.reward import RewardTerms, reward_terms, team_reward
 from diacc.envs.spaces import agent_observation, check_format, observation_space, state_space
 from diacc.errors import DiaccError
 from diacc.sim.backends.base import Backend, CavCommands, make_backend
@@ -171,21 +181,32 @@ class StepResult:
 
     actor_obs: ActorObs
     critic_state: CriticState
-    reward: float  # team reward R_t (paper eq. reward_all)
+    reward: float  # team reward R_t (paper eq. reward_all) at BottleneckEnv.temperature
     terminated: bool
     truncated: bool
-    alive: np.ndarray  # (C,) bool: CAV on the road after the step
+    alive: np.ndarray  # (C,) bool: CAV on the road after the step (the reward's mask)
     refined_action: np.ndarray  # (C,) int64 action executed
     psar_rule: np.ndarray  # (C,) int8 last PSAR rule that took effect (0 none)
     psar_rule_mask: np.ndarray  # (C,) int8 bitmask of the rules that took effect
     psar: PSARResult | None  # full PSAR result (None when PSAR is off)
     state: TrafficState
-    reward_terms: dict[str, float]
+    reward_terms: dict[str, float]  # logged parts of the reward that need no temperature
     slot_start: np.ndarray  # (C,) bool: a new CAV took the slot; its next action starts afresh
+    # What team_reward aggregates (with ``alive``), at any temperature:
+    ego: np.ndarray  # (C,) ego reward r_e of each CAV slot (0 off the road)
+    global_reward: float  # r_g
+    completion: float  # r_done
+    delay: float  # delay term before its weight
 
 
 class BottleneckEnv(ParallelEnv):
-    """CAVs crossing a highway bottleneck among HDVs (see module docstring)."""
+    """CAVs crossing a highway bottleneck among HDVs (see module docstring).
+
+    Every agent's reward is the team reward at the softmin temperature
+    :attr:`temperature` (``tau_init`` unless set; never annealed here). A trainer
+    that anneals tau makes the team reward from :class:`StepResult`'s terms with
+    :func:`~diacc.envs.reward.team_reward` (as :mod:`diacc.learn.mappo` does).
+    """
 
     metadata = {
         "name": "diacc_bottleneck_v0",
@@ -223,6 +244,8 @@ class BottleneckEnv(ParallelEnv):
         self.n_cavs = self.config.scenario.n_slots  # C agent slots
         self.possible_agents = [f"cav_{k}" for k in range(self.config.scenario.n_cavs)]
         self.agents: list[str] = []
+        #: Softmin temperature of :attr:`StepResult.reward` (module docstring): fixed,
+        #: ``tau_init`` unless set; a trainer that anneals tau makes its own team reward.
         self.temperature = self.config.reward.tau_init
         self.state_: TrafficState | None = None
         self._viewer = None  # diacc.sim.viewer.Viewer, made by the first render()
@@ -302,7 +325,7 @@ class BottleneckEnv(ParallelEnv):
     def advance(self, decision: Decision, state: TrafficState) -> StepResult:
         """Observations, reward and episode end once the backend has executed ``decision``."""
         self.enter(decision, state)
-        terms = reward(state, self.cav_index, self.road, self.temperature, self.config.reward)
+        terms = reward_terms(state, self.cav_index, self.road, self.config.reward)
         return self.conclude(decision, state, *self._observe(), terms)
 
     def enter(self, decision: Decision, state: TrafficState) -> None:
@@ -322,16 +345,26 @@ class BottleneckEnv(ParallelEnv):
         critic_state: CriticState,
         terms: RewardTerms,
     ) -> StepResult:
-        """The step's result, given the observations and the reward of the state
+        """The step's result, given the observations and the reward terms of the state
         :meth:`enter` entered (which :meth:`ObservationBuilder.observe_batch` and
-        :func:`~diacc.envs.reward.reward` compute for many envs at once)."""
+        :func:`~diacc.envs.reward.reward_terms` compute for many envs at once); the
+        team reward is taken at :attr:`temperature`."""
+        team = team_reward(
+            terms.ego,
+            terms.alive,
+            terms.global_reward,
+            terms.completion,
+            terms.delay,
+            self.temperature,
+            self.config.reward,
+        )
         # Every vehicle gone: none on the road and none still to enter (demand).
         terminated = bool(len(state.collisions) > 0 or state.arrived.all())
         truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
         return StepResult(
             actor_obs=actor_obs,
             critic_state=critic_state,
-            reward=float(terms.total),
+            reward=team.total,
             terminated=terminated,
             truncated=truncated,
             alive=state.active[self.cav_index].copy(),
@@ -340,17 +373,20 @@ class BottleneckEnv(ParallelEnv):
             psar_rule_mask=decision.rule_mask,
             psar=decision.psar,
             state=state,
+            # The temperature's parts (ego_softmin, tau) are the trainer's to log.
             reward_terms={
-                "ego_softmin": terms.ego_softmin,
                 "individual": float(terms.ego[terms.alive].mean()) if terms.alive.any() else 0.0,
                 "global": terms.global_reward,
                 "completion": terms.completion,
                 # Logged so that a learning curve shows whether closeness fires.
                 "warning": float(terms.warning[terms.alive].mean()) if terms.alive.any() else 0.0,
                 "delay": terms.delay,
-                "tau": terms.tau,
             },
             slot_start=self.slot_start.copy(),
+            ego=terms.ego,
+            global_reward=terms.global_reward,
+            completion=terms.completion,
+            delay=terms.delay,
         )
 
     def _observe(self) -> tuple[ActorObs, CriticState]:

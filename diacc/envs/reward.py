@@ -39,9 +39,19 @@ literally, docs/concepts/learning-options.md):
 * ``delay_weight > 0``: adds ``-delay_weight * sum_active (1 - v/v_lim)^+ / V``
   over *all* vehicles, the flow metrics' delay per second and vehicle.
 
-:func:`reward` also scores a batch of E states ((E, V) arrays,
-:mod:`diacc.sim.state`) in one call: every per-CAV array then has a leading env
-axis and every scalar is an (E,) array; entry ``e`` is env ``e``'s reward.
+**Two steps.** :func:`reward_terms` scores a state: every part that needs no
+temperature (the ego rewards ``r_e``, which CAVs are on the road, ``r_g``,
+``r_done`` and the delay term). :func:`team_reward` aggregates them into ``R``
+at a softmin temperature. The temperature is the learner's: it anneals over
+training (:func:`temperature`), so the trainer (:mod:`diacc.learn.mappo`) makes
+the team reward of each step itself from the terms the environments return;
+:class:`~diacc.envs.env.BottleneckEnv` does the same at a fixed temperature of
+its own for its PettingZoo users.
+
+:func:`reward_terms` also scores a batch of E states ((E, V) arrays,
+:mod:`diacc.sim.state`) in one call, and :func:`team_reward` takes any leading
+env axis: every per-CAV array then has a leading env axis and every scalar is
+an (E,) array; entry ``e`` is env ``e``'s reward.
 """
 
 from __future__ import annotations
@@ -105,11 +115,12 @@ def softmin_weights(ego_reward: np.ndarray, alive: np.ndarray, tau: float) -> np
 
 @dataclass
 class RewardTerms:
-    """Reward of one step and its parts (for logging), one entry per CAV slot.
+    """The parts of one step's reward that need no temperature, one entry per CAV slot.
 
     Per-CAV arrays hold the *unweighted* sub-terms; ``ego`` is their weighted
     sum r_e. Entries of CAVs that are not on the road are 0. For a batch every
     field has a leading env axis (the floats are (E,) arrays; :meth:`env`).
+    :func:`team_reward` makes the team reward R of them.
     """
 
     speed: np.ndarray  # (C,) -|v - v_max|/v_max + p_ev
@@ -118,44 +129,91 @@ class RewardTerms:
     time_penalty: np.ndarray  # (C,) sigmoid(v - v_th) - 1
     ego: np.ndarray  # (C,) weighted ego reward r_e
     alive: np.ndarray  # (C,) bool CAV on the road
-    softmin_weight: np.ndarray  # (C,) w_i, sums to 1 over alive CAVs
-    tau: float
-    ego_softmin: float  # sum_i w_i r_e^i
     global_reward: float  # r_g
     completion: float  # r_done
     delay: float  # minus the delay rate, before its weight (delay_weight, default 0)
-    total: float  # R
 
     def env(self, e: int) -> RewardTerms:
         """Env ``e``'s terms out of a batch's."""
         return RewardTerms(
             *(
-                (value if f.name == "tau" else float(value[e]) if value.ndim == 1 else value[e])
+                (float(value[e]) if value.ndim == 1 else value[e])
                 for f in fields(self)
                 for value in [getattr(self, f.name)]
             )
         )
 
 
-def reward(
+@dataclass
+class TeamReward:
+    """The team reward R of a step at one softmin temperature (:func:`team_reward`).
+
+    For a batch the fields have the terms' leading env axis (the floats are
+    (E,) arrays).
+    """
+
+    softmin_weight: np.ndarray  # (C,) w_i, sums to 1 over alive CAVs
+    ego_softmin: float  # sum_i w_i r_e^i
+    total: float  # R
+
+
+def team_reward(
+    ego: np.ndarray,
+    alive: np.ndarray,
+    global_reward: float | np.ndarray,
+    completion: float | np.ndarray,
+    delay: float | np.ndarray,
+    tau: float,
+    cfg: RewardConfig,
+) -> TeamReward:
+    """Team reward ``R = w_e * sum_i w_i r_e^i + w_g * r_g + r_done + w_d * delay``.
+
+    The softmin aggregation of the ego rewards at temperature ``tau`` and the
+    weighted sum with the per-env terms, all of :class:`RewardTerms`
+    (:func:`reward_terms`). Pure and vectorised: ``ego`` and ``alive`` are (C,)
+    for one env or (..., C) for many, the other terms () or (...,).
+
+    Args:
+        ego: (..., C) ego rewards r_e (values of CAVs not on the road are ignored).
+        alive: (..., C) bool, CAV on the road.
+        global_reward: (...,) r_g.
+        completion: (...,) r_done.
+        delay: (...,) delay term before its weight.
+        tau: softmin temperature > 0 (:func:`temperature`).
+        cfg: the weights ``w_ego``, ``w_global`` and ``delay_weight``.
+
+    Returns:
+        :class:`TeamReward`; floats for one env, (...,) arrays for many.
+    """
+    weights = softmin_weights(ego, alive, tau)  # (..., C)
+    ego_softmin = np.sum(weights * ego, axis=-1)  # (...,)
+    total = (
+        cfg.w_ego * ego_softmin
+        + cfg.w_global * global_reward
+        + completion
+        + cfg.delay_weight * delay
+    )
+    scalar = float if weights.ndim == 1 else np.asarray
+    return TeamReward(softmin_weight=weights, ego_softmin=scalar(ego_softmin), total=scalar(total))
+
+
+def reward_terms(
     state: TrafficState,
     cav_index: np.ndarray,
     road: Map,
-    tau: float,
     cfg: RewardConfig,
 ) -> RewardTerms:
-    """Team reward of one step (see module docstring for every choice).
+    """The reward parts of one step that need no temperature (see module docstring).
 
     Args:
         state: state *after* the step.
         cav_index: (C,) vehicle indices of the CAV slots.
         road: the map (speed limits per segment).
-        tau: softmin temperature (:func:`temperature`).
         cfg: reward weights and thresholds (checked when it was built, e.g.
             ``collision_distance_m < warning_distance_m``; not on every call).
 
     Returns:
-        :class:`RewardTerms`.
+        :class:`RewardTerms`; :func:`team_reward` makes the team reward of them.
     """
     cav_index = np.asarray(cav_index)
     lead = state.x_m.shape[:-1]
@@ -211,8 +269,6 @@ def reward(
         np.where(alive, term, zero) for term in (speed, warning, collision, time_penalty, ego)
     )
 
-    weights = softmin_weights(ego, alive, tau)  # (..., C)
-    ego_softmin = np.sum(weights * ego, axis=-1)  # (...,)
     n_alive = alive.sum(axis=-1)
     any_alive = n_alive > 0
     safe_n = np.maximum(n_alive, 1)
@@ -227,12 +283,6 @@ def reward(
     if cfg.exit_bonus_scale == "fleet":
         completion = completion / max(cav_index.shape[-1], 1)
     delay = -_delay_rate(state, limits_mps)  # (...,) computed for the logs whatever the weight
-    total = (
-        cfg.w_ego * ego_softmin
-        + cfg.w_global * global_reward
-        + completion
-        + cfg.delay_weight * delay
-    )
     scalar = float if not lead else np.asarray
     return RewardTerms(
         speed=speed,
@@ -241,13 +291,9 @@ def reward(
         time_penalty=time_penalty,
         ego=ego,
         alive=alive,
-        softmin_weight=weights,
-        tau=float(tau),
-        ego_softmin=scalar(ego_softmin),
         global_reward=scalar(global_reward),
         completion=scalar(completion),
         delay=scalar(delay),
-        total=scalar(total),
     )
 
 

@@ -4,7 +4,12 @@ All flavours run the same :class:`EnvRunner` per environment, which adds
 what the trainer needs around :class:`~diacc.envs.env.BottleneckEnv`: automatic
 reset with per-episode seeds derived from the run seed, the final critic
 state of each finished episode (to bootstrap truncated episodes), episode
-metrics, and recovery from a crashed simulator.
+metrics, and recovery from a crashed simulator. A step reports the reward's
+terms that need no temperature (each CAV's ego reward, the global, completion
+and delay terms, :func:`~diacc.envs.reward.reward_terms`), not a team reward:
+the softmin temperature anneals over training and is the trainer's, which
+makes the team reward of them (:func:`~diacc.envs.reward.team_reward`,
+:func:`diacc.learn.mappo.collect_rollout`), and the episodes' returns.
 
 * :class:`SyncVectorEnv` steps environments one after another in this
   process.
@@ -17,11 +22,12 @@ metrics, and recovery from a crashed simulator.
 * :class:`ProcessVectorEnv` splits the environments into one group per
   worker process (``spawn`` start method; each SUMO environment still runs
   libsumo in a worker of its own), so groups step in parallel. A worker that
-  dies, whenever it is found dead (stepping, resetting, or idle while the
-  trainer updates), is restarted and logged; the episodes of its group are cut
-  (``truncated`` with zero reward, bootstrapped from the last state before the
-  crash) and counted in ``restarts``. A worker that keeps dying
-  (:data:`MAX_RESTARTS` in a row) ends the run with a one-line error.
+  dies is restarted and logged when it is found dead: stepping (the episodes
+  of its group are cut: ``truncated`` with zero reward terms, bootstrapped
+  from the last state before the crash, and counted in ``restarts``) or
+  resetting (e.g. after dying idle while the trainer updated: the new worker
+  resets with the same seeds). A worker that keeps dying (:data:`MAX_RESTARTS`
+  in a row) ends the run with a one-line error.
 
 A run may train on several maps (``TrainConfig.extra_maps``): the environments
 are split into contiguous blocks, one per map (:func:`maps_of_envs`); a batched
@@ -44,7 +50,7 @@ from diacc.envs.action_mask import with_action_mask
 from diacc.envs.env import BottleneckEnv, EnvConfig, StepResult, decide
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, ObservationBuilder, stack, unstack
-from diacc.envs.reward import reward
+from diacc.envs.reward import reward_terms
 from diacc.envs.safety import safety_critical_events
 from diacc.runlog import join_parent_log, log
 from diacc.sim.backends.base import Backend, BackendError, backend_class
@@ -80,36 +86,48 @@ class EnvStep:
 
     actor_obs: ActorObs  # first observation of the next episode if the episode ended
     critic_state: CriticState
-    reward: float
+    ego: np.ndarray  # (C,) ego reward r_e of each CAV slot (0 off the road)
+    global_reward: float  # r_g
+    completion: float  # r_done
+    delay: float  # delay term before its weight
     terminated: bool
     truncated: bool
-    alive: np.ndarray  # (C,) bool
+    alive: np.ndarray  # (C,) bool: CAV on the road after the step (the reward's mask)
     refined_action: np.ndarray  # (C,) int64
     psar_rule_mask: np.ndarray  # (C,) int8 bitmask of PSAR rules that took effect
     final_critic_state: CriticState | None  # state where the episode ended
     episode: dict | None  # metrics of the episode that just ended
-    reward_terms: dict[str, float] | None = None  # parts of the step's reward
-    restarted: bool = False
+    reward_terms: dict[str, float] | None = None  # logged parts of the step's reward
+    restarted: bool = False  # the simulator crashed: episode cut, no reward terms
     final_actor_obs: ActorObs | None = None  # observations where the episode ended
     slot_start: np.ndarray | None = None  # (C,) bool: a new CAV took the slot (None: none did)
 
 
 @dataclass
 class VectorStep:
-    """Stacked :class:`EnvStep` of E environments."""
+    """Stacked :class:`EnvStep` of E environments.
+
+    The team reward of the step is :func:`~diacc.envs.reward.team_reward` of
+    ``ego``, ``alive``, ``global_reward``, ``completion`` and ``delay`` at the
+    trainer's temperature.
+    """
 
     actor_obs: ActorObs  # fields (E, C, ...)
     critic_state: CriticState  # fields (E, ...)
-    reward: np.ndarray  # (E,)
+    ego: np.ndarray  # (E, C) ego reward r_e of each CAV slot
+    global_reward: np.ndarray  # (E,) r_g
+    completion: np.ndarray  # (E,) r_done
+    delay: np.ndarray  # (E,) delay term before its weight
     terminated: np.ndarray  # (E,) bool
     truncated: np.ndarray  # (E,) bool
-    alive: np.ndarray  # (E, C) bool
+    alive: np.ndarray  # (E, C) bool: CAV on the road after the step (the reward's mask)
     refined_action: np.ndarray  # (E, C)
     psar_rule_mask: np.ndarray  # (E, C)
     final_critic_state: list[CriticState | None]  # (E,)
     final_actor_obs: list[ActorObs | None]  # (E,) (None also after a simulator crash)
-    episodes: list[dict]  # metrics of episodes that ended this step
-    reward_terms: dict[str, np.ndarray]  # each part of the reward, (E',) over envs that reported it
+    episodes: dict[int, dict]  # env index -> metrics of the episode that ended there this step
+    reward_terms: dict[str, np.ndarray]  # logged parts of the reward, (E',) over ~restarted envs
+    restarted: np.ndarray  # (E,) bool: the simulator crashed, the step was cut (no reward terms)
     restarts: int
     slot_start: np.ndarray  # (E, C) bool: a new CAV took the slot; its next action starts afresh
 
@@ -124,7 +142,6 @@ class EnvRunner:
         self.config, self.run_seed, self.env_index = config, run_seed, env_index
         self.env = BottleneckEnv(config, backend=backend)
         self.episode = 0
-        self.return_ = 0.0
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
         """Start a new episode; ``first_episode`` restarts the episode (seed) counter."""
@@ -132,16 +149,12 @@ class EnvRunner:
             self.episode = first_episode
         seed = episode_seed(self.run_seed, self.env_index, self.episode)
         self.episode += 1
-        self.return_ = 0.0
         actor, critic = self.env.reset_arrays(seed)
         self.recorder = EpisodeRecorder(
             self.env.road, self.config.events, self.config.scenario.warmup_s
         )
         self.recorder.record(self.env.state_)
         return actor, critic
-
-    def set_temperature(self, tau: float) -> None:
-        self.env.temperature = tau
 
     def step(self, actions: np.ndarray) -> EnvStep:
         try:
@@ -156,33 +169,35 @@ class EnvRunner:
         """Book one step's result; a new episode starts if this one ended.
 
         ``critical``: the state's safety-critical events if already detected
-        (:meth:`EpisodeRecorder.record`).
+        (:meth:`EpisodeRecorder.record`). The episode's metrics hold no return:
+        that sums team rewards, which the trainer makes at its temperature.
         """
-        self.return_ += out.reward
         self.recorder.record(out.state, psar=out.psar, critical=critical)
         final, final_actor, episode = None, None, None
         actor, critic = out.actor_obs, out.critic_state
         if out.terminated or out.truncated:
             final, final_actor = critic, actor
             episode = {
-                "return": self.return_,
                 "length": self.env.steps,
                 "collision": float(len(out.state.collisions) > 0),
                 **self.recorder.summary().as_dict(),
             }
             actor, critic = self.reset()
         return EnvStep(
-            actor,
-            critic,
-            out.reward,
-            out.terminated,
-            out.truncated,
-            out.alive,
-            out.refined_action,
-            out.psar_rule_mask,
-            final,
-            episode,
-            out.reward_terms,
+            actor_obs=actor,
+            critic_state=critic,
+            ego=out.ego,
+            global_reward=out.global_reward,
+            completion=out.completion,
+            delay=out.delay,
+            terminated=out.terminated,
+            truncated=out.truncated,
+            alive=out.alive,
+            refined_action=out.refined_action,
+            psar_rule_mask=out.psar_rule_mask,
+            final_critic_state=final,
+            episode=episode,
+            reward_terms=out.reward_terms,
             final_actor_obs=final_actor,
             slot_start=self.env.slot_start.copy(),
         )
@@ -196,23 +211,29 @@ def _cut_episode(
 ) -> EnvStep:
     """The transition reported when a simulator crashed: episode cut, no reward, fresh start.
 
+    No CAV is on the road and every reward term is 0, so the team reward is 0
+    at any temperature.
+
     A crash is not the episode's end but ours, so it is a *truncation*: the
     trainer bootstraps from ``final_critic``, the last state the simulator
     reached (a termination would teach the critic that a crash is worth 0).
     """
     return EnvStep(
-        actor,
-        critic,
-        0.0,
-        False,
-        True,
-        np.zeros(n_cavs, bool),
-        np.zeros(n_cavs, np.int64),
-        np.zeros(n_cavs, np.int8),
-        final_critic,
-        None,
-        None,
-        True,
+        actor_obs=actor,
+        critic_state=critic,
+        ego=np.zeros(n_cavs),
+        global_reward=0.0,
+        completion=0.0,
+        delay=0.0,
+        terminated=False,
+        truncated=True,
+        alive=np.zeros(n_cavs, bool),
+        refined_action=np.zeros(n_cavs, np.int64),
+        psar_rule_mask=np.zeros(n_cavs, np.int8),
+        final_critic_state=final_critic,
+        episode=None,
+        reward_terms=None,
+        restarted=True,
     )
 
 
@@ -220,7 +241,10 @@ def _stack_steps(steps: list[EnvStep]) -> VectorStep:
     return VectorStep(
         actor_obs=stack([s.actor_obs for s in steps]),
         critic_state=stack([s.critic_state for s in steps]),
-        reward=np.array([s.reward for s in steps]),
+        ego=np.stack([s.ego for s in steps]),
+        global_reward=np.array([s.global_reward for s in steps]),
+        completion=np.array([s.completion for s in steps]),
+        delay=np.array([s.delay for s in steps]),
         terminated=np.array([s.terminated for s in steps]),
         truncated=np.array([s.truncated for s in steps]),
         alive=np.stack([s.alive for s in steps]),
@@ -228,11 +252,12 @@ def _stack_steps(steps: list[EnvStep]) -> VectorStep:
         psar_rule_mask=np.stack([s.psar_rule_mask for s in steps]),
         final_critic_state=[s.final_critic_state for s in steps],
         final_actor_obs=[s.final_actor_obs for s in steps],
-        episodes=[s.episode for s in steps if s.episode is not None],
+        episodes={e: s.episode for e, s in enumerate(steps) if s.episode is not None},
         reward_terms={
             key: np.array([s.reward_terms[key] for s in steps if s.reward_terms])
             for key in next((s.reward_terms for s in steps if s.reward_terms), {})
         },
+        restarted=np.array([s.restarted for s in steps]),
         restarts=sum(s.restarted for s in steps),
         slot_start=np.stack(
             [np.zeros(len(s.alive), bool) if s.slot_start is None else s.slot_start for s in steps]
@@ -277,10 +302,6 @@ class SyncVectorEnv:
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
         return _stack_steps(self.step_list(actions))
 
-    def set_temperature(self, tau: float) -> None:
-        for r in self.runners:
-            r.set_temperature(tau)
-
     def close(self) -> None:
         for r in self.runners:
             r.close()
@@ -293,8 +314,8 @@ class BatchedVectorEnv(SyncVectorEnv):
     commands (PSAR on the batch of their states), one
     :meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step_batch` call
     simulates all envs, and one call each builds every env's observations
-    (:meth:`ObservationBuilder.observe_batch`), rewards
-    (:func:`~diacc.envs.reward.reward`) and safety events for the metrics; each env
+    (:meth:`ObservationBuilder.observe_batch`), reward terms
+    (:func:`~diacc.envs.reward.reward_terms`) and safety events for the metrics; each env
     then decides whether its episode ended. Results are the same as
     :class:`SyncVectorEnv`'s.
     """
@@ -335,9 +356,7 @@ class BatchedVectorEnv(SyncVectorEnv):
             after,
         )
         actor = with_action_mask(actor, after, cav_index, self.config, self.batch.road)
-        taus = {env.temperature for env in envs}
-        assert len(taus) == 1, "the envs of a batch share the reward temperature"
-        terms = reward(after, cav_index, self.batch.road, taus.pop(), self.config.reward)
+        terms = reward_terms(after, cav_index, self.batch.road, self.config.reward)
         critical = safety_critical_events(after, self.config.events).any  # (E, V)
         return [
             r.finish(
@@ -407,8 +426,6 @@ def _worker(
                 conn.send(group.step_list(payload))
             elif command == "reset":
                 conn.send(group.reset_list(payload))
-            elif command == "tau":
-                group.set_temperature(payload)
             elif command == "close":
                 break
     except (EOFError, KeyboardInterrupt):
@@ -438,10 +455,8 @@ class ProcessVectorEnv:
         n_workers = min(n_envs, n_workers or os.cpu_count() or 1)
         self.groups = [g.tolist() for g in np.array_split(np.arange(n_envs), n_workers)]
         self.ctx = mp.get_context("spawn")
-        self.tau = config.reward.tau_init
         self.restarts = 0
         self._last_critic: list[CriticState | None] = [None] * n_envs  # bootstrap on a crash
-        self._cut: dict[int, list[EnvStep]] = {}  # workers replaced while idle: their cut steps
         self.workers: list = [None] * n_workers
         self.pipes: list = [None] * n_workers
         for w in range(n_workers):
@@ -458,7 +473,6 @@ class ProcessVectorEnv:
             proc.start()
         child.close()
         self.workers[w], self.pipes[w] = proc, parent
-        parent.send(("tau", self.tau))
 
     def _replace(self, w: int) -> None:
         """Start a new worker in place of dead worker ``w``; logged, and bounded per call."""
@@ -500,8 +514,11 @@ class ProcessVectorEnv:
         ]
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
-        """Reset every environment (optionally restarting their episode counters)."""
-        self._cut.clear()
+        """Reset every environment (optionally restarting their episode counters).
+
+        A worker that died meanwhile (e.g. idle during the trainer's update) is
+        replaced here, with the same seeds.
+        """
         sent = [self._send(w, ("reset", first_episode)) for w in range(len(self.pipes))]
         pairs = []
         for w, ok in enumerate(sent):
@@ -527,25 +544,13 @@ class ProcessVectorEnv:
             return None
 
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
-        sent = [
-            w not in self._cut and self._send(w, ("step", actions[group]))
-            for w, group in enumerate(self.groups)
-        ]
+        sent = [self._send(w, ("step", actions[group])) for w, group in enumerate(self.groups)]
         steps: list[EnvStep] = []
         for w, ok in enumerate(sent):
-            if w in self._cut:  # replaced while idle: its fresh episodes start now
-                steps += self._cut.pop(w)
-                continue
             reply = self._receive(w) if ok else None
             steps += reply if reply is not None else self._restart(w)
         self._last_critic = [s.critic_state for s in steps]
         return _stack_steps(steps)
-
-    def set_temperature(self, tau: float) -> None:
-        self.tau = tau
-        for w in range(len(self.pipes)):
-            if not self._send(w, ("tau", tau)):  # died while idle (e.g. during the update)
-                self._cut[w] = self._restart(w)
 
     def close(self) -> None:
         for p, w in zip(self.pipes, self.workers, strict=True):

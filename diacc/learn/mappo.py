@@ -12,6 +12,11 @@ then ``epochs`` passes of PPO over it:
 * **Actions** meet PSAR as ``env.psar_actions`` says: the proposed action's
   log-prob (paper), the executed one's, or sampling among the actions PSAR
   would execute unchanged (``ActorObs.action_mask``, :mod:`diacc.envs.action_mask`).
+* **Team reward** (paper eq. reward_all): the environments return its
+  parts that need no temperature; the rollout aggregates them with the
+  softmin at the temperature annealed for this update
+  (:func:`~diacc.envs.reward.temperature`, :func:`~diacc.envs.reward.team_reward`),
+  and sums them into each episode's return.
 * **GAE** (lambda 0.95, gamma 0.99) on de-normalised values, keeping
   termination (no bootstrap) and truncation (bootstrap) apart.
 * **Recurrent training** on chunks of ``chunk_len`` steps, each started from
@@ -58,7 +63,7 @@ from diacc.console import TrainProgress
 from diacc.envs.action_mask import masked_logits
 from diacc.envs.observation import ObservationSpec, stack, unstack
 from diacc.envs.psar import RULE_NAMES, rule_counts
-from diacc.envs.reward import temperature
+from diacc.envs.reward import team_reward, temperature
 from diacc.envs.vector import make_vector_env
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_write
@@ -179,14 +184,18 @@ class RolloutStats:
 
 
 def collect_rollout(
-    agent: Agent, envs, cfg: TrainConfig, update: int, sync: bool = True
+    agent: Agent, envs, cfg: TrainConfig, update: int, tau: float, sync: bool = True
 ) -> tuple[Rollout, np.ndarray, RolloutStats]:
     """Run every environment for ``rollout_steps`` decisions from a fresh reset.
 
     The forwards run on the agent's rollout networks (:data:`ROLLOUT_DEVICE`),
     refreshed from the learner first unless ``sync`` is False (overlap: the
-    learner is being updated meanwhile). Returns the filled rollout, V(s_S)
-    for bootstrapping (E,), and stats.
+    learner is being updated meanwhile). The team reward of each step is
+    :func:`~diacc.envs.reward.team_reward` of the envs' reward terms at the
+    softmin temperature ``tau`` (:func:`~diacc.envs.reward.temperature` of the
+    update); each ended episode's ``return`` sums them (an episode never spans
+    two rollouts: every rollout starts from a reset). Returns the filled
+    rollout, V(s_S) for bootstrapping (E,), and stats.
     """
     t0, cpu0 = time.perf_counter(), time.thread_time()
     if sync:
@@ -201,6 +210,7 @@ def collect_rollout(
     h_critic = torch.zeros(E, H_c, device=device)  # (E, H)
     start = np.ones(E, bool)
     slot_start = np.zeros((E, C), bool)  # (E, C) new CAV in the slot since the last action
+    episode_return = np.zeros(E)  # (E,) team rewards of each env's current episode so far
     stats = RolloutStats([], np.zeros(len(RULE_NAMES) - 1, np.int64), 0, 0, {}, 0.0)
     for t in range(cfg.rollout_steps):
         roll.actor_obs[t], roll.critic_state[t] = actor_obs, critic_state
@@ -230,11 +240,15 @@ def collect_rollout(
             roll.actions[t] = out.refined_action
             executed = torch.as_tensor(out.refined_action, device=device).view(-1)
             roll.logprobs[t] = dist.log_prob(executed).view(E, C).cpu().numpy()
+        team = team_reward(
+            out.ego, out.alive, out.global_reward, out.completion, out.delay, tau, cfg.env.reward
+        )
         roll.rewards[t], roll.terminated[t], roll.truncated[t] = (
-            out.reward,
+            team.total,
             out.terminated,
             out.truncated,
         )
+        episode_return += team.total
         for e in np.flatnonzero(out.truncated):  # bootstrap from where the episode was cut
             final_actor = out.final_actor_obs[e]
             if final_actor is None:  # a simulator crash: the CAVs' last features are gone
@@ -248,14 +262,24 @@ def collect_rollout(
                     torch.zeros(1, dtype=torch.bool, device=device),
                 )
             roll.final_values[t, e] = value_norm.denormalize(v_final).cpu().numpy()[0]
-        stats.episodes += out.episodes
+        stats.episodes += [
+            {"return": float(episode_return[e]), **ep} for e, ep in out.episodes.items()
+        ]
         stats.psar_counts += rule_counts(out.psar_rule_mask[roll.alive[t]])
         stats.decisions += int(roll.alive[t].sum())
         stats.restarts += out.restarts
-        for key, values in out.reward_terms.items():
-            stats.reward_terms.setdefault(key, []).append(float(values.mean()))
+        reported = ~out.restarted  # envs whose simulator did not crash in this step
+        if reported.any():
+            terms = {
+                "ego_softmin": team.ego_softmin[reported],
+                **out.reward_terms,
+                "tau": np.full(int(reported.sum()), tau),
+            }
+            for key, values in terms.items():
+                stats.reward_terms.setdefault(key, []).append(float(values.mean()))
         actor_obs, critic_state = out.actor_obs, out.critic_state
         start = out.terminated | out.truncated
+        episode_return[start] = 0.0
         slot_start = out.slot_start
     with torch.no_grad():
         next_value, _ = critic(
@@ -709,8 +733,7 @@ def _train_loop(
                         group["lr"] = cfg.lr * (1.0 - update / n_updates)
                 tau = temperature(global_step, cfg.total_steps, cfg.env.reward)
                 if collected is None:
-                    envs.set_temperature(tau)
-                    collected = collect_rollout(agent, envs, cfg, update)
+                    collected = collect_rollout(agent, envs, cfg, update, tau)
                 roll, next_value, rollout = collected
                 if rollout.restarts:
                     log.warning(
@@ -855,8 +878,7 @@ def _learn_beside_rollout(
     learner = threading.Thread(target=run_update, name="diacc-learner")
     learner.start()
     try:
-        envs.set_temperature(next_tau)
-        collected = collect_rollout(agent, envs, cfg, update + 1, sync=False)
+        collected = collect_rollout(agent, envs, cfg, update + 1, next_tau, sync=False)
     finally:
         learner.join()
     if "error" in result:
@@ -894,12 +916,14 @@ def progress_record(stats: UpdateStats, update_s: float) -> dict:
     and environment; ``global_reward`` is its part r_g; ``reward/*`` are the
     other parts (``ego_softmin``, ``individual``, ``completion``, ``warning``:
     the mean warning term of the CAVs on the road, ``delay``: the delay term
-    before its weight, ``tau``);
+    before its weight, ``tau``; ``ego_softmin`` and ``tau`` come from the
+    learner's aggregation, :func:`collect_rollout`, the others from the envs);
     ``individual`` is the mean ego reward r_e over the CAVs on the road, what
     the training curves' individual-reward panel plots (``ego_softmin``, its
     softmin-weighted sum, falls as tau anneals whatever the policy does);
     ``psar/*`` the share of CAV decisions on which each rule took effect;
-    ``episode/*`` means over the episodes that ended in the rollout.
+    ``episode/*`` means over the episodes that ended in the rollout
+    (``episode/return``: the sum of an episode's team rewards R).
     """
     roll, rollout = stats.roll, stats.rollout
     record = {

@@ -157,7 +157,7 @@ def profile(
     agent = mappo.make_agent(cfg, torch.device("cpu"))
     envs = mappo.make_vector_env(cfg.env, n_envs, cfg.seed, cfg.vector)
     try:
-        roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0)
+        roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
         n_cavs = envs.n_cavs
     finally:
         envs.close()
