@@ -72,7 +72,7 @@ def test_checkpoint_keeps_the_psar_horizon_it_was_trained_with(path):
 def test_checkpoint_keeps_the_full_brake_rule_of_its_time(path):
     """PSAR's full_brake became "threat" (2026-12-03), then "known" (later that day); the
     agents trained before kept "bound", which their stored config lacks and loading must
-    keep (the file name says "threat" of those trained with it, stored)."""
+    keep (the file name says "threat" or "known" of those trained with it, stored)."""
     import torch
 
     stored = torch.load(path, map_location="cpu", weights_only=True)["config"]
@@ -80,7 +80,8 @@ def test_checkpoint_keeps_the_full_brake_rule_of_its_time(path):
     policy = build_policy(PolicySpec(str(path), "diacc"))
     cell = Cell("train-50", 25, 0.4, "D1")
     kept = stored["env"]["psar"].get("full_brake", "bound")
-    assert kept == ("threat" if "-threat-" in path.name else "bound")
+    named = [rule for rule in ("threat", "known") if f"-{rule}-" in path.name]
+    assert kept == (named[0] if named else "bound")
     assert policy.env_config(cell, EvalSettings()).psar.full_brake == kept
     asked = EvalSettings(psar_full_brake="known")
     assert policy.env_config(cell, asked).psar.full_brake == "known"
