@@ -84,13 +84,15 @@ def test_batched_api_shapes_and_reward(backend):
         assert actor.self_state.shape[0] == env.n_cavs == 10
         assert critic.nodes.shape == (40, actor.ego_hist.shape[-1])
         out = env.step_arrays(np.zeros(env.n_cavs, np.int64))
-        assert np.isfinite(out.reward) and out.alive.shape == (10,) and out.ego.shape == (10,)
+        assert (
+            np.isfinite(env.reward_of(out)) and out.alive.shape == (10,) and out.ego.shape == (10,)
+        )
         assert set(out.reward_terms) >= {"global", "completion", "individual", "delay"}
         # The temperature's parts are the trainer's (diacc.learn.mappo), not the env's.
         assert not {"ego_softmin", "tau"} & set(out.reward_terms)
         parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
         team = team_reward(*parts, env.temperature, env.config.reward)
-        assert out.reward == team.total and env.temperature == env.config.reward.tau_init
+        assert env.reward_of(out) == team.total and env.temperature == env.config.reward.tau_init
         np.testing.assert_array_equal(out.actor_obs.action_memory[:, 0], 0)
     finally:
         env.close()
@@ -106,7 +108,7 @@ def test_same_seed_same_episode():
         rewards = []
         for a in actions:
             out = env.step_arrays(a)
-            rewards.append(out.reward)
+            rewards.append(env.reward_of(out))
             if out.terminated or out.truncated:
                 break
         runs.append((rewards, out.state.x_m.copy()))
@@ -125,11 +127,12 @@ def test_pettingzoo_rewards_use_the_envs_own_temperature():
         for tau in (env.config.reward.tau_init, 0.05):
             env.temperature = tau
             env.reset_arrays(seed=4)
-            runs[tau] = [env.step_arrays(a) for a in actions]
+            steps = [env.step_arrays(a) for a in actions]
+            runs[tau] = (steps, [env.reward_of(out) for out in steps])
     finally:
         env.close()
-    hot, cold = runs.values()
+    (hot, hot_rewards), (cold, cold_rewards) = runs.values()
     for a, b in zip(hot, cold, strict=True):
         np.testing.assert_array_equal(a.ego, b.ego)  # the terms need no temperature
         assert (a.global_reward, a.completion, a.delay) == (b.global_reward, b.completion, b.delay)
-    assert [a.reward for a in hot] != [b.reward for b in cold]
+    assert hot_rewards != cold_rewards

@@ -19,11 +19,12 @@ order of their vehicle indices. Each step:
 (:func:`~diacc.envs.reward.reward_terms`: each CAV's ego reward, the global,
 completion and delay terms) need no temperature and are what
 :class:`StepResult` carries for a trainer. The team reward
-``StepResult.reward`` (and the PettingZoo ``rewards``) aggregates them with
+:meth:`BottleneckEnv.reward_of` (the PettingZoo ``rewards``) aggregates them with
 :func:`~diacc.envs.reward.team_reward` at the env's own softmin temperature
 :attr:`BottleneckEnv.temperature`, ``tau_init`` unless set; the env never
-anneals it. A trainer that anneals tau (:mod:`diacc.learn.mappo`) ignores
-``reward`` and makes the team reward from the terms at its own temperature.
+anneals it. A trainer that anneals tau (:mod:`diacc.learn.mappo`) makes the
+team reward from the terms at its own temperature, so a training step never
+computes the env's.
 
 The episode terminates on a collision or when every vehicle has left, and is
 truncated at ``episode_steps``. A CAV that has left the route is done and is
@@ -181,7 +182,6 @@ class StepResult:
 
     actor_obs: ActorObs
     critic_state: CriticState
-    reward: float  # team reward R_t (paper eq. reward_all) at BottleneckEnv.temperature
     terminated: bool
     truncated: bool
     alive: np.ndarray  # (C,) bool: CAV on the road after the step (the reward's mask)
@@ -244,7 +244,7 @@ class BottleneckEnv(ParallelEnv):
         self.n_cavs = self.config.scenario.n_slots  # C agent slots
         self.possible_agents = [f"cav_{k}" for k in range(self.config.scenario.n_cavs)]
         self.agents: list[str] = []
-        #: Softmin temperature of :attr:`StepResult.reward` (module docstring): fixed,
+        #: Softmin temperature of :meth:`reward_of` (module docstring): fixed,
         #: ``tau_init`` unless set; a trainer that anneals tau makes its own team reward.
         self.temperature = self.config.reward.tau_init
         self.state_: TrafficState | None = None
@@ -347,24 +347,13 @@ class BottleneckEnv(ParallelEnv):
     ) -> StepResult:
         """The step's result, given the observations and the reward terms of the state
         :meth:`enter` entered (which :meth:`ObservationBuilder.observe_batch` and
-        :func:`~diacc.envs.reward.reward_terms` compute for many envs at once); the
-        team reward is taken at :attr:`temperature`."""
-        team = team_reward(
-            terms.ego,
-            terms.alive,
-            terms.global_reward,
-            terms.completion,
-            terms.delay,
-            self.temperature,
-            self.config.reward,
-        )
+        :func:`~diacc.envs.reward.reward_terms` compute for many envs at once)."""
         # Every vehicle gone: none on the road and none still to enter (demand).
         terminated = bool(len(state.collisions) > 0 or state.arrived.all())
         truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
         return StepResult(
             actor_obs=actor_obs,
             critic_state=critic_state,
-            reward=team.total,
             terminated=terminated,
             truncated=truncated,
             alive=state.active[self.cav_index].copy(),
@@ -388,6 +377,11 @@ class BottleneckEnv(ParallelEnv):
             completion=terms.completion,
             delay=terms.delay,
         )
+
+    def reward_of(self, out: StepResult) -> float:
+        """Team reward R_t (paper eq. reward_all) of a step at :attr:`temperature`."""
+        parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
+        return float(team_reward(*parts, self.temperature, self.config.reward).total)
 
     def _observe(self) -> tuple[ActorObs, CriticState]:
         actor = self.builder.actor(self.cav_index, self.action_memory, self.last_refined)
@@ -446,10 +440,11 @@ class BottleneckEnv(ParallelEnv):
         index.update(self._agent_slots())
         joining = [] if ended else [a for a in self._live_agents(out.state) if a not in acting]
         observations, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
+        team = self.reward_of(out)
         for agent in acting + joining:
             i = index[agent]
             observations[agent] = self._agent_obs(out.actor_obs, i)
-            rewards[agent] = out.reward
+            rewards[agent] = team
             terms[agent] = out.terminated or not out.alive[i]
             truncs[agent] = out.truncated
             infos[agent] = {
