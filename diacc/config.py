@@ -615,9 +615,11 @@ class TrainConfig:
     # "team": one value per env, all CAVs share the advantage (paper); "per_agent":
     # a value per CAV slot from its own features beside the global state (docs)
     critic_values: str = one_of("team", ("team", "per_agent"))
-    # maps trained on beside env.map: the envs are split into one contiguous block per
-    # map (diacc.envs.vector.maps_of_envs), so one policy learns several road layouts
-    # (--set extra_maps=train-25,right-50.toml); () trains on env.map alone
+    # maps trained on beside env.map: the envs are split into one near-equal share per
+    # listed map (diacc.envs.vector.maps_of_envs), so one policy learns several road
+    # layouts (--set extra_maps=train-25,right-50.toml); a map listed again gets another
+    # share (extra_maps=train-50,train-25 with env.map train-50: 2/3 of the envs on it);
+    # () trains on env.map alone
     extra_maps: tuple[str, ...] = ()
     run_dir: str = "runs/diacc"
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -858,8 +860,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"{cfg.env.sim.episode_steps}, so that rollouts hold whole episodes"
         )
     maps = (cfg.env.map, *cfg.extra_maps)
-    if len(set(maps)) < len(maps):
-        raise ConfigError(f"extra_maps repeats a map: {', '.join(maps)}")
     if len(maps) > cfg.n_envs:
         raise ConfigError(
             f"{len(maps)} training maps ({', '.join(maps)}) need at least as many envs, "

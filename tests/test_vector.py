@@ -112,6 +112,9 @@ def test_batched_simulator_matches_envs_stepped_alone(map_name, n_vehicles, use_
 def test_maps_of_envs_are_contiguous_blocks():
     assert maps_of_envs(("a",), 3) == ["a", "a", "a"]
     assert maps_of_envs(("a", "b"), 5) == ["a", "a", "a", "b", "b"]
+    # A repeated map: another share, still one contiguous block per map.
+    assert maps_of_envs(("a", "b", "a"), 6) == ["a", "a", "a", "a", "b", "b"]
+    assert maps_of_envs(("a", "a", "a", "b"), 8) == ["a"] * 6 + ["b"] * 2
     with pytest.raises(ValueError, match="2 maps need at least as many envs"):
         maps_of_envs(("a", "b"), 1)
 

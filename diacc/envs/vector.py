@@ -63,15 +63,21 @@ MAX_RESTARTS = 3
 
 
 def maps_of_envs(maps: tuple[str, ...], n_envs: int) -> list[str]:
-    """The map of each of ``n_envs`` environments: ``maps`` in contiguous, near-equal blocks.
+    """The map of each of ``n_envs`` environments: one near-equal share per entry of ``maps``.
 
-    Blocks (not round-robin) keep a batched group's environments next to each other,
-    so that the groups' steps concatenate in environment order.
+    A map listed k times gets k shares (``("train-50", "train-50", "train-25")`` puts
+    two thirds of the environments on ``train-50``). Each map's environments form one
+    contiguous block, in order of first appearance, so that a batched group's
+    environments are next to each other and the groups' steps concatenate in
+    environment order.
     """
     if len(maps) > n_envs:
         raise ValueError(f"{len(maps)} maps need at least as many envs, got {n_envs}")
-    blocks = np.array_split(np.arange(n_envs), len(maps))
-    return [maps[m] for m, block in enumerate(blocks) for _ in block]
+    shares = np.array_split(np.arange(n_envs), len(maps))  # near-equal, one per entry
+    counts = dict.fromkeys(maps, 0)
+    for road_map, share in zip(maps, shares, strict=True):
+        counts[road_map] += len(share)
+    return [road_map for road_map, count in counts.items() for _ in range(count)]
 
 
 def episode_seed(run_seed: int, env_index: int, episode: int) -> int:
