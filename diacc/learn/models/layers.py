@@ -76,6 +76,9 @@ def embed_all(embed: torch.nn.Module, nodes: Tensor, mask: Tensor) -> Tensor:
     """:func:`embed_present` without data-dependent shapes: embed every slot, zero the padding.
 
     Same values and gradients (up to float rounding of differently sized
-    matrix products); more arithmetic, but one static graph for the compiler.
+    matrix products); more arithmetic, but one static graph for the compiler. The
+    padding is zeroed before the embedding too: a NaN there would reach the weight
+    gradients (0 x NaN) even though ``where`` drops it from the output.
     """
-    return torch.where(mask[..., None], embed(nodes), 0.0)  # (M, K, E)
+    present = mask[..., None]  # (M, K, 1)
+    return torch.where(present, embed(nodes.masked_fill(~present, 0.0)), 0.0)  # (M, K, E)

@@ -77,12 +77,9 @@ class TAIE(Encoder):
         """Encode a flat batch; with ``return_attention`` also the GAT weights of both graphs."""
         ego_hist = obs["ego_hist"].flatten(-2)  # (M, T*F)
         hdv_mask, cav_mask = obs["hdv_mask"], obs["cav_mask"]  # (M, K)
-        hdv_hist = (
-            obs["hdv_nodes"].flatten(-2).masked_fill(~hdv_mask[..., None], 0.0)
-        )  # (M, K, T*F)
-        cav_hist = (
-            obs["cav_nodes"].flatten(-2).masked_fill(~cav_mask[..., None], 0.0)
-        )  # (M, K, T*F)
+        # Padded slots are never embedded (embed_present), so they need no zeroing here.
+        hdv_hist = obs["hdv_nodes"].flatten(-2)  # (M, K, T*F)
+        cav_hist = obs["cav_nodes"].flatten(-2)  # (M, K, T*F)
         cav_action = torch.where(cav_mask, obs["cav_prev_action"], 0)  # (M, K)
         ego_action = obs["action_memory"][..., 1]  # (M,) refined previous action
 
