@@ -97,6 +97,10 @@ def test_embed_all_matches_embed_present_with_gradients():
     assert torch.equal(outs[1][~mask], torch.zeros_like(outs[1][~mask]))
     torch.testing.assert_close(outs[0], outs[1], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-6)
+    # NaN padding reaches neither output nor weight gradients (0 x NaN would).
+    embed.zero_grad()
+    embed_all(embed, nodes.masked_fill(~mask[..., None], float("nan")), mask).sum().backward()
+    assert all(torch.isfinite(p.grad).all() for p in embed.parameters())
 
 
 def _chunk_inputs(make_obs, net, rng, spec: ObservationSpec, rows: int):
@@ -281,3 +285,13 @@ def test_training_bench_rows_and_core_shares(tmp_path):
     row = training.measure("diacc", "highway", 2, 2, "cpu", rollout_steps=10, options=tiny)
     assert row["steps_per_s"] > 0 and 0 < row["core1"][1] <= 1.5
     assert row["idle_steps_per_s"] > 0 and row["learner_cpu_s"] > 0
+
+
+def test_training_bench_names_an_unknown_row(capsys):
+    from diacc.experiments.bench import training
+
+    with pytest.raises(ValueError, match="no such row"):
+        training.run("cpu", (2,), updates=2, labels=("small learner", "nope"))
+    with pytest.raises(SystemExit):
+        training.main(["--rows", "small learner,nope"])
+    assert "--rows: no such row(s): nope" in capsys.readouterr().err

@@ -249,17 +249,25 @@ def run(
     with_compile: bool = True,
     vector_only: bool = False,
     only: str = "all",
+    labels: tuple[str, ...] = (),
 ) -> list[dict]:
     """Measure every configuration (:func:`configurations`) per env count; print one table.
 
+    ``labels``: only the rows whose label is one of these (all by default).
     Returns the rows of :func:`measure` with ``label`` and ``busy`` added.
     """
+    chosen = configurations(device, with_compile, vector_only, only)
+    unknown = set(labels) - {label for label, _, _ in chosen}
+    if unknown:
+        raise ValueError(f"no such row(s): {', '.join(sorted(unknown))}")
     if updates < 2:
         raise ValueError(f"updates must be >= 2 (the first one is not timed), got {updates}")
     load_before = os.getloadavg()
     rows = []
     for n_envs in envs:
-        for label, options, busy in configurations(device, with_compile, vector_only, only):
+        for label, options, busy in chosen:
+            if labels and label not in labels:
+                continue
             with competing_process() if busy else _nothing():
                 row = measure(
                     variant, backend, n_envs, updates, device, rollout_steps, "auto", options
@@ -362,6 +370,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     p.add_argument("--only", choices=GROUPS, default="all", help="rows of one group only")
     p.add_argument(
+        "--rows",
+        default="",
+        help="comma-separated row labels: only these (e.g. 'small learner,small learner + "
+        "overlap')",
+    )
+    p.add_argument(
         "--profile",
         action="store_true",
         help="per-module profile of one PPO update instead "
@@ -377,6 +391,10 @@ def main(argv: list[str] | None = None) -> None:
             ["--envs", str(args.envs[0]), "--rollout-steps", str(args.rollout_steps)]
         )
         return
+    rows = tuple(label.strip() for label in args.rows.split(",") if label.strip())
+    known = {label for label, _, _ in configurations(device, True, args.vector_only, args.only)}
+    if set(rows) - known:
+        p.error(f"--rows: no such row(s): {', '.join(sorted(set(rows) - known))}")
     run(
         device,
         tuple(args.envs),
@@ -387,6 +405,7 @@ def main(argv: list[str] | None = None) -> None:
         not args.no_compile,
         args.vector_only,
         args.only,
+        rows,
     )
 
 
