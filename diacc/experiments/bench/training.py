@@ -239,6 +239,16 @@ def configurations(
     return rows + [vector_rows[0]] + thread_rows
 
 
+def select_rows(
+    rows: list[tuple[str, dict, bool]], labels: tuple[str, ...]
+) -> list[tuple[str, dict, bool]]:
+    """The rows named in ``labels`` (all if none); ValueError naming any unknown label."""
+    unknown = set(labels) - {label for label, _, _ in rows}
+    if unknown:
+        raise ValueError(f"no such row(s): {', '.join(sorted(unknown))}")
+    return [row for row in rows if not labels or row[0] in labels]
+
+
 def run(
     device: str = "cpu",
     envs: tuple[int, ...] = (16,),
@@ -256,18 +266,13 @@ def run(
     ``labels``: only the rows whose label is one of these (all by default).
     Returns the rows of :func:`measure` with ``label`` and ``busy`` added.
     """
-    chosen = configurations(device, with_compile, vector_only, only)
-    unknown = set(labels) - {label for label, _, _ in chosen}
-    if unknown:
-        raise ValueError(f"no such row(s): {', '.join(sorted(unknown))}")
+    chosen = select_rows(configurations(device, with_compile, vector_only, only), labels)
     if updates < 2:
         raise ValueError(f"updates must be >= 2 (the first one is not timed), got {updates}")
     load_before = os.getloadavg()
     rows = []
     for n_envs in envs:
         for label, options, busy in chosen:
-            if labels and label not in labels:
-                continue
             with competing_process() if busy else _nothing():
                 row = measure(
                     variant, backend, n_envs, updates, device, rollout_steps, "auto", options
@@ -392,9 +397,10 @@ def main(argv: list[str] | None = None) -> None:
         )
         return
     rows = tuple(label.strip() for label in args.rows.split(",") if label.strip())
-    known = {label for label, _, _ in configurations(device, True, args.vector_only, args.only)}
-    if set(rows) - known:
-        p.error(f"--rows: no such row(s): {', '.join(sorted(set(rows) - known))}")
+    try:  # checked before the first row runs
+        select_rows(configurations(device, not args.no_compile, args.vector_only, args.only), rows)
+    except ValueError as exc:
+        p.error(f"--rows: {exc}")
     run(
         device,
         tuple(args.envs),
