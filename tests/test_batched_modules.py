@@ -88,16 +88,37 @@ def test_psar_reward_and_events_of_a_batch(episode):
 
 
 def test_observations_of_a_batch(episode):
-    _, _, _, builders, cav_index = episode
+    """One builder fed the batch's states gives each env's observations; so do a
+    subset of its rows, and a row restarted on a new episode."""
+    config, road, history, builders, cav_index = episode
     rng = np.random.default_rng(5)
     memory = rng.integers(0, 5, cav_index.shape + (2,))  # (E, C, 2)
     last = rng.integers(0, 5, (N_ENVS, N_VEHICLES))  # (E, V)
-    actor, critic = ObservationBuilder.observe_batch(builders, cav_index, memory, last)
-    for e, b in enumerate(builders):
-        for batch, single in (
-            (unstack(actor, e), b.actor(cav_index[e], memory[e], last[e])),
-            (unstack(critic, e), b.critic()),
-        ):
-            for f in fields(single):
-                a, c = getattr(single, f.name), getattr(batch, f.name)
-                assert a.dtype == c.dtype and np.array_equal(a, c), (e, f.name)
+    batched = ObservationBuilder(road, config.obs, config.sim.episode_steps)
+    batched.reset(TrafficState.stack(history[0]))
+    for states in history[1:]:
+        batched.push(TrafficState.stack(states))
+
+    def assert_rows_equal(actor, critic, rows, singles) -> None:
+        for k, (e, b) in enumerate(zip(rows, singles, strict=True)):
+            for got, single in (
+                (unstack(actor, k), b.actor(cav_index[e], memory[e], last[e])),
+                (unstack(critic, k), b.critic()),
+            ):
+                for f in fields(single):
+                    a, c = getattr(single, f.name), getattr(got, f.name)
+                    assert a.dtype == c.dtype and np.array_equal(a, c), (e, f.name)
+
+    actor, critic = batched.actor(cav_index, memory, last), batched.critic()
+    assert_rows_equal(actor, critic, range(N_ENVS), builders)
+    rows = np.array([0, 2])
+    actor, critic = batched.observe_rows(rows, cav_index[rows], memory[rows], last[rows])
+    assert_rows_equal(actor, critic, rows, [builders[0], builders[2]])
+    # Env 1 starts a new episode: its history is its first state again, the others keep theirs.
+    fresh = ObservationBuilder(road, config.obs, config.sim.episode_steps)
+    fresh.reset(history[0][0])
+    state = TrafficState.stack(history[-1])
+    state.set_env(1, history[0][0])
+    batched.reset_rows(np.array([1]), state)
+    actor, critic = batched.actor(cav_index, memory, last), batched.critic()
+    assert_rows_equal(actor, critic, range(N_ENVS), [builders[0], fresh, builders[2]])

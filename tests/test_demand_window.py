@@ -63,7 +63,7 @@ def episode(config: EnvConfig, seed: int = 4):
 def test_demand_critic_rows_hold_the_vehicles_on_the_road_first(short_map):
     """Each compact row is the full layout's row of its vehicle, neighbours renumbered."""
     env, steps = episode(env_config(short_map, DEMAND, max_vehicles=24))
-    assert env.builder.compact_critic
+    assert env.batch.builder.compact_critic
     n_veh = DEMAND.n_vehicles
     reference = ObservationBuilder(env.road, ObservationConfig(max_vehicles=n_veh), STEPS)
     on_road = []
@@ -100,7 +100,7 @@ def test_release_critic_layout_is_unchanged(short_map):
     """Row i is vehicle i for the whole episode; inactive rows zero and masked."""
     release = Scenario.with_cavs(12, 4)
     env, steps = episode(env_config(short_map, release, max_vehicles=40))
-    assert not env.builder.compact_critic
+    assert not env.batch.builder.compact_critic
     for state, critic in steps:
         np.testing.assert_array_equal(critic.node_mask[:12], state.active)
         assert not critic.node_mask[12:].any()

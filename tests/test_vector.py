@@ -13,9 +13,10 @@ from diacc.config import SimConfig
 from diacc.envs.env import EnvConfig
 from diacc.envs.vector import (
     BatchedVectorEnv,
-    MapGroupsVectorEnv,
     ProcessVectorEnv,
     SyncVectorEnv,
+    concat,
+    concat_steps,
     episode_seed,
     make_vector_env,
     maps_of_envs,
@@ -91,20 +92,25 @@ def test_batched_simulator_matches_envs_stepped_alone(map_name, n_vehicles, use_
         use_psar=use_psar,
     )
     n_envs, steps = 4, 80
-    alone, batched = SyncVectorEnv(config, n_envs, run_seed=7), BatchedVectorEnv(config, n_envs, 7)
+    alone = [SyncVectorEnv(config, n_envs, 7, env_indices=[e]) for e in range(n_envs)]
+    sync, batched = SyncVectorEnv(config, n_envs, run_seed=7), BatchedVectorEnv(config, n_envs, 7)
     try:
-        assert_same(alone.reset(first_episode=0), batched.reset(first_episode=0), "reset")
+        first = [env.reset(first_episode=0) for env in alone]
+        first = tuple(concat([pair[i] for pair in first]) for i in range(2))
+        assert_same(first, batched.reset(first_episode=0), "reset")
+        assert_same(first, sync.reset(first_episode=0), "reset")
         rng = np.random.default_rng(1)
         ended = collided = 0
         for t in range(steps):
-            actions = rng.integers(0, 5, (n_envs, alone.n_cavs))
-            a, b = alone.step(actions), batched.step(actions)
-            assert_same(a, b, f"step {t}")
+            actions = rng.integers(0, 5, (n_envs, batched.n_cavs))
+            a = concat_steps([env.step(actions[e : e + 1]) for e, env in enumerate(alone)])
+            assert_same(a, batched.step(actions), f"step {t}")
+            assert_same(a, sync.step(actions), f"step {t}")
             ended += int((a.terminated | a.truncated).sum())
             collided += sum(e["collision"] for e in a.episodes.values())
     finally:
-        alone.close()
-        batched.close()
+        for env in (*alone, sync, batched):
+            env.close()
     # Resets were compared, and without PSAR's filter collisions too.
     assert ended >= 2 * n_envs and (use_psar or collided >= 1)
 
@@ -132,8 +138,9 @@ def test_envs_on_several_maps_match_per_env_envs_and_single_map_runs():
         m: SyncVectorEnv(dataclasses.replace(config, map=m), n_envs, 3)
         for m in ("train-50", "test-25")
     }
-    assert isinstance(grouped, MapGroupsVectorEnv)
-    assert [r.env.road.name for r in grouped.runners] == ["train-50", "train-50", "test-25"]
+    assert isinstance(grouped, BatchedVectorEnv)
+    roads = [batch.road.name for batch, members in grouped.groups for _ in members]
+    assert roads == ["train-50", "train-50", "test-25"]
     try:
         assert_same(grouped.reset(first_episode=0), alone.reset(first_episode=0), "reset")
         for env in singles.values():
@@ -198,7 +205,7 @@ def test_sumo_crash_inside_a_rollout_is_a_truncation():
     try:
         envs.reset()
         before = envs.step(np.zeros((1, envs.n_cavs), np.int64))
-        os.kill(envs.runners[0].env.backend.worker_pid, signal.SIGKILL)
+        os.kill(envs.groups[0][0].sims.backends[0].worker_pid, signal.SIGKILL)
         out = envs.step(np.zeros((1, envs.n_cavs), np.int64))
         assert out.restarts == 1
         assert out.truncated[0] and not out.terminated[0] and out.restarted[0]
@@ -209,6 +216,29 @@ def test_sumo_crash_inside_a_rollout_is_a_truncation():
         assert out.restarts == 0
     finally:
         envs.close()
+
+
+def test_a_crashed_simulator_cuts_only_its_own_env():
+    """Two SUMO envs stepped as one batch: the one whose simulator dies is cut and
+    restarted, the other steps on as if alone."""
+    config = EnvConfig(backend="sumo", scenario=CONFIG.scenario)
+    envs, alone = SyncVectorEnv(config, 2, run_seed=3), SyncVectorEnv(config, 2, 3, [0])
+    actions = np.zeros((2, envs.n_cavs), np.int64)
+    try:
+        envs.reset()
+        alone.reset()
+        envs.step(actions)
+        alone.step(actions[:1])
+        os.kill(envs.groups[0][0].sims.backends[1].worker_pid, signal.SIGKILL)
+        out, one = envs.step(actions), alone.step(actions[:1])
+        assert out.restarts == 1 and out.restarted.tolist() == [False, True]
+        assert out.truncated[1] and not out.alive[1].any() and 1 not in out.episodes
+        np.testing.assert_array_equal(out.actor_obs.self_state[0], one.actor_obs.self_state[0])
+        assert out.global_reward[0] == one.global_reward[0]
+        assert len(out.reward_terms["global"]) == 1  # the cut env's step logged nothing
+    finally:
+        envs.close()
+        alone.close()
 
 
 def test_env_batch_bench_reports_both_paths():

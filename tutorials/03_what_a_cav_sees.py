@@ -90,7 +90,7 @@ print(f"{env.possible_agents[c]} is vehicle {ego}: {n_hdv[c]} HDV and {n_cav[c]}
 print(f"  x = {state.x_m[ego]:.1f} m, lane {state.lane[ego]}, speed {state.speed_mps[ego]:.1f} m/s")
 
 # The builder's own neighbour table (V, K) agrees with the two actor graphs.
-nbr, nbr_mask = env.builder.neighbours  # (V, K) each
+nbr, nbr_mask = env.neighbours  # (V, K) each
 print("  its neighbours (vehicle indices):", sorted(nbr[ego][nbr_mask[ego]].tolist()))
 
 # %% [markdown]

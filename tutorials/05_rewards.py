@@ -126,8 +126,9 @@ print("wrote", softmin_png)
 # `team_reward(ego, alive, global_reward, completion, delay, tau, cfg)` makes the
 # team reward of them at a temperature. We drive the CAVs with random actions
 # (what an untrained actor does) for up to 30 steps, then score the last state
-# at the start and at the end of the schedule. Random driving soon ends in a collision, even behind PSAR (see
-# the end of tutorial 4): the CAVs involved get the collision penalty
+# at the start and at the end of the schedule. Random driving soon ends in a
+# collision, even behind PSAR (see the end of tutorial 4): the CAVs involved get
+# the collision penalty
 # `p_ec = -10`, and at a low temperature that one CAV is nearly all of the
 # team's ego reward. This is exactly the pressure the softmin is meant to
 # create: no CAV can profit while another one crashes or is stuck.

@@ -203,7 +203,7 @@ def _bench_parser(sub) -> None:
     p.add_argument(
         "--env-batch",
         action="store_true",
-        help="env stepping per core: E envs one after another vs one batched call (highway)",
+        help="env stepping per core: E envs on own simulators vs one batched simulator (highway)",
     )
     p.add_argument(
         "--safety",

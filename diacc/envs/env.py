@@ -47,11 +47,10 @@ PettingZoo names agents by CAV, not slot: ``possible_agents`` are
 ``agents`` are those on the road and in a slot now.
 
 Two APIs share the same code path: the PettingZoo dict API (``reset`` /
-``step``) for users and API tests, and the batched API (:meth:`reset_arrays` /
-:meth:`step_arrays`) that the trainer uses to avoid per-agent dicts. A step is
-:meth:`decide` (steps 1-3), the backend's step, then :meth:`advance` (step 4):
-a vector of envs over one batched backend (:mod:`diacc.envs.vector`) calls the two
-halves around a single batched backend step.
+``step``) for users and API tests, and the array API (:meth:`reset_arrays` /
+:meth:`step_arrays`) without per-agent dicts. Both adapt the one step function
+of :mod:`diacc.envs.batch` with a batch of one env; the vector envs of training
+(:mod:`diacc.envs.vector`) adapt the same function with many.
 """
 
 from __future__ import annotations
@@ -63,26 +62,26 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from diacc.config import EnvConfig, preset_road
-from diacc.envs.action_mask import with_action_mask
-from diacc.envs.actions import (
-    ACTION_LANE_OFFSET,
-    ACTION_NAMES,
-    REMAIN,
-    action_speed_change_mps,
-    lane_change_allowed,
-)
-from diacc.envs.lateral_frame import is_mirrored, mirror_actions
+from diacc.envs.actions import ACTION_NAMES
+from diacc.envs.batch import EnvBatch, Simulators, Transition, decide
 from diacc.envs.metrics import EpisodeRecorder
-from diacc.envs.observation import ActorObs, CriticState, ObservationBuilder
-from diacc.envs.psar import PSARResult, psar
-from diacc.envs.reward import RewardTerms, reward_terms, team_reward
+from diacc.envs.observation import ActorObs, CriticState, unstack
+from diacc.envs.psar import PSARResult
+from diacc.envs.reward import team_reward
 from diacc.envs.spaces import agent_observation, check_format, observation_space, state_space
 from diacc.errors import DiaccError
-from diacc.sim.backends.base import Backend, CavCommands, make_backend
+from diacc.sim.backends.base import Backend, make_backend
 from diacc.sim.maps import Map, load_map
-from diacc.sim.state import TrafficState, take
+from diacc.sim.state import TrafficState
 
-__all__ = ["ACTION_NAMES", "BottleneckEnv", "EnvConfig", "RenderModeError", "StepResult"]
+__all__ = [
+    "ACTION_NAMES",
+    "BottleneckEnv",
+    "EnvConfig",
+    "RenderModeError",
+    "StepResult",
+    "decide",
+]
 
 #: The episode-end metrics every agent's ``infos`` carries on the last step (see
 #: :meth:`BottleneckEnv.step`), a subset of :class:`diacc.envs.metrics.EpisodeMetrics`.
@@ -100,80 +99,18 @@ INFO_METRICS = (
 )
 
 
+def _env_zero(name: str, doc: str, convert=None) -> property:
+    """A read-only property: env 0's row of ``EpisodeState`` field ``name`` (diacc.envs.batch)."""
+
+    def get(env: BottleneckEnv):
+        value = getattr(env.batch.state, name)[0]
+        return value if convert is None else convert(value)
+
+    return property(get, doc=doc)
+
+
 class RenderModeError(DiaccError, ValueError):
     """A render mode this environment cannot honour here; one line."""
-
-
-@dataclass
-class Decision:
-    """What :func:`decide` made of the proposed actions (C = CAV slots; (E, ...) in a batch)."""
-
-    proposed: np.ndarray  # (C,) int64 actor's actions
-    refined: np.ndarray  # (C,) int64 actions to execute
-    rule: np.ndarray  # (C,) int8 last PSAR rule that took effect (0 none)
-    rule_mask: np.ndarray  # (C,) int8 bitmask of the rules that took effect
-    psar: PSARResult | None  # full PSAR result (None when PSAR is off)
-    commands: CavCommands  # what the backend is asked to do, (V,) arrays
-
-    def env(self, e: int) -> Decision:
-        """Env ``e``'s decision out of a batch's."""
-        psar = None
-        if self.psar is not None:
-            psar = PSARResult(*(getattr(self.psar, f.name)[e] for f in fields(PSARResult)))
-        commands = CavCommands(self.commands.lane_change[e], self.commands.speed_change_mps[e])
-        return Decision(
-            self.proposed[e], self.refined[e], self.rule[e], self.rule_mask[e], psar, commands
-        )
-
-
-def decide(
-    state: TrafficState,
-    cav_index: np.ndarray,
-    actions: np.ndarray,
-    config: EnvConfig,
-    road: Map,
-) -> Decision:
-    """PSAR's refinement of the proposed actions and the backend commands they make.
-
-    Steps 1-3 of the module docstring, for one state with (C,) ``cav_index`` and
-    ``actions``, or for a batch of states with (E, C) ones (:mod:`diacc.sim.state`).
-    """
-    proposed = np.asarray(actions, dtype=np.int64).reshape(cav_index.shape)
-    # The agents act in their lateral frame (diacc.envs.lateral_frame), PSAR and the backend
-    # in the world's: ``world`` is what the agents asked for, in the world's frame.
-    mirrored = is_mirrored(road, config.obs.lateral_frame)
-    world = mirror_actions(proposed) if mirrored else proposed
-    alive = take(state.active, cav_index)  # (..., C)
-    no_rule = np.zeros(cav_index.shape, np.int8)
-    sim = config.sim
-    if config.use_psar:
-        result = psar(state, cav_index, world, config.psar, road, sim)
-        executed = np.where(alive, result.action, REMAIN)
-        rule = np.where(alive, result.rule, 0).astype(np.int8)
-        rule_mask = np.where(alive, result.rule_mask, 0).astype(np.int8)
-        speed_change_mps = np.where(alive, result.speed_change_mps, 0.0)
-    else:
-        # Without PSAR a lane change the road does not allow is still not made
-        # (the same rule as PSAR and the backends), so the executed action is honest.
-        allowed = lane_change_allowed(state, cav_index, world, road, sim)
-        is_lc = ACTION_LANE_OFFSET[world] != 0
-        result, executed = None, np.where(alive & (allowed | ~is_lc), world, REMAIN)
-        rule, rule_mask = no_rule, no_rule
-        speed_change_mps = action_speed_change_mps(executed, sim.speed_change_mps)
-    lane_change = np.zeros(state.x_m.shape, np.int8)  # (..., V)
-    speed_change = np.zeros(state.x_m.shape, np.float64)
-    # Added, not put: empty slots may share a vehicle (not on the road) and add 0 there.
-    where = (*np.indices(cav_index.shape)[:-1], cav_index)
-    np.add.at(lane_change, where, ACTION_LANE_OFFSET[executed].astype(np.int8))
-    np.add.at(speed_change, where, speed_change_mps)
-    # CAVs on the road without a slot (demand: more than cav_slots at once) drive
-    # themselves: NaN is "no command" (diacc.sim.backends.base).
-    driven = np.zeros(state.x_m.shape, bool)  # (..., V)
-    np.logical_or.at(driven, where, alive)
-    speed_change[state.is_cav & state.active & ~driven] = np.nan
-    commands = CavCommands(lane_change, speed_change)
-    refined = mirror_actions(executed) if mirrored else executed  # back in the agents' frame
-    return Decision(proposed, refined, rule, rule_mask, result, commands)
 
 
 @dataclass
@@ -197,6 +134,29 @@ class StepResult:
     global_reward: float  # r_g
     completion: float  # r_done
     delay: float  # delay term before its weight
+
+    @classmethod
+    def of(cls, out: Transition, e: int) -> StepResult:
+        """Env ``e``'s part of a batch's transition."""
+        decision, terms = out.decision.env(e), out.terms.env(e)
+        return cls(
+            actor_obs=unstack(out.actor_obs, e),
+            critic_state=unstack(out.critic_state, e),
+            terminated=bool(out.terminated[e]),
+            truncated=bool(out.truncated[e]),
+            alive=out.alive[e],
+            refined_action=decision.refined,
+            psar_rule=decision.rule,
+            psar_rule_mask=decision.rule_mask,
+            psar=decision.psar,
+            state=out.state.env(e),
+            reward_terms=out.logged_terms(e),
+            slot_start=out.slot_start[e],
+            ego=terms.ego,
+            global_reward=terms.global_reward,
+            completion=terms.completion,
+            delay=terms.delay,
+        )
 
 
 class BottleneckEnv(ParallelEnv):
@@ -235,12 +195,8 @@ class BottleneckEnv(ParallelEnv):
             backend = make_backend(self.config.backend, road, self.config.sim)
         self.backend: Backend = backend
         self.road: Map = backend.road
-        self.builder = ObservationBuilder(
-            self.road,
-            self.config.obs,
-            self.config.sim.episode_steps,
-            compact_critic=self.config.scenario.kind == "demand",
-        )
+        #: The step function this env adapts: a batch of one (:mod:`diacc.envs.batch`).
+        self.batch = EnvBatch(self.config, Simulators([backend]))
         self.n_cavs = self.config.scenario.n_slots  # C agent slots
         self.possible_agents = [f"cav_{k}" for k in range(self.config.scenario.n_cavs)]
         self.agents: list[str] = []
@@ -253,7 +209,7 @@ class BottleneckEnv(ParallelEnv):
         self._recorder: EpisodeRecorder | None = None  # episode metrics of the dict API
         self._seed: int | None = None
         # Spaces are the same for every agent: built once, returned as the same object.
-        spec = self.builder.spec()
+        spec = self.batch.builder.spec()
         self._dict_space = observation_space(spec, "dict")
         self._observation_space = observation_space(spec, self.observation_format)
         self._action_space = gymnasium.spaces.Discrete(len(ACTION_NAMES))
@@ -265,46 +221,47 @@ class BottleneckEnv(ParallelEnv):
         if seed is None:
             seed = 0 if self._seed is None else self._seed + 1
         self._seed = seed
-        state = self.backend.reset(self.config.scenario, seed)
-        self.cav_ordinal = np.cumsum(state.is_cav) - 1  # (V,) k of the k-th CAV (agent cav_k)
-        self.slot_vehicle = np.full(self.n_cavs, -1, np.int64)  # (C,) occupant, -1 none
-        self._last_vehicle = np.full(self.n_cavs, -1, np.int64)  # (C,) latest occupant
-        self.action_memory = np.zeros((self.n_cavs, 2), np.int64)  # proposed, refined
-        self.last_refined = np.zeros(state.n_vehicles, np.int64)
-        self.steps = 0
-        self.state_ = state
-        self.builder.reset(state)
-        self.slot_start = self._fill_slots(state)
-        self.agents = self._live_agents(state)
+        self.batch.reset([0], [seed])
+        self.state_ = self.batch.state.traffic.env(0)
+        self.agents = self._live_agents(self.state_)
         self._recorder = None  # the dict API's reset() starts one; the batched API needs none
-        return self._observe()
+        actor, critic = self.batch.observe()
+        return unstack(actor, 0), unstack(critic, 0)
 
-    def _fill_slots(self, state: TrafficState) -> np.ndarray:
-        """Free the slots of CAVs gone before this step, give CAVs on the road without
-        a slot the free ones (module docstring); sets :attr:`cav_index`, returns the
-        (C,) refilled slots."""
-        occupant = self.slot_vehicle
-        held = np.maximum(occupant, 0)
-        stays = (occupant >= 0) & (state.active[held] | state.arrived_now[held])  # (C,)
-        waiting = np.flatnonzero(state.active & state.is_cav)  # in order of entry
-        waiting = waiting[~np.isin(waiting, occupant[stays])]
-        free = np.flatnonzero(~stays)
-        n_new = min(len(free), len(waiting))
-        occupant = np.where(stays, occupant, -1)
-        occupant[free[:n_new]] = waiting[:n_new]
-        refilled = np.zeros(self.n_cavs, bool)
-        refilled[free[:n_new]] = True
-        self.unserved_cavs = len(waiting) - n_new  # CAVs on the road without a slot
-        self.slot_vehicle = occupant
-        self._last_vehicle = np.where(occupant >= 0, occupant, self._last_vehicle)
-        # An empty slot points at its last occupant (gone for good) or, never used, at
-        # any vehicle off the road: one exists, since then some CAV is not on the road.
-        index = self._last_vehicle
-        if (index < 0).any():
-            index = np.where(index < 0, np.flatnonzero(~state.active)[0], index)
-        self.cav_index = index.copy()  # (C,) vehicle index of each slot
-        self.action_memory[refilled] = 0
-        return refilled
+    def step_arrays(self, actions: np.ndarray) -> StepResult:
+        """Advance one decision step with proposed actions (C,) for every CAV slot."""
+        assert self.state_ is not None, "call reset before step"
+        out = self.batch.step(np.asarray(actions)[None])
+        if out.crashed[0]:
+            raise self.batch.sims.errors[0]
+        result = StepResult.of(out, 0)
+        self.state_ = result.state
+        return result
+
+    # The episode's slots and memories: env 0 of the batch's EpisodeState (module
+    # docstring, "Agent slots").
+    cav_index = _env_zero(
+        "cav_index", "(C,) vehicle each agent slot points at (empty: one off the road)."
+    )
+    slot_vehicle = _env_zero("slot_vehicle", "(C,) occupant of each agent slot, -1 none.")
+    slot_start = _env_zero(
+        "slot_start", "(C,) bool: a new CAV took the slot at the last step or reset."
+    )
+    cav_ordinal = _env_zero("cav_ordinal", "(V,) k of the k-th CAV (PettingZoo agent ``cav_k``).")
+    action_memory = _env_zero(
+        "action_memory", "(C, 2) proposed and refined action of the last step."
+    )
+    last_refined = _env_zero("last_refined", "(V,) refined action each vehicle executed last.")
+    unserved_cavs = _env_zero(
+        "unserved_cavs", "CAVs on the road without a slot (they drive themselves).", int
+    )
+    steps = _env_zero("steps", "Decision steps of the episode so far.", int)
+
+    @property
+    def neighbours(self) -> tuple[np.ndarray, np.ndarray]:
+        """(V, K) neighbour indices and mask of the current state (the observations')."""
+        nbr, mask = self.batch.builder.neighbours
+        return nbr[0], mask[0]
 
     def _live_agents(self, state: TrafficState) -> list[str]:
         """PettingZoo names of the CAVs on the road that hold a slot."""
@@ -312,97 +269,14 @@ class BottleneckEnv(ParallelEnv):
         live = np.sort(live[state.active[live]])
         return [f"cav_{k}" for k in self.cav_ordinal[live]]
 
-    def step_arrays(self, actions: np.ndarray) -> StepResult:
-        """Advance one decision step with proposed actions (C,) for every CAV slot."""
-        decision = self.decide(actions)
-        return self.advance(decision, self.backend.step(decision.commands))
-
-    def decide(self, actions: np.ndarray) -> Decision:
-        """:func:`decide` for this env's current state and proposed actions (C,)."""
-        assert self.state_ is not None, "call reset before step"
-        return decide(self.state_, self.cav_index, actions, self.config, self.road)
-
-    def advance(self, decision: Decision, state: TrafficState) -> StepResult:
-        """Observations, reward and episode end once the backend has executed ``decision``."""
-        self.enter(decision, state)
-        terms = reward_terms(state, self.cav_index, self.road, self.config.reward)
-        return self.conclude(decision, state, *self._observe(), terms)
-
-    def enter(self, decision: Decision, state: TrafficState) -> None:
-        """Make ``state``, reached by executing ``decision``, the current one."""
-        self.steps += 1
-        self.state_ = state
-        self.builder.push(state)
-        self.action_memory = np.stack([decision.proposed, decision.refined], axis=1)
-        self.last_refined[self.cav_index] = decision.refined
-        self.slot_start = self._fill_slots(state)
-
-    def conclude(
-        self,
-        decision: Decision,
-        state: TrafficState,
-        actor_obs: ActorObs,
-        critic_state: CriticState,
-        terms: RewardTerms,
-    ) -> StepResult:
-        """The step's result, given the observations and the reward terms of the state
-        :meth:`enter` entered (which :meth:`ObservationBuilder.observe_batch` and
-        :func:`~diacc.envs.reward.reward_terms` compute for many envs at once)."""
-        # Every vehicle gone: none on the road and none still to enter (demand).
-        terminated = bool(len(state.collisions) > 0 or state.arrived.all())
-        truncated = bool(not terminated and self.steps >= self.config.sim.episode_steps)
-        return StepResult(
-            actor_obs=actor_obs,
-            critic_state=critic_state,
-            terminated=terminated,
-            truncated=truncated,
-            alive=state.active[self.cav_index].copy(),
-            refined_action=decision.refined,
-            psar_rule=decision.rule,
-            psar_rule_mask=decision.rule_mask,
-            psar=decision.psar,
-            state=state,
-            # The temperature's parts (ego_softmin, tau) are the trainer's to log.
-            reward_terms={
-                "individual": float(terms.ego[terms.alive].mean()) if terms.alive.any() else 0.0,
-                "global": terms.global_reward,
-                "completion": terms.completion,
-                # Logged so that a learning curve shows whether closeness fires.
-                "warning": float(terms.warning[terms.alive].mean()) if terms.alive.any() else 0.0,
-                "delay": terms.delay,
-            },
-            slot_start=self.slot_start.copy(),
-            ego=terms.ego,
-            global_reward=terms.global_reward,
-            completion=terms.completion,
-            delay=terms.delay,
-        )
-
     def reward_of(self, out: StepResult) -> float:
         """Team reward R_t (paper eq. reward_all) of a step at :attr:`temperature`."""
         parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
         return float(team_reward(*parts, self.temperature, self.config.reward).total)
 
-    def _observe(self) -> tuple[ActorObs, CriticState]:
-        actor = self.builder.actor(self.cav_index, self.action_memory, self.last_refined)
-        actor = with_action_mask(actor, self.state_, self.cav_index, self.config, self.road)
-        return actor, self.builder.critic()
-
     # ------------------------------------------------------------------ PettingZoo API
     def observation_space(self, agent: str) -> gymnasium.spaces.Space:
         """One agent's observation space (:mod:`diacc.envs.spaces`; no reset needed)."""
-        return self._observation_space
-        spec = self.builder.spec()
-        spaces = {}
-        for name, (shape, dtype) in spec.actor_shapes(n_cavs=1).items():
-            row = shape[1:]  # one agent's row
-            if dtype == np.dtype(bool):
-                spaces[name] = gymnasium.spaces.MultiBinary(row)
-            elif dtype == np.int64:  # action codes
-                spaces[name] = gymnasium.spaces.Box(0, spec.n_actions - 1, row, np.int64)
-            else:
-                spaces[name] = gymnasium.spaces.Box(-np.inf, np.inf, row, np.float32)
-        self._observation_space = gymnasium.spaces.Dict(spaces)
         return self._observation_space
 
     def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
@@ -465,7 +339,7 @@ class BottleneckEnv(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """Flattened critic state (PettingZoo convention for a centralised critic)."""
-        critic = self.builder.critic()
+        critic = unstack(self.batch.builder.critic(), 0)
         return np.concatenate(
             [np.asarray(getattr(critic, f.name), np.float32).ravel() for f in fields(critic)]
         )

@@ -44,7 +44,7 @@ class EpisodeDriver:
         self.state: TrafficState | None = None
         use_road = getattr(policy, "use_road", None)  # optional: policies that read the map
         if use_road is not None:  # the map as the agents see it (diacc.envs.lateral_frame)
-            use_road(self.env.builder.road)
+            use_road(self.env.batch.builder.road)
 
     def reset(self, seed: int) -> TrafficState:
         """Start the episode of ``seed`` (traffic and, for scripted policies, their draws)."""

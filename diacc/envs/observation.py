@@ -258,22 +258,21 @@ class _History:
 
     @classmethod
     def filled(cls, state: TrafficState, steps: int) -> _History:
-        def rep(a: np.ndarray) -> np.ndarray:
-            return np.repeat(a[None, :], steps, axis=0)  # (T, V)
-
+        """T copies of ``state`` (any leading env axes)."""
         return cls(
-            rep(state.x_m),
-            rep(state.y_m),
-            rep(state.speed_mps),
-            rep(state.heading_rad),
-            rep(state.active),
+            *(np.repeat(getattr(state, f.name)[..., None, :], steps, axis=-2) for f in fields(cls))
         )
+
+    def fill_rows(self, rows: np.ndarray, state: TrafficState) -> None:
+        """Envs ``rows`` of a batch history start afresh: T copies of their ``state`` rows."""
+        for f in fields(self):
+            getattr(self, f.name)[rows] = getattr(state, f.name)[rows, None, :]
 
     def push(self, state: TrafficState) -> None:
         for f in fields(self):
-            arr = getattr(self, f.name)  # (T, V)
-            arr[:-1] = arr[1:]
-            arr[-1] = getattr(state, f.name)
+            arr = getattr(self, f.name)  # (..., T, V)
+            arr[..., :-1, :] = arr[..., 1:, :]
+            arr[..., -1, :] = getattr(state, f.name)
 
 
 @dataclass
@@ -299,8 +298,11 @@ class ObservationBuilder:
     current (last pushed) state. Per-step work is vectorised over vehicles:
     one (V, V) distance table per step serves both the actor's and the
     critic's neighbour sets, which keeps the two consistent by construction.
-    :meth:`observe_batch` builds the observations of E environments' builders
-    in one call, with the same code and the same results.
+
+    The stream may be one env's states (V,) or a batch's (E, V): then every
+    array gains the leading env axis, :meth:`reset_rows` restarts single envs
+    and the results are those of E builders (the step of
+    :class:`diacc.envs.batch.EnvBatch`).
     """
 
     def __init__(
@@ -370,8 +372,19 @@ class ObservationBuilder:
         state = self._in_frame(state)
         self._frame = _Frame(state, _History.filled(state, self.cfg.history_steps))
 
+    def reset_rows(self, rows: np.ndarray, state: TrafficState) -> None:
+        """Envs ``rows`` of a batch start new episodes: ``state`` is the whole (E, V) batch
+        with those rows' first states; their histories are refilled, the others kept."""
+        if self._frame is None:
+            raise ObservationError("reset_rows() called before reset(); start the batch first")
+        self._check_state(state, expect_vehicles=self._frame.state.n_vehicles)
+        state = self._in_frame(state)
+        self._frame.hist.fill_rows(rows, state)
+        self._frame = _Frame(state, self._frame.hist)
+
     def push(self, state: TrafficState) -> None:
-        """Append the state of a new step; the oldest history entry drops out."""
+        """Append the state of a new step (one env's, or a batch's, :meth:`reset` with one);
+        the oldest history entry drops out."""
         if self._frame is None:
             raise ObservationError("push() called before reset(); start the episode first")
         self._check_state(state, expect_vehicles=self._frame.state.n_vehicles)
@@ -403,41 +416,26 @@ class ObservationBuilder:
         """
         return self._actor(self._require_frame(), cav_index, action_memory, last_refined_action)
 
+    def observe_rows(
+        self,
+        rows: np.ndarray,
+        cav_index: np.ndarray,
+        action_memory: np.ndarray,
+        last_refined_action: np.ndarray,
+    ) -> tuple[ActorObs, CriticState]:
+        """:meth:`actor` and :meth:`critic` of envs ``rows`` of a batch alone (e.g. those
+        that just started new episodes); the arguments hold those rows only."""
+        frame = self._current()
+        hist = _History(*(getattr(frame.hist, f.name)[rows] for f in fields(_History)))
+        part = frame.state.envs(rows)
+        sub = _Frame(part, hist)
+        sub.nbr, sub.nbr_mask = self._neighbours(part)
+        return self._actor(sub, cav_index, action_memory, last_refined_action), self._critic(sub)
+
     # ---- critic ------------------------------------------------------------
     def critic(self) -> CriticState:
         """Global state of the current step, padded to ``max_vehicles``."""
         return self._critic(self._require_frame())
-
-    # ---- batch -------------------------------------------------------------
-    @staticmethod
-    def observe_batch(
-        builders: list[ObservationBuilder],
-        cav_index: np.ndarray,
-        action_memory: np.ndarray,
-        last_refined_action: np.ndarray,
-        state: TrafficState | None = None,
-    ) -> tuple[ActorObs, CriticState]:
-        """:meth:`actor` and :meth:`critic` of E builders (same map and config) in one call.
-
-        Arguments are those of :meth:`actor` with a leading env axis: (E, C),
-        (E, C, 2), (E, V); the results have one too. ``state``: the builders'
-        current states as one batch, if the caller has it (else stacked here).
-        """
-        first, frames = builders[0], [b._current() for b in builders]
-        if state is None:
-            state = TrafficState.stack([f.state for f in frames])  # (E, V) arrays
-        elif first.mirrored:  # the caller's batch is in the world's frame
-            state = mirror_state(state, first.road)
-        nbr, nbr_mask = first._neighbours(state)  # (E, V, K): one search for all envs
-        for f, env_nbr, env_mask in zip(frames, nbr, nbr_mask, strict=True):
-            if f.nbr is None:  # each builder keeps its env's sets (critic(), neighbours)
-                f.nbr, f.nbr_mask = env_nbr, env_mask
-        hist = _History(
-            *(np.stack([getattr(f.hist, g.name) for f in frames]) for g in fields(_History))
-        )
-        frame = _Frame(state, hist, nbr, nbr_mask)
-        actor = first._actor(frame, cav_index, action_memory, last_refined_action)
-        return actor, first._critic(frame)
 
     # ---- internals -----------------------------------------------------------
     def _in_frame(self, state: TrafficState) -> TrafficState:
@@ -666,9 +664,10 @@ class ObservationBuilder:
         bad_lane = act & ((state.lane < 0) | (state.lane >= self.road.max_lanes))
         bad_seg = act & ((state.segment < 0) | (state.segment >= len(self.road.segments)))
         if bad_lane.any() or bad_seg.any():
-            i = int(np.flatnonzero(bad_lane | bad_seg)[0])
+            at = tuple(np.argwhere(bad_lane | bad_seg)[0])  # (i,) or, in a batch, (e, i)
             raise ObservationError(
-                f"vehicle {i} has lane {int(state.lane[i])} / segment {int(state.segment[i])}, "
+                f"vehicle {at[-1]} has lane {int(state.lane[at])} / segment "
+                f"{int(state.segment[at])}, "
                 f"outside map {self.road.name!r} ({self.road.max_lanes} lanes, "
                 f"{len(self.road.segments)} segments)"
             )

@@ -1,24 +1,24 @@
-"""Many environments stepped as one batch: in-process or in worker processes.
+"""Many environments stepped as one: in-process or in worker processes.
 
-All flavours run the same :class:`EnvRunner` per environment, which adds
-what the trainer needs around :class:`~diacc.envs.env.BottleneckEnv`: automatic
-reset with per-episode seeds derived from the run seed, the final critic
-state of each finished episode (to bootstrap truncated episodes), episode
-metrics, and recovery from a crashed simulator. A step reports the reward's
-terms that need no temperature (each CAV's ego reward, the global, completion
-and delay terms, :func:`~diacc.envs.reward.reward_terms`), not a team reward:
-the softmin temperature anneals over training and is the trainer's, which
-makes the team reward of them (:func:`~diacc.envs.reward.team_reward`,
+Every flavour adapts the one step function of :mod:`diacc.envs.batch`
+(:class:`~diacc.envs.batch.EnvBatch`, one per map) and adds what the trainer
+needs around it (:class:`VectorEnv`): automatic reset with per-episode seeds
+derived from the run seed, the final observations of each finished episode
+(to bootstrap truncated episodes), episode metrics, and recovery from a
+crashed simulator. A step reports the reward's terms that need no temperature
+(each CAV's ego reward, the global, completion and delay terms,
+:func:`~diacc.envs.reward.reward_terms`), not a team reward: the softmin
+temperature anneals over training and is the trainer's, which makes the team
+reward of them (:func:`~diacc.envs.reward.team_reward`,
 :func:`diacc.learn.mappo.collect_rollout`), and the episodes' returns.
 
-* :class:`SyncVectorEnv` steps environments one after another in this
-  process.
-* :class:`BatchedVectorEnv` (``highway`` only, its default) is the same with
-  one batched simulator for all environments: PSAR, observations and rewards
-  are still per environment, but the simulation of all E envs is one
-  :meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step_batch` call,
-  with the same results per env as E simulators
-  (``tests/test_vector.py``). Pipes would cost more than they save here.
+* :class:`SyncVectorEnv`: every env on its own simulator, stepped one after
+  another in this process (any backend).
+* :class:`BatchedVectorEnv` (``highway`` only, its default): each map's envs
+  are rows of one batched simulator
+  (:meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step_stacked`), with
+  the same results per env as E simulators (``tests/test_vector.py``). Pipes
+  would cost more than they save here.
 * :class:`ProcessVectorEnv` splits the environments into one group per
   worker process (``spawn`` start method; each SUMO environment still runs
   libsumo in a worker of its own), so groups step in parallel. A worker that
@@ -27,13 +27,14 @@ makes the team reward of them (:func:`~diacc.envs.reward.team_reward`,
   from the last state before the crash, and counted in ``restarts``) or
   resetting (e.g. after dying idle while the trainer updated: the new worker
   resets with the same seeds). A worker that keeps dying (:data:`MAX_RESTARTS`
-  in a row) ends the run with a one-line error.
+  in a row) ends the run with a one-line error. A simulator that fails inside
+  a step (:class:`~diacc.sim.backends.base.BackendError`) cuts its env's
+  episode the same way.
 
 A run may train on several maps (``TrainConfig.extra_maps``): the environments
-are split into contiguous blocks, one per map (:func:`maps_of_envs`); a batched
-run steps one :class:`BatchedVectorEnv` per map (a batch shares one road) inside
-a :class:`MapGroupsVectorEnv`. Observations have one layout for every map, so
-the trainer sees E environments as before.
+are split into contiguous blocks, one per map (:func:`maps_of_envs`), each
+block one batch (a batch shares one road). Observations have one layout for
+every map, so the trainer sees E environments as before.
 """
 
 from __future__ import annotations
@@ -41,21 +42,17 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import signal
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from diacc.config import preset_road
-from diacc.envs.action_mask import with_action_mask
-from diacc.envs.env import BottleneckEnv, EnvConfig, StepResult, decide
+from diacc.config import EnvConfig, preset_road
+from diacc.envs.batch import EnvBatch, Simulators, Transition
 from diacc.envs.metrics import EpisodeRecorder
-from diacc.envs.observation import ActorObs, CriticState, ObservationBuilder, stack, unstack
-from diacc.envs.reward import reward_terms
-from diacc.envs.safety import safety_critical_events
+from diacc.envs.observation import ActorObs, CriticState, unstack
 from diacc.runlog import join_parent_log, log
-from diacc.sim.backends.base import Backend, BackendError, backend_class
+from diacc.sim.backends.base import backend_class, make_backend
 from diacc.sim.maps import load_map
-from diacc.sim.state import TrafficState
 from diacc.threads import worker_environment
 
 #: Restarts of one worker in a row (within one call) before the vector env gives up.
@@ -87,31 +84,8 @@ def episode_seed(run_seed: int, env_index: int, episode: int) -> int:
 
 
 @dataclass
-class EnvStep:
-    """One environment's transition, after any automatic reset."""
-
-    actor_obs: ActorObs  # first observation of the next episode if the episode ended
-    critic_state: CriticState
-    ego: np.ndarray  # (C,) ego reward r_e of each CAV slot (0 off the road)
-    global_reward: float  # r_g
-    completion: float  # r_done
-    delay: float  # delay term before its weight
-    terminated: bool
-    truncated: bool
-    alive: np.ndarray  # (C,) bool: CAV on the road after the step (the reward's mask)
-    refined_action: np.ndarray  # (C,) int64
-    psar_rule_mask: np.ndarray  # (C,) int8 bitmask of PSAR rules that took effect
-    final_critic_state: CriticState | None  # state where the episode ended
-    episode: dict | None  # metrics of the episode that just ended
-    reward_terms: dict[str, float] | None = None  # logged parts of the step's reward
-    restarted: bool = False  # the simulator crashed: episode cut, no reward terms
-    final_actor_obs: ActorObs | None = None  # observations where the episode ended
-    slot_start: np.ndarray | None = None  # (C,) bool: a new CAV took the slot (None: none did)
-
-
-@dataclass
 class VectorStep:
-    """Stacked :class:`EnvStep` of E environments.
+    """One step of E environments, after the automatic resets.
 
     The team reward of the step is :func:`~diacc.envs.reward.team_reward` of
     ``ego``, ``alive``, ``global_reward``, ``completion`` and ``delay`` at the
@@ -138,147 +112,97 @@ class VectorStep:
     slot_start: np.ndarray  # (E, C) bool: a new CAV took the slot; its next action starts afresh
 
 
-class EnvRunner:
-    """One environment with auto-reset, seeding, metrics and crash recovery."""
-
-    def __init__(
-        self, config: EnvConfig, run_seed: int, env_index: int, backend: Backend | None = None
-    ) -> None:
-        """``backend``: the env's simulator (one env of a batch), by default its own."""
-        self.config, self.run_seed, self.env_index = config, run_seed, env_index
-        self.env = BottleneckEnv(config, backend=backend)
-        self.episode = 0
-
-    def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
-        """Start a new episode; ``first_episode`` restarts the episode (seed) counter."""
-        if first_episode is not None:
-            self.episode = first_episode
-        seed = episode_seed(self.run_seed, self.env_index, self.episode)
-        self.episode += 1
-        actor, critic = self.env.reset_arrays(seed)
-        self.recorder = EpisodeRecorder(
-            self.env.road, self.config.events, self.config.scenario.warmup_s
-        )
-        self.recorder.record(self.env.state_)
-        return actor, critic
-
-    def step(self, actions: np.ndarray) -> EnvStep:
-        try:
-            out = self.env.step_arrays(actions)
-        except BackendError:
-            # The step never happened: bootstrap from the last state that did.
-            final = self.env.builder.critic()
-            return _cut_episode(*self.reset(), self.env.n_cavs, final)
-        return self.finish(out)
-
-    def finish(self, out: StepResult, critical: np.ndarray | None = None) -> EnvStep:
-        """Book one step's result; a new episode starts if this one ended.
-
-        ``critical``: the state's safety-critical events if already detected
-        (:meth:`EpisodeRecorder.record`). The episode's metrics hold no return:
-        that sums team rewards, which the trainer makes at its temperature.
-        """
-        self.recorder.record(out.state, psar=out.psar, critical=critical)
-        final, final_actor, episode = None, None, None
-        actor, critic = out.actor_obs, out.critic_state
-        if out.terminated or out.truncated:
-            final, final_actor = critic, actor
-            episode = {
-                "length": self.env.steps,
-                "collision": float(len(out.state.collisions) > 0),
-                **self.recorder.summary().as_dict(),
-            }
-            actor, critic = self.reset()
-        return EnvStep(
-            actor_obs=actor,
-            critic_state=critic,
-            ego=out.ego,
-            global_reward=out.global_reward,
-            completion=out.completion,
-            delay=out.delay,
-            terminated=out.terminated,
-            truncated=out.truncated,
-            alive=out.alive,
-            refined_action=out.refined_action,
-            psar_rule_mask=out.psar_rule_mask,
-            final_critic_state=final,
-            episode=episode,
-            reward_terms=out.reward_terms,
-            final_actor_obs=final_actor,
-            slot_start=self.env.slot_start.copy(),
-        )
-
-    def close(self) -> None:
-        self.env.close()
+def concat_steps(parts: list[VectorStep]) -> VectorStep:
+    """The steps of groups of envs as one, in group order (env indices follow on)."""
+    if len(parts) == 1:
+        return parts[0]
+    offsets = np.cumsum([0] + [len(p.terminated) for p in parts])
+    terms = [p.reward_terms for p in parts if p.reward_terms]
+    return VectorStep(
+        actor_obs=concat([p.actor_obs for p in parts]),
+        critic_state=concat([p.critic_state for p in parts]),
+        **{name: np.concatenate([getattr(p, name) for p in parts]) for name in _ARRAY_FIELDS},
+        final_critic_state=[c for p in parts for c in p.final_critic_state],
+        final_actor_obs=[a for p in parts for a in p.final_actor_obs],
+        episodes={
+            int(o) + e: m
+            for p, o in zip(parts, offsets, strict=False)
+            for e, m in p.episodes.items()
+        },
+        reward_terms={
+            key: np.concatenate([t[key] for t in terms]) for key in (terms[0] if terms else {})
+        },
+        restarts=sum(p.restarts for p in parts),
+    )
 
 
-def _cut_episode(
-    actor: ActorObs, critic: CriticState, n_cavs: int, final_critic: CriticState | None
-) -> EnvStep:
-    """The transition reported when a simulator crashed: episode cut, no reward, fresh start.
+#: VectorStep's fields that are plain (E, ...) arrays.
+_ARRAY_FIELDS = (
+    "ego",
+    "global_reward",
+    "completion",
+    "delay",
+    "terminated",
+    "truncated",
+    "alive",
+    "refined_action",
+    "psar_rule_mask",
+    "restarted",
+    "slot_start",
+)
 
-    No CAV is on the road and every reward term is 0, so the team reward is 0
-    at any temperature.
 
-    A crash is not the episode's end but ours, so it is a *truncation*: the
-    trainer bootstraps from ``final_critic``, the last state the simulator
-    reached (a termination would teach the critic that a crash is worth 0).
+def cut_steps(
+    actor: ActorObs, critic: CriticState, finals: list[CriticState | None], n_cavs: int
+) -> VectorStep:
+    """The step reported for envs whose simulator crashed: episode cut, no reward, fresh start.
+
+    ``actor``/``critic``: the envs' first observations of their new episodes;
+    ``finals``: each env's last state before the crash. No CAV is on the road and
+    every reward term is 0, so the team reward is 0 at any temperature. A crash is
+    not the episode's end but ours, so it is a *truncation*: the trainer
+    bootstraps from the last state the simulator reached (a termination would
+    teach the critic that a crash is worth 0).
     """
-    return EnvStep(
+    n = len(finals)
+    return VectorStep(
         actor_obs=actor,
         critic_state=critic,
-        ego=np.zeros(n_cavs),
-        global_reward=0.0,
-        completion=0.0,
-        delay=0.0,
-        terminated=False,
-        truncated=True,
-        alive=np.zeros(n_cavs, bool),
-        refined_action=np.zeros(n_cavs, np.int64),
-        psar_rule_mask=np.zeros(n_cavs, np.int8),
-        final_critic_state=final_critic,
-        episode=None,
-        reward_terms=None,
-        restarted=True,
+        ego=np.zeros((n, n_cavs)),
+        global_reward=np.zeros(n),
+        completion=np.zeros(n),
+        delay=np.zeros(n),
+        terminated=np.zeros(n, bool),
+        truncated=np.ones(n, bool),
+        alive=np.zeros((n, n_cavs), bool),
+        refined_action=np.zeros((n, n_cavs), np.int64),
+        psar_rule_mask=np.zeros((n, n_cavs), np.int8),
+        final_critic_state=list(finals),
+        final_actor_obs=[None] * n,
+        episodes={},
+        reward_terms={},
+        restarted=np.ones(n, bool),
+        restarts=n,
+        slot_start=np.zeros((n, n_cavs), bool),
     )
 
 
-def _stack_steps(steps: list[EnvStep]) -> VectorStep:
-    return VectorStep(
-        actor_obs=stack([s.actor_obs for s in steps]),
-        critic_state=stack([s.critic_state for s in steps]),
-        ego=np.stack([s.ego for s in steps]),
-        global_reward=np.array([s.global_reward for s in steps]),
-        completion=np.array([s.completion for s in steps]),
-        delay=np.array([s.delay for s in steps]),
-        terminated=np.array([s.terminated for s in steps]),
-        truncated=np.array([s.truncated for s in steps]),
-        alive=np.stack([s.alive for s in steps]),
-        refined_action=np.stack([s.refined_action for s in steps]),
-        psar_rule_mask=np.stack([s.psar_rule_mask for s in steps]),
-        final_critic_state=[s.final_critic_state for s in steps],
-        final_actor_obs=[s.final_actor_obs for s in steps],
-        episodes={e: s.episode for e, s in enumerate(steps) if s.episode is not None},
-        reward_terms={
-            key: np.array([s.reward_terms[key] for s in steps if s.reward_terms])
-            for key in next((s.reward_terms for s in steps if s.reward_terms), {})
-        },
-        restarted=np.array([s.restarted for s in steps]),
-        restarts=sum(s.restarted for s in steps),
-        slot_start=np.stack(
-            [np.zeros(len(s.alive), bool) if s.slot_start is None else s.slot_start for s in steps]
-        ),
-    )
+class VectorEnv:
+    """E environments: one :class:`~diacc.envs.batch.EnvBatch` per map, with automatic
+    reset, per-episode seeds (:func:`episode_seed`), episode metrics and recovery from
+    a crashed simulator (the episode is cut: :func:`cut_steps`).
 
-
-class SyncVectorEnv:
-    """Environments stepped one after another in this process.
-
-    ``env_indices`` picks which of the run's environments this object holds
-    (all of ``range(n_envs)`` by default); worker processes hold a group each.
-    ``env_maps``: the map of each of the run's environments (``config.map`` for all
-    by default; :func:`maps_of_envs`).
+    :attr:`batched`: each map's envs are rows of one batched simulator (``highway``);
+    otherwise every env has its own simulator, stepped one after another. Either
+    way PSAR, observations and rewards run once per step for the whole batch.
+    ``env_indices``: the run's envs this object holds (their seeds; all of
+    ``range(n_envs)`` by default; a worker process holds a group).
+    ``env_maps``: the map of each of the run's envs (``config.map`` for all by
+    default; :func:`maps_of_envs`).
     """
+
+    #: One batched simulator per map (else one simulator per env).
+    batched = False
 
     def __init__(
         self,
@@ -288,126 +212,156 @@ class SyncVectorEnv:
         env_indices: list[int] | None = None,
         env_maps: list[str] | None = None,
     ) -> None:
-        indices = list(range(n_envs)) if env_indices is None else env_indices
-        self.runners = [
-            EnvRunner(config if env_maps is None else replace(config, map=env_maps[e]), run_seed, e)
-            for e in indices
-        ]
-        self.n_envs, self.n_cavs = len(indices), config.scenario.n_slots
-
-    def reset_list(self, first_episode: int | None = None) -> list[tuple[ActorObs, CriticState]]:
-        return [r.reset(first_episode) for r in self.runners]
-
-    def step_list(self, actions: np.ndarray) -> list[EnvStep]:  # actions (E, C)
-        return [r.step(a) for r, a in zip(self.runners, actions, strict=True)]
+        self.config, self.run_seed = config, run_seed
+        self.env_index = list(range(n_envs)) if env_indices is None else list(env_indices)
+        maps = [config.map if env_maps is None else env_maps[e] for e in self.env_index]
+        self.n_envs, self.n_cavs = len(self.env_index), config.scenario.n_slots
+        #: Each batch with the positions (in this object) of the envs it holds.
+        self.groups: list[tuple[EnvBatch, np.ndarray]] = []
+        for road_map in dict.fromkeys(maps):  # in order of first appearance
+            members = np.flatnonzero([m == road_map for m in maps])
+            cfg = replace(config, map=road_map)
+            road = preset_road(load_map(road_map), cfg.sim.style_preset)
+            if self.batched:
+                cls = backend_class(cfg.backend)
+                if cls.vector_mode != "batched":
+                    raise ValueError(
+                        f"vector mode batched needs the highway backend, not {cfg.backend}"
+                    )
+                backends = [cls(road, cfg.sim, n_envs=len(members))]
+            else:
+                backends = [make_backend(cfg.backend, road, cfg.sim) for _ in members]
+            self.groups.append((EnvBatch(cfg, Simulators(backends)), members))
+        order = np.concatenate([members for _, members in self.groups])
+        if not np.array_equal(order, np.arange(self.n_envs)):
+            raise ValueError("each map's envs must be one contiguous block (maps_of_envs)")
+        self.episode = [0] * self.n_envs  # next episode (seed) of each env
+        self.recorders: list[EpisodeRecorder | None] = [None] * self.n_envs
+        self._critic: list[CriticState] = []  # each group's latest critic states (crashes)
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
         """Reset every environment (optionally restarting their episode counters)."""
-        return _stack_pairs(self.reset_list(first_episode))
+        if first_episode is not None:
+            self.episode = [first_episode] * self.n_envs
+        pairs = []
+        for batch, members in self.groups:
+            rows = np.arange(len(members))
+            self._start(batch, members, rows)
+            pairs.append(batch.observe())
+        self._critic = [critic for _, critic in pairs]
+        return concat([a for a, _ in pairs]), concat([c for _, c in pairs])
+
+    def _start(self, batch: EnvBatch, members: np.ndarray, rows: np.ndarray) -> None:
+        """New episodes in rows ``rows`` of ``batch`` (positions ``members[rows]``)."""
+        seeds = []
+        for pos in members[rows]:
+            seeds.append(episode_seed(self.run_seed, self.env_index[pos], self.episode[pos]))
+            self.episode[pos] += 1
+        batch.reset(rows, seeds)
+        for row, pos in zip(rows, members[rows], strict=True):
+            recorder = EpisodeRecorder(
+                batch.road, self.config.events, self.config.scenario.warmup_s
+            )
+            recorder.record(batch.state.traffic.env(int(row)))
+            self.recorders[pos] = recorder
 
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
-        return _stack_steps(self.step_list(actions))
+        parts, start = [], 0
+        for g, (batch, members) in enumerate(self.groups):
+            parts.append(self._step_group(g, batch, members, actions[start : start + len(members)]))
+            start += len(members)
+        return concat_steps(parts)
+
+    def _step_group(
+        self, g: int, batch: EnvBatch, members: np.ndarray, actions: np.ndarray
+    ) -> VectorStep:
+        """One step of one batch: record every env's state, end and restart episodes."""
+        before = self._critic[g]  # the states a crashed simulator last reached
+        out = batch.step(actions)
+        ended, crashed = out.terminated | out.truncated, out.crashed
+        finals: list[CriticState | None] = [None] * len(members)
+        final_actors: list[ActorObs | None] = [None] * len(members)
+        episodes = {}
+        for row, pos in enumerate(members):
+            if crashed[row]:
+                finals[row] = unstack(before, row)
+                continue
+            recorder = self.recorders[pos]
+            psar = out.decision.env(row).psar
+            recorder.record(out.state.env(row), psar=psar, critical=out.critical[row])
+            if ended[row]:
+                finals[row] = copy_row(out.critic_state, row)
+                final_actors[row] = copy_row(out.actor_obs, row)
+                episodes[row] = {
+                    "length": int(batch.state.steps[row]),
+                    "collision": float((out.state.collisions[:, 0] == row).any()),
+                    **recorder.summary().as_dict(),
+                }
+        actor, critic = out.actor_obs, out.critic_state
+        restart = np.flatnonzero(ended | crashed)
+        if len(restart):
+            self._start(batch, members, restart)
+            new_actor, new_critic = batch.observe(restart)
+            for container, new in ((actor, new_actor), (critic, new_critic)):
+                for f in fields(container):
+                    getattr(container, f.name)[restart] = getattr(new, f.name)
+        self._critic[g] = critic
+        kept = ~crashed
+        return VectorStep(
+            actor_obs=actor,
+            critic_state=critic,
+            ego=np.where(kept[:, None], out.terms.ego, 0.0),
+            global_reward=np.where(kept, out.terms.global_reward, 0.0),
+            completion=np.where(kept, out.terms.completion, 0.0),
+            delay=np.where(kept, out.terms.delay, 0.0),
+            terminated=out.terminated & kept,
+            truncated=out.truncated | crashed,
+            alive=out.alive & kept[:, None],
+            refined_action=np.where(kept[:, None], out.decision.refined, 0),
+            psar_rule_mask=np.where(kept[:, None], out.decision.rule_mask, 0).astype(np.int8),
+            final_critic_state=finals,
+            final_actor_obs=final_actors,
+            episodes=episodes,
+            reward_terms=_logged_terms(out, kept),
+            restarted=crashed,
+            restarts=int(crashed.sum()),
+            slot_start=batch.state.slot_start & kept[:, None],
+        )
 
     def close(self) -> None:
-        for r in self.runners:
-            r.close()
+        for batch, _ in self.groups:
+            batch.close()
 
 
-class BatchedVectorEnv(SyncVectorEnv):
-    """Environments whose simulations are rows of one batched ``highway`` backend.
-
-    Each step: one :func:`~diacc.envs.env.decide` call turns all envs' actions into
-    commands (PSAR on the batch of their states), one
-    :meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step_batch` call
-    simulates all envs, and one call each builds every env's observations
-    (:meth:`ObservationBuilder.observe_batch`), reward terms
-    (:func:`~diacc.envs.reward.reward_terms`) and safety events for the metrics; each env
-    then decides whether its episode ended. Results are the same as
-    :class:`SyncVectorEnv`'s.
-    """
-
-    def __init__(
-        self, config: EnvConfig, n_envs: int, run_seed: int, env_indices: list[int] | None = None
-    ) -> None:
-        """``env_indices``: the run's envs held (their seeds); ``range(n_envs)`` by default."""
-        from diacc.sim.backends.highway.backend import BatchSlot, HighwayBackend
-
-        if config.backend != "highway":
-            raise ValueError(f"vector mode batched needs the highway backend, not {config.backend}")
-        indices = list(range(n_envs)) if env_indices is None else env_indices
-        road = preset_road(load_map(config.map), config.sim.style_preset)
-        self.batch = HighwayBackend(road, config.sim, n_envs=len(indices))
-        self.runners = [
-            EnvRunner(config, run_seed, e, BatchSlot(self.batch, row))
-            for row, e in enumerate(indices)
-        ]
-        self.config, self.n_envs, self.n_cavs = config, len(indices), config.scenario.n_slots
-
-    def step_list(self, actions: np.ndarray) -> list[EnvStep]:  # actions (E, C)
-        envs = [r.env for r in self.runners]
-        state = TrafficState.stack([env.state_ for env in envs])  # (E, V) arrays
-        cav_index = np.stack([env.cav_index for env in envs])  # (E, C)
-        decision = decide(state, cav_index, actions, self.config, self.batch.road)
-        states = self.batch.step_batch(decision.commands)
-        decisions = [decision.env(e) for e in range(self.n_envs)]
-        for env, d, s in zip(envs, decisions, states, strict=True):
-            env.enter(d, s)
-        cav_index = np.stack([env.cav_index for env in envs])  # (E, C) slots refilled by enter
-        after = TrafficState.stack(states)  # (E, V) arrays
-        actor, critic = ObservationBuilder.observe_batch(
-            [env.builder for env in envs],
-            cav_index,
-            np.stack([env.action_memory for env in envs]),  # (E, C, 2)
-            np.stack([env.last_refined for env in envs]),  # (E, V)
-            after,
-        )
-        actor = with_action_mask(actor, after, cav_index, self.config, self.batch.road)
-        terms = reward_terms(after, cav_index, self.batch.road, self.config.reward)
-        critical = safety_critical_events(after, self.config.events).any  # (E, V)
-        return [
-            r.finish(
-                r.env.conclude(d, s, unstack(actor, e), unstack(critic, e), terms.env(e)),
-                critical[e],
-            )
-            for e, (r, d, s) in enumerate(zip(self.runners, decisions, states, strict=True))
-        ]
+def _logged_terms(out: Transition, kept: np.ndarray) -> dict[str, np.ndarray]:
+    """The logged reward parts of the envs whose step happened, (E',) each."""
+    rows = [out.logged_terms(e) for e in np.flatnonzero(kept)]
+    return {key: np.array([r[key] for r in rows]) for key in (rows[0] if rows else {})}
 
 
-class MapGroupsVectorEnv(SyncVectorEnv):
-    """Environments on several maps: one :class:`BatchedVectorEnv` per map, stepped in turn.
-
-    A batched simulator shares one road, so each map gets its own batch, holding a
-    contiguous block of the run's environments (:func:`maps_of_envs`); their steps
-    concatenate in environment order.
-    """
-
-    def __init__(self, config: EnvConfig, n_envs: int, run_seed: int, env_maps: list[str]) -> None:
-        maps = list(dict.fromkeys(env_maps))  # in order of first appearance
-        self.groups = [
-            BatchedVectorEnv(
-                replace(config, map=m),
-                n_envs,
-                run_seed,
-                [e for e in range(n_envs) if env_maps[e] == m],
-            )
-            for m in maps
-        ]
-        self.runners = [r for g in self.groups for r in g.runners]
-        self.n_envs, self.n_cavs = n_envs, config.scenario.n_slots
-
-    def reset_list(self, first_episode: int | None = None) -> list[tuple[ActorObs, CriticState]]:
-        return [pair for g in self.groups for pair in g.reset_list(first_episode)]
-
-    def step_list(self, actions: np.ndarray) -> list[EnvStep]:  # actions (E, C)
-        steps, start = [], 0
-        for g in self.groups:
-            steps += g.step_list(actions[start : start + g.n_envs])
-            start += g.n_envs
-        return steps
+def copy_row(batch: ActorObs | CriticState, e: int) -> ActorObs | CriticState:
+    """Entry ``e`` of a container with a leading (env) axis, as copies."""
+    return type(batch)(**{f.name: getattr(batch, f.name)[e].copy() for f in fields(batch)})
 
 
-def _stack_pairs(pairs: list[tuple[ActorObs, CriticState]]) -> tuple[ActorObs, CriticState]:
-    return stack([p[0] for p in pairs]), stack([p[1] for p in pairs])
+def concat(items: list):
+    """Containers of the same type joined along their leading (env) axis."""
+    if len(items) == 1:
+        return items[0]
+    cls = type(items[0])
+    return cls(**{f.name: np.concatenate([getattr(i, f.name) for i in items]) for f in fields(cls)})
+
+
+class SyncVectorEnv(VectorEnv):
+    """Every env on its own simulator, stepped one after another in this process (any backend)."""
+
+    batched = False
+
+
+class BatchedVectorEnv(VectorEnv):
+    """Each map's envs as rows of one batched ``highway`` simulator (its default vector mode)."""
+
+    batched = True
 
 
 def _worker(
@@ -423,15 +377,14 @@ def _worker(
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     join_parent_log()  # e.g. a SUMO worker restarted at reset
     group = SyncVectorEnv(config, 0, run_seed, env_indices, env_maps)
-    for runner in group.runners:
-        runner.episode = episode
+    group.episode = [episode] * group.n_envs
     try:
         while True:
             command, payload = conn.recv()
             if command == "step":
-                conn.send(group.step_list(payload))
+                conn.send(group.step(payload))
             elif command == "reset":
-                conn.send(group.reset_list(payload))
+                conn.send(group.reset(payload))
             elif command == "close":
                 break
     except (EOFError, KeyboardInterrupt):
@@ -510,14 +463,12 @@ class ProcessVectorEnv:
                     ) from None
                 self._replace(w)
 
-    def _restart(self, w: int) -> list[EnvStep]:
+    def _restart(self, w: int) -> VectorStep:
         """Replace a dead worker; every episode of its group is cut."""
         self._replace(w)
         finals = [self._last_critic[e] for e in self.groups[w]]
-        return [
-            _cut_episode(a, c, self.n_cavs, final)
-            for (a, c), final in zip(self._call(w, ("reset", None)), finals, strict=True)
-        ]
+        actor, critic = self._call(w, ("reset", None))
+        return cut_steps(actor, critic, finals, self.n_cavs)
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
         """Reset every environment (optionally restarting their episode counters).
@@ -532,9 +483,10 @@ class ProcessVectorEnv:
             if reply is None:  # same seeds on the new worker: the reset is unchanged
                 self._replace(w)
                 reply = self._call(w, ("reset", first_episode))
-            pairs += reply
-        self._last_critic = [critic for _, critic in pairs]
-        return _stack_pairs(pairs)
+            pairs.append(reply)
+        actor, critic = concat([a for a, _ in pairs]), concat([c for _, c in pairs])
+        self._last_critic = [copy_row(critic, e) for e in range(self.n_envs)]
+        return actor, critic
 
     def _send(self, w: int, message: tuple) -> bool:
         try:
@@ -551,12 +503,13 @@ class ProcessVectorEnv:
 
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
         sent = [self._send(w, ("step", actions[group])) for w, group in enumerate(self.groups)]
-        steps: list[EnvStep] = []
+        parts: list[VectorStep] = []
         for w, ok in enumerate(sent):
             reply = self._receive(w) if ok else None
-            steps += reply if reply is not None else self._restart(w)
-        self._last_critic = [s.critic_state for s in steps]
-        return _stack_steps(steps)
+            parts.append(reply if reply is not None else self._restart(w))
+        out = concat_steps(parts)
+        self._last_critic = [copy_row(out.critic_state, e) for e in range(self.n_envs)]
+        return out
 
     def close(self) -> None:
         for p, w in zip(self.pipes, self.workers, strict=True):
@@ -591,9 +544,7 @@ def make_vector_env(
     if mode == "sync":
         return SyncVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
     if mode == "batched":
-        if env_maps is None:
-            return BatchedVectorEnv(config, n_envs, run_seed)
-        return MapGroupsVectorEnv(config, n_envs, run_seed, env_maps)
+        return BatchedVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
     if mode == "process":
         return ProcessVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
     raise ValueError(f"unknown vector mode {mode!r}; choose sync, batched, process or auto")

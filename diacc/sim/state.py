@@ -88,9 +88,7 @@ class TrafficState:
             for e, s in enumerate(states)
         ]
         per_vehicle = {
-            name: np.stack([getattr(s, name) for s in states])
-            for name in FIELD_DTYPES
-            if name not in ("collisions", "arrivals")
+            name: np.stack([getattr(s, name) for s in states]) for name in PER_VEHICLE_FIELDS
         }
         return cls(
             time_s=np.array([s.time_s for s in states]),
@@ -102,11 +100,7 @@ class TrafficState:
 
     def env(self, e: int) -> TrafficState:
         """Env ``e`` of a batch as a single-env state (copies)."""
-        per_vehicle = {
-            name: getattr(self, name)[e].copy()
-            for name in FIELD_DTYPES
-            if name not in ("collisions", "arrivals")
-        }
+        per_vehicle = {name: getattr(self, name)[e].copy() for name in PER_VEHICLE_FIELDS}
         return TrafficState(
             time_s=float(self.time_s[e]),
             step=int(self.step[e]),
@@ -114,6 +108,39 @@ class TrafficState:
             arrivals=self.arrivals[self.arrivals[:, 0] == e, 1].copy(),
             **per_vehicle,
         )
+
+    def envs(self, rows: np.ndarray) -> TrafficState:
+        """Envs ``rows`` of this batch as a batch of their own (copies; env ``rows[k]`` is k)."""
+        renumber = np.full(self.x_m.shape[0], -1, np.int32)
+        renumber[rows] = np.arange(len(rows), dtype=np.int32)
+
+        def kept(events: np.ndarray) -> np.ndarray:
+            out = events[renumber[events[:, 0]] >= 0]
+            out[:, 0] = renumber[out[:, 0]]
+            return out[np.argsort(out[:, 0], kind="stable")]
+
+        return TrafficState(
+            time_s=self.time_s[rows],
+            step=self.step[rows],
+            collisions=kept(self.collisions),
+            arrivals=kept(self.arrivals),
+            **{name: getattr(self, name)[rows] for name in PER_VEHICLE_FIELDS},
+        )
+
+    def set_env(self, e: int, state: TrafficState) -> None:
+        """Make env ``e`` of this batch the single-env ``state`` (in place, copies)."""
+        for name in PER_VEHICLE_FIELDS:
+            getattr(self, name)[e] = getattr(state, name)
+        self.time_s[e], self.step[e] = state.time_s, state.step
+
+        def replaced(rows: np.ndarray, own: np.ndarray) -> np.ndarray:  # env-major, as stack()
+            own = own.reshape(len(own), rows.shape[1] - 1)  # (K, 2) pairs or (A, 1) arrivals
+            own = np.hstack([np.full((len(own), 1), e, np.int32), own.astype(np.int32)])
+            rows = np.concatenate([rows[rows[:, 0] != e], own])
+            return rows[np.argsort(rows[:, 0], kind="stable")]
+
+        self.collisions = replaced(self.collisions, state.collisions)
+        self.arrivals = replaced(self.arrivals, state.arrivals)
 
     @property
     def collided_with(self) -> np.ndarray:
@@ -140,11 +167,7 @@ class TrafficState:
         """Vehicles ``lo:hi`` alone (views; vehicle ``lo + i`` is index ``i`` here), without
         collision or arrival rows: for per-vehicle work restricted to
         :func:`on_road_window`."""
-        per_vehicle = {
-            name: getattr(self, name)[..., lo:hi]
-            for name in FIELD_DTYPES
-            if name not in ("collisions", "arrivals")
-        }
+        per_vehicle = {name: getattr(self, name)[..., lo:hi] for name in PER_VEHICLE_FIELDS}
         return TrafficState(
             time_s=self.time_s,
             step=self.step,
@@ -208,6 +231,10 @@ FIELD_DTYPES: dict[str, np.dtype] = {
     "collisions": np.dtype(np.int32),
     "arrivals": np.dtype(np.int32),
 }
+
+
+#: The fields with one entry per vehicle ((V,), or (E, V) in a batch).
+PER_VEHICLE_FIELDS = tuple(name for name in FIELD_DTYPES if name not in ("collisions", "arrivals"))
 
 
 def validate_state(state: TrafficState) -> None:

@@ -1,17 +1,19 @@
-"""Environment stepping per core: E envs one after another vs one batched call, same run.
+"""Environment stepping per core: E envs on their own simulators vs one batched simulator.
 
 What the trainer's rollout pays per env-step apart from the networks: the
 simulator, PSAR, the observations, the reward and the episode recorder,
-i.e. :meth:`VectorStep` of the vector env with seeded random actions. Each
+i.e. :meth:`VectorEnv.step` of the vector env with seeded random actions. Each
 row times ``E`` environments for the same number of vector steps, first as
-:class:`~diacc.envs.vector.SyncVectorEnv` (today's per-env path: every env its own
-simulator, stepped one after another) and then as
-:class:`~diacc.envs.vector.BatchedVectorEnv` (one batched ``highway`` simulator for
-all E envs); a second pair of columns times the simulator alone
-(:meth:`HighwayBackend.step` of E backends vs one
-:meth:`HighwayBackend.step_batch`). One process, one thread: the figures
-are per core. Automatic resets are included (short episodes make them
-frequent, as in training), the start-up is not.
+:class:`~diacc.envs.vector.SyncVectorEnv` (every env its own simulator, stepped
+one after another) and then as :class:`~diacc.envs.vector.BatchedVectorEnv` (one
+batched ``highway`` simulator for all E envs); both run the one step function
+of :mod:`diacc.envs.batch`, so PSAR, observations and rewards are batched in
+both and the difference is the simulator's. A second pair of columns times the
+simulator alone (:meth:`HighwayBackend.step` of E backends vs one
+:meth:`HighwayBackend.step_batch`). One process, one thread: the figures are
+per core. Automatic resets are included (short episodes make them frequent,
+as in training), the start-up is not. ``benchmarks/step_before_after.py``
+compares the stepping of two source trees.
 
 ``python -m diacc.experiments.bench.envbatch --envs 1 4 16``; ``diacc bench --env-batch``.
 """
@@ -120,8 +122,8 @@ def run(envs: tuple[int, ...] = (1, 4, 16), steps: int = 60, seed: int = 0) -> l
     )
     for col in (
         "envs",
-        "env step: one after another",
-        "env step: batched",
+        "env step: own simulators",
+        "env step: batched simulator",
         "ratio",
         "simulator: one after another",
         "simulator: batched",
@@ -141,7 +143,8 @@ def run(envs: tuple[int, ...] = (1, 4, 16), steps: int = 60, seed: int = 0) -> l
     Console(width=160).print(table)
     print(
         "env step = simulator + PSAR + observations + reward + episode recorder "
-        "(SyncVectorEnv vs BatchedVectorEnv); simulator = HighwayBackend.step vs step_batch"
+        "(SyncVectorEnv vs BatchedVectorEnv: PSAR and the rest batched in both); "
+        "simulator = HighwayBackend.step one after another vs step_batch"
     )
     return rows
 

@@ -333,6 +333,12 @@ class HighwayBackend:
 
     def step_batch(self, commands: CavCommands) -> list[TrafficState]:
         """Advance every env one decision step; ``commands`` arrays are (E, V); a state per env."""
+        batch = self.step_stacked(commands)
+        return [batch.env(e) for e in range(self.n_envs)]
+
+    def step_stacked(self, commands: CavCommands) -> TrafficState:
+        """Advance every env one decision step; ``commands`` arrays are (E, V); one (E, V)
+        batch state (:mod:`diacc.sim.state`), what :class:`diacc.envs.batch.EnvBatch` steps on."""
         state, params, caches = self.state, self.params, self.caches
         if not self._ready.all():
             raise BackendError("step before every env of the batch was reset")
@@ -361,17 +367,11 @@ class HighwayBackend:
         state.step_count += 1
         accel = (state.speed_mps - speed_start) / self.sim.step_s  # (E, V)
         new_arrivals = state.arrived & ~arrived_before  # (E, V)
-        lane = self._lane()
-        return [
-            self._make_state(
-                e,
-                lane,
-                accel[e],
-                lo + np.argwhere(new_contacts[e]).astype(np.int32).reshape(-1, 2),
-                np.flatnonzero(new_arrivals[e]).astype(np.int32),
-            )
-            for e in range(self.n_envs)
-        ]
+        contacts = np.argwhere(new_contacts).astype(np.int32).reshape(-1, 3)  # (K, 3) env, i, j
+        contacts[:, 1:] += lo
+        return self._make_batch_state(
+            accel, contacts, np.argwhere(new_arrivals).astype(np.int32).reshape(-1, 2)
+        )
 
     def _step_vehicles(self, lane_cmd: np.ndarray, dv_cmd: np.ndarray) -> np.ndarray:
         """The sub-steps of a decision step for the vehicles of :attr:`state` (all of them,
@@ -962,29 +962,29 @@ class HighwayBackend:
             arrivals=arrivals.astype(np.int32),
         )
 
-
-class BatchSlot:
-    """One env of a :class:`HighwayBackend` batch, seen through the Backend protocol.
-
-    Lets a :class:`~diacc.envs.env.BottleneckEnv` run on its row of a batch: it
-    resets its own env, while the batch is stepped as a whole by whoever owns
-    it (:class:`diacc.envs.vector.BatchedVectorEnv`) and the env is handed the
-    resulting state (:meth:`BottleneckEnv.advance`).
-    """
-
-    name = HighwayBackend.name
-    version = HighwayBackend.version
-    vector_mode = HighwayBackend.vector_mode
-
-    def __init__(self, batch: HighwayBackend, env: int) -> None:
-        self.batch, self.env = batch, env
-        self.road, self.sim = batch.road, batch.sim
-
-    def reset(self, scenario: Scenario, seed: int) -> TrafficState:
-        return self.batch.reset_env(self.env, scenario, seed)
-
-    def step(self, commands: CavCommands) -> TrafficState:
-        raise BackendError(f"env {self.env} of a batch is stepped with HighwayBackend.step_batch")
-
-    def close(self) -> None:
-        """The batch is closed by its owner."""
+    def _make_batch_state(
+        self, accel_mps2: np.ndarray, collisions: np.ndarray, arrivals: np.ndarray
+    ) -> TrafficState:
+        """Every env's TrafficState as one (E, V) batch (copies); rows (env, i, j) and (env, i)."""
+        state, params = self.state, self.params
+        shape = state.x_m.shape
+        return TrafficState(
+            time_s=state.time_s.copy(),
+            step=state.step_count.copy(),
+            vehicle_id=np.broadcast_to(np.arange(shape[1], dtype=np.int32), shape).copy(),
+            x_m=state.x_m.copy(),
+            y_m=state.y_m.copy(),
+            speed_mps=state.speed_mps.copy(),
+            accel_mps2=np.asarray(accel_mps2, dtype=np.float64).copy(),
+            heading_rad=state.heading_rad.copy(),
+            lane=self._lane().astype(np.int16),
+            segment=self.tables.segment_of(state.x_m).astype(np.int16),
+            length_m=np.full(shape, self.sim.vehicle_length_m),
+            width_m=np.full(shape, self.sim.vehicle_width_m),
+            is_cav=params.reported_cav.copy(),
+            style=params.style.copy(),
+            active=state.active.copy(),
+            arrived=state.arrived.copy(),
+            collisions=collisions,
+            arrivals=arrivals,
+        )

@@ -1,0 +1,77 @@
+"""Env stepping of two source trees side by side in one run (issue 24's "2x today's" target).
+
+Times the training vector env (``diacc.experiments.bench.envbatch.time_vector``:
+simulator + PSAR + observations + reward + episode metrics, automatic resets
+included) of each tree in its own process, alternating the trees for
+``--rounds`` rounds so that both see the same machine load, one thread each::
+
+    git worktree add /tmp/before 2e858b3
+    python benchmarks/step_before_after.py /tmp/before . --envs 16 --mode batched
+
+Prints each round's env-steps/s per tree and the ratio of the medians.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+TIMER = """
+import sys
+from diacc.config import EnvConfig
+from diacc.experiments.bench.envbatch import time_vector
+envs, mode, steps = int(sys.argv[1]), sys.argv[2], int(sys.argv[3])
+print(time_vector(EnvConfig(), envs, mode, steps, 0))
+"""
+
+
+def time_tree(tree: Path, envs: int, mode: str, steps: int) -> float:
+    """Env-steps/s of ``tree``'s vector env, measured in a fresh single-threaded process."""
+    env = {**os.environ, "PYTHONPATH": str(tree.resolve()), "OMP_NUM_THREADS": "1"}
+    out = subprocess.run(
+        [sys.executable, "-c", TIMER, str(envs), mode, str(steps)],
+        env=env,
+        cwd=tree,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("before", type=Path, help="source tree of the old code")
+    p.add_argument("after", type=Path, help="source tree of the new code")
+    p.add_argument("--envs", type=int, default=16)
+    p.add_argument("--mode", default="batched", choices=("batched", "sync"))
+    p.add_argument("--timing-steps", type=int, default=200)
+    p.add_argument("--rounds", type=int, default=3)
+    args = p.parse_args()
+    rates: dict[str, list[float]] = {"before": [], "after": []}
+    print(
+        f"{args.envs} envs, vector mode {args.mode}, {args.timing_steps} timed steps; load "
+        f"{', '.join(f'{x:.1f}' for x in os.getloadavg())}"
+    )
+    for r in range(args.rounds):
+        for name in ("before", "after"):
+            rates[name].append(
+                time_tree(getattr(args, name), args.envs, args.mode, args.timing_steps)
+            )
+        print(
+            f"round {r + 1}: before {rates['before'][-1]:.0f}  after {rates['after'][-1]:.0f} "
+            "env-steps/s"
+        )
+    before, after = (statistics.median(rates[k]) for k in ("before", "after"))
+    print(
+        f"median: before {before:.0f}, after {after:.0f} env-steps/s: x{after / before:.2f}; "
+        f"load {', '.join(f'{x:.1f}' for x in os.getloadavg())}"
+    )
+
+
+if __name__ == "__main__":
+    main()
