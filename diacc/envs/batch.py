@@ -233,15 +233,14 @@ class Transition:
 
     def logged_terms(self, e: int) -> dict[str, float]:
         """Env ``e``'s reward parts for the logs (the temperature's are the trainer's)."""
-        terms = self.terms.env(e)
-        alive = terms.alive
+        terms, alive = self.terms, self.terms.alive[e]
         return {
-            "individual": float(terms.ego[alive].mean()) if alive.any() else 0.0,
-            "global": terms.global_reward,
-            "completion": terms.completion,
+            "individual": float(terms.ego[e][alive].mean()) if alive.any() else 0.0,
+            "global": float(terms.global_reward[e]),
+            "completion": float(terms.completion[e]),
             # Logged so that a learning curve shows whether closeness fires.
-            "warning": float(terms.warning[alive].mean()) if alive.any() else 0.0,
-            "delay": terms.delay,
+            "warning": float(terms.warning[e][alive].mean()) if alive.any() else 0.0,
+            "delay": float(terms.delay[e]),
         }
 
 

@@ -288,7 +288,8 @@ class VectorEnv:
                 continue
             recorder = self.recorders[pos]
             psar = out.decision.env(row).psar
-            recorder.record(out.state.env(row), psar=psar, critical=out.critical[row])
+            # Views: the recorder copies what it keeps, and the batch's arrays are new each step.
+            recorder.record(out.state.env(row, copy=False), psar=psar, critical=out.critical[row])
             if ended[row]:
                 finals[row] = copy_row(out.critic_state, row)
                 final_actors[row] = copy_row(out.actor_obs, row)

@@ -98,9 +98,12 @@ class TrafficState:
             **per_vehicle,
         )
 
-    def env(self, e: int) -> TrafficState:
-        """Env ``e`` of a batch as a single-env state (copies)."""
-        per_vehicle = {name: getattr(self, name)[e].copy() for name in PER_VEHICLE_FIELDS}
+    def env(self, e: int, copy: bool = True) -> TrafficState:
+        """Env ``e`` of a batch as a single-env state (copies, or views of the batch's rows)."""
+        per_vehicle = {
+            name: getattr(self, name)[e].copy() if copy else getattr(self, name)[e]
+            for name in PER_VEHICLE_FIELDS
+        }
         return TrafficState(
             time_s=float(self.time_s[e]),
             step=int(self.step[e]),
