@@ -67,7 +67,7 @@ def config(args: argparse.Namespace, mode: str, run_dir: str):
 
 def switch_window_off() -> None:
     """Every vehicle stepped, searched and given a critic row: the code before the window."""
-    import diacc.envs.env
+    import diacc.envs.batch
     import diacc.envs.observation
     import diacc.envs.safety
     import diacc.learn.models.gat
@@ -83,7 +83,7 @@ def switch_window_off() -> None:
     HighwayBackend.windowed = False
     diacc.envs.observation.on_road_window = every_vehicle
     diacc.envs.safety.on_road_window = every_vehicle
-    diacc.envs.env.ObservationBuilder = FullCritic
+    diacc.envs.batch.ObservationBuilder = FullCritic  # where the step builds its builder
     diacc.learn.models.gat.DENSE_MAX_NODES = 10**9
 
 
