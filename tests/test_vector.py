@@ -248,3 +248,19 @@ def test_env_batch_bench_reports_both_paths():
     assert row["envs"] == 2
     for key in ("env_sync", "env_batched", "sim_sync", "sim_batched"):
         assert row[f"{key}_steps_per_s"] > 0.0
+
+
+def test_step_before_after_times_two_trees():
+    """benchmarks/step_before_after.py runs each tree in its own process and prints the ratio
+    (here the same tree twice)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run(
+        [sys.executable, str(root / "benchmarks" / "step_before_after.py"), str(root), str(root),
+         "--envs", "2", "--timing-steps", "2", "--rounds", "1"],
+        check=True, capture_output=True, text=True,
+    )  # fmt: skip
+    assert "round 1: before" in out.stdout and "median: before" in out.stdout
