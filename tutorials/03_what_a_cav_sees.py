@@ -208,4 +208,36 @@ print("wrote", graph_png)
 for name, value in vars(critic).items():
     print(f"  {name:<15} {str(value.shape):<10} {value.dtype}")
 print(f"{critic.node_mask.sum()} vehicles on the road, {critic.neighbour_mask.sum()} graph edges")
+
+# %% [markdown]
+# ## Many environments, one step
+#
+# The environment above is a batch of one: its step is `EnvBatch.step`
+# (`diacc/envs/batch.py`), written once for E environments with a leading env
+# axis. Training steps E of them together (`make_vector_env`: one batched
+# simulator on highway, automatic resets), so every observation gains that axis:
+# `(E, C, ...)` for the actors, `(E, ...)` for the critic. Each env of the batch
+# is exactly what it would be alone: env `e` of the vector env plays the
+# episodes that a batch holding env `e` alone plays (same seeds, same numbers).
+
+# %%
+from diacc.envs.vector import SyncVectorEnv, make_vector_env  # noqa: E402
+
+config = EnvConfig(backend="highway", map="train-25")
+envs = make_vector_env(config, 4, run_seed=0)  # 4 envs, one batched simulator
+alone = SyncVectorEnv(config, 4, run_seed=0, env_indices=[2])  # env 2 of the same run, alone
+obs_batch, critic_batch = envs.reset(first_episode=0)
+obs_alone, _ = alone.reset(first_episode=0)
+rng = np.random.default_rng(0)
+for _ in range(10):
+    actions = rng.integers(0, 5, (envs.n_envs, envs.n_cavs))  # (E, C)
+    out, out_alone = envs.step(actions), alone.step(actions[2:3])
+print("actor self_state:", out.actor_obs.self_state.shape)  # (E, C, 6)
+print("critic nodes:", out.critic_state.nodes.shape)  # (E, N, F)
+print("ego rewards (E, C):", out.ego.shape, " episode ends (E,):", out.terminated | out.truncated)
+same = np.array_equal(out.actor_obs.self_state[2], out_alone.actor_obs.self_state[0])
+print("env 2 in the batch == env 2 alone:", same)
+assert same
+envs.close()
+alone.close()
 env.close()
