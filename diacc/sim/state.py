@@ -33,6 +33,7 @@ state and a batch.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -211,8 +212,16 @@ def take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """
     if values.ndim == 1:
         return values[idx]
-    env = np.arange(values.shape[0]).reshape((-1,) + (1,) * (np.ndim(idx) - 1))
-    return values[env, idx]
+    return values[_env_rows(values.shape[0], np.ndim(idx)), idx]
+
+
+@functools.lru_cache(maxsize=64)
+def _env_rows(n_envs: int, ndim: int) -> np.ndarray:
+    """(E, 1, ...) env indices that broadcast against an ``ndim``-dimensional index array
+    (cached: PSAR alone takes rows thousands of times per step; read-only)."""
+    rows = np.arange(n_envs).reshape((-1,) + (1,) * (ndim - 1))
+    rows.flags.writeable = False
+    return rows
 
 
 #: dtype of every array field; backends must produce exactly these.
