@@ -11,11 +11,11 @@ import pytest
 
 from diacc.config import SimConfig
 from diacc.envs.env import EnvConfig
+from diacc.envs.observation import concat
 from diacc.envs.vector import (
     BatchedVectorEnv,
     ProcessVectorEnv,
     SyncVectorEnv,
-    concat,
     concat_steps,
     episode_seed,
     make_vector_env,

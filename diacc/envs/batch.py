@@ -223,9 +223,9 @@ class Transition:
     critic_state: CriticState  # (E, ...)
     state: TrafficState  # (E, V) the state reached
     decision: Decision  # (E, C) what PSAR made of the proposed actions
-    terms: RewardTerms  # (E, C) and (E,): the reward's parts that need no temperature
+    terms: RewardTerms  # (E, C) and (E,): the reward's parts that need no temperature, and
+    # ``terms.alive`` (E, C): CAV on the road after the step (the reward's mask)
     critical: np.ndarray  # (E, V) bool safety-critical events (the metrics' p(SCE))
-    alive: np.ndarray  # (E, C) bool CAV on the road after the step (the reward's mask)
     slot_start: np.ndarray  # (E, C) bool a new CAV took the slot; its next action starts afresh
     terminated: np.ndarray  # (E,) bool a collision, or every vehicle gone
     truncated: np.ndarray  # (E,) bool episode_steps reached
@@ -317,7 +317,6 @@ class EnvBatch:
             decision=decision,
             terms=terms,
             critical=safety_critical_events(traffic, cfg.events).any,
-            alive=take(traffic.active, st.cav_index),
             slot_start=st.slot_start.copy(),
             terminated=terminated,
             truncated=~terminated & (st.steps >= cfg.sim.episode_steps),

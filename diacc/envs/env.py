@@ -144,7 +144,7 @@ class StepResult:
             critic_state=unstack(out.critic_state, e),
             terminated=bool(out.terminated[e]),
             truncated=bool(out.truncated[e]),
-            alive=out.alive[e],
+            alive=out.terms.alive[e],
             refined_action=decision.refined,
             psar_rule=decision.rule,
             psar_rule_mask=decision.rule_mask,

@@ -159,9 +159,22 @@ def stack(items: list) -> ActorObs | CriticState:
     return cls(**{f.name: np.stack([getattr(i, f.name) for i in items]) for f in fields(cls)})
 
 
-def unstack(batch: ActorObs | CriticState, e: int) -> ActorObs | CriticState:
-    """Entry ``e`` of a container whose fields have a leading (env) axis."""
-    return type(batch)(**{f.name: getattr(batch, f.name)[e] for f in fields(batch)})
+def unstack(batch: ActorObs | CriticState, e: int, copy: bool = False) -> ActorObs | CriticState:
+    """Entry ``e`` of a container whose fields have a leading (env) axis (views, or copies)."""
+    return type(batch)(
+        **{
+            f.name: getattr(batch, f.name)[e].copy() if copy else getattr(batch, f.name)[e]
+            for f in fields(batch)
+        }
+    )
+
+
+def concat(items: list):
+    """Containers of the same type joined along their leading (env) axis."""
+    if len(items) == 1:
+        return items[0]
+    cls = type(items[0])
+    return cls(**{f.name: np.concatenate([getattr(i, f.name) for i in items]) for f in fields(cls)})
 
 
 # --------------------------------------------------------------------------

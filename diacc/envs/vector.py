@@ -49,7 +49,7 @@ import numpy as np
 from diacc.config import EnvConfig, preset_road
 from diacc.envs.batch import EnvBatch, Simulators, Transition
 from diacc.envs.metrics import EpisodeRecorder
-from diacc.envs.observation import ActorObs, CriticState, unstack
+from diacc.envs.observation import ActorObs, CriticState, concat, unstack
 from diacc.runlog import join_parent_log, log
 from diacc.sim.backends.base import backend_class, make_backend
 from diacc.sim.maps import load_map
@@ -262,7 +262,7 @@ class VectorEnv:
             recorder = EpisodeRecorder(
                 batch.road, self.config.events, self.config.scenario.warmup_s
             )
-            recorder.record(batch.state.traffic.env(int(row)))
+            recorder.record(batch.state.traffic.env(int(row), copy=False))  # it copies
             self.recorders[pos] = recorder
 
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
@@ -291,8 +291,8 @@ class VectorEnv:
             # Views: the recorder copies what it keeps, and the batch's arrays are new each step.
             recorder.record(out.state.env(row, copy=False), psar=psar, critical=out.critical[row])
             if ended[row]:
-                finals[row] = copy_row(out.critic_state, row)
-                final_actors[row] = copy_row(out.actor_obs, row)
+                finals[row] = unstack(out.critic_state, row, copy=True)
+                final_actors[row] = unstack(out.actor_obs, row, copy=True)
                 episodes[row] = {
                     "length": int(batch.state.steps[row]),
                     "collision": float((out.state.collisions[:, 0] == row).any()),
@@ -317,7 +317,7 @@ class VectorEnv:
             delay=np.where(kept, out.terms.delay, 0.0),
             terminated=out.terminated & kept,
             truncated=out.truncated | crashed,
-            alive=out.alive & kept[:, None],
+            alive=out.terms.alive & kept[:, None],
             refined_action=np.where(kept[:, None], out.decision.refined, 0),
             psar_rule_mask=np.where(kept[:, None], out.decision.rule_mask, 0).astype(np.int8),
             final_critic_state=finals,
@@ -338,19 +338,6 @@ def _logged_terms(out: Transition, kept: np.ndarray) -> dict[str, np.ndarray]:
     """The logged reward parts of the envs whose step happened, (E',) each."""
     rows = [out.logged_terms(e) for e in np.flatnonzero(kept)]
     return {key: np.array([r[key] for r in rows]) for key in (rows[0] if rows else {})}
-
-
-def copy_row(batch: ActorObs | CriticState, e: int) -> ActorObs | CriticState:
-    """Entry ``e`` of a container with a leading (env) axis, as copies."""
-    return type(batch)(**{f.name: getattr(batch, f.name)[e].copy() for f in fields(batch)})
-
-
-def concat(items: list):
-    """Containers of the same type joined along their leading (env) axis."""
-    if len(items) == 1:
-        return items[0]
-    cls = type(items[0])
-    return cls(**{f.name: np.concatenate([getattr(i, f.name) for i in items]) for f in fields(cls)})
 
 
 class SyncVectorEnv(VectorEnv):
@@ -486,7 +473,7 @@ class ProcessVectorEnv:
                 reply = self._call(w, ("reset", first_episode))
             pairs.append(reply)
         actor, critic = concat([a for a, _ in pairs]), concat([c for _, c in pairs])
-        self._last_critic = [copy_row(critic, e) for e in range(self.n_envs)]
+        self._last_critic = [unstack(critic, e, copy=True) for e in range(self.n_envs)]
         return actor, critic
 
     def _send(self, w: int, message: tuple) -> bool:
@@ -509,7 +496,7 @@ class ProcessVectorEnv:
             reply = self._receive(w) if ok else None
             parts.append(reply if reply is not None else self._restart(w))
         out = concat_steps(parts)
-        self._last_critic = [copy_row(out.critic_state, e) for e in range(self.n_envs)]
+        self._last_critic = [unstack(out.critic_state, e, copy=True) for e in range(self.n_envs)]
         return out
 
     def close(self) -> None:
