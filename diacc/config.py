@@ -621,6 +621,10 @@ class TrainConfig:
     # share (extra_maps=train-50,train-25 with env.map train-50: 2/3 of the envs on it);
     # () trains on env.map alone
     extra_maps: tuple[str, ...] = ()
+    # a checkpoint whose networks and value normaliser start this run (fine-tuning, e.g. a
+    # highway-trained agent on SUMO: --init-from); the optimiser, the step count and the
+    # lr and tau schedules start afresh. "" trains from random weights.
+    init_from: str = ""
     run_dir: str = "runs/diacc"
     env: EnvConfig = field(default_factory=EnvConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -745,6 +749,7 @@ def build_train_config(
     device: str | None = None,
     run_dir: str | Path | None = None,
     style_preset: str | None = None,
+    init_from: str | Path | None = None,
     sets: Iterable[str] | Mapping[str, Any] = (),
 ) -> TrainConfig:
     """The training config of user input: defaults < TOML ``file`` < named options < ``sets``.
@@ -754,7 +759,8 @@ def build_train_config(
     command line to call itself. A named option left at None keeps the file's
     (or the default) value; ``steps`` is ``total_steps`` (environment steps,
     decisions x environments), ``envs`` is ``n_envs``, ``style_preset`` is
-    ``env.sim.style_preset``. ``sets`` are ``KEY=VALUE`` texts (``--set``) or a
+    ``env.sim.style_preset``, ``init_from`` the checkpoint a fine-tuning run starts
+    from. ``sets`` are ``KEY=VALUE`` texts (``--set``) or a
     mapping of dotted keys to values. All layers are applied in one
     :func:`override`, so a value one layer asks for and the variant contradicts
     (``env.use_psar``) is refused, whichever layer named the variant. Without a
@@ -779,6 +785,7 @@ def build_train_config(
         "device": device,
         "run_dir": None if run_dir is None else str(run_dir),
         "env.sim.style_preset": style_preset,
+        "init_from": None if init_from is None else str(init_from),
     }
     values.update({k: v for k, v in named.items() if v is not None})
     values.update(sets if isinstance(sets, Mapping) else parse_sets(sets))
@@ -848,6 +855,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"env.psar_actions {cfg.env.psar_actions!r} needs PSAR, which variant "
             f"{cfg.variant!r} does not use"
         )
+    if cfg.init_from and not Path(cfg.init_from).is_file():
+        raise ConfigError(f"init_from: checkpoint {cfg.init_from} does not exist")
     if cfg.rollout_steps % cfg.chunk_len:
         raise ConfigError(
             f"rollout_steps {cfg.rollout_steps} must be a multiple of chunk_len {cfg.chunk_len}"

@@ -227,6 +227,47 @@ def test_training_on_two_maps_resumes_exactly_and_differs_from_one(tmp_path):
     )
 
 
+def test_init_from_starts_from_a_checkpoints_networks_with_a_fresh_optimiser(tmp_path):
+    """Fine-tuning: the networks and value normaliser come from the checkpoint, the
+    optimiser and the step count start afresh; a checkpoint of other sizes or another
+    variant, or a missing one, is a one-line error."""
+    from diacc.config import ConfigError, validate
+    from diacc.learn.checkpoint import init_networks
+
+    source = tiny_config(tmp_path / "a", total_steps=40)
+    train(source, progress=False)
+    path = tmp_path / "a" / "run" / "checkpoint.pt"
+    saved = load_checkpoint(path)
+    tuned = tiny_config(tmp_path / "b", total_steps=40, init_from=str(path), seed=7)
+    agent = make_agent(tuned, torch.device("cpu"))
+    origin = init_networks(agent, path, tuned)
+    assert origin["global_step"] == 40 and origin["variant"] == "diacc"
+    for name, tensor in agent.actor.state_dict().items():
+        assert torch.equal(tensor, saved["actor"][name]), name
+    assert not agent.optimizer.state_dict()["state"]
+    train(tuned, progress=False)
+    after = load_checkpoint(tmp_path / "b" / "run" / "checkpoint.pt")
+    assert after["global_step"] == 40 and after["update"] == 1
+    assert "networks from" in (tmp_path / "b" / "run" / "train.log").read_text()
+    fresh = tiny_config(tmp_path / "c", total_steps=40, seed=7)
+    train(fresh, progress=False)
+    scratch = load_checkpoint(tmp_path / "c" / "run" / "checkpoint.pt")
+    # One update moves the weights a little: the tuned run stays near its source.
+    name = next(iter(saved["actor"]))
+    to_source = (after["actor"][name] - saved["actor"][name]).abs().max()
+    to_scratch = (after["actor"][name] - scratch["actor"][name]).abs().max()
+    assert to_source < to_scratch
+
+    wider = tiny_config(tmp_path / "d", init_from=str(path), **{"model.hidden_dim": 16})
+    with pytest.raises(CheckpointError, match="other network sizes"):
+        init_networks(make_agent(wider, torch.device("cpu")), path, wider)
+    with pytest.raises(CheckpointError, match="variant 'diacc', not 'mappo-iadm'"):
+        other = override(tuned, {"variant": "mappo-iadm"})
+        init_networks(make_agent(other, torch.device("cpu")), path, other)
+    with pytest.raises(ConfigError, match="does not exist"):
+        validate(override(tuned, {"init_from": str(tmp_path / "missing.pt")}))
+
+
 def test_bad_checkpoints_give_one_line_errors(tmp_path):
     cfg = tiny_config(tmp_path, total_steps=40)
     train(cfg, progress=False)

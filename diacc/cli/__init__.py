@@ -144,6 +144,13 @@ def _train_parser(sub) -> None:
         metavar="KEY=VALUE",
         help="override any config field, e.g. --set env.reward.w_ego=0.8 (repeatable)",
     )
+    p.add_argument(
+        "--init-from",
+        metavar="CHECKPOINT",
+        default=None,
+        help="start from this checkpoint's networks, with a fresh optimiser and schedules "
+        "(fine-tuning, e.g. a highway-trained agent on --backend sumo)",
+    )
     p.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
     p.add_argument(
         "--overwrite",
@@ -174,6 +181,7 @@ def cmd_train(args: argparse.Namespace) -> None:
         device=args.device,
         run_dir=args.run_dir,
         style_preset=args.style_preset,
+        init_from=args.init_from,
         sets=args.set,
     )
     load_map(cfg.env.map)  # fail fast on a bad map name

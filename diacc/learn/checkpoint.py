@@ -195,6 +195,36 @@ def restore(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
     agent.optimizer.load_state_dict(payload["optimizer"])
 
 
+def init_networks(agent: Agent, path: Path, cfg: TrainConfig) -> dict:
+    """Start ``agent`` from the networks and value normaliser of the checkpoint at ``path``.
+
+    Fine-tuning (``TrainConfig.init_from``): unlike :func:`restore`, the optimiser
+    and the schedules start afresh, and the checkpoint may come from another
+    backend, map or scenario. It must hold the same variant, observation layout
+    and network sizes (one-line :class:`CheckpointError` otherwise). Returns the
+    payload's provenance: variant, backend, map, update and step count.
+    """
+    payload = load_checkpoint(path)
+    _check_fits(payload, cfg, path)
+    try:
+        agent.actor.load_state_dict(payload["actor"])
+        agent.critic.load_state_dict(payload["critic"])
+    except RuntimeError:
+        raise CheckpointError(
+            f"checkpoint {path} has other network sizes than this run's {cfg.variant} "
+            "(model.* settings)"
+        ) from None
+    agent.value_norm.load_state_dict(payload["value_norm"])
+    env = payload["config"].get("env", {})
+    return {
+        "variant": payload["variant"],
+        "backend": env.get("backend"),
+        "map": env.get("map"),
+        "update": payload["update"],
+        "global_step": payload["global_step"],
+    }
+
+
 def load_actor(path: Path, variant: str | None = None) -> tuple[torch.nn.Module, TrainConfig, dict]:
     """(actor in eval mode on the CPU, training config, payload) of a checkpoint.
 

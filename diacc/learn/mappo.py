@@ -73,6 +73,7 @@ from diacc.learn.checkpoint import (
     CheckpointError,
     config_from_checkpoint,
     flatten_config,
+    init_networks,
     load_checkpoint,
     restore,
     save_checkpoint,
@@ -672,7 +673,18 @@ def _start(
         restore(agent, payload, cfg, ckpt_path)
         first_update, global_step = payload["update"], payload["global_step"]
         set_rng_state(payload["rng"])
+    elif cfg.init_from:
+        source = init_networks(agent, Path(cfg.init_from), cfg)
     with run_log(run_dir / "train.log"):
+        if cfg.init_from and not resume:
+            log.info(
+                "networks from %s (%s, trained on %s %s for %d steps); optimiser fresh",
+                cfg.init_from,
+                source["variant"],
+                source["backend"],
+                source["map"],
+                source["global_step"],
+            )
         if changed:
             log.warning("resuming %s with changed config fields: %s", run_dir, ", ".join(changed))
         if resume:
