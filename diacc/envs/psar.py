@@ -785,33 +785,53 @@ def _headway_bound_mps(
     )
     tf_gap_m = np.where(tf_slot >= 0, fronts.tf_vehicle.d_long_m, np.inf)
     known = ((lead_slot, lead_gap_m), (tf_slot, tf_gap_m))
+    # The CAVs each CAV may follow with their command known, as columns of one (..., C, C + 2)
+    # table: every CAV cutting in, then the same-lane leader and the target-lane front CAV.
+    # One bound per column and pass (the formula is elementwise, so the values are those of
+    # one call per kind of leader, at a fraction of the calls).
+    n_cav = cav_index.shape[-1]
+    lead_cols = np.stack([np.maximum(slot, 0) for slot, _ in known], -1)  # (..., C, 2)
+    known_leads = np.stack([slot >= 0 for slot, _ in known], -1)  # (..., C, 2)
+    known_gaps_m = np.stack([gap for _, gap in known], -1)  # (..., C, 2)
+    cols = np.concatenate(
+        [np.broadcast_to(np.arange(n_cav), cuts.shape), lead_cols], -1
+    )  # (..., C, C + 2)
+    follows = np.concatenate([cuts, known_leads], -1)  # (..., C, C + 2)
+    follow_gap_m = np.concatenate(
+        [cut_gap_m, np.where(known_leads, known_gaps_m, np.inf)], -1
+    )  # (..., C, C + 2)
 
-    def behind_known(slot: np.ndarray, gap_m: np.ndarray, end_mps: np.ndarray) -> np.ndarray:
-        """Bound behind the CAV in ``slot`` (-1: none), which ends the step at ``end_mps``."""
-        s = np.maximum(slot, 0)
-        v0, v1 = np.take_along_axis(ego_mps, s, -1), np.take_along_axis(end_mps, s, -1)
-        gap_m = np.where(slot >= 0, gap_m, np.inf)
-        return bound(gap_m, 0.5 * (v0 + v1) * step_s, v1, cfg.cav_time_gap_s)
+    def of_cols(values: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        """(..., C, K): ``values`` (..., C) of the CAVs in ``columns`` (..., C, K)."""
+        return np.take_along_axis(values[..., None, :], columns, -1)
 
-    def behind_cuts(end_mps: np.ndarray) -> np.ndarray:
-        """Bound behind every CAV cutting in (``cut_gap_m``), each ending at ``end_mps``."""
-        v0, v1 = ego_mps[j_], end_mps[j_]
-        step_m = 0.5 * (v0 + v1) * step_s
-        out = bound(cut_gap_m, step_m, v1, cfg.cav_time_gap_s, own=ego_mps[i_])
+    ahead_v0_mps = of_cols(ego_mps, cols)  # (..., C, C + 2)
+    lead_v0_mps = ahead_v0_mps[..., n_cav:]  # (..., C, 2)
+
+    def behind_followed(end_mps: np.ndarray) -> np.ndarray:
+        """Bound behind every CAV followed (``follows``), each ending the step at ``end_mps``."""
+        v1 = of_cols(end_mps, cols)
+        step_m = 0.5 * (ahead_v0_mps + v1) * step_s
+        out = bound(follow_gap_m, step_m, v1, cfg.cav_time_gap_s, own=ego_mps[..., None])
         return out.min(-1, initial=np.inf)
 
-    def known_threat(slot: np.ndarray, gap_m: np.ndarray, end_mps: np.ndarray) -> np.ndarray:
-        """(..., C) the CAV in ``slot`` ahead (ending the step at ``end_mps``) is a threat:
+    def known_threat(end_mps: np.ndarray) -> np.ndarray:
+        """(..., C) a known CAV ahead (ending the step at ``end_mps``) is a threat:
         it brakes harder than planned, is too close, or planned braking falls short."""
-        s = np.maximum(slot, 0)
-        v0, v1 = np.take_along_axis(ego_mps, s, -1), np.take_along_axis(end_mps, s, -1)
+        v1 = of_cols(end_mps, lead_cols)  # (..., C, 2)
         with np.errstate(invalid="ignore"):
             planned_end_mps = safe_end_speed_mps(
-                gap_m, ego_mps, 0.5 * (v0 + v1) * step_s, v1, step_s, decel, cfg.min_gap_m
+                known_gaps_m,
+                ego_mps[..., None],
+                0.5 * (lead_v0_mps + v1) * step_s,
+                v1,
+                step_s,
+                decel,
+                cfg.min_gap_m,
             )
-        hard = v0 - v1 > planned_mps + 1e-9
-        short = planned_end_mps < ego_mps - planned_mps
-        return (slot >= 0) & (hard | short | (gap_m < cfg.min_gap_m))
+        hard = lead_v0_mps - v1 > planned_mps + 1e-9
+        short = planned_end_mps < ego_mps[..., None] - planned_mps
+        return (known_leads & (hard | short | (known_gaps_m < cfg.min_gap_m))).any(-1)
 
     known_leaders = cfg.full_brake == "known"
     cav_limit_mps = limit_mps[take(state.segment, cav_index).astype(np.int64)]
@@ -819,21 +839,15 @@ def _headway_bound_mps(
     bound_mps = fixed_mps.copy()
     end_mps = np.zeros(cav_index.shape)  # (..., C) decided end-of-step speed
     decided = ~take(state.active, cav_index)
-    for _ in range(cav_index.shape[-1] + 1):  # one pass per CAV a chain can hold, at most
-        ready = ~decided
-        for slot, _gap in known:
-            ready &= (slot < 0) | np.take_along_axis(decided, np.maximum(slot, 0), -1)
-        ready &= ~(cuts & ~decided[j_]).any(-1)
+    for _ in range(n_cav + 1):  # one pass per CAV a chain can hold, at most
+        ready = ~decided & ~(follows & ~of_cols(decided, cols)).any(-1)
         if not ready.any():
             break
-        now = np.minimum(fixed_mps, behind_cuts(end_mps))
-        for slot, gap_m in known:
-            now = np.minimum(now, behind_known(slot, gap_m, end_mps))
+        now = np.minimum(fixed_mps, behind_followed(end_mps))
         bound_mps = np.where(ready, now, bound_mps)
         brake_now = brake_mps
         if known_leaders:
-            for slot, gap_m in known:
-                brake_now = np.where(known_threat(slot, gap_m, end_mps), full_mps, brake_now)
+            brake_now = np.where(known_threat(end_mps), full_mps, brake_now)
             brake_mps = np.where(ready, brake_now, brake_mps)
         # What the backend makes of the command: within the speed limit (lower is safer).
         end_now = np.minimum(
