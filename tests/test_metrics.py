@@ -156,3 +156,45 @@ def test_delay_uses_each_segments_limit():
     assert m.total_delay_s == pytest.approx(6.0)
     assert m.throughput_vph == pytest.approx(3600.0 / 30.0)
     assert math.isnan(m.mean_arrived_speed_mps) and m.never_arrived_fraction == 1.0
+
+
+def test_a_batch_recorder_equals_one_recorder_per_env_with_episodes_out_of_step():
+    """E episodes side by side, one restarted mid-way, with a warm-up: each row's
+    summary and speed samples are those of a recorder fed that env's states alone."""
+    from diacc.config import EnvConfig, override
+    from diacc.envs.batch import EnvBatch, Simulators
+    from diacc.sim.backends.base import make_backend
+
+    cfg = override(
+        EnvConfig(),
+        {"map": "train-25", "sim.episode_steps": 40, "scenario.n_vehicles": 12},
+    )
+    sims = Simulators([make_backend("highway", ROAD, cfg.sim) for _ in range(3)])
+    batch = EnvBatch(cfg, sims)
+    rng = np.random.default_rng(0)
+    batch.reset(np.arange(3), [11, 12, 13])
+    together = EpisodeRecorder(ROAD, cfg.events, warmup_s=3.0, n_envs=3)
+    alone = [EpisodeRecorder(ROAD, cfg.events, warmup_s=3.0) for _ in range(3)]
+    together.record(batch.state.traffic)
+    for e in range(3):
+        alone[e].record(batch.state.traffic.env(e))
+    finished = []
+    for t in range(30):
+        out = batch.step(rng.integers(0, 5, (3, batch.n_cavs)))
+        together.record(out.state, psar=out.decision.psar, critical=out.critical)
+        for e in range(3):
+            alone[e].record(out.state.env(e), psar=out.decision.env(e).psar)
+        if t == 12:  # env 1 starts its next episode; the others go on
+            finished.append((together.summary(1), alone[1].summary()))
+            batch.reset(np.array([1]), [21])
+            together.start(np.array([1]))
+            together.record(batch.state.traffic, rows=np.array([False, True, False]))
+            alone[1] = EpisodeRecorder(ROAD, cfg.events, warmup_s=3.0)
+            alone[1].record(batch.state.traffic.env(1))
+    finished += [(together.summary(e), alone[e].summary()) for e in range(3)]
+    for mine, theirs in finished:
+        assert repr(mine.as_dict()) == repr(theirs.as_dict())
+    for e in range(3):
+        for name, column in vars(together.speed_samples(e)).items():
+            np.testing.assert_array_equal(column, getattr(alone[e].speed_samples(), name), name)
+    assert together.speed_samples(1).step.min() == 3  # the new episode's, from the warm-up on

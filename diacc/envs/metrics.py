@@ -43,13 +43,13 @@ Definitions:
 from __future__ import annotations
 
 import csv
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
 from diacc.config import EventConfig
-from diacc.envs.psar import RULE_NAMES, PSARResult, rule_counts
+from diacc.envs.psar import RULE_BIT_VALUES, RULE_NAMES, PSARResult
 from diacc.envs.safety import safety_critical_events, waiting_events
 from diacc.errors import DiaccError
 from diacc.sim.maps import SEGMENT_KINDS, Map
@@ -127,28 +127,35 @@ class SpeedSamples:
 
 
 class EpisodeRecorder:
-    """Accumulates one episode's per-vehicle records, step by step.
+    """Accumulates the per-vehicle records of E episodes side by side, step by step.
+
+    One recorder serves a batch of E envs (the rows of a :class:`TrafficState`
+    batch, each with its own episode: :meth:`start` begins new ones in some rows
+    while the others go on) or a single env (E = 1, fed single states). Every
+    :meth:`record` is a few array operations over all rows, so a batch of envs
+    is not recorded one env at a time.
 
     Args:
         road: the map (segment kinds for per-kind speeds).
         events: thresholds of the waiting / safety-critical event detectors.
+        warmup_s: states before this time measure nothing (demand scenarios).
+        n_envs: E, the episodes recorded side by side.
     """
 
-    def __init__(self, road: Map, events: EventConfig | None = None, warmup_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        road: Map,
+        events: EventConfig | None = None,
+        warmup_s: float = 0.0,
+        n_envs: int = 1,
+    ) -> None:
         self.road = road
         self.events = events or EventConfig()
         self.warmup_s = warmup_s
+        self.n_envs = n_envs
         self._kind_of_segment = np.array(
             [SEGMENT_KINDS.index(s.kind) for s in road.segments], dtype=np.int8
         )  # (S,)
-        self._n: int | None = None
-        self._chunks: list[tuple[np.ndarray, ...]] = []
-        self._collision_pairs: list[np.ndarray] = []
-        self._psar_counts = np.zeros(len(RULE_NAMES) - 1, dtype=np.int64)
-        self._psar_decisions = 0
-        self._first_step: int | None = None
-        self._last_step = 0
-        self._last_time_s = 0.0
         reductions = [i for i, seg in enumerate(road.segments) if seg.kind.startswith("reduction")]
         #: x past which a vehicle has crossed the bottleneck (nan: no reduction segment)
         self._bottleneck_end_m = (
@@ -159,35 +166,85 @@ class EpisodeRecorder:
         #: free-flow time to reach each segment boundary from the route start
         self._edges_m = np.concatenate([[0.0], np.cumsum(lengths)])  # (S + 1,)
         self._free_time_s = np.concatenate([[0.0], np.cumsum(lengths / limits)])  # (S + 1,)
+        self._n: int | None = None
+        #: speed samples of every measured state: (env, vehicle, step, time, speed, kind,
+        #: is_cav) columns of all rows at once; ``_chunk0`` counts the chunks dropped
+        self._chunks: list[tuple[np.ndarray, ...]] = []
+        self._chunk0 = 0
+        self._episode_chunk = np.zeros(n_envs, np.int64)  # (E,) first chunk of each episode
+        self._collision_pairs: list[list[np.ndarray]] = [[] for _ in range(n_envs)]
+        self._psar_counts = np.zeros((n_envs, len(RULE_NAMES) - 1), dtype=np.int64)  # (E, 4)
+        self._psar_decisions = np.zeros(n_envs, np.int64)  # (E,)
+        self._first_step = np.full(n_envs, -1, np.int64)  # (E,) -1: nothing recorded yet
+        self._last_step = np.zeros(n_envs, np.int64)  # (E,)
+        self._last_time_s = np.zeros(n_envs)  # (E,)
+        self._window_start_s = np.full(n_envs, np.nan)  # (E,) first measured state; nan: none
 
     def _init_vehicles(self, n: int) -> None:
         self._n = n
-        self._is_cav = np.zeros(n, dtype=bool)  # (V,)
-        self._seen = np.zeros(n, dtype=bool)  # (V,)
-        self._waited = np.zeros(n, dtype=bool)  # (V,)
-        self._sce = np.zeros(n, dtype=bool)  # (V,)
-        self._arrived = np.zeros(n, dtype=bool)  # (V,)
-        self._entered = np.zeros(n, dtype=bool)  # (V,) on the road at some recorded state
-        self._first_time_s = np.full(n, np.nan)  # (V,)
-        self._arrival_time_s = np.full(n, np.nan)  # (V,)
-        self._window_time_s = np.full(n, np.nan)  # (V,) first measured on the road
-        self._window_start_s: float | None = None
-        self._passed_before = np.zeros(n, dtype=bool)  # (V,) past the end at window start
-        self._first_x_m = np.full(n, np.nan)  # (V,)
-        self._last_x_m = np.full(n, np.nan)  # (V,)
-        self._passed = np.zeros(n, dtype=bool)  # (V,) crossed the bottleneck's end
+        shape = (self.n_envs, n)
+        self._is_cav = np.zeros(shape, dtype=bool)  # (E, V)
+        self._seen = np.zeros(shape, dtype=bool)  # (E, V)
+        self._waited = np.zeros(shape, dtype=bool)  # (E, V)
+        self._sce = np.zeros(shape, dtype=bool)  # (E, V)
+        self._arrived = np.zeros(shape, dtype=bool)  # (E, V)
+        self._entered = np.zeros(shape, dtype=bool)  # (E, V) on the road at a recorded state
+        self._first_time_s = np.full(shape, np.nan)  # (E, V)
+        self._arrival_time_s = np.full(shape, np.nan)  # (E, V)
+        self._window_time_s = np.full(shape, np.nan)  # (E, V) first measured on the road
+        self._passed_before = np.zeros(shape, dtype=bool)  # (E, V) past the end at window start
+        self._first_x_m = np.full(shape, np.nan)  # (E, V)
+        self._last_x_m = np.full(shape, np.nan)  # (E, V)
+        self._passed = np.zeros(shape, dtype=bool)  # (E, V) crossed the bottleneck's end
+
+    def start(self, rows: np.ndarray) -> None:
+        """Begin new episodes in ``rows`` (the others go on); their records are dropped."""
+        rows = np.asarray(rows, np.int64)
+        self._first_step[rows] = -1
+        self._last_step[rows] = 0
+        self._last_time_s[rows] = 0.0
+        self._window_start_s[rows] = np.nan
+        self._psar_counts[rows] = 0
+        self._psar_decisions[rows] = 0
+        for e in rows.tolist():
+            self._collision_pairs[e] = []
+        self._episode_chunk[rows] = self._chunk0 + len(self._chunks)
+        dropped = int(self._episode_chunk.min()) - self._chunk0  # chunks no episode needs
+        if dropped > 0:
+            del self._chunks[:dropped]
+            self._chunk0 += dropped
+        if self._n is not None:
+            for name in ("_is_cav", "_seen", "_waited", "_sce", "_arrived", "_entered"):
+                getattr(self, name)[rows] = False
+            for name in ("_passed_before", "_passed"):
+                getattr(self, name)[rows] = False
+            for name in ("_first_time_s", "_arrival_time_s", "_window_time_s"):
+                getattr(self, name)[rows] = np.nan
+            self._first_x_m[rows] = np.nan
+            self._last_x_m[rows] = np.nan
 
     def record(
         self,
         state: TrafficState,
         psar: PSARResult | None = None,
         critical: np.ndarray | None = None,
+        rows: np.ndarray | None = None,
     ) -> None:
         """Add one state (and the PSAR result of the step that led to it, if any).
 
-        ``critical``: (V,) bool, ``safety_critical_events(state, events).any`` if the
-        caller has it already (a batch of envs detects them in one call).
+        ``state`` is a batch of E envs, or one env's state when E = 1 (and then
+        ``psar`` and ``critical`` are one env's too). ``critical``: (E, V) bool,
+        ``safety_critical_events(state, events).any`` if the caller has it already.
+        ``rows``: (E,) bool, the envs this state counts for (default all; a
+        crashed simulator's row is left out).
         """
+        if np.ndim(state.time_s) == 0:  # one env's state: a batch of one
+            state = TrafficState.stack([state])
+            if psar is not None:
+                psar = PSARResult(*(getattr(psar, f.name)[None] for f in fields(PSARResult)))
+            critical = None if critical is None else np.asarray(critical)[None]
+        if state.x_m.shape[0] != self.n_envs:
+            raise MetricsError(f"state holds {state.x_m.shape[0]} envs, the recorder {self.n_envs}")
         if self._n is None:
             self._init_vehicles(state.n_vehicles)
         elif state.n_vehicles != self._n:
@@ -198,119 +255,141 @@ class EpisodeRecorder:
             raise MetricsError(
                 f"segment index outside the map's {self._kind_of_segment.shape[0]} segments"
             )
-        if self._first_step is None:
-            self._first_step = state.step
-            self._is_cav = state.is_cav.copy()
-        self._last_step = state.step
-        new = state.active & ~self._entered
-        self._first_time_s[new] = state.time_s
-        self._entered |= state.active
-        self._last_time_s = float(state.time_s)
-        if state.time_s < self.warmup_s - 1e-9:
+        kept = np.ones(self.n_envs, bool) if rows is None else np.asarray(rows, bool)  # (E,)
+        time_s = np.asarray(state.time_s, np.float64)  # (E,)
+        step = np.asarray(state.step, np.int64)  # (E,)
+        first = kept & (self._first_step < 0)
+        self._first_step[first] = step[first]
+        self._is_cav[first] = state.is_cav[first]
+        self._last_step[kept] = step[kept]
+        active = state.active & kept[:, None]  # (E, V)
+        self._first_time_s = np.where(active & ~self._entered, time_s[:, None], self._first_time_s)
+        self._entered |= active
+        self._last_time_s[kept] = time_s[kept]
+        measured = kept & (time_s >= self.warmup_s - 1e-9)  # (E,)
+        if not measured.any():
             return
-        if self._window_start_s is None:  # first measured state: flows count from here
-            self._window_start_s = float(state.time_s)
+        past_end = state.active & (state.x_m >= self._bottleneck_end_m)  # (E, V)
+        opening = measured & np.isnan(self._window_start_s)  # first measured state: flows
+        if opening.any():  # count from here
+            self._window_start_s[opening] = time_s[opening]
             if self.warmup_s > 0:  # those passed during the warm-up
-                self._passed_before = state.active & (state.x_m >= self._bottleneck_end_m)
+                self._passed_before[opening] = past_end[opening]
 
-        idx = np.flatnonzero(state.active)  # (A,)
+        on_road = state.active & measured[:, None]  # (E, V)
+        env, idx = np.nonzero(on_road)  # (A,) each, env-major
         self._chunks.append(
             (
+                env,
                 idx.astype(np.int32),
-                np.full(idx.shape, state.step, dtype=np.int32),
-                np.full(idx.shape, state.time_s, dtype=np.float64),
-                state.speed_mps[idx].astype(np.float64),
-                self._kind_of_segment[state.segment[idx]],
-                state.is_cav[idx].copy(),
+                step[env].astype(np.int32),
+                time_s[env],
+                state.speed_mps[env, idx].astype(np.float64),
+                self._kind_of_segment[state.segment[env, idx]],
+                state.is_cav[env, idx],
             )
         )
-        new = state.active & ~self._seen
-        self._window_time_s[new] = state.time_s
-        self._first_x_m[new] = state.x_m[new]
-        self._last_x_m[state.active] = state.x_m[state.active]
-        self._passed |= state.arrived | (state.active & (state.x_m >= self._bottleneck_end_m))
-        self._seen |= state.active
-        self._waited |= waiting_events(state, self.events)
+        new = on_road & ~self._seen
+        self._window_time_s = np.where(new, time_s[:, None], self._window_time_s)
+        self._first_x_m = np.where(new, state.x_m, self._first_x_m)
+        self._last_x_m = np.where(on_road, state.x_m, self._last_x_m)
+        self._passed |= measured[:, None] & (state.arrived | past_end)
+        self._seen |= on_road
+        self._waited |= waiting_events(state, self.events) & measured[:, None]
         if critical is None:
             critical = safety_critical_events(state, self.events).any
-        self._sce |= critical
-        newly_arrived = state.arrived & ~self._arrived
-        self._arrival_time_s[newly_arrived] = state.time_s
-        self._arrived |= state.arrived
-        if state.collisions.shape[0]:
-            self._collision_pairs.append(np.sort(state.collisions, axis=1))
+        self._sce |= critical & measured[:, None]
+        arrived = state.arrived & measured[:, None]
+        self._arrival_time_s = np.where(
+            arrived & ~self._arrived, time_s[:, None], self._arrival_time_s
+        )
+        self._arrived |= arrived
+        collisions = state.collisions  # (K, 3) rows (env, i, j)
+        if collisions.shape[0]:
+            for e in np.unique(collisions[:, 0]).tolist():
+                if measured[e]:
+                    pairs = collisions[collisions[:, 0] == e, 1:]
+                    self._collision_pairs[e].append(np.sort(pairs, axis=1))
         if psar is not None:
-            self._psar_counts += rule_counts(psar.rule_mask[psar.active])
-            self._psar_decisions += int(np.count_nonzero(psar.active))
+            counted = psar.active & measured[:, None]  # (E, C)
+            bits = (psar.rule_mask[..., None].astype(np.int64) & RULE_BIT_VALUES) != 0
+            self._psar_counts += (bits & counted[..., None]).sum(axis=1)
+            self._psar_decisions += counted.sum(axis=1)
 
-    def speed_samples(self) -> SpeedSamples:
-        """All recorded speed samples of active vehicles, in recording order.
+    def speed_samples(self, e: int = 0) -> SpeedSamples:
+        """All speed samples of env ``e``'s episode (active vehicles), in recording order.
 
         Empty when every state so far lay in the warm-up: a demand episode that a
         collision ended before ``warmup_s`` still has its summary (measuring nothing).
         """
-        if self._first_step is None:
+        if self._first_step[e] < 0:
             raise MetricsError("no state recorded yet")
-        if not self._chunks:
+        chunks = self._chunks[int(self._episode_chunk[e]) - self._chunk0 :]
+        if not chunks:
             dtypes = (np.int32, np.int32, np.float64, np.float64, np.int8, bool)
             return SpeedSamples(*(np.zeros(0, dtype) for dtype in dtypes))
-        cols = [np.concatenate(c) for c in zip(*self._chunks, strict=True)]
-        return SpeedSamples(*cols)
+        env, *cols = (np.concatenate(c) for c in zip(*chunks, strict=True))
+        mine = env == e
+        return SpeedSamples(*(col[mine] for col in cols))
 
-    def summary(self) -> EpisodeMetrics:
-        """Reduce the records to :class:`EpisodeMetrics`."""
-        samples = self.speed_samples()
+    def summary(self, e: int = 0) -> EpisodeMetrics:
+        """Reduce env ``e``'s records to :class:`EpisodeMetrics`."""
+        samples = self.speed_samples(e)
         speed = samples.speed_mps
-        n_seen = int(np.count_nonzero(self._seen))
+        seen, arrived_any = self._seen[e], self._arrived[e]  # (V,)
+        n_seen = int(np.count_nonzero(seen))
         by_kind = {
             kind: _mean(speed[samples.segment_kind == k]) for k, kind in enumerate(SEGMENT_KINDS)
         }
         pairs = np.unique(
-            np.concatenate([np.zeros((0, 2), np.int32), *self._collision_pairs]), axis=0
+            np.concatenate([np.zeros((0, 2), np.int32), *self._collision_pairs[e]]), axis=0
         )
         n_collisions = int(pairs.shape[0])
-        n_hdv_collisions = int(np.count_nonzero(~self._is_cav[pairs].any(axis=1)))
-        travel_s = self._arrival_time_s - self._first_time_s  # (V,) nan if not both
-        travel_s[self._first_time_s < self.warmup_s - 1e-9] = np.nan  # entered in the warm-up
-        decisions = self._psar_decisions
+        n_hdv_collisions = int(np.count_nonzero(~self._is_cav[e][pairs].any(axis=1)))
+        first_time_s = self._first_time_s[e]
+        travel_s = self._arrival_time_s[e] - first_time_s  # (V,) nan if not both
+        travel_s[first_time_s < self.warmup_s - 1e-9] = np.nan  # entered in the warm-up
+        decisions = int(self._psar_decisions[e])
         fire = {
             name: (float(count) / decisions if decisions else float("nan"))
-            for name, count in zip(RULE_NAMES[1:], self._psar_counts.tolist(), strict=True)
+            for name, count in zip(RULE_NAMES[1:], self._psar_counts[e].tolist(), strict=True)
         }
-        arrived = self._arrived & self._seen  # (V,)
+        arrived = arrived_any & seen  # (V,)
         return EpisodeMetrics(
             mean_speed_mps=_mean(speed),
             std_speed_mps=float(speed.std()) if speed.size else float("nan"),
             mean_cav_speed_mps=_mean(speed[samples.is_cav]),
             mean_hdv_speed_mps=_mean(speed[~samples.is_cav]),
             mean_speed_by_kind_mps=by_kind,
-            p_we=_share(self._waited & self._seen, n_seen),
-            p_sce=_share(self._sce & self._seen, n_seen),
+            p_we=_share(self._waited[e] & seen, n_seen),
+            p_sce=_share(self._sce[e] & seen, n_seen),
             n_collisions=n_collisions,
             n_hdv_collisions=n_hdv_collisions,
-            arrived_fraction=_share(self._arrived & self._seen, n_seen),
+            arrived_fraction=_share(arrived_any & seen, n_seen),
             mean_travel_time_s=_mean(travel_s[np.isfinite(travel_s)]),
-            episode_steps=int(self._last_step - (self._first_step or 0)),
+            episode_steps=int(self._last_step[e] - max(self._first_step[e], 0)),
             n_vehicles=n_seen,
             psar_decisions=decisions,
             psar_fire_rate=fire,
-            **self._flow(samples, arrived, n_seen),
+            **self._flow(e, samples, arrived, n_seen),
         )
 
-    def _flow(self, samples: SpeedSamples, arrived: np.ndarray, n_seen: int) -> dict:
-        """The flow fields of :class:`EpisodeMetrics` (module docstring)."""
-        duration_h = (self._last_time_s - (self._window_start_s or 0.0)) / 3600.0
-        n_passed = int(np.count_nonzero(self._passed & self._seen & ~self._passed_before))
+    def _flow(self, e: int, samples: SpeedSamples, arrived: np.ndarray, n_seen: int) -> dict:
+        """The flow fields of :class:`EpisodeMetrics` (module docstring) of env ``e``."""
+        window_start_s = float(self._window_start_s[e])
+        last_time_s = float(self._last_time_s[e])
+        duration_h = (last_time_s - (0.0 if np.isnan(window_start_s) else window_start_s)) / 3600.0
+        seen = self._seen[e]  # (V,)
+        n_passed = int(np.count_nonzero(self._passed[e] & seen & ~self._passed_before[e]))
         throughput = (
             n_passed / duration_h
             if duration_h > 0 and np.isfinite(self._bottleneck_end_m)
             else float("nan")
         )
-        seen = self._seen  # (V,)
-        end_time_s = np.where(arrived, self._arrival_time_s, self._last_time_s)  # (V,)
-        end_x_m = np.where(arrived, self._edges_m[-1], self._last_x_m)  # (V,)
-        free_s = self._free_flow_s(end_x_m[seen]) - self._free_flow_s(self._first_x_m[seen])
-        total_delay = float(np.sum(end_time_s[seen] - self._window_time_s[seen] - free_s))
+        end_time_s = np.where(arrived, self._arrival_time_s[e], last_time_s)  # (V,)
+        end_x_m = np.where(arrived, self._edges_m[-1], self._last_x_m[e])  # (V,)
+        free_s = self._free_flow_s(end_x_m[seen]) - self._free_flow_s(self._first_x_m[e][seen])
+        total_delay = float(np.sum(end_time_s[seen] - self._window_time_s[e][seen] - free_s))
         arrived_samples = arrived[samples.vehicle]  # (S,)
         return {
             "throughput_vph": throughput,

@@ -43,6 +43,8 @@ RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
 RULE_NAMES = ("none", "cancel_lc", "decel_lc", "force_brake", "suppr_accel")
 #: Bit of each rule code in :attr:`PSARResult.rule_mask` (``1 << (code - 1)``).
 RULE_BITS = {code: 1 << (code - 1) for code in range(1, len(RULE_NAMES))}
+#: (4,) int64 the bits of rules 1..4, in order (counting rules over arrays of masks)
+RULE_BIT_VALUES = np.array([RULE_BITS[c] for c in range(1, len(RULE_NAMES))], dtype=np.int64)
 #: Lateral drift (m) off its lane's centre line towards the ego lane from which a
 #: neighbouring-lane vehicle counts as cutting in (both backends keep vehicles on the
 #: centre line exactly unless they change lanes).
@@ -489,8 +491,7 @@ def _cut_in_front(state: TrafficState, cav_index: np.ndarray, road: Map) -> np.n
 def rule_counts(rule_mask: np.ndarray) -> np.ndarray:
     """(4,) int64: how many entries of a bitmask array have each rule 1..4 set."""
     rule_mask = np.asarray(rule_mask).astype(np.int64).reshape(-1)
-    bits = np.array([RULE_BITS[c] for c in range(1, len(RULE_NAMES))], dtype=np.int64)
-    return ((rule_mask[:, None] & bits[None, :]) != 0).sum(axis=0).astype(np.int64)
+    return ((rule_mask[:, None] & RULE_BIT_VALUES) != 0).sum(axis=0).astype(np.int64)
 
 
 def _headway_car_following(

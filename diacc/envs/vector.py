@@ -236,7 +236,11 @@ class VectorEnv:
         if not np.array_equal(order, np.arange(self.n_envs)):
             raise ValueError("each map's envs must be one contiguous block (maps_of_envs)")
         self.episode = [0] * self.n_envs  # next episode (seed) of each env
-        self.recorders: list[EpisodeRecorder | None] = [None] * self.n_envs
+        #: each batch's episode metrics, its envs side by side
+        self.recorders = [
+            EpisodeRecorder(batch.road, config.events, config.scenario.warmup_s, len(members))
+            for batch, members in self.groups
+        ]
         self._critic: list[CriticState] = []  # each group's latest critic states (crashes)
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
@@ -244,26 +248,24 @@ class VectorEnv:
         if first_episode is not None:
             self.episode = [first_episode] * self.n_envs
         pairs = []
-        for batch, members in self.groups:
+        for g, (batch, members) in enumerate(self.groups):
             rows = np.arange(len(members))
-            self._start(batch, members, rows)
+            self._start(g, batch, members, rows)
             pairs.append(batch.observe())
         self._critic = [critic for _, critic in pairs]
         return concat([a for a, _ in pairs]), concat([c for _, c in pairs])
 
-    def _start(self, batch: EnvBatch, members: np.ndarray, rows: np.ndarray) -> None:
-        """New episodes in rows ``rows`` of ``batch`` (positions ``members[rows]``)."""
+    def _start(self, g: int, batch: EnvBatch, members: np.ndarray, rows: np.ndarray) -> None:
+        """New episodes in rows ``rows`` of batch ``g`` (positions ``members[rows]``)."""
         seeds = []
         for pos in members[rows]:
             seeds.append(episode_seed(self.run_seed, self.env_index[pos], self.episode[pos]))
             self.episode[pos] += 1
         batch.reset(rows, seeds)
-        for row, pos in zip(rows, members[rows], strict=True):
-            recorder = EpisodeRecorder(
-                batch.road, self.config.events, self.config.scenario.warmup_s
-            )
-            recorder.record(batch.state.traffic.env(int(row), copy=False))  # it copies
-            self.recorders[pos] = recorder
+        restarted = np.zeros(len(members), bool)
+        restarted[rows] = True
+        self.recorders[g].start(rows)
+        self.recorders[g].record(batch.state.traffic, rows=restarted)
 
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
         parts, start = [], 0
@@ -282,26 +284,22 @@ class VectorEnv:
         finals: list[CriticState | None] = [None] * len(members)
         final_actors: list[ActorObs | None] = [None] * len(members)
         episodes = {}
-        for row, pos in enumerate(members):
-            if crashed[row]:
-                finals[row] = unstack(before, row)
-                continue
-            recorder = self.recorders[pos]
-            psar = out.decision.env(row).psar
-            # Views: the recorder copies what it keeps, and the batch's arrays are new each step.
-            recorder.record(out.state.env(row, copy=False), psar=psar, critical=out.critical[row])
-            if ended[row]:
-                finals[row] = unstack(out.critic_state, row, copy=True)
-                final_actors[row] = unstack(out.actor_obs, row, copy=True)
-                episodes[row] = {
-                    "length": int(batch.state.steps[row]),
-                    "collision": float((out.state.collisions[:, 0] == row).any()),
-                    **recorder.summary().as_dict(),
-                }
+        recorder = self.recorders[g]
+        recorder.record(out.state, psar=out.decision.psar, critical=out.critical, rows=~crashed)
+        for row in np.flatnonzero(crashed).tolist():
+            finals[row] = unstack(before, row)
+        for row in np.flatnonzero(ended & ~crashed).tolist():
+            finals[row] = unstack(out.critic_state, row, copy=True)
+            final_actors[row] = unstack(out.actor_obs, row, copy=True)
+            episodes[row] = {
+                "length": int(batch.state.steps[row]),
+                "collision": float((out.state.collisions[:, 0] == row).any()),
+                **recorder.summary(row).as_dict(),
+            }
         actor, critic = out.actor_obs, out.critic_state
         restart = np.flatnonzero(ended | crashed)
         if len(restart):
-            self._start(batch, members, restart)
+            self._start(g, batch, members, restart)
             new_actor, new_critic = batch.observe(restart)
             for container, new in ((actor, new_actor), (critic, new_critic)):
                 for f in fields(container):
