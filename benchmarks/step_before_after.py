@@ -21,19 +21,22 @@ import sys
 from pathlib import Path
 
 TIMER = """
-import sys
+import sys, time, types
 from diacc.config import EnvConfig
-from diacc.experiments.bench.envbatch import time_vector
-envs, mode, steps = int(sys.argv[1]), sys.argv[2], int(sys.argv[3])
-print(time_vector(EnvConfig(), envs, mode, steps, 0))
+from diacc.experiments.bench import envbatch
+envs, mode, steps, clock = int(sys.argv[1]), sys.argv[2], int(sys.argv[3]), sys.argv[4]
+if clock == "cpu":  # the process's CPU time: what a busy shared machine disturbs least
+    envbatch.time = types.SimpleNamespace(perf_counter=time.process_time)
+print(envbatch.time_vector(EnvConfig(), envs, mode, steps, 0))
 """
 
 
-def time_tree(tree: Path, envs: int, mode: str, steps: int) -> float:
-    """Env-steps/s of ``tree``'s vector env, measured in a fresh single-threaded process."""
+def time_tree(tree: Path, envs: int, mode: str, steps: int, clock: str) -> float:
+    """Env-steps/s of ``tree``'s vector env, measured in a fresh single-threaded process
+    (per second of wall-clock or of the process's CPU time, ``clock``)."""
     env = {**os.environ, "PYTHONPATH": str(tree.resolve()), "OMP_NUM_THREADS": "1"}
     out = subprocess.run(
-        [sys.executable, "-c", TIMER, str(envs), mode, str(steps)],
+        [sys.executable, "-c", TIMER, str(envs), mode, str(steps), clock],
         env=env,
         cwd=tree,
         capture_output=True,
@@ -51,16 +54,24 @@ def main() -> None:
     p.add_argument("--mode", default="batched", choices=("batched", "sync"))
     p.add_argument("--timing-steps", type=int, default=200)
     p.add_argument("--rounds", type=int, default=3)
+    p.add_argument(
+        "--clock",
+        default="wall",
+        choices=("wall", "cpu"),
+        help="per second of wall-clock, or of CPU time (steadier on a shared machine; the "
+        "mode sync's SUMO workers would not count)",
+    )
     args = p.parse_args()
     rates: dict[str, list[float]] = {"before": [], "after": []}
     print(
-        f"{args.envs} envs, vector mode {args.mode}, {args.timing_steps} timed steps; load "
+        f"{args.envs} envs, vector mode {args.mode}, {args.timing_steps} timed steps, "
+        f"{args.clock} clock; load "
         f"{', '.join(f'{x:.1f}' for x in os.getloadavg())}"
     )
     for r in range(args.rounds):
         for name in ("before", "after"):
             rates[name].append(
-                time_tree(getattr(args, name), args.envs, args.mode, args.timing_steps)
+                time_tree(getattr(args, name), args.envs, args.mode, args.timing_steps, args.clock)
             )
         print(
             f"round {r + 1}: before {rates['before'][-1]:.0f}  after {rates['after'][-1]:.0f} "

@@ -804,7 +804,7 @@ def _headway_bound_mps(
 
     def of_cols(values: np.ndarray, columns: np.ndarray) -> np.ndarray:
         """(..., C, K): ``values`` (..., C) of the CAVs in ``columns`` (..., C, K)."""
-        return np.take_along_axis(values[..., None, :], columns, -1)
+        return take(values, columns)
 
     ahead_v0_mps = of_cols(ego_mps, cols)  # (..., C, C + 2)
     lead_v0_mps = ahead_v0_mps[..., n_cav:]  # (..., C, 2)
