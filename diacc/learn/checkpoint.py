@@ -183,16 +183,21 @@ def _check_rng(rng: dict) -> None:
 
 def restore(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
     """Load a checkpoint's state into ``agent`` after checking it fits ``cfg``."""
+    _load_networks(agent, payload, cfg, path)
+    agent.optimizer.load_state_dict(payload["optimizer"])
+
+
+def _load_networks(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
+    """The checkpoint's networks and value normaliser into ``agent`` (one-line errors)."""
     _check_fits(payload, cfg, path)
     try:
         agent.actor.load_state_dict(payload["actor"])
         agent.critic.load_state_dict(payload["critic"])
     except RuntimeError:
         raise CheckpointError(
-            f"checkpoint {path} does not match the {cfg.variant} networks"
+            f"checkpoint {path} does not match the {cfg.variant} networks (other model.* sizes)"
         ) from None
     agent.value_norm.load_state_dict(payload["value_norm"])
-    agent.optimizer.load_state_dict(payload["optimizer"])
 
 
 def init_networks(agent: Agent, path: Path, cfg: TrainConfig) -> dict:
@@ -205,16 +210,7 @@ def init_networks(agent: Agent, path: Path, cfg: TrainConfig) -> dict:
     payload's provenance: variant, backend, map, update and step count.
     """
     payload = load_checkpoint(path)
-    _check_fits(payload, cfg, path)
-    try:
-        agent.actor.load_state_dict(payload["actor"])
-        agent.critic.load_state_dict(payload["critic"])
-    except RuntimeError:
-        raise CheckpointError(
-            f"checkpoint {path} has other network sizes than this run's {cfg.variant} "
-            "(model.* settings)"
-        ) from None
-    agent.value_norm.load_state_dict(payload["value_norm"])
+    _load_networks(agent, payload, cfg, path)
     env = payload["config"].get("env", {})
     return {
         "variant": payload["variant"],
