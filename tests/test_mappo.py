@@ -259,7 +259,7 @@ def test_init_from_starts_from_a_checkpoints_networks_with_a_fresh_optimiser(tmp
     assert to_source < to_scratch
 
     wider = tiny_config(tmp_path / "d", init_from=str(path), **{"model.hidden_dim": 16})
-    with pytest.raises(CheckpointError, match="other model.\* sizes"):
+    with pytest.raises(CheckpointError, match=r"other model\.\* sizes"):
         init_networks(make_agent(wider, torch.device("cpu")), path, wider)
     with pytest.raises(CheckpointError, match="variant 'diacc', not 'mappo-iadm'"):
         other = override(tuned, {"variant": "mappo-iadm"})
