@@ -48,7 +48,7 @@ def psar_action_mask(
     cav_index = np.asarray(cav_index)
     n_actions, n_cavs = len(ACTION_NAMES), cav_index.shape[-1]
     # One PSAR call for every candidate: the state tiled candidate-major to (5 E, V).
-    singles = [state] if state.x_m.ndim == 1 else [state.env(e) for e in range(len(state.x_m))]
+    singles = [state.env(e) for e in range(len(state.x_m))] if state.is_batch else [state]
     tiled = TrafficState.stack(singles * n_actions)  # (5 E, V)
     slots = np.tile(cav_index.reshape(-1, n_cavs), (n_actions, 1))  # (5 E, C)
     candidate = np.repeat(np.arange(n_actions), len(singles))[:, None]  # (5 E, 1)

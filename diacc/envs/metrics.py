@@ -238,7 +238,7 @@ class EpisodeRecorder:
         ``rows``: (E,) bool, the envs this state counts for (default all; a
         crashed simulator's row is left out).
         """
-        if np.ndim(state.time_s) == 0:  # one env's state: a batch of one
+        if not state.is_batch:  # one env's state: a batch of one
             state = TrafficState.stack([state])
             if psar is not None:
                 psar = PSARResult(*(getattr(psar, f.name)[None] for f in fields(PSARResult)))

@@ -67,10 +67,15 @@ class TrafficState:
         return int(self.vehicle_id.shape[-1])
 
     @property
+    def is_batch(self) -> bool:
+        """A batch of envs ((E, V) arrays, (E,) ``time_s``), not one env's state."""
+        return self.vehicle_id.ndim == 2
+
+    @property
     def collided(self) -> np.ndarray:
         """(..., V) bool: vehicle took part in a collision this step."""
         out = np.zeros(self.vehicle_id.shape, dtype=bool)
-        if self.collisions.shape[1] == 3:  # a batch: rows (env, i, j)
+        if self.is_batch:  # collisions are rows (env, i, j)
             out[self.collisions[:, 0], self.collisions[:, 1]] = True
             out[self.collisions[:, 0], self.collisions[:, 2]] = True
         else:
@@ -151,7 +156,7 @@ class TrafficState:
         """(..., V, V) bool, symmetric: vehicles i and j collided with each other this step."""
         out = np.zeros(self.vehicle_id.shape + self.vehicle_id.shape[-1:], dtype=bool)
         pairs = self.collisions  # (K, 2), or (K, 3) rows (env, i, j) in a batch
-        env = (pairs[:, 0],) if pairs.shape[1] == 3 else ()
+        env = (pairs[:, 0],) if self.is_batch else ()
         i, j = pairs[:, -2], pairs[:, -1]
         out[(*env, i, j)] = True
         out[(*env, j, i)] = True
