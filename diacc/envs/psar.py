@@ -34,7 +34,7 @@ from diacc.envs.safety import (
     lane_leaders_followers,
     pair_kinematics,
 )
-from diacc.sim.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
+from diacc.sim.kinematics import braking_step, nan_to_num, safe_end_speed_mps, safe_gap_m
 from diacc.sim.maps import Map
 from diacc.sim.state import TrafficState, take
 
@@ -240,7 +240,7 @@ def psar(
         """
         if not stopping:
             return np.zeros(shape)
-        lead_speed_mps = ego_speed_mps - np.nan_to_num(kin.dv_long_mps)  # 0 for a wall
+        lead_speed_mps = ego_speed_mps - nan_to_num(kin.dv_long_mps)  # 0 for a wall
         end_speed_mps = ego_speed_mps + np.maximum(action_speed_change_mps(action, dv_action), 0)
         gap_m = safe_gap_m(ego_speed_mps, lead_speed_mps, step_s, safe_decel, end_speed_mps)
         if headway:  # the standstill gap car following will keep
@@ -297,7 +297,7 @@ def psar(
         b_lc_mps2 = np.where(
             decel,
             np.maximum(
-                b_lc_mps2, np.minimum(np.abs(np.nan_to_num(tf.dv_long_mps)), cfg.b_max_mps2)
+                b_lc_mps2, np.minimum(np.abs(nan_to_num(tf.dv_long_mps)), cfg.b_max_mps2)
             ),
             b_lc_mps2,
         )
@@ -405,7 +405,7 @@ def psar(
         has_leader = longitudinal & sf.valid
         with np.errstate(invalid="ignore"):
             d_m = np.where(sf.valid, sf.d_long_m, np.inf)
-        closing_mps, ttc_s = np.nan_to_num(sf.dv_long_mps), sf.ttc_s  # (..., C)
+        closing_mps, ttc_s = nan_to_num(sf.dv_long_mps), sf.ttc_s  # (..., C)
         extra_m = front_margin_m(sf, a)
         d_warn_m, d_att_m = cfg.d_warn_m + extra_m, cfg.d_att_m + extra_m  # (..., C)
         closing = ttc_s < np.inf  # paper's TTC > 0
@@ -660,12 +660,8 @@ def _exit_room_m(state: TrafficState, cav_index: np.ndarray, road: Map) -> np.nd
     """
     seg = take(state.segment, cav_index).astype(np.int64)
     lane = take(state.lane, cav_index).astype(np.int64)
-    ends = np.where(road.lane_exists(), road.lane_end_m(), -np.inf)[seg]  # (..., C, L)
-    own_end_m = np.take_along_axis(ends, lane[..., None], -1)[..., 0]
-    padded = np.pad(ends, [(0, 0)] * (ends.ndim - 1) + [(1, 1)], constant_values=-np.inf)
-    right = np.take_along_axis(padded, lane[..., None], -1)[..., 0]  # lane - 1
-    left = np.take_along_axis(padded, lane[..., None] + 2, -1)[..., 0]  # lane + 1
-    exit_end_m = np.maximum(left, right)
+    own_ends_m, exit_ends_m = road.exit_ends_m()  # (S, L) each
+    own_end_m, exit_end_m = own_ends_m[seg, lane], exit_ends_m[seg, lane]  # (..., C)
     length_m = take(state.length_m, cav_index)
     trapped = np.isfinite(own_end_m) & np.isfinite(exit_end_m) & (exit_end_m <= own_end_m)
     with np.errstate(invalid="ignore"):  # inf - inf where no lane ends
@@ -786,53 +782,59 @@ def _headway_bound_mps(
     )
     tf_gap_m = np.where(tf_slot >= 0, fronts.tf_vehicle.d_long_m, np.inf)
     known = ((lead_slot, lead_gap_m), (tf_slot, tf_gap_m))
-    # The CAVs each CAV may follow with their command known, as columns of one (..., C, C + 2)
-    # table: every CAV cutting in, then the same-lane leader and the target-lane front CAV.
-    # One bound per column and pass (the formula is elementwise, so the values are those of
-    # one call per kind of leader, at a fraction of the calls).
+    # The CAVs each CAV may follow with their command known, as columns of one (..., C, C + 4)
+    # table: every CAV cutting in, then the same-lane leader and the target-lane front CAV
+    # (followed: C + 2 columns), then those two again for the threat test of "known" (with
+    # their own gap and no time gap). One call of the elementwise formula per pass gives
+    # the values of one call per kind of leader, at a fraction of the calls.
     n_cav = cav_index.shape[-1]
     lead_cols = np.stack([np.maximum(slot, 0) for slot, _ in known], -1)  # (..., C, 2)
     known_leads = np.stack([slot >= 0 for slot, _ in known], -1)  # (..., C, 2)
     known_gaps_m = np.stack([gap for _, gap in known], -1)  # (..., C, 2)
     cols = np.concatenate(
-        [np.broadcast_to(np.arange(n_cav), cuts.shape), lead_cols], -1
-    )  # (..., C, C + 2)
+        [np.broadcast_to(np.arange(n_cav), cuts.shape), lead_cols, lead_cols], -1
+    )  # (..., C, C + 4)
+    n_followed = n_cav + 2
     follows = np.concatenate([cuts, known_leads], -1)  # (..., C, C + 2)
-    follow_gap_m = np.concatenate(
-        [cut_gap_m, np.where(known_leads, known_gaps_m, np.inf)], -1
-    )  # (..., C, C + 2)
+    gap_m = np.concatenate(
+        [cut_gap_m, np.where(known_leads, known_gaps_m, np.inf), known_gaps_m], -1
+    )  # (..., C, C + 4)
+    time_gap_s = np.repeat([cfg.cav_time_gap_s, 0.0], [n_followed, 2])  # (C + 4,)
+    followed_finite = np.isfinite(gap_m[..., :n_followed])
+    # Gathers of (..., C) values by column, through one flat index made once.
+    env_offset = np.arange(cav_index.size // n_cav).reshape(cav_index.shape[:-1] + (1, 1))
+    flat_cols = (cols + env_offset * n_cav).reshape(-1)
 
-    def of_cols(values: np.ndarray, columns: np.ndarray) -> np.ndarray:
-        """(..., C, K): ``values`` (..., C) of the CAVs in ``columns`` (..., C, K)."""
-        return take(values, columns)
+    def of_cols(values: np.ndarray) -> np.ndarray:
+        """(..., C, C + 4): ``values`` (..., C) of the CAVs in each column of ``cols``."""
+        return np.ascontiguousarray(values).reshape(-1).take(flat_cols).reshape(cols.shape)
 
-    ahead_v0_mps = of_cols(ego_mps, cols)  # (..., C, C + 2)
-    lead_v0_mps = ahead_v0_mps[..., n_cav:]  # (..., C, 2)
+    ahead_v0_mps = of_cols(ego_mps)  # (..., C, C + 4)
+    lead_v0_mps = ahead_v0_mps[..., n_followed:]  # (..., C, 2)
+    own_mps = ego_mps[..., None]
 
-    def behind_followed(end_mps: np.ndarray) -> np.ndarray:
-        """Bound behind every CAV followed (``follows``), each ending the step at ``end_mps``."""
-        v1 = of_cols(end_mps, cols)
-        step_m = 0.5 * (ahead_v0_mps + v1) * step_s
-        out = bound(follow_gap_m, step_m, v1, cfg.cav_time_gap_s, own=ego_mps[..., None])
-        return out.min(-1, initial=np.inf)
-
-    def known_threat(end_mps: np.ndarray) -> np.ndarray:
-        """(..., C) a known CAV ahead (ending the step at ``end_mps``) is a threat:
-        it brakes harder than planned, is too close, or planned braking falls short."""
-        v1 = of_cols(end_mps, lead_cols)  # (..., C, 2)
+    def behind(end_mps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """With every CAV ahead ending the step at ``end_mps``: (..., C) bound behind every
+        CAV followed (``follows``), and (..., C) whether a known CAV ahead is a threat (it
+        brakes harder than planned, is too close, or planned braking falls short)."""
+        v1 = of_cols(end_mps)
         with np.errstate(invalid="ignore"):
-            planned_end_mps = safe_end_speed_mps(
-                known_gaps_m,
-                ego_mps[..., None],
-                0.5 * (lead_v0_mps + v1) * step_s,
+            out = safe_end_speed_mps(
+                gap_m,
+                own_mps,
+                0.5 * (ahead_v0_mps + v1) * step_s,
                 v1,
                 step_s,
                 decel,
                 cfg.min_gap_m,
+                time_gap_s,
             )
-        hard = lead_v0_mps - v1 > planned_mps + 1e-9
-        short = planned_end_mps < ego_mps[..., None] - planned_mps
-        return (known_leads & (hard | short | (known_gaps_m < cfg.min_gap_m))).any(-1)
+        followed = np.where(followed_finite, out[..., :n_followed], np.inf)
+        planned_end_mps, lead_v1 = out[..., n_followed:], v1[..., n_followed:]
+        hard = lead_v0_mps - lead_v1 > planned_mps + 1e-9
+        short = planned_end_mps < own_mps - planned_mps
+        threat = known_leads & (hard | short | (known_gaps_m < cfg.min_gap_m))
+        return followed.min(-1, initial=np.inf), threat.any(-1)
 
     known_leaders = cfg.full_brake == "known"
     cav_limit_mps = limit_mps[take(state.segment, cav_index).astype(np.int64)]
@@ -841,14 +843,15 @@ def _headway_bound_mps(
     end_mps = np.zeros(cav_index.shape)  # (..., C) decided end-of-step speed
     decided = ~take(state.active, cav_index)
     for _ in range(n_cav + 1):  # one pass per CAV a chain can hold, at most
-        ready = ~decided & ~(follows & ~of_cols(decided, cols)).any(-1)
+        ready = ~decided & ~(follows & ~of_cols(decided)[..., :n_followed]).any(-1)
         if not ready.any():
             break
-        now = np.minimum(fixed_mps, behind_followed(end_mps))
+        followed_mps, threat = behind(end_mps)
+        now = np.minimum(fixed_mps, followed_mps)
         bound_mps = np.where(ready, now, bound_mps)
         brake_now = brake_mps
         if known_leaders:
-            brake_now = np.where(known_threat(end_mps), full_mps, brake_now)
+            brake_now = np.where(threat, full_mps, brake_now)
             brake_mps = np.where(ready, brake_now, brake_mps)
         # What the backend makes of the command: within the speed limit (lower is safer).
         end_now = np.minimum(

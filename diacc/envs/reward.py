@@ -63,6 +63,7 @@ import numpy as np
 from diacc.config import RewardConfig
 from diacc.envs.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.errors import DiaccError
+from diacc.sim.kinematics import nan_to_num
 from diacc.sim.maps import Map
 from diacc.sim.state import TrafficState, take
 
@@ -314,7 +315,7 @@ def _bumper_gaps(
     pair = np.stack([lanes.front[..., SAME_COL], lanes.rear[..., SAME_COL]], axis=-1)  # (..., C, 2)
     ego = np.broadcast_to(cav_index[..., None], pair.shape)
     kin = pair_kinematics(state, ego, pair)  # (..., C, 2)
-    gap_m = np.where(kin.valid, np.abs(np.nan_to_num(kin.d_long_m)), np.inf)  # (..., C, 2)
+    gap_m = np.where(kin.valid, np.abs(nan_to_num(kin.d_long_m)), np.inf)  # (..., C, 2)
     dist_m = np.full(others.shape, np.inf)  # (..., C, V)
     safe_pair = np.where(kin.valid, pair, 0)
     # One column at a time: a missing neighbour (index 0 after masking) keeps what is there.

@@ -104,6 +104,25 @@ def lane_leaders_followers(state: TrafficState, query: np.ndarray) -> LaneNeighb
     return LaneNeighbours(front=_argmin_or_none(front_dist), rear=_argmin_or_none(rear_dist))
 
 
+def same_lane_leaders(state: TrafficState) -> np.ndarray:
+    """(..., V) each vehicle's same-lane leader, -1: none.
+
+    What :func:`lane_leaders_followers` gives in its same-lane front column
+    for every vehicle as the query (the same candidates, distances and
+    ties), searched in that lane alone: the event detectors need no other.
+    """
+    lane = state.lane
+    dx_m = state.x_m[..., None, :] - state.x_m[..., None]  # (..., V, V) x_j - x_i
+    n = state.n_vehicles
+    candidate = (
+        state.active[..., None, :]
+        & (lane[..., None, :] == lane[..., None])
+        & ~np.eye(n, dtype=bool)
+        & (dx_m >= 0.0)
+    )  # (..., V, V)
+    return _argmin_or_none(np.where(candidate, dx_m, np.inf))
+
+
 def _argmin_or_none(dist: np.ndarray) -> np.ndarray:
     """Index of the smallest finite entry along the last axis, -1 if all inf."""
     if dist.shape[-1] == 0:
@@ -273,7 +292,7 @@ def safety_critical_events(state: TrafficState, cfg: EventConfig) -> SafetyEvent
     lo, hi = on_road_window(state.active)
     part = state.vehicles(lo, hi)
     everyone = np.broadcast_to(np.arange(hi - lo), part.x_m.shape)  # (..., W)
-    leader = lane_leaders_followers(part, everyone).front[..., SAME_COL]  # (..., W)
+    leader = same_lane_leaders(part)  # (..., W)
     kin = pair_kinematics(part, everyone, leader)
     small_gap, low_ttc = np.zeros((2,) + state.x_m.shape, bool)  # (..., V) each
     with np.errstate(invalid="ignore"):

@@ -41,6 +41,14 @@ def safe_gap_m(
 _FLOAT_MAX = np.finfo(np.float64).max
 
 
+def nan_to_num(values: np.ndarray) -> np.ndarray:
+    """:func:`numpy.nan_to_num` of float64 values (NaN -> 0, +-inf -> the largest
+    floats), bit for bit, at less than half its cost: PSAR calls it every step."""
+    values = np.asarray(values, dtype=np.float64)
+    clipped = np.minimum(np.maximum(values, -_FLOAT_MAX), _FLOAT_MAX)
+    return np.where(np.isnan(values), 0.0, clipped)
+
+
 def lane_change_reach_m(speed_mps: np.ndarray, step_s: float, length_m: np.ndarray) -> np.ndarray:
     """Road a vehicle needs ahead of its centre to complete a one-step lane change.
 
@@ -98,8 +106,7 @@ def safe_end_speed_mps(
     c = room_m + w * w / (2.0 * b_lead)
     with np.errstate(invalid="ignore"):
         above_mps = b_eff * (-slope + np.sqrt(slope * slope + 2.0 * c / b_eff))
-    # No root (NaN) is -inf; infinities become the largest floats (as np.nan_to_num does,
-    # at a fraction of its cost: this runs dozens of times per PSAR call).
+    # No root (NaN) is -inf; infinities become the largest floats (as np.nan_to_num does).
     above_mps = np.minimum(np.maximum(above_mps, -_FLOAT_MAX), _FLOAT_MAX)
     return np.where(below_mps <= u0, below_mps, np.where(np.isnan(above_mps), -np.inf, above_mps))
 

@@ -134,6 +134,21 @@ class Map:
             out[s] = later
         return out
 
+    def exit_ends_m(self) -> tuple[np.ndarray, np.ndarray]:
+        """(S, L) end of lane l seen from segment s (-inf where it does not exist there),
+        and the later end of its two neighbours (-inf: none exists). Read-only, cached
+        (PSAR's trapped-lane wall reads them every step)."""
+        return _cached(self, "_own_ends", self._compute_own_ends), _cached(
+            self, "_exit_ends", self._compute_exit_ends
+        )
+
+    def _compute_own_ends(self) -> np.ndarray:
+        return np.where(self.lane_exists(), self.lane_end_m(), -np.inf)
+
+    def _compute_exit_ends(self) -> np.ndarray:
+        padded = np.pad(self._compute_own_ends(), [(0, 0), (1, 1)], constant_values=-np.inf)
+        return np.maximum(padded[:, 2:], padded[:, :-2])  # (S, L) max(lane + 1, lane - 1)
+
     def lane_change_allowed(
         self,
         segment: np.ndarray,

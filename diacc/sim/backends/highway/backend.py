@@ -591,8 +591,9 @@ class HighwayBackend:
         behind = np.where(in_lane & (dx < 0.0)[:, None], -dx[:, None], np.inf)
         lead = ahead.argmin(axis=3)  # (E, 3, V)
         foll = behind.argmin(axis=3)
-        lead_gap = ahead.min(axis=3) - length  # the gap to ``lead`` (inf: none)
-        foll_gap = behind.min(axis=3) - length
+        # The gaps to ``lead`` and ``foll`` (inf: none): the minima, read at the argmins.
+        lead_gap = np.take_along_axis(ahead, lead[..., None], 3)[..., 0] - length
+        foll_gap = np.take_along_axis(behind, foll[..., None], 3)[..., 0] - length
         has_foll = np.isfinite(foll_gap)
 
         # Every IDM acceleration MOBIL needs, in one call: (E, 4, 3, V) =
@@ -773,34 +774,42 @@ class HighwayBackend:
         on those events only and sub-steps reuse the result.
         """
         state, caches = self.state, self.caches
-        dirty = caches.leaders_dirty
-        x, lf, lt = state.x_m, state.lane_from, state.lane_to
+        rows = np.flatnonzero(caches.leaders_dirty)  # (R,) the envs to search again
+        every = len(rows) == self.n_envs
+        pick = (lambda a: a) if every else (lambda a: a[rows])  # noqa: E731
+        x, lf, lt = pick(state.x_m), pick(state.lane_from), pick(state.lane_to)  # (R, V)
+        active, crashed, is_cav = pick(state.active), pick(state.crashed), pick(state.is_cav)
         a, b = (slice(None), slice(None), None), (slice(None), None, slice(None))
         shares_lane = (
             (lf[a] == lf[b]) | (lf[a] == lt[b]) | (lt[a] == lf[b]) | (lt[a] == lt[b])
-        )  # (E, V, V)
-        dx = x[b] - x[a]  # (E, V, V) x_j - x_i
-        ahead = np.where(shares_lane & (dx > 0.0) & state.active[b], dx, np.inf)
-        leader = ahead.argmin(axis=2)  # (E, V)
-        has_leader = np.isfinite(ahead.min(axis=2))
-        hdv = state.active & ~state.is_cav & ~state.crashed
-        guarded = hdv & has_leader & ~self._at(state.is_cav, leader)
+        )  # (R, V, V)
+        dx = x[b] - x[a]  # (R, V, V) x_j - x_i
+        ahead = np.where(shares_lane & (dx > 0.0) & active[b], dx, np.inf)
+        leader = ahead.argmin(axis=2)  # (R, V)
+        has_leader = np.isfinite(np.take_along_axis(ahead, leader[..., None], 2)[..., 0])
+
+        def of_leader(values: np.ndarray) -> np.ndarray:  # (R, V) values of each leader
+            return np.take_along_axis(values, leader, 1)
+
+        hdv = active & ~is_cav & ~crashed
+        guarded = hdv & has_leader & ~of_leader(is_cav)
         # Pairs that can still start a contact: both on the road, not both wrecked.
-        pairs_active = (
-            state.active[a]
-            & state.active[b]
-            & self._not_self
-            & ~(state.crashed[a] & state.crashed[b])
-        )
-        moving = state.active & ~state.crashed & (lf != lt)
-        screen = has_leader & ~(state.crashed & self._at(state.crashed, leader))
-        caches.leader = _rows_where(dirty, leader, caches.leader)
-        caches.has_leader = _rows_where(dirty, has_leader, caches.has_leader)
-        caches.guarded = _rows_where(dirty, guarded, caches.guarded)
-        caches.pairs_active = _rows_where(dirty, pairs_active, caches.pairs_active)
-        caches.moving = _rows_where(dirty, moving, caches.moving)
-        caches.screen = _rows_where(dirty, screen, caches.screen)
-        caches.leaders_dirty = np.zeros_like(dirty)
+        pairs_active = active[a] & active[b] & self._not_self & ~(crashed[a] & crashed[b])
+        moving = active & ~crashed & (lf != lt)
+        screen = has_leader & ~(crashed & of_leader(crashed))
+        for name, value in (
+            ("leader", leader),
+            ("has_leader", has_leader),
+            ("guarded", guarded),
+            ("pairs_active", pairs_active),
+            ("moving", moving),
+            ("screen", screen),
+        ):
+            if every:
+                setattr(caches, name, value)
+            else:
+                getattr(caches, name)[rows] = value
+        caches.leaders_dirty = np.zeros_like(caches.leaders_dirty)
 
     def _substep(self) -> np.ndarray:
         """Integrate one sub-step for all vehicles; return the (E, V, V) contact matrix."""
@@ -877,22 +886,20 @@ class HighwayBackend:
         # over its leader within a sub-step, so only leader pairs can touch; otherwise
         # screen all the env's pairs by bounding boxes.
         maybe = (caches.screen & (leader_x - x_new < length)).any(axis=1)  # (E,)
-        if any_moving:
+        if any_moving:  # bounding boxes in the envs with lateral motion (R of them)
+            rows = np.flatnonzero(env_moving)
+            pick = (lambda a: a) if len(rows) == len(env_moving) else (lambda a: a[rows])  # noqa: E731
+            heading, xs, ys = pick(state.heading_rad), pick(x_new), pick(state.y_m)  # (R, V)
             length_m, width_m = sim.vehicle_length_m, sim.vehicle_width_m
-            cos_h, sin_h = (
-                np.abs(np.cos(state.heading_rad)),
-                np.abs(np.sin(state.heading_rad)),
-            )
-            ext_x = 0.5 * (length_m * cos_h + width_m * sin_h)  # (E, V)
+            cos_h, sin_h = np.abs(np.cos(heading)), np.abs(np.sin(heading))
+            ext_x = 0.5 * (length_m * cos_h + width_m * sin_h)  # (R, V)
             ext_y = 0.5 * (length_m * sin_h + width_m * cos_h)
             near = (
-                np.abs(x_new[:, :, None] - x_new[:, None, :])
-                < ext_x[:, :, None] + ext_x[:, None, :]
+                np.abs(xs[:, :, None] - xs[:, None, :]) < ext_x[:, :, None] + ext_x[:, None, :]
             ) & (
-                np.abs(state.y_m[:, :, None] - state.y_m[:, None, :])
-                < ext_y[:, :, None] + ext_y[:, None, :]
-            )  # (E, V, V)
-            maybe = np.where(env_moving, (near & caches.pairs_active).any(axis=(1, 2)), maybe)
+                np.abs(ys[:, :, None] - ys[:, None, :]) < ext_y[:, :, None] + ext_y[:, None, :]
+            )  # (R, V, V)
+            maybe[rows] = (near & pick(caches.pairs_active)).any(axis=(1, 2))
         if maybe.any():
             contact = box_contacts(
                 state.x_m,
