@@ -53,7 +53,7 @@ from diacc.envs.safety import safety_critical_events
 from diacc.sim.backends.base import Backend, BackendError, CavCommands
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario
-from diacc.sim.state import TrafficState, take
+from diacc.sim.state import TrafficState, take, take_last
 
 
 # ----------------------------------------------------------------------------- 1. decide
@@ -345,7 +345,7 @@ class EnvBatch:
         occupant = st.slot_vehicle[rows]  # (R, C)
         active = traffic.active[rows]  # (R, V)
         present = active | traffic.arrived_now[rows]  # an arriving CAV keeps its slot this step
-        stays = (occupant >= 0) & np.take_along_axis(present, np.maximum(occupant, 0), -1)
+        stays = (occupant >= 0) & take_last(present, np.maximum(occupant, 0))
         occupant = np.where(stays, occupant, -1)
         held = np.zeros(active.shape, bool)  # (R, V) CAVs that keep a slot
         r_stay, c_stay = np.nonzero(stays)

@@ -86,7 +86,7 @@ from diacc.config import ObservationConfig
 from diacc.envs.lateral_frame import agent_map, is_mirrored, mirror_state
 from diacc.errors import DiaccError
 from diacc.sim.maps import Map
-from diacc.sim.state import TrafficState, on_road_window, take
+from diacc.sim.state import TrafficState, on_road_window, take, take_last
 
 NODE_FEATURES = 6
 SELF_FEATURES = 6
@@ -707,7 +707,7 @@ class ObservationBuilder:
         order = np.argsort(dist, axis=-1, kind="stable")[..., :k]  # (..., W, K)
         nbr = np.zeros(state.x_m.shape + (k,), np.int64)  # (..., V, K)
         mask = np.zeros(state.x_m.shape + (k,), bool)
-        mask[..., lo:hi, :] = np.isfinite(np.take_along_axis(dist, order, axis=-1))
+        mask[..., lo:hi, :] = np.isfinite(take_last(dist, order))
         nbr[..., lo:hi, :] = np.where(mask[..., lo:hi, :], lo + order, 0)
         return nbr, mask
 
@@ -817,8 +817,8 @@ def _compact(idx: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     k = idx.shape[-1]
     key = np.where(keep, 0, k) + np.arange(k)  # kept first, then the rest, each in order
     order = np.argsort(key, axis=-1)  # (..., R, K)
-    mask = np.take_along_axis(keep, order, axis=-1)
-    out = np.where(mask, np.take_along_axis(idx, order, axis=-1), 0).astype(np.int64)
+    mask = take_last(keep, order)
+    out = np.where(mask, take_last(idx, order), 0).astype(np.int64)
     return out, mask
 
 

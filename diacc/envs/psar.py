@@ -36,7 +36,7 @@ from diacc.envs.safety import (
 )
 from diacc.sim.kinematics import braking_step, nan_to_num, safe_end_speed_mps, safe_gap_m
 from diacc.sim.maps import Map
-from diacc.sim.state import TrafficState, take
+from diacc.sim.state import TrafficState, take, take_last
 
 #: Rule codes of :attr:`PSARResult.rule`.
 RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
@@ -263,22 +263,29 @@ def psar(
     col = (offset + 1)[..., None]  # (..., C, 1) column of the target lane in LaneNeighbours
     pairs = np.stack(
         [
-            np.take_along_axis(neighbours.front, col, -1)[..., 0],
-            np.take_along_axis(neighbours.rear, col, -1)[..., 0],
+            take_last(neighbours.front, col)[..., 0],
+            take_last(neighbours.rear, col)[..., 0],
             neighbours.front[..., SAME_COL],
         ],
         axis=-1,
     )  # (..., C, 3): target-lane front j, target-lane rear k, same-lane front j
-    kin = pair_kinematics(state, np.broadcast_to(cav_index[..., None], pairs.shape), pairs)
-    tf_vehicle, tr, sf_vehicle = (kin.column(k) for k in range(3))
-    # Front obstacles: the leader, and the end of the lane (with its queue) as a wall.
-    target_fronts = [
-        tf_vehicle,
-        lane_end_kinematics(state, cav_index, lane + offset, road, cfg.queue_gap_m),
-    ]
-    own_fronts = [sf_vehicle, lane_end_kinematics(state, cav_index, lane, road, cfg.queue_gap_m)]
     cut_in = _cut_in_front(state, cav_index, road)  # (..., C)
-    own_fronts.append(pair_kinematics(state, cav_index, cut_in))
+    # One call per kind of obstacle (the formulas are elementwise): the three neighbours
+    # and the vehicle cutting in as columns, the target and own lanes' ends side by side.
+    others = np.concatenate([pairs, cut_in[..., None]], -1)  # (..., C, 4)
+    kin = pair_kinematics(state, np.broadcast_to(cav_index[..., None], others.shape), others)
+    tf_vehicle, tr, sf_vehicle, cut_in_vehicle = (kin.column(k) for k in range(4))
+    n_cav = shape[-1]
+    walls = lane_end_kinematics(
+        state,
+        np.concatenate([cav_index, cav_index], -1),
+        np.concatenate([lane + offset, lane], -1),
+        road,
+        cfg.queue_gap_m,
+    )  # (..., 2C)
+    # Front obstacles: the leader, and the end of the lane (with its queue) as a wall.
+    target_fronts = [tf_vehicle, walls.column(slice(None, n_cav))]
+    own_fronts = [sf_vehicle, walls.column(slice(n_cav, None)), cut_in_vehicle]
 
     cancel_front = np.zeros(shape, dtype=bool)
     b_lc_mps2 = np.zeros(shape)
@@ -592,39 +599,33 @@ def _max_brake_mps(
     full_mps, planned_mps = sim.cav.decel_mps2 * step_s, planned_mps2 * step_s
     if cfg.full_brake == "bound":
         return full_mps
-    ego_mps = np.maximum(take(state.speed_mps, cav_index), 0.0)  # (..., C)
-    threat = np.zeros(fronts.sf_index.shape, bool)  # (..., C)
-    ahead = ((fronts.sf_vehicle, fronts.sf_index), (fronts.merging, fronts.merging_index))
-    for kin, index in ahead:
-        vehicle = np.maximum(index, 0)
-        cav = take(state.is_cav, vehicle)  # (..., C)
-        if cfg.full_brake == "known" and index is fronts.sf_index:
-            cav &= take(slot_of, vehicle) < 0  # a slotted CAV leader: judged by its command
-        accel_mps2 = take(state.accel_mps2, vehicle)
-        braking = accel_mps2 < -planned_mps2
-        # The vehicle ahead goes on as now (braking no harder than planned), then brakes
-        # at the planned rate; the CAV brakes at the planned rate from this step on.
-        lead_mps = np.maximum(take(state.speed_mps, vehicle), 0.0)
-        lead_end_mps = np.maximum(lead_mps + np.minimum(accel_mps2, 0.0) * step_s, 0.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            lead_step_m = np.where(
-                lead_mps + accel_mps2 * step_s > 0.0,
-                0.5 * (lead_mps + lead_end_mps) * step_s,
-                lead_mps**2 / (2.0 * np.maximum(-accel_mps2, 1e-9)),  # stops within the step
-            )
-            close = kin.d_long_m < cfg.min_gap_m
-            planned_end_mps = safe_end_speed_mps(
-                kin.d_long_m,
-                ego_mps,
-                lead_step_m,
-                lead_end_mps,
-                step_s,
-                planned_mps2,
-                cfg.min_gap_m,
-            )
-            falls_short = planned_end_mps < ego_mps - planned_mps
-        threat |= kin.valid & (index >= 0) & (braking | cav | close)
-        threat |= kin.valid & (index >= 0) & falls_short
+    ego_mps = np.maximum(take(state.speed_mps, cav_index), 0.0)[..., None]  # (..., C, 1)
+    # The leader and the vehicle merging in ahead, as two columns (..., C, 2).
+    index = np.stack([fronts.sf_index, fronts.merging_index], -1)
+    present = np.stack([fronts.sf_vehicle.valid, fronts.merging.valid], -1) & (index >= 0)
+    gap_m = np.stack([fronts.sf_vehicle.d_long_m, fronts.merging.d_long_m], -1)
+    vehicle = np.maximum(index, 0)
+    cav = take(state.is_cav, vehicle)  # (..., C, 2)
+    if cfg.full_brake == "known":  # a slotted CAV leader: judged by its command
+        cav[..., 0] &= take(slot_of, vehicle[..., 0]) < 0
+    accel_mps2 = take(state.accel_mps2, vehicle)
+    braking = accel_mps2 < -planned_mps2
+    # The vehicle ahead goes on as now (braking no harder than planned), then brakes
+    # at the planned rate; the CAV brakes at the planned rate from this step on.
+    lead_mps = np.maximum(take(state.speed_mps, vehicle), 0.0)
+    lead_end_mps = np.maximum(lead_mps + np.minimum(accel_mps2, 0.0) * step_s, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lead_step_m = np.where(
+            lead_mps + accel_mps2 * step_s > 0.0,
+            0.5 * (lead_mps + lead_end_mps) * step_s,
+            lead_mps**2 / (2.0 * np.maximum(-accel_mps2, 1e-9)),  # stops within the step
+        )
+        close = gap_m < cfg.min_gap_m
+        planned_end_mps = safe_end_speed_mps(
+            gap_m, ego_mps, lead_step_m, lead_end_mps, step_s, planned_mps2, cfg.min_gap_m
+        )
+        falls_short = planned_end_mps < ego_mps - planned_mps
+    threat = (present & (braking | cav | close | falls_short)).any(-1)  # (..., C)
     return np.where(threat, full_mps, planned_mps)
 
 
@@ -746,14 +747,24 @@ def _headway_bound_mps(
     style_decel_mps2 = np.array([st.decel_mps2 for st in STYLE_PRESETS[sim.style_preset]])
 
     def behind_hdv(gap_m: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
+        """(..., C, K) bound behind HDVs ``vehicle`` (..., C, K) at ``gap_m``."""
         style = np.clip(take(state.style, vehicle).astype(np.int64), 0, None)  # CAV: strictest
         hdv_decel_mps2 = np.maximum(style_decel_mps2[style], decel)  # (..., C)
         step_m, end_mps = braking_step(long_speed(vehicle), step_s, hdv_decel_mps2)
-        return bound(gap_m, step_m, end_mps, 0.0, sim.cav.decel_mps2, hdv_decel_mps2)
+        return bound(
+            gap_m, step_m, end_mps, 0.0, sim.cav.decel_mps2, hdv_decel_mps2, ego_mps[..., None]
+        )
 
-    hdv_lead_mps = behind_hdv(lead_gap_m, lead)
     merging_gap_m = np.where(fronts.merging.valid, fronts.merging.d_long_m, np.inf)
-    merging_mps = behind_hdv(merging_gap_m, np.maximum(fronts.merging_index, 0))
+    # The leader and the vehicle merging in, as two columns of one call (elementwise).
+    hdv_lead_mps, merging_mps = np.moveaxis(
+        behind_hdv(
+            np.stack([lead_gap_m, merging_gap_m], -1),
+            np.stack([lead, np.maximum(fronts.merging_index, 0)], -1),
+        ),
+        -1,
+        0,
+    )  # (..., C) each
     wall_gap_m = np.where(fronts.own_wall.valid & ~changing, fronts.own_wall.d_long_m, np.inf)
     wall_gap_m = wall_gap_m - _exit_room_m(state, cav_index, road)
     fixed_mps = np.minimum(
@@ -859,10 +870,12 @@ def _headway_bound_mps(
         )
         end_mps = np.where(ready, end_now, end_mps)
         decided |= ready
+    if decided.all():
+        return bound_mps, (brake_mps if known_leaders else max_brake_mps)
     # Left undecided (a cycle): the CAVs ahead are treated as HDVs.
     worst_mps = fixed_mps
     for slot, gap_m in known:
-        speed_mps = np.take_along_axis(ego_mps, np.maximum(slot, 0), -1)
+        speed_mps = take_last(ego_mps, np.maximum(slot, 0))
         gap_m = np.where(slot >= 0, gap_m, np.inf)
         worst_mps = np.minimum(
             worst_mps, bound(gap_m, *braking_step(speed_mps, step_s, decel), 0.0)

@@ -43,7 +43,7 @@ import numpy as np
 from diacc.config import EventConfig
 from diacc.errors import DiaccError
 from diacc.sim.maps import Map
-from diacc.sim.state import TrafficState, on_road_window, take
+from diacc.sim.state import TrafficState, on_road_window, take, take_last
 
 
 class SafetyError(DiaccError, ValueError):
@@ -128,7 +128,7 @@ def _argmin_or_none(dist: np.ndarray) -> np.ndarray:
     if dist.shape[-1] == 0:
         return np.full(dist.shape[:-1], -1, dtype=np.int64)
     idx = np.argmin(dist, axis=-1)  # (Q, 3)
-    found = np.isfinite(np.take_along_axis(dist, idx[..., None], axis=-1)[..., 0])
+    found = np.isfinite(take_last(dist, idx[..., None])[..., 0])
     return np.where(found, idx, -1).astype(np.int64)
 
 
@@ -144,11 +144,9 @@ class PairKinematics:
     dv_long_mps: np.ndarray  # (...) float64, v_i|cos th_i| - v_j|cos th_j|; nan if not valid
     ttc_s: np.ndarray  # (...) float64, > 0 when closing, +inf otherwise or if not valid
 
-    def column(self, k: int) -> PairKinematics:
-        """The pairs in column ``k`` (last axis)."""
-        return PairKinematics(
-            self.valid[..., k], self.d_long_m[..., k], self.dv_long_mps[..., k], self.ttc_s[..., k]
-        )
+    def column(self, k: int | slice) -> PairKinematics:
+        """The pairs in column ``k`` (last axis; a slice keeps the axis)."""
+        return PairKinematics(*(a[..., k] for a in _fields(self)))
 
     def nearer(self, other: PairKinematics) -> PairKinematics:
         """Elementwise the pair with the smaller signed gap (for fronts: the nearer obstacle)."""

@@ -80,7 +80,7 @@ from diacc.sim.backends.highway.simstate import HighwayCaches, HighwayParams, Hi
 from diacc.sim.kinematics import lane_change_reach_m, safe_gap_m
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario, draw_population
-from diacc.sim.state import TrafficState
+from diacc.sim.state import TrafficState, take_last
 
 _EMPTY_PAIRS = np.zeros((0, 2), dtype=np.int32)
 
@@ -592,8 +592,8 @@ class HighwayBackend:
         lead = ahead.argmin(axis=3)  # (E, 3, V)
         foll = behind.argmin(axis=3)
         # The gaps to ``lead`` and ``foll`` (inf: none): the minima, read at the argmins.
-        lead_gap = np.take_along_axis(ahead, lead[..., None], 3)[..., 0] - length
-        foll_gap = np.take_along_axis(behind, foll[..., None], 3)[..., 0] - length
+        lead_gap = take_last(ahead, lead[..., None])[..., 0] - length
+        foll_gap = take_last(behind, foll[..., None])[..., 0] - length
         has_foll = np.isfinite(foll_gap)
 
         # Every IDM acceleration MOBIL needs, in one call: (E, 4, 3, V) =
@@ -786,10 +786,10 @@ class HighwayBackend:
         dx = x[b] - x[a]  # (R, V, V) x_j - x_i
         ahead = np.where(shares_lane & (dx > 0.0) & active[b], dx, np.inf)
         leader = ahead.argmin(axis=2)  # (R, V)
-        has_leader = np.isfinite(np.take_along_axis(ahead, leader[..., None], 2)[..., 0])
+        has_leader = np.isfinite(take_last(ahead, leader[..., None])[..., 0])
 
         def of_leader(values: np.ndarray) -> np.ndarray:  # (R, V) values of each leader
-            return np.take_along_axis(values, leader, 1)
+            return take_last(values, leader)
 
         hdv = active & ~is_cav & ~crashed
         guarded = hdv & has_leader & ~of_leader(is_cav)
