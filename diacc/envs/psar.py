@@ -303,9 +303,7 @@ def psar(
         cancel_front |= cancel
         b_lc_mps2 = np.where(
             decel,
-            np.maximum(
-                b_lc_mps2, np.minimum(np.abs(nan_to_num(tf.dv_long_mps)), cfg.b_max_mps2)
-            ),
+            np.maximum(b_lc_mps2, np.minimum(np.abs(nan_to_num(tf.dv_long_mps)), cfg.b_max_mps2)),
             b_lc_mps2,
         )
     b_lc_mps2 = np.where(cancel_front, 0.0, b_lc_mps2)
