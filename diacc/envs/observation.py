@@ -512,8 +512,8 @@ class ObservationBuilder:
 
         # Neighbour sets: the current K nearest, split by type, each compacted nearest first.
         rows = cav_index[..., None]  # (..., C, 1)
-        sel = np.take_along_axis(frame.nbr, rows, axis=-2)  # (..., C, K)
-        sel_mask = np.take_along_axis(frame.nbr_mask, rows, axis=-2)  # (..., C, K)
+        sel = _take_rows(frame.nbr, cav_index)  # (..., C, K)
+        sel_mask = _take_rows(frame.nbr_mask, cav_index)  # (..., C, K)
         sel_cav = sel_mask & take(state.is_cav, sel)  # (..., C, K)
         hdv_idx, hdv_mask = _compact(sel, sel_mask & ~sel_cav)  # (..., C, K) each
         cav_idx, cav_mask = _compact(sel, sel_cav)
@@ -726,11 +726,14 @@ class ObservationBuilder:
         # road": use the earliest step at which the vehicle was active instead.
         first = np.argmax(hist.active, axis=-2)  # (..., V) 0 if never active
         t_of = np.maximum(np.arange(steps), take(first, idx)[..., None])  # (..., C, M, T)
-        flat = t_of * n_veh + idx[..., None]  # into (..., T * V)
         lead = state.x_m.shape[:-1]
+        # Into the flattened (..., T, V) history of every env: one index for the four
+        # gathers (a flat take costs a fraction of fancy indexing by env and vehicle).
+        env_base = np.arange(0, int(np.prod(lead)) * steps * n_veh, steps * n_veh)
+        flat = t_of * n_veh + idx[..., None] + env_base.reshape(lead + (1, 1, 1))
 
         def gather(a: np.ndarray) -> np.ndarray:  # (..., T, V) -> (..., C, M, T)
-            return take(a.reshape(lead + (steps * n_veh,)), flat)
+            return np.ascontiguousarray(a).reshape(-1).take(flat)
 
         x, y = gather(hist.x_m), gather(hist.y_m)
         v, heading = gather(hist.speed_mps), gather(hist.heading_rad)
@@ -764,7 +767,7 @@ class ObservationBuilder:
         in_win = (np.abs(state.x_m[..., None, :] - ego_x[..., None]) <= w_m) & state.active[
             ..., None, :
         ]  # (..., C, V)
-        np.put_along_axis(in_win, cav_index[..., None], False, axis=-1)  # ego excluded
+        in_win &= np.arange(state.n_vehicles) != cav_index[..., None]  # ego excluded
         hit = in_win[..., None, :] & (
             state.lane[..., None, None, :] == target[..., None]
         )  # (..., C, 3, V)
@@ -803,8 +806,13 @@ def _on_road_rows(active: np.ndarray, n_max: int) -> tuple[np.ndarray, np.ndarra
 
 
 def _take_rows(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Rows ``idx`` (..., R) of per-vehicle rows ``values`` (..., V, K): (..., R, K)."""
-    return np.take_along_axis(values, idx[..., None], axis=-2)
+    """Rows ``idx`` (..., R) of per-vehicle rows ``values`` (..., V, K): (..., R, K)
+    (``np.take_along_axis`` on axis -2, through one flat row index)."""
+    n_rows = values.shape[-2]
+    lead = idx.shape[:-1]
+    base = np.arange(0, int(np.prod(lead)) * n_rows, n_rows).reshape(lead + (1,))
+    flat_rows = np.ascontiguousarray(values).reshape(-1, values.shape[-1])
+    return flat_rows.take(idx + base, axis=0)
 
 
 def _compact(idx: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -815,11 +823,13 @@ def _compact(idx: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]
         keep: (..., R, K) bool which entries belong to the set.
     """
     k = idx.shape[-1]
-    key = np.where(keep, 0, k) + np.arange(k)  # kept first, then the rest, each in order
-    order = np.argsort(key, axis=-1)  # (..., R, K)
-    mask = take_last(keep, order)
-    out = np.where(mask, take_last(idx, order), 0).astype(np.int64)
-    return out, mask
+    # Each kept entry's place among the kept ones; the others go to a spare column K.
+    place = np.where(keep, np.cumsum(keep, axis=-1) - 1, k)  # (..., R, K)
+    n_rows = int(np.prod(keep.shape[:-1]))
+    out = np.zeros((n_rows, k + 1), np.int64)
+    out[np.arange(n_rows)[:, None], place.reshape(n_rows, k)] = idx.reshape(n_rows, k)
+    mask = np.arange(k) < keep.sum(axis=-1, keepdims=True)
+    return out[:, :k].reshape(idx.shape), mask
 
 
 def _f32(a: np.ndarray) -> np.ndarray:
