@@ -231,17 +231,34 @@ class Transition:
     truncated: np.ndarray  # (E,) bool episode_steps reached
     crashed: np.ndarray  # (E,) bool the simulator failed: nothing of the row is valid
 
-    def logged_terms(self, e: int) -> dict[str, float]:
-        """Env ``e``'s reward parts for the logs (the temperature's are the trainer's)."""
-        terms, alive = self.terms, self.terms.alive[e]
+    def logged_terms(self, rows: np.ndarray) -> dict[str, np.ndarray]:
+        """Envs ``rows``' reward parts for the logs, (R,) each ({} for no rows; the
+        temperature's parts are the trainer's)."""
+        if len(rows) == 0:
+            return {}
+        terms, alive = self.terms, self.terms.alive[rows]
         return {
-            "individual": float(terms.ego[e][alive].mean()) if alive.any() else 0.0,
-            "global": float(terms.global_reward[e]),
-            "completion": float(terms.completion[e]),
+            "individual": _alive_means(terms.ego[rows], alive),
+            "global": terms.global_reward[rows].astype(np.float64),
+            "completion": terms.completion[rows].astype(np.float64),
             # Logged so that a learning curve shows whether closeness fires.
-            "warning": float(terms.warning[e][alive].mean()) if alive.any() else 0.0,
-            "delay": float(terms.delay[e]),
+            "warning": _alive_means(terms.warning[rows], alive),
+            "delay": terms.delay[rows].astype(np.float64),
         }
+
+
+def _alive_means(values: np.ndarray, alive: np.ndarray) -> np.ndarray:
+    """(R,) mean of each row of ``values`` (R, C) over its ``alive`` entries, 0 for none.
+
+    Rows with the same number of alive entries are averaged together: a row's
+    mean is then bit for bit that of its entries alone (``values[r][alive[r]].mean()``).
+    """
+    out = np.zeros(len(values))
+    counts = alive.sum(axis=-1)  # (R,)
+    for n in np.unique(counts[counts > 0]).tolist():
+        same = np.flatnonzero(counts == n)
+        out[same] = values[same][alive[same]].reshape(len(same), n).mean(axis=-1)
+    return out
 
 
 # ----------------------------------------------------------------------------- the batch

@@ -150,7 +150,7 @@ class StepResult:
             psar_rule_mask=decision.rule_mask,
             psar=decision.psar,
             state=out.state.env(e),
-            reward_terms=out.logged_terms(e),
+            reward_terms={k: float(v[0]) for k, v in out.logged_terms(np.array([e])).items()},
             slot_start=out.slot_start[e],
             ego=terms.ego,
             global_reward=terms.global_reward,

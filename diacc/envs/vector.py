@@ -47,7 +47,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from diacc.config import EnvConfig, preset_road
-from diacc.envs.batch import EnvBatch, Simulators, Transition
+from diacc.envs.batch import EnvBatch, Simulators
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, concat, unstack
 from diacc.runlog import join_parent_log, log
@@ -321,7 +321,7 @@ class VectorEnv:
             final_critic_state=finals,
             final_actor_obs=final_actors,
             episodes=episodes,
-            reward_terms=_logged_terms(out, kept),
+            reward_terms=out.logged_terms(np.flatnonzero(kept)),  # of the envs whose step happened
             restarted=crashed,
             restarts=int(crashed.sum()),
             slot_start=batch.state.slot_start & kept[:, None],
@@ -330,12 +330,6 @@ class VectorEnv:
     def close(self) -> None:
         for batch, _ in self.groups:
             batch.close()
-
-
-def _logged_terms(out: Transition, kept: np.ndarray) -> dict[str, np.ndarray]:
-    """The logged reward parts of the envs whose step happened, (E',) each."""
-    rows = [out.logged_terms(e) for e in np.flatnonzero(kept)]
-    return {key: np.array([r[key] for r in rows]) for key in (rows[0] if rows else {})}
 
 
 class SyncVectorEnv(VectorEnv):
