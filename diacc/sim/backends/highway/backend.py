@@ -367,7 +367,11 @@ class HighwayBackend:
         state.step_count += 1
         accel = (state.speed_mps - speed_start) / self.sim.step_s  # (E, V)
         new_arrivals = state.arrived & ~arrived_before  # (E, V)
-        contacts = np.argwhere(new_contacts).astype(np.int32).reshape(-1, 3)  # (K, 3) env, i, j
+        contacts = (
+            np.argwhere(new_contacts).astype(np.int32).reshape(-1, 3)
+            if new_contacts.any()
+            else np.zeros((0, 3), np.int32)
+        )  # (K, 3) env, i, j
         contacts[:, 1:] += lo
         return self._make_batch_state(
             accel, contacts, np.argwhere(new_arrivals).astype(np.int32).reshape(-1, 2)
@@ -389,7 +393,8 @@ class HighwayBackend:
             if k % self._decide_every == 0:
                 self._decide_lane_changes()
             contact = self._substep()
-            new_contacts |= contact & ~state.contact
+            if contact is not self._no_contact:  # else no contact begins
+                new_contacts |= contact & ~state.contact
             state.contact = contact
         return new_contacts
 
@@ -464,7 +469,7 @@ class HighwayBackend:
         self.state = HighwayState.zeros(n_envs, n)
         self.params = HighwayParams.zeros(n_envs, n, self.sim.idm_delta)
         self.caches = HighwayCaches.zeros(n_envs, n)
-        self._shape_constants: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._shape_constants: dict[int, tuple[np.ndarray, ...]] = {}
         self._set_shape_constants(n)
         self._sides = np.array([-1, 0, 1])
         # Env index arrays that broadcast against (E, ...) vehicle indices of each rank.
@@ -480,8 +485,9 @@ class HighwayBackend:
                 np.zeros((self.n_envs, n, n), dtype=bool),  # (E, n, n) no contact
                 ~np.eye(n, dtype=bool),  # (n, n) j is not i
                 np.broadcast_to(np.arange(n), (self.n_envs, n)),  # (E, n) own vehicle index
+                np.arange(self.n_envs)[:, None] * n,  # (E, 1) each env's first flat index
             )
-        self._no_contact, self._not_self, self._rows = self._shape_constants[n]
+        self._no_contact, self._not_self, self._rows, self._env_base = self._shape_constants[n]
 
     def _at(self, values: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """``values[e, idx[e, ...]]`` for every env e: (E, V) values, (E, ...) vehicle indices."""
@@ -819,13 +825,17 @@ class HighwayBackend:
         if caches.leaders_dirty.any():
             self._refresh_leaders()
         leader = caches.leader
+        leader_flat = leader + self._env_base  # (E, V) into the flattened (E, V) arrays
+
+        def at_leader(values: np.ndarray) -> np.ndarray:  # (E, V) values of each leader
+            return np.ascontiguousarray(values).reshape(-1).take(leader_flat)
 
         # HDV longitudinal: IDM towards the nearer of the leader and the end of the
         # destination lane (a standing obstacle; a leader before it stops for it too).
-        gap = np.where(caches.has_leader, self._at(x, leader) - x, np.inf)  # (E, V)
+        gap = np.where(caches.has_leader, at_leader(x) - x, np.inf)  # (E, V)
         end_closer = caches.end_x_m - x < gap
         gap = np.where(end_closer, caches.end_x_m - x, gap) - length
-        lead_v = np.where(end_closer, 0.0, self._at(v, leader))
+        lead_v = np.where(end_closer, 0.0, at_leader(v))
         acc = self._idm_fast(v, gap, lead_v)
         # A yielding follower brakes for the merger *and* for its own leader, whichever
         # asks more: the merger may be alongside the real leader, not in front of it.
@@ -847,14 +857,14 @@ class HighwayBackend:
             v_new = np.where(at_wall, 0.0, v_new)
 
         # Last-resort guard: an HDV never runs into the HDV it follows.
-        leader_x = self._at(x_new, leader)
+        leader_x = at_leader(x_new)
         limit_x = leader_x - length - m.guard_gap_m
         guard = caches.guarded & (x_new > limit_x)
         if guard.any():
             self.stats["guard_events"] += guard.sum(axis=1)
             x_new = np.where(guard, limit_x, x_new)
-            v_new = np.where(guard, np.minimum(v_new, self._at(v_new, leader)), v_new)
-            leader_x = self._at(x_new, leader)
+            v_new = np.where(guard, np.minimum(v_new, at_leader(v_new)), v_new)
+            leader_x = at_leader(x_new)
         state.x_m, state.speed_mps = x_new, v_new
 
         # Lateral motion; the manoeuvre completes when the destination centre is reached.
