@@ -23,7 +23,7 @@ ACTION_LANE_OFFSET = np.array([0, +1, -1, 0, 0], dtype=np.int64)
 def action_speed_change_mps(action: np.ndarray, step_mps: float) -> np.ndarray:
     """(C,) speed change of each action: +-``step_mps`` for accelerate/decelerate, else 0."""
     action = np.asarray(action)
-    return np.select([action == ACCELERATE, action == DECELERATE], [step_mps, -step_mps], 0.0)
+    return np.where(action == ACCELERATE, step_mps, np.where(action == DECELERATE, -step_mps, 0.0))
 
 
 def lane_change_allowed(

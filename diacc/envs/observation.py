@@ -86,7 +86,7 @@ from diacc.config import ObservationConfig
 from diacc.envs.lateral_frame import agent_map, is_mirrored, mirror_state
 from diacc.errors import DiaccError
 from diacc.sim.maps import Map
-from diacc.sim.state import TrafficState, on_road_window, take, take_last
+from diacc.sim.state import TrafficState, on_road_window, take, take_last, take_rows
 
 NODE_FEATURES = 6
 SELF_FEATURES = 6
@@ -512,8 +512,8 @@ class ObservationBuilder:
 
         # Neighbour sets: the current K nearest, split by type, each compacted nearest first.
         rows = cav_index[..., None]  # (..., C, 1)
-        sel = _take_rows(frame.nbr, cav_index)  # (..., C, K)
-        sel_mask = _take_rows(frame.nbr_mask, cav_index)  # (..., C, K)
+        sel = take_rows(frame.nbr, cav_index)  # (..., C, K)
+        sel_mask = take_rows(frame.nbr_mask, cav_index)  # (..., C, K)
         sel_cav = sel_mask & take(state.is_cav, sel)  # (..., C, K)
         hdv_idx, hdv_mask = _compact(sel, sel_mask & ~sel_cav)  # (..., C, K) each
         cav_idx, cav_mask = _compact(sel, sel_cav)
@@ -569,8 +569,8 @@ class ObservationBuilder:
             vehicle, row_of = _on_road_rows(active, n_max)  # (..., R), (..., V)
             n_rows = vehicle.shape[-1]
             node_mask[..., :n_rows] = take(active, vehicle)
-            nbr_mask = _take_rows(frame.nbr_mask, vehicle) & node_mask[..., :n_rows, None]
-            nbr = take(row_of, _take_rows(frame.nbr, vehicle))  # (..., R, K) neighbours' rows
+            nbr_mask = take_rows(frame.nbr_mask, vehicle) & node_mask[..., :n_rows, None]
+            nbr = take(row_of, take_rows(frame.nbr, vehicle))  # (..., R, K) neighbours' rows
             neighbours[..., :n_rows, :] = np.where(nbr_mask, nbr, 0)
             neighbour_mask[..., :n_rows, :] = nbr_mask
         else:
@@ -803,16 +803,6 @@ def _on_road_rows(active: np.ndarray, n_max: int) -> tuple[np.ndarray, np.ndarra
     vehicle = np.argsort(~active, axis=-1, kind="stable")[..., :n_rows]  # (..., R)
     row_of = np.where(active, np.cumsum(active, axis=-1) - 1, 0)  # (..., V)
     return vehicle.astype(np.int64), row_of
-
-
-def _take_rows(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Rows ``idx`` (..., R) of per-vehicle rows ``values`` (..., V, K): (..., R, K)
-    (``np.take_along_axis`` on axis -2, through one flat row index)."""
-    n_rows = values.shape[-2]
-    lead = idx.shape[:-1]
-    base = np.arange(0, int(np.prod(lead)) * n_rows, n_rows).reshape(lead + (1,))
-    flat_rows = np.ascontiguousarray(values).reshape(-1, values.shape[-1])
-    return flat_rows.take(idx + base, axis=0)
 
 
 def _compact(idx: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

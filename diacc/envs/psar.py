@@ -224,7 +224,7 @@ def psar(
     proposed = action.astype(np.int64)
     a = proposed.copy()
     mask = np.zeros(shape, dtype=np.int8)
-    neighbours = lane_leaders_followers(state, cav_index)  # (..., C, 3)
+    neighbours = lane_leaders_followers(state, cav_index, check=False)  # (..., C, 3)
 
     ego_speed_mps = take(state.speed_mps, cav_index) * np.abs(
         np.cos(take(state.heading_rad, cav_index))
@@ -273,7 +273,8 @@ def psar(
     # One call per kind of obstacle (the formulas are elementwise): the three neighbours
     # and the vehicle cutting in as columns, the target and own lanes' ends side by side.
     others = np.concatenate([pairs, cut_in[..., None]], -1)  # (..., C, 4)
-    kin = pair_kinematics(state, np.broadcast_to(cav_index[..., None], others.shape), others)
+    ego = np.broadcast_to(cav_index[..., None], others.shape)
+    kin = pair_kinematics(state, ego, others, check=False)  # checked slots, found neighbours
     tf_vehicle, tr, sf_vehicle, cut_in_vehicle = (kin.column(k) for k in range(4))
     n_cav = shape[-1]
     walls = lane_end_kinematics(
@@ -629,9 +630,12 @@ def _max_brake_mps(
 
 def _slot_of(state: TrafficState, cav_index: np.ndarray) -> np.ndarray:
     """(..., V) the agent slot of each vehicle (-1: an HDV, or a CAV without a slot)."""
-    slots = np.broadcast_to(np.arange(cav_index.shape[-1]), cav_index.shape)  # (..., C)
+    n_cav, n_vehicles = cav_index.shape[-1], state.n_vehicles
+    slots = np.broadcast_to(np.arange(n_cav), cav_index.shape)  # (..., C)
     slot_of = np.full(state.x_m.shape, -1, np.int64)
-    np.put_along_axis(slot_of, cav_index, slots, axis=-1)
+    env_base = np.arange(0, cav_index.size // max(n_cav, 1) * n_vehicles, n_vehicles)
+    flat = cav_index + env_base.reshape(cav_index.shape[:-1] + (1,))  # into (E * V,)
+    slot_of.reshape(-1)[flat] = slots  # repeated vehicles (empty slots): the last slot wins
     return slot_of
 
 

@@ -65,7 +65,7 @@ from diacc.envs.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.errors import DiaccError
 from diacc.sim.kinematics import nan_to_num
 from diacc.sim.maps import Map
-from diacc.sim.state import TrafficState, take
+from diacc.sim.state import TrafficState, take, take_rows
 
 
 class RewardError(DiaccError, ValueError):
@@ -240,9 +240,7 @@ def reward_terms(
     dist_m = np.hypot(dx_m, dy_m)  # (..., C, V)
     not_self = np.arange(state.n_vehicles) != cav_index[..., None]  # (..., C, V)
     others = not_self & state.active[..., None, :]  # (..., C, V)
-    collided_with = np.take_along_axis(
-        state.collided_with, cav_index[..., None], axis=-2
-    )  # (..., C, V)
+    collided_with = take_rows(state.collided_with, cav_index)  # (..., C, V)
 
     d_w, d_c = cfg.warning_distance_m, cfg.collision_distance_m
     if cfg.closeness == "bumper":

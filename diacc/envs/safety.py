@@ -69,7 +69,9 @@ class LaneNeighbours:
     rear: np.ndarray  # (..., Q, 3) int64, vehicle index of the nearest vehicle behind
 
 
-def lane_leaders_followers(state: TrafficState, query: np.ndarray) -> LaneNeighbours:
+def lane_leaders_followers(
+    state: TrafficState, query: np.ndarray, check: bool = True
+) -> LaneNeighbours:
     """Find each query vehicle's nearest front and rear vehicle in three lanes.
 
     Candidates are active vehicles other than the query vehicle whose absolute
@@ -83,11 +85,12 @@ def lane_leaders_followers(state: TrafficState, query: np.ndarray) -> LaneNeighb
     Args:
         state: Traffic state (or a batch).
         query: (..., Q) vehicle indices.
+        check: validate ``query`` (callers that made it themselves skip the cost).
 
     Returns:
         :class:`LaneNeighbours` with (..., Q, 3) index arrays.
     """
-    query = check_indices(state, query, "query")
+    query = check_indices(state, query, "query") if check else np.asarray(query, np.int64)
     offsets = np.asarray(LANE_OFFSETS, dtype=np.int64)  # (3,)
     lane = state.lane.astype(np.int64)  # (..., V)
     target_lane = take(lane, query)[..., None] + offsets  # (..., Q, 3)
@@ -209,25 +212,29 @@ def lane_end_kinematics(
     )
 
 
-def pair_kinematics(state: TrafficState, ego: np.ndarray, other: np.ndarray) -> PairKinematics:
+def pair_kinematics(
+    state: TrafficState, ego: np.ndarray, other: np.ndarray, check: bool = True
+) -> PairKinematics:
     """Paper's ``d_long``, ``dv_long`` and TTC for pairs (ego[k], other[k]).
 
     Args:
         state: Traffic state (or a batch).
         ego: vehicle indices (leading env axes of a batch, then any shape), all valid.
         other: vehicle indices of the same shape; ``-1`` marks "no vehicle".
+        check: validate the indices (callers that made them themselves skip the cost).
 
     Returns:
         :class:`PairKinematics` of that shape.
     """
     ego = np.asarray(ego, dtype=np.int64)
     other = np.asarray(other, dtype=np.int64)
-    if ego.shape != other.shape:
-        raise SafetyError(f"ego shape {ego.shape} differs from other shape {other.shape}")
-    lead = state.x_m.shape[:-1]
-    check_indices(state, ego.reshape(lead + (-1,)), "ego")
-    if np.any((other < -1) | (other >= state.n_vehicles)):
-        raise SafetyError(f"other indices must be -1 or in [0, {state.n_vehicles})")
+    if check:
+        if ego.shape != other.shape:
+            raise SafetyError(f"ego shape {ego.shape} differs from other shape {other.shape}")
+        lead = state.x_m.shape[:-1]
+        check_indices(state, ego.reshape(lead + (-1,)), "ego")
+        if np.any((other < -1) | (other >= state.n_vehicles)):
+            raise SafetyError(f"other indices must be -1 or in [0, {state.n_vehicles})")
     valid = other >= 0
     j = np.where(valid, other, 0)  # safe gather index
     heading_i = take(state.heading_rad, ego)
@@ -291,7 +298,7 @@ def safety_critical_events(state: TrafficState, cfg: EventConfig) -> SafetyEvent
     part = state.vehicles(lo, hi)
     everyone = np.broadcast_to(np.arange(hi - lo), part.x_m.shape)  # (..., W)
     leader = same_lane_leaders(part)  # (..., W)
-    kin = pair_kinematics(part, everyone, leader)
+    kin = pair_kinematics(part, everyone, leader, check=False)  # indices made here
     small_gap, low_ttc = np.zeros((2,) + state.x_m.shape, bool)  # (..., V) each
     with np.errstate(invalid="ignore"):
         small_gap[..., lo:hi] = part.active & kin.valid & (kin.d_long_m < cfg.sce_min_gap_m)

@@ -230,6 +230,16 @@ def take_last(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(values).reshape(-1).take(idx + base)
 
 
+def take_rows(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Rows ``idx`` (..., R) of per-vehicle rows ``values`` (..., V, K): (..., R, K)
+    (``np.take_along_axis(values, idx[..., None], -2)``, through one flat row index)."""
+    n_rows = values.shape[-2]
+    lead = idx.shape[:-1]
+    base = np.arange(0, int(np.prod(lead)) * n_rows, n_rows).reshape(lead + (1,))
+    flat_rows = np.ascontiguousarray(values).reshape(-1, values.shape[-1])
+    return flat_rows.take(idx + base, axis=0)
+
+
 @functools.lru_cache(maxsize=64)
 def _env_rows(n_envs: int, ndim: int) -> np.ndarray:
     """(E, 1, ...) env indices that broadcast against an ``ndim``-dimensional index array
