@@ -535,17 +535,6 @@ class HighwayBackend:
             moving = state.active & ~state.crashed & (state.lane_from != state.lane_to)
             caches.moving = _rows_where(started, moving, caches.moving)
 
-    def _occupancy(self) -> np.ndarray:
-        """(E, V, L + 2) bool: lanes each active vehicle occupies, padded by one lane per side."""
-        state = self.state
-        n_envs, n = state.x_m.shape
-        occ = np.zeros((n_envs, n, self.road.max_lanes + 2), dtype=bool)
-        env = np.arange(n_envs)[:, None]
-        occ[env, self._rows, state.lane_from + 1] = True
-        occ[env, self._rows, state.lane_to + 1] = True
-        occ &= state.active[:, :, None]
-        return occ
-
     def _decide_lane_changes(self) -> None:
         """MOBIL for HDVs, forced merges for vehicles in ending lanes, yielding followers.
 
@@ -588,9 +577,12 @@ class HighwayBackend:
         # Neighbours in the right / own / left lane: (E, 3, V) each.
         lanes3 = lane[:, None, :] + self._sides[None, :, None]  # (E, 3, V)
         lanes3_c = np.clip(lanes3, 0, n_lanes - 1)
-        occ = self._occupancy()  # (E, V, L+2)
-        lane_members = occ.transpose(0, 2, 1)  # (E, L+2, V): vehicles in each lane
-        in_lane = lane_members[self._env_index[3], lanes3 + 1]  # (E, 3, V, V) [e, side, i, j]
+        # [e, side, i, j]: j is on the road in lane ``lanes3[e, side, i]`` (one of the two
+        # lanes it occupies while changing lanes), and is not i.
+        side_lane = lanes3[..., None]  # (E, 3, V, 1)
+        in_lane = (state.lane_from[:, None, None, :] == side_lane) | (
+            state.lane_to[:, None, None, :] == side_lane
+        )  # (E, 3, V, V)
         in_lane &= self._peers()[:, None]
         dx = x[:, None, :] - x[:, :, None]  # (E, V, V) x_j - x_i
         ahead = np.where(in_lane & (dx >= 0.0)[:, None], dx[:, None], np.inf)  # (E, 3, V, V)
