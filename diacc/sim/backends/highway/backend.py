@@ -472,10 +472,6 @@ class HighwayBackend:
         self._shape_constants: dict[int, tuple[np.ndarray, ...]] = {}
         self._set_shape_constants(n)
         self._sides = np.array([-1, 0, 1])
-        # Env index arrays that broadcast against (E, ...) vehicle indices of each rank.
-        self._env_index = {
-            rank: np.arange(n_envs).reshape((-1,) + (1,) * (rank - 1)) for rank in range(1, 5)
-        }
         self._min_accel = -self.model.max_brake_mps2
 
     def _set_shape_constants(self, n: int) -> None:
@@ -490,8 +486,10 @@ class HighwayBackend:
         self._no_contact, self._not_self, self._rows, self._env_base = self._shape_constants[n]
 
     def _at(self, values: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        """``values[e, idx[e, ...]]`` for every env e: (E, V) values, (E, ...) vehicle indices."""
-        return values[self._env_index[idx.ndim], idx]
+        """``values[e, idx[e, ...]]`` for every env e: (E, V) values, (E, ...) vehicle
+        indices (>= 0), through one flat index (a fraction of indexing by env and vehicle)."""
+        base = self._env_base.reshape((-1,) + (1,) * (idx.ndim - 1))
+        return np.ascontiguousarray(values).reshape(-1).take(idx + base)
 
     def _segment(self) -> np.ndarray:
         return self.tables.segment_of(self.state.x_m)

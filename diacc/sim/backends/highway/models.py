@@ -62,12 +62,17 @@ class IdmParams:
 
     def take(self, idx: np.ndarray) -> IdmParams:
         """Parameters of the vehicles ``idx`` (E, ...), each indexing its own env's row."""
-        env = np.arange(idx.shape[0]).reshape((-1,) + (1,) * (idx.ndim - 1))
+        n_envs, n = self.headway_s.shape
+        flat = idx + (np.arange(n_envs) * n).reshape((-1,) + (1,) * (idx.ndim - 1))
+
+        def of(values: np.ndarray) -> np.ndarray:  # one flat take per parameter
+            return np.ascontiguousarray(values).reshape(-1).take(flat)
+
         return IdmParams(
-            self.headway_s[env, idx],
-            self.min_gap_m[env, idx],
-            self.accel_mps2[env, idx],
-            self.decel_mps2[env, idx],
+            of(self.headway_s),
+            of(self.min_gap_m),
+            of(self.accel_mps2),
+            of(self.decel_mps2),
             self.delta,
         )
 
