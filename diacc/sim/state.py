@@ -214,10 +214,15 @@ def take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """``values[idx]`` of one state's (V,) values, or per env of a batch's (E, V) ones.
 
     For a batch ``idx`` is (E, ...): entry ``[e, ...]`` indexes env ``e``'s row.
+    Indices are vehicle indices (>= 0): a batch is read through one flat index,
+    a fraction of the cost of indexing by env and vehicle (PSAR, the
+    observations and the reward take rows about a hundred times per step).
     """
     if values.ndim == 1:
         return values[idx]
-    return values[_env_rows(values.shape[0], np.ndim(idx)), idx]
+    idx = np.asarray(idx)
+    base = _env_offsets(values.shape[0], values.shape[1], idx.ndim)
+    return np.ascontiguousarray(values).reshape(-1).take(idx + base)
 
 
 def take_last(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -241,12 +246,12 @@ def take_rows(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def _env_rows(n_envs: int, ndim: int) -> np.ndarray:
-    """(E, 1, ...) env indices that broadcast against an ``ndim``-dimensional index array
-    (cached: PSAR alone takes rows thousands of times per step; read-only)."""
-    rows = np.arange(n_envs).reshape((-1,) + (1,) * (ndim - 1))
-    rows.flags.writeable = False
-    return rows
+def _env_offsets(n_envs: int, n_vehicles: int, ndim: int) -> np.ndarray:
+    """(E, 1, ...) first flat index of each env's row, broadcasting against an
+    ``ndim``-dimensional index array (cached; read-only)."""
+    offsets = (np.arange(n_envs) * n_vehicles).reshape((-1,) + (1,) * (ndim - 1))
+    offsets.flags.writeable = False
+    return offsets
 
 
 #: dtype of every array field; backends must produce exactly these.
