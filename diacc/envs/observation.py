@@ -495,8 +495,8 @@ class ObservationBuilder:
         ego_seg = take(state.segment, cav_index).astype(np.int64)
 
         # Self features.
-        lane_clip = np.clip(ego_lane, 0, self.road.max_lanes - 1)
-        seg_clip = np.clip(ego_seg, 0, len(self.road.segments) - 1)
+        lane_clip = np.minimum(np.maximum(ego_lane, 0), self.road.max_lanes - 1)
+        seg_clip = np.minimum(np.maximum(ego_seg, 0), len(self.road.segments) - 1)
         to_end_m = self._lane_end_m[seg_clip, lane_clip] - ego_x  # (..., C)
         self_state = np.stack(
             [
@@ -505,7 +505,7 @@ class ObservationBuilder:
                 ego_v / self._v_max_mps,
                 take(state.heading_rad, cav_index),
                 ego_lane / self._lane_norm,
-                np.clip(to_end_m / LANE_END_SCALE_M, 0.0, 1.0),
+                np.minimum(np.maximum(to_end_m / LANE_END_SCALE_M, 0.0), 1.0),
             ],
             axis=-1,
         )  # (..., C, 6)
@@ -761,8 +761,10 @@ class ObservationBuilder:
         """Ego / left / right lane statistics (..., C, 3, 4) and existence mask (..., C, 3)."""
         w_m = self.cfg.lane_window_m
         target = ego_lane[..., None] + np.array([0, 1, -1])  # (..., C, 3) absolute lanes
-        seg = np.clip(ego_seg, 0, len(self.road.segments) - 1)
-        exists = self._exists_pad[seg[..., None], np.clip(target + 1, 0, self.road.max_lanes + 1)]
+        seg = np.minimum(np.maximum(ego_seg, 0), len(self.road.segments) - 1)
+        exists = self._exists_pad[
+            seg[..., None], np.minimum(np.maximum(target + 1, 0), self.road.max_lanes + 1)
+        ]
         ego_x = take(state.x_m, cav_index)  # (..., C)
         in_win = (np.abs(state.x_m[..., None, :] - ego_x[..., None]) <= w_m) & state.active[
             ..., None, :
@@ -824,4 +826,4 @@ def _compact(idx: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 def _f32(a: np.ndarray) -> np.ndarray:
     """float32 copy clipped to the documented feature range."""
-    return np.clip(a, -FEATURE_CLIP, FEATURE_CLIP).astype(np.float32)
+    return np.minimum(np.maximum(a, -FEATURE_CLIP), FEATURE_CLIP).astype(np.float32)

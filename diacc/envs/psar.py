@@ -750,7 +750,7 @@ def _headway_bound_mps(
 
     def behind_hdv(gap_m: np.ndarray, vehicle: np.ndarray) -> np.ndarray:
         """(..., C, K) bound behind HDVs ``vehicle`` (..., C, K) at ``gap_m``."""
-        style = np.clip(take(state.style, vehicle).astype(np.int64), 0, None)  # CAV: strictest
+        style = np.maximum(take(state.style, vehicle).astype(np.int64), 0)  # CAV: strictest
         hdv_decel_mps2 = np.maximum(style_decel_mps2[style], decel)  # (..., C)
         step_m, end_mps = braking_step(long_speed(vehicle), step_s, hdv_decel_mps2)
         return bound(
@@ -856,8 +856,10 @@ def _headway_bound_mps(
     end_mps = np.zeros(cav_index.shape)  # (..., C) decided end-of-step speed
     decided = ~take(state.active, cav_index)
     for _ in range(n_cav + 1):  # one pass per CAV a chain can hold, at most
+        if np.count_nonzero(decided) == decided.size:  # all decided (.all(), cheaper)
+            break
         ready = ~decided & ~(follows & ~of_cols(decided)[..., :n_followed]).any(-1)
-        if not ready.any():
+        if not np.count_nonzero(ready):
             break
         followed_mps, threat = behind(end_mps)
         now = np.minimum(fixed_mps, followed_mps)

@@ -338,6 +338,6 @@ def _delay_rate(state: TrafficState, limits_mps: np.ndarray) -> np.ndarray:
     stays in [0, 1] whatever the demand, and driving above the limit earns
     nothing back (clipped at 0), so the term cannot pay for speeding.
     """
-    v_limit_mps = limits_mps[np.clip(state.segment, 0, limits_mps.shape[0] - 1)]  # (..., V)
+    v_limit_mps = limits_mps[np.minimum(np.maximum(state.segment, 0), limits_mps.shape[0] - 1)]
     lost = np.maximum(1.0 - state.speed_mps / v_limit_mps, 0.0)  # (..., V)
     return np.where(state.active, lost, 0.0).sum(axis=-1) / max(state.n_vehicles, 1)

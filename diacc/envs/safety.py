@@ -184,7 +184,7 @@ def lane_end_kinematics(
     braking grows as it nears the end.)
     """
     ego = np.asarray(ego, dtype=np.int64)  # (..., C)
-    lane = np.clip(np.asarray(lane, dtype=np.int64), 0, road.max_lanes - 1)
+    lane = np.minimum(np.maximum(np.asarray(lane, dtype=np.int64), 0), road.max_lanes - 1)
     ego_x_m = take(state.x_m, ego)
     end_x_m = road.lane_end_m()[take(state.segment, ego).astype(np.int64), lane]  # inf if none
     queued = (

@@ -171,7 +171,7 @@ class Map:
         segment = np.asarray(segment, dtype=np.int64)
         target = np.asarray(lane, dtype=np.int64) + np.asarray(offset, dtype=np.int64)
         in_range = (target >= 0) & (target < self.max_lanes)
-        target_c = np.clip(target, 0, self.max_lanes - 1)
+        target_c = np.minimum(np.maximum(target, 0), self.max_lanes - 1)
         exists = self.lane_exists()[segment, target_c]
         ends_later = self.lane_end_m()[segment, target_c] - np.asarray(x_m) > reach_m
         return (np.asarray(offset) != 0) & in_range & exists & ends_later
@@ -179,7 +179,7 @@ class Map:
     def segment_of(self, x_m: np.ndarray) -> np.ndarray:
         """Segment index for each longitudinal position (clipped to the route)."""
         idx = np.searchsorted(self.segment_ends_m, x_m, side="right")
-        return np.clip(idx, 0, len(self.segments) - 1)
+        return np.minimum(np.maximum(idx, 0), len(self.segments) - 1)
 
     def lane_center_y_m(self, lane: np.ndarray | int) -> np.ndarray:
         """Lateral coordinate of an absolute lane's centre line."""
