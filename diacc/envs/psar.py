@@ -861,7 +861,10 @@ def _headway_bound_mps(
         ready = ~decided & ~(follows & ~of_cols(decided)[..., :n_followed]).any(-1)
         if not np.count_nonzero(ready):
             break
-        followed_mps, threat = behind(end_mps)
+        if np.count_nonzero(follows & ready[..., None]):
+            followed_mps, threat = behind(end_mps)
+        else:  # no CAV decided now follows one (the first pass: CAVs followed are undecided)
+            followed_mps, threat = np.inf, False
         now = np.minimum(fixed_mps, followed_mps)
         bound_mps = np.where(ready, now, bound_mps)
         brake_now = brake_mps
