@@ -264,3 +264,22 @@ def test_step_before_after_times_two_trees():
         check=True, capture_output=True, text=True,
     )  # fmt: skip
     assert "round 1: before" in out.stdout and "median: before" in out.stdout
+
+
+def test_step_identity_finds_a_tree_identical_to_itself_and_settings_apart():
+    """benchmarks/step_identity.py: the same seeds give the same digest in two processes
+    (the step is deterministic), and two settings give different digests."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    script = str(root / "benchmarks" / "step_identity.py")
+    out = subprocess.run(
+        [sys.executable, script, str(root), str(root), "--only", "nopsar", "masked"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "IDENTICAL" in out.stdout
+    digests = dict(line.split()[:2] for line in out.stdout.splitlines()[:2])
+    assert digests["nopsar"] != digests["masked"]
