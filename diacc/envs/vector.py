@@ -306,18 +306,25 @@ class VectorEnv:
                     getattr(container, f.name)[restart] = getattr(new, f.name)
         self._critic[g] = critic
         kept = ~crashed
+
+        def of_kept(values: np.ndarray, fill: float | int = 0) -> np.ndarray:
+            """``values`` of the envs whose step happened, ``fill`` in the others."""
+            if not crashed.any():
+                return values
+            return np.where(kept.reshape((-1,) + (1,) * (values.ndim - 1)), values, fill)
+
         return VectorStep(
             actor_obs=actor,
             critic_state=critic,
-            ego=np.where(kept[:, None], out.terms.ego, 0.0),
-            global_reward=np.where(kept, out.terms.global_reward, 0.0),
-            completion=np.where(kept, out.terms.completion, 0.0),
-            delay=np.where(kept, out.terms.delay, 0.0),
+            ego=of_kept(out.terms.ego, 0.0),
+            global_reward=of_kept(out.terms.global_reward, 0.0),
+            completion=of_kept(out.terms.completion, 0.0),
+            delay=of_kept(out.terms.delay, 0.0),
             terminated=out.terminated & kept,
             truncated=out.truncated | crashed,
             alive=out.terms.alive & kept[:, None],
-            refined_action=np.where(kept[:, None], out.decision.refined, 0),
-            psar_rule_mask=np.where(kept[:, None], out.decision.rule_mask, 0).astype(np.int8),
+            refined_action=of_kept(out.decision.refined),
+            psar_rule_mask=of_kept(out.decision.rule_mask).astype(np.int8),
             final_critic_state=finals,
             final_actor_obs=final_actors,
             episodes=episodes,

@@ -93,13 +93,15 @@ def safe_end_speed_mps(
     """
     v = np.maximum(np.asarray(speed_mps, dtype=np.float64), 0.0)
     w = np.maximum(np.asarray(lead_end_speed_mps, dtype=np.float64), 0.0)
-    b_eff = b_lead = np.asarray(decel_mps2, dtype=np.float64)
+    # Scalars stay Python floats (the same values, without numpy's cost per 0-d operation:
+    # PSAR evaluates this a dozen times per step).
+    b_eff = b_lead = _float_or_array(decel_mps2)
     u0 = w  # the braking term is 0 up to here: w sqrt(b_eff / b_lead), and b_eff = b_lead
     if lead_decel_mps2 is not None:
-        b_lead = np.asarray(lead_decel_mps2, np.float64)
+        b_lead = _float_or_array(lead_decel_mps2)
         b_eff = np.minimum(b_eff, b_lead)
         u0 = w * np.sqrt(b_eff / b_lead)
-    slope = 0.5 * step_s + np.asarray(time_gap_s, dtype=np.float64)  # d(need)/du below u0
+    slope = 0.5 * step_s + _float_or_array(time_gap_s)  # d(need)/du below u0
     room_m = np.asarray(gap_m) + np.asarray(lead_step_m) - 0.5 * v * step_s - min_gap_m
     below_mps = room_m / slope  # root if it lies at or below u0
     # Above u0: u^2 / (2 b_eff) + slope u - (room + w^2 / (2 b_lead)) = 0.
@@ -109,6 +111,11 @@ def safe_end_speed_mps(
     # No root (NaN) is -inf; infinities become the largest floats (as np.nan_to_num does).
     above_mps = np.minimum(np.maximum(above_mps, -_FLOAT_MAX), _FLOAT_MAX)
     return np.where(below_mps <= u0, below_mps, np.where(np.isnan(above_mps), -np.inf, above_mps))
+
+
+def _float_or_array(value: np.ndarray | float) -> np.ndarray | float:
+    """A scalar as a Python float, anything else as a float64 array."""
+    return float(value) if np.ndim(value) == 0 else np.asarray(value, dtype=np.float64)
 
 
 def braking_step(
