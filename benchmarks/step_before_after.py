@@ -8,7 +8,8 @@ included) of each tree in its own process, alternating the trees for
     git worktree add /tmp/before 2e858b3
     python benchmarks/step_before_after.py /tmp/before . --envs 16 --mode batched
 
-Prints each round's env-steps/s per tree and the ratio of the medians.
+Prints each round's env-steps/s per tree, the ratio of the medians and the median of
+the rounds' ratios (each round runs both trees back to back, under the same load).
 """
 
 from __future__ import annotations
@@ -78,8 +79,11 @@ def main() -> None:
             "env-steps/s"
         )
     before, after = (statistics.median(rates[k]) for k in ("before", "after"))
+    # A round's two trees run back to back, so the ratio within a round shares its load.
+    paired = statistics.median(a / b for a, b in zip(rates["after"], rates["before"]))
     print(
         f"median: before {before:.0f}, after {after:.0f} env-steps/s: x{after / before:.2f}; "
+        f"median of the rounds' ratios x{paired:.2f}; "
         f"load {', '.join(f'{x:.1f}' for x in os.getloadavg())}"
     )
 

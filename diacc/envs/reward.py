@@ -240,7 +240,11 @@ def reward_terms(
     dist_m = np.hypot(dx_m, dy_m)  # (..., C, V)
     not_self = np.arange(state.n_vehicles) != cav_index[..., None]  # (..., C, V)
     others = not_self & state.active[..., None, :]  # (..., C, V)
-    collided_with = take_rows(state.collided_with, cav_index)  # (..., C, V)
+    collided_with = (
+        take_rows(state.collided_with, cav_index)
+        if len(state.collisions)
+        else np.zeros(cav_index.shape + (state.n_vehicles,), bool)
+    )  # (..., C, V)
 
     d_w, d_c = cfg.warning_distance_m, cfg.collision_distance_m
     if cfg.closeness == "bumper":
