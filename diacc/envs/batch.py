@@ -255,9 +255,9 @@ def _alive_means(values: np.ndarray, alive: np.ndarray) -> np.ndarray:
     """
     out = np.zeros(len(values))
     counts = alive.sum(axis=-1)  # (R,)
-    for n in np.unique(counts[counts > 0]).tolist():
+    for n in sorted(set(counts.tolist()) - {0}):
         same = np.flatnonzero(counts == n)
-        out[same] = values[same][alive[same]].reshape(len(same), n).mean(axis=-1)
+        out[same] = values[same][alive[same]].reshape(len(same), n).sum(axis=-1) / n  # = mean
     return out
 
 

@@ -172,6 +172,8 @@ class EpisodeRecorder:
         self._chunks: list[tuple[np.ndarray, ...]] = []
         self._chunk0 = 0
         self._episode_chunk = np.zeros(n_envs, np.int64)  # (E,) first chunk of each episode
+        self._joined_key: tuple[int, int] | None = None  # chunks joined in ``_joined``
+        self._joined: list[np.ndarray] = []
         self._collision_pairs: list[list[np.ndarray]] = [[] for _ in range(n_envs)]
         self._psar_counts = np.zeros((n_envs, len(RULE_NAMES) - 1), dtype=np.int64)  # (E, 4)
         self._psar_decisions = np.zeros(n_envs, np.int64)  # (E,)
@@ -324,11 +326,18 @@ class EpisodeRecorder:
         """
         if self._first_step[e] < 0:
             raise MetricsError("no state recorded yet")
-        chunks = self._chunks[int(self._episode_chunk[e]) - self._chunk0 :]
+        first = int(self._episode_chunk[e])
+        chunks = self._chunks[first - self._chunk0 :]
         if not chunks:
             dtypes = (np.int32, np.int32, np.float64, np.float64, np.int8, bool)
             return SpeedSamples(*(np.zeros(0, dtype) for dtype in dtypes))
-        env, *cols = (np.concatenate(c) for c in zip(*chunks, strict=True))
+        # Envs whose episodes began together (every env of a batch, at once) share one
+        # joined record until the next chunk: joined once, not once per env.
+        key = (first, self._chunk0 + len(self._chunks))
+        if self._joined_key != key:
+            self._joined = [np.concatenate(c) for c in zip(*chunks, strict=True)]
+            self._joined_key = key
+        env, *cols = self._joined
         mine = env == e
         return SpeedSamples(*(col[mine] for col in cols))
 

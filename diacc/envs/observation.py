@@ -694,7 +694,7 @@ class ObservationBuilder:
         """
         k = self.cfg.n_neighbours
         lo, hi = on_road_window(state.active)
-        part = state.vehicles(lo, hi)
+        part = state if hi - lo == state.n_vehicles else state.vehicles(lo, hi)
         n_win = hi - lo
         x, lane, act = part.x_m, part.lane.astype(np.int64), part.active
         i_, j_ = (Ellipsis, slice(None), None), (Ellipsis, None, slice(None))  # [..., i, j]

@@ -295,7 +295,7 @@ def safety_critical_events(state: TrafficState, cfg: EventConfig) -> SafetyEvent
     """
     # Only vehicles on the road have events or leaders: search their window alone.
     lo, hi = on_road_window(state.active)
-    part = state.vehicles(lo, hi)
+    part = state if hi - lo == state.n_vehicles else state.vehicles(lo, hi)
     everyone = np.broadcast_to(np.arange(hi - lo), part.x_m.shape)  # (..., W)
     leader = same_lane_leaders(part)  # (..., W)
     kin = pair_kinematics(part, everyone, leader, check=False)  # indices made here
