@@ -567,6 +567,10 @@ class ObservationBuilder:
         neighbour_mask = np.zeros(lead + (n_max, k), bool)
         if self.compact_critic:
             vehicle, row_of = _on_road_rows(active, n_max)  # (..., R), (..., V)
+
+            def of_rows(values: np.ndarray) -> np.ndarray:  # (..., V) -> (..., R)
+                return take(values, vehicle)
+
             n_rows = vehicle.shape[-1]
             node_mask[..., :n_rows] = take(active, vehicle)
             nbr_mask = take_rows(frame.nbr_mask, vehicle) & node_mask[..., :n_rows, None]
@@ -574,19 +578,23 @@ class ObservationBuilder:
             neighbours[..., :n_rows, :] = np.where(nbr_mask, nbr, 0)
             neighbour_mask[..., :n_rows, :] = nbr_mask
         else:
-            vehicle, n_rows = np.broadcast_to(np.arange(n_veh), lead + (n_veh,)), n_veh
+            n_rows = n_veh
+
+            def of_rows(values: np.ndarray) -> np.ndarray:  # every vehicle a row, in order
+                return values
+
             node_mask[..., :n_veh] = active
             neighbours[..., :n_veh, :] = frame.nbr
             neighbour_mask[..., :n_veh, :] = frame.nbr_mask
         nodes[..., :n_rows, :] = (
             np.stack(
                 [
-                    take(state.x_m, vehicle) / self._route_m,
-                    take(state.y_m, vehicle) / self._road_w_m,
-                    take(state.speed_mps, vehicle) / self._v_max_mps,
-                    take(state.heading_rad, vehicle),
-                    take(state.lane, vehicle) / self._lane_norm,
-                    take(state.is_cav, vehicle).astype(np.float64),
+                    of_rows(state.x_m) / self._route_m,
+                    of_rows(state.y_m) / self._road_w_m,
+                    of_rows(state.speed_mps) / self._v_max_mps,
+                    of_rows(state.heading_rad),
+                    of_rows(state.lane) / self._lane_norm,
+                    of_rows(state.is_cav).astype(np.float64),
                 ],
                 axis=-1,
             )

@@ -717,7 +717,7 @@ def _headway_bound_mps(
     """
     step_s, decel = sim.step_s, sim.cav.safe_decel_mps2
     full_mps, planned_mps = sim.cav.decel_mps2 * step_s, decel * step_s
-    limit_mps = np.array([s.speed_limit_mps for s in road.segments])
+    limit_mps = road.speed_limits_mps()
 
     def long_speed(vehicles: np.ndarray) -> np.ndarray:
         return take(state.speed_mps, vehicles) * np.abs(np.cos(take(state.heading_rad, vehicles)))
@@ -812,7 +812,7 @@ def _headway_bound_mps(
     gap_m = np.concatenate(
         [cut_gap_m, np.where(known_leads, known_gaps_m, np.inf), known_gaps_m], -1
     )  # (..., C, C + 4)
-    time_gap_s = np.repeat([cfg.cav_time_gap_s, 0.0], [n_followed, 2])  # (C + 4,)
+    time_gap_s = np.array([cfg.cav_time_gap_s] * n_followed + [0.0, 0.0])  # (C + 4,)
     followed_finite = np.isfinite(gap_m[..., :n_followed])
     # Gathers of (..., C) values by column, through one flat index made once.
     env_offset = np.arange(cav_index.size // n_cav).reshape(cav_index.shape[:-1] + (1, 1))

@@ -226,7 +226,7 @@ def reward_terms(
         raise RewardError(f"cav_index must be a 1-D integer array, got shape {cav_index.shape}")
     if np.any((cav_index < 0) | (cav_index >= state.n_vehicles)):
         raise RewardError(f"cav_index holds indices outside [0, {state.n_vehicles})")
-    limits_mps = np.array([s.speed_limit_mps for s in road.segments])  # (S,)
+    limits_mps = road.speed_limits_mps()  # (S,)
     if np.any(state.segment >= limits_mps.shape[0]):
         raise RewardError(f"segment index outside the map's {limits_mps.shape[0]} segments")
 

@@ -134,6 +134,12 @@ class Map:
             out[s] = later
         return out
 
+    def speed_limits_mps(self) -> np.ndarray:
+        """(S,) each segment's speed limit (read-only, cached: read every step)."""
+        return _cached(
+            self, "_limits", lambda: np.array([s.speed_limit_mps for s in self.segments])
+        )
+
     def exit_ends_m(self) -> tuple[np.ndarray, np.ndarray]:
         """(S, L) end of lane l seen from segment s (-inf where it does not exist there),
         and the later end of its two neighbours (-inf: none exists). Read-only, cached

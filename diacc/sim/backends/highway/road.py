@@ -114,7 +114,7 @@ class LaneTables:
             exists=exists,
             end_m=end_m,
             merge_dir=merge_dir,
-            speed_limit_mps=np.array([s.speed_limit_mps for s in road.segments]),
+            speed_limit_mps=road.speed_limits_mps(),
             segment_ends_m=road.segment_ends_m,
         )
 
