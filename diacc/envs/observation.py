@@ -78,6 +78,7 @@ shape, dtype and field name (what the networks read: :data:`ACTOR_KEYS`,
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -737,7 +738,7 @@ class ObservationBuilder:
         lead = state.x_m.shape[:-1]
         # Into the flattened (..., T, V) history of every env: one index for the four
         # gathers (a flat take costs a fraction of fancy indexing by env and vehicle).
-        env_base = np.arange(0, int(np.prod(lead)) * steps * n_veh, steps * n_veh)
+        env_base = np.arange(0, math.prod(lead) * steps * n_veh, steps * n_veh)
         flat = t_of * n_veh + idx[..., None] + env_base.reshape(lead + (1, 1, 1))
 
         def gather(a: np.ndarray) -> np.ndarray:  # (..., T, V) -> (..., C, M, T)
@@ -825,7 +826,7 @@ def _compact(idx: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     k = idx.shape[-1]
     # Each kept entry's place among the kept ones; the others go to a spare column K.
     place = np.where(keep, np.cumsum(keep, axis=-1) - 1, k)  # (..., R, K)
-    n_rows = int(np.prod(keep.shape[:-1]))
+    n_rows = math.prod(keep.shape[:-1])
     out = np.zeros((n_rows, k + 1), np.int64)
     out[np.arange(n_rows)[:, None], place.reshape(n_rows, k)] = idx.reshape(n_rows, k)
     mask = np.arange(k) < keep.sum(axis=-1, keepdims=True)

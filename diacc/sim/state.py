@@ -34,6 +34,7 @@ state and a batch.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -231,7 +232,7 @@ def take_last(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     on the small arrays of a step, where it runs dozens of times."""
     n = values.shape[-1]
     lead = idx.shape[:-1]
-    base = np.arange(0, int(np.prod(lead)) * n, n).reshape(lead + (1,))  # (..., 1)
+    base = np.arange(0, math.prod(lead) * n, n).reshape(lead + (1,))  # (..., 1)
     return np.ascontiguousarray(values).reshape(-1).take(idx + base)
 
 
@@ -240,7 +241,7 @@ def take_rows(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     (``np.take_along_axis(values, idx[..., None], -2)``, through one flat row index)."""
     n_rows = values.shape[-2]
     lead = idx.shape[:-1]
-    base = np.arange(0, int(np.prod(lead)) * n_rows, n_rows).reshape(lead + (1,))
+    base = np.arange(0, math.prod(lead) * n_rows, n_rows).reshape(lead + (1,))
     flat_rows = np.ascontiguousarray(values).reshape(-1, values.shape[-1])
     return flat_rows.take(idx + base, axis=0)
 
