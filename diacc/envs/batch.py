@@ -53,7 +53,7 @@ from diacc.envs.safety import safety_critical_events
 from diacc.sim.backends.base import Backend, BackendError, CavCommands
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario
-from diacc.sim.state import TrafficState, take, take_last
+from diacc.sim.state import TrafficState, stack_last, take, take_last
 
 
 # ----------------------------------------------------------------------------- 1. decide
@@ -322,7 +322,7 @@ class EnvBatch:
         st.steps += 1
         st.traffic = traffic
         self.builder.push(traffic)
-        st.action_memory = np.stack([decision.proposed, decision.refined], axis=-1)
+        st.action_memory = stack_last([decision.proposed, decision.refined])
         st.last_refined[np.arange(self.n_envs)[:, None], st.cav_index] = decision.refined
         self._fill_slots(np.arange(self.n_envs))  # 3.
         actor, critic = self.observe()  # 4.

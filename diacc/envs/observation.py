@@ -87,7 +87,7 @@ from diacc.config import ObservationConfig
 from diacc.envs.lateral_frame import agent_map, is_mirrored, mirror_state
 from diacc.errors import DiaccError
 from diacc.sim.maps import Map
-from diacc.sim.state import TrafficState, on_road_window, take, take_last, take_rows
+from diacc.sim.state import TrafficState, on_road_window, stack_last, take, take_last, take_rows
 
 NODE_FEATURES = 6
 SELF_FEATURES = 6
@@ -499,7 +499,7 @@ class ObservationBuilder:
         lane_clip = np.minimum(np.maximum(ego_lane, 0), self.road.max_lanes - 1)
         seg_clip = np.minimum(np.maximum(ego_seg, 0), len(self.road.segments) - 1)
         to_end_m = self._lane_end_m[seg_clip, lane_clip] - ego_x  # (..., C)
-        self_state = np.stack(
+        self_state = stack_last(
             [
                 ego_x / self._route_m,
                 ego_y / self._road_w_m,
@@ -508,7 +508,6 @@ class ObservationBuilder:
                 ego_lane / self._lane_norm,
                 np.minimum(np.maximum(to_end_m / LANE_END_SCALE_M, 0.0), 1.0),
             ],
-            axis=-1,
         )  # (..., C, 6)
 
         # Neighbour sets: the current K nearest, split by type, each compacted nearest first.
@@ -588,7 +587,7 @@ class ObservationBuilder:
             neighbours[..., :n_veh, :] = frame.nbr
             neighbour_mask[..., :n_veh, :] = frame.nbr_mask
         nodes[..., :n_rows, :] = (
-            np.stack(
+            stack_last(
                 [
                     of_rows(state.x_m) / self._route_m,
                     of_rows(state.y_m) / self._road_w_m,
@@ -597,7 +596,6 @@ class ObservationBuilder:
                     of_rows(state.lane) / self._lane_norm,
                     of_rows(state.is_cav).astype(np.float64),
                 ],
-                axis=-1,
             )
             * node_mask[..., :n_rows, None]
         )
@@ -615,14 +613,13 @@ class ObservationBuilder:
         lane_mask = np.broadcast_to(np.arange(MAX_LANES) < self.road.max_lanes, lead + (MAX_LANES,))
         safe = np.maximum(count, 1.0)
         lane_stats = (
-            np.stack(
+            stack_last(
                 [
                     count / COUNT_SCALE,
                     count / np.maximum(self._lane_len_km, 1e-9) / DENSITY_SCALE_VEH_PER_KM,
                     speed_sum / safe / self._v_max_mps,
                     n_cav / safe,
                 ],
-                axis=-1,
             )
             * lane_mask[..., None]
         )  # (..., L, 4)
@@ -632,14 +629,13 @@ class ObservationBuilder:
         if not self.cfg.critic_step_input:  # matched horizons: no clock for the critic
             step_fraction = np.zeros_like(step_fraction)
         safe_active = np.maximum(n_active, 1)
-        traffic = np.stack(
+        traffic = stack_last(
             [
                 n_active / n_max,
                 np.where(active, state.speed_mps, 0.0).sum(axis=-1) / safe_active / self._v_max_mps,
                 (state.is_cav & active).sum(axis=-1) / safe_active,
                 step_fraction,
             ],
-            axis=-1,
         )
         return CriticState(
             nodes=_f32(nodes),
@@ -747,7 +743,7 @@ class ObservationBuilder:
         x, y = gather(hist.x_m), gather(hist.y_m)
         v, heading = gather(hist.speed_mps), gather(hist.heading_rad)
         is_cav = np.broadcast_to(take(state.is_cav, idx)[..., None], x.shape)
-        feats = np.stack(
+        feats = stack_last(
             [
                 (x - ego_x[..., None, None]) / DX_SCALE_M,
                 (y - ego_y[..., None, None]) / self._lane_w_m,
@@ -756,7 +752,6 @@ class ObservationBuilder:
                 v / self._v_max_mps,
                 is_cav.astype(np.float64),
             ],
-            axis=-1,
         )  # (..., C, M, T, F)
         return feats
 
@@ -787,14 +782,13 @@ class ObservationBuilder:
         speed_sum = (hit * state.speed_mps[..., None, None, :]).sum(axis=-1)
         win_km = (np.minimum(ego_x + w_m, self._route_m) - np.maximum(ego_x - w_m, 0.0)) / 1000.0
         safe = np.maximum(count, 1.0)
-        stats = np.stack(
+        stats = stack_last(
             [
                 count / COUNT_SCALE,
                 count / np.maximum(win_km, 1e-9)[..., None] / DENSITY_SCALE_VEH_PER_KM,
                 speed_sum / safe / self._v_max_mps,
                 n_cav / safe,
             ],
-            axis=-1,
         )  # (..., C, 3, 4)
         return stats, exists
 

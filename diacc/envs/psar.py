@@ -36,7 +36,7 @@ from diacc.envs.safety import (
 )
 from diacc.sim.kinematics import braking_step, nan_to_num, safe_end_speed_mps, safe_gap_m
 from diacc.sim.maps import Map
-from diacc.sim.state import TrafficState, take, take_last
+from diacc.sim.state import TrafficState, stack_last, take, take_last
 
 #: Rule codes of :attr:`PSARResult.rule`.
 RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
@@ -261,20 +261,19 @@ def psar(
 
     # ---- lines 2-16: lane-change checks on the target lane ----------------
     col = (offset + 1)[..., None]  # (..., C, 1) column of the target lane in LaneNeighbours
-    pairs = np.stack(
+    pairs = stack_last(
         [
             take_last(neighbours.front, col)[..., 0],
             take_last(neighbours.rear, col)[..., 0],
             neighbours.front[..., SAME_COL],
         ],
-        axis=-1,
     )  # (..., C, 3): target-lane front j, target-lane rear k, same-lane front j
     cut_in = _cut_in_front(state, cav_index, road)  # (..., C)
     # One call per kind of obstacle (the formulas are elementwise): the three neighbours
     # and the vehicle cutting in as columns, the target and own lanes' ends side by side.
     others = np.concatenate([pairs, cut_in[..., None]], -1)  # (..., C, 4)
-    ego = np.broadcast_to(cav_index[..., None], others.shape)
-    kin = pair_kinematics(state, ego, others, check=False)  # checked slots, found neighbours
+    # checked slots, found neighbours; the ego column broadcasts against the four others
+    kin = pair_kinematics(state, cav_index[..., None], others, check=False)
     tf_vehicle, tr, sf_vehicle, cut_in_vehicle = (kin.column(k) for k in range(4))
     n_cav = shape[-1]
     walls = lane_end_kinematics(
@@ -600,9 +599,9 @@ def _max_brake_mps(
         return full_mps
     ego_mps = np.maximum(take(state.speed_mps, cav_index), 0.0)[..., None]  # (..., C, 1)
     # The leader and the vehicle merging in ahead, as two columns (..., C, 2).
-    index = np.stack([fronts.sf_index, fronts.merging_index], -1)
-    present = np.stack([fronts.sf_vehicle.valid, fronts.merging.valid], -1) & (index >= 0)
-    gap_m = np.stack([fronts.sf_vehicle.d_long_m, fronts.merging.d_long_m], -1)
+    index = stack_last([fronts.sf_index, fronts.merging_index])
+    present = stack_last([fronts.sf_vehicle.valid, fronts.merging.valid]) & (index >= 0)
+    gap_m = stack_last([fronts.sf_vehicle.d_long_m, fronts.merging.d_long_m])
     vehicle = np.maximum(index, 0)
     cav = take(state.is_cav, vehicle)  # (..., C, 2)
     if cfg.full_brake == "known":  # a slotted CAV leader: judged by its command
@@ -761,8 +760,8 @@ def _headway_bound_mps(
     # The leader and the vehicle merging in, as two columns of one call (elementwise).
     hdv_lead_mps, merging_mps = np.moveaxis(
         behind_hdv(
-            np.stack([lead_gap_m, merging_gap_m], -1),
-            np.stack([lead, np.maximum(fronts.merging_index, 0)], -1),
+            stack_last([lead_gap_m, merging_gap_m]),
+            stack_last([lead, np.maximum(fronts.merging_index, 0)]),
         ),
         -1,
         0,
@@ -801,9 +800,9 @@ def _headway_bound_mps(
     # their own gap and no time gap). One call of the elementwise formula per pass gives
     # the values of one call per kind of leader, at a fraction of the calls.
     n_cav = cav_index.shape[-1]
-    lead_cols = np.stack([np.maximum(slot, 0) for slot, _ in known], -1)  # (..., C, 2)
-    known_leads = np.stack([slot >= 0 for slot, _ in known], -1)  # (..., C, 2)
-    known_gaps_m = np.stack([gap for _, gap in known], -1)  # (..., C, 2)
+    lead_cols = stack_last([np.maximum(slot, 0) for slot, _ in known])  # (..., C, 2)
+    known_leads = stack_last([slot >= 0 for slot, _ in known])  # (..., C, 2)
+    known_gaps_m = stack_last([gap for _, gap in known])  # (..., C, 2)
     cols = np.concatenate(
         [np.broadcast_to(np.arange(n_cav), cuts.shape), lead_cols, lead_cols], -1
     )  # (..., C, C + 4)

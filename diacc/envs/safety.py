@@ -221,7 +221,8 @@ def pair_kinematics(
         state: Traffic state (or a batch).
         ego: vehicle indices (leading env axes of a batch, then any shape), all valid.
         other: vehicle indices of the same shape; ``-1`` marks "no vehicle".
-        check: validate the indices (callers that made them themselves skip the cost).
+        check: validate the indices (callers that made them themselves skip the cost;
+            unchecked, ``ego`` may also be any shape that broadcasts against ``other``).
 
     Returns:
         :class:`PairKinematics` of that shape.
