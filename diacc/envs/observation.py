@@ -87,7 +87,15 @@ from diacc.config import ObservationConfig
 from diacc.envs.lateral_frame import agent_map, is_mirrored, mirror_state
 from diacc.errors import DiaccError
 from diacc.sim.maps import Map
-from diacc.sim.state import TrafficState, on_road_window, stack_last, take, take_last, take_rows
+from diacc.sim.state import (
+    TrafficState,
+    flat_offsets,
+    on_road_window,
+    stack_last,
+    take,
+    take_last,
+    take_rows,
+)
 
 NODE_FEATURES = 6
 SELF_FEATURES = 6
@@ -734,8 +742,7 @@ class ObservationBuilder:
         lead = state.x_m.shape[:-1]
         # Into the flattened (..., T, V) history of every env: one index for the four
         # gathers (a flat take costs a fraction of fancy indexing by env and vehicle).
-        env_base = np.arange(0, math.prod(lead) * steps * n_veh, steps * n_veh)
-        flat = t_of * n_veh + idx[..., None] + env_base.reshape(lead + (1, 1, 1))
+        flat = t_of * n_veh + idx[..., None] + flat_offsets(lead, steps * n_veh, 3)
 
         def gather(a: np.ndarray) -> np.ndarray:  # (..., T, V) -> (..., C, M, T)
             return np.ascontiguousarray(a).reshape(-1).take(flat)

@@ -36,7 +36,7 @@ from diacc.envs.safety import (
 )
 from diacc.sim.kinematics import braking_step, nan_to_num, safe_end_speed_mps, safe_gap_m
 from diacc.sim.maps import Map
-from diacc.sim.state import TrafficState, stack_last, take, take_last
+from diacc.sim.state import TrafficState, flat_offsets, stack_last, take, take_last
 
 #: Rule codes of :attr:`PSARResult.rule`.
 RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
@@ -629,12 +629,10 @@ def _max_brake_mps(
 
 def _slot_of(state: TrafficState, cav_index: np.ndarray) -> np.ndarray:
     """(..., V) the agent slot of each vehicle (-1: an HDV, or a CAV without a slot)."""
-    n_cav, n_vehicles = cav_index.shape[-1], state.n_vehicles
-    slots = np.broadcast_to(np.arange(n_cav), cav_index.shape)  # (..., C)
     slot_of = np.full(state.x_m.shape, -1, np.int64)
-    env_base = np.arange(0, cav_index.size // max(n_cav, 1) * n_vehicles, n_vehicles)
-    flat = cav_index + env_base.reshape(cav_index.shape[:-1] + (1,))  # into (E * V,)
-    slot_of.reshape(-1)[flat] = slots  # repeated vehicles (empty slots): the last slot wins
+    flat = cav_index + flat_offsets(cav_index.shape[:-1], state.n_vehicles, 1)  # into (E * V,)
+    # Repeated vehicles (empty slots): the last slot wins.
+    slot_of.reshape(-1)[flat] = np.broadcast_to(np.arange(cav_index.shape[-1]), flat.shape)
     return slot_of
 
 
@@ -814,8 +812,7 @@ def _headway_bound_mps(
     time_gap_s = np.array([cfg.cav_time_gap_s] * n_followed + [0.0, 0.0])  # (C + 4,)
     followed_finite = np.isfinite(gap_m[..., :n_followed])
     # Gathers of (..., C) values by column, through one flat index made once.
-    env_offset = np.arange(cav_index.size // n_cav).reshape(cav_index.shape[:-1] + (1, 1))
-    flat_cols = (cols + env_offset * n_cav).reshape(-1)
+    flat_cols = (cols + flat_offsets(cav_index.shape[:-1], n_cav, 2)).reshape(-1)
 
     def of_cols(values: np.ndarray) -> np.ndarray:
         """(..., C, C + 4): ``values`` (..., C) of the CAVs in each column of ``cols``."""

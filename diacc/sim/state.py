@@ -223,7 +223,7 @@ def take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     if values.ndim == 1:
         return values[idx]
     idx = np.asarray(idx)
-    base = _env_offsets(values.shape[0], values.shape[1], idx.ndim)
+    base = flat_offsets(values.shape[:1], values.shape[1], idx.ndim - 1)
     return np.ascontiguousarray(values).reshape(-1).take(idx + base)
 
 
@@ -231,18 +231,14 @@ def take_last(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """``np.take_along_axis(values, idx, -1)`` for non-negative ``idx`` (..., K) with the
     leading shape of ``values`` (..., N), through one flat index: a fraction of its cost
     on the small arrays of a step, where it runs dozens of times."""
-    n = values.shape[-1]
-    lead = idx.shape[:-1]
-    base = np.arange(0, math.prod(lead) * n, n).reshape(lead + (1,))  # (..., 1)
+    base = flat_offsets(idx.shape[:-1], values.shape[-1], 1)  # (..., 1)
     return np.ascontiguousarray(values).reshape(-1).take(idx + base)
 
 
 def take_rows(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Rows ``idx`` (..., R) of per-vehicle rows ``values`` (..., V, K): (..., R, K)
     (``np.take_along_axis(values, idx[..., None], -2)``, through one flat row index)."""
-    n_rows = values.shape[-2]
-    lead = idx.shape[:-1]
-    base = np.arange(0, math.prod(lead) * n_rows, n_rows).reshape(lead + (1,))
+    base = flat_offsets(idx.shape[:-1], values.shape[-2], 1)  # (..., 1)
     flat_rows = np.ascontiguousarray(values).reshape(-1, values.shape[-1])
     return flat_rows.take(idx + base, axis=0)
 
@@ -256,11 +252,13 @@ def stack_last(arrays: Sequence[np.ndarray]) -> np.ndarray:
     return out
 
 
-@functools.lru_cache(maxsize=64)
-def _env_offsets(n_envs: int, n_vehicles: int, ndim: int) -> np.ndarray:
-    """(E, 1, ...) first flat index of each env's row, broadcasting against an
-    ``ndim``-dimensional index array (cached; read-only)."""
-    offsets = (np.arange(n_envs) * n_vehicles).reshape((-1,) + (1,) * (ndim - 1))
+@functools.lru_cache(maxsize=256)
+def flat_offsets(lead: tuple[int, ...], stride: int, trailing: int) -> np.ndarray:
+    """``lead + (1,) * trailing`` first flat index of each leading entry's block of
+    ``stride`` values: added to indices within the blocks, it indexes the flattened
+    array, so one ``ndarray.take`` replaces fancy indexing by env (or row) and
+    vehicle, at a fraction of its cost (cached; read-only)."""
+    offsets = (np.arange(math.prod(lead)) * stride).reshape(lead + (1,) * trailing)
     offsets.flags.writeable = False
     return offsets
 

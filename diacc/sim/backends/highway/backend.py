@@ -80,7 +80,7 @@ from diacc.sim.backends.highway.simstate import HighwayCaches, HighwayParams, Hi
 from diacc.sim.kinematics import lane_change_reach_m, safe_gap_m
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario, draw_population
-from diacc.sim.state import TrafficState, take_last
+from diacc.sim.state import TrafficState, flat_offsets, take, take_last
 
 _EMPTY_PAIRS = np.zeros((0, 2), dtype=np.int32)
 
@@ -481,15 +481,8 @@ class HighwayBackend:
                 np.zeros((self.n_envs, n, n), dtype=bool),  # (E, n, n) no contact
                 ~np.eye(n, dtype=bool),  # (n, n) j is not i
                 np.broadcast_to(np.arange(n), (self.n_envs, n)),  # (E, n) own vehicle index
-                np.arange(self.n_envs)[:, None] * n,  # (E, 1) each env's first flat index
             )
-        self._no_contact, self._not_self, self._rows, self._env_base = self._shape_constants[n]
-
-    def _at(self, values: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        """``values[e, idx[e, ...]]`` for every env e: (E, V) values, (E, ...) vehicle
-        indices (>= 0), through one flat index (a fraction of indexing by env and vehicle)."""
-        base = self._env_base.reshape((-1,) + (1,) * (idx.ndim - 1))
-        return np.ascontiguousarray(values).reshape(-1).take(idx + base)
+        self._no_contact, self._not_self, self._rows = self._shape_constants[n]
 
     def _segment(self) -> np.ndarray:
         return self.tables.segment_of(self.state.x_m)
@@ -599,12 +592,10 @@ class HighwayBackend:
         ego = np.stack([me, me, foll, foll], axis=1)  # (E, 4, 3, V)
         end_gap = tab.end_m[seg[:, None, :], lanes3_c] - x[:, None, :] - 0.5 * length
         gaps = np.stack([lead_gap, end_gap, foll_gap, foll_gap + lead_gap + length], axis=1)
-        lead_v = self._at(v, lead)  # (E, 3, V)
+        lead_v = take(v, lead)  # (E, 3, V)
         v3 = np.broadcast_to(v[:, None, :], (n_envs, 3, n))
         lead_v = np.stack([lead_v, np.zeros_like(lead_v), v3, lead_v], axis=1)
-        acc = idm_accel(
-            self._at(v, ego), self._at(desired, ego), params.idm.take(ego), gaps, lead_v
-        )
+        acc = idm_accel(take(v, ego), take(desired, ego), params.idm.take(ego), gaps, lead_v)
         self_acc = np.minimum(acc[:, 0], acc[:, 1])  # (E, 3, V)
         foll_with_me = np.where(has_foll, acc[:, 2], 0.0)
         foll_without = np.where(has_foll, acc[:, 3], 0.0)
@@ -621,9 +612,9 @@ class HighwayBackend:
         # A CAV follower holds its commanded speed for the rest of the step and only
         # then brakes (at most at its decel limit): the gap must cover that, not IDM.
         foll2 = foll[:, side]  # (E, 2, V)
-        cav_foll = self._at(state.is_cav, foll2) & has_foll[:, side]
+        cav_foll = take(state.is_cav, foll2) & has_foll[:, side]
         cav_gap_m = sim.cav.min_gap_m + safe_gap_m(
-            self._at(state.cav_target_mps, foll2),
+            take(state.cav_target_mps, foll2),
             v[:, None, :],
             sim.step_s,
             sim.cav.safe_decel_mps2,
@@ -688,10 +679,10 @@ class HighwayBackend:
         nf_gap = np.where(left, foll_gap[:, 2], foll_gap[:, 0])
         nf_acc = np.where(left, foll_with_me[:, 2], foll_with_me[:, 0])
         # (E, V) the follower lets a merger in (zipper preset).
-        zipper = self._at(params.zipper, nf)
-        polite = (self._at(params.politeness, nf) > 0.0) | (v < m.yield_speed_mps) | zipper
+        zipper = take(params.zipper, nf)
+        polite = (take(params.politeness, nf) > 0.0) | (v < m.yield_speed_mps) | zipper
         can_brake = np.where(
-            zipper, m.forced_max_imposed_brake_mps2, self._at(params.idm.decel_mps2, nf)
+            zipper, m.forced_max_imposed_brake_mps2, take(params.idm.decel_mps2, nf)
         )
         waiting = (
             forced
@@ -699,7 +690,7 @@ class HighwayBackend:
             & (dist_end < m.yield_zone_m)
             & (nf_gap > 0.0)
             & np.isfinite(nf_gap)
-            & ~self._at(state.is_cav, nf)
+            & ~take(state.is_cav, nf)
             & polite
             & (nf_acc >= -can_brake)
         )
@@ -819,7 +810,7 @@ class HighwayBackend:
         if np.count_nonzero(caches.leaders_dirty):
             self._refresh_leaders()
         leader = caches.leader
-        leader_flat = leader + self._env_base  # (E, V) into the flattened (E, V) arrays
+        leader_flat = leader + flat_offsets(leader.shape[:1], leader.shape[1], 1)  # (E, V)
 
         def at_leader(values: np.ndarray) -> np.ndarray:  # (E, V) values of each leader
             return np.ascontiguousarray(values).reshape(-1).take(leader_flat)
@@ -837,7 +828,7 @@ class HighwayBackend:
         yielding = state.yield_to >= 0
         if np.count_nonzero(yielding):
             merger = np.where(yielding, state.yield_to, self._rows)
-            acc_merge = self._idm_fast(v, self._at(x, merger) - x - length, self._at(v, merger))
+            acc_merge = self._idm_fast(v, take(x, merger) - x - length, take(v, merger))
             acc = np.where(yielding, np.minimum(acc, acc_merge), acc)
         # CAVs: constant acceleration towards the commanded target speed.
         acc = np.where(state.is_cav, state.cav_accel_mps2, np.maximum(acc, self._min_accel))

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diacc.sim.state import flat_offsets
+
 
 @dataclass(frozen=True)
 class HighwayModel:
@@ -62,8 +64,8 @@ class IdmParams:
 
     def take(self, idx: np.ndarray) -> IdmParams:
         """Parameters of the vehicles ``idx`` (E, ...), each indexing its own env's row."""
-        n_envs, n = self.headway_s.shape
-        flat = idx + (np.arange(n_envs) * n).reshape((-1,) + (1,) * (idx.ndim - 1))
+        shape = self.headway_s.shape  # (E, V)
+        flat = idx + flat_offsets(shape[:1], shape[1], idx.ndim - 1)
 
         def of(values: np.ndarray) -> np.ndarray:  # one flat take per parameter
             return np.ascontiguousarray(values).reshape(-1).take(flat)
