@@ -166,9 +166,9 @@ def test_training_passes_the_annealed_temperature_to_each_rollout(tmp_path, monk
     cfg = tiny_config(tmp_path, **{"env.reward.tau_anneal_fraction": 0.5})
     taus, real = [], mappo.collect_rollout
 
-    def spy(agent, envs, cfg, update, tau, sync=True):
+    def spy(agent, envs, cfg, update, tau, **options):
         taus.append(tau)
-        return real(agent, envs, cfg, update, tau, sync)
+        return real(agent, envs, cfg, update, tau, **options)
 
     monkeypatch.setattr(mappo, "collect_rollout", spy)
     train(cfg, progress=False)
