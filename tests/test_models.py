@@ -485,3 +485,51 @@ def test_trimming_padded_node_slots_changes_no_output_or_gradient(monkeypatch):
     torch.testing.assert_close(value, value_full, atol=1e-6, rtol=1e-5)
     for g, g_full in zip(grads, grads_full, strict=True):
         torch.testing.assert_close(g, g_full, atol=1e-6, rtol=1e-5)
+
+
+# ---------------------------------------------------------------- hand-written backward passes
+def _autograd_star_pool(q, x, valid, u_q, u_k, slope):
+    """StarPool's maths through autograd's own ops (the reference for its backward)."""
+    from diacc.learn.models.layers import masked_softmax
+
+    z = (q @ u_q)[:, :, None] + torch.einsum("mkf,fh->mhk", x, u_k)  # (M, H, K)
+    logits = torch.nn.functional.leaky_relu(z, slope)
+    alpha = masked_softmax(logits, valid[:, None, :], dim=-1)
+    return alpha @ x
+
+
+def test_star_pool_backward_equals_autograd_in_float64():
+    """StarPool's written-out backward gives autograd's gradients (float64: to 1e-12)."""
+    from diacc.learn.models.gat import StarPool
+
+    g = torch.Generator().manual_seed(6)
+    m, k, f, h = 9, 7, 5, 3
+    leaves = [torch.randn(m, f, generator=g, dtype=torch.float64)]  # q
+    leaves.append(torch.randn(m, k, f, generator=g, dtype=torch.float64))  # x
+    valid = torch.rand(m, k, generator=g) < 0.6
+    valid[0] = False  # a row without keys: zeros, zero gradient
+    leaves[1] = leaves[1] * valid[..., None]
+    leaves += [torch.randn(f, h, generator=g, dtype=torch.float64) for _ in range(2)]  # u_q, u_k
+    weights = torch.randn(m, h, f, generator=g, dtype=torch.float64)
+    grads = []
+    for fn in (lambda *a: StarPool.apply(*a, 0.2)[0], lambda *a: _autograd_star_pool(*a, 0.2)):
+        inputs = [t.clone().requires_grad_(True) for t in leaves]
+        out = fn(inputs[0], inputs[1], valid, inputs[2], inputs[3])
+        (out * weights).sum().backward()
+        grads.append((out.detach(), [t.grad for t in inputs]))
+    (out_a, grads_a), (out_b, grads_b) = grads
+    torch.testing.assert_close(out_a, out_b, rtol=0, atol=1e-12)
+    for a, b in zip(grads_a, grads_b, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    assert torch.equal(out_a[0], torch.zeros_like(out_a[0]))
+
+
+def test_gru_step_equals_torch_gru_cell():
+    """The chunked replay's GRU (input half precomputed) is nn.GRUCell's maths."""
+    from diacc.learn.models.recurrent import gru_step
+
+    torch.manual_seed(7)
+    cell = torch.nn.GRUCell(6, 5)
+    x, h = torch.randn(4, 6), torch.randn(4, 5)
+    gates = torch.nn.functional.linear(x, cell.weight_ih, cell.bias_ih)
+    torch.testing.assert_close(gru_step(gates, h, cell), cell(x, h), rtol=0, atol=1e-6)
