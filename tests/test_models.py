@@ -15,6 +15,7 @@ from diacc.learn.models.gat import GraphAttention
 from diacc.learn.models.inputs import to_tensors
 from diacc.learn.models.itdr import ITDR, CIECCritic
 from diacc.learn.models.mlp import MLPActor
+from diacc.learn.models.recurrent import needed_rows
 from diacc.learn.models.registry import build_networks
 from diacc.learn.models.synthetic import random_actor_obs, random_critic_state
 from diacc.learn.models.taie import TAIE, DIADMActor
@@ -331,8 +332,37 @@ def test_sequence_replay_equals_step_by_step(variant):
             for t in range(4):
                 out, h = net({k: v[t] for k, v in inputs.items()}, h, starts[t])
                 outs.append(out)
-        torch.testing.assert_close(seq, torch.stack(outs), atol=ATOL, rtol=1e-5)
-        torch.testing.assert_close(h_seq, h, atol=ATOL, rtol=1e-5)
+        # Rows of agents off the road that reach no loss are not encoded in the replay.
+        needed = needed_rows(inputs, starts)
+        rows = slice(None) if needed is None else needed.view(4, batch)
+        torch.testing.assert_close(seq[rows], torch.stack(outs)[rows], atol=ATOL, rtol=1e-5)
+        last = slice(None) if needed is None else rows[-1]
+        torch.testing.assert_close(h_seq[last], h[last], atol=ATOL, rtol=1e-5)
+
+
+def test_replay_skips_only_rows_that_reach_no_loss():
+    """An actor replay encodes the alive rows and the dead rows whose GRU state an alive
+    row inherits (no reset between): garbage in any other row changes no alive output."""
+    actor, _ = build_networks("diacc", CFG, SPEC)
+    obs = to_tensors(random_actor_obs(SPEC, (6, 4), np.random.default_rng(3)))
+    alive = torch.tensor([[1, 1, 0, 1]] * 6, dtype=torch.bool)
+    alive[3:, 0] = False  # left the road at t = 3: rows 3-5 of agent 0 are skipped
+    alive[:4, 1] = False  # dead, then alive at t = 4 with no reset: rows 0-3 carry its state
+    alive[:2, 3] = False  # dead, then a new CAV at t = 2 (reset): rows 0-1 are skipped
+    starts = torch.zeros(6, 4)
+    starts[2, 3] = 1.0
+    obs["alive"] = alive
+    needed = needed_rows(obs, starts).view(6, 4)
+    want = alive.clone()
+    want[:4, 1] = True
+    assert torch.equal(needed, want)
+    h0 = torch.zeros(4, CFG.gru_hidden)
+    with torch.no_grad():
+        clean, _ = actor.forward_sequence(obs, h0, starts)
+        noisy = {k: v.clone() for k, v in obs.items()}
+        noisy["ego_hist"][~needed] = 1e6  # only rows that reach no loss
+        dirty, _ = actor.forward_sequence(noisy, h0, starts)
+    torch.testing.assert_close(dirty[alive], clean[alive], rtol=0, atol=0)
 
 
 # ---------------------------------------------------------------- registry and inputs

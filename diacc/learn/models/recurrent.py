@@ -92,7 +92,15 @@ class RecurrentNet(nn.Module):
         """The GRU state after every step of a chunk (T, B, H); arguments as forward_sequence."""
         n_steps, n_batch = episode_starts.shape
         require(inputs, self.encoder.input_keys, (n_steps, n_batch), type(self).__name__)
-        features = self.encoder(merge_leading(inputs, 2))  # (T*B, E)
+        flat = merge_leading(inputs, 2)
+        needed = needed_rows(inputs, episode_starts)  # (T*B,) or None: every row
+        if needed is None:
+            features = self.encoder(flat)  # (T*B, E)
+        else:  # encode the rows that matter; the others get zero features
+            rows = needed.nonzero().squeeze(1)  # (R,)
+            encoded = self.encoder({k: v.index_select(0, rows) for k, v in flat.items()})
+            features = encoded.new_zeros(n_steps * n_batch, encoded.shape[-1])
+            features = features.index_copy(0, rows, encoded)  # (T*B, E)
         # The GRU's input half for all T steps in one product; only the hidden half
         # loops over time. Same formulas and order as torch's CPU GRUCell.
         cell = self.gru
@@ -105,6 +113,34 @@ class RecurrentNet(nn.Module):
             hidden = gru_step(gates_x, hidden * keep_t, cell)  # (B, H)
             states.append(hidden)
         return torch.stack(states)
+
+
+#: Encode only the rows that matter when at most this share of a chunk's rows does
+#: (gathering and scattering the rows costs more than it saves above it).
+SPARSE_ROWS_SHARE = 0.9
+
+
+def needed_rows(inputs: TensorDict, episode_starts: Tensor) -> Tensor | None:
+    """Rows (T*B,) of an actor's chunk whose features can reach a loss, or None for all.
+
+    An agent off the road (``alive`` False: a CAV that left, an empty demand slot)
+    adds nothing to any loss, and its GRU state reaches a later step only if that
+    step is alive without a reset in between (a new CAV in a slot, an episode
+    start, resets it): rows outside both are skipped, which is exact. Demand
+    chunks hold many empty slots; a release chunk is nearly all alive, and then
+    (above :data:`SPARSE_ROWS_SHARE`) every row is encoded. None also for inputs
+    without ``alive`` (critics).
+    """
+    alive = inputs.get("alive")
+    if alive is None or alive.dtype != torch.bool:
+        return None
+    needed, carried = alive.clone(), ~episode_starts.bool()  # (T, B) each
+    for t in range(alive.shape[0] - 2, -1, -1):  # carried backwards until a reset
+        needed[t] |= needed[t + 1] & carried[t + 1]
+    needed = needed.reshape(-1)
+    if needed.sum() > SPARSE_ROWS_SHARE * needed.numel():
+        return None
+    return needed
 
 
 def gru_step(input_gates: Tensor, hidden: Tensor, cell: nn.GRUCell) -> Tensor:
