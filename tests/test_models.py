@@ -563,3 +563,17 @@ def test_gru_step_equals_torch_gru_cell():
     x, h = torch.randn(4, 6), torch.randn(4, 5)
     gates = torch.nn.functional.linear(x, cell.weight_ih, cell.bias_ih)
     torch.testing.assert_close(gru_step(gates, h, cell), cell(x, h), rtol=0, atol=1e-6)
+
+
+def test_star_pool_under_bf16_autocast_returns_gradients_in_input_dtypes():
+    """update_bf16 runs the networks under autocast: StarPool's backward must cope."""
+    torch.manual_seed(8)
+    layer = GraphAttention(8, 8, 4)
+    query = torch.randn(5, 8, requires_grad=True)
+    mask = torch.rand(5, 6) > 0.3
+    keys = (torch.randn(5, 6, 8) * mask[..., None]).requires_grad_(True)
+    with torch.autocast("cpu", torch.bfloat16):
+        out = layer(query, keys, mask, keys_zeroed=True)
+    out.float().sum().backward()
+    assert out.dtype == torch.bfloat16 and query.grad.dtype == keys.grad.dtype == torch.float32
+    assert all(torch.isfinite(p.grad).all() for p in (query, keys, *layer.parameters()))

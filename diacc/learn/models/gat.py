@@ -256,8 +256,12 @@ class StarPool(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_pooled, _g_alpha):  # type: ignore[override]
         q, x, u_q, u_k, positive, alpha = ctx.saved_tensors
+        dtypes = q.dtype, x.dtype, u_q.dtype, u_k.dtype
+        # Under autocast (bf16) the saved tensors mix dtypes: work in alpha's, whose
+        # softmax autocast keeps in float32; each gradient returns in its input's dtype.
+        q, x, u_q, u_k = (t.to(alpha.dtype) for t in (q, x, u_q, u_k))
         n, k, f = x.shape
-        g_pooled = g_pooled.contiguous()  # (M, H, F)
+        g_pooled = g_pooled.to(alpha.dtype).contiguous()  # (M, H, F)
         g_alpha = g_pooled @ x.transpose(1, 2)  # (M, H, K)
         # softmax backward (masked weights are 0, so their logits get no gradient)
         g_logits = alpha * (g_alpha - (alpha * g_alpha).sum(-1, keepdim=True))  # (M, H, K)
@@ -267,14 +271,12 @@ class StarPool(torch.autograd.Function):
         x_flat = x.reshape(n * k, f)
         g_x = alpha.transpose(1, 2).contiguous() @ g_pooled  # (M, K, F) from the pooling
         g_x = g_x + (g_score_x @ u_k.t()).view(n, k, f)  # and from the key scores
-        return (
-            g_score_q @ u_q.t(),  # q (M, F)
-            g_x,
-            None,
-            (g_score_q.t() @ q).t(),  # u_q (F, H); (H, F) products: ~5x faster here
-            (g_score_x.t() @ x_flat).t(),  # u_k (F, H)
-            None,
-        )
+        g_q = g_score_q @ u_q.t()  # (M, F)
+        g_u_q = (g_score_q.t() @ q).t()  # (F, H); (H, F) products: ~5x faster here
+        g_u_k = (g_score_x.t() @ x_flat).t()  # (F, H)
+        grads = (t.to(dtype) for t, dtype in zip((g_q, g_x, g_u_q, g_u_k), dtypes, strict=True))
+        g_q, g_x, g_u_q, g_u_k = grads
+        return g_q, g_x, None, g_u_q, g_u_k, None
 
 
 class GlobalGraphAttention(GraphAttention):
