@@ -129,10 +129,11 @@ def needed_rows(inputs: TensorDict, episode_starts: Tensor) -> Tensor | None:
     start, resets it): rows outside both are skipped, which is exact. Demand
     chunks hold many empty slots; a release chunk is nearly all alive, and then
     (above :data:`SPARSE_ROWS_SHARE`) every row is encoded. None also for inputs
-    without ``alive`` (critics).
+    without ``alive`` (critics) and under ``torch.compile``.
     """
     alive = inputs.get("alive")
-    if alive is None or alive.dtype != torch.bool:
+    # Under torch.compile the data-dependent row count would break the graph.
+    if alive is None or alive.dtype != torch.bool or torch.compiler.is_compiling():
         return None
     needed, carried = alive.clone(), ~episode_starts.bool()  # (T, B) each
     for t in range(alive.shape[0] - 2, -1, -1):  # carried backwards until a reset
