@@ -40,28 +40,29 @@ from diacc.config import EnvConfig, TrainConfig, override
 from diacc.learn import mappo
 from diacc.threads import set_torch_threads
 what, envs, steps, updates, repeats, demand_envs = sys.argv[1], *map(int, sys.argv[2:7])
-try:  # the allocator policy of the trainer, where the tree has one
-    from diacc.allocator import keep_freed_memory
-except ImportError:
-    keep_freed_memory = lambda: None
 if what == "update":
     cfg = override(TrainConfig(), {"n_envs": envs, "rollout_steps": steps, "device": "cpu",
         "env.map": "train-50", "env.sim.episode_steps": min(steps, EnvConfig().sim.episode_steps)})
     mappo.seed_everything(1)
     set_torch_threads(1)
-    keep_freed_memory()
     agent = mappo.make_agent(cfg, torch.device("cpu"))
     vec = mappo.make_vector_env(cfg.env, envs, cfg.seed, cfg.vector)
     roll, next_value, _ = mappo.collect_rollout(agent, vec, cfg, 0, cfg.env.reward.tau_init)
     vec.close()
     adv, ret = mappo.rollout_gae(roll, next_value, cfg)
     batch = mappo.make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
-    seconds = []
+    import resource
+    seconds, faults, system = [], [], []
     for _ in range(repeats + 1):
-        t0 = time.thread_time()
+        r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.thread_time()
         mappo.ppo_update(agent, batch, cfg, vec.n_cavs)
+        r1 = resource.getrusage(resource.RUSAGE_SELF)
         seconds.append(time.thread_time() - t0)
-    print(json.dumps({"value": sorted(seconds[1:])[repeats // 2], "unit": "CPU s / update"}))
+        faults.append(r1.ru_minflt - r0.ru_minflt)
+        system.append(r1.ru_stime - r0.ru_stime)
+    mid = lambda v: sorted(v[1:])[repeats // 2]
+    print(json.dumps({"value": mid(seconds), "unit": "CPU s / update",
+                      "minor_faults": mid(faults), "system_cpu_s": mid(system)}))
 else:
     from diacc.experiments.bench.training import measure
     options = {"env.map": "train-50", "overlap": what == "overlap"}

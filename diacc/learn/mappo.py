@@ -58,7 +58,6 @@ import torch
 import torch.nn.functional as F
 from torch.utils.tensorboard import SummaryWriter
 
-from diacc.allocator import keep_freed_memory
 from diacc.config import TrainConfig, validate
 from diacc.console import TrainProgress
 from diacc.envs.action_mask import masked_logits
@@ -754,7 +753,6 @@ def _start(
     ckpt_path = run_dir / "checkpoint.pt"
     seed_everything(cfg.seed)
     set_torch_threads(cfg.torch_threads)
-    keep_freed_memory()
     agent = make_agent(cfg, device)
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     n_updates = max(1, cfg.total_steps // steps_per_update)

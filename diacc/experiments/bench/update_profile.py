@@ -32,7 +32,6 @@ from contextlib import contextmanager
 import torch
 from torch import nn
 
-from diacc.allocator import keep_freed_memory
 from diacc.config import PAPER_LEARNER, EnvConfig, TrainConfig, override
 from diacc.learn import mappo
 from diacc.threads import set_torch_threads
@@ -155,7 +154,6 @@ def profile(
     )
     mappo.seed_everything(cfg.seed)
     set_torch_threads(cfg.torch_threads)
-    keep_freed_memory()
     agent = mappo.make_agent(cfg, torch.device("cpu"))
     envs = mappo.make_vector_env(cfg.env, n_envs, cfg.seed, cfg.vector)
     try:
