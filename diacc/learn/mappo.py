@@ -484,9 +484,8 @@ def add_proximal_policy(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: in
 
     A rollout collected beside the previous update acts with the parameters from
     before that update. PPO's clip around *those* log-probs starts the update
-    already off-centre and cuts its steps short: with the one-update lag,
-    3 seeds learned less than synchronous training (CAV speed 15.6 vs 16.8 m/s,
-    ``benchmarks/results/learner-comparison-ii``). The decoupled PPO objective
+    already off-centre and cuts its steps short (docs/benchmarks, "Training
+    throughput II" and "III", has the measurements). The decoupled PPO objective
     (Hilton et al. 2022, "Batch size-invariance for policy optimization") clips
     around the learner's own policy before this update (``prox_logprobs``) and
     corrects for the behaviour policy with the weight pi_prox / pi_behaviour
