@@ -64,12 +64,12 @@ def test_same_mix_runs_with_the_cells_vehicles(backend):
     assert not cfg.use_psar and cfg.scenario.n_cavs == 0
     driver = EpisodeDriver(policy, cfg)
     try:
-        row = run_episode(driver, CELL, 0).row
+        row = run_episode(driver, CELL, 0, "test").row
         state = driver.state
     finally:
         driver.close()
     assert row["policy"] == "same-mix" and row["n_cavs"] == 0 and row["n_vehicles_seen"] == 20
-    cav_slots = draw_population(CELL.scenario(), driver.road, CELL.seed(0)).is_cav
+    cav_slots = draw_population(CELL.scenario(), driver.road, CELL.seed(0, "test")).is_cav
     assert np.all(state.style[cav_slots] == NORMAL) and not state.is_cav.any()
 
 

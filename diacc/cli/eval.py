@@ -12,6 +12,7 @@ from pathlib import Path
 
 from diacc.cli import scale as cli_scale
 from diacc.config import ACTION_MODES, BACKENDS, FULL_BRAKE_MODES, HORIZON_MODES, STYLE_PRESETS
+from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so
 #: that ``--help`` does not import the evaluation stack).
@@ -33,6 +34,7 @@ def _settings(args: argparse.Namespace):
         style_preset=args.style_preset,
         psar_horizon=args.psar_horizon,
         psar_full_brake=args.psar_full_brake,
+        stream=args.stream,
     )
 
 
@@ -83,6 +85,13 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         help="when PSAR's headway car following may brake beyond the planned rate, for every "
         "policy with PSAR (default: the policy's own setting; docs/concepts/psar.md)",
     )
+    p.add_argument(
+        "--stream",
+        choices=SEED_STREAMS,
+        default=DEFAULT_STREAM,
+        help="episode seed stream: test (to report), validation (to choose seeds, settings, "
+        "checkpoints on; disjoint from test) or legacy (the one stream before 2026-12-04)",
+    )
 
 
 def add_parsers(sub) -> None:
@@ -92,8 +101,8 @@ def add_parsers(sub) -> None:
         "eval",
         "evaluate a policy or baseline on a grid of scenarios",
         "Writes episodes.csv and speeds.csv.gz into --out; re-running skips finished cells.\n"
-        "Episode seeds depend on the cell and episode only, so every policy meets the\n"
-        "same traffic.",
+        "Episode seeds depend on the seed stream, cell and episode only, so every policy\n"
+        "meets the same traffic.",
     )
     _policy_args(p)
     p.add_argument(
@@ -197,7 +206,7 @@ def _episode_args(p: argparse.ArgumentParser) -> None:
         "--steps", dest="episode_steps", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS
     )
     p.add_argument(
-        "--seed", type=int, default=None, help="traffic seed (default: seed of eval episode 0)"
+        "--seed", type=int, default=None, help="traffic seed (default: episode 0 of --stream)"
     )
 
 

@@ -91,9 +91,9 @@ class EpisodeResult:
     speeds: SpeedSamples
 
 
-def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResult:
-    """Play one seeded episode to its end and summarise it."""
-    seed = cell.seed(episode)
+def run_episode(driver: EpisodeDriver, cell: Cell, episode: int, stream: str) -> EpisodeResult:
+    """Play one seeded episode of a seed stream to its end and summarise it."""
+    seed = cell.seed(episode, stream)
     recorder = play_episode(driver, seed)
     metrics = recorder.summary()
     speeds = recorder.speed_samples()
@@ -104,6 +104,7 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResul
         "style_preset": driver.cfg.sim.style_preset,
         **cell.as_row(),
         "inflow_vph": cell.inflow_vph,
+        "stream": stream,
         "episode": episode,
         "seed": seed,
         "n_cavs": driver.cfg.scenario.n_cavs,
@@ -192,7 +193,9 @@ def run_cell_task(task: CellTask) -> CellTaskResult:
         for episode in task.episodes:
             for attempt in range(1, SIM_ATTEMPTS + 1):
                 try:
-                    results.append(run_episode(_driver(task.cell), task.cell, episode))
+                    driver = _driver(task.cell)
+                    stream = _WORKER["settings"].stream
+                    results.append(run_episode(driver, task.cell, episode, stream))
                     break
                 except BackendError as exc:
                     _close_worker_driver()
@@ -447,8 +450,8 @@ def evaluation_meta(policy, cells: list[Cell], settings: EvalSettings) -> tuple[
 
 def meta_conflict(old: dict, meta: dict, before: dict | None) -> str | None:
     """The first key in which an existing ``meta.json`` differs from ``meta``, else None."""
-    if before is not None and isinstance(old.get("settings"), dict):
-        old = {**old, "settings": {**before, **old["settings"]}}
+    if isinstance(old.get("settings"), dict):  # a meta.json before streams ran on legacy seeds
+        old = {**old, "settings": {"stream": "legacy", **(before or {}), **old["settings"]}}
     for key in ("policy", "checkpoint", "backend", "settings"):
         if old.get(key) != meta.get(key):
             return key
@@ -580,7 +583,16 @@ def load_episodes(out_dir: str | Path) -> tuple[dict, list[dict[str, str]]]:
 
 
 #: Columns of episodes.csv that hold text; every other one holds a number (or is empty).
-_TEXT_COLUMNS = {"policy", "backend", "sumo_version", "style_preset", "map", "style_mix", "psar"}
+_TEXT_COLUMNS = {
+    "policy",
+    "backend",
+    "sumo_version",
+    "style_preset",
+    "map",
+    "style_mix",
+    "psar",
+    "stream",
+}
 
 
 def _check_numbers(path: Path, rows: list[dict[str, str]]) -> None:

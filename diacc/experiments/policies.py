@@ -43,7 +43,7 @@ from diacc.config import (
 from diacc.envs.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.envs.observation import ActorObs
 from diacc.errors import DiaccError
-from diacc.experiments.grid import Cell
+from diacc.experiments.grid import DEFAULT_STREAM, Cell, check_stream
 from diacc.sim.maps import Map
 
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
@@ -79,8 +79,15 @@ class EvalSettings:
     psar_horizon: str | None = None
     #: PSAR's ``full_brake`` of every policy with PSAR (:class:`~diacc.config.PSARConfig`).
     psar_full_brake: str | None = None
+    #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
+    #: ``validation`` to choose on, ``test`` to report.
+    stream: str = DEFAULT_STREAM
 
     def __post_init__(self) -> None:
+        try:
+            check_stream(self.stream)
+        except DiaccError as exc:
+            raise PolicyError(str(exc)) from None
         if self.episode_steps is not None and self.episode_steps < 1:
             raise PolicyError(f"episode_steps must be >= 1, got {self.episode_steps}")
         if self.psar_horizon is not None and self.psar_horizon not in HORIZON_MODES:
@@ -107,7 +114,11 @@ class EvalSettings:
 
     def describe(self) -> dict:
         """What an evaluation's ``meta.json`` records of these settings (and checks on reuse)."""
-        settings = {"episode_steps": self.episode_steps, "style_preset": self.style_preset}
+        settings = {
+            "episode_steps": self.episode_steps,
+            "style_preset": self.style_preset,
+            "stream": self.stream,
+        }
         if self.psar_horizon is not None:  # absent otherwise: older results stay reusable
             settings["psar_horizon"] = self.psar_horizon
         if self.psar_full_brake is not None:
