@@ -22,7 +22,9 @@ Markdown), as in the paper's Tables II/III, compared at the printed precision.
 A column is ranked in a cell only if it is no slower than the pure-HDV column
 (same backend) and has no higher collision rate; a policy slower or crashing
 more than human traffic is never marked best. Entries show the change against
-pure HDV. LaTeX output needs \\usepackage{booktabs} and \\usepackage{multirow}."""
+pure HDV and against same-mix; the latter paired by episode seed (the same
+traffic) with its 95 % bootstrap interval [low, high], marked "≈" (no
+measurable difference) where the interval holds 0. LaTeX output needs \\usepackage{booktabs} and \\usepackage{multirow}."""
 
 
 def _settings(args: argparse.Namespace):
