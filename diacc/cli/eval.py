@@ -24,7 +24,8 @@ A column is ranked in a cell only if it is no slower than the pure-HDV column
 more than human traffic is never marked best. Entries show the change against
 pure HDV and against same-mix; the latter paired by episode seed (the same
 traffic) with its 95 % bootstrap interval [low, high], marked "≈" (no
-measurable difference) where the interval holds 0. LaTeX output needs \\usepackage{booktabs} and \\usepackage{multirow}."""
+measurable difference) where the interval holds 0. LaTeX output needs
+\\usepackage{booktabs} and \\usepackage{multirow}."""
 
 
 def _settings(args: argparse.Namespace):
@@ -46,8 +47,9 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         required=True,
         help="pure-hdv, same-mix (CAV slots driven by normal human drivers; same-mix:<style> "
         "for aggressive or cautious ones), cooperative, heuristic, a scripted probe "
-        "(remain, accelerate, random; <name>-nopsar without PSAR) or a checkpoint.pt "
-        "(or its run directory)",
+        "(remain, accelerate, random; <name>-nopsar without PSAR), a checkpoint.pt "
+        "(or its run directory), or your own controller as package.module:factory "
+        "(examples/keep_right_controller.py)",
     )
     p.add_argument(
         "--variant",

@@ -282,10 +282,16 @@ class BottleneckEnv(ParallelEnv):
     def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
         return self._action_space
 
-    def _agent_slots(self) -> dict[str, int]:
-        """Slot of each agent (CAV) that holds one now."""
+    def agent_slots(self) -> dict[str, int]:
+        """Slot of each agent (CAV) that holds one now: PettingZoo names -> array rows."""
         held = np.flatnonzero(self.slot_vehicle >= 0)
         return {f"cav_{self.cav_ordinal[self.slot_vehicle[i]]}": int(i) for i in held}
+
+    def agent_observations(self, actor_obs: ActorObs) -> dict[str, dict | np.ndarray]:
+        """PettingZoo observations of :attr:`agents` from the array API's ``actor_obs`` of
+        the current step (what the evaluator hands a user's dict-API policy)."""
+        slots = self.agent_slots()
+        return {a: self._agent_obs(actor_obs, slots[a]) for a in self.agents}
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         actor_obs, _ = self.reset_arrays(seed)
@@ -293,14 +299,13 @@ class BottleneckEnv(ParallelEnv):
             self.road, self.config.events, self.config.scenario.warmup_s
         )
         self._recorder.record(self.state_)
-        slots = self._agent_slots()
-        observations = {a: self._agent_obs(actor_obs, slots[a]) for a in self.agents}
+        observations = self.agent_observations(actor_obs)
         if self.render_mode == "human":
             self.render()
         return observations, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, int]):
-        index = self._agent_slots()
+        index = self.agent_slots()
         batch = np.zeros(self.n_cavs, np.int64)
         for agent, action in actions.items():
             if agent in index:
@@ -311,7 +316,7 @@ class BottleneckEnv(ParallelEnv):
         acting = list(self.agents)
         ended = out.terminated or out.truncated
         # CAVs that took a slot in this step join (PettingZoo lets agents appear).
-        index.update(self._agent_slots())
+        index.update(self.agent_slots())
         joining = [] if ended else [a for a in self._live_agents(out.state) if a not in acting]
         observations, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
         team = self.reward_of(out)
