@@ -16,6 +16,7 @@ from diacc.experiments.policies import (
     EvalSettings,
     PolicyError,
     PolicySpec,
+    PureHdvPolicy,
     SameMixPolicy,
     build_policy,
     heuristic_actions,
@@ -125,3 +126,21 @@ def test_eval_psar_horizon_reaches_every_policy_with_psar_and_is_recorded():
     assert "psar_horizon" not in EvalSettings().describe()["settings"]
     with pytest.raises(PolicyError, match="unknown PSAR horizon 'soon'"):
         EvalSettings(psar_horizon="soon")
+
+
+def test_an_episode_without_cavs_warns_nothing():
+    """Pure HDV has no CAV: the logged CAV means are 0, not 0 / 0 with a RuntimeWarning
+    printed by every `diacc simulate` / `eval` (issue 42)."""
+    import warnings
+
+    policy = PureHdvPolicy()
+    driver = EpisodeDriver(policy, policy.env_config(CELL, EvalSettings(episode_steps=3)))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            driver.reset(CELL.seed(0, "test"))
+            out = driver.env.step_arrays(np.zeros(0, np.int64))  # no CAV, no action
+            run_episode(driver, CELL, 0, "test")
+    finally:
+        driver.close()
+    assert out.reward_terms["individual"] == 0.0
