@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from diacc.cli import main
 from diacc.experiments.paired import EpisodeValues, paired_change
 from diacc.experiments.report import NO_DIFFERENCE, build_table, render_table
 
@@ -82,8 +83,29 @@ def test_table_shows_the_interval_and_marks_no_measurable_difference(tmp_path):
     assert "no measurable difference" in markdown and "seed stream test" in markdown
     rows = list(csv.DictReader(io.StringIO(render_table(table, "csv"))))
     (delay,) = [r for r in rows if r["metric"] == "delay" and r["policy"] == "diacc"]
-    assert float(delay["ci_low_same_mix"]) == pytest.approx(-25.0)
-    assert (delay["n_pairs_same_mix"], delay["measurable_same_mix"]) == ("4", "1")
+    assert float(delay["ci_low"]) == pytest.approx(-25.0)
+    assert (delay["paired_against"], delay["n_pairs"], delay["measurable"]) == (
+        "same-mix",
+        "4",
+        "1",
+    )
     (sce,) = [r for r in rows if r["metric"] == "p_sce" and r["policy"] == "diacc"]
-    assert sce["measurable_same_mix"] == "0"
+    assert sce["measurable"] == "0"
     assert "$\\approx$" in render_table(table, "latex")
+
+
+def test_paired_against_another_column(tmp_path, capsys):
+    """`--paired-against heuristic`: is the agent better than the rule on the same traffic?"""
+    traffic = [10.0, 14.0, 12.0, 16.0]
+    dirs = [
+        _results(tmp_path / "mix", "same-mix", traffic, [0.1] * 4),
+        _results(tmp_path / "rule", "heuristic", [0.9 * d for d in traffic], [0.1] * 4),
+        _results(tmp_path / "agent", "diacc", [0.72 * d for d in traffic], [0.1] * 4),
+    ]
+    table = build_table(dirs, rows=("delay",), paired_against="heuristic")
+    markdown = render_table(table, "markdown")
+    assert "(-28.0 %, vs heuristic -20.0 % [-20.0, -20.0])" in markdown  # 0.72 / 0.9
+    assert "change against heuristic" in markdown
+    argv = ["table", *map(str, dirs), "--rows", "delay", "--paired-against", "cooperative"]
+    assert main(argv) == 2
+    assert "--paired-against cooperative: no results directory holds" in capsys.readouterr().err

@@ -142,6 +142,13 @@ def add_parsers(sub) -> None:
         "flow rows throughput, delay, arrived_speed, travel_time, never_arrived "
         "('flow' stands for all five)",
     )
+    p.add_argument(
+        "--paired-against",
+        default="same-mix",
+        metavar="POLICY",
+        help="the column whose changes are paired by episode seed with a 95 %% interval "
+        "(another policy, e.g. heuristic, adds its change to every entry)",
+    )
     p.add_argument("--out", type=Path, default=None, help="write to a file instead of stdout")
 
     p = cli_scale.add_command(sub, "plot", "training curves or speed distributions (PNG + PDF)")
@@ -253,7 +260,8 @@ def cmd_table(args: argparse.Namespace) -> None:
     from diacc.experiments.report import build_table, expand_rows, render_table
 
     rows = expand_rows(args.rows)
-    text = render_table(build_table(args.results, args.speed_std, rows), args.format)
+    table = build_table(args.results, args.speed_std, rows, args.paired_against)
+    text = render_table(table, args.format)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text)

@@ -85,13 +85,19 @@ RANKING_RULE = (
 CHANGE_RULE = "changes in % for speeds, flows and times, in percentage points (pp) for shares"
 #: Marks a paired change whose 95 % interval holds 0.
 NO_DIFFERENCE = "≈"
-INTERVAL_RULE = (
-    "[low, high]: 95 % bootstrap interval of the change against same-mix, over the episodes "
-    "both played with the same seed (the same traffic); "
-    f"{NO_DIFFERENCE}: the interval holds 0, no measurable difference"
-)
-#: The policy whose column the paired changes and intervals are taken against.
+#: The policy whose column the paired changes and intervals are taken against by default.
 PAIRED_REFERENCE = "same-mix"
+
+
+def interval_rule(reference: str) -> str:
+    """The table note that explains the intervals against ``reference``."""
+    return (
+        f"[low, high]: 95 % bootstrap interval of the change against {reference}, over the "
+        "episodes both played with the same seed (the same traffic); "
+        f"{NO_DIFFERENCE}: the interval holds 0, no measurable difference"
+    )
+
+
 #: Display scale of each metric (100: a share shown in percent).
 _SCALE = {key: scale for key, _, _, _, scale in METRICS}
 #: What a LaTeX document needs for :func:`to_latex`'s output.
@@ -120,13 +126,14 @@ class Table:
     caption: str = ""
     # (cell key, metric, column) -> per-episode values, for the paired changes
     values: dict[tuple[str, str, str], EpisodeValues] = dataclasses.field(default_factory=dict)
+    paired_against: str = PAIRED_REFERENCE  # policy of the paired changes' reference column
 
     def paired(self, cell: Cell, metric: str, column: str) -> PairedChange | None:
-        """Change against the same-mix column of the same backend over the episodes both
-        played on the same seed, with its 95 % interval (None where there is no such
-        column, this is it or pure HDV, or fewer than 2 episodes pair)."""
-        ref = self.reference(column, PAIRED_REFERENCE)
-        if ref is None or self.policy[column] in (REFERENCE, PAIRED_REFERENCE):
+        """Change against the :attr:`paired_against` column (same-mix) of the same backend
+        over the episodes both played on the same seed, with its 95 % interval (None where
+        there is no such column, this is it or pure HDV, or fewer than 2 episodes pair)."""
+        ref = self.reference(column, self.paired_against)
+        if ref is None or self.policy[column] in (REFERENCE, self.paired_against):
             return None
         mine = self.values.get((cell.key, metric, column))
         theirs = self.values.get((cell.key, metric, ref))
@@ -269,12 +276,30 @@ def build_table(
     result_dirs: list[str | Path],
     speed_std: str = "samples",
     rows: tuple[str, ...] | list[str] = DEFAULT_ROWS,
+    paired_against: str = PAIRED_REFERENCE,
 ) -> Table:
-    """Collect the statistics of several results directories into one table."""
+    """Collect the statistics of several results directories into one table; changes
+    against the ``paired_against`` policy's column carry their interval."""
     _check_options(speed_std, rows)
     if not result_dirs:
         raise EvaluationError("give at least one results directory")
-    return table_from_results([(Path(d), *load_episodes(d)) for d in result_dirs], speed_std, rows)
+    loaded = [(Path(d), *load_episodes(d)) for d in result_dirs]
+    policies = {meta["policy"] for _, meta, _ in loaded}
+    if paired_against not in policies and paired_against != PAIRED_REFERENCE:
+        raise EvaluationError(
+            f"--paired-against {paired_against}: no results directory holds that policy "
+            f"(these hold {', '.join(sorted(policies))})"
+        )
+    table = table_from_results(loaded, speed_std, rows)
+    if paired_against != PAIRED_REFERENCE:
+        notes = [
+            interval_rule(paired_against) if n == interval_rule(PAIRED_REFERENCE) else n
+            for n in table.notes
+        ]
+        if interval_rule(paired_against) not in notes:
+            notes.insert(-2, interval_rule(paired_against))
+        table = dataclasses.replace(table, paired_against=paired_against, notes=notes)
+    return table
 
 
 def expand_rows(text: str) -> tuple[str, ...]:
@@ -364,7 +389,7 @@ def table_from_results(
             + " (same backend), in that order"
         )
     if PAIRED_REFERENCE in refs:
-        notes.append(INTERVAL_RULE)
+        notes.append(interval_rule(PAIRED_REFERENCE))
     notes.append(RANKING_RULE)
     notes.append(CHANGE_RULE)
     ordered = sorted(
@@ -436,13 +461,15 @@ def _entry(
         text = f"{marks[2]}{text}{marks[3]}"
     unit = percent if change_unit(metric) == "%" else "pp"
     shown = []
-    for ref in REFERENCES:
-        paired = table.paired(cell, metric, column) if ref == PAIRED_REFERENCE else None
-        change = table.change(cell, metric, column, ref)
+    extra = () if table.paired_against in REFERENCES else (table.paired_against,)
+    for ref in REFERENCES + extra:
+        paired = table.paired(cell, metric, column) if ref == table.paired_against else None
+        change = table.change(cell, metric, column, ref) if ref in REFERENCES else None
         if paired is not None:
             mark = "" if paired.measurable else f"{NO_DIFFERENCE} "
+            versus = f"vs {ref} " if extra else ""
             shown.append(
-                f"{mark}{paired.change:+.1f} {unit} [{paired.low:+.1f}, {paired.high:+.1f}]"
+                f"{versus}{mark}{paired.change:+.1f} {unit} [{paired.low:+.1f}, {paired.high:+.1f}]"
             )
         elif change is not None:
             shown.append(f"{change:+.1f} {unit}")
@@ -548,11 +575,12 @@ def to_csv(table: Table) -> str:
         "change_same_mix",
         "change_unit",
         "best",
-        "paired_change_same_mix",
-        "ci_low_same_mix",
-        "ci_high_same_mix",
-        "n_pairs_same_mix",
-        "measurable_same_mix",
+        "paired_against",
+        "paired_change",
+        "ci_low",
+        "ci_high",
+        "n_pairs",
+        "measurable",
     ]
     rows = []
     for cell in table.cells:
@@ -578,9 +606,10 @@ def to_csv(table: Table) -> str:
                         change_unit(metric),
                         1 if col in best else 2 if col in second else 0,
                         *(
-                            ["", "", "", "", ""]
+                            ["", "", "", "", "", ""]
                             if paired is None
                             else [
+                                table.paired_against,
                                 repr(paired.change),
                                 repr(paired.low),
                                 repr(paired.high),
