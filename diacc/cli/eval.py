@@ -1,4 +1,4 @@
-"""Command-line parsers and handlers for ``diacc eval | table | plot | render``.
+"""Command-line parsers and handlers for ``diacc eval | table | plot | render | scorecard``.
 
 Registered by :mod:`diacc.cli` (``add_parsers`` and ``COMMANDS``); errors are
 the one-line exceptions of the modules they call.
@@ -11,7 +11,14 @@ import sys
 from pathlib import Path
 
 from diacc.cli import scale as cli_scale
-from diacc.config import ACTION_MODES, BACKENDS, FULL_BRAKE_MODES, HORIZON_MODES, STYLE_PRESETS
+from diacc.config import (
+    ACTION_MODES,
+    BACKENDS,
+    FULL_BRAKE_MODES,
+    HORIZON_MODES,
+    STYLE_PRESETS,
+    ConfigError,
+)
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so
@@ -150,6 +157,42 @@ def add_parsers(sub) -> None:
         "(another policy, e.g. heuristic, adds its change to every entry)",
     )
     p.add_argument("--out", type=Path, default=None, help="write to a file instead of stdout")
+
+    p = cli_scale.add_command(
+        sub,
+        "scorecard",
+        "a policy through the standard suite against same-mix, the heuristic and DIACC",
+        "Evaluates --policy and the three references on every cell of the suites\n"
+        "(train, zero-shot, geometry, paper-congestion, demand) and backends, on the\n"
+        "test seed stream, 330-step episodes, PSAR headway / known; writes\n"
+        "scorecard.md and scorecard.json (changes paired by episode seed, 95 %%\n"
+        "bootstrap intervals) into --out. Run from the repository root (the geometry\n"
+        "maps and the shipped agent live there). Resumable: finished cells are skipped.",
+    )
+    p.add_argument(
+        "--policy",
+        required=True,
+        help="the policy to score: any --policy of 'diacc eval' (a checkpoint, a baseline, "
+        "package.module:factory)",
+    )
+    p.add_argument(
+        "--actions", choices=ACTION_MODES, default="greedy", help="a checkpoint's actions"
+    )
+    p.add_argument("--episodes", type=int, default=30, help="seeded episodes per cell")
+    p.add_argument(
+        "--suites",
+        default="train,zero-shot,geometry,paper-congestion,demand",
+        help="comma-separated suites",
+    )
+    p.add_argument("--backends", default="highway,sumo", help="comma-separated backends")
+    p.add_argument(
+        "--agent",
+        default="checkpoints/diacc-train50-realistic-headway-threat-s1.pt",
+        help="the DIACC agent compared with",
+    )
+    p.add_argument("--episode-steps", type=int, default=330, help="decisions per episode")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
+    p.add_argument("--out", required=True, type=Path, help="results directory (required)")
 
     p = cli_scale.add_command(sub, "plot", "training curves or speed distributions (PNG + PDF)")
     plot_sub = p.add_subparsers(dest="plot_kind", required=True, metavar="KIND")
@@ -308,4 +351,37 @@ def cmd_render(args: argparse.Namespace) -> None:
     )
 
 
-COMMANDS = {"eval": cmd_eval, "table": cmd_table, "plot": cmd_plot, "render": cmd_render}
+def cmd_scorecard(args: argparse.Namespace) -> None:
+    from diacc.experiments.policies import parse_policy
+    from diacc.experiments.scorecard import (
+        SCORECARD_JSON,
+        SCORECARD_MD,
+        ScorecardConfig,
+        run_scorecard,
+    )
+
+    backends = tuple(cli_scale._csv_list(args.backends))
+    unknown = [b for b in backends if b not in BACKENDS]
+    if unknown or not backends:
+        raise ConfigError(f"unknown backend {(unknown or [''])[0]!r}; use {', '.join(BACKENDS)}")
+    cfg = ScorecardConfig(
+        policy=parse_policy(args.policy, sampled=args.actions == "sampled"),
+        out_dir=args.out,
+        episodes=args.episodes,
+        suites=tuple(cli_scale._csv_list(args.suites)),
+        backends=backends,
+        agent=args.agent,
+        episode_steps=args.episode_steps,
+        workers=args.workers,
+    )
+    run_scorecard(cfg, say=lambda line: print(line, flush=True))
+    print(f"scorecard: {args.out / SCORECARD_MD} and {args.out / SCORECARD_JSON}")
+
+
+COMMANDS = {
+    "eval": cmd_eval,
+    "table": cmd_table,
+    "plot": cmd_plot,
+    "render": cmd_render,
+    "scorecard": cmd_scorecard,
+}
