@@ -174,7 +174,9 @@ def test_results_name_their_seed_stream(hdv_results, tmp_path):
     rows = read_csv(tmp_path / EPISODES_FILE)
     assert [r["stream"] for r in rows] == ["validation", "validation"]
     assert [int(r["seed"]) for r in rows] == [SMALL.seed(e, "validation") for e in range(2)]
-    with pytest.raises(EvaluationError, match="other 'settings'"):
+    with pytest.raises(
+        EvaluationError, match=r"other 'settings' \(stream: validation, asked test\)"
+    ):
         evaluate(
             PolicySpec("pure-hdv"),
             [SMALL],

@@ -458,6 +458,18 @@ def meta_conflict(old: dict, meta: dict, before: dict | None) -> str | None:
     return None
 
 
+def _which_setting(old: dict, meta: dict) -> str:
+    """`` (stream: legacy, asked test)`` for the first setting that differs, else ""."""
+    mine, theirs = meta.get("settings", {}), old.get("settings")
+    if not isinstance(theirs, dict):
+        return ""
+    theirs = {"stream": "legacy", **theirs}  # a meta.json before streams ran on legacy seeds
+    for name, value in mine.items():
+        if name in theirs and theirs[name] != value:
+            return f" ({name}: {theirs[name]}, asked {value})"
+    return ""
+
+
 def _check_meta(out_dir: Path, meta: dict, before: dict | None = None) -> None:
     """Refuse a results directory that holds another evaluation; write ``meta.json``."""
     path = out_dir / META_FILE
@@ -467,7 +479,8 @@ def _check_meta(out_dir: Path, meta: dict, before: dict | None = None) -> None:
         if key is not None:
             raise EvaluationError(
                 f"results directory {out_dir} holds {old.get('policy')} on "
-                f"{old.get('backend')} with other {key!r}; choose another --out"
+                f"{old.get('backend')} with other {key!r}{_which_setting(old, meta)}; "
+                "choose another --out"
             )
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write(path, json.dumps(meta, indent=2).encode())
