@@ -74,3 +74,12 @@ def test_bad_scorecard_options_are_one_line(tmp_path, capsys, extra, message):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def test_scoring_the_shipped_agent_does_not_evaluate_it_twice(tmp_path):
+    from diacc.experiments.scorecard import ScorecardConfig, _specs
+
+    agent = ScorecardConfig(PolicySpec(DEFAULT_AGENT), tmp_path)
+    assert list(_specs(agent)) == ["policy", "same-mix", "heuristic"]
+    sampled = ScorecardConfig(PolicySpec(DEFAULT_AGENT, sampled=True), tmp_path)
+    assert list(_specs(sampled)) == ["policy", *REFERENCES]

@@ -158,13 +158,18 @@ def check_config(cfg: ScorecardConfig) -> None:
 
 
 def _specs(cfg: ScorecardConfig) -> dict[str, PolicySpec]:
-    """Results directory name -> policy: the candidate, then the references."""
-    return {
+    """Results directory name -> policy: the candidate, then the references (the agent
+    not twice: scoring the shipped agent itself leaves its "vs DIACC" column empty)."""
+    specs = {
         "policy": cfg.policy,
         "same-mix": PolicySpec("same-mix"),
         "heuristic": PolicySpec("heuristic"),
         "diacc": PolicySpec(cfg.agent),
     }
+    candidate = cfg.policy
+    if not candidate.sampled and Path(candidate.name).resolve() == Path(cfg.agent).resolve():
+        del specs["diacc"]
+    return specs
 
 
 def _playable(spec: PolicySpec, cells: list[Cell], settings: EvalSettings) -> list[Cell]:
