@@ -1,4 +1,5 @@
-"""Policies the evaluator runs: non-learning baselines, scripted CAVs and checkpoints.
+"""Policies the evaluator runs: non-learning baselines, scripted CAVs, checkpoints and a
+user's own controller (``package.module:factory``, :mod:`diacc.experiments.userpolicy`).
 
 Every policy answers the same two questions, and every episode is played
 through the environment (:mod:`diacc.envs.episode`), so the evaluator treats a
