@@ -20,6 +20,7 @@ from diacc.experiments.evaluate import (
     SPEEDS_FILE,
     EvaluationError,
     evaluate,
+    load_episodes,
     read_csv,
 )
 from diacc.experiments.grid import SEED_STREAMS, Cell, GridError, load_grid
@@ -406,3 +407,19 @@ def test_highway_cooperative_cavs_drive_themselves():
     assert states[0].speed_mps[cav].mean() > scenario.insert_speed_mps + 1.0
     with pytest.raises(ConfigError, match="cav_mode"):
         SimConfig(cav_mode="platoon")
+
+
+def test_results_of_a_demand_cell_load(tmp_path):
+    """A demand cell's N follows from its inflow: reading its results back once checked
+    N alone against the map (300 vehicles do not fit at t = 0) and failed."""
+    from diacc.experiments.grid import make_cell
+    from diacc.experiments.report import build_table
+
+    cell = make_cell(
+        {"map": "train-50", "cav_penetration": 0.4, "style_mix": "D1", "inflow_vph": 3600.0}
+    )
+    settings = EvalSettings("highway", episode_steps=3)
+    evaluate(PolicySpec("same-mix"), [cell], 1, tmp_path, settings, progress=False)
+    _, rows = load_episodes(tmp_path)
+    assert float(rows[0]["inflow_vph"]) == 3600.0 and int(rows[0]["n_vehicles"]) > 100
+    assert build_table([tmp_path], rows=("speed",)).cells == [cell]

@@ -590,7 +590,10 @@ def load_episodes(out_dir: str | Path) -> tuple[dict, list[dict[str, str]]]:
     if not rows:
         raise EvaluationError(f"results directory {out_dir} has an empty {EPISODES_FILE}")
     for row in rows[:1]:
-        make_cell({k: _parse_cell_value(k, row[k]) for k in CELL_KEYS}, str(path))
+        values = {k: _parse_cell_value(k, row[k]) for k in CELL_KEYS}
+        if float(row.get("inflow_vph") or 0.0):  # a demand cell: N follows from the inflow
+            values["inflow_vph"] = float(row["inflow_vph"])
+        make_cell(values, str(path))
     _check_numbers(path, rows)
     return read_json_object(out_dir / META_FILE, EvaluationError), rows
 
