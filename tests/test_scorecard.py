@@ -42,6 +42,7 @@ def test_scorecard_of_the_example_controller(tmp_path, capsys):
     )
     markdown = (out / "scorecard.md").read_text()
     assert "| highway | train-50_N25_rho0.40_D1 | delay |" in markdown
+    assert "2 episodes per cell is a smoke test" in markdown
     for name in ("policy", *REFERENCES):  # every column is a `diacc eval` results directory
         assert (out / "highway" / "train" / name / "episodes.csv").exists()
     before = (out / "scorecard.json").read_bytes()

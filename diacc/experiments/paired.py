@@ -10,7 +10,9 @@ holds 0 is "no measurable difference" (issue 42).
 
 The bootstrap is the percentile interval over :data:`RESAMPLES` resamples,
 drawn by a generator seeded with :data:`BOOTSTRAP_SEED` for every comparison,
-so that the same files give the same table, whatever else is in it.
+so that the same files give the same table, whatever else is in it. With few
+pairs (below about 10) a percentile bootstrap is too narrow: 2 episodes that
+differ by the same amount give a zero-width interval.
 """
 
 from __future__ import annotations

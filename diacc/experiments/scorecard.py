@@ -58,6 +58,8 @@ METRICS = ("delay", "throughput", "p_sce", "collision")
 EPISODE_STEPS = 330
 PSAR_HORIZON = "headway"
 PSAR_FULL_BRAKE = "known"
+#: Below this many episodes per cell the scorecard says its intervals are not to be judged by.
+FEW_EPISODES = 10
 SCORECARD_MD = "scorecard.md"
 SCORECARD_JSON = "scorecard.json"
 TRAINING_CELL = {"map": "train-50", "n_vehicles": 25, "cav_penetration": 0.4, "style_mix": "D1"}
@@ -313,6 +315,12 @@ def to_markdown(card: dict) -> str:
         "95 % bootstrap interval, ≈: no measurable difference (the interval holds 0). "
         f"Agent: `{card['agent']}`.",
     ]
+    if card["episodes_per_cell"] < FEW_EPISODES:
+        lines += [
+            "",
+            f"**{card['episodes_per_cell']} episodes per cell is a smoke test**: a percentile "
+            f"bootstrap over fewer than {FEW_EPISODES} pairs is too narrow to judge by.",
+        ]
     for suite, about in card["suites"].items():
         lines += ["", f"## {suite}: {about['about']} ({about['style_preset']})", ""]
         lines += ["| backend | cell | metric | value | vs same-mix | vs heuristic | vs DIACC |"]
