@@ -439,7 +439,8 @@ def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -
     spec = PolicySpec(name)
     if spec.is_baseline or spec.is_scripted or spec.is_python:
         if variant is not None:
-            raise PolicyError(f"--variant applies to checkpoints, not to {name}")
+            what = name if spec.is_python else f"the {name} baseline"
+            raise PolicyError(f"--variant applies to checkpoints, not to {what}")
         if sampled:
             raise PolicyError(f"--actions sampled applies to checkpoints, not to {name}")
         if spec.is_python:
