@@ -181,14 +181,16 @@ def add_parsers(sub) -> None:
     p.add_argument("--episodes", type=int, default=30, help="seeded episodes per cell")
     p.add_argument(
         "--suites",
-        default="train,zero-shot,geometry,paper-congestion,demand",
-        help="comma-separated suites",
+        default="all",
+        help="comma-separated suites of train, zero-shot, geometry, paper-congestion, demand; "
+        "or all",
     )
     p.add_argument("--backends", default="highway,sumo", help="comma-separated backends")
     p.add_argument(
         "--agent",
-        default="checkpoints/diacc-train50-realistic-headway-threat-s1.pt",
-        help="the DIACC agent compared with",
+        default=None,
+        help="the DIACC agent compared with (default: the shipped "
+        "checkpoints/diacc-train50-realistic-headway-threat-s1.pt)",
     )
     p.add_argument("--episode-steps", type=int, default=330, help="decisions per episode")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
@@ -354,8 +356,10 @@ def cmd_render(args: argparse.Namespace) -> None:
 def cmd_scorecard(args: argparse.Namespace) -> None:
     from diacc.experiments.policies import parse_policy
     from diacc.experiments.scorecard import (
+        DEFAULT_AGENT,
         SCORECARD_JSON,
         SCORECARD_MD,
+        SUITES,
         ScorecardConfig,
         run_scorecard,
     )
@@ -368,9 +372,9 @@ def cmd_scorecard(args: argparse.Namespace) -> None:
         policy=parse_policy(args.policy, sampled=args.actions == "sampled"),
         out_dir=args.out,
         episodes=args.episodes,
-        suites=tuple(cli_scale._csv_list(args.suites)),
+        suites=tuple(SUITES) if args.suites == "all" else tuple(cli_scale._csv_list(args.suites)),
         backends=backends,
-        agent=args.agent,
+        agent=args.agent or DEFAULT_AGENT,
         episode_steps=args.episode_steps,
         workers=args.workers,
     )
