@@ -1,10 +1,10 @@
-"""Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | simulate |
-bench | convert-checkpoint``.
+"""Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | scorecard |
+simulate | bench | convert-checkpoint``.
 
 This module holds :func:`main` (also ``python -m diacc.cli``) and ``train``, ``bench``,
 ``simulate``, ``convert-checkpoint``; :mod:`.eval` has ``eval``, ``table``, ``plot``,
-``render``; :mod:`.scale` ``sweep``; :mod:`.reproduce` ``reproduce``. The command line
-sits above every other layer and nothing in ``diacc`` imports it.
+``render``, ``scorecard``; :mod:`.scale` ``sweep``; :mod:`.reproduce` ``reproduce``. The
+command line sits above every other layer and nothing in ``diacc`` imports it.
 
 Every command turns known failures (bad map, backend, config key, checkpoint,
 crashed simulator: a :class:`~diacc.errors.DiaccError`) into a one-line

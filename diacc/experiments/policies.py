@@ -1,4 +1,5 @@
-"""Policies the evaluator runs: non-learning baselines, scripted CAVs and checkpoints.
+"""Policies the evaluator runs: non-learning baselines, scripted CAVs, checkpoints and a
+user's own controller (``package.module:factory``, :mod:`diacc.experiments.userpolicy`).
 
 Every policy answers the same two questions, and every episode is played
 through the environment (:mod:`diacc.envs.episode`), so the evaluator treats a
@@ -43,7 +44,8 @@ from diacc.config import (
 from diacc.envs.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.envs.observation import ActorObs
 from diacc.errors import DiaccError
-from diacc.experiments.grid import Cell
+from diacc.experiments.grid import DEFAULT_STREAM, Cell, check_stream
+from diacc.experiments.userpolicy import Controller, is_user_spec
 from diacc.sim.maps import Map
 
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
@@ -79,8 +81,15 @@ class EvalSettings:
     psar_horizon: str | None = None
     #: PSAR's ``full_brake`` of every policy with PSAR (:class:`~diacc.config.PSARConfig`).
     psar_full_brake: str | None = None
+    #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
+    #: ``validation`` to choose on, ``test`` to report.
+    stream: str = DEFAULT_STREAM
 
     def __post_init__(self) -> None:
+        try:
+            check_stream(self.stream)
+        except DiaccError as exc:
+            raise PolicyError(str(exc)) from None
         if self.episode_steps is not None and self.episode_steps < 1:
             raise PolicyError(f"episode_steps must be >= 1, got {self.episode_steps}")
         if self.psar_horizon is not None and self.psar_horizon not in HORIZON_MODES:
@@ -107,7 +116,11 @@ class EvalSettings:
 
     def describe(self) -> dict:
         """What an evaluation's ``meta.json`` records of these settings (and checks on reuse)."""
-        settings = {"episode_steps": self.episode_steps, "style_preset": self.style_preset}
+        settings = {
+            "episode_steps": self.episode_steps,
+            "style_preset": self.style_preset,
+            "stream": self.stream,
+        }
         if self.psar_horizon is not None:  # absent otherwise: older results stay reusable
             settings["psar_horizon"] = self.psar_horizon
         if self.psar_full_brake is not None:
@@ -142,6 +155,11 @@ class PolicySpec:
     @property
     def is_scripted(self) -> bool:
         return self.name.removesuffix("-nopsar") in SCRIPTED
+
+    @property
+    def is_python(self) -> bool:
+        """A user's controller, ``package.module:factory`` (:mod:`.userpolicy`)."""
+        return not self.is_baseline and is_user_spec(self.name)
 
 
 class Policy:
@@ -319,6 +337,31 @@ def heuristic_actions(actor_obs: ActorObs, road: Map) -> np.ndarray:
     return np.where(leave & exists & actor_obs.alive, side, ACCELERATE).astype(np.int64)
 
 
+class UserPolicy(Policy):
+    """A user's controller on PettingZoo observations, under PSAR like the heuristic
+    (:mod:`diacc.experiments.userpolicy`)."""
+
+    def __init__(self, spec: str) -> None:
+        self.label = spec
+        self.controller = Controller(spec)
+        self._env = None
+
+    def use_env(self, env) -> None:
+        """The environment of the episodes to come (its agents and observation space)."""
+        self._env = env
+
+    def begin_episode(self, n_cavs: int, seed: int) -> None:
+        self.controller.reset(seed)
+
+    def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
+        if self._env is None:
+            raise PolicyError(f"{self.label} needs its environment: call use_env() first")
+        return self.controller.actions(self._env, actor_obs)
+
+    def describe(self) -> dict:
+        return {"policy": self.label, "controller": self.label}
+
+
 class CheckpointPolicy(Policy):
     """A trained actor, greedy or sampling, with PSAR if its variant uses PSAR."""
 
@@ -393,12 +436,16 @@ def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -
     """Check a ``--policy`` value: a baseline name or an existing checkpoint file."""
     if name.startswith(f"{SAME_MIX}:"):
         same_mix_style(name)
-    if PolicySpec(name).is_baseline or PolicySpec(name).is_scripted:
+    spec = PolicySpec(name)
+    if spec.is_baseline or spec.is_scripted or spec.is_python:
         if variant is not None:
-            raise PolicyError(f"--variant applies to checkpoints, not to the {name} baseline")
+            what = name if spec.is_python else f"the {name} baseline"
+            raise PolicyError(f"--variant applies to checkpoints, not to {what}")
         if sampled:
             raise PolicyError(f"--actions sampled applies to checkpoints, not to {name}")
-        return PolicySpec(name)
+        if spec.is_python:
+            build_policy(spec)  # one-line error for a bad module or factory, here
+        return spec
     path = Path(name)
     if path.is_dir():
         if not (path / "checkpoint.pt").exists():
@@ -407,7 +454,8 @@ def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -
     if path.suffix != ".pt" and not path.exists():
         raise PolicyError(
             f"unknown policy {name!r}; use {', '.join(BASELINES + SCRIPTED)} (scripted ones also "
-            f"as <name>-nopsar, {SAME_MIX}:<style>) or the path of a checkpoint.pt"
+            f"as <name>-nopsar, {SAME_MIX}:<style>), the path of a checkpoint.pt or a Python "
+            "controller as package.module:factory"
         )
     if not path.exists():
         raise PolicyError(f"checkpoint {path} does not exist")
@@ -424,4 +472,6 @@ def build_policy(spec: PolicySpec) -> Policy:
         return SameMixPolicy(spec.name)
     if spec.is_scripted:
         return ScriptedPolicy(spec.name)
+    if spec.is_python:
+        return UserPolicy(spec.name)
     return CheckpointPolicy(spec.name, spec.variant, spec.sampled)

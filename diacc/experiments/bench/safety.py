@@ -72,7 +72,8 @@ def measure(
     episodes: int,
     horizon: str | None = None,
 ) -> SafetyRow:
-    """Run ``episodes`` seeded episodes of one scripted policy; seeds as evaluation's.
+    """Run ``episodes`` seeded episodes of one scripted policy; seeds of the legacy
+    evaluation stream (those of its committed results).
 
     ``horizon``: PSAR's (:attr:`~diacc.config.PSARConfig.horizon`; None keeps the default).
     """
@@ -84,7 +85,7 @@ def measure(
     backend = settings.backend
     driver = EpisodeDriver(policy, policy.env_config(cell, settings))
     try:
-        rows = [run_episode(driver, cell, k).row for k in range(episodes)]
+        rows = [run_episode(driver, cell, k, "legacy").row for k in range(episodes)]
     finally:
         driver.close()
     return SafetyRow(
@@ -120,7 +121,7 @@ def run(
         f"safety benchmark: N = 25, rho = 0.4, D1, style preset {sim.style_preset}, "
         f"{sim.episode_steps}-step episodes, PSAR horizon {horizon or PSARConfig().horizon}, "
         f"{episodes} seeded episodes per row "
-        f"(seeds as `diacc eval`)"
+        f"(seeds of `diacc eval --stream legacy`)"
     )
     print(
         "| backend | map | policy | collision-free | HDV-HDV collisions | mean speed m/s "
