@@ -133,6 +133,26 @@ def test_episodes_complete_without_collisions(map_name, cav_mode):
             assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
 
 
+def test_a_cav_that_changed_lanes_standing_points_along_its_lane():
+    """SUMO keeps the angle of a vehicle's last movement while it stands: after a lane
+    change from standstill it reported 35 degrees for as long as the CAV waited, which
+    shortened PSAR's gaps to it and left CAVs at a lane end waiting forever (issue 44)."""
+    road = load_map("train-25")
+    with SumoBackend(road, SIM) as backend:
+        state = backend.reset(Scenario(n_vehicles=1, cav_penetration=1.0), seed=3)
+        stop = CavCommands(np.zeros(1, np.int8), np.array([-10.0]))
+        for _ in range(5):
+            state = backend.step(stop)
+        assert state.speed_mps[0] == 0.0
+        side = 1 if state.lane[0] == 0 else -1
+        state = backend.step(CavCommands(np.array([side], np.int8), np.zeros(1)))
+        for _ in range(3):
+            assert state.speed_mps[0] == 0.0
+            assert state.y_m[0] == pytest.approx(float(road.lane_center_y_m(state.lane[0])))
+            assert state.heading_rad[0] == 0.0
+            state = backend.step(CavCommands.idle(1))
+
+
 def test_two_backends_concurrently_and_determinism():
     road = load_map("train-50")
     scenario = Scenario(n_vehicles=25, cav_penetration=0.0)
