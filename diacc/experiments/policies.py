@@ -62,7 +62,7 @@ SCRIPTED = ("remain", "accelerate", "random", "heuristic", "late-merge")
 #: queued at the drop (train-50, 100 % CAVs, headway PSAR, highway, 2 episodes:
 #: delay -7 % against pure HDV at 150 m, -26 % at 300 m, -51 % at 400 m).
 HEURISTIC_LEAVE_M = 400.0
-#: ``late-merge`` keeps its lane (``remain``) until its lane ends within this distance
+#: ``late-merge`` keeps its lane (accelerating) until its lane ends within this distance
 #: ahead (m), then asks for the surviving side: the late, zipper-style merge traffic
 #: engineers recommend in congestion, and the probe of lane-end liveness (issue 44).
 LATE_MERGE_LEAVE_M = 150.0
@@ -270,9 +270,11 @@ class ScriptedPolicy(Policy):
     ask for the neighbouring lane that survives longer (PSAR turns the
     request into ``remain``/``decelerate`` while the gap is unsafe). It reads
     what the actor observes (own position and lane) and the static map.
-    ``late-merge`` is the heuristic that keeps its lane (``remain``) until
+    ``late-merge`` is the heuristic that keeps its lane until
     :data:`LATE_MERGE_LEAVE_M` before the lane end: it queues at the end of
-    its lane, so it gets through only if the target lane lets it in.
+    its lane, so it gets through only if the target lane lets it in. It
+    accelerates rather than ``remain``: ``remain`` keeps the target speed,
+    so a CAV that PSAR once stopped would stand for good by its own choice.
     """
 
     def __init__(self, name: str) -> None:
