@@ -25,7 +25,7 @@ import numpy as np
 from diacc.envs.episode import EpisodeDriver
 from diacc.experiments.evaluate import run_episode
 from diacc.experiments.grid import Cell
-from diacc.experiments.policies import EvalSettings, build_policy, PolicySpec
+from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy
 from diacc.sim.maps import available_maps
 
 
@@ -57,8 +57,7 @@ def main() -> None:
     args = parser.parse_args()
     start = time.perf_counter()
     print(
-        f"late merging at 100 % CAVs: {args.episodes} episodes per row, realistic preset, "
-        "330 steps"
+        f"late merging at 100 % CAVs: {args.episodes} episodes per row, realistic preset, 330 steps"
     )
     print("| backend | map | N | policy | never arrived | delay s/veh | collisions | stuck in |")
     print("|---|---|---|---|---|---|---|---|")
@@ -66,7 +65,9 @@ def main() -> None:
         for map_name in args.maps or available_maps():
             for n_vehicles in args.vehicles:
                 for policy_name in args.policies:
-                    print(row(backend, map_name, n_vehicles, policy_name, args.episodes), flush=True)
+                    print(
+                        row(backend, map_name, n_vehicles, policy_name, args.episodes), flush=True
+                    )
     print(f"({time.perf_counter() - start:.0f} s)")
 
 

@@ -1,4 +1,4 @@
-"""``diacc bench --fidelity``: pure-HDV outflow of both backends side by side, on real simulators."""
+"""``diacc bench --fidelity``: pure-HDV outflow of both backends side by side (real simulators)."""
 
 from __future__ import annotations
 

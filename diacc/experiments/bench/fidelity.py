@@ -180,9 +180,7 @@ def run(
         f"(metrics after {settings.warmup_s:g} s), style preset {settings.preset}, mix "
         f"{settings.mix}, {seeds} seed(s) per inflow; outflow past the reduction, veh/h"
     )
-    columns = " | ".join(
-        f"{b} outflow | {b} delay s/veh | {b} capacity drop" for b in backends
-    )
+    columns = " | ".join(f"{b} outflow | {b} delay s/veh | {b} capacity drop" for b in backends)
     print(f"| inflow veh/h | {columns} | highway vs sumo |")
     print("|---" * (2 + 3 * len(backends)) + "|")
     records, start = [], time.perf_counter()
