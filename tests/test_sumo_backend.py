@@ -344,9 +344,12 @@ def test_benchmark_runs_and_reports_rates():
 #: recorded on SUMO 1.28.0 with the worker as it was before issue 14 (commit
 #: f1673a2: pickled states, per-substep arrival lists, road id + lane index).
 #: A change means the backend's trajectories changed; update it only on purpose.
+#: Updated 2026-12-04 (issue 44): a vehicle on its lane's centre line points along it
+#: (SUMO kept a standing vehicle's lane-change angle); with heading_rad left out of
+#: the hash both recordings were equal (7d93ea0c... ed6169b5...).
 PINNED_DIGESTS = {
-    "SUMO 1.28.0": "38626c7d5635b3b22228db1957df2e2b5cdaa4d2f753777d7813f1e89e93dab7 "
-    "00d3d0c493eb0268c51a04470a412c319d5a018ee02006035c5094a2f3db7500",
+    "SUMO 1.28.0": "c87bb4e0ce6f9c879283b0627d543a29c69caccc6173c0d132743f07007245d2 "
+    "30d9f578d444a3d07a17d42105bcec00cc2409e03b1f92dd30a0762f2aefc481",
 }
 
 
