@@ -54,7 +54,7 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         required=True,
         help="pure-hdv, same-mix (CAV slots driven by normal human drivers; same-mix:<style> "
         "for aggressive or cautious ones), cooperative, heuristic, a scripted probe "
-        "(remain, accelerate, random; <name>-nopsar without PSAR), a checkpoint.pt "
+        "(remain, accelerate, random, late-merge; <name>-nopsar without PSAR), a checkpoint.pt "
         "(or its run directory), or your own controller as package.module:factory "
         "(examples/keep_right_controller.py)",
     )

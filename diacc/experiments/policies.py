@@ -54,15 +54,20 @@ BASELINES = ("pure-hdv", "same-mix", "cooperative")
 SAME_MIX = "same-mix"
 #: Style of the human drivers in the CAV slots of plain ``same-mix``.
 SAME_MIX_DEFAULT_STYLE = "normal"
-#: Scripted CAV policies: one fixed action, uniform random, or the ``heuristic``
-#: (:class:`ScriptedPolicy`). ``<name>-nopsar`` runs the same script without PSAR.
-SCRIPTED = ("remain", "accelerate", "random", "heuristic")
+#: Scripted CAV policies: one fixed action, uniform random, the ``heuristic`` or
+#: ``late-merge`` (:class:`ScriptedPolicy`). ``<name>-nopsar`` runs the same script
+#: without PSAR.
+SCRIPTED = ("remain", "accelerate", "random", "heuristic", "late-merge")
 #: The heuristic leaves a lane that ends within this distance ahead (m): on the
 #: paper's maps (release in the first 200 m, drop at 500 m) as soon as it is
 #: released. Merging early spreads the merges over the road; at 150 m CAVs
 #: queued at the drop (train-50, 100 % CAVs, headway PSAR, highway, 2 episodes:
 #: delay -7 % against pure HDV at 150 m, -26 % at 300 m, -51 % at 400 m).
 HEURISTIC_LEAVE_M = 400.0
+#: ``late-merge`` keeps its lane (accelerating) until its lane ends within this distance
+#: ahead (m), then asks for the surviving side: the late, zipper-style merge traffic
+#: engineers recommend in congestion, and the probe of lane-end liveness (issue 44).
+LATE_MERGE_LEAVE_M = 150.0
 
 
 class PolicyError(DiaccError, ValueError):
@@ -283,6 +288,11 @@ class ScriptedPolicy(Policy):
     ask for the neighbouring lane that survives longer (PSAR turns the
     request into ``remain``/``decelerate`` while the gap is unsafe). It reads
     what the actor observes (own position and lane) and the static map.
+    ``late-merge`` is the heuristic that keeps its lane until
+    :data:`LATE_MERGE_LEAVE_M` before the lane end: it queues at the end of
+    its lane, so it gets through only if the target lane lets it in. It
+    accelerates rather than ``remain``: ``remain`` keeps the target speed,
+    so a CAV that PSAR once stopped would stand for good by its own choice.
     """
 
     def __init__(self, name: str) -> None:
@@ -309,16 +319,26 @@ class ScriptedPolicy(Policy):
             if self._road is None:
                 raise PolicyError("the heuristic needs the road: call use_road() first")
             return heuristic_actions(actor_obs, self._road)
+        if self.script == "late-merge":
+            if self._road is None:
+                raise PolicyError("late-merge needs the road: call use_road() first")
+            return heuristic_actions(actor_obs, self._road, LATE_MERGE_LEAVE_M)
         return np.full(n_cavs, ACTION_NAMES.index(self.script), np.int64)
 
 
-def heuristic_actions(actor_obs: ActorObs, road: Map) -> np.ndarray:
-    """(C,) actions of the heuristic (see :class:`ScriptedPolicy`).
+def heuristic_actions(
+    actor_obs: ActorObs,
+    road: Map,
+    leave_m: float = HEURISTIC_LEAVE_M,
+    cruise: int = ACCELERATE,
+) -> np.ndarray:
+    """(C,) actions of the heuristic (``late-merge``: ``leave_m`` and ``cruise``
+    changed; see :class:`ScriptedPolicy`).
 
     Position and lane come from the observation (``self_state`` x / route
     length and lane / (max_lanes - 1)); the map says where each lane ends
     (:meth:`Map.lane_end_m`) and on which side lanes drop (``drop_side``).
-    A CAV whose lane ends within :data:`HEURISTIC_LEAVE_M` asks for the
+    A CAV whose lane ends within ``leave_m`` asks for the
     neighbouring lane away from the drop side, which leads to the surviving
     lanes even where that neighbour ends at the same point (the outer lane
     of a 4 -> 2 drop goes over the inner one).
@@ -328,13 +348,13 @@ def heuristic_actions(actor_obs: ActorObs, road: Map) -> np.ndarray:
     lane = np.rint(actor_obs.self_state[:, 4] * lane_norm).astype(np.int64)  # (C,)
     lane = np.clip(lane, 0, road.max_lanes - 1)
     segment = road.segment_of(x_m)  # (C,)
-    leave = road.lane_end_m()[segment, lane] - x_m < HEURISTIC_LEAVE_M  # (C,)
+    leave = road.lane_end_m()[segment, lane] - x_m < leave_m  # (C,)
     offset = -1 if road.drop_side == "left" else +1  # towards the surviving lanes
     target = lane + offset  # (C,)
     in_range = (target >= 0) & (target < road.max_lanes)
     exists = in_range & road.lane_exists()[segment, np.clip(target, 0, road.max_lanes - 1)]
     side = LANE_RIGHT if offset < 0 else LANE_LEFT
-    return np.where(leave & exists & actor_obs.alive, side, ACCELERATE).astype(np.int64)
+    return np.where(leave & exists & actor_obs.alive, side, cruise).astype(np.int64)
 
 
 class UserPolicy(Policy):
