@@ -10,15 +10,77 @@ The temporary name is unique per write (process id and a random suffix), so
 concurrent writers of one path do not share a temporary file; it is created
 with the ordinary ``open`` permissions (umask), unlike ``tempfile.mkstemp``'s
 0600, so a result file is as readable as any other file diacc writes.
+
+One rule for every file diacc writes: it never writes through a symbolic link
+it did not create (:func:`refuse_symlink`, ``O_NOFOLLOW`` in :func:`open_append`),
+since a planted link (``train.log -> ~/.bashrc``) would send its bytes to the
+link's target; such a path is one :class:`UnsafePathError` line. Temporaries
+left by a killed writer (``checkpoint.pt.<pid>-<hex>.tmp`` after ``kill -9``)
+are removed by the next writer of that directory (:func:`remove_temporaries`).
 """
 
 from __future__ import annotations
 
+import errno
 import os
+import re
 import secrets
+import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TextIO
+
+from diacc.errors import DiaccError
+
+
+class UnsafePathError(DiaccError, RuntimeError):
+    """A path diacc would write is a symbolic link it did not create."""
+
+
+def refuse_symlink(path: Path) -> None:
+    """One-line :class:`UnsafePathError` if ``path`` itself is a symbolic link (``lstat``)."""
+    if os.path.islink(path):
+        raise UnsafePathError(
+            f"{path} is a symbolic link; diacc does not write through links it did not "
+            "create (remove the link or choose another path)"
+        )
+
+
+def open_append(path: Path) -> TextIO:
+    """``path`` opened for appending text (UTF-8), created if missing, never through a link."""
+    try:
+        fd = os.open(
+            path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666
+        )
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            refuse_symlink(path)
+        raise
+    return os.fdopen(fd, "a", encoding="utf-8")
+
+
+def remove_tree(path: Path) -> None:
+    """Remove a file or folder; a symbolic link is removed itself, its target left alone."""
+    if os.path.islink(path) or not path.is_dir():
+        path.unlink(missing_ok=True)
+    else:
+        shutil.rmtree(path)
+
+
+#: The name :func:`atomic_target` gives its temporaries: ``<name>.<pid>-<8 hex>.tmp``.
+_TEMPORARY = re.compile(r".+\.[0-9]+-[0-9a-f]{8}\.tmp")
+
+
+def remove_temporaries(directory: Path) -> list[Path]:
+    """Remove the temporaries a killed writer left in ``directory``; returns them.
+
+    Call with the directory's lock held (no live writer of it can own one).
+    """
+    stale = [p for p in directory.glob("*.tmp") if _TEMPORARY.fullmatch(p.name)]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
 
 
 @contextmanager
@@ -27,7 +89,9 @@ def atomic_target(path: Path) -> Iterator[Path]:
 
     For writers that need a path of their own (``torch.save``). If the block
     raises, the temporary file is removed and ``path`` is left as it was.
+    A ``path`` that is a symbolic link is refused (:func:`refuse_symlink`).
     """
+    refuse_symlink(path)
     tmp = path.with_name(f"{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
     try:
         yield tmp

@@ -47,7 +47,7 @@ from diacc.errors import DiaccError
 from diacc.experiments.grid import CELL_KEYS, Cell, make_cell
 from diacc.experiments.policies import CheckpointPolicy, EvalSettings, PolicySpec, build_policy
 from diacc.experiments.workpool import map_resilient
-from diacc.fileio import atomic_write
+from diacc.fileio import atomic_write, refuse_symlink
 from diacc.runlog import locked_dir, log, run_log
 from diacc.sim.backends.base import BackendError
 from diacc.sim.maps import SEGMENT_KINDS
@@ -508,6 +508,8 @@ def evaluate(
         policy.env_config(cell, settings)  # fail fast on cells the policy cannot run
     meta, before = evaluation_meta(policy, cells, settings)
     with locked_dir(out_dir, "eval"):  # one writer; an unusable --out is one line
+        for name in (META_FILE, EPISODES_FILE, SPEEDS_FILE, CELLS_DIR, LOG_FILE):
+            refuse_symlink(out_dir / name)  # before anything is written
         _check_meta(out_dir, meta, before)
         return _evaluate(
             spec, cells, episodes, out_dir, settings, workers, progress, engine, on_cell, policy

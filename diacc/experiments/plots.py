@@ -28,6 +28,7 @@ import numpy as np
 
 from diacc.errors import DiaccError
 from diacc.experiments.evaluate import SPEEDS_FILE, load_episodes, read_csv
+from diacc.fileio import atomic_target
 from diacc.sim.maps import SEGMENT_KINDS
 from diacc.tomlfile import read_json_object
 
@@ -71,7 +72,8 @@ def _save(fig, out: str | Path) -> list[Path]:
     out.parent.mkdir(parents=True, exist_ok=True)
     paths = [out.with_suffix(".png"), out.with_suffix(".pdf")]
     for path in paths:
-        fig.savefig(path, dpi=150, bbox_inches="tight")
+        with atomic_target(path) as tmp:  # never through a link; a reader sees a whole figure
+            fig.savefig(tmp, dpi=150, bbox_inches="tight", format=path.suffix[1:])
     _pyplot().close(fig)
     return paths
 

@@ -66,7 +66,7 @@ from diacc.envs.psar import RULE_NAMES, rule_counts
 from diacc.envs.reward import team_reward, temperature
 from diacc.envs.vector import make_vector_env
 from diacc.errors import DiaccError
-from diacc.fileio import atomic_write
+from diacc.fileio import atomic_write, open_append
 from diacc.learn.agent import Agent
 from diacc.learn.buffer import Rollout, compute_gae
 from diacc.learn.checkpoint import (
@@ -689,7 +689,7 @@ def _start(
             log.warning("resuming %s with changed config fields: %s", run_dir, ", ".join(changed))
         if resume:
             truncate_progress(run_dir / "progress.jsonl", first_update)
-        (run_dir / "config.json").write_text(json.dumps(asdict(cfg), indent=2, default=str))
+        atomic_write(run_dir / "config.json", json.dumps(asdict(cfg), indent=2, default=str))
         last_update = (
             n_updates
             if stop_after_updates is None
@@ -968,7 +968,7 @@ def write_record(record: dict, writer: SummaryWriter, progress_path: Path) -> No
     for key, value in record.items():
         if key not in ("update", "global_step"):
             writer.add_scalar(key if "/" in key else f"train/{key}", value, record["global_step"])
-    with open(progress_path, "a") as fh:
+    with open_append(progress_path) as fh:
         fh.write(json.dumps(record) + "\n")
 
 
