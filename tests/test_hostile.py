@@ -6,15 +6,24 @@ gives a one-line error and changes nothing on disk.
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 from pathlib import Path
 
 import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_mappo import tiny_config
 
 from diacc.cli import main
+from diacc.config import override
+from diacc.errors import DiaccError
 from diacc.fileio import UnsafePathError, atomic_write
+from diacc.learn.checkpoint import CheckpointError
 from diacc.learn.mappo import train
+from diacc.learn.progress import ProgressError, read_rows
 from diacc.runlog import claim_run_dir, locked_dir
 
 
@@ -98,15 +107,163 @@ def test_atomic_writes_refuse_a_link_and_killed_writes_are_cleaned_on_the_next_s
         atomic_write(tmp_path / "meta.json", "x")
     assert target.read_text() == "keep"
     # What kill -9 during torch.save leaves: temporaries beside the checkpoint and the cells.
-    stale = [
-        run_once / "checkpoint.pt.4242-0badcafe.tmp",
-        run_once / "cells" / "a.csv.7-01234567.tmp",
-    ]
-    (run_once / "cells").mkdir()
+    run = _damaged_copy(run_once, tmp_path, lambda payload: None)
+    stale = [run / "checkpoint.pt.4242-0badcafe.tmp", run / "cells" / "a.csv.7-01234567.tmp"]
+    (run / "cells").mkdir()
     for path in stale:
         path.write_bytes(b"partial")
-    (run_once / "notes.tmp").write_text("mine")  # not a diacc temporary name: kept
-    cfg = tiny_config(run_once.parent)
-    train(cfg, resume=True, progress=False, stop_after_updates=1)
-    assert not any(p.exists() for p in stale) and (run_once / "notes.tmp").exists()
+    (run / "notes.tmp").write_text("mine")  # not a diacc temporary name: kept
+    train(_resume_config(run_once, run), resume=True, progress=False, stop_after_updates=1)
+    assert not any(p.exists() for p in stale) and (run / "notes.tmp").exists()
     assert "removed 2 temporary file(s)" in caplog.text
+
+
+# ----------------------------------------------------------------------------- 2: run state
+def _resume_config(run_once: Path, run: Path):
+    """The tiny run's config, living in ``run``."""
+    return override(tiny_config(run_once.parent), {"run_dir": str(run)})
+
+
+def _damaged_copy(run_once: Path, tmp_path: Path, damage) -> Path:
+    """A copy of the tiny run whose checkpoint payload went through ``damage``."""
+    run = tmp_path / "run"
+    shutil.copytree(run_once, run)
+    payload = torch.load(run / "checkpoint.pt", weights_only=True)
+    damage(payload)
+    torch.save(payload, run / "checkpoint.pt")
+    return run
+
+
+def _set(path: str, value):
+    """A damage that sets ``payload[a][b]...`` (``path`` = "a/b") to ``value`` (or calls it)."""
+
+    def damage(payload):
+        *parents, last = (int(key) if key.isdigit() else key for key in path.split("/"))
+        node = payload
+        for key in parents:
+            node = node[key]
+        node[last] = value(node[last]) if callable(value) else value
+
+    return damage
+
+
+RUN_STATE_DAMAGE = {
+    "optimiser: a group more": (
+        _set("optimizer/param_groups", lambda groups: groups + groups),
+        "damaged optimiser state (2 parameter groups, not 1)",
+    ),
+    "optimiser: a moment's shape": (
+        _set("optimizer/state/0/exp_avg", lambda t: t.flatten()[:1]),
+        "exp_avg of parameter 0 does not have its parameter's shape",
+    ),
+    "optimiser: a parameter less": (
+        _set("optimizer/param_groups/0/params", lambda ids: ids[:-1]),
+        "parameter group 0 has",
+    ),
+    "torch rng size": (_set("rng/torch", lambda t: t[:100]), "is damaged: 'rng'"),
+    "python rng position": (
+        _set("rng/python/state", lambda t: torch.cat([t[:-1], torch.tensor([9999])])),
+        "is damaged: 'rng'",
+    ),
+    "numpy key range": (_set("rng/numpy/key", lambda t: t + 2**40), "numpy key"),
+    "value normaliser keys": (
+        _set("value_norm", lambda d: {"mean": d["running_mean"]}),
+        "damaged value normaliser",
+    ),
+    "step counter": (
+        _set("global_step", 999),
+        "has update 1 at step 40, the checkpoint at step 999",
+    ),
+}
+
+
+def _resume_error(run_once: Path, run: Path) -> str:
+    """The one-line error of resuming the tiny run copied to ``run``."""
+    with pytest.raises(DiaccError) as info:
+        train(_resume_config(run_once, run), resume=True, progress=False, stop_after_updates=1)
+    assert "\n" not in str(info.value)
+    return str(info.value)
+
+
+@pytest.mark.parametrize("case", list(RUN_STATE_DAMAGE))
+def test_damaged_run_state_is_one_line_and_changes_nothing(run_once, tmp_path, case):
+    damage, expected = RUN_STATE_DAMAGE[case]
+    run = _damaged_copy(run_once, tmp_path, damage)
+    before = _snapshot(run)
+    assert expected in _resume_error(run_once, run)
+    assert _snapshot(run) == before
+
+
+@pytest.mark.parametrize(
+    ("content", "expected"),
+    [
+        (b'{"update": 1, "global_step": 40}\n\xff\xfe\n', "progress.jsonl:2 is not UTF-8 text"),
+        (b'{"update": "1", "global_step": 40}\n', "'update' is not a whole number"),
+        (b'{"update": 1, "global_step": 40, "team_reward": "high"}\n', "'team_reward' is not a"),
+        (b'{"update": 1, "global_step": 40}\n[1]\n', "progress.jsonl:2 is not a JSON object"),
+        (b'{"update": 2, "global_step": 80}\n', "has no row for update 1"),
+    ],
+)
+def test_a_damaged_progress_file_is_one_line_for_resume_and_plot(
+    run_once, tmp_path, capsys, content, expected
+):
+    run = _damaged_copy(run_once, tmp_path, lambda payload: None)
+    (run / "progress.jsonl").write_bytes(content)
+    before = _snapshot(run)
+    assert expected in _resume_error(run_once, run)
+    assert _snapshot(run) == before
+    if "no row" not in expected:  # plot reads rows, not the checkpoint
+        out = str(tmp_path / "curves")
+        assert expected in _one_line_error(capsys, ["plot", "curves", str(run), "--out", out])
+
+
+def test_a_torn_last_row_is_dropped_on_resume(run_once, tmp_path):
+    run = _damaged_copy(run_once, tmp_path, lambda payload: None)
+    rows = (run / "progress.jsonl").read_text()
+    (run / "progress.jsonl").write_text(rows + '{"update": 2, "glo')  # killed mid-write
+    assert read_rows(run / "progress.jsonl") == [json.loads(rows)]
+
+
+def test_init_from_a_damaged_value_normaliser_is_one_line(run_once, tmp_path, capsys):
+    damage, expected = RUN_STATE_DAMAGE["value normaliser keys"]
+    run = _damaged_copy(run_once, tmp_path, damage)
+    cfg = tiny_config(tmp_path / "new", init_from=str(run / "checkpoint.pt"))
+    with pytest.raises(CheckpointError, match=expected):
+        train(cfg, progress=False, stop_after_updates=1)
+    assert not Path(cfg.run_dir).exists()
+
+
+_JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=5),
+    lambda inner: (
+        st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=5), inner, max_size=3)
+    ),
+    max_leaves=8,
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    lines=st.lists(
+        st.one_of(
+            st.binary(max_size=20),
+            _JSON_VALUES.map(lambda v: json.dumps(v).encode()),
+            st.fixed_dictionaries(
+                {"update": _JSON_VALUES, "global_step": st.integers(-2, 2**40)},
+                optional={"x": _JSON_VALUES},
+            ).map(lambda v: json.dumps(v).encode()),
+        ),
+        max_size=4,
+    )
+)
+def test_any_progress_file_gives_checked_rows_or_one_line(tmp_path_factory, lines):
+    path = tmp_path_factory.mktemp("p") / "progress.jsonl"
+    path.write_bytes(b"\n".join(lines))
+    try:
+        rows = read_rows(path)
+    except ProgressError as exc:
+        assert "\n" not in str(exc) and str(path) in str(exc)
+        return
+    for row in rows:
+        assert isinstance(row["update"], int) and isinstance(row["global_step"], int)
+        assert all(isinstance(v, (int, float)) or v is None for v in row.values())

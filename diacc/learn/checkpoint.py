@@ -17,6 +17,7 @@ them (:func:`convert_checkpoint`, ``diacc convert-checkpoint``).
 
 from __future__ import annotations
 
+import math
 import pickle
 import random
 from dataclasses import asdict
@@ -179,12 +180,74 @@ def _check_rng(rng: dict) -> None:
     cuda = rng["cuda"]
     if cuda is not None and not all(isinstance(t, torch.Tensor) for t in cuda):
         raise TypeError("cuda states")
+    key = numpy_["key"]
+    if key.dtype != torch.int64 or not bool(((key >= 0) & (key < 2**32)).all()):
+        raise ValueError("numpy key holds values outside 32 bits")
+    # Restore each state into a throwaway generator: what set_rng_state would refuse
+    # (a torch state of another size, a Python position past 624) is refused here.
+    try:
+        random.Random().setstate(
+            (python["version"], tuple(python["state"].tolist()), python["gauss"])
+        )
+        np.random.RandomState().set_state(
+            ("MT19937", key.numpy().astype(np.uint32), numpy_["pos"], numpy_["has_gauss"],
+             numpy_["cached_gaussian"])
+        )  # fmt: skip
+        torch.Generator().set_state(rng["torch"])
+    except (OverflowError, RuntimeError) as exc:
+        raise ValueError(str(exc).splitlines()[0]) from None
 
 
 def restore(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
     """Load a checkpoint's state into ``agent`` after checking it fits ``cfg``."""
     _load_networks(agent, payload, cfg, path)
-    agent.optimizer.load_state_dict(payload["optimizer"])
+    try:
+        _check_optimizer(payload["optimizer"], agent.optimizer)
+        agent.optimizer.load_state_dict(payload["optimizer"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CheckpointError(
+            f"checkpoint {path} has a damaged optimiser state ({message})"
+        ) from None
+
+
+#: Per-parameter Adam tensors, each of its parameter's shape.
+_MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")
+
+
+def _check_optimizer(saved: dict, optimizer: torch.optim.Optimizer) -> None:
+    """ValueError/TypeError unless ``saved`` is a state of ``optimizer``'s groups and shapes.
+
+    ``load_state_dict`` checks group and parameter counts but not the moments'
+    shapes, which would fail in the first update after the resume.
+    """
+    groups, state = saved["param_groups"], saved["state"]
+    if not isinstance(groups, list) or len(groups) != len(optimizer.param_groups):
+        raise ValueError(f"{len(groups)} parameter groups, not {len(optimizer.param_groups)}")
+    ids = {}
+    for number, (group, own) in enumerate(zip(groups, optimizer.param_groups, strict=True)):
+        if not isinstance(group, dict) or not isinstance(group.get("params"), list):
+            raise TypeError(f"parameter group {number} is not a group")
+        if len(group["params"]) != len(own["params"]):
+            raise ValueError(
+                f"parameter group {number} has {len(group['params'])} parameters, "
+                f"not {len(own['params'])}"
+            )
+        for key in ("lr", "eps", "weight_decay"):
+            if not isinstance(group.get(key), (int, float)) or not math.isfinite(group[key]):
+                raise ValueError(f"parameter group {number} has no finite {key!r}")
+        ids.update(zip(group["params"], own["params"], strict=True))
+    if not isinstance(state, dict) or not set(state) <= set(ids):
+        raise ValueError("moments of parameters that are in no group")
+    for pid, moments in state.items():
+        if not isinstance(moments, dict):
+            raise TypeError(f"state of parameter {pid} is not a dict")
+        for key in _MOMENTS:
+            tensor = moments.get(key)
+            if tensor is not None and (
+                not isinstance(tensor, torch.Tensor) or tensor.shape != ids[pid].shape
+            ):
+                raise ValueError(f"{key} of parameter {pid} does not have its parameter's shape")
 
 
 def _load_networks(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
@@ -197,7 +260,13 @@ def _load_networks(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) ->
         raise CheckpointError(
             f"checkpoint {path} does not match the {cfg.variant} networks (other model.* sizes)"
         ) from None
-    agent.value_norm.load_state_dict(payload["value_norm"])
+    try:
+        agent.value_norm.load_state_dict(payload["value_norm"])
+    except RuntimeError:
+        raise CheckpointError(
+            f"checkpoint {path} has a damaged value normaliser (keys "
+            f"{sorted(payload['value_norm'])}, not {sorted(agent.value_norm.state_dict())})"
+        ) from None
 
 
 def init_networks(agent: Agent, path: Path, cfg: TrainConfig) -> dict:

@@ -82,6 +82,9 @@ from diacc.learn.checkpoint import (
 from diacc.learn.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
 from diacc.learn.models.inputs import to_tensors
 from diacc.learn.models.registry import build_networks
+from diacc.learn.progress import check_agrees as check_progress
+from diacc.learn.progress import keep_until as keep_progress_until
+from diacc.learn.progress import read_rows as progress_rows
 from diacc.learn.valuenorm import ValueNorm
 from diacc.runlog import claim_run_dir, config_digest, locked_dir, log, run_log
 from diacc.sim.maps import load_map
@@ -561,20 +564,6 @@ def check_resume_config(
     return changed
 
 
-def truncate_progress(path: Path, update: int) -> None:
-    """Keep the rows of ``progress.jsonl`` up to ``update`` (drops rows of lost updates)."""
-    if not path.exists():
-        return
-    kept = []
-    for line in path.read_text().splitlines():
-        try:
-            if json.loads(line)["update"] <= update:
-                kept.append(line + "\n")
-        except (ValueError, KeyError, TypeError):  # a torn last line of a killed run
-            continue
-    atomic_write(path, "".join(kept))
-
-
 class StoppedAtOnce(KeyboardInterrupt):
     """A second SIGINT/SIGTERM: training stopped mid-update; ``signum`` sets the exit status."""
 
@@ -665,13 +654,17 @@ def _start(
     agent = make_agent(cfg, device)
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     n_updates = max(1, cfg.total_steps // steps_per_update)
-    first_update, global_step, changed = 0, 0, []
+    first_update, global_step, changed, rows = 0, 0, [], None
+    progress_path = run_dir / "progress.jsonl"
     if resume:
         payload = load_checkpoint(ckpt_path, device)
         saved = asdict(config_from_checkpoint(payload))
         changed = check_resume_config(saved, cfg, ckpt_path, allow_config_change)
         restore(agent, payload, cfg, ckpt_path)
         first_update, global_step = payload["update"], payload["global_step"]
+        if progress_path.exists():  # checked before anything is written
+            rows = progress_rows(progress_path)
+            check_progress(rows, progress_path, first_update, global_step)
         set_rng_state(payload["rng"])
     elif cfg.init_from:
         source = init_networks(agent, Path(cfg.init_from), cfg)
@@ -687,8 +680,8 @@ def _start(
             )
         if changed:
             log.warning("resuming %s with changed config fields: %s", run_dir, ", ".join(changed))
-        if resume:
-            truncate_progress(run_dir / "progress.jsonl", first_update)
+        if rows is not None:
+            keep_progress_until(progress_path, rows, first_update)
         atomic_write(run_dir / "config.json", json.dumps(asdict(cfg), indent=2, default=str))
         last_update = (
             n_updates
