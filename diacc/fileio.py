@@ -14,7 +14,7 @@ with the ordinary ``open`` permissions (umask), unlike ``tempfile.mkstemp``'s
 One rule for every file diacc writes: it never writes through a symbolic link
 it did not create (:func:`refuse_symlink`, ``O_NOFOLLOW`` in :func:`open_append`),
 since a planted link (``train.log -> ~/.bashrc``) would send its bytes to the
-link's target; such a path is one :class:`UnsafePathError` line. Temporaries
+link's target; such a path is one :class:`OutputPathError` line. Temporaries
 left by a killed writer (``checkpoint.pt.<pid>-<hex>.tmp`` after ``kill -9``)
 are removed by the next writer of that directory (:func:`remove_temporaries`).
 """
@@ -34,14 +34,54 @@ from typing import TextIO
 from diacc.errors import DiaccError
 
 
-class UnsafePathError(DiaccError, RuntimeError):
-    """A path diacc would write is a symbolic link it did not create."""
+class OutputPathError(DiaccError, OSError):
+    """A path diacc would write is a link it did not create, a folder, or cannot be written.
+
+    ``reason`` is the cause alone (``No space left on device``), for callers
+    that word their own message.
+    """
+
+    def __init__(self, message: str, reason: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason or message
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+def check_output_file(path: Path) -> None:
+    """Before any work: one-line :class:`OutputPathError` unless a file can be written at ``path``.
+
+    Not a link, not a folder, and its folder exists as a writable folder or can
+    be created in one (a table computed for minutes and then not written helps
+    nobody).
+    """
+    path = Path(path)
+    refuse_symlink(path)
+    if path.is_dir():
+        raise OutputPathError(f"{path} is a folder; give the name of a file to write")
+    folder = path.parent
+    while not os.path.lexists(folder) and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise OutputPathError(f"cannot write {path} ({folder} is not a folder)")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputPathError(f"cannot write {path} ({folder} is not writable)")
+
+
+def check_output_dir(directory: Path) -> None:
+    """One-line :class:`OutputPathError` unless ``directory``, if there, is a writable folder."""
+    directory = Path(directory)
+    if os.path.lexists(directory) and not directory.is_dir():
+        raise OutputPathError(f"cannot write into {directory} (not a folder)")
+    if directory.is_dir() and not os.access(directory, os.W_OK | os.X_OK):
+        raise OutputPathError(f"cannot write into {directory} (not writable)")
 
 
 def refuse_symlink(path: Path) -> None:
-    """One-line :class:`UnsafePathError` if ``path`` itself is a symbolic link (``lstat``)."""
+    """One-line :class:`OutputPathError` if ``path`` itself is a symbolic link (``lstat``)."""
     if os.path.islink(path):
-        raise UnsafePathError(
+        raise OutputPathError(
             f"{path} is a symbolic link; diacc does not write through links it did not "
             "create (remove the link or choose another path)"
         )
@@ -88,14 +128,21 @@ def atomic_target(path: Path) -> Iterator[Path]:
     """Yield a fresh temporary path beside ``path``; on a clean exit it replaces ``path``.
 
     For writers that need a path of their own (``torch.save``). If the block
-    raises, the temporary file is removed and ``path`` is left as it was.
-    A ``path`` that is a symbolic link is refused (:func:`refuse_symlink`).
+    raises, the temporary file is removed and ``path`` is left as it was; an
+    ``OSError`` (disk full, read-only folder) becomes a one-line
+    :class:`OutputPathError`. A ``path`` that is a symbolic link is refused.
     """
     refuse_symlink(path)
     tmp = path.with_name(f"{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OutputPathError):
+            raise
+        reason = exc.strerror or type(exc).__name__
+        raise OutputPathError(f"cannot write {path} ({reason})", reason) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -29,7 +29,13 @@ from pathlib import Path
 from typing import Any
 
 from diacc.errors import DiaccError
-from diacc.fileio import open_append, refuse_symlink, remove_temporaries, remove_tree
+from diacc.fileio import (
+    OutputPathError,
+    open_append,
+    refuse_symlink,
+    remove_temporaries,
+    remove_tree,
+)
 
 log = logging.getLogger("diacc")
 log.setLevel(logging.INFO)
@@ -151,6 +157,8 @@ def locked_dir(directory: Path, command: str) -> Iterator[None]:
         directory.mkdir(parents=True, exist_ok=True)
         refuse_symlink(directory / LOCK_FILE)
         fd = _lock(directory / LOCK_FILE, directory, command)
+    except OutputPathError:
+        raise
     except OSError as exc:
         raise RunDirError(
             f"cannot use {directory} as the {command} directory "

@@ -9,6 +9,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -20,7 +22,7 @@ from test_mappo import tiny_config
 from diacc.cli import main
 from diacc.config import override
 from diacc.errors import DiaccError
-from diacc.fileio import UnsafePathError, atomic_write
+from diacc.fileio import OutputPathError, atomic_write
 from diacc.learn.checkpoint import CheckpointError
 from diacc.learn.mappo import train
 from diacc.learn.progress import ProgressError, read_rows
@@ -64,7 +66,7 @@ def test_train_never_writes_through_a_planted_link(tmp_path, name):
     run.mkdir()
     (run / name).symlink_to(precious)
     before = _snapshot(tmp_path)
-    with pytest.raises(UnsafePathError, match=f"{name} is a symbolic link") as info:
+    with pytest.raises(OutputPathError, match=f"{name} is a symbolic link") as info:
         train(cfg, progress=False, stop_after_updates=1)
     assert "\n" not in str(info.value)
     assert _snapshot(tmp_path) == before
@@ -103,7 +105,7 @@ def test_atomic_writes_refuse_a_link_and_killed_writes_are_cleaned_on_the_next_s
     target = tmp_path / "target"
     target.write_text("keep")
     (tmp_path / "meta.json").symlink_to(target)
-    with pytest.raises(UnsafePathError):
+    with pytest.raises(OutputPathError):
         atomic_write(tmp_path / "meta.json", "x")
     assert target.read_text() == "keep"
     # What kill -9 during torch.save leaves: temporaries beside the checkpoint and the cells.
@@ -267,3 +269,103 @@ def test_any_progress_file_gives_checked_rows_or_one_line(tmp_path_factory, line
     for row in rows:
         assert isinstance(row["update"], int) and isinstance(row["global_step"], int)
         assert all(isinstance(v, (int, float)) or v is None for v in row.values())
+
+
+# ----------------------------------------------------------------------------- 3: output paths
+@pytest.fixture(scope="module")
+def demand_results(tmp_path_factory) -> Path:
+    """Results of one demand cell (vehicles enter at 3200 veh/h), 3 steps of 1 episode."""
+    folder = tmp_path_factory.mktemp("demand")
+    grid = folder / "grid.toml"
+    grid.write_text(
+        '[[cells]]\nmap = "train-50"\ninflow_vph = 3200\ncav_penetration = 0.4\nstyle_mix = "D1"\n'
+    )
+    out = folder / "out"
+    argv = ["eval", "--policy", "pure-hdv", "--grid", str(grid), "--episodes", "1"]
+    assert main([*argv, "--episode-steps", "3", "--no-progress", "--out", str(out)]) == 0
+    return out
+
+
+def test_table_reads_demand_results(demand_results, capsys):
+    capsys.readouterr()
+    assert main(["table", str(demand_results)]) == 0
+    assert "| Q=3200 veh/h, rho=0.4, D1 | Speed (m/s) |" in capsys.readouterr().out
+
+
+def test_table_output_paths_are_checked_before_work(demand_results, tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("keep")
+    for out, expected in [
+        (tmp_path, "is a folder; give the name of a file"),
+        (blocker / "table.md", "is not a folder"),
+    ]:
+        assert expected in _one_line_error(
+            capsys, ["table", str(demand_results), "--out", str(out)]
+        )
+    # refused before the results are read
+    err = _one_line_error(capsys, ["table", str(tmp_path / "missing"), "--out", str(tmp_path)])
+    assert "is a folder" in err
+    assert blocker.read_text() == "keep"
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "expected"),
+    [
+        ("n_vehicles", "many", "field 'n_vehicles' is not a number ('many')"),
+        ("n_vehicles", "2.5", "field 'n_vehicles' is not a whole number ('2.5')"),
+        ("cav_penetration", "0.4x", "field 'cav_penetration' is not a number"),
+    ],
+)
+def test_table_refuses_cell_keys_that_are_not_numbers(tmp_path, capsys, column, value, expected):
+    grid = tmp_path / "grid.toml"
+    grid.write_text('[[cells]]\nmap = "train-25"\nn_vehicles = 6\ncav_penetration = 0.5\n'
+                    'style_mix = "D1"\n')  # fmt: skip
+    out = tmp_path / "out"
+    argv = ["eval", "--policy", "pure-hdv", "--grid", str(grid), "--episodes", "1"]
+    assert main([*argv, "--episode-steps", "3", "--no-progress", "--out", str(out)]) == 0
+    episodes = out / "episodes.csv"
+    header, row = episodes.read_text().splitlines()[:2]
+    fields = row.split(",")
+    fields[header.split(",").index(column)] = value
+    episodes.write_text(header + "\n" + ",".join(fields) + "\n")
+    assert expected in _one_line_error(capsys, ["table", str(out)])
+
+
+def test_eval_into_an_unusable_cells_folder_is_one_line_before_work(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "cells").write_text("not a folder")
+    before = _snapshot(tmp_path)
+    argv = ["eval", "--policy", "pure-hdv", "--episodes", "1", "--episode-steps", "3"]
+    err = _one_line_error(capsys, [*argv, "--no-progress", "--out", str(out)])
+    assert "cannot write into" in err and "cells (not a folder)" in err
+    assert _snapshot(tmp_path) == before
+
+
+def test_a_checkpoint_write_that_fails_is_one_line(run_once, tmp_path):
+    """A file-size limit (EFBIG): torch's zip writer raised a RuntimeError, not an OSError."""
+    run = _damaged_copy(run_once, tmp_path, lambda payload: None)
+    before = (run / "checkpoint.pt").read_bytes()
+    script = f"""
+import resource, signal, sys
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+from pathlib import Path
+import torch
+from test_mappo import tiny_config
+from diacc.learn.checkpoint import CheckpointError, save_checkpoint
+from diacc.learn.mappo import make_agent
+cfg = tiny_config(Path({str(tmp_path / "cfg")!r}))
+agent = make_agent(cfg, torch.device("cpu"))
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (10_000, 10_000))
+try:
+    save_checkpoint(Path({str(run / "checkpoint.pt")!r}), agent, cfg, 2, 80)
+except CheckpointError as exc:
+    print(exc)
+"""
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("cannot write checkpoint") and proc.stdout.count("\n") == 1
+    assert "the previous checkpoint is unchanged" in proc.stdout
+    assert (run / "checkpoint.pt").read_bytes() == before
+    assert not list(run.glob("*.tmp"))

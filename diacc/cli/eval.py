@@ -12,6 +12,7 @@ from pathlib import Path
 
 from diacc.cli import scale as cli_scale
 from diacc.config import ACTION_MODES, BACKENDS, FULL_BRAKE_MODES, HORIZON_MODES, STYLE_PRESETS
+from diacc.fileio import OutputPathError, atomic_write, check_output_file
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so
 #: that ``--help`` does not import the evaluation stack).
@@ -240,10 +241,15 @@ def cmd_table(args: argparse.Namespace) -> None:
     from diacc.experiments.report import build_table, expand_rows, render_table
 
     rows = expand_rows(args.rows)
+    if args.out:
+        check_output_file(args.out)  # before reading every results file
     text = render_table(build_table(args.results, args.speed_std, rows), args.format)
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+        try:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputPathError(f"cannot write {args.out} ({exc.strerror})") from None
+        atomic_write(args.out, text)
         print(f"table written to {args.out}")
     else:
         sys.stdout.write(text)

@@ -61,11 +61,14 @@ def save_checkpoint(
     }
     try:
         with atomic_target(path) as tmp:
-            torch.save(payload, tmp)
+            try:
+                torch.save(payload, tmp)
+            except RuntimeError as exc:  # torch's zip writer: "file write failed" (EFBIG, EIO)
+                raise OSError(str(exc).splitlines()[0]) from None
     except OSError as exc:  # disk full, read-only directory: the old checkpoint stays
+        reason = getattr(exc, "reason", None) or exc.strerror or str(exc) or type(exc).__name__
         raise CheckpointError(
-            f"cannot write checkpoint {path} ({exc.strerror or type(exc).__name__}); "
-            "the previous checkpoint is unchanged"
+            f"cannot write checkpoint {path} ({reason}); the previous checkpoint is unchanged"
         ) from None
 
 
