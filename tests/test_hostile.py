@@ -13,12 +13,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_mappo import tiny_config
 
+import diacc
 from diacc.cli import main
 from diacc.config import override
 from diacc.errors import DiaccError
@@ -369,3 +371,76 @@ except CheckpointError as exc:
     assert "the previous checkpoint is unchanged" in proc.stdout
     assert (run / "checkpoint.pt").read_bytes() == before
     assert not list(run.glob("*.tmp"))
+
+
+# ----------------------------------------------------------------------------- 4: Python API
+@pytest.fixture(scope="module")
+def zoo_env():
+    env = diacc.parallel_env(
+        scenario={"n_vehicles": 8, "cav_penetration": 0.25}, sim={"episode_steps": 3}
+    )
+    yield env
+    env.close()
+
+
+@pytest.mark.parametrize(
+    ("actions", "error", "expected"),
+    [
+        (None, TypeError, "step() takes a dict of agent name -> action, got NoneType"),
+        ([0, 0], TypeError, "got list"),
+        ({"cav_9": 0}, ValueError, "'cav_9', which is not an agent of this env"),
+        ({"cav_0": 1.5}, TypeError, "the action of cav_0 is 1.5; actions are whole numbers"),
+        ({"cav_0": 7}, ValueError, "the action of cav_0 is 7; actions are 0..4"),
+        ({"cav_0": True}, TypeError, "the action of cav_0 is True"),
+    ],
+)
+def test_a_bad_step_is_one_line_and_changes_nothing(zoo_env, actions, error, expected):
+    zoo_env.reset(seed=3)
+    steps, x_m = zoo_env.steps, zoo_env.state_.x_m.copy()
+    with pytest.raises(error) as info:
+        zoo_env.step(actions)
+    assert isinstance(info.value, DiaccError) and "\n" not in str(info.value)
+    assert expected in str(info.value)
+    assert zoo_env.steps == steps and np.array_equal(zoo_env.state_.x_m, x_m)
+
+
+def test_steps_after_the_episode_ended_and_odd_seeds_are_refused(zoo_env):
+    for seed, error in [(1.5, TypeError), (-1, ValueError), (2**32, ValueError), ("1", TypeError)]:
+        with pytest.raises(error, match=r"reset\(seed=\.\.\.\)"):
+            zoo_env.reset(seed=seed)
+    zoo_env.reset(seed=np.int64(4))
+    while zoo_env.agents:
+        zoo_env.step({agent: np.int64(0) for agent in zoo_env.agents})
+    with pytest.raises(ValueError, match=r"the episode has ended; call reset\(\) before step\(\)"):
+        zoo_env.step({})
+    with pytest.raises(ValueError, match="the episode has ended"):
+        zoo_env.step_arrays(np.zeros(zoo_env.n_cavs, np.int64))
+    zoo_env.reset(seed=4)
+    with pytest.raises(TypeError, match=r"step_arrays\(\) takes \(2,\) integer actions"):
+        zoo_env.step_arrays(np.zeros(zoo_env.n_cavs))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    actions=st.one_of(
+        st.none(),
+        st.integers(),
+        st.lists(st.integers(-2, 6), max_size=3),
+        st.dictionaries(
+            st.sampled_from(["cav_0", "cav_1", "cav_7", "x"]),
+            st.one_of(
+                st.integers(-3, 8), st.floats(allow_nan=True), st.booleans(), st.text(max_size=2)
+            ),
+            max_size=3,
+        ),
+    )
+)
+def test_any_step_argument_steps_or_is_one_line(zoo_env, actions):
+    zoo_env.reset(seed=5)
+    try:
+        zoo_env.step(actions)
+    except (ValueError, TypeError) as exc:
+        assert isinstance(exc, DiaccError) and "\n" not in str(exc)
+        assert zoo_env.steps == 0
+    else:
+        assert zoo_env.steps == 1
