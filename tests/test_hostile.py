@@ -444,3 +444,34 @@ def test_any_step_argument_steps_or_is_one_line(zoo_env, actions):
         assert zoo_env.steps == 0
     else:
         assert zoo_env.steps == 1
+
+
+# ----------------------------------------------------------------------------- 5: trust, signals
+@pytest.mark.parametrize("planted", ["other-user", "world-writable", "link", None])
+def test_the_shared_sumo_cache_fallback_must_be_private(tmp_path, monkeypatch, planted):
+    from diacc.sim.backends.base import BackendError
+    from diacc.sim.backends.sumo import net
+
+    monkeypatch.setattr(net.tempfile, "gettempdir", lambda: str(tmp_path))
+    unusable = tmp_path / "a-file" / "cache"  # a folder under a file: unusable even for root
+    (tmp_path / "a-file").write_text("")
+    own = tmp_path / f"diacc-{os.getuid()}"
+    if planted == "link":
+        (tmp_path / "theirs").mkdir()
+        own.symlink_to(tmp_path / "theirs")
+    elif planted is not None:
+        (own / "sumo").mkdir(parents=True)
+        (own / "sumo" / "net-0123.net.xml").write_text("<net/>")  # a planted network
+        if planted == "world-writable":
+            os.chmod(own / "sumo", 0o777)
+        elif os.getuid() == 0:
+            os.chown(own, 12345, 12345)
+        else:
+            pytest.skip("only root can give a folder to another user")
+    if planted is None:
+        assert net.usable_cache(unusable) == own / "sumo"
+        assert os.stat(own).st_mode & 0o777 == 0o700
+        return
+    with pytest.raises(BackendError, match="refused .another user could plant") as info:
+        net.usable_cache(unusable)
+    assert "\n" not in str(info.value)

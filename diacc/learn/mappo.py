@@ -576,12 +576,12 @@ class StoppedAtOnce(KeyboardInterrupt):
 
 
 class _StopOnSignal:
-    """SIGINT/SIGTERM set :attr:`signum`; the loop stops at the next update boundary.
+    """SIGINT/SIGTERM/SIGHUP set :attr:`signum`; the loop stops at the next update boundary.
 
     A second signal stops at once (:class:`StoppedAtOnce`), keeping the last checkpoint.
     """
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
     def __init__(self) -> None:
         self.signum: int | None = None
