@@ -25,7 +25,7 @@ from diacc.cli import main
 from diacc.config import override
 from diacc.errors import DiaccError
 from diacc.fileio import OutputPathError, atomic_write
-from diacc.learn.checkpoint import CheckpointError
+from diacc.learn.checkpoint import CheckpointError, load_checkpoint
 from diacc.learn.mappo import train
 from diacc.learn.progress import ProgressError, read_rows
 from diacc.runlog import claim_run_dir, locked_dir
@@ -475,3 +475,55 @@ def test_the_shared_sumo_cache_fallback_must_be_private(tmp_path, monkeypatch, p
     with pytest.raises(BackendError, match="refused .another user could plant") as info:
         net.usable_cache(unusable)
     assert "\n" not in str(info.value)
+
+
+# ----------------------------------------------------------------------------- 6: smaller
+def test_bad_options_are_one_line(capsys):
+    for argv, expected in [
+        (["simulate", "--seed", "-7"], "argument --seed: must be in [0, 2^32 - 1], got -7"),
+        (["simulate", "--seed", "x"], "argument --seed: not a whole number: 'x'"),
+        (["simulate", "--bogus"], "unrecognized arguments: --bogus"),
+    ]:
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and err.count("\n") == 1 and expected in err, err
+
+
+def test_a_seed_beyond_sumos_signed_range_runs_on_sumo(capsys):
+    """SUMO's --seed is a signed 32-bit int: 2^32 - 1 once failed with 3 lines of TraCI."""
+    assert main(["simulate", "--backend", "sumo", "--seed", str(2**32 - 1), "--steps", "2"]) == 0
+
+
+def test_a_config_that_cannot_run_is_one_line_without_the_config_table(tmp_path, capsys):
+    capsys.readouterr()
+    argv = ["train", "--map", "train-25", "--set", "env.scenario.n_vehicles=300"]
+    assert main([*argv, "--run-dir", str(tmp_path / "run")]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "300 vehicles do not fit" in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_refused_raw_pickle_gives_no_torch_warning(tmp_path):
+    import pickle
+    import warnings
+
+    path = tmp_path / "evil.pkl"
+    path.write_bytes(pickle.dumps(print, protocol=4))  # protocol 4: torch warned of it
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(CheckpointError, match="could run code"):
+            load_checkpoint(path)
+    assert not caught, [str(w.message) for w in caught]
+
+
+def test_a_map_name_holding_a_path_stays_out_of_the_run_directory(tmp_path):
+    from helpers import SHORT_MAP
+
+    from diacc.config import TrainConfig, default_run_dir
+
+    road = tmp_path / "m.toml"
+    road.write_text(SHORT_MAP.replace('name = "short"', 'name = "../../../outside/x"'))
+    run_dir = default_run_dir(override(TrainConfig(), {"env.map": str(road)}))
+    assert run_dir.startswith("runs/") and ".." not in run_dir and run_dir.count("/") == 1

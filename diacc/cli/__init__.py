@@ -66,6 +66,11 @@ class Parser(argparse.ArgumentParser):
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
 
+    def error(self, message: str):
+        """A bad option is one line, like every other error (argparse printed the usage first,
+        several lines for the larger commands)."""
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
 
 def _train_parser(sub) -> None:
     p = cli_scale.add_command(
@@ -167,7 +172,7 @@ def _train_parser(sub) -> None:
 
 def cmd_train(args: argparse.Namespace) -> None:
     from diacc.console import print_config
-    from diacc.learn.mappo import train
+    from diacc.learn.mappo import check_config, train
     from diacc.sim.maps import load_map
 
     cfg = build_train_config(
@@ -187,6 +192,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     load_map(cfg.env.map)  # fail fast on a bad map name
     if args.resume and args.overwrite:
         raise ConfigError("--resume continues the run that --overwrite would replace: choose one")
+    check_config(cfg)  # a config that cannot run is one line, not a table and a line
     print_config(cfg, "diacc train: resolved config", f"full config: {cfg.run_dir}/config.json")
     run_dir = train(
         cfg,
@@ -480,7 +486,7 @@ def _simulate_parser(sub) -> None:
         default=150,
         help="decision steps (1 s) at most",
     )
-    p.add_argument("--seed", type=int, default=0, help="traffic seed")
+    p.add_argument("--seed", type=cli_scale.seed_type, default=0, help="traffic seed")
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:

@@ -198,7 +198,10 @@ def _episode_args(p: argparse.ArgumentParser) -> None:
         "--steps", dest="episode_steps", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS
     )
     p.add_argument(
-        "--seed", type=int, default=None, help="traffic seed (default: seed of eval episode 0)"
+        "--seed",
+        type=cli_scale.seed_type,
+        default=None,
+        help="traffic seed (default: seed of eval episode 0)",
     )
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import pickle
 import random
+import warnings
 from dataclasses import asdict
 from pathlib import Path
 
@@ -82,7 +83,9 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
-        payload = torch.load(path, map_location=device, weights_only=True)
+        with warnings.catch_warnings():  # torch warns of odd pickle protocols: the error says it
+            warnings.simplefilter("ignore", UserWarning)
+            payload = torch.load(path, map_location=device, weights_only=True)
     except pickle.UnpicklingError as exc:
         if "numpy" in str(exc) and _looks_like_format_1(path):
             raise CheckpointError(
@@ -385,7 +388,8 @@ def convert_checkpoint(src: Path, dst: Path | None = None) -> Path:
         raise CheckpointError(f"checkpoint {src} does not exist")
     allowed = [np.ndarray, np.dtype, type(np.dtype(np.uint32)), _numpy_reconstruct()]
     try:
-        with torch.serialization.safe_globals(allowed):
+        with torch.serialization.safe_globals(allowed), warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
             payload = torch.load(src, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - anything else: not an old diacc checkpoint
         raise CheckpointError(

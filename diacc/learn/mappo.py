@@ -606,6 +606,17 @@ class _StopOnSignal:
         )
 
 
+def check_config(cfg: TrainConfig) -> None:
+    """One-line errors for a config :func:`train` cannot run, before anything is printed or written.
+
+    The first vehicles' placement checks that the scenario fits the map (it used
+    to fail in the first reset, after config.json and tb/ existed).
+    """
+    validate(cfg)
+    for road_map in (cfg.env.map, *cfg.extra_maps):
+        draw_population(cfg.env.scenario, load_map(road_map), cfg.seed)
+
+
 def train(
     cfg: TrainConfig,
     resume: bool = False,
@@ -624,11 +635,7 @@ def train(
     The run directory is locked while training; one that holds a run is
     refused unless ``resume`` (continue it) or ``overwrite`` (replace it).
     """
-    validate(cfg)
-    # The first vehicles' placement checks that the scenario fits the map, before anything
-    # is written (it used to fail in the first reset, after config.json and tb/ existed).
-    for road_map in (cfg.env.map, *cfg.extra_maps):
-        draw_population(cfg.env.scenario, load_map(road_map), cfg.seed)
+    check_config(cfg)
     device = resolve_device(cfg.device)
     run_dir = Path(cfg.run_dir)
     with locked_dir(run_dir, "train"):

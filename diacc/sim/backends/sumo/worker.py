@@ -53,6 +53,9 @@ SUMO_DEFAULT_LANE_CHANGE_MODE = 1621
 #: a readable heading (SUMO keeps heading 0 for instant changes), short enough
 #: that a change commanded at the start of a step ends within it (base.py).
 LANE_CHANGE_FRACTION = 0.8
+#: SUMO's ``--seed`` is a signed 32-bit integer; diacc's seeds are 32-bit unsigned
+#: (numpy's), so a seed from 2^31 on is taken modulo 2^31 (smaller ones as they are).
+SUMO_SEEDS = 2**31
 #: libsumo.constants names of the vehicle variables a TrafficState is built
 #: from, subscribed for every vehicle and read in one call per decision step.
 STATE_VARIABLES = (
@@ -111,7 +114,7 @@ class SumoSim:
             "-a", str(s.vtypes_path),
             "-r", str(s.route_path),
             "--step-length", f"{self.dt_s}",
-            "--seed", str(int(seed)),
+            "--seed", str(int(seed) % SUMO_SEEDS),
             "--collision.action", "warn",
             "--collision.check-junctions", "true",
             "--time-to-teleport", "-1",
