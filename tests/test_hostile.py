@@ -9,8 +9,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -346,29 +344,28 @@ def test_eval_into_an_unusable_cells_folder_is_one_line_before_work(tmp_path, ca
 
 def test_a_checkpoint_write_that_fails_is_one_line(run_once, tmp_path):
     """A file-size limit (EFBIG): torch's zip writer raised a RuntimeError, not an OSError."""
+    import resource
+    import signal
+
+    from diacc.learn.checkpoint import save_checkpoint
+    from diacc.learn.mappo import make_agent
+
     run = _damaged_copy(run_once, tmp_path, lambda payload: None)
     before = (run / "checkpoint.pt").read_bytes()
-    script = f"""
-import resource, signal, sys
-sys.path.insert(0, {str(Path(__file__).parent)!r})
-from pathlib import Path
-import torch
-from test_mappo import tiny_config
-from diacc.learn.checkpoint import CheckpointError, save_checkpoint
-from diacc.learn.mappo import make_agent
-cfg = tiny_config(Path({str(tmp_path / "cfg")!r}))
-agent = make_agent(cfg, torch.device("cpu"))
-signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-resource.setrlimit(resource.RLIMIT_FSIZE, (10_000, 10_000))
-try:
-    save_checkpoint(Path({str(run / "checkpoint.pt")!r}), agent, cfg, 2, 80)
-except CheckpointError as exc:
-    print(exc)
-"""
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.startswith("cannot write checkpoint") and proc.stdout.count("\n") == 1
-    assert "the previous checkpoint is unchanged" in proc.stdout
+    cfg = _resume_config(run_once, run)
+    agent = make_agent(cfg, torch.device("cpu"))
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of a kill
+    resource.setrlimit(resource.RLIMIT_FSIZE, (10_000, hard))
+    try:
+        with pytest.raises(CheckpointError) as info:
+            save_checkpoint(run / "checkpoint.pt", agent, cfg, 2, 80)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, handler)
+    message = str(info.value)
+    assert message.startswith("cannot write checkpoint") and "\n" not in message
+    assert "the previous checkpoint is unchanged" in message
     assert (run / "checkpoint.pt").read_bytes() == before
     assert not list(run.glob("*.tmp"))
 
@@ -527,3 +524,18 @@ def test_a_map_name_holding_a_path_stays_out_of_the_run_directory(tmp_path):
     road.write_text(SHORT_MAP.replace('name = "short"', 'name = "../../../outside/x"'))
     run_dir = default_run_dir(override(TrainConfig(), {"env.map": str(road)}))
     assert run_dir.startswith("runs/") and ".." not in run_dir and run_dir.count("/") == 1
+
+
+def test_a_compressed_checkpoint_is_refused_before_it_is_unpacked(run_once, tmp_path):
+    """A zip bomb: 1 MB that once took the loader 1.25 GB before it was refused."""
+    import zipfile
+
+    bomb = tmp_path / "bomb.pt"
+    with zipfile.ZipFile(run_once / "checkpoint.pt") as src, zipfile.ZipFile(bomb, "w") as dst:
+        for entry in src.infolist():
+            dst.writestr(entry.filename, src.read(entry), compress_type=zipfile.ZIP_DEFLATED)
+        dst.writestr("bomb/data/9", bytes(20_000_000), compress_type=zipfile.ZIP_DEFLATED)
+    assert bomb.stat().st_size < 1_000_000
+    with pytest.raises(CheckpointError, match="holds compressed entries") as info:
+        load_checkpoint(bomb)
+    assert "\n" not in str(info.value)

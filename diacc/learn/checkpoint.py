@@ -21,6 +21,7 @@ import math
 import pickle
 import random
 import warnings
+import zipfile
 from dataclasses import asdict
 from pathlib import Path
 
@@ -64,8 +65,8 @@ def save_checkpoint(
         with atomic_target(path) as tmp:
             try:
                 torch.save(payload, tmp)
-            except RuntimeError as exc:  # torch's zip writer: "file write failed" (EFBIG, EIO)
-                raise OSError(str(exc).splitlines()[0]) from None
+            except RuntimeError:  # torch's zip writer (EFBIG, EIO): "enforce fail at ..."
+                raise OSError("torch could not write it: disk full or file too large") from None
     except OSError as exc:  # disk full, read-only directory: the old checkpoint stays
         reason = getattr(exc, "reason", None) or exc.strerror or str(exc) or type(exc).__name__
         raise CheckpointError(
@@ -82,6 +83,7 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
+    _check_archive(path)
     try:
         with warnings.catch_warnings():  # torch warns of odd pickle protocols: the error says it
             warnings.simplefilter("ignore", UserWarning)
@@ -100,6 +102,31 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
         raise CheckpointError(f"checkpoint {path} is corrupt ({type(exc).__name__})") from None
     validate_payload(payload, path)
     return payload
+
+
+def _check_archive(path: Path) -> None:
+    """Refuse a zip checkpoint whose entries unpack to more than the file holds.
+
+    ``torch.save`` stores every entry uncompressed; a compressed entry can
+    unpack to a thousand times its size (a 1 MB file once took 1.25 GB before
+    it was refused), so one is refused before anything is unpacked.
+    """
+    if not zipfile.is_zipfile(path):
+        return  # torch's legacy format, or not a checkpoint (torch.load says which)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            entries = archive.infolist()
+    except (zipfile.BadZipFile, OSError, ValueError):
+        raise CheckpointError(f"checkpoint {path} is corrupt (BadZipFile)") from None
+    unpacked = sum(entry.file_size for entry in entries)
+    if (
+        any(entry.compress_type != zipfile.ZIP_STORED for entry in entries)
+        or unpacked > path.stat().st_size
+    ):
+        raise CheckpointError(
+            f"checkpoint {path} holds compressed entries ({unpacked} bytes unpacked from "
+            f"{path.stat().st_size}); torch.save writes none, so it is refused"
+        )
 
 
 def _looks_like_format_1(path: Path) -> bool:
