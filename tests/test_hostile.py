@@ -17,6 +17,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_mappo import tiny_config
+from test_security import _one_line_error
 
 import diacc
 from diacc.cli import main
@@ -27,14 +28,6 @@ from diacc.learn.checkpoint import CheckpointError, load_checkpoint
 from diacc.learn.mappo import train
 from diacc.learn.progress import ProgressError, read_rows
 from diacc.runlog import claim_run_dir, locked_dir
-
-
-def _one_line_error(capsys, argv: list[str]) -> str:
-    capsys.readouterr()
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("diacc: error: ") and "\n" not in err, err
-    return err
 
 
 def _snapshot(folder: Path) -> dict[str, bytes | str]:
