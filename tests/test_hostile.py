@@ -401,8 +401,10 @@ def test_steps_after_the_episode_ended_and_odd_seeds_are_refused(zoo_env):
     zoo_env.reset(seed=np.int64(4))
     while zoo_env.agents:
         zoo_env.step({agent: np.int64(0) for agent in zoo_env.agents})
+    steps = zoo_env.steps
+    assert zoo_env.step({}) == ({}, {}, {}, {}, {}) and zoo_env.steps == steps  # nobody acts
     with pytest.raises(ValueError, match=r"the episode has ended; call reset\(\) before step\(\)"):
-        zoo_env.step({})
+        zoo_env.step({"cav_0": 0})
     with pytest.raises(ValueError, match="the episode has ended"):
         zoo_env.step_arrays(np.zeros(zoo_env.n_cavs, np.int64))
     zoo_env.reset(seed=4)

@@ -308,6 +308,10 @@ class BottleneckEnv(ParallelEnv):
         return observations, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, int]):
+        if self._over and actions == {}:
+            # No agent is left to act: nothing happens (SuperSuit's black_death steps
+            # once more with no actions to see every agent done, then resets).
+            return {}, {}, {}, {}, {}
         if self.state_ is None or self._over:  # before the actions: they name no live agent
             self.step_arrays(np.zeros(self.n_cavs, np.int64))
         actions = check_actions(actions, self.agents, self.possible_agents)
