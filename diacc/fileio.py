@@ -34,11 +34,12 @@ from typing import TextIO
 from diacc.errors import DiaccError
 
 
-class OutputPathError(DiaccError, OSError):
+class OutputPathError(DiaccError, RuntimeError, OSError):
     """A path diacc would write is a link it did not create, a folder, or cannot be written.
 
     ``reason`` is the cause alone (``No space left on device``), for callers
-    that word their own message.
+    that word their own message. Also an ``OSError``: code that handles a
+    failed write keeps handling it.
     """
 
     def __init__(self, message: str, reason: str = "") -> None:

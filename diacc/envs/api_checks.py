@@ -5,8 +5,8 @@ PettingZoo users call :meth:`~diacc.envs.env.BottleneckEnv.reset` and
 action for an agent that does not exist was dropped, a float action was cut
 to an integer, a step after the episode's end ran on, and ``step(None)`` died
 in an ``AttributeError`` deep inside. Each check raises :class:`EnvCallError`
-(a ``ValueError``) or :class:`EnvCallTypeError` (a ``TypeError``), both
-:class:`~diacc.errors.DiaccError`, with a message naming the argument.
+(a ``ValueError``), or for a wrong type its subclass :class:`EnvCallTypeError`
+(also a ``TypeError``), with a message naming the argument.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ class EnvCallError(DiaccError, ValueError):
     """An argument of an environment call has a value the environment cannot take."""
 
 
-class EnvCallTypeError(DiaccError, TypeError):
-    """An argument of an environment call has the wrong type."""
+class EnvCallTypeError(EnvCallError, TypeError):
+    """An argument of an environment call has the wrong type (also an :class:`EnvCallError`)."""
 
 
 def _is_int(value: object) -> bool:
@@ -63,20 +63,27 @@ def check_action(agent: str, action: object) -> int:
 
 
 def check_actions(actions: object, agents: list[str], possible: list[str]) -> dict[str, int]:
-    """``step``'s argument: a mapping from agents on the road now to action codes."""
+    """``step``'s argument, as the actions of the agents on the road now.
+
+    A mapping of agent names to action codes; a name that is no agent of the env
+    is refused. An agent that has left (its last observation came with its
+    termination, and a loop that acts on every observation acts for it once more)
+    is ignored, as PettingZoo loops expect.
+    """
     if not isinstance(actions, Mapping):
         raise EnvCallTypeError(
             f"step() takes a dict of agent name -> action, got {type(actions).__name__}"
         )
-    live = set(agents)
+    known = set(possible)
     for agent in actions:
-        if agent not in live:
-            known = "is not on the road now" if agent in possible else "is not an agent of this env"
+        if agent not in known:
             raise EnvCallError(
-                f"step() got an action for {agent!r}, which {known} "
+                f"step() got an action for {agent!r}, which is not an agent of this env "
                 f"(agents now: {', '.join(agents) or 'none'})"
             )
-    return {agent: check_action(agent, action) for agent, action in actions.items()}
+    checked = {agent: check_action(agent, action) for agent, action in actions.items()}
+    live = set(agents)
+    return {agent: action for agent, action in checked.items() if agent in live}
 
 
 def check_action_array(actions: object, n_slots: int) -> np.ndarray:

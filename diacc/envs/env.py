@@ -55,6 +55,7 @@ of :mod:`diacc.envs.batch` with a batch of one env; the vector envs of training
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 
 import gymnasium
@@ -308,7 +309,7 @@ class BottleneckEnv(ParallelEnv):
         return observations, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, int]):
-        if self._over and actions == {}:
+        if self._over and isinstance(actions, Mapping) and not actions:
             # No agent is left to act: nothing happens (SuperSuit's black_death steps
             # once more with no actions to see every agent done, then resets).
             return {}, {}, {}, {}, {}
