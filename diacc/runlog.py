@@ -15,12 +15,12 @@ environment (:data:`ENV_VAR`) and append to it too (:func:`join_parent_log`).
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
 import logging
 import os
-import shutil
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -29,6 +29,13 @@ from pathlib import Path
 from typing import Any
 
 from diacc.errors import DiaccError
+from diacc.fileio import (
+    OutputPathError,
+    open_append,
+    refuse_symlink,
+    remove_temporaries,
+    remove_tree,
+)
 
 log = logging.getLogger("diacc")
 log.setLevel(logging.INFO)
@@ -92,8 +99,16 @@ def join_parent_log() -> None:
         log.addHandler(_file_handler(Path(path)))
 
 
+class _NoFollowFileHandler(logging.FileHandler):
+    """A FileHandler that appends to its file, never through a symbolic link."""
+
+    def _open(self):
+        return open_append(Path(self.baseFilename))
+
+
 def _file_handler(path: Path) -> logging.FileHandler:
-    handler = logging.FileHandler(path, encoding="utf-8")
+    refuse_symlink(path)
+    handler = _NoFollowFileHandler(path, encoding="utf-8")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     return handler
 
@@ -131,19 +146,26 @@ def locked_dir(directory: Path, command: str) -> Iterator[None]:
     interleaving its files with the first's. The kernel drops the lock when
     its holder dies, so a lock file left by a killed run is simply taken over.
     A directory this call created is removed again if the block leaves it
-    empty (a run refused before it wrote anything leaves no trace).
+    empty (a run refused before it wrote anything leaves no trace). A lock
+    file that is a symbolic link is refused, not followed; with the lock held,
+    temporaries of killed writers in the directory and its sub-folders
+    (``checkpoint.pt.<pid>-<hex>.tmp``) are removed (warned).
     """
     directory = Path(directory)
     created = not directory.exists()
     try:
         directory.mkdir(parents=True, exist_ok=True)
+        refuse_symlink(directory / LOCK_FILE)
         fd = _lock(directory / LOCK_FILE, directory, command)
+    except OutputPathError:
+        raise
     except OSError as exc:
         raise RunDirError(
             f"cannot use {directory} as the {command} directory "
             f"({exc.strerror or type(exc).__name__})"
         ) from None
     try:
+        _remove_stale_temporaries(directory)
         yield
     finally:
         (directory / LOCK_FILE).unlink(missing_ok=True)
@@ -152,10 +174,28 @@ def locked_dir(directory: Path, command: str) -> Iterator[None]:
             directory.rmdir()
 
 
+def _remove_stale_temporaries(directory: Path) -> None:
+    """Remove (warned) what killed atomic writers left in ``directory`` and its sub-folders."""
+    folders = [directory, *(p for p in directory.iterdir() if p.is_dir() and not p.is_symlink())]
+    stale = [path for folder in folders for path in remove_temporaries(folder)]
+    if stale:
+        log.warning(
+            "removed %d temporary file(s) of an interrupted write in %s (%s)",
+            len(stale),
+            directory,
+            ", ".join(sorted(p.name for p in stale)),
+        )
+
+
 def _lock(path: Path, directory: Path, command: str) -> int:
     """Open and flock ``path``; retry if it was replaced meanwhile (its holder just released it)."""
     while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW, 0o644)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:  # became a link after the check above
+                refuse_symlink(path)
+            raise
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -181,19 +221,18 @@ def claim_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
 
     Without this a ``train`` into a finished run's directory replaced its
     checkpoint and appended to its ``progress.jsonl``. ``overwrite`` removes
-    the previous run's files (only those) first. Call with the lock held.
+    the previous run's files (only those) first; a run file that is a symbolic
+    link is refused before anything is written (``--overwrite`` removes the
+    link, never its target). Call with the lock held.
     """
-    if resume:
-        return
-    held = [name for name in RUN_FILES if (run_dir / name).exists()]
-    if held and not overwrite:
+    held = [name for name in RUN_FILES if os.path.lexists(run_dir / name)]
+    replace = held and overwrite and not resume
+    for name in () if replace else _RUN_OUTPUTS:
+        refuse_symlink(run_dir / name)
+    if held and not overwrite and not resume:
         raise RunDirError(
             f"{run_dir} already holds a run ({', '.join(held)}); continue it with --resume "
             "or replace it with --overwrite"
         )
-    for name in _RUN_OUTPUTS if held else ():
-        target = run_dir / name
-        if target.is_dir():
-            shutil.rmtree(target)
-        else:
-            target.unlink(missing_ok=True)
+    for name in _RUN_OUTPUTS if replace else ():
+        remove_tree(run_dir / name)

@@ -284,9 +284,11 @@ def test_sigterm_to_eval_with_workers_ends_every_child(tmp_path):
     _signal_ends_every_child(tmp_path, argv, _count("multiprocessing", 3))  # + resource tracker
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP])
 def test_signal_to_sumo_eval_with_workers_ends_every_child(tmp_path, signum):
-    """Pool workers die at once; their SUMO workers read a reset connection and exit quietly."""
+    """Pool workers die at once; their SUMO workers read a reset connection and exit quietly.
+
+    SIGHUP (a closed terminal) once killed the command alone (issue 46)."""
     argv = [*EVAL, "--grid", str(_grid(tmp_path)), "--workers", "2", "--backend", "sumo"]
     _signal_ends_every_child(tmp_path, argv, _count("sumo.worker", 2), signum)
 

@@ -66,6 +66,11 @@ class Parser(argparse.ArgumentParser):
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
 
+    def error(self, message: str):
+        """A bad option is one line, like every other error (argparse printed the usage first,
+        several lines for the larger commands)."""
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
 
 def _train_parser(sub) -> None:
     p = cli_scale.add_command(
@@ -167,7 +172,7 @@ def _train_parser(sub) -> None:
 
 def cmd_train(args: argparse.Namespace) -> None:
     from diacc.console import print_config
-    from diacc.learn.mappo import train
+    from diacc.learn.mappo import check_config, train
     from diacc.sim.maps import load_map
 
     cfg = build_train_config(
@@ -187,6 +192,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     load_map(cfg.env.map)  # fail fast on a bad map name
     if args.resume and args.overwrite:
         raise ConfigError("--resume continues the run that --overwrite would replace: choose one")
+    check_config(cfg)  # a config that cannot run is one line, not a table and a line
     print_config(cfg, "diacc train: resolved config", f"full config: {cfg.run_dir}/config.json")
     run_dir = train(
         cfg,
@@ -505,7 +511,7 @@ def _simulate_parser(sub) -> None:
         default=150,
         help="decision steps (1 s) at most",
     )
-    p.add_argument("--seed", type=int, default=0, help="traffic seed")
+    p.add_argument("--seed", type=cli_scale.seed_type, default=0, help="traffic seed")
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
@@ -594,23 +600,27 @@ COMMANDS = {
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread like SIGINT's KeyboardInterrupt."""
+    """SIGTERM or SIGHUP, raised in the main thread like SIGINT's KeyboardInterrupt."""
 
-    signum = signal.SIGTERM
+    def __init__(self, signum: int = signal.SIGTERM) -> None:
+        super().__init__()
+        self.signum = signum
 
     def __str__(self) -> str:
-        return "terminated (SIGTERM)"
+        return f"terminated ({signal.Signals(self.signum).name})"
 
 
-#: Set by the SIGTERM handler: libraries that catch the exception and raise a
-#: bare KeyboardInterrupt of their own (Ray's ``wait``/``get``) lose its type.
-_sigterm_seen = False
+#: Signals that end a command the way SIGINT does (a closed terminal sends SIGHUP).
+TERMINATING = (signal.SIGTERM, signal.SIGHUP)
+#: Set by the handler: libraries that catch the exception and raise a bare
+#: KeyboardInterrupt of their own (Ray's ``wait``/``get``) lose its type.
+_signal_seen: int | None = None
 
 
 def _terminated(signum: int, frame) -> None:
-    global _sigterm_seen
-    _sigterm_seen = True
-    raise Terminated
+    global _signal_seen
+    _signal_seen = signum
+    raise Terminated(signum)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -621,16 +631,16 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded by `reproduce`
     enable_stderr()
     main_thread = threading.current_thread() is threading.main_thread()
-    global _sigterm_seen
-    _sigterm_seen = False
-    # SIGTERM as SIGINT: an exception, so that every `finally` ends its children
-    # (pool and vector-env workers, SUMO, a local Ray) instead of orphaning them.
-    previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
+    global _signal_seen
+    _signal_seen = None
+    # SIGTERM and SIGHUP as SIGINT: an exception, so that every `finally` ends its
+    # children (pool and vector-env workers, SUMO, a local Ray) instead of orphaning them.
+    previous = {s: signal.signal(s, _terminated) for s in TERMINATING} if main_thread else {}
     try:
         return _run(args)
     finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -644,8 +654,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"diacc: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:  # TrainingInterrupted says which signal and what was saved
-        if _sigterm_seen and not hasattr(exc, "signum"):
-            exc = Terminated()
+        if _signal_seen and not hasattr(exc, "signum"):
+            exc = Terminated(_signal_seen)
         print(f"diacc: {str(exc) or 'interrupted'}", file=sys.stderr)
         return 128 + getattr(exc, "signum", 2)
     except BrokenPipeError:

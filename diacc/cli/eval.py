@@ -20,6 +20,7 @@ from diacc.config import (
     ConfigError,
 )
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
+from diacc.fileio import OutputPathError, atomic_write, check_output_file
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so
 #: that ``--help`` does not import the evaluation stack).
@@ -262,7 +263,10 @@ def _episode_args(p: argparse.ArgumentParser) -> None:
         "--steps", dest="episode_steps", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS
     )
     p.add_argument(
-        "--seed", type=int, default=None, help="traffic seed (default: episode 0 of --stream)"
+        "--seed",
+        type=cli_scale.seed_type,
+        default=None,
+        help="traffic seed (default: episode 0 of --stream)",
     )
 
 
@@ -305,11 +309,16 @@ def cmd_table(args: argparse.Namespace) -> None:
     from diacc.experiments.report import build_table, expand_rows, render_table
 
     rows = expand_rows(args.rows)
+    if args.out:
+        check_output_file(args.out)  # before reading every results file
     table = build_table(args.results, args.speed_std, rows, args.paired_against)
     text = render_table(table, args.format)
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+        try:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputPathError(f"cannot write {args.out} ({exc.strerror})") from None
+        atomic_write(args.out, text)
         print(f"table written to {args.out}")
     else:
         sys.stdout.write(text)

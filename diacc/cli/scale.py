@@ -89,6 +89,17 @@ def eval_engine(args: argparse.Namespace):
     return RayEngine(args.ray_address, args.ray_cpus)
 
 
+def seed_type(text: str) -> int:
+    """An argparse type: a traffic seed, a whole number in [0, 2^32 - 1] (numpy's range)."""
+    try:
+        seed = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if not 0 <= seed < 2**32:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2^32 - 1], got {seed}")
+    return seed
+
+
 def _csv_list(text: str, kind=str) -> list:
     try:
         values = [kind(v.strip()) for v in text.split(",") if v.strip()]

@@ -55,6 +55,7 @@ of :mod:`diacc.envs.batch` with a batch of one env; the vector envs of training
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 
 import gymnasium
@@ -63,6 +64,7 @@ from pettingzoo import ParallelEnv
 
 from diacc.config import EnvConfig, preset_road
 from diacc.envs.actions import ACTION_NAMES
+from diacc.envs.api_checks import EnvCallError, check_action_array, check_actions, check_seed
 from diacc.envs.batch import EnvBatch, Simulators, Transition, decide
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, unstack
@@ -77,6 +79,7 @@ from diacc.sim.state import TrafficState
 __all__ = [
     "ACTION_NAMES",
     "BottleneckEnv",
+    "EnvCallError",
     "EnvConfig",
     "RenderModeError",
     "StepResult",
@@ -227,6 +230,7 @@ class BottleneckEnv(ParallelEnv):
         self._window = None  # diacc.sim.viewer.Window of render_mode "human"
         self._recorder: EpisodeRecorder | None = None  # episode metrics of the dict API
         self._seed: int | None = None
+        self._over = False  # the episode has terminated or been truncated
         # Spaces are the same for every agent: built once, returned as the same object.
         spec = self.batch.builder.spec()
         self._dict_space = observation_space(spec, "dict")
@@ -237,6 +241,8 @@ class BottleneckEnv(ParallelEnv):
     # ------------------------------------------------------------------ batched API
     def reset_arrays(self, seed: int | None = None) -> tuple[ActorObs, CriticState]:
         """Start an episode; returns observations for all CAV slots and the critic state."""
+        seed = check_seed(seed)
+        self._over = False
         if seed is None:
             seed = 0 if self._seed is None else self._seed + 1
         self._seed = seed = check_seed(seed)
@@ -249,12 +255,15 @@ class BottleneckEnv(ParallelEnv):
 
     def step_arrays(self, actions: np.ndarray) -> StepResult:
         """Advance one decision step with proposed actions (C,) for every CAV slot."""
-        assert self.state_ is not None, "call reset before step"
-        out = self.batch.step(np.asarray(actions)[None])
+        if self.state_ is None or self._over:
+            what = "has ended" if self._over else "has not started"
+            raise EnvCallError(f"the episode {what}; call reset() before step()")
+        out = self.batch.step(check_action_array(actions, self.n_cavs)[None])
         if out.crashed[0]:
             raise self.batch.sims.errors[0]
         result = StepResult.of(out, 0)
         self.state_ = result.state
+        self._over = result.terminated or result.truncated
         return result
 
     # The episode's slots and memories: env 0 of the batch's EpisodeState (module
@@ -324,11 +333,17 @@ class BottleneckEnv(ParallelEnv):
         return observations, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, int]):
+        if self._over and isinstance(actions, Mapping) and not actions:
+            # No agent is left to act: nothing happens (SuperSuit's black_death steps
+            # once more with no actions to see every agent done, then resets).
+            return {}, {}, {}, {}, {}
+        if self.state_ is None or self._over:  # before the actions: they name no live agent
+            self.step_arrays(np.zeros(self.n_cavs, np.int64))
+        actions = check_actions(actions, self.agents, self.possible_agents)
         index = self.agent_slots()
         batch = np.zeros(self.n_cavs, np.int64)
         for agent, action in actions.items():
-            if agent in index:
-                batch[index[agent]] = action
+            batch[index[agent]] = action
         out = self.step_arrays(batch)
         if self._recorder is not None:
             self._recorder.record(out.state, psar=out.psar)

@@ -43,6 +43,7 @@ Definitions:
 from __future__ import annotations
 
 import csv
+import io
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -52,6 +53,7 @@ from diacc.config import EventConfig
 from diacc.envs.psar import RULE_BIT_VALUES, RULE_NAMES, PSARResult
 from diacc.envs.safety import safety_critical_events, waiting_events
 from diacc.errors import DiaccError
+from diacc.fileio import atomic_write
 from diacc.sim.maps import SEGMENT_KINDS, Map
 from diacc.sim.state import TrafficState
 
@@ -120,10 +122,11 @@ class SpeedSamples:
 
     def to_csv(self, path: str | Path) -> None:
         """Write the rows with a header line."""
-        with open(path, "w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(self.COLUMNS)
-            writer.writerows(self.rows())
+        text = io.StringIO(newline="")
+        writer = csv.writer(text)
+        writer.writerow(self.COLUMNS)
+        writer.writerows(self.rows())
+        atomic_write(Path(path), text.getvalue())
 
 
 class EpisodeRecorder:

@@ -47,7 +47,7 @@ from diacc.errors import DiaccError
 from diacc.experiments.grid import CELL_KEYS, Cell, make_cell
 from diacc.experiments.policies import CheckpointPolicy, EvalSettings, PolicySpec, build_policy
 from diacc.experiments.workpool import map_resilient
-from diacc.fileio import atomic_write
+from diacc.fileio import atomic_write, check_output_dir, refuse_symlink
 from diacc.runlog import locked_dir, log, run_log
 from diacc.sim.backends.base import BackendError
 from diacc.sim.maps import SEGMENT_KINDS
@@ -524,6 +524,9 @@ def evaluate(
         policy.env_config(cell, settings)  # fail fast on cells the policy cannot run
     meta, before = evaluation_meta(policy, cells, settings)
     with locked_dir(out_dir, "eval"):  # one writer; an unusable --out is one line
+        for name in (META_FILE, EPISODES_FILE, SPEEDS_FILE, CELLS_DIR, LOG_FILE):
+            refuse_symlink(out_dir / name)  # before anything is written
+        check_output_dir(out_dir / CELLS_DIR)
         _check_meta(out_dir, meta, before)
         return _evaluate(
             spec, cells, episodes, out_dir, settings, workers, progress, engine, on_cell, policy
@@ -589,12 +592,13 @@ def load_episodes(out_dir: str | Path) -> tuple[dict, list[dict[str, str]]]:
     rows = read_csv(path)
     if not rows:
         raise EvaluationError(f"results directory {out_dir} has an empty {EPISODES_FILE}")
-    for row in rows[:1]:
-        values = {k: _parse_cell_value(k, row[k]) for k in CELL_KEYS}
-        if float(row.get("inflow_vph") or 0.0):  # a demand cell: N follows from the inflow
-            values["inflow_vph"] = float(row["inflow_vph"])
-        make_cell(values, str(path))
     _check_numbers(path, rows)
+    checked = set()
+    for line, row in enumerate(rows, start=2):
+        values = _cell_values(row, f"{path}:{line}")
+        if tuple(values.items()) not in checked:  # a map loaded and placed once per cell
+            make_cell(values, f"{path}:{line}")
+            checked.add(tuple(values.items()))
     return read_json_object(out_dir / META_FILE, EvaluationError), rows
 
 
@@ -626,9 +630,25 @@ def _check_numbers(path: Path, rows: list[dict[str, str]]) -> None:
                 ) from None
 
 
-def _parse_cell_value(key: str, text: str):
-    if key == "n_vehicles":
-        return int(text)
-    if key == "cav_penetration":
-        return float(text)
-    return text
+def _cell_values(row: dict[str, str | None], source: str) -> dict:
+    """The cell keys of an ``episodes.csv`` row, as :func:`make_cell` takes them.
+
+    A demand cell (``inflow_vph`` > 0) is given by its inflow, not its vehicle
+    count: the count follows from the inflow, and rebuilt as a release the
+    cell's hundreds of vehicles do not fit the map.
+    """
+    missing = [k for k in CELL_KEYS if row.get(k) is None]
+    if missing:
+        raise EvaluationError(f"{source}: no {missing[0]!r} field; the file is damaged")
+    values = {"map": row["map"], "style_mix": row["style_mix"]}
+    values["cav_penetration"] = float(row["cav_penetration"])  # a number (_check_numbers)
+    inflow = float(row.get("inflow_vph") or 0.0)
+    if inflow:
+        return {**values, "inflow_vph": inflow}
+    try:
+        return {**values, "n_vehicles": int(row["n_vehicles"])}
+    except ValueError:
+        raise EvaluationError(
+            f"{source}: field 'n_vehicles' is not a whole number ({row['n_vehicles']!r}); "
+            "the file is damaged"
+        ) from None

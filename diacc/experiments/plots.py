@@ -28,6 +28,8 @@ import numpy as np
 
 from diacc.errors import DiaccError
 from diacc.experiments.evaluate import SPEEDS_FILE, load_episodes, read_csv
+from diacc.fileio import atomic_target
+from diacc.learn.progress import read_rows
 from diacc.sim.maps import SEGMENT_KINDS
 from diacc.tomlfile import read_json_object
 
@@ -89,7 +91,8 @@ def _save(fig, out: str | Path) -> list[Path]:
     out.parent.mkdir(parents=True, exist_ok=True)
     paths = [out.with_suffix(".png"), out.with_suffix(".pdf")]
     for path in paths:
-        fig.savefig(path, dpi=150, bbox_inches="tight")
+        with atomic_target(path) as tmp:  # never through a link; a reader sees a whole figure
+            fig.savefig(tmp, dpi=150, bbox_inches="tight", format=path.suffix[1:])
     _pyplot().close(fig)
     return paths
 
@@ -103,19 +106,10 @@ def read_progress(run_dir: str | Path) -> dict[str, tuple[np.ndarray, np.ndarray
     series: dict[str, list[tuple[float, float]]] = {}
     progress = run_dir / "progress.jsonl"
     if progress.exists():
-        for line_no, line in enumerate(progress.read_text().splitlines(), start=1):
-            if not line.strip():
-                continue
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError:
-                raise PlotError(f"{progress}:{line_no} is not valid JSON") from None
-            if not isinstance(record, dict):
-                raise PlotError(f"{progress}:{line_no} is not a JSON object")
-            step = record.get("global_step")
+        for record in read_rows(progress):  # every row checked (types, UTF-8): one line
             for key, value in record.items():
-                if isinstance(value, (int, float)) and step is not None:
-                    series.setdefault(key, []).append((float(step), float(value)))
+                if value is not None:
+                    series.setdefault(key, []).append((float(record["global_step"]), value))
     else:
         events = sorted((run_dir / "tb").glob("events.out.tfevents.*")) + sorted(
             run_dir.glob("events.out.tfevents.*")

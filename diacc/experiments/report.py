@@ -433,8 +433,13 @@ def change_unit(metric: str) -> str:
 
 
 # ----------------------------------------------------------------------------- rendering
+def _size(cell: Cell) -> str:
+    """``N=25`` for a release cell, ``Q=3200 veh/h`` for a demand cell (N follows from Q)."""
+    return f"Q={cell.inflow_vph:.0f} veh/h" if cell.inflow_vph else f"N={cell.n_vehicles}"
+
+
 def _scenario(cell: Cell) -> str:
-    return f"N={cell.n_vehicles}, rho={cell.cav_penetration:.1f}, {cell.style_mix}"
+    return f"{_size(cell)}, rho={cell.cav_penetration:.1f}, {cell.style_mix}"
 
 
 def _label(metric: str) -> str:
@@ -534,7 +539,7 @@ def to_latex(table: Table) -> str:
         for j, cell in enumerate(cells):
             for i, metric in enumerate(table.rows):
                 scenario = (
-                    rf"\multirow{{{k}}}{{*}}{{N={cell.n_vehicles}, "
+                    rf"\multirow{{{k}}}{{*}}{{{_size(cell)}, "
                     rf"$\rho={cell.cav_penetration:.1f}$, {cell.style_mix}}}"
                     if i == 0
                     else ""

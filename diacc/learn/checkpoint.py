@@ -17,8 +17,11 @@ them (:func:`convert_checkpoint`, ``diacc convert-checkpoint``).
 
 from __future__ import annotations
 
+import math
 import pickle
 import random
+import warnings
+import zipfile
 from dataclasses import asdict
 from pathlib import Path
 
@@ -60,11 +63,14 @@ def save_checkpoint(
     }
     try:
         with atomic_target(path) as tmp:
-            torch.save(payload, tmp)
+            try:
+                torch.save(payload, tmp)
+            except RuntimeError:  # torch's zip writer (EFBIG, EIO): "enforce fail at ..."
+                raise OSError("torch could not write it: disk full or file too large") from None
     except OSError as exc:  # disk full, read-only directory: the old checkpoint stays
+        reason = getattr(exc, "reason", None) or exc.strerror or str(exc) or type(exc).__name__
         raise CheckpointError(
-            f"cannot write checkpoint {path} ({exc.strerror or type(exc).__name__}); "
-            "the previous checkpoint is unchanged"
+            f"cannot write checkpoint {path} ({reason}); the previous checkpoint is unchanged"
         ) from None
 
 
@@ -77,8 +83,11 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
+    _check_archive(path)
     try:
-        payload = torch.load(path, map_location=device, weights_only=True)
+        with warnings.catch_warnings():  # torch warns of odd pickle protocols: the error says it
+            warnings.simplefilter("ignore", UserWarning)
+            payload = torch.load(path, map_location=device, weights_only=True)
     except pickle.UnpicklingError as exc:
         if "numpy" in str(exc) and _looks_like_format_1(path):
             raise CheckpointError(
@@ -93,6 +102,31 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
         raise CheckpointError(f"checkpoint {path} is corrupt ({type(exc).__name__})") from None
     validate_payload(payload, path)
     return payload
+
+
+def _check_archive(path: Path) -> None:
+    """Refuse a zip checkpoint whose entries unpack to more than the file holds.
+
+    ``torch.save`` stores every entry uncompressed; a compressed entry can
+    unpack to a thousand times its size (a 1 MB file once took 1.25 GB before
+    it was refused), so one is refused before anything is unpacked.
+    """
+    if not zipfile.is_zipfile(path):
+        return  # torch's legacy format, or not a checkpoint (torch.load says which)
+    try:
+        with zipfile.ZipFile(path) as archive:
+            entries = archive.infolist()
+    except (zipfile.BadZipFile, OSError, ValueError):
+        raise CheckpointError(f"checkpoint {path} is corrupt (BadZipFile)") from None
+    unpacked = sum(entry.file_size for entry in entries)
+    if (
+        any(entry.compress_type != zipfile.ZIP_STORED for entry in entries)
+        or unpacked > path.stat().st_size
+    ):
+        raise CheckpointError(
+            f"checkpoint {path} holds compressed entries ({unpacked} bytes unpacked from "
+            f"{path.stat().st_size}); torch.save writes none, so it is refused"
+        )
 
 
 def _looks_like_format_1(path: Path) -> bool:
@@ -179,12 +213,74 @@ def _check_rng(rng: dict) -> None:
     cuda = rng["cuda"]
     if cuda is not None and not all(isinstance(t, torch.Tensor) for t in cuda):
         raise TypeError("cuda states")
+    key = numpy_["key"]
+    if key.dtype != torch.int64 or not bool(((key >= 0) & (key < 2**32)).all()):
+        raise ValueError("numpy key holds values outside 32 bits")
+    # Restore each state into a throwaway generator: what set_rng_state would refuse
+    # (a torch state of another size, a Python position past 624) is refused here.
+    try:
+        random.Random().setstate(
+            (python["version"], tuple(python["state"].tolist()), python["gauss"])
+        )
+        np.random.RandomState().set_state(
+            ("MT19937", key.numpy().astype(np.uint32), numpy_["pos"], numpy_["has_gauss"],
+             numpy_["cached_gaussian"])
+        )  # fmt: skip
+        torch.Generator().set_state(rng["torch"])
+    except (OverflowError, RuntimeError) as exc:
+        raise ValueError(str(exc).splitlines()[0]) from None
 
 
 def restore(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
     """Load a checkpoint's state into ``agent`` after checking it fits ``cfg``."""
     _load_networks(agent, payload, cfg, path)
-    agent.optimizer.load_state_dict(payload["optimizer"])
+    try:
+        _check_optimizer(payload["optimizer"], agent.optimizer)
+        agent.optimizer.load_state_dict(payload["optimizer"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CheckpointError(
+            f"checkpoint {path} has a damaged optimiser state ({message})"
+        ) from None
+
+
+#: Per-parameter Adam tensors, each of its parameter's shape.
+_MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")
+
+
+def _check_optimizer(saved: dict, optimizer: torch.optim.Optimizer) -> None:
+    """ValueError/TypeError unless ``saved`` is a state of ``optimizer``'s groups and shapes.
+
+    ``load_state_dict`` checks group and parameter counts but not the moments'
+    shapes, which would fail in the first update after the resume.
+    """
+    groups, state = saved["param_groups"], saved["state"]
+    if not isinstance(groups, list) or len(groups) != len(optimizer.param_groups):
+        raise ValueError(f"{len(groups)} parameter groups, not {len(optimizer.param_groups)}")
+    ids = {}
+    for number, (group, own) in enumerate(zip(groups, optimizer.param_groups, strict=True)):
+        if not isinstance(group, dict) or not isinstance(group.get("params"), list):
+            raise TypeError(f"parameter group {number} is not a group")
+        if len(group["params"]) != len(own["params"]):
+            raise ValueError(
+                f"parameter group {number} has {len(group['params'])} parameters, "
+                f"not {len(own['params'])}"
+            )
+        for key in ("lr", "eps", "weight_decay"):
+            if not isinstance(group.get(key), (int, float)) or not math.isfinite(group[key]):
+                raise ValueError(f"parameter group {number} has no finite {key!r}")
+        ids.update(zip(group["params"], own["params"], strict=True))
+    if not isinstance(state, dict) or not set(state) <= set(ids):
+        raise ValueError("moments of parameters that are in no group")
+    for pid, moments in state.items():
+        if not isinstance(moments, dict):
+            raise TypeError(f"state of parameter {pid} is not a dict")
+        for key in _MOMENTS:
+            tensor = moments.get(key)
+            if tensor is not None and (
+                not isinstance(tensor, torch.Tensor) or tensor.shape != ids[pid].shape
+            ):
+                raise ValueError(f"{key} of parameter {pid} does not have its parameter's shape")
 
 
 def _load_networks(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) -> None:
@@ -197,7 +293,13 @@ def _load_networks(agent: Agent, payload: dict, cfg: TrainConfig, path: Path) ->
         raise CheckpointError(
             f"checkpoint {path} does not match the {cfg.variant} networks (other model.* sizes)"
         ) from None
-    agent.value_norm.load_state_dict(payload["value_norm"])
+    try:
+        agent.value_norm.load_state_dict(payload["value_norm"])
+    except RuntimeError:
+        raise CheckpointError(
+            f"checkpoint {path} has a damaged value normaliser (keys "
+            f"{sorted(payload['value_norm'])}, not {sorted(agent.value_norm.state_dict())})"
+        ) from None
 
 
 def init_networks(agent: Agent, path: Path, cfg: TrainConfig) -> dict:
@@ -313,7 +415,8 @@ def convert_checkpoint(src: Path, dst: Path | None = None) -> Path:
         raise CheckpointError(f"checkpoint {src} does not exist")
     allowed = [np.ndarray, np.dtype, type(np.dtype(np.uint32)), _numpy_reconstruct()]
     try:
-        with torch.serialization.safe_globals(allowed):
+        with torch.serialization.safe_globals(allowed), warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
             payload = torch.load(src, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - anything else: not an old diacc checkpoint
         raise CheckpointError(

@@ -66,7 +66,7 @@ from diacc.envs.psar import RULE_NAMES, rule_counts
 from diacc.envs.reward import team_reward, temperature
 from diacc.envs.vector import make_vector_env
 from diacc.errors import DiaccError
-from diacc.fileio import atomic_write
+from diacc.fileio import atomic_write, open_append
 from diacc.learn.agent import Agent
 from diacc.learn.buffer import Rollout, compute_gae
 from diacc.learn.checkpoint import (
@@ -82,6 +82,9 @@ from diacc.learn.checkpoint import (
 from diacc.learn.models.agent_value import AGENT_KEY, AgentValueCritic, agent_features
 from diacc.learn.models.inputs import to_tensors
 from diacc.learn.models.registry import build_networks
+from diacc.learn.progress import check_agrees as check_progress
+from diacc.learn.progress import keep_until as keep_progress_until
+from diacc.learn.progress import read_rows as progress_rows
 from diacc.learn.valuenorm import ValueNorm
 from diacc.runlog import claim_run_dir, config_digest, locked_dir, log, run_log
 from diacc.sim.maps import load_map
@@ -651,20 +654,6 @@ def check_resume_config(
     return changed
 
 
-def truncate_progress(path: Path, update: int) -> None:
-    """Keep the rows of ``progress.jsonl`` up to ``update`` (drops rows of lost updates)."""
-    if not path.exists():
-        return
-    kept = []
-    for line in path.read_text().splitlines():
-        try:
-            if json.loads(line)["update"] <= update:
-                kept.append(line + "\n")
-        except (ValueError, KeyError, TypeError):  # a torn last line of a killed run
-            continue
-    atomic_write(path, "".join(kept))
-
-
 class StoppedAtOnce(KeyboardInterrupt):
     """A second SIGINT/SIGTERM: training stopped mid-update; ``signum`` sets the exit status."""
 
@@ -677,12 +666,12 @@ class StoppedAtOnce(KeyboardInterrupt):
 
 
 class _StopOnSignal:
-    """SIGINT/SIGTERM set :attr:`signum`; the loop stops at the next update boundary.
+    """SIGINT/SIGTERM/SIGHUP set :attr:`signum`; the loop stops at the next update boundary.
 
     A second signal stops at once (:class:`StoppedAtOnce`), keeping the last checkpoint.
     """
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
     def __init__(self) -> None:
         self.signum: int | None = None
@@ -707,6 +696,17 @@ class _StopOnSignal:
         )
 
 
+def check_config(cfg: TrainConfig) -> None:
+    """One-line errors for a config :func:`train` cannot run, before anything is printed or written.
+
+    The first vehicles' placement checks that the scenario fits the map (it used
+    to fail in the first reset, after config.json and tb/ existed).
+    """
+    validate(cfg)
+    for road_map in (cfg.env.map, *cfg.extra_maps):
+        draw_population(cfg.env.scenario, load_map(road_map), cfg.seed)
+
+
 def train(
     cfg: TrainConfig,
     resume: bool = False,
@@ -725,11 +725,7 @@ def train(
     The run directory is locked while training; one that holds a run is
     refused unless ``resume`` (continue it) or ``overwrite`` (replace it).
     """
-    validate(cfg)
-    # The first vehicles' placement checks that the scenario fits the map, before anything
-    # is written (it used to fail in the first reset, after config.json and tb/ existed).
-    for road_map in (cfg.env.map, *cfg.extra_maps):
-        draw_population(cfg.env.scenario, load_map(road_map), cfg.seed)
+    check_config(cfg)
     device = resolve_device(cfg.device)
     run_dir = Path(cfg.run_dir)
     with locked_dir(run_dir, "train"):
@@ -755,13 +751,17 @@ def _start(
     agent = make_agent(cfg, device)
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     n_updates = max(1, cfg.total_steps // steps_per_update)
-    first_update, global_step, changed = 0, 0, []
+    first_update, global_step, changed, rows = 0, 0, [], None
+    progress_path = run_dir / "progress.jsonl"
     if resume:
         payload = load_checkpoint(ckpt_path, device)
         saved = asdict(config_from_checkpoint(payload))
         changed = check_resume_config(saved, cfg, ckpt_path, allow_config_change)
         restore(agent, payload, cfg, ckpt_path)
         first_update, global_step = payload["update"], payload["global_step"]
+        if progress_path.exists():  # checked before anything is written
+            rows = progress_rows(progress_path)
+            check_progress(rows, progress_path, first_update, global_step)
         set_rng_state(payload["rng"])
     elif cfg.init_from:
         source = init_networks(agent, Path(cfg.init_from), cfg)
@@ -777,9 +777,9 @@ def _start(
             )
         if changed:
             log.warning("resuming %s with changed config fields: %s", run_dir, ", ".join(changed))
-        if resume:
-            truncate_progress(run_dir / "progress.jsonl", first_update)
-        (run_dir / "config.json").write_text(json.dumps(asdict(cfg), indent=2, default=str))
+        if rows is not None:
+            keep_progress_until(progress_path, rows, first_update)
+        atomic_write(run_dir / "config.json", json.dumps(asdict(cfg), indent=2, default=str))
         last_update = (
             n_updates
             if stop_after_updates is None
@@ -1075,7 +1075,7 @@ def write_record(record: dict, writer: SummaryWriter, progress_path: Path) -> No
     for key, value in record.items():
         if key not in ("update", "global_step"):
             writer.add_scalar(key if "/" in key else f"train/{key}", value, record["global_step"])
-    with open(progress_path, "a") as fh:
+    with open_append(progress_path) as fh:
         fh.write(json.dumps(record) + "\n")
 
 

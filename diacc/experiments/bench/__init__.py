@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable
+from pathlib import Path
+
+from diacc.fileio import open_append
 
 
 def write_json_lines(records: Iterable[dict], out: str | None) -> None:
@@ -17,5 +20,5 @@ def write_json_lines(records: Iterable[dict], out: str | None) -> None:
         line = json.dumps(record)
         print(line, flush=True)
         if out:
-            with open(out, "a") as fh:
+            with open_append(Path(out)) as fh:
                 fh.write(line + "\n")

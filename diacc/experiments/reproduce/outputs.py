@@ -44,6 +44,7 @@ from diacc.experiments.reproduce.plan import (
     reduction_of,
 )
 from diacc.experiments.reproduce.stages import row_cell_key
+from diacc.fileio import atomic_write
 from diacc.sim.maps import SEGMENT_KINDS
 
 #: Table rows: the paper's three, the share of episodes ending in a collision, the flow rows.
@@ -149,7 +150,7 @@ def write_tables(plan: Plan, results: _Results | None = None) -> list[Path]:
             tex += [f"% {TABLE_TITLES[grid]}, {backend} backend", to_latex(table)]
         for suffix, text in ((".md", "\n".join(md)), (".tex", "\n".join(tex))):
             path = out / f"{TABLES[grid]}{suffix}"
-            path.write_text(text)
+            atomic_write(path, text)
             written.append(path)
     return written
 
@@ -287,7 +288,7 @@ def write_transfer(plan: Plan, results: _Results | None = None) -> list[Path]:
             )
     md += ["", *why] if why else []
     out = cfg.out_dir
-    (out / TRANSFER_MD).write_text("\n".join(md) + "\n")
+    atomic_write(out / TRANSFER_MD, "\n".join(md) + "\n")
     header = [
         *CELL_KEYS,
         "pure_hdv_speed_mps",
@@ -309,7 +310,7 @@ def write_transfer(plan: Plan, results: _Results | None = None) -> list[Path]:
         ]
         for r in rows
     ]
-    (out / TRANSFER_CSV).write_text(csv_text(header, csv_rows))
+    atomic_write(out / TRANSFER_CSV, csv_text(header, csv_rows))
     return [out / TRANSFER_MD, out / TRANSFER_CSV]
 
 

@@ -16,7 +16,6 @@
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +43,7 @@ from diacc.experiments.scaleout import (
     train_run,
 )
 from diacc.experiments.workpool import map_resilient
+from diacc.fileio import remove_tree
 from diacc.threads import worker_environment
 from diacc.tomlfile import read_json_object
 
@@ -186,7 +186,7 @@ def _drop_stale(out_dir: Path, trained_steps: int, say: Say) -> None:
             f"  {out_dir}: results of the checkpoint at {evaluated} steps removed; "
             f"it has {trained_steps} now"
         )
-        shutil.rmtree(out_dir)
+        remove_tree(out_dir)
 
 
 def _cell_reporter(tag: str, n_cells: int, say: Say) -> Callable[[Cell, list], None]:

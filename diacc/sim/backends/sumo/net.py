@@ -30,6 +30,7 @@ a warning.
 from __future__ import annotations
 
 import os
+import stat
 import subprocess
 import tempfile
 import xml.etree.ElementTree as ET
@@ -197,10 +198,34 @@ def usable_cache(folder: Path) -> Path:
     fallback = Path(tempfile.gettempdir()) / f"diacc-{os.getuid()}" / "sumo"
     log.warning("SUMO network cache %s is unusable (%s); using %s", folder, reason, fallback)
     try:
-        fallback.mkdir(parents=True, exist_ok=True)
+        for part in (fallback.parent, fallback):
+            part.mkdir(mode=0o700, exist_ok=True)
+            _check_private(part)
     except OSError as exc:
         raise BackendError(
             f"no usable SUMO network cache: {folder} ({reason}), {fallback} ({exc.strerror}); "
             "set DIACC_CACHE to a writable folder"
         ) from None
     return fallback
+
+
+def _check_private(folder: Path) -> None:
+    """Refuse a folder in a shared place that another user could have planted files in.
+
+    Anyone can create ``$TMPDIR/diacc-<uid>`` first and put a network there that
+    the SUMO worker would load; so the folder must be ours, not a link, and not
+    writable by group or others.
+    """
+    info = os.lstat(folder)
+    if not stat.S_ISDIR(info.st_mode):
+        problem = "is not a folder (a link?)"
+    elif info.st_uid != os.getuid():
+        problem = f"belongs to user {info.st_uid}"
+    elif info.st_mode & 0o022:
+        problem = "is writable by other users"
+    else:
+        return
+    raise BackendError(
+        f"SUMO network cache {folder} {problem}; refused (another user could plant "
+        "networks there): remove it or set DIACC_CACHE to a folder of yours"
+    )

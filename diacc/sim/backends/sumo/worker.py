@@ -55,6 +55,10 @@ SUMO_DEFAULT_LANE_CHANGE_MODE = 1621
 LANE_CHANGE_FRACTION = 0.8
 #: Lateral offset (m) from the lane's centre line within which a vehicle is on it.
 CENTRE_LINE_TOL_M = 1e-6
+
+#: SUMO's ``--seed`` is a signed 32-bit integer; diacc's seeds are 32-bit unsigned
+#: (numpy's), so a seed from 2^31 on is taken modulo 2^31 (smaller ones as they are).
+SUMO_SEEDS = 2**31
 #: libsumo.constants names of the vehicle variables a TrafficState is built
 #: from, subscribed for every vehicle and read in one call per decision step.
 STATE_VARIABLES = (
@@ -113,7 +117,7 @@ class SumoSim:
             "-a", str(s.vtypes_path),
             "-r", str(s.route_path),
             "--step-length", f"{self.dt_s}",
-            "--seed", str(int(seed)),
+            "--seed", str(int(seed) % SUMO_SEEDS),
             "--collision.action", "warn",
             "--collision.check-junctions", "true",
             "--time-to-teleport", "-1",
