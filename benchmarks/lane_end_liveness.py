@@ -35,7 +35,7 @@ def row(backend: str, map_name: str, n_vehicles: int, policy_name: str, episodes
     cell = Cell(map_name, n_vehicles, rho, "D1")
     driver = EpisodeDriver(policy, policy.env_config(cell, EvalSettings(backend, 330)))
     try:
-        rows = [run_episode(driver, cell, k).row for k in range(episodes)]
+        rows = [run_episode(driver, cell, k, "legacy").row for k in range(episodes)]
     finally:
         driver.close()
     stuck = [r["episode"] for r in rows if r["never_arrived_fraction"] > 0]

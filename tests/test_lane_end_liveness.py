@@ -28,7 +28,7 @@ def every_vehicle_arrives(backend: str, map_name: str, n_vehicles: int, episodes
     driver = EpisodeDriver(policy, policy.env_config(cell, EvalSettings(backend, steps)))
     try:
         for episode in range(episodes):
-            row = run_episode(driver, cell, episode).row
+            row = run_episode(driver, cell, episode, "legacy").row
             where = f"{backend} {map_name} N = {n_vehicles} episode {episode}"
             assert row["n_collisions"] == 0, f"{where}: collision"
             assert row["arrived_fraction"] == 1.0, (

@@ -112,25 +112,6 @@ def _env_zero(name: str, doc: str, convert=None) -> property:
     return property(get, doc=doc)
 
 
-#: Largest episode seed: SUMO's ``--seed`` is a signed 32-bit integer.
-MAX_SEED = 2**31 - 1
-
-
-class SeedError(DiaccError, ValueError):
-    """An episode seed outside 0 .. :data:`MAX_SEED`; one line."""
-
-
-def check_seed(seed) -> int:
-    """``seed`` as an int if it is a whole number in 0 .. :data:`MAX_SEED`, else a
-    one-line :class:`SeedError` (numpy's own message for -7 is a traceback deep in
-    ``SeedSequence``)."""
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise SeedError(f"a seed must be an integer, got {seed!r}")
-    if not 0 <= seed <= MAX_SEED:
-        raise SeedError(f"a seed must be in 0..{MAX_SEED} (SUMO's range), got {seed}")
-    return int(seed)
-
-
 class RenderModeError(DiaccError, ValueError):
     """A render mode this environment cannot honour here; one line."""
 
