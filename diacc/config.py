@@ -34,11 +34,39 @@ from diacc.sim.scenario import (  # noqa: F401
     AGGRESSIVE,
     CAUTIOUS,
     CAV_STYLE,
+    MAX_VEHICLES,
     NORMAL,
     STYLE_MIXES,
     STYLE_NAMES,
     Scenario,
+    ScenarioError,
 )
+
+# --------------------------------------------------------------------------
+# Upper bounds of the size-like settings
+# --------------------------------------------------------------------------
+# Every count that sizes an array or a loop has an upper bound, so that a typo
+# (``hidden_dim=1000000000``) is a one-line error before anything is allocated or
+# written, not an allocator traceback or a hang. Each lies far above any setting
+# the project uses and below what a 24 GiB, 2-core machine holds or finishes; the
+# measurements behind them are in docs/guide/faults.md ("Size bounds").
+#: Highway integration steps per decision: each one is a pass over every vehicle.
+MAX_SUBSTEPS = 100
+#: Decisions per episode (and per rollout, which holds whole episodes).
+MAX_EPISODE_STEPS = 10_000
+#: Observation neighbours K and history steps T: the actor's tables are (C, K, T).
+MAX_NEIGHBOURS = 64
+MAX_HISTORY_STEPS = 100
+#: Width of any network layer: a 1024-wide learner already has ~44 M weights.
+MAX_NETWORK_DIM = 1024
+MAX_HEADS = 64
+#: Environments of one run: every one adds a simulator and its rollout rows.
+MAX_ENVS = 1024
+#: PPO epochs over one rollout.
+MAX_EPOCHS = 100
+#: Bytes the rollout's observations may take (their upper estimate,
+#: :func:`rollout_bytes`): a third of 24 GiB, as the update copies the batch again.
+MAX_ROLLOUT_BYTES = 8 * 2**30
 
 
 class ConfigError(DiaccError, ValueError):
@@ -51,15 +79,18 @@ def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
         raise ConfigError(f"config key {key!r} must be one of {', '.join(choices)}, got {value!r}")
 
 
-def ranged(default: Any, low: float, high: float | None = None, *, open_low: bool = False) -> Any:
+def ranged(
+    default: Any, low: float, high: float | None = None, *, open_low: bool = False, why: str = ""
+) -> Any:
     """A dataclass field whose value must lie in ``[low, high]`` (``(low, high]`` with
     ``open_low``; no upper bound when ``high`` is None).
 
     The range sits next to the field it bounds and is checked once, when the
     config is built (:func:`_check_fields` in each section's ``__post_init__``),
-    so that no code reading the config checks it again.
+    so that no code reading the config checks it again. ``why`` says what the upper
+    bound protects (memory, time); the error message ends with it.
     """
-    return field(default=default, metadata={"range": (low, high, open_low)})
+    return field(default=default, metadata={"range": (low, high, open_low), "why": why})
 
 
 def one_of(default: str, choices: tuple[str, ...]) -> Any:
@@ -97,7 +128,10 @@ def _check_fields(obj: Any, prefix: str = "") -> None:
             low, high, open_low = f.metadata["range"]
             too_low = value <= low if open_low else value < low
             if too_low or (high is not None and value > high):
-                raise _FieldError(key, f"must be {_range_text(low, high, open_low)}, got {value}")
+                why = f" ({f.metadata['why']})" if f.metadata.get("why") and not too_low else ""
+                raise _FieldError(
+                    key, f"must be {_range_text(low, high, open_low)}, got {value}{why}"
+                )
         if "choices" in f.metadata and value not in f.metadata["choices"]:
             choices = f.metadata["choices"]
             raise _FieldError(key, f"must be one of {', '.join(choices)}, got {value!r}")
@@ -261,8 +295,11 @@ class SimConfig:
     """How a backend simulates; shared by both backends, which trust it (checked here)."""
 
     step_s: float = 1.0  # one decision step
-    substeps: int = 10  # highway backend integration steps per decision
-    episode_steps: int = ranged(100, 1)
+    # highway backend integration steps per decision
+    substeps: int = ranged(10, 1, MAX_SUBSTEPS, why="each is a pass over every vehicle")
+    episode_steps: int = ranged(
+        100, 1, MAX_EPISODE_STEPS, why="an episode's steps are stored and replayed in training"
+    )
     speed_change_mps: float = ranged(2.0, 0)  # accelerate/decelerate action, over one step
     vehicle_length_m: float = ranged(5.0, 0, open_low=True)
     vehicle_width_m: float = ranged(1.8, 0, open_low=True)
@@ -274,11 +311,8 @@ class SimConfig:
     def __post_init__(self) -> None:
         _check_choice("sim.style_preset", self.style_preset, tuple(STYLE_PRESETS))
         _check_choice("sim.cav_mode", self.cav_mode, CAV_MODES)
-        if self.substeps < 1 or not self.step_s > 0:
-            raise ConfigError(
-                f"SimConfig needs step_s > 0 and substeps >= 1, got {self.step_s} and "
-                f"{self.substeps}"
-            )
+        if not self.step_s > 0:
+            raise ConfigError(f"SimConfig needs step_s > 0, got {self.step_s}")
         _check_fields(self)
 
 
@@ -307,9 +341,14 @@ class ObservationConfig:
     the limits a preset lowers (``paper-congestion``).
     """
 
-    history_steps: int = ranged(5, 1)  # neighbour trajectories, current step included
-    n_neighbours: int = ranged(6, 1)  # nearest vehicles in same and adjacent lanes
-    max_vehicles: int = ranged(40, 1)  # critic pads to this many vehicles (demand: on the road)
+    # neighbour trajectories, current step included
+    history_steps: int = ranged(5, 1, MAX_HISTORY_STEPS, why="actor tables are (C, K, T)")
+    # nearest vehicles in same and adjacent lanes
+    n_neighbours: int = ranged(6, 1, MAX_NEIGHBOURS, why="actor tables are (C, K, T)")
+    # critic pads to this many vehicles (demand: on the road)
+    max_vehicles: int = ranged(
+        40, 1, MAX_VEHICLES, why="the critic pads to it; no scenario holds more vehicles"
+    )
     lane_window_m: float = ranged(100.0, 0, open_low=True)  # lane statistics: ahead and behind
     critic_step_input: bool = True  # the critic's step / T feature (False: always 0)
     road_speed_limits: bool = False  # road table column 4 = segment limit / route max
@@ -501,6 +540,10 @@ class EnvConfig:
 # --------------------------------------------------------------------------
 # Networks and training
 # --------------------------------------------------------------------------
+_DIM_WHY = "16x the paper's largest, 256; wider networks' updates take hours"
+_HEADS_WHY = "each head is a full attention map"
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Network sizes of actor and critic.
@@ -514,11 +557,11 @@ class ModelConfig:
     (:data:`PAPER_LEARNER`). A checkpoint keeps the sizes it was trained with.
     """
 
-    hidden_dim: int = ranged(64, 1)
-    gat_heads: int = ranged(4, 1)
-    cross_heads: int = ranged(8, 1)
-    cross_dim: int = ranged(64, 1)
-    gru_hidden: int = ranged(64, 1)
+    hidden_dim: int = ranged(64, 1, MAX_NETWORK_DIM, why=_DIM_WHY)
+    gat_heads: int = ranged(4, 1, MAX_HEADS, why=_HEADS_WHY)
+    cross_heads: int = ranged(8, 1, MAX_HEADS, why=_HEADS_WHY)
+    cross_dim: int = ranged(64, 1, MAX_NETWORK_DIM, why=_DIM_WHY)
+    gru_hidden: int = ranged(64, 1, MAX_NETWORK_DIM, why=_DIM_WHY)
     leaky_slope: float = ranged(0.2, 0)
     taie_concat_heads: bool = False  # TAIE GAT heads hidden/heads wide, concatenated (cheaper)
 
@@ -579,15 +622,19 @@ class TrainConfig:
 
     variant: str = "diacc"
     total_steps: int = ranged(3_000_000, 1)  # environment steps (decisions x envs)
-    n_envs: int = ranged(20, 1)
+    n_envs: int = ranged(20, 1, MAX_ENVS, why="each env adds a simulator and rollout rows")
     # sync (in process), batched (one highway simulator for all envs), process (worker
     # processes), auto (by backend: batched for highway, process for sumo)
     vector: str = one_of("auto", ("auto", "sync", "batched", "process"))
-    rollout_steps: int = ranged(100, 1)
+    rollout_steps: int = ranged(
+        100, 1, MAX_EPISODE_STEPS, why="the rollout holds this many steps of every env"
+    )
     seed: int = 1  # in [0, 2**32 - 1]
     # of the PPO update; rollout forwards always run on the CPU
     device: str = one_of("auto", ("auto", "cpu", "cuda"))
-    torch_threads: int = ranged(0, 0)  # intra-op threads of the trainer; 0 = diacc.threads rule
+    torch_threads: int = ranged(
+        0, 0, 1024, why="more threads than cores only contend"
+    )  # intra-op threads of the trainer; 0 = diacc.threads rule
     update_bf16: bool = False  # bf16 autocast in the PPO update (changes numerics: option)
     update_compile: bool = False  # torch.compile the networks' sequence replay in the update
     # collect the next rollout while the learner trains (second thread): one-update policy lag
@@ -598,7 +645,7 @@ class TrainConfig:
     gamma: float = ranged(0.99, 0, 1)
     gae_lambda: float = ranged(0.95, 0, 1)
     clip: float = ranged(0.2, 0, open_low=True)
-    epochs: int = ranged(5, 1)
+    epochs: int = ranged(5, 1, MAX_EPOCHS, why="each epoch replays the whole rollout")
     # of whole (chunk, env) sequences per epoch: 4 gives 20 Adam steps per update instead
     # of 5 at the same compute (ModelConfig: measured with hidden 64); needs
     # n_envs x rollout_steps / chunk_len >= minibatches (validate)
@@ -710,6 +757,8 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
         return dataclasses.replace(obj, **changes)
     except _FieldError as exc:  # a field of this section: name it by its full key
         raise _FieldError(f"{prefix}{exc.key}", exc.problem) from None
+    except ScenarioError as exc:  # Scenario checks itself (diacc.sim.scenario): name its key
+        raise ScenarioError(f"{prefix.rstrip('.')}: {exc}") from None
 
 
 def _coerce(current: Any, value: Any, key: str) -> Any:
@@ -828,6 +877,24 @@ def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 # --------------------------------------------------------------------------
 # Validation
 # --------------------------------------------------------------------------
+def rollout_bytes(cfg: TrainConfig) -> int:
+    """Upper estimate of the bytes a rollout's observations take (the memory bound of
+    :func:`validate`), without building anything.
+
+    Counts every value of :mod:`diacc.envs.observation`'s layout as 8 bytes and a
+    node as 8 features (the layout has 6), so that it stays above the real size
+    (``ObservationSpec.actor_shapes`` / ``critic_shapes``; a test keeps it so):
+    per CAV slot its own and K neighbours' (HDV and CAV) T-step histories, masks and
+    lane and road tables; per env the critic's ``max_vehicles`` rows.
+    """
+    obs, scenario = cfg.env.obs, cfg.env.scenario
+    k, t = obs.n_neighbours, obs.history_steps
+    per_slot = (2 * k + 1) * t * 8 + 3 * k + 64
+    per_env = obs.max_vehicles * (2 * k + 8) + 16
+    per_step = max(1, scenario.n_slots) * per_slot + per_env
+    return 8 * cfg.rollout_steps * cfg.n_envs * per_step
+
+
 def validate(cfg: TrainConfig) -> TrainConfig:
     """Reject settings that cannot train together (one-line ConfigError).
 
@@ -837,6 +904,15 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     Called before a run writes anything, so a bad value never leaves a run
     directory behind or surfaces later as a NaN checkpoint or a torch error.
     """
+    if rollout_bytes(cfg) > MAX_ROLLOUT_BYTES:
+        raise ConfigError(
+            f"the rollout's observations would take about {rollout_bytes(cfg) / 2**30:.3g} GiB "
+            f"(rollout_steps {cfg.rollout_steps} x n_envs {cfg.n_envs} x "
+            f"{cfg.env.scenario.n_slots} CAV slots, env.obs n_neighbours "
+            f"{cfg.env.obs.n_neighbours}, history_steps {cfg.env.obs.history_steps}, "
+            f"max_vehicles {cfg.env.obs.max_vehicles}); at most "
+            f"{MAX_ROLLOUT_BYTES / 2**30:g} GiB, a third of a 24 GiB machine"
+        )
     if cfg.env.scenario.n_cavs < 1:
         raise ConfigError(
             f"env.scenario: {cfg.env.scenario.n_vehicles} vehicles at cav_penetration "

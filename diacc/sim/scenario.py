@@ -48,6 +48,12 @@ STYLE_MIXES: dict[str, tuple[float, float, float]] = {
 SCENARIO_KINDS = ("release", "demand")
 #: Largest inflow accepted (veh/h): above what 4 lanes carry at any speed, so larger is a typo.
 MAX_INFLOW_VPH = 10_000.0
+#: Most vehicles of one scenario (a release's count, a demand's inflow x duration).
+#: A step's pairwise checks (gaps, neighbours, PSAR) grow with the square of the
+#: count: 2000 already take seconds per env step on one core, and a typo such as
+#: 10**12 must be an error, not an out-of-memory (docs/guide/faults.md, "Size bounds").
+MAX_VEHICLES = 2000
+_VEHICLES_WHY = "a step's pairwise checks grow with the square of the count"
 
 
 class ScenarioError(DiaccError, ValueError):
@@ -93,13 +99,28 @@ class Scenario:
                     f"demand_s must be > 0 and longer than warmup_s, got demand_s "
                     f"{self.demand_s!r}, warmup_s {self.warmup_s!r}"
                 )
-            if not isinstance(self.cav_slots, int) or self.cav_slots < 1:
-                raise ScenarioError(f"cav_slots must be a positive integer, got {self.cav_slots!r}")
+            if not isinstance(self.cav_slots, int) or not 1 <= self.cav_slots <= MAX_VEHICLES:
+                raise ScenarioError(
+                    f"cav_slots must be an integer in [1, {MAX_VEHICLES}], got "
+                    f"{self.cav_slots!r} (no scenario holds more vehicles)"
+                )
             # N follows from the demand: one vehicle per 3600 / inflow seconds.
-            n_total = max(1, int(self.inflow_vph * self.demand_s / 3600.0))
-            object.__setattr__(self, "n_vehicles", n_total)
+            n_total = self.inflow_vph * self.demand_s / 3600.0
+            if not n_total <= MAX_VEHICLES:  # also catches an infinite demand_s
+                raise ScenarioError(
+                    f"demand_s {self.demand_s!r} s at inflow_vph {self.inflow_vph:g} makes "
+                    f"{n_total:.3g} vehicles; at most {MAX_VEHICLES} "
+                    f"(demand_s <= {3600.0 * MAX_VEHICLES / self.inflow_vph:g} s: "
+                    f"{_VEHICLES_WHY})"
+                )
+            object.__setattr__(self, "n_vehicles", max(1, int(n_total)))
         if not isinstance(self.n_vehicles, int) or self.n_vehicles < 1:
             raise ScenarioError(f"n_vehicles must be a positive integer, got {self.n_vehicles!r}")
+        if self.n_vehicles > MAX_VEHICLES:
+            raise ScenarioError(
+                f"n_vehicles must be at most {MAX_VEHICLES}, got {self.n_vehicles} "
+                f"({_VEHICLES_WHY})"
+            )
         if not 0.0 <= self.cav_penetration <= 1.0:
             raise ScenarioError(f"cav_penetration must be in [0, 1], got {self.cav_penetration!r}")
         mix = self.mix
