@@ -501,6 +501,9 @@ class RewardConfig:
 
 
 BACKENDS = ("highway", "sumo")
+#: Backends whose simulator steps many envs as one batch (``vector = "batched"``; their
+#: ``vector_mode``, :mod:`diacc.sim.backends`).
+BATCHED_BACKENDS = ("highway",)
 #: How the actor's actions meet PSAR (:mod:`diacc.envs.action_mask`,
 #: docs/concepts/learning-options.md): "proposed" trains on the proposed action (the paper read
 #: literally), "executed" on the action PSAR executed, "masked" samples only
@@ -514,7 +517,9 @@ class EnvConfig:
 
     backend: str = "highway"
     map: str = "train-25"
-    use_psar: bool = True  # in a TrainConfig, set by its variant
+    # None: on, or in a TrainConfig as its variant says (a value it contradicts is refused);
+    # read it as psar_enabled
+    use_psar: bool | None = None
     psar_actions: str = "proposed"  # PSAR_ACTION_MODES; not "proposed" needs use_psar
     scenario: Scenario = field(default_factory=Scenario)
     sim: SimConfig = field(default_factory=SimConfig)
@@ -535,6 +540,11 @@ class EnvConfig:
         _check_fields(self)
         # Scenario (diacc.sim.scenario) checks its own ranges; finiteness is checked here.
         _check_fields(self.scenario, "scenario.")
+
+    @property
+    def psar_enabled(self) -> bool:
+        """Whether PSAR filters the CAVs' actions (``use_psar``, on when left unset)."""
+        return self.use_psar is not False
 
 
 # --------------------------------------------------------------------------
@@ -678,11 +688,20 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         _check_choice("variant", self.variant, VARIANTS)
-        # The variant decides PSAR, so the environment cannot disagree with it: derived
-        # here; :func:`override` refuses an ``env.use_psar`` asked for that contradicts it.
+        # The variant decides PSAR: an unset env.use_psar is derived from it, a given
+        # one that contradicts it is refused (never overwritten).
         use_psar = VARIANT_TABLE[self.variant].psar
-        if self.env.use_psar != use_psar:
+        if self.env.use_psar is None:
             object.__setattr__(self, "env", dataclasses.replace(self.env, use_psar=use_psar))
+        elif self.env.use_psar != use_psar:
+            wanted = self.env.use_psar
+            others = [v.name for v in VARIANT_TABLE.values() if v.psar == wanted]
+            raise ConfigError(
+                f"env.use_psar={str(wanted).lower()} contradicts variant {self.variant!r}, "
+                f"which {'uses' if use_psar else 'does not use'} PSAR; the variant "
+                f"decides it: choose one {'with' if wanted else 'without'} PSAR "
+                f"({', '.join(others)})"
+            )
         _check_fields(self)
         if not 0 <= self.seed < 2**32:
             raise ConfigError(f"seed must be in [0, 2**32 - 1], got {self.seed}")
@@ -706,33 +725,7 @@ def override(config: Any, values: dict[str, Any]) -> Any:
             if not isinstance(node, dict):
                 raise ConfigError(f"unknown config key {key!r}")
         node[leaf] = value
-    result = _replace(config, tree, "")
-    if isinstance(result, TrainConfig):
-        _refuse_contradicted_psar(result, tree)
-    return result
-
-
-def _refuse_contradicted_psar(cfg: TrainConfig, tree: dict[str, Any]) -> None:
-    """One-line :class:`ConfigError` if ``env.use_psar`` was asked for against the variant.
-
-    The variant derives ``env.use_psar`` (:class:`TrainConfig`), so a requested
-    value it contradicts would otherwise be dropped without a word.
-    """
-    env = next((v for k, v in tree.items() if k.replace("-", "_") == "env"), None)
-    if not isinstance(env, dict):
-        return
-    for key, value in env.items():
-        if key.replace("-", "_") != "use_psar":
-            continue
-        wanted = _coerce(True, value, "env.use_psar")
-        if wanted != cfg.env.use_psar:
-            others = [v.name for v in VARIANT_TABLE.values() if v.psar == wanted]
-            raise ConfigError(
-                f"env.use_psar={str(wanted).lower()} contradicts variant {cfg.variant!r}, "
-                f"which {'uses' if cfg.env.use_psar else 'does not use'} PSAR; the variant "
-                f"decides it: choose one {'with' if wanted else 'without'} PSAR "
-                f"({', '.join(others)})"
-            )
+    return _replace(config, tree, "")
 
 
 def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
@@ -752,13 +745,34 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
                 f"config key {full_key!r} is a section; set its fields ({full_key}.NAME=VALUE)"
             )
         else:
-            changes[head] = _coerce(current, value, full_key)
+            changes[head] = _coerce(_unset_as(obj, head, current), value, full_key)
+    if isinstance(obj, TrainConfig) and "variant" in changes and "use_psar" not in _tree_env(tree):
+        # a new variant derives env.use_psar again (the old one derived the current value)
+        changes["env"] = dataclasses.replace(changes.get("env", obj.env), use_psar=None)
     try:
+        if isinstance(obj, Scenario):  # derives a demand's count again
+            return obj.replace(**changes)
         return dataclasses.replace(obj, **changes)
     except _FieldError as exc:  # a field of this section: name it by its full key
         raise _FieldError(f"{prefix}{exc.key}", exc.problem) from None
     except ScenarioError as exc:  # Scenario checks itself (diacc.sim.scenario): name its key
         raise ScenarioError(f"{prefix.rstrip('.')}: {exc}") from None
+
+
+def _unset_as(obj: Any, name: str, current: Any) -> Any:
+    """A value of the type a field ``X | None`` takes when it is None (unset), so that
+    :func:`_coerce` parses a given value by it (``--set env.use_psar=false``)."""
+    if current is not None:
+        return current
+    hint = next(f.type for f in dataclasses.fields(obj) if f.name == name)
+    kind = str(hint).split("|")[0].strip()
+    return {"bool": False, "int": 0, "float": 0.0, "str": ""}.get(kind, current)
+
+
+def _tree_env(tree: dict[str, Any]) -> set[str]:
+    """Field names (``_`` for ``-``) an override tree sets in its ``env`` section."""
+    env = next((v for k, v in tree.items() if k.replace("-", "_") == "env"), None)
+    return {k.replace("-", "_") for k in env} if isinstance(env, dict) else set()
 
 
 def _coerce(current: Any, value: Any, key: str) -> Any:
@@ -925,6 +939,12 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"total_steps {cfg.total_steps} is less than one update "
             f"(rollout_steps {cfg.rollout_steps} x n_envs {cfg.n_envs} = "
             f"{cfg.rollout_steps * cfg.n_envs} steps)"
+        )
+    if cfg.vector == "batched" and cfg.env.backend not in BATCHED_BACKENDS:
+        raise ConfigError(
+            f"vector 'batched' steps every env in one simulator, which backend "
+            f"{cfg.env.backend!r} does not have ({', '.join(BATCHED_BACKENDS)} does); "
+            "use vector auto, sync or process"
         )
     if cfg.env.psar_actions != "proposed" and not cfg.env.use_psar:
         raise ConfigError(

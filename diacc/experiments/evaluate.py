@@ -107,7 +107,7 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResul
         "episode": episode,
         "seed": seed,
         "n_cavs": driver.cfg.scenario.n_cavs,
-        "psar": driver.cfg.use_psar,
+        "psar": driver.cfg.psar_enabled,
         "steps": driver.steps,
         "collision": int(len(driver.state.collisions) > 0),
         "mean_speed_mps": metrics.mean_speed_mps,
@@ -438,7 +438,7 @@ def evaluation_meta(policy, cells: list[Cell], settings: EvalSettings) -> tuple[
     """
     meta = {**policy.describe(), **settings.describe()}
     env = policy.env_config(cells[0], settings)  # every cell shares PSAR and simulation
-    if not env.use_psar:
+    if not env.psar_enabled:
         return meta, None
     in_effect = {"psar_horizon": env.psar.horizon, "psar_full_brake": env.psar.full_brake}
     meta["settings"] = {**meta["settings"], **in_effect}

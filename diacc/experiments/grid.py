@@ -115,10 +115,10 @@ class Cell:
         """The scenario of this cell (``cav_penetration`` overrides rho, e.g. 0 for pure HDV)."""
         base = base or Scenario()
         rho = self.cav_penetration if cav_penetration is None else cav_penetration
-        demand = {}
-        if self.inflow_vph:  # the run's demand settings, or the defaults
+        size: dict = {"n_vehicles": self.n_vehicles}
+        if self.inflow_vph:  # the run's demand settings, or the defaults; N follows from them
             timing = base if base.kind == "demand" else Scenario()
-            demand = {
+            size = {
                 "kind": "demand",
                 "inflow_vph": self.inflow_vph,
                 "demand_s": timing.demand_s,
@@ -126,13 +126,12 @@ class Cell:
                 "cav_slots": timing.cav_slots,
             }
         return Scenario(
-            n_vehicles=self.n_vehicles,
             cav_penetration=rho,
             style_mix=self.style_mix,
             insert_start_m=base.insert_start_m,
             insert_spacing_m=base.insert_spacing_m,
             insert_speed_mps=base.insert_speed_mps,
-            **demand,
+            **size,
         )
 
     def seed(self, episode: int) -> int:
