@@ -889,6 +889,82 @@ def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------
+# Stored configs (checkpoints, config.json)
+# --------------------------------------------------------------------------
+#: Version of the config schema a checkpoint stores (its ``config_schema``; a config
+#: without one is version 1). Raise it whenever a field moves or its default changes,
+#: and add the step that rewrites a stored config of the version before into the new
+#: one to :data:`_MIGRATIONS`, so that loading never switches how a trained policy
+#: was run (docs/concepts/conventions.md, "Configuration").
+CONFIG_SCHEMA = 2
+
+#: Sections a TrainConfig held at its top level before it nested an EnvConfig.
+_ENV_SECTIONS_BEFORE_NESTING = ("backend", "map", "sim", "scenario", "obs", "psar", "reward")
+#: Defaults of version 1 that version 2 changed; a version-1 config without the field
+#: meant these: ``env.psar.horizon`` ("stopping"), ``env.psar.full_brake`` ("bound"),
+#: the learner's sizes, minibatches and entropy bonus (:data:`PAPER_LEARNER`).
+_SCHEMA_1_DEFAULTS = {
+    "env.psar.horizon": "stopping",
+    "env.psar.full_brake": "bound",
+    **PAPER_LEARNER,
+}
+
+
+def _schema_1_to_2(stored: dict[str, Any]) -> dict[str, Any]:
+    """Version 1 -> 2: the environment's sections move under ``env`` (configs that
+    predate the nesting), and a field missing takes its version-1 default."""
+    stored = dict(stored)
+    if "env" not in stored:
+        stored["env"] = {k: stored.pop(k) for k in _ENV_SECTIONS_BEFORE_NESTING if k in stored}
+    return _unflatten({**_SCHEMA_1_DEFAULTS, **flatten_config(stored)})
+
+
+#: version -> the step that rewrites a stored config of that version into the next.
+_MIGRATIONS = {1: _schema_1_to_2}
+
+
+def stored_config(stored: dict[str, Any], schema: Any = 1) -> TrainConfig:
+    """The TrainConfig a stored config of ``schema`` means (one-line ConfigError if none).
+
+    Migrated step by step to :data:`CONFIG_SCHEMA`; a field it lacks then takes its
+    current default. Values pass the same checks (ranges, bounds, contradictions) as
+    any user input.
+    """
+    if not isinstance(schema, int) or isinstance(schema, bool) or schema < 1:
+        raise ConfigError(f"config schema must be a positive integer, got {schema!r}")
+    if schema > CONFIG_SCHEMA:
+        raise ConfigError(
+            f"config schema {schema} is newer than this diacc's ({CONFIG_SCHEMA}); update diacc"
+        )
+    for version in range(schema, CONFIG_SCHEMA):
+        stored = _MIGRATIONS[version](stored)
+    return override(TrainConfig(), flatten_config(stored))
+
+
+def flatten_config(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (lists as tuples), the keys :func:`override` takes."""
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(flatten_config(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
+    return flat
+
+
+def _unflatten(flat: Mapping[str, Any]) -> dict[str, Any]:
+    """``{"a.b": 1}`` -> ``{"a": {"b": 1}}`` (the inverse of :func:`flatten_config`)."""
+    tree: dict[str, Any] = {}
+    for key, value in flat.items():
+        *parents, leaf = key.split(".")
+        node = tree
+        for name in parents:
+            node = node.setdefault(name, {})
+        node[leaf] = value
+    return tree
+
+
+# --------------------------------------------------------------------------
 # Validation
 # --------------------------------------------------------------------------
 def rollout_bytes(cfg: TrainConfig) -> int:

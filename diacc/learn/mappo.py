@@ -58,7 +58,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.tensorboard import SummaryWriter
 
-from diacc.config import TrainConfig, validate
+from diacc.config import TrainConfig, flatten_config, validate
 from diacc.console import TrainProgress
 from diacc.envs.action_mask import masked_logits
 from diacc.envs.observation import ObservationSpec, stack, unstack
@@ -72,7 +72,6 @@ from diacc.learn.buffer import Rollout, compute_gae
 from diacc.learn.checkpoint import (
     CheckpointError,
     config_from_checkpoint,
-    flatten_config,
     init_networks,
     load_checkpoint,
     restore,
