@@ -148,3 +148,18 @@ def test_validate_refuses_a_rollout_that_does_not_fit():
 def test_bounds_leave_the_shipped_settings_alone():
     assert ObservationConfig(max_vehicles=MAX_VEHICLES).max_vehicles == MAX_VEHICLES
     validate(override(TrainConfig(), {"model.hidden_dim": 256, "model.gru_hidden": 256}))
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["eval", "--policy", "heuristic", "--grid", "train", "--workers", "10000"],
+        ["reproduce", "--jobs", "10000", "--dry-run"],
+    ],
+)
+def test_worker_processes_are_bounded(tmp_path, capsys, monkeypatch, argv):
+    monkeypatch.chdir(tmp_path)
+    assert main([*argv, "--out", "out"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "must be in [1, 64], got 10000 (each is a process" in err and "\n" not in err
+    assert os.listdir(tmp_path) == []

@@ -76,6 +76,11 @@ SPEED_COLUMNS = (
 )
 
 
+#: Most worker processes of one evaluation: each holds a simulator and torch (about
+#: 0.4 GB, docs/guide/faults.md), so 64 fill a 24 GiB machine.
+MAX_WORKERS = 64
+
+
 class EvaluationError(DiaccError, ValueError):
     """Bad evaluation input (episodes, results directory...); one line."""
 
@@ -499,8 +504,11 @@ def evaluate(
     out_dir = Path(out_dir)
     if episodes < 1:
         raise EvaluationError(f"--episodes must be >= 1, got {episodes}")
-    if workers < 1:
-        raise EvaluationError(f"--workers must be >= 1, got {workers}")
+    if not 1 <= workers <= MAX_WORKERS:
+        raise EvaluationError(
+            f"--workers must be in [1, {MAX_WORKERS}], got {workers} (each is a process "
+            "with its own simulator and torch, about 0.4 GB)"
+        )
     if not cells:
         raise EvaluationError("the grid has no cells")
     policy = build_policy(spec)  # fail fast on a bad checkpoint, in this process
