@@ -642,9 +642,8 @@ class TrainConfig:
     seed: int = 1  # in [0, 2**32 - 1]
     # of the PPO update; rollout forwards always run on the CPU
     device: str = one_of("auto", ("auto", "cpu", "cuda"))
-    torch_threads: int = ranged(
-        0, 0, 1024, why="more threads than cores only contend"
-    )  # intra-op threads of the trainer; 0 = diacc.threads rule
+    # intra-op threads of the trainer; 0 = diacc.threads rule
+    torch_threads: int = ranged(0, 0, 1024, why="more threads than cores only contend")
     update_bf16: bool = False  # bf16 autocast in the PPO update (changes numerics: option)
     update_compile: bool = False  # torch.compile the networks' sequence replay in the update
     # collect the next rollout while the learner trains (second thread): one-update policy lag
@@ -746,7 +745,7 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
             )
         else:
             changes[head] = _coerce(_unset_as(obj, head, current), value, full_key)
-    if isinstance(obj, TrainConfig) and "variant" in changes and "use_psar" not in _tree_env(tree):
+    if isinstance(obj, TrainConfig) and "variant" in changes and _rederive_psar(tree):
         # a new variant derives env.use_psar again (the old one derived the current value)
         changes["env"] = dataclasses.replace(changes.get("env", obj.env), use_psar=None)
     try:
@@ -769,10 +768,11 @@ def _unset_as(obj: Any, name: str, current: Any) -> Any:
     return {"bool": False, "int": 0, "float": 0.0, "str": ""}.get(kind, current)
 
 
-def _tree_env(tree: dict[str, Any]) -> set[str]:
-    """Field names (``_`` for ``-``) an override tree sets in its ``env`` section."""
-    env = next((v for k, v in tree.items() if k.replace("-", "_") == "env"), None)
-    return {k.replace("-", "_") for k in env} if isinstance(env, dict) else set()
+def _rederive_psar(tree: dict[str, Any]) -> bool:
+    """Whether an override tree leaves ``env.use_psar`` to the variant: it sets neither
+    that field nor a whole ``env`` section (an EnvConfig, which says its own)."""
+    env = next((v for k, v in tree.items() if k.replace("-", "_") == "env"), {})
+    return isinstance(env, dict) and all(k.replace("-", "_") != "use_psar" for k in env)
 
 
 def _coerce(current: Any, value: Any, key: str) -> Any:
@@ -910,16 +910,20 @@ _SCHEMA_1_DEFAULTS = {
 }
 
 
-def _schema_1_to_2(stored: dict[str, Any]) -> dict[str, Any]:
-    """Version 1 -> 2: the environment's sections move under ``env`` (configs that
-    predate the nesting), and a field missing takes its version-1 default."""
-    stored = dict(stored)
-    if "env" not in stored:
-        stored["env"] = {k: stored.pop(k) for k in _ENV_SECTIONS_BEFORE_NESTING if k in stored}
-    return _unflatten({**_SCHEMA_1_DEFAULTS, **flatten_config(stored)})
+def _schema_1_to_2(flat: dict[str, Any]) -> dict[str, Any]:
+    """Version 1 -> 2 of a flat stored config: the environment's sections move under
+    ``env`` (configs that predate the nesting), a missing field takes its version-1
+    default."""
+    if not any(key.split(".")[0] == "env" for key in flat):
+        flat = {
+            f"env.{key}" if key.split(".")[0] in _ENV_SECTIONS_BEFORE_NESTING else key: value
+            for key, value in flat.items()
+        }
+    return {**_SCHEMA_1_DEFAULTS, **flat}
 
 
-#: version -> the step that rewrites a stored config of that version into the next.
+#: version -> the step that rewrites a stored config of that version (flat: dotted keys)
+#: into the next.
 _MIGRATIONS = {1: _schema_1_to_2}
 
 
@@ -936,9 +940,10 @@ def stored_config(stored: dict[str, Any], schema: Any = 1) -> TrainConfig:
         raise ConfigError(
             f"config schema {schema} is newer than this diacc's ({CONFIG_SCHEMA}); update diacc"
         )
+    flat = flatten_config(stored)
     for version in range(schema, CONFIG_SCHEMA):
-        stored = _MIGRATIONS[version](stored)
-    return override(TrainConfig(), flatten_config(stored))
+        flat = _MIGRATIONS[version](flat)
+    return override(TrainConfig(), flat)
 
 
 def flatten_config(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -950,18 +955,6 @@ def flatten_config(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
         else:
             flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
     return flat
-
-
-def _unflatten(flat: Mapping[str, Any]) -> dict[str, Any]:
-    """``{"a.b": 1}`` -> ``{"a": {"b": 1}}`` (the inverse of :func:`flatten_config`)."""
-    tree: dict[str, Any] = {}
-    for key, value in flat.items():
-        *parents, leaf = key.split(".")
-        node = tree
-        for name in parents:
-            node = node.setdefault(name, {})
-        node[leaf] = value
-    return tree
 
 
 # --------------------------------------------------------------------------
