@@ -163,3 +163,32 @@ def test_worker_processes_are_bounded(tmp_path, capsys, monkeypatch, argv):
     err = capsys.readouterr().err.strip()
     assert "must be in [1, 64], got 10000 (each is a process" in err and "\n" not in err
     assert os.listdir(tmp_path) == []
+
+
+WIDE_MAP = """name = "wide"
+lane_width_m = 3.2
+[[segments]]
+kind = "multilane"
+length_m = 500
+lanes = 7
+speed_limit_mps = 25.0
+"""
+
+
+def test_a_map_wider_than_the_observation_is_refused_before_anything_is_written(
+    tmp_path, capsys, monkeypatch
+):
+    """A 7-lane map parses (maps allow 16) but the observation's lane table holds 6: once
+    found by the first observation, after config.json and train.log were written."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "wide.toml").write_text(WIDE_MAP)
+    (tmp_path / "g.toml").write_text('[product]\nmap = ["wide.toml"]\n')
+    for argv in (
+        ["train", "--no-progress", "--map", "wide.toml", "--steps", "2000", "--envs", "2"],
+        ["eval", "--policy", "heuristic", "--grid", "g.toml", "--out", "out"],
+    ):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert "map 'wide' has 7 lanes; the observation layout holds at most" in err
+        assert "\n" not in err
+        assert sorted(os.listdir(tmp_path)) == ["g.toml", "wide.toml"]

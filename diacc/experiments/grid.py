@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diacc.envs.observation import ObservationError, check_road
 from diacc.errors import DiaccError
 from diacc.sim.maps import MapError, load_map, map_tag
 from diacc.sim.scenario import STYLE_MIXES, Scenario, ScenarioError, draw_population
@@ -181,7 +182,8 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
         raise GridError(f"{source}: map must be a map name or .toml path, got {values['map']!r}")
     try:
         road = load_map(values["map"])
-    except MapError as exc:
+        check_road(road)  # the observation's road and lane tables hold it
+    except (MapError, ObservationError) as exc:
         raise GridError(f"{source}: {exc}") from None
     n, rho, mix = values["n_vehicles"], values["cav_penetration"], values["style_mix"]
     if not isinstance(n, int) or isinstance(n, bool) or n < 1:

@@ -61,7 +61,7 @@ from torch.utils.tensorboard import SummaryWriter
 from diacc.config import TrainConfig, flatten_config, validate
 from diacc.console import TrainProgress
 from diacc.envs.action_mask import masked_logits
-from diacc.envs.observation import ObservationSpec, stack, unstack
+from diacc.envs.observation import ObservationSpec, check_road, stack, unstack
 from diacc.envs.psar import RULE_NAMES, rule_counts
 from diacc.envs.reward import team_reward, temperature
 from diacc.envs.vector import make_vector_env
@@ -638,7 +638,9 @@ def train(
     # The first vehicles' placement checks that the scenario fits the map, before anything
     # is written (it used to fail in the first reset, after config.json and tb/ existed).
     for road_map in (cfg.env.map, *cfg.extra_maps):
-        draw_population(cfg.env.scenario, load_map(road_map), cfg.seed)
+        road = load_map(road_map)
+        check_road(road)  # the observation's road and lane tables hold it
+        draw_population(cfg.env.scenario, road, cfg.seed)
     device = resolve_device(cfg.device)
     run_dir = Path(cfg.run_dir)
     with locked_dir(run_dir, "train"):
