@@ -151,17 +151,24 @@ def test_bounds_leave_the_shipped_settings_alone():
 
 
 @pytest.mark.parametrize(
-    "argv",
+    ("argv", "message"),
     [
-        ["eval", "--policy", "heuristic", "--grid", "train", "--workers", "10000"],
-        ["reproduce", "--jobs", "10000", "--dry-run"],
+        (
+            ["eval", "--policy", "heuristic", "--grid", "train", "--workers", "10000"],
+            "--workers must be in [1, 64], got 10000 (each is a process",
+        ),
+        (["reproduce", "--jobs", "10000", "--dry-run"], "--jobs must be in [1, 64], got 10000 ("),
+        (
+            ["eval", "--policy", "heuristic", "--grid", "train", "--episodes", "1000000000"],
+            "--episodes must be in [1, 10000], got 1000000000 (per cell",
+        ),
     ],
 )
-def test_worker_processes_are_bounded(tmp_path, capsys, monkeypatch, argv):
+def test_worker_processes_and_episodes_are_bounded(tmp_path, capsys, monkeypatch, argv, message):
     monkeypatch.chdir(tmp_path)
     assert main([*argv, "--out", "out"]) == 2
     err = capsys.readouterr().err.strip()
-    assert "must be in [1, 64], got 10000 (each is a process" in err and "\n" not in err
+    assert message in err and "\n" not in err
     assert os.listdir(tmp_path) == []
 
 

@@ -79,6 +79,9 @@ SPEED_COLUMNS = (
 #: Most worker processes of one evaluation: each holds a simulator and torch (about
 #: 0.4 GB, docs/guide/faults.md), so 64 fill a 24 GiB machine.
 MAX_WORKERS = 64
+#: Most episodes per cell (the paper runs 10): the cell's episode list and results are
+#: held in memory, and each episode is seconds of simulation.
+MAX_EPISODES = 10_000
 
 
 class EvaluationError(DiaccError, ValueError):
@@ -502,8 +505,11 @@ def evaluate(
     episodes once its files are written (``diacc reproduce`` prints a line).
     """
     out_dir = Path(out_dir)
-    if episodes < 1:
-        raise EvaluationError(f"--episodes must be >= 1, got {episodes}")
+    if not 1 <= episodes <= MAX_EPISODES:
+        raise EvaluationError(
+            f"--episodes must be in [1, {MAX_EPISODES}], got {episodes} (per cell; each is "
+            "seconds of simulation and a results row, all held in memory)"
+        )
     if not 1 <= workers <= MAX_WORKERS:
         raise EvaluationError(
             f"--workers must be in [1, {MAX_WORKERS}], got {workers} (each is a process "
