@@ -29,6 +29,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from diacc.experiments.plots import step_axis
+
 COLUMNS = {
     "collision_rate": "episode/collision",
     "mean_speed_mps": "episode/mean_speed_mps",
@@ -92,7 +94,8 @@ def main() -> None:
         for ax, (column, _) in zip(axes, PANELS, strict=True):
             ax.plot(steps, smooth([r[column] for r in rows], args.smooth), label=label)
     for ax, (column, ylabel) in zip(axes, PANELS, strict=True):
-        ax.set(xlabel="environment steps", ylabel=ylabel)
+        step_axis(ax)
+        ax.set_ylabel(ylabel)
         if column in SHARES:
             ax.set_ylim(-0.02, 1.02)
         ax.legend()

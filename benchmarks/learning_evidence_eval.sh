@@ -12,6 +12,9 @@
 # GRID another grid file, e.g. benchmarks/grids/zero-shot-geometry.toml (maps never trained on);
 # PRESET another HDV style preset, e.g. paper-congestion (the paper's stuck cautious drivers);
 # FULL_BRAKE a PSAR full_brake rule for every policy with PSAR (default: each policy's own).
+# STREAM the episode seed stream (default validation: these results choose seeds and settings;
+# report a chosen agent on `--stream test`, as docs/results/test-stream.md does; results
+# committed before 2026-12-04 ran on `legacy`).
 set -euo pipefail
 runs=${RUNS:-runs/l27}
 out=${OUT:-runs/l27-eval}
@@ -19,6 +22,7 @@ episodes=${EPISODES:-10}
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 common=(--grid "${GRID:-benchmarks/grids/train-50.toml}" --episodes "$episodes" --style-preset "${PRESET:-realistic}"
         --episode-steps 330 --psar-horizon headway --no-progress --workers "${WORKERS:-1}"
+        --stream "${STREAM:-validation}"
         ${FULL_BRAKE:+--psar-full-brake "$FULL_BRAKE"})
 for backend in ${BACKENDS:-highway sumo}; do
   for baseline in pure-hdv same-mix heuristic cooperative; do

@@ -16,6 +16,7 @@ from diacc.experiments.policies import (
     EvalSettings,
     PolicyError,
     PolicySpec,
+    PureHdvPolicy,
     SameMixPolicy,
     build_policy,
     heuristic_actions,
@@ -64,12 +65,12 @@ def test_same_mix_runs_with_the_cells_vehicles(backend):
     assert not cfg.use_psar and cfg.scenario.n_cavs == 0
     driver = EpisodeDriver(policy, cfg)
     try:
-        row = run_episode(driver, CELL, 0).row
+        row = run_episode(driver, CELL, 0, "test").row
         state = driver.state
     finally:
         driver.close()
     assert row["policy"] == "same-mix" and row["n_cavs"] == 0 and row["n_vehicles_seen"] == 20
-    cav_slots = draw_population(CELL.scenario(), driver.road, CELL.seed(0)).is_cav
+    cav_slots = draw_population(CELL.scenario(), driver.road, CELL.seed(0, "test")).is_cav
     assert np.all(state.style[cav_slots] == NORMAL) and not state.is_cav.any()
 
 
@@ -125,3 +126,21 @@ def test_eval_psar_horizon_reaches_every_policy_with_psar_and_is_recorded():
     assert "psar_horizon" not in EvalSettings().describe()["settings"]
     with pytest.raises(PolicyError, match="unknown PSAR horizon 'soon'"):
         EvalSettings(psar_horizon="soon")
+
+
+def test_an_episode_without_cavs_warns_nothing():
+    """Pure HDV has no CAV: the logged CAV means are 0, not 0 / 0 with a RuntimeWarning
+    printed by every `diacc simulate` / `eval` (issue 42)."""
+    import warnings
+
+    policy = PureHdvPolicy()
+    driver = EpisodeDriver(policy, policy.env_config(CELL, EvalSettings(episode_steps=3)))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            driver.reset(CELL.seed(0, "test"))
+            out = driver.env.step_arrays(np.zeros(0, np.int64))  # no CAV, no action
+            run_episode(driver, CELL, 0, "test")
+    finally:
+        driver.close()
+    assert out.reward_terms["individual"] == 0.0

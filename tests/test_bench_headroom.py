@@ -85,7 +85,7 @@ def test_headroom_demand_tiny(tmp_path, capsys):
         policy, policy.env_config(cell, EvalSettings("highway", 30, "zipper"))
     )
     try:
-        run_episode(driver, cell, 0)
+        run_episode(driver, cell, 0, "legacy")
     finally:
         driver.close()
     assert driver.unslotted_cav_steps > 0

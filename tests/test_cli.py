@@ -243,6 +243,13 @@ def test_device_defaults_to_the_training_config_default_everywhere():
     assert cli.bench_device(None) in ("cpu", "cuda")  # what auto means on this machine
 
 
+@pytest.mark.parametrize("seed", ["-7", "2147483648"])
+def test_simulate_refuses_a_seed_outside_sumos_range_in_one_line(seed, capsys):
+    assert main(["simulate", "--steps", "3", "--vehicles", "5", "--seed", seed]) == 2
+    err = capsys.readouterr().err
+    assert err == f"diacc: error: a seed must be in 0..2147483647 (SUMO's range), got {seed}\n"
+
+
 def test_simulate_former_steps_runs(capsys):
     assert main(["simulate", "--steps", "3", "--vehicles", "5"]) == 0
     assert "at most 3 steps" in capsys.readouterr().out.splitlines()[0]

@@ -20,15 +20,18 @@ from diacc.experiments.evaluate import (
     SPEEDS_FILE,
     EvaluationError,
     evaluate,
+    load_episodes,
     read_csv,
 )
-from diacc.experiments.grid import Cell, GridError, load_grid
-from diacc.experiments.policies import EvalSettings, PolicySpec
+from diacc.experiments.grid import SEED_STREAMS, Cell, GridError, load_grid
+from diacc.experiments.policies import EvalSettings, PolicyError, PolicySpec
 from diacc.learn.checkpoint import save_checkpoint
 from diacc.learn.mappo import make_agent
 from diacc.sim.maps import SEGMENT_KINDS
 
 SMALL = Cell("train-50", 10, 0.4, "D1")
+#: Seed of SMALL's episode 0 before seed streams (the legacy stream keeps it).
+LEGACY_SEED_SMALL_0 = 1259447561
 GRID_TOML = """
 [[cells]]
 map = "train-50"
@@ -79,9 +82,28 @@ def test_grid_file_and_seeds(tmp_path):
     path.write_text(GRID_TOML + '\n[product]\nmap = ["test-25"]\nn_vehicles = [20, 30]\n')
     cells = load_grid(path)
     assert cells[0] == SMALL and [c.n_vehicles for c in cells[1:]] == [20, 30]
-    seeds = {c.seed(e) for c in cells for e in range(20)}
-    assert len(seeds) == 3 * 20 and max(seeds) < 2**31  # distinct, fit SUMO's --seed
-    assert SMALL.seed(3) == Cell("train-50", 10, 0.4, "D1").seed(3)  # fixed per cell/episode
+    for stream in SEED_STREAMS:
+        seeds = {c.seed(e, stream) for c in cells for e in range(20)}
+        assert len(seeds) == 3 * 20 and max(seeds) < 2**31  # distinct, fit SUMO's --seed
+    assert SMALL.seed(3, "test") == Cell("train-50", 10, 0.4, "D1").seed(3, "test")  # fixed
+    # the legacy stream is the derivation of every result committed before streams
+    assert SMALL.seed(0, "legacy") == LEGACY_SEED_SMALL_0
+
+
+def test_validation_and_test_streams_are_disjoint():
+    """Disjoint by construction (parity), whatever the cell or episode."""
+    cells = [SMALL, Cell("test-25", 30, 0.3, "D2"), Cell("train-50", 25, 0.4, "D1")]
+    validation = {c.seed(e, "validation") for c in cells for e in range(200)}
+    test = {c.seed(e, "test") for c in cells for e in range(200)}
+    assert all(s % 2 == 0 for s in validation) and all(s % 2 == 1 for s in test)
+    assert len(validation) == len(test) == 600 and not validation & test
+
+
+def test_unknown_stream_is_one_line():
+    with pytest.raises(GridError, match="unknown seed stream 'tset'; use test, validation"):
+        SMALL.seed(0, "tset")
+    with pytest.raises(PolicyError, match="unknown seed stream"):
+        EvalSettings(stream="tset")
 
 
 @pytest.mark.parametrize(
@@ -139,6 +161,31 @@ def test_metrics_equal_recomputation_from_speed_samples(hdv_results):
         waited = np.unique(vehicle[speed < 3.0]).size
         assert float(row["p_we"]) == pytest.approx(waited / np.unique(vehicle).size)
         assert int(row["n_vehicles_seen"]) == np.unique(vehicle).size == SMALL.n_vehicles
+
+
+def test_results_name_their_seed_stream(hdv_results, tmp_path):
+    """episodes.csv and meta.json name the stream; validation plays other traffic, and a
+    directory of one stream is refused another."""
+    rows = read_csv(hdv_results / EPISODES_FILE)
+    assert [r["stream"] for r in rows] == ["test", "test"]
+    assert [int(r["seed"]) for r in rows] == [SMALL.seed(e, "test") for e in range(2)]
+    assert json.loads((hdv_results / "meta.json").read_text())["settings"]["stream"] == "test"
+    settings = EvalSettings("highway", episode_steps=40, stream="validation")
+    evaluate(PolicySpec("pure-hdv"), [SMALL], 2, tmp_path, settings, progress=False)
+    rows = read_csv(tmp_path / EPISODES_FILE)
+    assert [r["stream"] for r in rows] == ["validation", "validation"]
+    assert [int(r["seed"]) for r in rows] == [SMALL.seed(e, "validation") for e in range(2)]
+    with pytest.raises(
+        EvaluationError, match=r"other 'settings' \(stream: validation, asked test\)"
+    ):
+        evaluate(
+            PolicySpec("pure-hdv"),
+            [SMALL],
+            2,
+            tmp_path,
+            EvalSettings("highway", episode_steps=40),
+            progress=False,
+        )
 
 
 def test_rerun_skips_finished_cells(hdv_results):
@@ -225,8 +272,16 @@ def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_p
     with pytest.raises(EvaluationError, match="other 'settings'"):
         run(PolicySpec("heuristic"), old)
     with pytest.raises(EvaluationError, match="other 'settings'"):
-        run(PolicySpec("heuristic"), old, psar_horizon="stopping")
-    run(PolicySpec("heuristic"), old, psar_horizon="stopping", psar_full_brake="bound")
+        run(PolicySpec("heuristic"), old, psar_horizon="stopping", stream="legacy")
+    with pytest.raises(EvaluationError, match="other 'settings'"):  # it ran on legacy seeds
+        run(PolicySpec("heuristic"), old, psar_horizon="stopping", psar_full_brake="bound")
+    run(
+        PolicySpec("heuristic"),
+        old,
+        psar_horizon="stopping",
+        psar_full_brake="bound",
+        stream="legacy",
+    )
     settings = json.loads((old / "meta.json").read_text())["settings"]
     assert (settings["psar_horizon"], settings["psar_full_brake"]) == ("stopping", "bound")
     ckpt = _checkpoint(tmp_path / "run")  # trained (here: made) with today's default
@@ -234,7 +289,7 @@ def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_p
     old_ckpt.mkdir()
     meta = {**meta, "policy": "diacc", "checkpoint": str(ckpt.resolve())}
     (old_ckpt / "meta.json").write_text(json.dumps(meta))
-    run(PolicySpec(str(ckpt)), old_ckpt)
+    run(PolicySpec(str(ckpt)), old_ckpt, stream="legacy")
     settings = json.loads((old_ckpt / "meta.json").read_text())["settings"]
     assert (settings["psar_horizon"], settings["psar_full_brake"]) == ("headway", "known")
 
@@ -352,3 +407,19 @@ def test_highway_cooperative_cavs_drive_themselves():
     assert states[0].speed_mps[cav].mean() > scenario.insert_speed_mps + 1.0
     with pytest.raises(ConfigError, match="cav_mode"):
         SimConfig(cav_mode="platoon")
+
+
+def test_results_of_a_demand_cell_load(tmp_path):
+    """A demand cell's N follows from its inflow: reading its results back once checked
+    N alone against the map (300 vehicles do not fit at t = 0) and failed."""
+    from diacc.experiments.grid import make_cell
+    from diacc.experiments.report import build_table
+
+    cell = make_cell(
+        {"map": "train-50", "cav_penetration": 0.4, "style_mix": "D1", "inflow_vph": 3600.0}
+    )
+    settings = EvalSettings("highway", episode_steps=3)
+    evaluate(PolicySpec("same-mix"), [cell], 1, tmp_path, settings, progress=False)
+    _, rows = load_episodes(tmp_path)
+    assert float(rows[0]["inflow_vph"]) == 3600.0 and int(rows[0]["n_vehicles"]) > 100
+    assert build_table([tmp_path], rows=("speed",)).cells == [cell]

@@ -82,7 +82,9 @@ def test_chunked_replay_reproduces_rollout_logprobs(rollout_and_batch):
     with torch.no_grad():
         every_env = torch.arange(batch.critic_h0.shape[0])
         logprob, _, _, agents = evaluate_batch(agent, batch, every_env, 4)
-    ratio = (logprob - batch.logprobs[:, agents]).exp()
+    # On the road; a replay need not encode CAVs off it (recurrent.needed_rows).
+    alive = batch.alive[:, agents].bool()
+    ratio = (logprob - batch.logprobs[:, agents]).exp()[alive]
     assert torch.allclose(ratio, torch.ones_like(ratio), atol=1e-5)
 
 
@@ -166,9 +168,9 @@ def test_training_passes_the_annealed_temperature_to_each_rollout(tmp_path, monk
     cfg = tiny_config(tmp_path, **{"env.reward.tau_anneal_fraction": 0.5})
     taus, real = [], mappo.collect_rollout
 
-    def spy(agent, envs, cfg, update, tau, sync=True):
+    def spy(agent, envs, cfg, update, tau, **options):
         taus.append(tau)
-        return real(agent, envs, cfg, update, tau, sync)
+        return real(agent, envs, cfg, update, tau, **options)
 
     monkeypatch.setattr(mappo, "collect_rollout", spy)
     train(cfg, progress=False)
@@ -290,3 +292,52 @@ def test_bad_checkpoints_give_one_line_errors(tmp_path):
         train(override(cfg, {"variant": "mappo"}), resume=True, progress=False)
     with pytest.raises(CheckpointError, match="does not exist"):
         load_checkpoint(tmp_path / "missing.pt")
+
+
+@pytest.mark.parametrize("critic_values", ["team", "per_agent"])
+def test_values_after_the_rollout_equal_values_stepped_with_the_envs(tmp_path, critic_values):
+    """rollout_values (one pass per chunk, after the loop) gives the values, hidden states,
+    truncation bootstraps and V(s_S) of the critic stepped along with the envs."""
+    from diacc.envs.observation import stack
+    from diacc.learn.mappo import critic_inputs
+
+    cfg = tiny_config(tmp_path, critic_values=critic_values)
+    agent, roll, _ = rollout_batch(cfg)
+    per_agent = critic_values == "per_agent"
+    critic, norm = agent.critic, agent.value_norm
+    assert roll.truncated.any() and roll.cut_states, "test needs an episode cut by the limit"
+    hidden = torch.zeros(cfg.n_envs, critic.hidden_size)
+    with torch.no_grad():
+        for t in range(cfg.rollout_steps):
+            np.testing.assert_allclose(roll.critic_hidden[t], hidden.numpy(), atol=1e-5)
+            inputs = critic_inputs(roll.critic_state[t], roll.actor_obs[t], per_agent, "cpu")
+            value, hidden = critic(inputs, hidden, torch.as_tensor(roll.episode_start[t]))
+            np.testing.assert_allclose(roll.values_normalised[t], value.numpy(), atol=1e-5)
+            np.testing.assert_allclose(roll.values[t], norm.denormalize(value).numpy(), atol=1e-5)
+            for cut_t, e, final_state, final_actor in roll.cut_states:
+                if cut_t == t:
+                    v, _ = critic(
+                        critic_inputs(stack([final_state]), stack([final_actor]), per_agent, "cpu"),
+                        hidden[e : e + 1],
+                        torch.zeros(1, dtype=torch.bool),
+                    )
+                    want = norm.denormalize(v).numpy()[0]
+                    np.testing.assert_allclose(roll.final_values[t, e], want, atol=1e-5)
+    assert not np.all(roll.values == 0)
+
+
+def test_proximal_policy_of_an_unlagged_rollout_is_the_behaviour_policy(rollout_and_batch):
+    """add_proximal_policy replays the actor: on a rollout the same parameters collected,
+    its log-probs are the stored ones and every behaviour weight is 1."""
+    from diacc.learn.mappo import add_proximal_policy
+
+    cfg, agent, roll, batch = rollout_and_batch
+    lagged = copy.copy(batch)
+    add_proximal_policy(agent, lagged, cfg, roll.actions.shape[2])
+    alive = batch.alive.bool()
+    torch.testing.assert_close(
+        lagged.prox_logprobs[alive], batch.logprobs[alive], rtol=0, atol=1e-5
+    )
+    weights = lagged.behaviour_weights[alive]
+    torch.testing.assert_close(weights, torch.ones_like(weights), rtol=0, atol=1e-4)
+    assert batch.prox_logprobs is None

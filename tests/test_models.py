@@ -15,6 +15,7 @@ from diacc.learn.models.gat import GraphAttention
 from diacc.learn.models.inputs import to_tensors
 from diacc.learn.models.itdr import ITDR, CIECCritic
 from diacc.learn.models.mlp import MLPActor
+from diacc.learn.models.recurrent import needed_rows
 from diacc.learn.models.registry import build_networks
 from diacc.learn.models.synthetic import random_actor_obs, random_critic_state
 from diacc.learn.models.taie import TAIE, DIADMActor
@@ -331,8 +332,37 @@ def test_sequence_replay_equals_step_by_step(variant):
             for t in range(4):
                 out, h = net({k: v[t] for k, v in inputs.items()}, h, starts[t])
                 outs.append(out)
-        torch.testing.assert_close(seq, torch.stack(outs), atol=ATOL, rtol=1e-5)
-        torch.testing.assert_close(h_seq, h, atol=ATOL, rtol=1e-5)
+        # Rows of agents off the road that reach no loss are not encoded in the replay.
+        needed = needed_rows(inputs, starts)
+        rows = slice(None) if needed is None else needed.view(4, batch)
+        torch.testing.assert_close(seq[rows], torch.stack(outs)[rows], atol=ATOL, rtol=1e-5)
+        last = slice(None) if needed is None else rows[-1]
+        torch.testing.assert_close(h_seq[last], h[last], atol=ATOL, rtol=1e-5)
+
+
+def test_replay_skips_only_rows_that_reach_no_loss():
+    """An actor replay encodes the alive rows and the dead rows whose GRU state an alive
+    row inherits (no reset between): garbage in any other row changes no alive output."""
+    actor, _ = build_networks("diacc", CFG, SPEC)
+    obs = to_tensors(random_actor_obs(SPEC, (6, 4), np.random.default_rng(3)))
+    alive = torch.tensor([[1, 1, 0, 1]] * 6, dtype=torch.bool)
+    alive[3:, 0] = False  # left the road at t = 3: rows 3-5 of agent 0 are skipped
+    alive[:4, 1] = False  # dead, then alive at t = 4 with no reset: rows 0-3 carry its state
+    alive[:2, 3] = False  # dead, then a new CAV at t = 2 (reset): rows 0-1 are skipped
+    starts = torch.zeros(6, 4)
+    starts[2, 3] = 1.0
+    obs["alive"] = alive
+    needed = needed_rows(obs, starts).view(6, 4)
+    want = alive.clone()
+    want[:4, 1] = True
+    assert torch.equal(needed, want)
+    h0 = torch.zeros(4, CFG.gru_hidden)
+    with torch.no_grad():
+        clean, _ = actor.forward_sequence(obs, h0, starts)
+        noisy = {k: v.clone() for k, v in obs.items()}
+        noisy["ego_hist"][~needed] = 1e6  # only rows that reach no loss
+        dirty, _ = actor.forward_sequence(noisy, h0, starts)
+    torch.testing.assert_close(dirty[alive], clean[alive], rtol=0, atol=0)
 
 
 # ---------------------------------------------------------------- registry and inputs
@@ -485,3 +515,65 @@ def test_trimming_padded_node_slots_changes_no_output_or_gradient(monkeypatch):
     torch.testing.assert_close(value, value_full, atol=1e-6, rtol=1e-5)
     for g, g_full in zip(grads, grads_full, strict=True):
         torch.testing.assert_close(g, g_full, atol=1e-6, rtol=1e-5)
+
+
+# ---------------------------------------------------------------- hand-written backward passes
+def _autograd_star_pool(q, x, valid, u_q, u_k, slope):
+    """StarPool's maths through autograd's own ops (the reference for its backward)."""
+    from diacc.learn.models.layers import masked_softmax
+
+    z = (q @ u_q)[:, :, None] + torch.einsum("mkf,fh->mhk", x, u_k)  # (M, H, K)
+    logits = torch.nn.functional.leaky_relu(z, slope)
+    alpha = masked_softmax(logits, valid[:, None, :], dim=-1)
+    return alpha @ x
+
+
+def test_star_pool_backward_equals_autograd_in_float64():
+    """StarPool's written-out backward gives autograd's gradients (float64: to 1e-12)."""
+    from diacc.learn.models.gat import StarPool
+
+    g = torch.Generator().manual_seed(6)
+    m, k, f, h = 9, 7, 5, 3
+    leaves = [torch.randn(m, f, generator=g, dtype=torch.float64)]  # q
+    leaves.append(torch.randn(m, k, f, generator=g, dtype=torch.float64))  # x
+    valid = torch.rand(m, k, generator=g) < 0.6
+    valid[0] = False  # a row without keys: zeros, zero gradient
+    leaves[1] = leaves[1] * valid[..., None]
+    leaves += [torch.randn(f, h, generator=g, dtype=torch.float64) for _ in range(2)]  # u_q, u_k
+    weights = torch.randn(m, h, f, generator=g, dtype=torch.float64)
+    grads = []
+    for fn in (lambda *a: StarPool.apply(*a, 0.2)[0], lambda *a: _autograd_star_pool(*a, 0.2)):
+        inputs = [t.clone().requires_grad_(True) for t in leaves]
+        out = fn(inputs[0], inputs[1], valid, inputs[2], inputs[3])
+        (out * weights).sum().backward()
+        grads.append((out.detach(), [t.grad for t in inputs]))
+    (out_a, grads_a), (out_b, grads_b) = grads
+    torch.testing.assert_close(out_a, out_b, rtol=0, atol=1e-12)
+    for a, b in zip(grads_a, grads_b, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    assert torch.equal(out_a[0], torch.zeros_like(out_a[0]))
+
+
+def test_gru_step_equals_torch_gru_cell():
+    """The chunked replay's GRU (input half precomputed) is nn.GRUCell's maths."""
+    from diacc.learn.models.recurrent import gru_step
+
+    torch.manual_seed(7)
+    cell = torch.nn.GRUCell(6, 5)
+    x, h = torch.randn(4, 6), torch.randn(4, 5)
+    gates = torch.nn.functional.linear(x, cell.weight_ih, cell.bias_ih)
+    torch.testing.assert_close(gru_step(gates, h, cell), cell(x, h), rtol=0, atol=1e-6)
+
+
+def test_star_pool_under_bf16_autocast_returns_gradients_in_input_dtypes():
+    """update_bf16 runs the networks under autocast: StarPool's backward must cope."""
+    torch.manual_seed(8)
+    layer = GraphAttention(8, 8, 4)
+    query = torch.randn(5, 8, requires_grad=True)
+    mask = torch.rand(5, 6) > 0.3
+    keys = (torch.randn(5, 6, 8) * mask[..., None]).requires_grad_(True)
+    with torch.autocast("cpu", torch.bfloat16):
+        out = layer(query, keys, mask, keys_zeroed=True)
+    out.float().sum().backward()
+    assert out.dtype == torch.bfloat16 and query.grad.dtype == keys.grad.dtype == torch.float32
+    assert all(torch.isfinite(p.grad).all() for p in (query, keys, *layer.parameters()))

@@ -221,3 +221,22 @@ def test_curve_axes_legends_and_single_seed(tmp_path, monkeypatch):
             "mappo (highway): mean ± std of 2 seeds",
         ]
     assert axes[0].get_ylim() == pytest.approx((-0.03, 1.03))
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(captured["fig"])  # the figure is closed: draw it again
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    for ax in axes:  # step ticks in k, side by side without touching (issue 42)
+        ticks = [t for t in ax.get_xticklabels() if t.get_text()]
+        boxes = sorted((t.get_window_extent(renderer) for t in ticks), key=lambda b: b.x0)
+        assert len(boxes) >= 3 and all(
+            a.x1 < b.x0 for a, b in zip(boxes[:-1], boxes[1:], strict=True)
+        )
+        assert any(t.get_text().endswith("k") for t in ticks)
+
+
+def test_step_tick_labels_are_short():
+    from diacc.experiments.plots import format_steps
+
+    labels = [format_steps(x) for x in (0, 500, 25_000, 200_000, 1_500_000, 3e6)]
+    assert labels == ["0", "500", "25k", "200k", "1.5M", "3M"]

@@ -263,6 +263,24 @@ def test_a_standing_cav_at_a_lane_end_may_still_leave_it():
     assert res.action.tolist() == [LANE_RIGHT] and res.rule.tolist() == [0]
 
 
+@pytest.mark.parametrize("gap_m", [*np.arange(-6.0, 12.0, 0.25), 1.0, 1.0 + 1e-9, 2.0])
+def test_of_a_cav_waiting_at_a_lane_end_and_a_standing_cav_beside_it_one_moves(gap_m):
+    # The zipper's liveness (issue 44): CAV 0 stands at the end of lane 2 (train-50, ends
+    # at 500 m) and asks for lane 1, where CAV 1 stands with its front gap_m behind CAV
+    # 0's rear (< 0: alongside) and asks to accelerate. Either CAV 0 changes (CAV 1 is
+    # more than d_LC,min = 1 m behind and yields, or has room to move up behind it) or
+    # CAV 1 drives on (alongside or closer, it lets CAV 0 in behind it); never both
+    # wait. At exactly 1 m both used to.
+    road = load_map("train-50")
+    x_m = 500.0 - 0.5 * LENGTH_M - 1.0
+    state = make_state([x_m, x_m - LENGTH_M - gap_m], [2, 1], 0.0, is_cav=True)
+    res = psar(state, np.array([0, 1]), np.array([LANE_RIGHT, ACCELERATE]), HEADWAY, road, SIM)
+    changes, drives_on = res.action[0] == LANE_RIGHT, res.speed_change_mps[1] > 0.0
+    assert changes or drives_on
+    assert changes == (gap_m > HEADWAY.d_lc_min_m)
+    assert drives_on or gap_m <= HEADWAY.min_gap_m  # a yielding CAV closes up to 2 m
+
+
 def test_unknown_horizon_is_a_one_line_error():
     with pytest.raises(ConfigError, match="psar.horizon") as err:
         PSARConfig(horizon="tight")

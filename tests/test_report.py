@@ -175,7 +175,8 @@ def test_slower_or_crashier_policies_are_not_ranked(tmp_path):
     )
     caption = markdown.splitlines()[0]
     assert caption == (
-        "Table: train-25: 1 episode per cell, HDV style preset realistic; training budget "
+        "Table: train-25: 1 episode per cell, HDV style preset realistic, seed stream legacy; "
+        "training budget "
         "(env steps): mappo 4,000, mappo-iadm 4,000, diacc 4,000"
     )
     assert "1 episodes" not in markdown and "ranked only columns no slower" in markdown

@@ -308,6 +308,9 @@ def test_sweep_gives_each_setting_its_runs_columns_and_curves(tmp_path, capsys):
     stdout = capsys.readouterr().out
     assert "training: 4 runs = 1 variant x 1 map x 4 settings x 1 seed" in stdout
     assert "setting tau_init=10, tau_final=10" in stdout and "transfer off" in stdout
+    assert "seed stream validation" in stdout  # a sweep chooses: never on test episodes
+    assert main(["reproduce", "--budget", "tiny", "--dry-run"]) == 0
+    assert "seed stream test" in capsys.readouterr().out
     config, notes = resolve_config("tiny", variants=("diacc",))
     from diacc.experiments.sweepaxes import sweep_settings
 

@@ -133,6 +133,26 @@ def test_episodes_complete_without_collisions(map_name, cav_mode):
             assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
 
 
+def test_a_cav_that_changed_lanes_standing_points_along_its_lane():
+    """SUMO keeps the angle of a vehicle's last movement while it stands: after a lane
+    change from standstill it reported 35 degrees for as long as the CAV waited, which
+    shortened PSAR's gaps to it and left CAVs at a lane end waiting forever (issue 44)."""
+    road = load_map("train-25")
+    with SumoBackend(road, SIM) as backend:
+        state = backend.reset(Scenario(n_vehicles=1, cav_penetration=1.0), seed=3)
+        stop = CavCommands(np.zeros(1, np.int8), np.array([-10.0]))
+        for _ in range(5):
+            state = backend.step(stop)
+        assert state.speed_mps[0] == 0.0
+        side = 1 if state.lane[0] == 0 else -1
+        state = backend.step(CavCommands(np.array([side], np.int8), np.zeros(1)))
+        for _ in range(3):
+            assert state.speed_mps[0] == 0.0
+            assert state.y_m[0] == pytest.approx(float(road.lane_center_y_m(state.lane[0])))
+            assert state.heading_rad[0] == 0.0
+            state = backend.step(CavCommands.idle(1))
+
+
 def test_two_backends_concurrently_and_determinism():
     road = load_map("train-50")
     scenario = Scenario(n_vehicles=25, cav_penetration=0.0)
@@ -324,9 +344,12 @@ def test_benchmark_runs_and_reports_rates():
 #: recorded on SUMO 1.28.0 with the worker as it was before issue 14 (commit
 #: f1673a2: pickled states, per-substep arrival lists, road id + lane index).
 #: A change means the backend's trajectories changed; update it only on purpose.
+#: Updated 2026-12-04 (issue 44): a vehicle on its lane's centre line points along it
+#: (SUMO kept a standing vehicle's lane-change angle); with heading_rad left out of
+#: the hash both recordings were equal (7d93ea0c... ed6169b5...).
 PINNED_DIGESTS = {
-    "SUMO 1.28.0": "38626c7d5635b3b22228db1957df2e2b5cdaa4d2f753777d7813f1e89e93dab7 "
-    "00d3d0c493eb0268c51a04470a412c319d5a018ee02006035c5094a2f3db7500",
+    "SUMO 1.28.0": "c87bb4e0ce6f9c879283b0627d543a29c69caccc6173c0d132743f07007245d2 "
+    "30d9f578d444a3d07a17d42105bcec00cc2409e03b1f92dd30a0762f2aefc481",
 }
 
 

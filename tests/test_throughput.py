@@ -229,9 +229,9 @@ def test_overlapped_training_is_reproducible_lagged_and_resumes_exactly(tmp_path
     calls = []
     real = mappo.collect_rollout
 
-    def spy(agent, envs, cfg, update, tau, sync=True):
+    def spy(agent, envs, cfg, update, tau, sync=True, values=True):
         calls.append((update, sync))
-        return real(agent, envs, cfg, update, tau, sync)
+        return real(agent, envs, cfg, update, tau, sync, values)
 
     monkeypatch.setattr(mappo, "collect_rollout", spy)
     extra = {"total_steps": 160, "checkpoint_every": 2}  # 4 updates of 40 steps

@@ -1,10 +1,10 @@
-"""Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | simulate |
-bench | convert-checkpoint``.
+"""Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | scorecard |
+simulate | bench | convert-checkpoint``.
 
 This module holds :func:`main` (also ``python -m diacc.cli``) and ``train``, ``bench``,
 ``simulate``, ``convert-checkpoint``; :mod:`.eval` has ``eval``, ``table``, ``plot``,
-``render``; :mod:`.scale` ``sweep``; :mod:`.reproduce` ``reproduce``. The command line
-sits above every other layer and nothing in ``diacc`` imports it.
+``render``, ``scorecard``; :mod:`.scale` ``sweep``; :mod:`.reproduce` ``reproduce``. The
+command line sits above every other layer and nothing in ``diacc`` imports it.
 
 Every command turns known failures (bad map, backend, config key, checkpoint,
 crashed simulator: a :class:`~diacc.errors.DiaccError`) into a one-line
@@ -205,7 +205,8 @@ def _bench_parser(sub) -> None:
         sub,
         "bench",
         "speed benchmarks, measured side by side in one run",
-        "Choose at least one of --backend, --models, --training, --env-batch.",
+        "Choose at least one of --backend, --models, --training, --env-batch, --safety, "
+        "--headway, --headroom, --fidelity.",
     )
     p.add_argument("--backend", choices=BACKENDS, help="backend vs its reference simulator loop")
     p.add_argument("--models", action="store_true", help="network sizes and forward/update times")
@@ -230,6 +231,12 @@ def _bench_parser(sub) -> None:
         action="store_true",
         help="reference delays per training map: free flow, pure HDV, same-mix, heuristic, "
         "cooperative, 100 %% CAVs (highway, or --backend)",
+    )
+    p.add_argument(
+        "--fidelity",
+        action="store_true",
+        help="pure-HDV outflow of the demand scenario, highway vs SUMO side by side "
+        "(train-50; --inflow, --episodes seeds, --style-preset, --demand-s, --warmup-s)",
     )
     p.add_argument(
         "--agent",
@@ -262,8 +269,10 @@ def _bench_parser(sub) -> None:
     p.add_argument(
         "--inflow",
         type=float,
+        nargs="+",
         default=None,
-        help="vehicles per hour entering the route in --headroom --scenario demand",
+        help="vehicles per hour entering the route in --headroom --scenario demand (one), "
+        "or in --fidelity (default 2400 3200 4000 4800)",
     )
     p.add_argument(
         "--demand-s",
@@ -360,8 +369,10 @@ def cmd_bench(args: argparse.Namespace) -> None:
     }
     given = [flag for flag, value in demand_flags.items() if value is not None]
     given += ["--scenario demand"] * (args.scenario == "demand")
+    if args.fidelity and args.scenario == "release":
+        given = []  # --fidelity runs the demand scenario: its flags apply
     if given and not (args.headroom and args.scenario == "demand"):
-        raise ConfigError(f"{given[0]} needs --headroom with --scenario demand")
+        raise ConfigError(f"{given[0]} needs --headroom with --scenario demand or --fidelity")
     if (args.agent or args.references) and not args.headroom:
         raise ConfigError(f"{'--agent' if args.agent else '--references'} needs --headroom")
     if args.safety:
@@ -396,16 +407,30 @@ def cmd_bench(args: argparse.Namespace) -> None:
             **({"steps": args.episode_steps} if args.episode_steps else {}),
         )
         return
+    if args.fidelity:
+        from diacc.experiments.bench import fidelity
+
+        timing = {"demand_s": args.demand_s, "warmup_s": args.warmup_s}
+        preset = {"preset": args.style_preset}
+        fidelity.run(
+            inflows_vph=tuple(args.inflow or fidelity.INFLOWS_VPH),
+            seeds=args.episodes or 1,
+            settings=fidelity.FlowSettings(
+                **{k: v for k, v in {**timing, **preset}.items() if v is not None}
+            ),
+            backends=(args.backend,) if args.backend else BACKENDS,
+        )
+        return
     if args.headroom:
         from diacc.experiments.bench import headroom
 
         demand = None
         if args.scenario == "demand":
-            if args.inflow is None:
-                raise ConfigError("--scenario demand needs --inflow (vehicles per hour)")
+            if args.inflow is None or len(args.inflow) != 1:
+                raise ConfigError("--scenario demand needs --inflow (one value, vehicles per hour)")
             timing = {"demand_s": args.demand_s, "warmup_s": args.warmup_s}
             demand = headroom.demand_scenario(
-                args.inflow, **{k: v for k, v in timing.items() if v is not None}
+                args.inflow[0], **{k: v for k, v in timing.items() if v is not None}
             )
         headroom.run(
             backends=(args.backend,) if args.backend else ("highway",),

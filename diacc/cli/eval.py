@@ -1,4 +1,4 @@
-"""Command-line parsers and handlers for ``diacc eval | table | plot | render``.
+"""Command-line parsers and handlers for ``diacc eval | table | plot | render | scorecard``.
 
 Registered by :mod:`diacc.cli` (``add_parsers`` and ``COMMANDS``); errors are
 the one-line exceptions of the modules they call.
@@ -11,7 +11,15 @@ import sys
 from pathlib import Path
 
 from diacc.cli import scale as cli_scale
-from diacc.config import ACTION_MODES, BACKENDS, FULL_BRAKE_MODES, HORIZON_MODES, STYLE_PRESETS
+from diacc.config import (
+    ACTION_MODES,
+    BACKENDS,
+    FULL_BRAKE_MODES,
+    HORIZON_MODES,
+    STYLE_PRESETS,
+    ConfigError,
+)
+from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so
 #: that ``--help`` does not import the evaluation stack).
@@ -21,7 +29,10 @@ Markdown), as in the paper's Tables II/III, compared at the printed precision.
 A column is ranked in a cell only if it is no slower than the pure-HDV column
 (same backend) and has no higher collision rate; a policy slower or crashing
 more than human traffic is never marked best. Entries show the change against
-pure HDV. LaTeX output needs \\usepackage{booktabs} and \\usepackage{multirow}."""
+pure HDV and against same-mix; the latter paired by episode seed (the same
+traffic) with its 95 % bootstrap interval [low, high], marked "≈" (no
+measurable difference) where the interval holds 0. LaTeX output needs
+\\usepackage{booktabs} and \\usepackage{multirow}."""
 
 
 def _settings(args: argparse.Namespace):
@@ -33,6 +44,7 @@ def _settings(args: argparse.Namespace):
         style_preset=args.style_preset,
         psar_horizon=args.psar_horizon,
         psar_full_brake=args.psar_full_brake,
+        stream=args.stream,
     )
 
 
@@ -42,8 +54,9 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         required=True,
         help="pure-hdv, same-mix (CAV slots driven by normal human drivers; same-mix:<style> "
         "for aggressive or cautious ones), cooperative, heuristic, a scripted probe "
-        "(remain, accelerate, random; <name>-nopsar without PSAR) or a checkpoint.pt "
-        "(or its run directory)",
+        "(remain, accelerate, random, late-merge; <name>-nopsar without PSAR), a checkpoint.pt "
+        "(or its run directory), or your own controller as package.module:factory "
+        "(examples/keep_right_controller.py)",
     )
     p.add_argument(
         "--variant",
@@ -83,6 +96,13 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         help="when PSAR's headway car following may brake beyond the planned rate, for every "
         "policy with PSAR (default: the policy's own setting; docs/concepts/psar.md)",
     )
+    p.add_argument(
+        "--stream",
+        choices=SEED_STREAMS,
+        default=DEFAULT_STREAM,
+        help="episode seed stream: test (to report), validation (to choose seeds, settings, "
+        "checkpoints on; disjoint from test) or legacy (the one stream before 2026-12-04)",
+    )
 
 
 def add_parsers(sub) -> None:
@@ -92,8 +112,8 @@ def add_parsers(sub) -> None:
         "eval",
         "evaluate a policy or baseline on a grid of scenarios",
         "Writes episodes.csv and speeds.csv.gz into --out; re-running skips finished cells.\n"
-        "Episode seeds depend on the cell and episode only, so every policy meets the\n"
-        "same traffic.",
+        "Episode seeds depend on the seed stream, cell and episode only, so every policy\n"
+        "meets the same traffic.",
     )
     _policy_args(p)
     p.add_argument(
@@ -129,7 +149,52 @@ def add_parsers(sub) -> None:
         "flow rows throughput, delay, arrived_speed, travel_time, never_arrived "
         "('flow' stands for all five)",
     )
+    p.add_argument(
+        "--paired-against",
+        default="same-mix",
+        metavar="POLICY",
+        help="the column whose changes are paired by episode seed with a 95 %% interval "
+        "(another policy, e.g. heuristic, adds its change to every entry)",
+    )
     p.add_argument("--out", type=Path, default=None, help="write to a file instead of stdout")
+
+    p = cli_scale.add_command(
+        sub,
+        "scorecard",
+        "a policy through the standard suite against same-mix, the heuristic and DIACC",
+        "Evaluates --policy and the three references on every cell of the suites\n"
+        "(train, zero-shot, geometry, paper-congestion, demand) and backends, on the\n"
+        "test seed stream, 330-step episodes, PSAR headway / known; writes\n"
+        "scorecard.md and scorecard.json (changes paired by episode seed, 95 %%\n"
+        "bootstrap intervals) into --out. Run from the repository root (the geometry\n"
+        "maps and the shipped agent live there). Resumable: finished cells are skipped.",
+    )
+    p.add_argument(
+        "--policy",
+        required=True,
+        help="the policy to score: any --policy of 'diacc eval' (a checkpoint, a baseline, "
+        "package.module:factory)",
+    )
+    p.add_argument(
+        "--actions", choices=ACTION_MODES, default="greedy", help="a checkpoint's actions"
+    )
+    p.add_argument("--episodes", type=int, default=30, help="seeded episodes per cell")
+    p.add_argument(
+        "--suites",
+        default="all",
+        help="comma-separated suites of train, zero-shot, geometry, paper-congestion, demand; "
+        "or all",
+    )
+    p.add_argument("--backends", default="highway,sumo", help="comma-separated backends")
+    p.add_argument(
+        "--agent",
+        default=None,
+        help="the DIACC agent compared with (default: the shipped "
+        "checkpoints/diacc-train50-realistic-headway-threat-s1.pt)",
+    )
+    p.add_argument("--episode-steps", type=int, default=330, help="decisions per episode")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
+    p.add_argument("--out", required=True, type=Path, help="results directory (required)")
 
     p = cli_scale.add_command(sub, "plot", "training curves or speed distributions (PNG + PDF)")
     plot_sub = p.add_subparsers(dest="plot_kind", required=True, metavar="KIND")
@@ -197,7 +262,7 @@ def _episode_args(p: argparse.ArgumentParser) -> None:
         "--steps", dest="episode_steps", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS
     )
     p.add_argument(
-        "--seed", type=int, default=None, help="traffic seed (default: seed of eval episode 0)"
+        "--seed", type=int, default=None, help="traffic seed (default: episode 0 of --stream)"
     )
 
 
@@ -240,7 +305,8 @@ def cmd_table(args: argparse.Namespace) -> None:
     from diacc.experiments.report import build_table, expand_rows, render_table
 
     rows = expand_rows(args.rows)
-    text = render_table(build_table(args.results, args.speed_std, rows), args.format)
+    table = build_table(args.results, args.speed_std, rows, args.paired_against)
+    text = render_table(table, args.format)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text)
@@ -287,4 +353,39 @@ def cmd_render(args: argparse.Namespace) -> None:
     )
 
 
-COMMANDS = {"eval": cmd_eval, "table": cmd_table, "plot": cmd_plot, "render": cmd_render}
+def cmd_scorecard(args: argparse.Namespace) -> None:
+    from diacc.experiments.policies import parse_policy
+    from diacc.experiments.scorecard import (
+        DEFAULT_AGENT,
+        SCORECARD_JSON,
+        SCORECARD_MD,
+        SUITES,
+        ScorecardConfig,
+        run_scorecard,
+    )
+
+    backends = tuple(cli_scale._csv_list(args.backends))
+    unknown = [b for b in backends if b not in BACKENDS]
+    if unknown or not backends:
+        raise ConfigError(f"unknown backend {(unknown or [''])[0]!r}; use {', '.join(BACKENDS)}")
+    cfg = ScorecardConfig(
+        policy=parse_policy(args.policy, sampled=args.actions == "sampled"),
+        out_dir=args.out,
+        episodes=args.episodes,
+        suites=tuple(SUITES) if args.suites == "all" else tuple(cli_scale._csv_list(args.suites)),
+        backends=backends,
+        agent=args.agent or DEFAULT_AGENT,
+        episode_steps=args.episode_steps,
+        workers=args.workers,
+    )
+    run_scorecard(cfg, say=lambda line: print(line, flush=True))
+    print(f"scorecard: {args.out / SCORECARD_MD} and {args.out / SCORECARD_JSON}")
+
+
+COMMANDS = {
+    "eval": cmd_eval,
+    "table": cmd_table,
+    "plot": cmd_plot,
+    "render": cmd_render,
+    "scorecard": cmd_scorecard,
+}

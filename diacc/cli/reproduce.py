@@ -22,7 +22,7 @@ from diacc.config import (
     ConfigError,
     TrainConfig,
 )
-from diacc.experiments.grid import GRID_NAMES
+from diacc.experiments.grid import DEFAULT_STREAM, GRID_NAMES, SEED_STREAMS
 from diacc.experiments.reproduce.plan import DEFAULT_GRIDS
 from diacc.experiments.sweepaxes import STUDIES
 
@@ -123,6 +123,13 @@ def add_parsers(sub) -> None:
         help="checkpoints' evaluation actions: argmax, or sampled from their distribution "
         "(seeded per episode)",
     )
+    p.add_argument(
+        "--stream",
+        choices=SEED_STREAMS,
+        default=None,
+        help="evaluation seed stream (default: validation with --sweep/--study, which choose "
+        "a setting, test otherwise; see 'diacc eval --help')",
+    )
     cli_scale.add_device_arg(p, "torch device of every training run's PPO update")
     p.add_argument(
         "--set",
@@ -199,9 +206,11 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
     # one-line error for a bad --set or --sweep before anything runs
     base = plan.train_config(plan.runs[0])
     axes = axis_texts(args.sweep, args.study)
-    if axes:
-        settings = tuple(sweep_settings(base, axes))
-        plan = make_plan(dataclasses.replace(config, settings=settings), notes)
+    # A sweep chooses among its settings: on validation episodes, never on test ones.
+    stream = args.stream or ("validation" if axes else DEFAULT_STREAM)
+    config = dataclasses.replace(config, stream=stream)
+    settings = tuple(sweep_settings(base, axes)) if axes else ()
+    plan = make_plan(dataclasses.replace(config, settings=settings), notes)
     say = functools.partial(print, flush=True)
     for line in describe_plan(plan):
         say(line)

@@ -254,7 +254,8 @@ def _alive_means(values: np.ndarray, alive: np.ndarray) -> np.ndarray:
     mean is then bit for bit that of its entries alone (``values[r][alive[r]].mean()``).
     """
     n_cav = values.shape[-1]
-    if np.count_nonzero(alive) == alive.size:  # every CAV on the road: one plain mean
+    # every CAV on the road: one plain mean (none at all, pure HDV: 0, not 0 / 0)
+    if n_cav and np.count_nonzero(alive) == alive.size:
         return (values.sum(axis=-1) / n_cav).astype(np.float64)
     out = np.zeros(len(values))
     counts = alive.sum(axis=-1)  # (R,)

@@ -109,6 +109,25 @@ def _env_zero(name: str, doc: str, convert=None) -> property:
     return property(get, doc=doc)
 
 
+#: Largest episode seed: SUMO's ``--seed`` is a signed 32-bit integer.
+MAX_SEED = 2**31 - 1
+
+
+class SeedError(DiaccError, ValueError):
+    """An episode seed outside 0 .. :data:`MAX_SEED`; one line."""
+
+
+def check_seed(seed) -> int:
+    """``seed`` as an int if it is a whole number in 0 .. :data:`MAX_SEED`, else a
+    one-line :class:`SeedError` (numpy's own message for -7 is a traceback deep in
+    ``SeedSequence``)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise SeedError(f"a seed must be an integer, got {seed!r}")
+    if not 0 <= seed <= MAX_SEED:
+        raise SeedError(f"a seed must be in 0..{MAX_SEED} (SUMO's range), got {seed}")
+    return int(seed)
+
+
 class RenderModeError(DiaccError, ValueError):
     """A render mode this environment cannot honour here; one line."""
 
@@ -220,7 +239,7 @@ class BottleneckEnv(ParallelEnv):
         """Start an episode; returns observations for all CAV slots and the critic state."""
         if seed is None:
             seed = 0 if self._seed is None else self._seed + 1
-        self._seed = seed
+        self._seed = seed = check_seed(seed)
         self.batch.reset([0], [seed])
         self.state_ = self.batch.state.traffic.env(0)
         self.agents = self._live_agents(self.state_)
@@ -282,10 +301,16 @@ class BottleneckEnv(ParallelEnv):
     def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
         return self._action_space
 
-    def _agent_slots(self) -> dict[str, int]:
-        """Slot of each agent (CAV) that holds one now."""
+    def agent_slots(self) -> dict[str, int]:
+        """Slot of each agent (CAV) that holds one now: PettingZoo names -> array rows."""
         held = np.flatnonzero(self.slot_vehicle >= 0)
         return {f"cav_{self.cav_ordinal[self.slot_vehicle[i]]}": int(i) for i in held}
+
+    def agent_observations(self, actor_obs: ActorObs) -> dict[str, dict | np.ndarray]:
+        """PettingZoo observations of :attr:`agents` from the array API's ``actor_obs`` of
+        the current step (what the evaluator hands a user's dict-API policy)."""
+        slots = self.agent_slots()
+        return {a: self._agent_obs(actor_obs, slots[a]) for a in self.agents}
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         actor_obs, _ = self.reset_arrays(seed)
@@ -293,14 +318,13 @@ class BottleneckEnv(ParallelEnv):
             self.road, self.config.events, self.config.scenario.warmup_s
         )
         self._recorder.record(self.state_)
-        slots = self._agent_slots()
-        observations = {a: self._agent_obs(actor_obs, slots[a]) for a in self.agents}
+        observations = self.agent_observations(actor_obs)
         if self.render_mode == "human":
             self.render()
         return observations, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, int]):
-        index = self._agent_slots()
+        index = self.agent_slots()
         batch = np.zeros(self.n_cavs, np.int64)
         for agent, action in actions.items():
             if agent in index:
@@ -311,7 +335,7 @@ class BottleneckEnv(ParallelEnv):
         acting = list(self.agents)
         ended = out.terminated or out.truncated
         # CAVs that took a slot in this step join (PettingZoo lets agents appear).
-        index.update(self._agent_slots())
+        index.update(self.agent_slots())
         joining = [] if ended else [a for a in self._live_agents(out.state) if a not in acting]
         observations, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
         team = self.reward_of(out)

@@ -45,6 +45,9 @@ class EpisodeDriver:
         use_road = getattr(policy, "use_road", None)  # optional: policies that read the map
         if use_road is not None:  # the map as the agents see it (diacc.envs.lateral_frame)
             use_road(self.env.batch.builder.road)
+        use_env = getattr(policy, "use_env", None)  # optional: policies on PettingZoo dicts
+        if use_env is not None:
+            use_env(self.env)
 
     def reset(self, seed: int) -> TrafficState:
         """Start the episode of ``seed`` (traffic and, for scripted policies, their draws)."""

@@ -780,8 +780,11 @@ def _headway_bound_mps(
     dx_m = cav_x_m[j_] - cav_x_m[i_]
     pair_gap_m = dx_m - 0.5 * (cav_length_m[i_] + cav_length_m[j_])
     # One asking but not changing is yielded to only from far enough behind for it to
-    # pass the rear check; a CAV closer or alongside drives on and lets it in behind.
-    asking = ~changing[j_] & (pair_gap_m < cfg.d_lc_min_m)
+    # pass the rear check (gap > d_LC,min once the yielding CAV stands); a CAV closer or
+    # alongside drives on and lets it in behind. So of a CAV standing at a lane end and
+    # a standing CAV behind it in the target lane one always moves (the zipper's
+    # liveness, docs/concepts/psar.md).
+    asking = ~changing[j_] & (pair_gap_m <= cfg.d_lc_min_m)
     cuts = (entering_lane[j_] == lane[i_]) & (entering_lane[j_] >= 0) & (dx_m > 0) & ~asking
     cut_gap_m = np.where(cuts, pair_gap_m, np.inf)  # (..., C, C)
 

@@ -99,9 +99,9 @@ class EpisodeResult:
     speeds: SpeedSamples
 
 
-def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResult:
-    """Play one seeded episode to its end and summarise it."""
-    seed = cell.seed(episode)
+def run_episode(driver: EpisodeDriver, cell: Cell, episode: int, stream: str) -> EpisodeResult:
+    """Play one seeded episode of a seed stream to its end and summarise it."""
+    seed = cell.seed(episode, stream)
     recorder = play_episode(driver, seed)
     metrics = recorder.summary()
     speeds = recorder.speed_samples()
@@ -112,6 +112,7 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int) -> EpisodeResul
         "style_preset": driver.cfg.sim.style_preset,
         **cell.as_row(),
         "inflow_vph": cell.inflow_vph,
+        "stream": stream,
         "episode": episode,
         "seed": seed,
         "n_cavs": driver.cfg.scenario.n_cavs,
@@ -200,7 +201,9 @@ def run_cell_task(task: CellTask) -> CellTaskResult:
         for episode in task.episodes:
             for attempt in range(1, SIM_ATTEMPTS + 1):
                 try:
-                    results.append(run_episode(_driver(task.cell), task.cell, episode))
+                    driver = _driver(task.cell)
+                    stream = _WORKER["settings"].stream
+                    results.append(run_episode(driver, task.cell, episode, stream))
                     break
                 except BackendError as exc:
                     _close_worker_driver()
@@ -455,12 +458,24 @@ def evaluation_meta(policy, cells: list[Cell], settings: EvalSettings) -> tuple[
 
 def meta_conflict(old: dict, meta: dict, before: dict | None) -> str | None:
     """The first key in which an existing ``meta.json`` differs from ``meta``, else None."""
-    if before is not None and isinstance(old.get("settings"), dict):
-        old = {**old, "settings": {**before, **old["settings"]}}
+    if isinstance(old.get("settings"), dict):  # a meta.json before streams ran on legacy seeds
+        old = {**old, "settings": {"stream": "legacy", **(before or {}), **old["settings"]}}
     for key in ("policy", "checkpoint", "backend", "settings"):
         if old.get(key) != meta.get(key):
             return key
     return None
+
+
+def _which_setting(old: dict, meta: dict) -> str:
+    """`` (stream: legacy, asked test)`` for the first setting that differs, else ""."""
+    mine, theirs = meta.get("settings", {}), old.get("settings")
+    if not isinstance(theirs, dict):
+        return ""
+    theirs = {"stream": "legacy", **theirs}  # a meta.json before streams ran on legacy seeds
+    for name, value in mine.items():
+        if name in theirs and theirs[name] != value:
+            return f" ({name}: {theirs[name]}, asked {value})"
+    return ""
 
 
 def _check_meta(out_dir: Path, meta: dict, before: dict | None = None) -> None:
@@ -472,7 +487,8 @@ def _check_meta(out_dir: Path, meta: dict, before: dict | None = None) -> None:
         if key is not None:
             raise EvaluationError(
                 f"results directory {out_dir} holds {old.get('policy')} on "
-                f"{old.get('backend')} with other {key!r}; choose another --out"
+                f"{old.get('backend')} with other {key!r}{_which_setting(old, meta)}; "
+                "choose another --out"
             )
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write(path, json.dumps(meta, indent=2).encode())
@@ -588,13 +604,25 @@ def load_episodes(out_dir: str | Path) -> tuple[dict, list[dict[str, str]]]:
     if not rows:
         raise EvaluationError(f"results directory {out_dir} has an empty {EPISODES_FILE}")
     for row in rows[:1]:
-        make_cell({k: _parse_cell_value(k, row[k]) for k in CELL_KEYS}, str(path))
+        values = {k: _parse_cell_value(k, row[k]) for k in CELL_KEYS}
+        if float(row.get("inflow_vph") or 0.0):  # a demand cell: N follows from the inflow
+            values["inflow_vph"] = float(row["inflow_vph"])
+        make_cell(values, str(path))
     _check_numbers(path, rows)
     return read_json_object(out_dir / META_FILE, EvaluationError), rows
 
 
 #: Columns of episodes.csv that hold text; every other one holds a number (or is empty).
-_TEXT_COLUMNS = {"policy", "backend", "sumo_version", "style_preset", "map", "style_mix", "psar"}
+_TEXT_COLUMNS = {
+    "policy",
+    "backend",
+    "sumo_version",
+    "style_preset",
+    "map",
+    "style_mix",
+    "psar",
+    "stream",
+}
 
 
 def _check_numbers(path: Path, rows: list[dict[str, str]]) -> None:

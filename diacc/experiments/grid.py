@@ -73,6 +73,19 @@ OPTIONAL_CELL_KEYS = ("inflow_vph",)
 #: First word of every evaluation seed's entropy; training seeds start with the
 #: run seed (small integers), so evaluation episodes use other random streams.
 EVAL_SEED_TAG = 0xE7A1_5EED
+#: Evaluation seed streams. ``validation`` is for choosing (seeds, settings,
+#: checkpoints), ``test`` for reporting: a number chosen on the episodes it is
+#: reported on overstates itself (issue 42). The two are disjoint by
+#: construction (validation seeds are even, test seeds odd). ``legacy`` is the
+#: single stream every evaluation used before 2026-12-04; results committed
+#: before then were played on it and stay reproducible with ``--stream legacy``.
+SEED_STREAMS = ("test", "validation", "legacy")
+#: The stream ``diacc eval`` reports on unless told otherwise.
+DEFAULT_STREAM = "test"
+#: Second entropy word of each stream (legacy seeds have none: the old derivation).
+_STREAM_WORDS = {"validation": 0x0A11_DA7E, "test": 0x07E5_7E57}
+#: Lowest bit of each stream's seeds (what makes the two disjoint).
+_STREAM_PARITY = {"validation": 0, "test": 1}
 
 
 class GridError(DiaccError, ValueError):
@@ -135,15 +148,22 @@ class Cell:
             **size,
         )
 
-    def seed(self, episode: int) -> int:
-        """Seed of episode ``episode`` of this cell: the same for every policy.
+    def seed(self, episode: int, stream: str) -> int:
+        """Seed of episode ``episode`` of this cell in a seed stream (:data:`SEED_STREAMS`).
 
         Common seeds let policies be compared on identical traffic draws. The
-        seed depends on the cell key and the episode only, and fits in 31 bits
-        (SUMO's ``--seed`` is a signed 32-bit integer).
+        seed depends on the stream, the cell key and the episode only, and fits
+        in 31 bits (SUMO's ``--seed`` is a signed 32-bit integer); its lowest
+        bit is the stream's parity, so no validation seed is a test seed.
         """
-        words = [EVAL_SEED_TAG, zlib.crc32(self.key.encode()), int(episode)]
-        return int(np.random.SeedSequence(words).generate_state(1)[0] >> 1)
+        check_stream(stream)
+        cell_word = zlib.crc32(self.key.encode())
+        if stream == "legacy":
+            words = [EVAL_SEED_TAG, cell_word, int(episode)]
+            return int(np.random.SeedSequence(words).generate_state(1)[0] >> 1)
+        words = [EVAL_SEED_TAG, _STREAM_WORDS[stream], cell_word, int(episode)]
+        high = int(np.random.SeedSequence(words).generate_state(1)[0] >> 2)  # 30 bits
+        return (high << 1) | _STREAM_PARITY[stream]
 
     def as_row(self) -> dict:
         return {
@@ -152,6 +172,13 @@ class Cell:
             "cav_penetration": self.cav_penetration,
             "style_mix": self.style_mix,
         }
+
+
+def check_stream(stream: str) -> str:
+    """``stream`` if it names a seed stream, else a one-line :class:`GridError`."""
+    if stream not in SEED_STREAMS:
+        raise GridError(f"unknown seed stream {stream!r}; use {', '.join(SEED_STREAMS)}")
+    return stream
 
 
 def _check_keys(values: dict, source: str) -> None:

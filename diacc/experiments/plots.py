@@ -64,6 +64,24 @@ def _pyplot():
     return plt
 
 
+def format_steps(steps: float, _position=None) -> str:
+    """A step-axis tick label short enough not to overlap its neighbours: 0, 50k, 1.5M
+    (plain numbers of 6-7 digits ran into each other on 4-panel curve figures)."""
+    for scale, suffix in ((1e6, "M"), (1e3, "k")):
+        if abs(steps) >= scale:
+            return f"{steps / scale:.4g}{suffix}"
+    return f"{steps:.4g}"
+
+
+def step_axis(ax) -> None:
+    """Label ``ax``'s x axis in environment steps with :func:`format_steps` ticks."""
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=6, integer=True))
+    ax.xaxis.set_major_formatter(FuncFormatter(format_steps))
+    ax.set_xlabel("environment steps")
+
+
 def _save(fig, out: str | Path) -> list[Path]:
     out = Path(out)
     if out.suffix in (".png", ".pdf"):
@@ -264,7 +282,7 @@ def plot_curves(run_dirs: list[str | Path], out: str | Path, smooth: int = 1) ->
                 )
             lo, hi = min(lo, float((mean - std).min())), max(hi, float((mean + std).max()))
         ax.set_title(title if curves else f"{title} (not logged)")
-        ax.set_xlabel("environment steps")
+        step_axis(ax)
         ax.set_ylabel("share of episodes" if title in SHARE_PANELS else "mean reward per step")
         if curves:
             ax.set_ylim(*_y_limits(title, lo, hi))

@@ -1,4 +1,5 @@
-"""Policies the evaluator runs: non-learning baselines, scripted CAVs and checkpoints.
+"""Policies the evaluator runs: non-learning baselines, scripted CAVs, checkpoints and a
+user's own controller (``package.module:factory``, :mod:`diacc.experiments.userpolicy`).
 
 Every policy answers the same two questions, and every episode is played
 through the environment (:mod:`diacc.envs.episode`), so the evaluator treats a
@@ -43,7 +44,8 @@ from diacc.config import (
 from diacc.envs.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.envs.observation import ActorObs
 from diacc.errors import DiaccError
-from diacc.experiments.grid import Cell
+from diacc.experiments.grid import DEFAULT_STREAM, Cell, check_stream
+from diacc.experiments.userpolicy import Controller, is_user_spec
 from diacc.sim.maps import Map
 
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
@@ -52,15 +54,20 @@ BASELINES = ("pure-hdv", "same-mix", "cooperative")
 SAME_MIX = "same-mix"
 #: Style of the human drivers in the CAV slots of plain ``same-mix``.
 SAME_MIX_DEFAULT_STYLE = "normal"
-#: Scripted CAV policies: one fixed action, uniform random, or the ``heuristic``
-#: (:class:`ScriptedPolicy`). ``<name>-nopsar`` runs the same script without PSAR.
-SCRIPTED = ("remain", "accelerate", "random", "heuristic")
+#: Scripted CAV policies: one fixed action, uniform random, the ``heuristic`` or
+#: ``late-merge`` (:class:`ScriptedPolicy`). ``<name>-nopsar`` runs the same script
+#: without PSAR.
+SCRIPTED = ("remain", "accelerate", "random", "heuristic", "late-merge")
 #: The heuristic leaves a lane that ends within this distance ahead (m): on the
 #: paper's maps (release in the first 200 m, drop at 500 m) as soon as it is
 #: released. Merging early spreads the merges over the road; at 150 m CAVs
 #: queued at the drop (train-50, 100 % CAVs, headway PSAR, highway, 2 episodes:
 #: delay -7 % against pure HDV at 150 m, -26 % at 300 m, -51 % at 400 m).
 HEURISTIC_LEAVE_M = 400.0
+#: ``late-merge`` keeps its lane (accelerating) until its lane ends within this distance
+#: ahead (m), then asks for the surviving side: the late, zipper-style merge traffic
+#: engineers recommend in congestion, and the probe of lane-end liveness (issue 44).
+LATE_MERGE_LEAVE_M = 150.0
 
 
 class PolicyError(DiaccError, ValueError):
@@ -79,8 +86,15 @@ class EvalSettings:
     psar_horizon: str | None = None
     #: PSAR's ``full_brake`` of every policy with PSAR (:class:`~diacc.config.PSARConfig`).
     psar_full_brake: str | None = None
+    #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
+    #: ``validation`` to choose on, ``test`` to report.
+    stream: str = DEFAULT_STREAM
 
     def __post_init__(self) -> None:
+        try:
+            check_stream(self.stream)
+        except DiaccError as exc:
+            raise PolicyError(str(exc)) from None
         if self.episode_steps is not None and self.episode_steps < 1:
             raise PolicyError(f"episode_steps must be >= 1, got {self.episode_steps}")
         if self.psar_horizon is not None and self.psar_horizon not in HORIZON_MODES:
@@ -107,7 +121,11 @@ class EvalSettings:
 
     def describe(self) -> dict:
         """What an evaluation's ``meta.json`` records of these settings (and checks on reuse)."""
-        settings = {"episode_steps": self.episode_steps, "style_preset": self.style_preset}
+        settings = {
+            "episode_steps": self.episode_steps,
+            "style_preset": self.style_preset,
+            "stream": self.stream,
+        }
         if self.psar_horizon is not None:  # absent otherwise: older results stay reusable
             settings["psar_horizon"] = self.psar_horizon
         if self.psar_full_brake is not None:
@@ -142,6 +160,11 @@ class PolicySpec:
     @property
     def is_scripted(self) -> bool:
         return self.name.removesuffix("-nopsar") in SCRIPTED
+
+    @property
+    def is_python(self) -> bool:
+        """A user's controller, ``package.module:factory`` (:mod:`.userpolicy`)."""
+        return not self.is_baseline and is_user_spec(self.name)
 
 
 class Policy:
@@ -265,6 +288,11 @@ class ScriptedPolicy(Policy):
     ask for the neighbouring lane that survives longer (PSAR turns the
     request into ``remain``/``decelerate`` while the gap is unsafe). It reads
     what the actor observes (own position and lane) and the static map.
+    ``late-merge`` is the heuristic that keeps its lane until
+    :data:`LATE_MERGE_LEAVE_M` before the lane end: it queues at the end of
+    its lane, so it gets through only if the target lane lets it in. It
+    accelerates rather than ``remain``: ``remain`` keeps the target speed,
+    so a CAV that PSAR once stopped would stand for good by its own choice.
     """
 
     def __init__(self, name: str) -> None:
@@ -291,16 +319,26 @@ class ScriptedPolicy(Policy):
             if self._road is None:
                 raise PolicyError("the heuristic needs the road: call use_road() first")
             return heuristic_actions(actor_obs, self._road)
+        if self.script == "late-merge":
+            if self._road is None:
+                raise PolicyError("late-merge needs the road: call use_road() first")
+            return heuristic_actions(actor_obs, self._road, LATE_MERGE_LEAVE_M)
         return np.full(n_cavs, ACTION_NAMES.index(self.script), np.int64)
 
 
-def heuristic_actions(actor_obs: ActorObs, road: Map) -> np.ndarray:
-    """(C,) actions of the heuristic (see :class:`ScriptedPolicy`).
+def heuristic_actions(
+    actor_obs: ActorObs,
+    road: Map,
+    leave_m: float = HEURISTIC_LEAVE_M,
+    cruise: int = ACCELERATE,
+) -> np.ndarray:
+    """(C,) actions of the heuristic (``late-merge``: ``leave_m`` and ``cruise``
+    changed; see :class:`ScriptedPolicy`).
 
     Position and lane come from the observation (``self_state`` x / route
     length and lane / (max_lanes - 1)); the map says where each lane ends
     (:meth:`Map.lane_end_m`) and on which side lanes drop (``drop_side``).
-    A CAV whose lane ends within :data:`HEURISTIC_LEAVE_M` asks for the
+    A CAV whose lane ends within ``leave_m`` asks for the
     neighbouring lane away from the drop side, which leads to the surviving
     lanes even where that neighbour ends at the same point (the outer lane
     of a 4 -> 2 drop goes over the inner one).
@@ -310,13 +348,38 @@ def heuristic_actions(actor_obs: ActorObs, road: Map) -> np.ndarray:
     lane = np.rint(actor_obs.self_state[:, 4] * lane_norm).astype(np.int64)  # (C,)
     lane = np.clip(lane, 0, road.max_lanes - 1)
     segment = road.segment_of(x_m)  # (C,)
-    leave = road.lane_end_m()[segment, lane] - x_m < HEURISTIC_LEAVE_M  # (C,)
+    leave = road.lane_end_m()[segment, lane] - x_m < leave_m  # (C,)
     offset = -1 if road.drop_side == "left" else +1  # towards the surviving lanes
     target = lane + offset  # (C,)
     in_range = (target >= 0) & (target < road.max_lanes)
     exists = in_range & road.lane_exists()[segment, np.clip(target, 0, road.max_lanes - 1)]
     side = LANE_RIGHT if offset < 0 else LANE_LEFT
-    return np.where(leave & exists & actor_obs.alive, side, ACCELERATE).astype(np.int64)
+    return np.where(leave & exists & actor_obs.alive, side, cruise).astype(np.int64)
+
+
+class UserPolicy(Policy):
+    """A user's controller on PettingZoo observations, under PSAR like the heuristic
+    (:mod:`diacc.experiments.userpolicy`)."""
+
+    def __init__(self, spec: str) -> None:
+        self.label = spec
+        self.controller = Controller(spec)
+        self._env = None
+
+    def use_env(self, env) -> None:
+        """The environment of the episodes to come (its agents and observation space)."""
+        self._env = env
+
+    def begin_episode(self, n_cavs: int, seed: int) -> None:
+        self.controller.reset(seed)
+
+    def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
+        if self._env is None:
+            raise PolicyError(f"{self.label} needs its environment: call use_env() first")
+        return self.controller.actions(self._env, actor_obs)
+
+    def describe(self) -> dict:
+        return {"policy": self.label, "controller": self.label}
 
 
 class CheckpointPolicy(Policy):
@@ -393,12 +456,16 @@ def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -
     """Check a ``--policy`` value: a baseline name or an existing checkpoint file."""
     if name.startswith(f"{SAME_MIX}:"):
         same_mix_style(name)
-    if PolicySpec(name).is_baseline or PolicySpec(name).is_scripted:
+    spec = PolicySpec(name)
+    if spec.is_baseline or spec.is_scripted or spec.is_python:
         if variant is not None:
-            raise PolicyError(f"--variant applies to checkpoints, not to the {name} baseline")
+            what = name if spec.is_python else f"the {name} baseline"
+            raise PolicyError(f"--variant applies to checkpoints, not to {what}")
         if sampled:
             raise PolicyError(f"--actions sampled applies to checkpoints, not to {name}")
-        return PolicySpec(name)
+        if spec.is_python:
+            build_policy(spec)  # one-line error for a bad module or factory, here
+        return spec
     path = Path(name)
     if path.is_dir():
         if not (path / "checkpoint.pt").exists():
@@ -407,7 +474,8 @@ def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -
     if path.suffix != ".pt" and not path.exists():
         raise PolicyError(
             f"unknown policy {name!r}; use {', '.join(BASELINES + SCRIPTED)} (scripted ones also "
-            f"as <name>-nopsar, {SAME_MIX}:<style>) or the path of a checkpoint.pt"
+            f"as <name>-nopsar, {SAME_MIX}:<style>), the path of a checkpoint.pt or a Python "
+            "controller as package.module:factory"
         )
     if not path.exists():
         raise PolicyError(f"checkpoint {path} does not exist")
@@ -424,4 +492,6 @@ def build_policy(spec: PolicySpec) -> Policy:
         return SameMixPolicy(spec.name)
     if spec.is_scripted:
         return ScriptedPolicy(spec.name)
+    if spec.is_python:
+        return UserPolicy(spec.name)
     return CheckpointPolicy(spec.name, spec.variant, spec.sampled)

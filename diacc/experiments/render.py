@@ -177,7 +177,7 @@ def render_episode(
     max_steps = driver.cfg.sim.episode_steps  # the GIF's episode ends there
     source = None
     try:
-        state = driver.reset(cell.seed(0) if seed is None else seed)
+        state = driver.reset(cell.seed(0, settings.stream) if seed is None else seed)
         scale = VIEW_SCALE_PX_PER_M[view]
         road_width_m = driver.road.max_lanes * driver.road.lane_width_m
         source = Viewer(

@@ -18,7 +18,10 @@ grid cell the paper's three rows, plus two optional ones (``rows``):
 
 Each entry also shows its change against the ``pure-hdv`` column and
 against the ``same-mix`` column of the same backend (when given;
-:data:`REFERENCES`): relative, ``(mean - mean_ref) / mean_ref`` in %, for
+:data:`REFERENCES`); the change against same-mix is paired episode by episode
+(the same seed is the same traffic) and carries its 95 % bootstrap interval
+(:mod:`diacc.experiments.paired`), marked :data:`NO_DIFFERENCE` where the
+interval holds 0: relative, ``(mean - mean_ref) / mean_ref`` in %, for
 speeds, flows and times, and a difference in percentage points (pp) for
 shares, since "-100 %" for a share going from 14 % to 0 % reads worse than
 "-14.0 pp". Pure HDV redraws every driver, same-mix keeps the CAV policy's
@@ -40,6 +43,7 @@ tidy CSV.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,6 +52,7 @@ import numpy as np
 
 from diacc.experiments.evaluate import EvaluationError, csv_text, load_episodes
 from diacc.experiments.grid import CELL_KEYS, Cell
+from diacc.experiments.paired import EpisodeValues, PairedChange, paired_change
 
 #: (key, row label, higher is better, episodes.csv column, display scale); shares
 #: are shown in percent (scale 100). Results written before a column existed lack
@@ -78,6 +83,21 @@ RANKING_RULE = (
     "collisions than pure HDV on that backend"
 )
 CHANGE_RULE = "changes in % for speeds, flows and times, in percentage points (pp) for shares"
+#: Marks a paired change whose 95 % interval holds 0.
+NO_DIFFERENCE = "≈"
+#: The policy whose column the paired changes and intervals are taken against by default.
+PAIRED_REFERENCE = "same-mix"
+
+
+def interval_rule(reference: str) -> str:
+    """The table note that explains the intervals against ``reference``."""
+    return (
+        f"[low, high]: 95 % bootstrap interval of the change against {reference}, over the "
+        "episodes both played with the same seed (the same traffic); "
+        f"{NO_DIFFERENCE}: the interval holds 0, no measurable difference"
+    )
+
+
 #: Display scale of each metric (100: a share shown in percent).
 _SCALE = {key: scale for key, _, _, _, scale in METRICS}
 #: What a LaTeX document needs for :func:`to_latex`'s output.
@@ -104,6 +124,22 @@ class Table:
     backend: dict[str, str]  # column -> backend name
     rows: tuple[str, ...] = DEFAULT_ROWS  # metrics shown, in order
     caption: str = ""
+    # (cell key, metric, column) -> per-episode values, for the paired changes
+    values: dict[tuple[str, str, str], EpisodeValues] = dataclasses.field(default_factory=dict)
+    paired_against: str = PAIRED_REFERENCE  # policy of the paired changes' reference column
+
+    def paired(self, cell: Cell, metric: str, column: str) -> PairedChange | None:
+        """Change against the :attr:`paired_against` column (same-mix) of the same backend
+        over the episodes both played on the same seed, with its 95 % interval (None where
+        there is no such column, this is it or pure HDV, or fewer than 2 episodes pair)."""
+        ref = self.reference(column, self.paired_against)
+        if ref is None or self.policy[column] in (REFERENCE, self.paired_against):
+            return None
+        mine = self.values.get((cell.key, metric, column))
+        theirs = self.values.get((cell.key, metric, ref))
+        if mine is None or theirs is None:
+            return None
+        return paired_change(mine, theirs, relative=change_unit(metric) == "%")
 
     def reference(self, column: str, policy: str = REFERENCE) -> str | None:
         """The column of ``policy`` (pure HDV, same-mix) of the same backend a column is
@@ -203,6 +239,23 @@ def _episode_stat(rows: list[dict[str, str]], key: str, scale: float) -> Stat | 
     return Stat(float(values.mean()), float(values.std()), int(values.size))
 
 
+def _episode_values(
+    rows: list[dict[str, str]], metric: str, column: str, scale: float, speed_std: str
+) -> EpisodeValues | None:
+    """Per-episode values of a metric keyed by seed (None without seeds or the column);
+    speed weighted by its sample count where the table pools samples."""
+    if "seed" not in rows[0] or column not in rows[0]:
+        return None
+    weight = np.ones(len(rows))  # (K,)
+    if metric == "speed" and speed_std == "samples":
+        weight = np.array([float(r["n_speed_samples"]) for r in rows])
+    return EpisodeValues(
+        seed=np.array([int(r["seed"]) for r in rows], dtype=np.int64),
+        value=scale * np.array([_float(r[column]) for r in rows]),
+        weight=weight,
+    )
+
+
 def _episodes(counts: list[int]) -> str:
     """``1 episode``, ``5 episodes``, ``3/5 episodes`` (cells with different counts)."""
     return f"{'/'.join(map(str, counts))} episode{'' if counts == [1] else 's'}"
@@ -223,12 +276,30 @@ def build_table(
     result_dirs: list[str | Path],
     speed_std: str = "samples",
     rows: tuple[str, ...] | list[str] = DEFAULT_ROWS,
+    paired_against: str = PAIRED_REFERENCE,
 ) -> Table:
-    """Collect the statistics of several results directories into one table."""
+    """Collect the statistics of several results directories into one table; changes
+    against the ``paired_against`` policy's column carry their interval."""
     _check_options(speed_std, rows)
     if not result_dirs:
         raise EvaluationError("give at least one results directory")
-    return table_from_results([(Path(d), *load_episodes(d)) for d in result_dirs], speed_std, rows)
+    loaded = [(Path(d), *load_episodes(d)) for d in result_dirs]
+    policies = {meta["policy"] for _, meta, _ in loaded}
+    if paired_against not in policies and paired_against != PAIRED_REFERENCE:
+        raise EvaluationError(
+            f"--paired-against {paired_against}: no results directory holds that policy "
+            f"(these hold {', '.join(sorted(policies))})"
+        )
+    table = table_from_results(loaded, speed_std, rows)
+    if paired_against != PAIRED_REFERENCE:
+        notes = [
+            interval_rule(paired_against) if n == interval_rule(PAIRED_REFERENCE) else n
+            for n in table.notes
+        ]
+        if interval_rule(paired_against) not in notes:
+            notes.insert(-2, interval_rule(paired_against))
+        table = dataclasses.replace(table, paired_against=paired_against, notes=notes)
+    return table
 
 
 def expand_rows(text: str) -> tuple[str, ...]:
@@ -263,6 +334,7 @@ def table_from_results(
     if len(set(labels)) < len(labels):
         labels = [f"{lab} [{d.name}]" for lab, (d, _, _) in zip(labels, loaded, strict=True)]
     stats: dict[tuple[str, str, str], Stat] = {}
+    values: dict[tuple[str, str, str], EpisodeValues] = {}
     cells: dict[str, Cell] = {}
     notes: list[str] = []
     episode_counts: set[int] = set()
@@ -283,6 +355,10 @@ def table_from_results(
             for metric, _, _, column, scale in METRICS[1:]:
                 if (stat := _episode_stat(cell_rows, column, scale)) is not None:
                     stats[(cell.key, metric, label)] = stat
+            for metric, _, _, column, scale in METRICS:
+                found = _episode_values(cell_rows, metric, column, scale, speed_std)
+                if found is not None:
+                    values[(cell.key, metric, label)] = found
         first = episode_rows[0]
         version = f", {first['sumo_version']}" if first.get("sumo_version") else ""
         per_cell = sorted({len(r) for r in by_cell.values()})
@@ -312,6 +388,8 @@ def table_from_results(
             + " and ".join({REFERENCE: "pure HDV", "same-mix": "same-mix"}[r] for r in refs)
             + " (same backend), in that order"
         )
+    if PAIRED_REFERENCE in refs:
+        notes.append(interval_rule(PAIRED_REFERENCE))
     notes.append(RANKING_RULE)
     notes.append(CHANGE_RULE)
     ordered = sorted(
@@ -319,6 +397,8 @@ def table_from_results(
     )
     counts = sorted(episode_counts)
     presets = dict.fromkeys(rows_[0].get("style_preset", "?") for _, _, rows_ in loaded)
+    # results written before seed streams ran on the legacy one
+    streams = dict.fromkeys(rows_[0].get("stream", "legacy") for _, _, rows_ in loaded)
     budgets = [
         f"{lab} {m['trained_steps']:,}"
         + (
@@ -331,7 +411,7 @@ def table_from_results(
     ]
     caption = (
         f"{', '.join(dict.fromkeys(c.map for c in ordered))}: {_episodes(counts)} per cell, "
-        f"HDV style preset {'/'.join(presets)}"
+        f"HDV style preset {'/'.join(presets)}, seed stream {'/'.join(streams)}"
         + (f"; training budget (env steps): {', '.join(budgets)}" if budgets else "")
     )
     return Table(
@@ -343,6 +423,7 @@ def table_from_results(
         backend={lab: m["backend"] for lab, (_, m, _) in zip(labels, loaded, strict=True)},
         rows=tuple(rows),
         caption=caption,
+        values=values,
     )
 
 
@@ -378,9 +459,20 @@ def _entry(
         text = f"{marks[0]}{text}{marks[1]}"
     elif column in second:
         text = f"{marks[2]}{text}{marks[3]}"
-    changes = [table.change(cell, metric, column, ref) for ref in REFERENCES]
     unit = percent if change_unit(metric) == "%" else "pp"
-    shown = [f"{c:+.1f} {unit}" for c in changes if c is not None]
+    shown = []
+    extra = () if table.paired_against in REFERENCES else (table.paired_against,)
+    for ref in REFERENCES + extra:
+        paired = table.paired(cell, metric, column) if ref == table.paired_against else None
+        change = table.change(cell, metric, column, ref) if ref in REFERENCES else None
+        if paired is not None:
+            mark = "" if paired.measurable else f"{NO_DIFFERENCE} "
+            versus = f"vs {ref} " if extra else ""
+            shown.append(
+                f"{versus}{mark}{paired.change:+.1f} {unit} [{paired.low:+.1f}, {paired.high:+.1f}]"
+            )
+        elif change is not None:
+            shown.append(f"{change:+.1f} {unit}")
     if shown:
         text += f" ({', '.join(shown)})"
     return text
@@ -410,7 +502,12 @@ def to_markdown(table: Table) -> str:
 
 
 def _latex_escape(text: str) -> str:
-    return text.replace("%", r"\%").replace("_", r"\_").replace("±", r"$\pm$")
+    return (
+        text.replace("%", r"\%")
+        .replace("_", r"\_")
+        .replace("±", r"$\pm$")
+        .replace(NO_DIFFERENCE, r"$\approx$")
+    )
 
 
 def to_latex(table: Table) -> str:
@@ -478,6 +575,12 @@ def to_csv(table: Table) -> str:
         "change_same_mix",
         "change_unit",
         "best",
+        "paired_against",
+        "paired_change",
+        "ci_low",
+        "ci_high",
+        "n_pairs",
+        "measurable",
     ]
     rows = []
     for cell in table.cells:
@@ -489,6 +592,7 @@ def to_csv(table: Table) -> str:
                     continue
                 change = table.change(cell, metric, col)
                 change_mix = table.change(cell, metric, col, "same-mix")
+                paired = table.paired(cell, metric, col)
                 rows.append(
                     [
                         *cell.as_row().values(),
@@ -501,6 +605,18 @@ def to_csv(table: Table) -> str:
                         "" if change_mix is None else repr(change_mix),
                         change_unit(metric),
                         1 if col in best else 2 if col in second else 0,
+                        *(
+                            ["", "", "", "", "", ""]
+                            if paired is None
+                            else [
+                                table.paired_against,
+                                repr(paired.change),
+                                repr(paired.low),
+                                repr(paired.high),
+                                paired.n_pairs,
+                                int(paired.measurable),
+                            ]
+                        ),
                     ]
                 )
     return csv_text(header, rows)

@@ -142,7 +142,7 @@ def plot_timespace(
 ) -> list[Path]:
     """Play one episode and draw its time-space diagram; the caption names policy,
     backend, map, traffic and seed (the seed defaults to that of eval episode 0)."""
-    seed = cell.seed(0) if seed is None else seed
+    seed = cell.seed(0, settings.stream) if seed is None else seed
     traj, road, label, preset = record_trajectories(spec, cell, steps, settings, seed)
     caption = (
         f"{label} on {settings.backend}, map {road.name}: {cell.n_vehicles} vehicles "

@@ -62,6 +62,10 @@ class Rollout:
     agent_start: np.ndarray  # (S, E, C) bool: episode start, or a new CAV in the slot at s_t
     actor_hidden: np.ndarray  # (S, E, C, H) hidden state *before* step t
     critic_hidden: np.ndarray  # (S, E, H)
+    # Filled by the rollout for the values computed after it (mappo.rollout_values):
+    cut_states: list  # (t, env, final CriticState, final ActorObs) of each truncated episode
+    next_actor_obs: object = None  # stacked ActorObs of s_S, the state after the last step
+    next_critic_state: object = None  # stacked CriticState of s_S
 
     @classmethod
     def allocate(
@@ -86,4 +90,5 @@ class Rollout:
             agent_start=np.zeros((steps, envs, cavs), bool),
             actor_hidden=np.zeros((steps, envs, cavs, actor_h), f),
             critic_hidden=np.zeros((steps, envs, critic_h), f),
+            cut_states=[],
         )

@@ -156,7 +156,10 @@ def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
         }
     actor, critic, value_norm = actor.to(device), critic.to(device), value_norm.to(device)
     params = list(actor.parameters()) + list(critic.parameters())
-    optimizer = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps)
+    # fused: one kernel per parameter tensor instead of about ten (1.8 -> 0.3 ms a step on
+    # the CPU). A checkpoint restores the flag it was saved with, so old runs resume as they ran.
+    fused = device.type in ("cpu", "cuda")
+    optimizer = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps, fused=fused)
     if cfg.update_compile:
         extras["actor_sequence"] = torch.compile(actor.forward_sequence)
         extras["critic_sequence"] = torch.compile(critic.forward_sequence)
@@ -184,30 +187,39 @@ class RolloutStats:
 
 
 def collect_rollout(
-    agent: Agent, envs, cfg: TrainConfig, update: int, tau: float, sync: bool = True
-) -> tuple[Rollout, np.ndarray, RolloutStats]:
+    agent: Agent,
+    envs,
+    cfg: TrainConfig,
+    update: int,
+    tau: float,
+    sync: bool = True,
+    values: bool = True,
+) -> tuple[Rollout, np.ndarray | None, RolloutStats]:
     """Run every environment for ``rollout_steps`` decisions from a fresh reset.
 
-    The forwards run on the agent's rollout networks (:data:`ROLLOUT_DEVICE`),
+    The actor runs on the agent's rollout networks (:data:`ROLLOUT_DEVICE`),
     refreshed from the learner first unless ``sync`` is False (overlap: the
     learner is being updated meanwhile). The team reward of each step is
     :func:`~diacc.envs.reward.team_reward` of the envs' reward terms at the
     softmin temperature ``tau`` (:func:`~diacc.envs.reward.temperature` of the
     update); each ended episode's ``return`` sums them (an episode never spans
-    two rollouts: every rollout starts from a reset). Returns the filled
-    rollout, V(s_S) for bootstrapping (E,), and stats.
+    two rollouts: every rollout starts from a reset).
+
+    The critic does not run during the steps: values change nothing the envs
+    do, so :func:`rollout_values` computes all of them after the loop in one
+    pass per chunk (with ``values``, here, by the rollout critic; without, the
+    learner does it, :func:`learn`). Returns the filled rollout, V(s_S) for
+    bootstrapping (E,) (None without ``values``), and stats.
     """
     t0, cpu0 = time.perf_counter(), time.thread_time()
     if sync:
         agent.sync_rollout()
-    actor, critic, value_norm = agent.rollout_actor, agent.rollout_critic, agent.rollout_value_norm
-    device = ROLLOUT_DEVICE
-    E, C, H_a, H_c = cfg.n_envs, envs.n_cavs, actor.hidden_size, critic.hidden_size
+    actor, device = agent.rollout_actor, ROLLOUT_DEVICE
+    E, C, H_a = cfg.n_envs, envs.n_cavs, actor.hidden_size
     per_agent = cfg.critic_values == "per_agent"
-    roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, H_c, per_agent)
+    roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, agent.critic.hidden_size, per_agent)
     actor_obs, critic_state = envs.reset(first_episode=update * EPISODES_PER_UPDATE)
     h_actor = torch.zeros(E * C, H_a, device=device)  # (E*C, H)
-    h_critic = torch.zeros(E, H_c, device=device)  # (E, H)
     start = np.ones(E, bool)
     slot_start = np.zeros((E, C), bool)  # (E, C) new CAV in the slot since the last action
     episode_return = np.zeros(E)  # (E,) team rewards of each env's current episode so far
@@ -217,9 +229,7 @@ def collect_rollout(
         roll.episode_start[t], roll.alive[t] = start, actor_obs.alive
         roll.agent_start[t] = start[:, None] | slot_start
         roll.actor_hidden[t] = h_actor.view(E, C, H_a).cpu().numpy()
-        roll.critic_hidden[t] = h_critic.cpu().numpy()
         with torch.no_grad():
-            start_t = torch.as_tensor(start, device=device)
             agent_start_t = torch.as_tensor(roll.agent_start[t].reshape(-1), device=device)
             obs_t = to_tensors(flatten_agents(actor_obs), device)
             logits, h_actor = actor(obs_t, h_actor, agent_start_t)
@@ -227,13 +237,8 @@ def collect_rollout(
             logits = masked_logits(logits, obs_t["action_mask"])  # (E*C, 5)
             dist = torch.distributions.Categorical(logits=logits)
             action = dist.sample()  # (E*C,)
-            value, h_critic = critic(
-                critic_inputs(critic_state, actor_obs, per_agent, device), h_critic, start_t
-            )
         roll.actions[t] = action.view(E, C).cpu().numpy()
         roll.logprobs[t] = dist.log_prob(action).view(E, C).cpu().numpy()
-        roll.values_normalised[t] = value.cpu().numpy()
-        roll.values[t] = value_norm.denormalize(value).cpu().numpy()
 
         out = envs.step(roll.actions[t])
         if cfg.env.psar_actions == "executed":  # learn from what PSAR executed
@@ -253,15 +258,7 @@ def collect_rollout(
             final_actor = out.final_actor_obs[e]
             if final_actor is None:  # a simulator crash: the CAVs' last features are gone
                 final_actor = unstack(actor_obs, e)
-            with torch.no_grad():
-                v_final, _ = critic(
-                    critic_inputs(
-                        stack([out.final_critic_state[e]]), stack([final_actor]), per_agent, device
-                    ),
-                    h_critic[e : e + 1],
-                    torch.zeros(1, dtype=torch.bool, device=device),
-                )
-            roll.final_values[t, e] = value_norm.denormalize(v_final).cpu().numpy()[0]
+            roll.cut_states.append((t, int(e), out.final_critic_state[e], final_actor))
         stats.episodes += [
             {"return": float(episode_return[e]), **ep} for e, ep in out.episodes.items()
         ]
@@ -275,20 +272,69 @@ def collect_rollout(
                 **out.reward_terms,
                 "tau": np.full(int(reported.sum()), tau),
             }
-            for key, values in terms.items():
-                stats.reward_terms.setdefault(key, []).append(float(values.mean()))
+            for key, values_ in terms.items():
+                stats.reward_terms.setdefault(key, []).append(float(values_.mean()))
         actor_obs, critic_state = out.actor_obs, out.critic_state
         start = out.terminated | out.truncated
         episode_return[start] = 0.0
         slot_start = out.slot_start
-    with torch.no_grad():
-        next_value, _ = critic(
-            critic_inputs(critic_state, actor_obs, per_agent, device),
-            h_critic,
-            torch.as_tensor(start, device=device),
+    roll.next_actor_obs, roll.next_critic_state = actor_obs, critic_state
+    next_value = None
+    if values:
+        next_value = rollout_values(
+            agent.rollout_critic, agent.rollout_value_norm, roll, cfg, device
         )
     stats.seconds, stats.cpu_seconds = time.perf_counter() - t0, time.thread_time() - cpu0
-    return roll, value_norm.denormalize(next_value).cpu().numpy(), stats
+    return roll, next_value, stats
+
+
+@torch.no_grad()
+def rollout_values(critic, value_norm: ValueNorm, roll: Rollout, cfg: TrainConfig, device):
+    """The critic's values of a collected rollout; returns V(s_S) (E,) for bootstrapping.
+
+    Fills ``roll.values`` (de-normalised, for GAE), ``values_normalised`` (the
+    value-clip centre), ``critic_hidden`` (the state *before* each step, the
+    update's chunk starts) and ``final_values`` (episodes cut by the time
+    limit). The critic replays the rollout one chunk of ``chunk_len`` steps at a
+    time, carrying its hidden state: the same recursion as stepping along with
+    the envs, in S / L forwards instead of S, and with memory bounded by a
+    chunk (a demand critic sees hundreds of vehicles per state).
+    """
+    per_agent = cfg.critic_values == "per_agent"
+    S, E = roll.episode_start.shape
+    L = cfg.chunk_len
+    hidden = torch.zeros(E, critic.hidden_size, device=device)  # (E, H)
+    after = []  # (L, E, H) states after each step, chunk by chunk
+    for t0 in range(0, S, L):
+        steps = slice(t0, t0 + L)
+        inputs = critic_inputs(
+            stack(roll.critic_state[steps]), stack(roll.actor_obs[steps]), per_agent, device
+        )  # (L, E, ...)
+        roll.critic_hidden[t0] = hidden.cpu().numpy()
+        value, states = critic.forward_sequence(
+            inputs, hidden, torch.as_tensor(roll.episode_start[steps], device=device), True
+        )  # (L, E) or (L, E, C); (L, E, H)
+        roll.values_normalised[steps] = value.cpu().numpy()
+        roll.values[steps] = value_norm.denormalize(value).cpu().numpy()
+        hidden = states[-1]
+        after.append(states)
+    after_t = torch.cat(after)  # (S, E, H)
+    roll.critic_hidden[1:] = after_t[:-1].cpu().numpy()
+    if roll.cut_states:  # V of each truncated episode's last state, from the state after t
+        ts, es, finals, actors = zip(*roll.cut_states, strict=True)
+        v_final, _ = critic(
+            critic_inputs(stack(list(finals)), stack(list(actors)), per_agent, device),
+            after_t[list(ts), list(es)],
+            torch.zeros(len(ts), dtype=torch.bool, device=device),
+        )
+        roll.final_values[list(ts), list(es)] = value_norm.denormalize(v_final).cpu().numpy()
+    last_start = roll.terminated[-1] | roll.truncated[-1]  # (E,) a new episode at s_S
+    next_value, _ = critic(
+        critic_inputs(roll.next_critic_state, roll.next_actor_obs, per_agent, device),
+        hidden,
+        torch.as_tensor(last_start, device=device),
+    )
+    return value_norm.denormalize(next_value).cpu().numpy()
 
 
 def rollout_gae(roll: Rollout, next_value: np.ndarray, cfg: TrainConfig):
@@ -345,6 +391,10 @@ class Batch:
     advantages: torch.Tensor  # (L, B_a) normalised over alive CAVs
     returns: torch.Tensor  # (L, B_c) unnormalised; (L, B_c, C) with per-agent values
     old_values_normalised: torch.Tensor  # (L, B_c) critic outputs at rollout time (or C)
+    # A rollout collected one update behind (overlap): the learner's own log-probs before
+    # this update (PPO's clip centre) and the weights pi_prox / pi_behaviour; else None.
+    prox_logprobs: torch.Tensor | None = None  # (L, B_a)
+    behaviour_weights: torch.Tensor | None = None  # (L, B_a)
 
 
 def make_batch(
@@ -396,6 +446,19 @@ def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: i
     Returns (new log-probs (L, b_a), entropy (L, b_a), normalised values (L, b_c),
     actor sequence indices b_a).
     """
+    dist, agents_idx = actor_distribution(agent, batch, envs_idx, n_cavs)
+    values, _ = agent.replay_critic(
+        {k: v[:, envs_idx] for k, v in batch.critic_state.items()},
+        batch.critic_h0[envs_idx],
+        batch.critic_start[:, envs_idx],
+    )
+    # float(): under bf16 autocast the networks return bf16; losses are taken in fp32.
+    return dist.log_prob(batch.actions[:, agents_idx]), dist.entropy(), values.float(), agents_idx
+
+
+def actor_distribution(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: int):
+    """The learner actor's action distribution (L, b_a, 5) on the CAVs of critic
+    sequences ``envs_idx``, and their actor sequence indices b_a."""
     agents_idx = (
         envs_idx[:, None] * n_cavs + torch.arange(n_cavs, device=envs_idx.device)
     ).reshape(-1)
@@ -404,15 +467,39 @@ def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: i
         batch.actor_h0[agents_idx],
         batch.actor_start[:, agents_idx],
     )
-    values, _ = agent.replay_critic(
-        {k: v[:, envs_idx] for k, v in batch.critic_state.items()},
-        batch.critic_h0[envs_idx],
-        batch.critic_start[:, envs_idx],
-    )
-    # float(): under bf16 autocast the networks return bf16; losses are taken in fp32.
     logits = masked_logits(logits.float(), batch.actor_obs["action_mask"][:, agents_idx])
-    dist = torch.distributions.Categorical(logits=logits)  # (L, b_a, 5)
-    return dist.log_prob(batch.actions[:, agents_idx]), dist.entropy(), values.float(), agents_idx
+    return torch.distributions.Categorical(logits=logits), agents_idx
+
+
+#: Cap of the importance weight pi_prox / pi_behaviour of a lagged rollout: one
+#: update apart the two policies barely differ (approx. KL < 0.01), so the cap only
+#: guards against an action the behaviour policy took with a tiny probability.
+MAX_BEHAVIOUR_WEIGHT = 2.0
+
+
+@torch.no_grad()
+def add_proximal_policy(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> None:
+    """Make a lagged rollout's batch (overlap) train like a fresh one.
+
+    A rollout collected beside the previous update acts with the parameters from
+    before that update. PPO's clip around *those* log-probs starts the update
+    already off-centre and cuts its steps short (docs/benchmarks, "Training
+    throughput II" and "III", has the measurements). The decoupled PPO objective
+    (Hilton et al. 2022, "Batch size-invariance for policy optimization") clips
+    around the learner's own policy before this update (``prox_logprobs``) and
+    corrects for the behaviour policy with the weight pi_prox / pi_behaviour
+    (capped at :data:`MAX_BEHAVIOUR_WEIGHT`). One forward pass of the actor over
+    the rollout, minibatch by minibatch.
+    """
+    autocast = torch.autocast(batch.returns.device.type, torch.bfloat16, enabled=cfg.update_bf16)
+    prox = torch.empty_like(batch.logprobs)  # (L, B_a)
+    n_sequences = batch.critic_h0.shape[0]
+    with autocast:
+        for envs_idx in torch.arange(n_sequences, device=prox.device).chunk(cfg.minibatches):
+            dist, agents_idx = actor_distribution(agent, batch, envs_idx, n_cavs)
+            prox[:, agents_idx] = dist.log_prob(batch.actions[:, agents_idx])
+    batch.prox_logprobs = prox
+    batch.behaviour_weights = (prox - batch.logprobs).exp().clamp(max=MAX_BEHAVIOUR_WEIGHT)
 
 
 # ----------------------------------------------------------------------------- PPO update
@@ -454,10 +541,13 @@ def ppo_update(
                 logprob, entropy, value, agents_idx = evaluate_batch(agent, batch, envs_idx, n_cavs)
             mask = batch.alive[:, agents_idx]  # (L, b_a): dead CAVs add nothing
             n_alive = mask.sum().clamp(min=1.0)
-            log_ratio = logprob - batch.logprobs[:, agents_idx]
+            centre = batch.logprobs if batch.prox_logprobs is None else batch.prox_logprobs
+            log_ratio = logprob - centre[:, agents_idx]
             ratio = log_ratio.exp()
             adv = batch.advantages[:, agents_idx]
             surrogate = torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv)
+            if batch.behaviour_weights is not None:  # a lagged rollout (add_proximal_policy)
+                surrogate = surrogate * batch.behaviour_weights[:, agents_idx]
             policy_loss = -(surrogate * mask).sum() / n_alive
             entropy_mean = (entropy * mask).sum() / n_alive
             old_v, target = old_values_n[:, envs_idx], returns_n[:, envs_idx]
@@ -738,7 +828,9 @@ def _train_loop(
     started_s = time.perf_counter()
     try:
         with _StopOnSignal() as stop:
-            collected = None  # overlap: the next update's rollout, collected beside the learner
+            # The next update's rollout when overlap collected it beside the learner
+            # (lagged: one update behind), else None.
+            collected, lagged = None, False
             for update in range(first_update, last_update):
                 t0 = time.perf_counter()
                 if cfg.lr_decay:
@@ -746,7 +838,10 @@ def _train_loop(
                         group["lr"] = cfg.lr * (1.0 - update / n_updates)
                 tau = temperature(global_step, cfg.total_steps, cfg.env.reward)
                 if collected is None:
-                    collected = collect_rollout(agent, envs, cfg, update, tau)
+                    collected, lagged = (
+                        collect_rollout(agent, envs, cfg, update, tau, values=False),
+                        False,
+                    )
                 roll, next_value, rollout = collected
                 if rollout.restarts:
                     log.warning(
@@ -771,6 +866,7 @@ def _train_loop(
                     device,
                     envs.n_cavs,
                     _update_generator(cfg, update, device),
+                    lagged,
                 )
                 try:
                     if prefetch:
@@ -780,6 +876,7 @@ def _train_loop(
                         returns, losses, collected = _learn_beside_rollout(
                             learn_roll, agent, envs, cfg, update, next_tau
                         )
+                        lagged = True
                     else:
                         returns, losses = learn_roll()
                 except NonFiniteError as exc:
@@ -829,24 +926,32 @@ def _train_loop(
 def learn(
     agent: Agent,
     roll: Rollout,
-    next_value: np.ndarray,
+    next_value: np.ndarray | None,
     cfg: TrainConfig,
     device: torch.device,
     n_cavs: int,
     generator: torch.Generator | None = None,
+    lagged: bool = False,
 ) -> tuple[np.ndarray, dict[str, float]]:
-    """GAE, batching and the PPO update of one rollout; returns (returns (S, E), losses).
+    """Values, GAE, batching and the PPO update of one rollout; returns (returns (S, E), losses).
 
-    ``losses`` also holds ``learner_s`` and ``learner_cpu_s``, the wall and
-    CPU seconds this took (the learner's share of an update, logged for
-    ``diacc bench --training``).
+    ``next_value`` None: the rollout's values are computed here, by the learner's
+    critic (:func:`rollout_values`), so that a rollout collected beside the previous
+    update (``lagged``, overlap) is valued by the critic that this update trains;
+    its policy loss then uses :func:`add_proximal_policy`. ``losses`` also holds
+    ``learner_s`` and ``learner_cpu_s``, the wall and CPU seconds this took (the
+    learner's share of an update, logged for ``diacc bench --training``).
     """
     t0, cpu0 = time.perf_counter(), time.thread_time()
+    if next_value is None:
+        next_value = rollout_values(agent.critic, agent.value_norm, roll, cfg, device)
     advantages, returns = rollout_gae(roll, next_value, cfg)
     for name, array in (("reward", roll.rewards), ("returns", returns)):
         if not np.isfinite(array).all():
             raise NonFiniteError(f"non-finite {name} in the rollout")
     batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
+    if lagged:
+        add_proximal_policy(agent, batch, cfg, n_cavs)
     losses = ppo_update(agent, batch, cfg, n_cavs, generator)
     seconds = {"learner_s": time.perf_counter() - t0, "learner_cpu_s": time.thread_time() - cpu0}
     return returns, {**losses, **seconds}
@@ -891,7 +996,9 @@ def _learn_beside_rollout(
     learner = threading.Thread(target=run_update, name="diacc-learner")
     learner.start()
     try:
-        collected = collect_rollout(agent, envs, cfg, update + 1, next_tau, sync=False)
+        collected = collect_rollout(
+            agent, envs, cfg, update + 1, next_tau, sync=False, values=False
+        )
     finally:
         learner.join()
     if "error" in result:

@@ -27,7 +27,7 @@ Two scenario kinds (:mod:`diacc.sim.scenario`):
 Metrics are the evaluator's (:mod:`diacc.envs.metrics`): mean speed, delay per
 vehicle against free-flow travel, throughput past the bottleneck, arrived
 share, p(WE) and the share of episodes with a collision; means over seeded
-episodes (seeds as ``diacc eval``).
+episodes (seeds of ``diacc eval --stream legacy``, as its committed results).
 """
 
 from __future__ import annotations
@@ -205,7 +205,7 @@ def measure(
     rows, unslotted = [], []
     try:
         for k in range(episodes):
-            rows.append(run_episode(driver, cell, k).row)
+            rows.append(run_episode(driver, cell, k, "legacy").row)
             unslotted.append(driver.unslotted_cav_steps)
     finally:
         driver.close()

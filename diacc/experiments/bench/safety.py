@@ -1,8 +1,9 @@
 """``diacc bench --safety``: can scripted CAVs cross the bottleneck without collisions?
 
 Scripted policies (:class:`~diacc.experiments.policies.ScriptedPolicy`: always
-``remain``, always ``accelerate``, uniform ``random``, and the ``heuristic``
-that accelerates and leaves an ending lane early) drive the CAVs of the
+``remain``, always ``accelerate``, uniform ``random``, the ``heuristic``
+that accelerates and leaves an ending lane early, and ``late-merge``, which
+leaves it only 150 m before its end) drive the CAVs of the
 paper's training scenario (N = 25, rho = 0.4, D1) with and without PSAR, on
 every map and backend, through the same episode driver as evaluation
 (:func:`diacc.experiments.evaluate.run_episode`). A policy that knows nothing about
@@ -16,7 +17,7 @@ episode length are the evaluation's (:class:`~diacc.experiments.policies.EvalSet
 runs with 330-step episodes are benchmarked too.
 
 Target (issue "Collision-free bottleneck driving"): with PSAR, ``remain``,
-``accelerate`` and ``heuristic`` collision-free in >= 95 % of episodes on every
+``accelerate``, ``heuristic`` and ``late-merge`` collision-free in >= 95 % of episodes on every
 map and both backends, and 0 HDV-HDV collisions. Without PSAR collisions are
 expected.
 """
@@ -40,7 +41,7 @@ from diacc.sim.maps import available_maps
 POLICIES = tuple(SCRIPTED) + tuple(f"{name}-nopsar" for name in SCRIPTED)
 #: Target collision-free share for these policies (all with PSAR).
 TARGET_COLLISION_FREE = 0.95
-TARGET_POLICIES = ("remain", "accelerate", "heuristic")
+TARGET_POLICIES = ("remain", "accelerate", "heuristic", "late-merge")
 
 
 @dataclass
@@ -72,7 +73,8 @@ def measure(
     episodes: int,
     horizon: str | None = None,
 ) -> SafetyRow:
-    """Run ``episodes`` seeded episodes of one scripted policy; seeds as evaluation's.
+    """Run ``episodes`` seeded episodes of one scripted policy; seeds of the legacy
+    evaluation stream (those of its committed results).
 
     ``horizon``: PSAR's (:attr:`~diacc.config.PSARConfig.horizon`; None keeps the default).
     """
@@ -84,7 +86,7 @@ def measure(
     backend = settings.backend
     driver = EpisodeDriver(policy, policy.env_config(cell, settings))
     try:
-        rows = [run_episode(driver, cell, k).row for k in range(episodes)]
+        rows = [run_episode(driver, cell, k, "legacy").row for k in range(episodes)]
     finally:
         driver.close()
     return SafetyRow(
@@ -120,7 +122,7 @@ def run(
         f"safety benchmark: N = 25, rho = 0.4, D1, style preset {sim.style_preset}, "
         f"{sim.episode_steps}-step episodes, PSAR horizon {horizon or PSARConfig().horizon}, "
         f"{episodes} seeded episodes per row "
-        f"(seeds as `diacc eval`)"
+        f"(seeds of `diacc eval --stream legacy`)"
     )
     print(
         "| backend | map | policy | collision-free | HDV-HDV collisions | mean speed m/s "

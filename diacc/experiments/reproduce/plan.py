@@ -35,7 +35,7 @@ from diacc.config import (
     build_train_config,
     override,
 )
-from diacc.experiments.grid import GRID_NAMES, Cell, load_grid
+from diacc.experiments.grid import DEFAULT_STREAM, GRID_NAMES, Cell, load_grid
 from diacc.experiments.policies import BASELINES
 from diacc.experiments.sweepaxes import Setting
 from diacc.sim.maps import load_map, map_tag
@@ -122,6 +122,8 @@ class ReproduceConfig:
     style_preset: str = SimConfig.style_preset  # HDV styles, training and evaluation
     episode_steps: int | None = None  # evaluation episode length; None: the policy's own
     actions: str = "greedy"  # checkpoints' evaluation actions: argmax, or "sampled" (seeded)
+    # evaluation seed stream: "test" to report, "validation" where a sweep chooses a setting
+    stream: str = DEFAULT_STREAM
     device: str = TrainConfig.device  # torch device of the PPO updates (as 'diacc train')
     train_sets: tuple[str, ...] = ()  # KEY=VALUE training overrides, as `diacc train --set`
     # config settings each variant is trained with (--sweep/--study); () = one, the defaults
@@ -427,7 +429,8 @@ def describe_plan(plan: Plan) -> list[str]:
         "decision steps)",
         f"  HDV style preset {cfg.style_preset}; evaluation episodes of "
         + (f"{cfg.episode_steps} steps" if cfg.episode_steps else "the policy's own length")
-        + f"; checkpoints act {cfg.actions}; transfer {'on' if plan.transfer_pairs else 'off'}",
+        + f"; checkpoints act {cfg.actions}; transfer {'on' if plan.transfer_pairs else 'off'}; "
+        f"seed stream {cfg.stream}",
     ]
     for grid in cfg.grids:
         if b.zero_shot_cells_per_map is not None and grid != "train":

@@ -216,10 +216,14 @@ def job_spec(plan: Plan, job: EvalJob) -> PolicySpec:
 
 
 def job_settings(plan: Plan, job: EvalJob) -> EvalSettings:
-    """The evaluation settings of a job: its backend, the command's episode length and preset."""
+    """The evaluation settings of a job: its backend, the command's episode length, preset
+    and seed stream."""
     cfg = plan.config
     return EvalSettings(
-        backend=job.backend, episode_steps=cfg.episode_steps, style_preset=cfg.style_preset
+        backend=job.backend,
+        episode_steps=cfg.episode_steps,
+        style_preset=cfg.style_preset,
+        stream=cfg.stream,
     )
 
 

@@ -24,7 +24,7 @@ from torch import Tensor, nn
 
 from diacc.config import ModelConfig
 from diacc.envs.observation import SELF_FEATURES
-from diacc.learn.models.inputs import TensorDict, merge_leading, require
+from diacc.learn.models.inputs import TensorDict, require
 from diacc.learn.models.layers import VALUE_GAIN, mlp, orthogonal_init
 from diacc.learn.models.recurrent import RecurrentNet
 
@@ -82,15 +82,8 @@ class AgentValueCritic(nn.Module):
         return self._values(new_hidden, inputs[AGENT_KEY]), new_hidden
 
     def forward_sequence(
-        self, inputs: TensorDict, hidden: Tensor, episode_starts: Tensor
+        self, inputs: TensorDict, hidden: Tensor, episode_starts: Tensor, all_states: bool = False
     ) -> tuple[Tensor, Tensor]:
-        n_steps, n_batch = episode_starts.shape
-        team = self.team
-        require(inputs, (*team.encoder.input_keys, AGENT_KEY), (n_steps, n_batch), "AgentValue")
-        features = team.encoder(merge_leading(inputs, 2)).reshape(n_steps, n_batch, -1)
-        keep = 1.0 - episode_starts.to(hidden.dtype)  # (T, B)
-        states = []
-        for t in range(n_steps):  # the team critic's recurrence, keeping every step's state
-            hidden = team.gru(features[t], hidden * keep[t, :, None])  # (B, H)
-            states.append(hidden)
-        return self._values(torch.stack(states), inputs[AGENT_KEY]), hidden
+        require(inputs, (AGENT_KEY,), tuple(episode_starts.shape), "AgentValue")
+        states = self.team.hidden_states(inputs, hidden, episode_starts)  # (T, B, H)
+        return self._values(states, inputs[AGENT_KEY]), (states if all_states else states[-1])

@@ -78,18 +78,83 @@ class RecurrentNet(nn.Module):
         return self._out(self.head(new_hidden)), new_hidden
 
     def forward_sequence(
-        self, inputs: TensorDict, hidden: Tensor, episode_starts: Tensor
+        self, inputs: TensorDict, hidden: Tensor, episode_starts: Tensor, all_states: bool = False
     ) -> tuple[Tensor, Tensor]:
         """Replay a chunk: inputs (T, B, ...), hidden (B, H) at the chunk start, starts (T, B).
 
-        Returns the outputs (T, B, n_outputs) or (T, B) and the hidden state after step T.
+        Returns the outputs (T, B, n_outputs) or (T, B) and the hidden state after step T
+        (B, H), or with ``all_states`` after every step (T, B, H).
         """
+        states = self.hidden_states(inputs, hidden, episode_starts)  # (T, B, H)
+        return self._out(self.head(states)), (states if all_states else states[-1])
+
+    def hidden_states(self, inputs: TensorDict, hidden: Tensor, episode_starts: Tensor) -> Tensor:
+        """The GRU state after every step of a chunk (T, B, H); arguments as forward_sequence."""
         n_steps, n_batch = episode_starts.shape
         require(inputs, self.encoder.input_keys, (n_steps, n_batch), type(self).__name__)
-        features = self.encoder(merge_leading(inputs, 2)).reshape(n_steps, n_batch, -1)
-        keep = 1.0 - episode_starts.to(hidden.dtype)  # (T, B)
+        flat = merge_leading(inputs, 2)
+        needed = needed_rows(inputs, episode_starts)  # (T*B,) or None: every row
+        if needed is None:
+            features = self.encoder(flat)  # (T*B, E)
+        else:  # encode the rows that matter; the others get zero features
+            rows = needed.nonzero().squeeze(1)  # (R,)
+            encoded = self.encoder({k: v.index_select(0, rows) for k, v in flat.items()})
+            features = encoded.new_zeros(n_steps * n_batch, encoded.shape[-1])
+            features = features.index_copy(0, rows, encoded)  # (T*B, E)
+        # The GRU's input half for all T steps in one product; only the hidden half
+        # loops over time. Same formulas and order as torch's CPU GRUCell.
+        cell = self.gru
+        input_gates = nn.functional.linear(features, cell.weight_ih, cell.bias_ih)  # (T*B, 3H)
+        keep = (1.0 - episode_starts.to(hidden.dtype))[..., None]  # (T, B, 1)
         states = []
-        for t in range(n_steps):  # time only: the GRU recursion is sequential
-            hidden = self.gru(features[t], hidden * keep[t, :, None])  # (B, H)
+        for gates_x, keep_t in zip(
+            input_gates.view(n_steps, n_batch, -1).unbind(0), keep.unbind(0), strict=True
+        ):  # time only: the GRU recursion is sequential
+            hidden = gru_step(gates_x, hidden * keep_t, cell)  # (B, H)
             states.append(hidden)
-        return self._out(self.head(torch.stack(states))), hidden
+        return torch.stack(states)
+
+
+#: Encode only the rows that matter when at most this share of a chunk's rows does
+#: (gathering and scattering the rows costs more than it saves above it).
+SPARSE_ROWS_SHARE = 0.9
+
+
+def needed_rows(inputs: TensorDict, episode_starts: Tensor) -> Tensor | None:
+    """Rows (T*B,) of an actor's chunk whose features can reach a loss, or None for all.
+
+    An agent off the road (``alive`` False: a CAV that left, an empty demand slot)
+    adds nothing to any loss, and its GRU state reaches a later step only if that
+    step is alive without a reset in between (a new CAV in a slot, an episode
+    start, resets it): rows outside both are skipped, which is exact. Demand
+    chunks hold many empty slots; a release chunk is nearly all alive, and then
+    (above :data:`SPARSE_ROWS_SHARE`) every row is encoded. None also for inputs
+    without ``alive`` (critics) and under ``torch.compile``.
+    """
+    alive = inputs.get("alive")
+    # Under torch.compile the data-dependent row count would break the graph.
+    if alive is None or alive.dtype != torch.bool or torch.compiler.is_compiling():
+        return None
+    needed, carried = alive.clone(), ~episode_starts.bool()  # (T, B) each
+    for t in range(alive.shape[0] - 2, -1, -1):  # carried backwards until a reset
+        needed[t] |= needed[t + 1] & carried[t + 1]
+    needed = needed.reshape(-1)
+    if needed.sum() > SPARSE_ROWS_SHARE * needed.numel():
+        return None
+    return needed
+
+
+def gru_step(input_gates: Tensor, hidden: Tensor, cell: nn.GRUCell) -> Tensor:
+    """One GRU step from precomputed input gates ``W_ih x + b_ih`` (B, 3H) -> new hidden (B, H).
+
+    ``r = sigmoid(i_r + h_r)``, ``z = sigmoid(i_z + h_z)``, ``n = tanh(i_n + r * h_n)``,
+    ``h' = (h - n) * z + n`` with ``h_* = W_hh h + b_hh``: :class:`torch.nn.GRUCell`'s
+    maths, written out so that the input half can be computed for a whole chunk at once.
+    """
+    hidden_gates = nn.functional.linear(hidden, cell.weight_hh, cell.bias_hh)  # (B, 3H)
+    i_r, i_z, i_n = input_gates.chunk(3, -1)
+    h_r, h_z, h_n = hidden_gates.chunk(3, -1)
+    reset = torch.sigmoid(h_r + i_r)
+    update = torch.sigmoid(h_z + i_z)
+    new = torch.tanh(i_n + h_n * reset)
+    return (hidden - new) * update + new

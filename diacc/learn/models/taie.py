@@ -83,28 +83,31 @@ class TAIE(Encoder):
         cav_action = torch.where(cav_mask, obs["cav_prev_action"], 0)  # (M, K)
         ego_action = obs["action_memory"][..., 1]  # (M,) refined previous action
 
+        # Absent neighbours embed to exact zeros (embed_present): no masking in the GATs.
         f_hdv, att_hdv = self.hdv_gat(
-            self.hdv_embed(ego_hist)[:, None],  # (M, 1, E)
-            embed_present(self.hdv_embed, hdv_hist, hdv_mask)[:, None],  # (M, 1, K, E)
-            hdv_mask[:, None],
+            self.hdv_embed(ego_hist),  # (M, E)
+            embed_present(self.hdv_embed, hdv_hist, hdv_mask),  # (M, K, E)
+            hdv_mask,
             return_attention=True,
+            keys_zeroed=True,
         )
         f_cav, att_cav = self.cav_gat(
-            self.cav_embed(torch.cat([ego_hist, one_hot(ego_action, N_ACTIONS)], -1))[:, None],
+            self.cav_embed(torch.cat([ego_hist, one_hot(ego_action, N_ACTIONS)], -1)),
             embed_present(
                 self.cav_embed, torch.cat([cav_hist, one_hot(cav_action, N_ACTIONS)], -1), cav_mask
-            )[:, None],  # (M, 1, K, E)
-            cav_mask[:, None],
+            ),  # (M, K, E)
+            cav_mask,
             return_attention=True,
+            keys_zeroed=True,
         )
         lane_mask = obs["lane_mask"]  # (M, 3)
         lanes = (obs["lane_stats"] * lane_mask[..., None]).flatten(-2)  # (M, 3*4)
         f_context = self.context(
             torch.cat([lanes, lane_mask.float(), obs["road"], obs["self_state"]], -1)
         )  # (M, E)
-        fused = self.fusion(torch.cat([f_hdv[:, 0], f_cav[:, 0], f_context], -1))  # (M, E)
+        fused = self.fusion(torch.cat([f_hdv, f_cav, f_context], -1))  # (M, E)
         if return_attention:
-            return fused, {"hdv": att_hdv[:, 0], "cav": att_cav[:, 0]}  # (M, 1+K, H) each
+            return fused, {"hdv": att_hdv, "cav": att_cav}  # (M, 1+K, H) each
         return fused
 
 

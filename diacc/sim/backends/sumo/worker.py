@@ -53,6 +53,8 @@ SUMO_DEFAULT_LANE_CHANGE_MODE = 1621
 #: a readable heading (SUMO keeps heading 0 for instant changes), short enough
 #: that a change commanded at the start of a step ends within it (base.py).
 LANE_CHANGE_FRACTION = 0.8
+#: Lateral offset (m) from the lane's centre line within which a vehicle is on it.
+CENTRE_LINE_TOL_M = 1e-6
 #: libsumo.constants names of the vehicle variables a TrafficState is built
 #: from, subscribed for every vehicle and read in one call per decision step.
 STATE_VARIABLES = (
@@ -320,7 +322,14 @@ class SumoSim:
         st.y_m[idx] = (abs_lane + 0.5) * self.road.lane_width_m + data[:, 4]
         st.speed_mps[idx] = data[:, 5]
         # SUMO angle: compass degrees, 90 = along +x (the route); ours: radians, left positive.
-        st.heading_rad[idx] = np.deg2rad(90.0 - data[:, 6])
+        # SUMO turns a vehicle by its last movement and keeps that angle while it (nearly)
+        # stands: a CAV that changed lanes from standstill (its change completes within
+        # the step) stood askew (35 degrees) on its new lane's centre line for as long as
+        # it waited, which shortened every gap PSAR measures to it and could block the
+        # lane change of the CAV beside it forever (issue 44). The roads are straight, so
+        # a vehicle on its lane's centre line (no change under way) points along it.
+        straight = np.abs(data[:, 4]) < CENTRE_LINE_TOL_M
+        st.heading_rad[idx] = np.where(straight, 0.0, np.deg2rad(90.0 - data[:, 6]))
 
 
 def worker_main(conn) -> None:  # pragma: no cover - runs in a child process

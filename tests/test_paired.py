@@ -1,0 +1,111 @@
+"""Paired changes against same-mix with bootstrap intervals (`diacc table`), on hand-made
+episodes whose answers are known."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from diacc.cli import main
+from diacc.experiments.paired import EpisodeValues, paired_change
+from diacc.experiments.report import NO_DIFFERENCE, build_table, render_table
+
+COLUMNS = ["policy", "backend", "style_preset", "map", "n_vehicles", "cav_penetration"]
+COLUMNS += ["style_mix", "stream", "episode", "seed", "mean_speed_mps", "std_speed_mps"]
+COLUMNS += ["n_speed_samples", "p_we", "p_sce", "delay_per_vehicle_s"]
+
+
+def _values(seeds, values) -> EpisodeValues:
+    return EpisodeValues(
+        np.array(seeds, dtype=np.int64), np.array(values, float), np.ones(len(seeds))
+    )
+
+
+def test_a_shift_on_every_pair_is_exact_however_noisy_the_traffic():
+    """Pairing removes the traffic's spread: each episode 20 % less than its same-mix twin,
+    over traffic from 5 to 50 s, is -20 % with a zero-width interval."""
+    traffic = np.random.default_rng(1).uniform(5.0, 50.0, 30)
+    ref = _values(range(30), traffic)
+    agent = _values(range(30), 0.8 * traffic)
+    change = paired_change(agent, ref, relative=True)
+    assert change.n_pairs == 30 and change.measurable
+    assert (change.change, change.low, change.high) == pytest.approx((-20.0, -20.0, -20.0))
+
+
+def test_pairs_follow_seeds_not_order_and_skip_unmatched_or_undefined_episodes():
+    ref = _values([11, 12, 13, 14], [1.0, 2.0, 3.0, 4.0])
+    agent = _values([14, 12, 99, 13, 11], [6.0, 4.0, 100.0, np.nan, 3.0])  # +2 on each pair
+    change = paired_change(agent, ref, relative=False)
+    assert change.n_pairs == 3  # 99 has no twin, 13 is undefined
+    assert (change.change, change.low, change.high) == pytest.approx((2.0, 2.0, 2.0))
+    assert paired_change(_values([11], [1.0]), ref, relative=False) is None  # one pair
+    assert paired_change(agent, _values([11, 12], [0.0, 0.0]), relative=True) is None  # / 0
+
+
+def test_an_interval_that_holds_zero_is_no_measurable_difference_and_is_seeded():
+    rng = np.random.default_rng(7)
+    ref = _values(range(30), rng.normal(10.0, 3.0, 30))
+    agent = _values(range(30), ref.value + rng.normal(0.0, 3.0, 30))  # noise, no effect
+    change = paired_change(agent, ref, relative=False)
+    assert change.low < 0.0 < change.high and not change.measurable
+    assert change.low < change.change < change.high
+    assert paired_change(agent, ref, relative=False) == change  # same files, same interval
+    same = paired_change(ref, ref, relative=False)  # identical episodes: [0, 0] holds 0
+    assert (same.low, same.high, same.measurable) == (0.0, 0.0, False)
+
+
+def _results(path: Path, policy: str, delays: list[float], p_sce: list[float]) -> Path:
+    path.mkdir(parents=True)
+    (path / "meta.json").write_text(json.dumps({"policy": policy, "backend": "highway"}))
+    with open(path / "episodes.csv", "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(COLUMNS)
+        for ep, (delay, sce) in enumerate(zip(delays, p_sce, strict=True)):
+            row = [policy, "highway", "realistic", "train-50", 25, 0.4, "D1", "test", ep]
+            writer.writerow([*row, 1000 + 2 * ep + 1, 20.0, 1.0, 100, 0.0, sce, delay])
+    return path
+
+
+def test_table_shows_the_interval_and_marks_no_measurable_difference(tmp_path):
+    traffic = [10.0, 14.0, 12.0, 16.0]
+    mix = _results(tmp_path / "mix", "same-mix", traffic, [0.1, 0.0, 0.2, 0.1])
+    agent = _results(tmp_path / "agent", "diacc", [0.75 * d for d in traffic], [0.0, 0.1, 0.2, 0.1])
+    table = build_table([mix, agent], rows=("delay", "p_sce"))
+    markdown = render_table(table, "markdown")
+    # delay: -25 % on every pair; p(SCE): -10, +10, 0, 0 pp, an interval around 0
+    assert "(-25.0 % [-25.0, -25.0])" in markdown
+    assert f"({NO_DIFFERENCE} +0.0 pp [-7.5, +7.5])" in markdown  # means of 4 resampled
+    assert "no measurable difference" in markdown and "seed stream test" in markdown
+    rows = list(csv.DictReader(io.StringIO(render_table(table, "csv"))))
+    (delay,) = [r for r in rows if r["metric"] == "delay" and r["policy"] == "diacc"]
+    assert float(delay["ci_low"]) == pytest.approx(-25.0)
+    assert (delay["paired_against"], delay["n_pairs"], delay["measurable"]) == (
+        "same-mix",
+        "4",
+        "1",
+    )
+    (sce,) = [r for r in rows if r["metric"] == "p_sce" and r["policy"] == "diacc"]
+    assert sce["measurable"] == "0"
+    assert "$\\approx$" in render_table(table, "latex")
+
+
+def test_paired_against_another_column(tmp_path, capsys):
+    """`--paired-against heuristic`: is the agent better than the rule on the same traffic?"""
+    traffic = [10.0, 14.0, 12.0, 16.0]
+    dirs = [
+        _results(tmp_path / "mix", "same-mix", traffic, [0.1] * 4),
+        _results(tmp_path / "rule", "heuristic", [0.9 * d for d in traffic], [0.1] * 4),
+        _results(tmp_path / "agent", "diacc", [0.72 * d for d in traffic], [0.1] * 4),
+    ]
+    table = build_table(dirs, rows=("delay",), paired_against="heuristic")
+    markdown = render_table(table, "markdown")
+    assert "(-28.0 %, vs heuristic -20.0 % [-20.0, -20.0])" in markdown  # 0.72 / 0.9
+    assert "change against heuristic" in markdown
+    argv = ["table", *map(str, dirs), "--rows", "delay", "--paired-against", "cooperative"]
+    assert main(argv) == 2
+    assert "--paired-against cooperative: no results directory holds" in capsys.readouterr().err
