@@ -34,11 +34,39 @@ from diacc.sim.scenario import (  # noqa: F401
     AGGRESSIVE,
     CAUTIOUS,
     CAV_STYLE,
+    MAX_VEHICLES,
     NORMAL,
     STYLE_MIXES,
     STYLE_NAMES,
     Scenario,
+    ScenarioError,
 )
+
+# --------------------------------------------------------------------------
+# Upper bounds of the size-like settings
+# --------------------------------------------------------------------------
+# Every count that sizes an array or a loop has an upper bound, so that a typo
+# (``hidden_dim=1000000000``) is a one-line error before anything is allocated or
+# written, not an allocator traceback or a hang. Each lies far above any setting
+# the project uses and below what a 24 GiB, 2-core machine holds or finishes; the
+# measurements behind them are in docs/guide/faults.md ("Size bounds").
+#: Highway integration steps per decision: each one is a pass over every vehicle.
+MAX_SUBSTEPS = 100
+#: Decisions per episode (and per rollout, which holds whole episodes).
+MAX_EPISODE_STEPS = 10_000
+#: Observation neighbours K and history steps T: the actor's tables are (C, K, T).
+MAX_NEIGHBOURS = 64
+MAX_HISTORY_STEPS = 100
+#: Width of any network layer: a 1024-wide learner already has ~44 M weights.
+MAX_NETWORK_DIM = 1024
+MAX_HEADS = 64
+#: Environments of one run: every one adds a simulator and its rollout rows.
+MAX_ENVS = 1024
+#: PPO epochs over one rollout.
+MAX_EPOCHS = 100
+#: Bytes the rollout's observations may take (their upper estimate,
+#: :func:`rollout_bytes`): a third of 24 GiB, as the update copies the batch again.
+MAX_ROLLOUT_BYTES = 8 * 2**30
 
 
 class ConfigError(DiaccError, ValueError):
@@ -51,15 +79,18 @@ def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
         raise ConfigError(f"config key {key!r} must be one of {', '.join(choices)}, got {value!r}")
 
 
-def ranged(default: Any, low: float, high: float | None = None, *, open_low: bool = False) -> Any:
+def ranged(
+    default: Any, low: float, high: float | None = None, *, open_low: bool = False, why: str = ""
+) -> Any:
     """A dataclass field whose value must lie in ``[low, high]`` (``(low, high]`` with
     ``open_low``; no upper bound when ``high`` is None).
 
     The range sits next to the field it bounds and is checked once, when the
     config is built (:func:`_check_fields` in each section's ``__post_init__``),
-    so that no code reading the config checks it again.
+    so that no code reading the config checks it again. ``why`` says what the upper
+    bound protects (memory, time); the error message ends with it.
     """
-    return field(default=default, metadata={"range": (low, high, open_low)})
+    return field(default=default, metadata={"range": (low, high, open_low), "why": why})
 
 
 def one_of(default: str, choices: tuple[str, ...]) -> Any:
@@ -97,7 +128,10 @@ def _check_fields(obj: Any, prefix: str = "") -> None:
             low, high, open_low = f.metadata["range"]
             too_low = value <= low if open_low else value < low
             if too_low or (high is not None and value > high):
-                raise _FieldError(key, f"must be {_range_text(low, high, open_low)}, got {value}")
+                why = f" ({f.metadata['why']})" if f.metadata.get("why") and not too_low else ""
+                raise _FieldError(
+                    key, f"must be {_range_text(low, high, open_low)}, got {value}{why}"
+                )
         if "choices" in f.metadata and value not in f.metadata["choices"]:
             choices = f.metadata["choices"]
             raise _FieldError(key, f"must be one of {', '.join(choices)}, got {value!r}")
@@ -261,8 +295,11 @@ class SimConfig:
     """How a backend simulates; shared by both backends, which trust it (checked here)."""
 
     step_s: float = 1.0  # one decision step
-    substeps: int = 10  # highway backend integration steps per decision
-    episode_steps: int = ranged(100, 1)
+    # highway backend integration steps per decision
+    substeps: int = ranged(10, 1, MAX_SUBSTEPS, why="each is a pass over every vehicle")
+    episode_steps: int = ranged(
+        100, 1, MAX_EPISODE_STEPS, why="an episode's steps are stored and replayed in training"
+    )
     speed_change_mps: float = ranged(2.0, 0)  # accelerate/decelerate action, over one step
     vehicle_length_m: float = ranged(5.0, 0, open_low=True)
     vehicle_width_m: float = ranged(1.8, 0, open_low=True)
@@ -274,11 +311,8 @@ class SimConfig:
     def __post_init__(self) -> None:
         _check_choice("sim.style_preset", self.style_preset, tuple(STYLE_PRESETS))
         _check_choice("sim.cav_mode", self.cav_mode, CAV_MODES)
-        if self.substeps < 1 or not self.step_s > 0:
-            raise ConfigError(
-                f"SimConfig needs step_s > 0 and substeps >= 1, got {self.step_s} and "
-                f"{self.substeps}"
-            )
+        if not self.step_s > 0:
+            raise ConfigError(f"SimConfig needs step_s > 0, got {self.step_s}")
         _check_fields(self)
 
 
@@ -307,9 +341,14 @@ class ObservationConfig:
     the limits a preset lowers (``paper-congestion``).
     """
 
-    history_steps: int = ranged(5, 1)  # neighbour trajectories, current step included
-    n_neighbours: int = ranged(6, 1)  # nearest vehicles in same and adjacent lanes
-    max_vehicles: int = ranged(40, 1)  # critic pads to this many vehicles (demand: on the road)
+    # neighbour trajectories, current step included
+    history_steps: int = ranged(5, 1, MAX_HISTORY_STEPS, why="actor tables are (C, K, T)")
+    # nearest vehicles in same and adjacent lanes
+    n_neighbours: int = ranged(6, 1, MAX_NEIGHBOURS, why="actor tables are (C, K, T)")
+    # critic pads to this many vehicles (demand: on the road)
+    max_vehicles: int = ranged(
+        40, 1, MAX_VEHICLES, why="the critic pads to it; no scenario holds more vehicles"
+    )
     lane_window_m: float = ranged(100.0, 0, open_low=True)  # lane statistics: ahead and behind
     critic_step_input: bool = True  # the critic's step / T feature (False: always 0)
     road_speed_limits: bool = False  # road table column 4 = segment limit / route max
@@ -462,6 +501,9 @@ class RewardConfig:
 
 
 BACKENDS = ("highway", "sumo")
+#: Backends whose simulator steps many envs as one batch (``vector = "batched"``; their
+#: ``vector_mode``, :mod:`diacc.sim.backends`).
+BATCHED_BACKENDS = ("highway",)
 #: How the actor's actions meet PSAR (:mod:`diacc.envs.action_mask`,
 #: docs/concepts/learning-options.md): "proposed" trains on the proposed action (the paper read
 #: literally), "executed" on the action PSAR executed, "masked" samples only
@@ -475,7 +517,9 @@ class EnvConfig:
 
     backend: str = "highway"
     map: str = "train-25"
-    use_psar: bool = True  # in a TrainConfig, set by its variant
+    # None: on, or in a TrainConfig as its variant says (a value it contradicts is refused);
+    # read it as psar_enabled
+    use_psar: bool | None = None
     psar_actions: str = "proposed"  # PSAR_ACTION_MODES; not "proposed" needs use_psar
     scenario: Scenario = field(default_factory=Scenario)
     sim: SimConfig = field(default_factory=SimConfig)
@@ -497,10 +541,19 @@ class EnvConfig:
         # Scenario (diacc.sim.scenario) checks its own ranges; finiteness is checked here.
         _check_fields(self.scenario, "scenario.")
 
+    @property
+    def psar_enabled(self) -> bool:
+        """Whether PSAR filters the CAVs' actions (``use_psar``, on when left unset)."""
+        return self.use_psar is not False
+
 
 # --------------------------------------------------------------------------
 # Networks and training
 # --------------------------------------------------------------------------
+_DIM_WHY = "16x the paper's largest, 256; wider networks' updates take hours"
+_HEADS_WHY = "each head is a full attention map"
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Network sizes of actor and critic.
@@ -514,11 +567,11 @@ class ModelConfig:
     (:data:`PAPER_LEARNER`). A checkpoint keeps the sizes it was trained with.
     """
 
-    hidden_dim: int = ranged(64, 1)
-    gat_heads: int = ranged(4, 1)
-    cross_heads: int = ranged(8, 1)
-    cross_dim: int = ranged(64, 1)
-    gru_hidden: int = ranged(64, 1)
+    hidden_dim: int = ranged(64, 1, MAX_NETWORK_DIM, why=_DIM_WHY)
+    gat_heads: int = ranged(4, 1, MAX_HEADS, why=_HEADS_WHY)
+    cross_heads: int = ranged(8, 1, MAX_HEADS, why=_HEADS_WHY)
+    cross_dim: int = ranged(64, 1, MAX_NETWORK_DIM, why=_DIM_WHY)
+    gru_hidden: int = ranged(64, 1, MAX_NETWORK_DIM, why=_DIM_WHY)
     leaky_slope: float = ranged(0.2, 0)
     taie_concat_heads: bool = False  # TAIE GAT heads hidden/heads wide, concatenated (cheaper)
 
@@ -579,15 +632,18 @@ class TrainConfig:
 
     variant: str = "diacc"
     total_steps: int = ranged(3_000_000, 1)  # environment steps (decisions x envs)
-    n_envs: int = ranged(20, 1)
+    n_envs: int = ranged(20, 1, MAX_ENVS, why="each env adds a simulator and rollout rows")
     # sync (in process), batched (one highway simulator for all envs), process (worker
     # processes), auto (by backend: batched for highway, process for sumo)
     vector: str = one_of("auto", ("auto", "sync", "batched", "process"))
-    rollout_steps: int = ranged(100, 1)
+    rollout_steps: int = ranged(
+        100, 1, MAX_EPISODE_STEPS, why="the rollout holds this many steps of every env"
+    )
     seed: int = 1  # in [0, 2**32 - 1]
     # of the PPO update; rollout forwards always run on the CPU
     device: str = one_of("auto", ("auto", "cpu", "cuda"))
-    torch_threads: int = ranged(0, 0)  # intra-op threads of the trainer; 0 = diacc.threads rule
+    # intra-op threads of the trainer; 0 = diacc.threads rule
+    torch_threads: int = ranged(0, 0, 1024, why="more threads than cores only contend")
     update_bf16: bool = False  # bf16 autocast in the PPO update (changes numerics: option)
     update_compile: bool = False  # torch.compile the networks' sequence replay in the update
     # collect the next rollout while the learner trains (second thread): one-update policy lag
@@ -598,7 +654,7 @@ class TrainConfig:
     gamma: float = ranged(0.99, 0, 1)
     gae_lambda: float = ranged(0.95, 0, 1)
     clip: float = ranged(0.2, 0, open_low=True)
-    epochs: int = ranged(5, 1)
+    epochs: int = ranged(5, 1, MAX_EPOCHS, why="each epoch replays the whole rollout")
     # of whole (chunk, env) sequences per epoch: 4 gives 20 Adam steps per update instead
     # of 5 at the same compute (ModelConfig: measured with hidden 64); needs
     # n_envs x rollout_steps / chunk_len >= minibatches (validate)
@@ -631,11 +687,20 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         _check_choice("variant", self.variant, VARIANTS)
-        # The variant decides PSAR, so the environment cannot disagree with it: derived
-        # here; :func:`override` refuses an ``env.use_psar`` asked for that contradicts it.
+        # The variant decides PSAR: an unset env.use_psar is derived from it, a given
+        # one that contradicts it is refused (never overwritten).
         use_psar = VARIANT_TABLE[self.variant].psar
-        if self.env.use_psar != use_psar:
+        if self.env.use_psar is None:
             object.__setattr__(self, "env", dataclasses.replace(self.env, use_psar=use_psar))
+        elif self.env.use_psar != use_psar:
+            wanted = self.env.use_psar
+            others = [v.name for v in VARIANT_TABLE.values() if v.psar == wanted]
+            raise ConfigError(
+                f"env.use_psar={str(wanted).lower()} contradicts variant {self.variant!r}, "
+                f"which {'uses' if use_psar else 'does not use'} PSAR; the variant "
+                f"decides it: choose one {'with' if wanted else 'without'} PSAR "
+                f"({', '.join(others)})"
+            )
         _check_fields(self)
         if not 0 <= self.seed < 2**32:
             raise ConfigError(f"seed must be in [0, 2**32 - 1], got {self.seed}")
@@ -659,33 +724,7 @@ def override(config: Any, values: dict[str, Any]) -> Any:
             if not isinstance(node, dict):
                 raise ConfigError(f"unknown config key {key!r}")
         node[leaf] = value
-    result = _replace(config, tree, "")
-    if isinstance(result, TrainConfig):
-        _refuse_contradicted_psar(result, tree)
-    return result
-
-
-def _refuse_contradicted_psar(cfg: TrainConfig, tree: dict[str, Any]) -> None:
-    """One-line :class:`ConfigError` if ``env.use_psar`` was asked for against the variant.
-
-    The variant derives ``env.use_psar`` (:class:`TrainConfig`), so a requested
-    value it contradicts would otherwise be dropped without a word.
-    """
-    env = next((v for k, v in tree.items() if k.replace("-", "_") == "env"), None)
-    if not isinstance(env, dict):
-        return
-    for key, value in env.items():
-        if key.replace("-", "_") != "use_psar":
-            continue
-        wanted = _coerce(True, value, "env.use_psar")
-        if wanted != cfg.env.use_psar:
-            others = [v.name for v in VARIANT_TABLE.values() if v.psar == wanted]
-            raise ConfigError(
-                f"env.use_psar={str(wanted).lower()} contradicts variant {cfg.variant!r}, "
-                f"which {'uses' if cfg.env.use_psar else 'does not use'} PSAR; the variant "
-                f"decides it: choose one {'with' if wanted else 'without'} PSAR "
-                f"({', '.join(others)})"
-            )
+    return _replace(config, tree, "")
 
 
 def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
@@ -705,11 +744,35 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
                 f"config key {full_key!r} is a section; set its fields ({full_key}.NAME=VALUE)"
             )
         else:
-            changes[head] = _coerce(current, value, full_key)
+            changes[head] = _coerce(_unset_as(obj, head, current), value, full_key)
+    if isinstance(obj, TrainConfig) and "variant" in changes and _rederive_psar(tree):
+        # a new variant derives env.use_psar again (the old one derived the current value)
+        changes["env"] = dataclasses.replace(changes.get("env", obj.env), use_psar=None)
     try:
+        if isinstance(obj, Scenario):  # derives a demand's count again
+            return obj.replace(**changes)
         return dataclasses.replace(obj, **changes)
     except _FieldError as exc:  # a field of this section: name it by its full key
         raise _FieldError(f"{prefix}{exc.key}", exc.problem) from None
+    except ScenarioError as exc:  # Scenario checks itself (diacc.sim.scenario): name its key
+        raise ScenarioError(f"{prefix.rstrip('.')}: {exc}") from None
+
+
+def _unset_as(obj: Any, name: str, current: Any) -> Any:
+    """A value of the type a field ``X | None`` takes when it is None (unset), so that
+    :func:`_coerce` parses a given value by it (``--set env.use_psar=false``)."""
+    if current is not None:
+        return current
+    hint = next(f.type for f in dataclasses.fields(obj) if f.name == name)
+    kind = str(hint).split("|")[0].strip()
+    return {"bool": False, "int": 0, "float": 0.0, "str": ""}.get(kind, current)
+
+
+def _rederive_psar(tree: dict[str, Any]) -> bool:
+    """Whether an override tree leaves ``env.use_psar`` to the variant: it sets neither
+    that field nor a whole ``env`` section (an EnvConfig, which says its own)."""
+    env = next((v for k, v in tree.items() if k.replace("-", "_") == "env"), {})
+    return isinstance(env, dict) and all(k.replace("-", "_") != "use_psar" for k in env)
 
 
 def _coerce(current: Any, value: Any, key: str) -> Any:
@@ -826,8 +889,95 @@ def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------
+# Stored configs (checkpoints, config.json)
+# --------------------------------------------------------------------------
+#: Version of the config schema a checkpoint stores (its ``config_schema``; a config
+#: without one is version 1). Raise it whenever a field moves or its default changes,
+#: and add the step that rewrites a stored config of the version before into the new
+#: one to :data:`_MIGRATIONS`, so that loading never switches how a trained policy
+#: was run (docs/concepts/conventions.md, "Configuration").
+CONFIG_SCHEMA = 2
+
+#: Sections a TrainConfig held at its top level before it nested an EnvConfig.
+_ENV_SECTIONS_BEFORE_NESTING = ("backend", "map", "sim", "scenario", "obs", "psar", "reward")
+#: Defaults of version 1 that version 2 changed; a version-1 config without the field
+#: meant these: ``env.psar.horizon`` ("stopping"), ``env.psar.full_brake`` ("bound"),
+#: the learner's sizes, minibatches and entropy bonus (:data:`PAPER_LEARNER`).
+_SCHEMA_1_DEFAULTS = {
+    "env.psar.horizon": "stopping",
+    "env.psar.full_brake": "bound",
+    **PAPER_LEARNER,
+}
+
+
+def _schema_1_to_2(flat: dict[str, Any]) -> dict[str, Any]:
+    """Version 1 -> 2 of a flat stored config: the environment's sections move under
+    ``env`` (configs that predate the nesting), a missing field takes its version-1
+    default."""
+    if not any(key.split(".")[0] == "env" for key in flat):
+        flat = {
+            f"env.{key}" if key.split(".")[0] in _ENV_SECTIONS_BEFORE_NESTING else key: value
+            for key, value in flat.items()
+        }
+    return {**_SCHEMA_1_DEFAULTS, **flat}
+
+
+#: version -> the step that rewrites a stored config of that version (flat: dotted keys)
+#: into the next.
+_MIGRATIONS = {1: _schema_1_to_2}
+
+
+def stored_config(stored: dict[str, Any], schema: Any = 1) -> TrainConfig:
+    """The TrainConfig a stored config of ``schema`` means (one-line ConfigError if none).
+
+    Migrated step by step to :data:`CONFIG_SCHEMA`; a field it lacks then takes its
+    current default. Values pass the same checks (ranges, bounds, contradictions) as
+    any user input.
+    """
+    if not isinstance(schema, int) or isinstance(schema, bool) or schema < 1:
+        raise ConfigError(f"config schema must be a positive integer, got {schema!r}")
+    if schema > CONFIG_SCHEMA:
+        raise ConfigError(
+            f"config schema {schema} is newer than this diacc's ({CONFIG_SCHEMA}); update diacc"
+        )
+    flat = flatten_config(stored)
+    for version in range(schema, CONFIG_SCHEMA):
+        flat = _MIGRATIONS[version](flat)
+    return override(TrainConfig(), flat)
+
+
+def flatten_config(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (lists as tuples), the keys :func:`override` takes."""
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(flatten_config(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
+    return flat
+
+
+# --------------------------------------------------------------------------
 # Validation
 # --------------------------------------------------------------------------
+def rollout_bytes(cfg: TrainConfig) -> int:
+    """Upper estimate of the bytes a rollout's observations take (the memory bound of
+    :func:`validate`), without building anything.
+
+    Counts every value of :mod:`diacc.envs.observation`'s layout as 8 bytes and a
+    node as 8 features (the layout has 6), so that it stays above the real size
+    (``ObservationSpec.actor_shapes`` / ``critic_shapes``; a test keeps it so):
+    per CAV slot its own and K neighbours' (HDV and CAV) T-step histories, masks and
+    lane and road tables; per env the critic's ``max_vehicles`` rows.
+    """
+    obs, scenario = cfg.env.obs, cfg.env.scenario
+    k, t = obs.n_neighbours, obs.history_steps
+    per_slot = (2 * k + 1) * t * 8 + 3 * k + 64
+    per_env = obs.max_vehicles * (2 * k + 8) + 16
+    per_step = max(1, scenario.n_slots) * per_slot + per_env
+    return 8 * cfg.rollout_steps * cfg.n_envs * per_step
+
+
 def validate(cfg: TrainConfig) -> TrainConfig:
     """Reject settings that cannot train together (one-line ConfigError).
 
@@ -837,6 +987,15 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     Called before a run writes anything, so a bad value never leaves a run
     directory behind or surfaces later as a NaN checkpoint or a torch error.
     """
+    if rollout_bytes(cfg) > MAX_ROLLOUT_BYTES:
+        raise ConfigError(
+            f"the rollout's observations would take about {rollout_bytes(cfg) / 2**30:.3g} GiB "
+            f"(rollout_steps {cfg.rollout_steps} x n_envs {cfg.n_envs} x "
+            f"{cfg.env.scenario.n_slots} CAV slots, env.obs n_neighbours "
+            f"{cfg.env.obs.n_neighbours}, history_steps {cfg.env.obs.history_steps}, "
+            f"max_vehicles {cfg.env.obs.max_vehicles}); at most "
+            f"{MAX_ROLLOUT_BYTES / 2**30:g} GiB, a third of a 24 GiB machine"
+        )
     if cfg.env.scenario.n_cavs < 1:
         raise ConfigError(
             f"env.scenario: {cfg.env.scenario.n_vehicles} vehicles at cav_penetration "
@@ -849,6 +1008,12 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"total_steps {cfg.total_steps} is less than one update "
             f"(rollout_steps {cfg.rollout_steps} x n_envs {cfg.n_envs} = "
             f"{cfg.rollout_steps * cfg.n_envs} steps)"
+        )
+    if cfg.vector == "batched" and cfg.env.backend not in BATCHED_BACKENDS:
+        raise ConfigError(
+            f"vector 'batched' steps every env in one simulator, which backend "
+            f"{cfg.env.backend!r} does not have ({', '.join(BATCHED_BACKENDS)} does); "
+            "use vector auto, sync or process"
         )
     if cfg.env.psar_actions != "proposed" and not cfg.env.use_psar:
         raise ConfigError(

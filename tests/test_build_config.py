@@ -120,7 +120,7 @@ def test_train_cli_refuses_the_contradiction(tmp_path, capsys):
 def test_ranges_are_checked_when_any_config_is_built():
     with pytest.raises(ConfigError, match="'vehicle_length_m' must be > 0, got 0.0"):
         SimConfig(vehicle_length_m=0.0)
-    with pytest.raises(ConfigError, match="'history_steps' must be >= 1, got 0"):
+    with pytest.raises(ConfigError, match=r"'history_steps' must be in \[1, 100\], got 0"):
         ObservationConfig(history_steps=0)
     with pytest.raises(ConfigError, match="'leaky_slope' must be >= 0"):
         ModelConfig(leaky_slope=-0.1)

@@ -432,7 +432,7 @@ BAD_INPUT = [
     ),
     (["train", "--set", "lr=inf"], "config key 'lr' must be a finite number, got inf"),
     # case 4 and other out-of-range values
-    (["train", "--envs", "0"], "config key 'n_envs' must be >= 1, got 0"),
+    (["train", "--envs", "0"], "config key 'n_envs' must be in [1, 1024], got 0"),
     (["train", "--steps", "0"], "config key 'total_steps' must be >= 1, got 0"),
     (["train", "--set", "gamma=1.5"], "config key 'gamma' must be in [0, 1], got 1.5"),
     (["train", "--set", "lr=-1"], "config key 'lr' must be > 0, got -1.0"),

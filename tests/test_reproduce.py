@@ -240,7 +240,7 @@ def test_sampled_actions_evaluate_the_same_checkpoints(tiny, tmp_path, capsys):
         (["--seeds", "1,1"], "--seeds names a value twice"),
         (["--steps", "0"], "--steps must be >= 1"),
         (["--style-preset", "wild"], "unknown style preset 'wild'"),
-        (["--jobs", "0"], "--jobs must be >= 1"),
+        (["--jobs", "0"], "--jobs must be in [1, 64], got 0"),
         (["--set", "nope=1"], "nope"),
         (["--transfer", "--train-backend", "sumo"], "needs --train-backend highway"),
         (["--sweep", "env.reward.nope=1,2"], "unknown config key 'env.reward.nope'"),

@@ -56,7 +56,7 @@ def test_set_torch_threads_applies_rule_and_override():
 
 
 def test_thread_config_is_validated():
-    with pytest.raises(ConfigError, match="'torch_threads' must be >= 0"):
+    with pytest.raises(ConfigError, match=r"'torch_threads' must be in \[0, 1024\]"):
         validate(override(TrainConfig(), {"torch_threads": "-2"}))
     assert validate(override(TrainConfig(), {"torch_threads": "3"})).torch_threads == 3
 

@@ -26,7 +26,7 @@ def test_example_controller_drives_the_cavs_on_pettingzoo_observations():
         obs = driver._obs
         actions = policy.act(obs, first_step=True)
         assert actions.shape == (6,) and np.all(actions[obs.alive] == ACCELERATE)
-        assert driver.cfg.use_psar  # the controller's requests go through PSAR
+        assert driver.cfg.psar_enabled  # the controller's requests go through PSAR
     finally:
         driver.close()
 

@@ -38,6 +38,7 @@ from diacc.config import (
     SimConfig,
     TrainConfig,
     build_train_config,
+    validate,
 )
 from diacc.errors import DiaccError
 from diacc.sim.scenario import SCENARIO_KINDS
@@ -190,6 +191,7 @@ def cmd_train(args: argparse.Namespace) -> None:
         sets=args.set,
     )
     load_map(cfg.env.map)  # fail fast on a bad map name
+    validate(cfg)  # before the config is printed (train() checks it again)
     if args.resume and args.overwrite:
         raise ConfigError("--resume continues the run that --overwrite would replace: choose one")
     check_config(cfg)  # a config that cannot run is one line, not a table and a line

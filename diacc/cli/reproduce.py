@@ -170,12 +170,16 @@ def _names(text: str) -> tuple[str, ...]:
 
 
 def cmd_reproduce(args: argparse.Namespace) -> None:
+    from diacc.experiments.evaluate import MAX_WORKERS
     from diacc.experiments.reproduce.pipeline import reproduce
     from diacc.experiments.reproduce.plan import Execution, describe_plan, make_plan, resolve_config
     from diacc.experiments.sweepaxes import axis_texts, sweep_settings
 
-    if args.jobs < 1:
-        raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
+    if not 1 <= args.jobs <= MAX_WORKERS:
+        raise ConfigError(
+            f"--jobs must be in [1, {MAX_WORKERS}], got {args.jobs} (each is a process with "
+            "its own simulator and torch, about 0.4 GB)"
+        )
     if args.engine == "local" and (args.ray_address or args.ray_cpus):
         raise ConfigError("--ray-address / --ray-cpus need --engine ray")
     config, notes = resolve_config(

@@ -100,7 +100,7 @@ def decide(
     alive = take(state.active, cav_index)  # (..., C)
     no_rule = np.zeros(cav_index.shape, np.int8)
     sim = config.sim
-    if config.use_psar:
+    if config.psar_enabled:
         result = psar(state, cav_index, world, config.psar, road, sim)
         executed = np.where(alive, result.action, REMAIN)
         rule = np.where(alive, result.rule, 0).astype(np.int8)

@@ -192,6 +192,21 @@ def concat(items: list):
 Shape = tuple[int, ...]
 
 
+def check_road(road: Map) -> None:
+    """One-line :class:`ObservationError` unless the layout's road and lane tables hold
+    ``road`` (the trainer and the grid loader call it before anything is written)."""
+    if len(road.segments) > MAX_SEGMENTS:
+        raise ObservationError(
+            f"map {road.name!r} has {len(road.segments)} segments; the observation "
+            f"layout holds at most MAX_SEGMENTS = {MAX_SEGMENTS}"
+        )
+    if road.max_lanes > MAX_LANES:
+        raise ObservationError(
+            f"map {road.name!r} has {road.max_lanes} lanes; the observation layout "
+            f"holds at most MAX_LANES = {MAX_LANES}"
+        )
+
+
 @dataclass(frozen=True)
 class ObservationSpec:
     """Every size a network needs: the config's K, T, N and the layout's constants.
@@ -332,16 +347,7 @@ class ObservationBuilder:
     ) -> None:
         """``compact_critic``: the critic's rows hold the vehicles on the road first
         (module docstring; the env sets it for demand scenarios)."""
-        if len(road.segments) > MAX_SEGMENTS:
-            raise ObservationError(
-                f"map {road.name!r} has {len(road.segments)} segments; the observation "
-                f"layout holds at most MAX_SEGMENTS = {MAX_SEGMENTS}"
-            )
-        if road.max_lanes > MAX_LANES:
-            raise ObservationError(
-                f"map {road.name!r} has {road.max_lanes} lanes; the observation layout "
-                f"holds at most MAX_LANES = {MAX_LANES}"
-            )
+        check_road(road)
         if episode_steps < 1:
             raise ObservationError(f"episode_steps must be >= 1, got {episode_steps}")
         # The agents' frame (diacc.envs.lateral_frame): every state is observed reflected when

@@ -76,6 +76,14 @@ SPEED_COLUMNS = (
 )
 
 
+#: Most worker processes of one evaluation: each holds a simulator and torch (about
+#: 0.4 GB, docs/guide/faults.md), so 64 fill a 24 GiB machine.
+MAX_WORKERS = 64
+#: Most episodes per cell (the paper runs 10): the cell's episode list and results are
+#: held in memory, and each episode is seconds of simulation.
+MAX_EPISODES = 10_000
+
+
 class EvaluationError(DiaccError, ValueError):
     """Bad evaluation input (episodes, results directory...); one line."""
 
@@ -108,7 +116,7 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int, stream: str) ->
         "episode": episode,
         "seed": seed,
         "n_cavs": driver.cfg.scenario.n_cavs,
-        "psar": driver.cfg.use_psar,
+        "psar": driver.cfg.psar_enabled,
         "steps": driver.steps,
         "collision": int(len(driver.state.collisions) > 0),
         "mean_speed_mps": metrics.mean_speed_mps,
@@ -441,7 +449,7 @@ def evaluation_meta(policy, cells: list[Cell], settings: EvalSettings) -> tuple[
     """
     meta = {**policy.describe(), **settings.describe()}
     env = policy.env_config(cells[0], settings)  # every cell shares PSAR and simulation
-    if not env.use_psar:
+    if not env.psar_enabled:
         return meta, None
     in_effect = {"psar_horizon": env.psar.horizon, "psar_full_brake": env.psar.full_brake}
     meta["settings"] = {**meta["settings"], **in_effect}
@@ -513,10 +521,16 @@ def evaluate(
     episodes once its files are written (``diacc reproduce`` prints a line).
     """
     out_dir = Path(out_dir)
-    if episodes < 1:
-        raise EvaluationError(f"--episodes must be >= 1, got {episodes}")
-    if workers < 1:
-        raise EvaluationError(f"--workers must be >= 1, got {workers}")
+    if not 1 <= episodes <= MAX_EPISODES:
+        raise EvaluationError(
+            f"--episodes must be in [1, {MAX_EPISODES}], got {episodes} (per cell; each is "
+            "seconds of simulation and a results row, all held in memory)"
+        )
+    if not 1 <= workers <= MAX_WORKERS:
+        raise EvaluationError(
+            f"--workers must be in [1, {MAX_WORKERS}], got {workers} (each is a process "
+            "with its own simulator and torch, about 0.4 GB)"
+        )
     if not cells:
         raise EvaluationError("the grid has no cells")
     policy = build_policy(spec)  # fail fast on a bad checkpoint, in this process

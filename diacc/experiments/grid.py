@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from diacc.envs.observation import ObservationError, check_road
 from diacc.errors import DiaccError
 from diacc.sim.maps import MapError, load_map, map_tag
 from diacc.sim.scenario import STYLE_MIXES, Scenario, ScenarioError, draw_population
@@ -128,10 +129,10 @@ class Cell:
         """The scenario of this cell (``cav_penetration`` overrides rho, e.g. 0 for pure HDV)."""
         base = base or Scenario()
         rho = self.cav_penetration if cav_penetration is None else cav_penetration
-        demand = {}
-        if self.inflow_vph:  # the run's demand settings, or the defaults
+        size: dict = {"n_vehicles": self.n_vehicles}
+        if self.inflow_vph:  # the run's demand settings, or the defaults; N follows from them
             timing = base if base.kind == "demand" else Scenario()
-            demand = {
+            size = {
                 "kind": "demand",
                 "inflow_vph": self.inflow_vph,
                 "demand_s": timing.demand_s,
@@ -139,13 +140,12 @@ class Cell:
                 "cav_slots": timing.cav_slots,
             }
         return Scenario(
-            n_vehicles=self.n_vehicles,
             cav_penetration=rho,
             style_mix=self.style_mix,
             insert_start_m=base.insert_start_m,
             insert_spacing_m=base.insert_spacing_m,
             insert_speed_mps=base.insert_speed_mps,
-            **demand,
+            **size,
         )
 
     def seed(self, episode: int, stream: str) -> int:
@@ -209,7 +209,8 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
         raise GridError(f"{source}: map must be a map name or .toml path, got {values['map']!r}")
     try:
         road = load_map(values["map"])
-    except MapError as exc:
+        check_road(road)  # the observation's road and lane tables hold it
+    except (MapError, ObservationError) as exc:
         raise GridError(f"{source}: {exc}") from None
     n, rho, mix = values["n_vehicles"], values["cav_penetration"], values["style_mix"]
     if not isinstance(n, int) or isinstance(n, bool) or n < 1:

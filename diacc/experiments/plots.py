@@ -166,8 +166,8 @@ def run_groups(run_dirs: list[Path]) -> dict[Path, str]:
     never are. Keys missing from some run's ``config.json`` (it predates them)
     are not compared.
     """
+    from diacc.config import flatten_config
     from diacc.experiments.sweepaxes import format_value, short_keys
-    from diacc.learn.checkpoint import flatten_config
 
     configs = {}
     for d in run_dirs:

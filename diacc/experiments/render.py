@@ -187,7 +187,7 @@ def render_episode(
             scaling_px_per_m=scale,
             view=view,
         )
-        psar_on = driver.cfg.use_psar
+        psar_on = driver.cfg.psar_enabled
         no_rule = np.zeros(state.n_vehicles, np.int8)  # (V,)
         first = source.draw(state, no_rule != 0)
         frames = [

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from diacc.config import PAPER_LEARNER, TrainConfig, override
+from diacc.config import CONFIG_SCHEMA, TrainConfig, stored_config
 from diacc.envs.observation import ObservationSpec
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_target
@@ -51,6 +51,7 @@ def save_checkpoint(
     payload = {
         "format": FORMAT,
         "config": asdict(cfg),
+        "config_schema": CONFIG_SCHEMA,
         "variant": cfg.variant,
         "obs_spec": asdict(ObservationSpec.from_config(cfg.env.obs)),
         "update": update,
@@ -461,49 +462,7 @@ def _numpy_reconstruct():
     return _reconstruct
 
 
-#: Sections a TrainConfig held at its top level before it nested an EnvConfig.
-_ENV_SECTIONS_BEFORE_NESTING = ("backend", "map", "sim", "scenario", "obs", "psar", "reward")
-
-
-#: Fields whose default changed, with the value a config that predates them was loaded
-#: with before: a stored config without the field keeps that value instead of taking
-#: the new default silently. ``env.psar.horizon``: ``"headway"`` since 2026-12-02,
-#: ``"stopping"`` before (every config written since the field exists stores it).
-#: The learner's sizes and minibatches: the small learner since 2026-12-02, the
-#: paper's (:data:`diacc.config.PAPER_LEARNER`) before; every stored config holds
-#: them, so this only keeps a config that lost them on the sizes it meant.
-#: ``env.psar.full_brake``: ``"known"`` since the evening of 2026-12-03, ``"threat"``
-#: that morning (every config written since the field exists stores it), ``"bound"``
-#: before. ``entropy_coef``
-#: (in PAPER_LEARNER): 0.001 since 2026-12-03, 0.01 before.
-_OLD_DEFAULTS = {
-    "env.psar.horizon": "stopping",
-    "env.psar.full_brake": "bound",
-    **PAPER_LEARNER,
-}
-
-
 def config_from_checkpoint(payload: dict) -> TrainConfig:
-    """Rebuild the TrainConfig stored in a checkpoint (fields it predates take their defaults).
-
-    Checkpoints written before ``TrainConfig.env`` existed kept the
-    environment's sections at the top level; they are moved under ``env``.
-    A field whose default has changed since (:data:`_OLD_DEFAULTS`) takes the
-    old default, so loading never switches how a trained policy was filtered.
-    """
-    saved = dict(payload["config"])
-    if "env" not in saved:
-        saved["env"] = {k: saved.pop(k) for k in _ENV_SECTIONS_BEFORE_NESTING if k in saved}
-    flat = flatten_config(saved)
-    return override(TrainConfig(), {**_OLD_DEFAULTS, **flat})
-
-
-def flatten_config(tree: dict, prefix: str = "") -> dict:
-    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (lists as tuples), the keys :func:`override` takes."""
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(flatten_config(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
-    return flat
+    """Rebuild the TrainConfig stored in a checkpoint (:func:`diacc.config.stored_config`:
+    migrated from its ``config_schema``, 1 when it has none, to today's)."""
+    return stored_config(payload["config"], payload.get("config_schema", 1))

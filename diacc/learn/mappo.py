@@ -58,10 +58,10 @@ import torch
 import torch.nn.functional as F
 from torch.utils.tensorboard import SummaryWriter
 
-from diacc.config import TrainConfig, validate
+from diacc.config import TrainConfig, flatten_config, validate
 from diacc.console import TrainProgress
 from diacc.envs.action_mask import masked_logits
-from diacc.envs.observation import ObservationSpec, stack, unstack
+from diacc.envs.observation import ObservationSpec, check_road, stack, unstack
 from diacc.envs.psar import RULE_NAMES, rule_counts
 from diacc.envs.reward import team_reward, temperature
 from diacc.envs.vector import make_vector_env
@@ -72,7 +72,6 @@ from diacc.learn.buffer import Rollout, compute_gae
 from diacc.learn.checkpoint import (
     CheckpointError,
     config_from_checkpoint,
-    flatten_config,
     init_networks,
     load_checkpoint,
     restore,
@@ -704,7 +703,9 @@ def check_config(cfg: TrainConfig) -> None:
     """
     validate(cfg)
     for road_map in (cfg.env.map, *cfg.extra_maps):
-        draw_population(cfg.env.scenario, load_map(road_map), cfg.seed)
+        road = load_map(road_map)
+        check_road(road)  # the observation's road and lane tables hold it
+        draw_population(cfg.env.scenario, road, cfg.seed)
 
 
 def train(

@@ -21,10 +21,17 @@ Two kinds of scenario (``Scenario.kind``):
   arrived) until it departs; a backend inserts it at its departure time
   once its lane's entry is free, so a queue at the entry delays it but
   never drops it.
+
+Settings are never silently overwritten: a demand scenario given an
+``n_vehicles`` other than the one its inflow and duration make, or a release
+given demand settings other than their defaults (``inflow_vph``,
+``demand_s``, ``cav_slots``), is a one-line :class:`ScenarioError`.
+:meth:`Scenario.replace` changes fields and derives the count again.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +55,12 @@ STYLE_MIXES: dict[str, tuple[float, float, float]] = {
 SCENARIO_KINDS = ("release", "demand")
 #: Largest inflow accepted (veh/h): above what 4 lanes carry at any speed, so larger is a typo.
 MAX_INFLOW_VPH = 10_000.0
+#: Most vehicles of one scenario (a release's count, a demand's inflow x duration).
+#: A step's pairwise checks (gaps, neighbours, PSAR) grow with the square of the
+#: count: 2000 already take seconds per env step on one core, and a typo such as
+#: 10**12 must be an error, not an out-of-memory (docs/guide/faults.md, "Size bounds").
+MAX_VEHICLES = 2000
+_VEHICLES_WHY = "a step's pairwise checks grow with the square of the count"
 
 
 class ScenarioError(DiaccError, ValueError):
@@ -58,7 +71,8 @@ class ScenarioError(DiaccError, ValueError):
 class Scenario:
     """What traffic to simulate (the seed is given to ``Backend.reset``)."""
 
-    n_vehicles: int = 25  # paper training cell: 25 vehicles,
+    #: paper training cell: 25 vehicles (None: 25 in a release; a demand derives it),
+    n_vehicles: int | None = None
     cav_penetration: float = 0.4  # 10 of them CAVs,
     style_mix: str | tuple[float, float, float] = "D1"  # HDV styles of mix D1
     insert_start_m: float = 10.0  # x of the rearmost insertion row
@@ -80,6 +94,10 @@ class Scenario:
             raise ScenarioError(
                 f"unknown scenario kind {self.kind!r}; choose one of {', '.join(SCENARIO_KINDS)}"
             )
+        if self.kind == "release":
+            self._refuse_demand_settings()
+            if self.n_vehicles is None:
+                object.__setattr__(self, "n_vehicles", RELEASE_VEHICLES)
         if not self.warmup_s >= 0:
             raise ScenarioError(f"warmup_s must be >= 0, got {self.warmup_s!r}")
         if self.kind == "demand":
@@ -93,13 +111,35 @@ class Scenario:
                     f"demand_s must be > 0 and longer than warmup_s, got demand_s "
                     f"{self.demand_s!r}, warmup_s {self.warmup_s!r}"
                 )
-            if not isinstance(self.cav_slots, int) or self.cav_slots < 1:
-                raise ScenarioError(f"cav_slots must be a positive integer, got {self.cav_slots!r}")
+            if not isinstance(self.cav_slots, int) or not 1 <= self.cav_slots <= MAX_VEHICLES:
+                raise ScenarioError(
+                    f"cav_slots must be an integer in [1, {MAX_VEHICLES}], got "
+                    f"{self.cav_slots!r} (no scenario holds more vehicles)"
+                )
             # N follows from the demand: one vehicle per 3600 / inflow seconds.
-            n_total = max(1, int(self.inflow_vph * self.demand_s / 3600.0))
-            object.__setattr__(self, "n_vehicles", n_total)
+            n_total = self.inflow_vph * self.demand_s / 3600.0
+            if not n_total <= MAX_VEHICLES:  # also catches an infinite demand_s
+                raise ScenarioError(
+                    f"demand_s {self.demand_s!r} s at inflow_vph {self.inflow_vph:g} makes "
+                    f"{n_total:.3g} vehicles; at most {MAX_VEHICLES} "
+                    f"(demand_s <= {3600.0 * MAX_VEHICLES / self.inflow_vph:g} s: "
+                    f"{_VEHICLES_WHY})"
+                )
+            derived = max(1, int(n_total))
+            if self.n_vehicles is not None and self.n_vehicles != derived:
+                raise ScenarioError(
+                    f"n_vehicles {self.n_vehicles!r} contradicts the demand: inflow_vph "
+                    f"{self.inflow_vph:g} x demand_s {self.demand_s:g} s makes {derived} "
+                    "vehicles; a demand scenario derives its count, leave n_vehicles out"
+                )
+            object.__setattr__(self, "n_vehicles", derived)
         if not isinstance(self.n_vehicles, int) or self.n_vehicles < 1:
             raise ScenarioError(f"n_vehicles must be a positive integer, got {self.n_vehicles!r}")
+        if self.n_vehicles > MAX_VEHICLES:
+            raise ScenarioError(
+                f"n_vehicles must be at most {MAX_VEHICLES}, got {self.n_vehicles} "
+                f"({_VEHICLES_WHY})"
+            )
         if not 0.0 <= self.cav_penetration <= 1.0:
             raise ScenarioError(f"cav_penetration must be in [0, 1], got {self.cav_penetration!r}")
         mix = self.mix
@@ -115,6 +155,33 @@ class Scenario:
             )
         if self.insert_spacing_m <= 0 or self.insert_speed_mps < 0:
             raise ScenarioError("insert_spacing_m must be > 0 and insert_speed_mps >= 0")
+
+    def _refuse_demand_settings(self) -> None:
+        """One-line error if a release was given demand settings (it would ignore them)."""
+        for name in _DEMAND_ONLY:
+            value, default = getattr(self, name), _DEFAULTS[name]
+            if value != default:
+                raise ScenarioError(
+                    f"{name} {value!r} is a demand setting; a release (kind 'release') "
+                    f"ignores it: set kind 'demand' or leave {name} at {default!r}"
+                )
+
+    def replace(self, **changes) -> Scenario:
+        """``dataclasses.replace`` that derives what follows from the kind again: a
+        demand's count (unless ``n_vehicles`` is among ``changes``), and, when the
+        kind changes, the other kind's settings return to their defaults unless given.
+
+        :func:`diacc.config.override` rebuilds scenarios with it, so that
+        ``--set env.scenario.inflow_vph=3600`` on a demand scenario is not refused as
+        contradicting the count its old inflow made.
+        """
+        kind = changes.get("kind", self.kind)
+        if "n_vehicles" not in changes and (kind == "demand" or self.kind == "demand"):
+            changes["n_vehicles"] = None
+        if kind != self.kind:
+            for name in _DEMAND_ONLY:
+                changes.setdefault(name, _DEFAULTS[name])
+        return dataclasses.replace(self, **changes)
 
     @classmethod
     def with_cavs(cls, n_vehicles: int, n_cavs: int, **kwargs) -> Scenario:
@@ -153,6 +220,13 @@ class Scenario:
         if self.kind == "demand":
             return min(self.cav_slots, self.n_cavs)
         return self.n_cavs
+
+
+#: A release's vehicle count when none is given (the paper's training cell).
+RELEASE_VEHICLES = 25
+#: Settings only a demand scenario reads; a release refuses values other than these.
+_DEMAND_ONLY = ("inflow_vph", "demand_s", "cav_slots")
+_DEFAULTS = {f.name: f.default for f in dataclasses.fields(Scenario)}
 
 
 @dataclass(frozen=True)

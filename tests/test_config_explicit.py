@@ -1,0 +1,110 @@
+"""Explicit settings are never silently overwritten (issue 43, "One config system").
+
+A value the user gave that another setting contradicts is a one-line error
+before anything is written; a value left unset is derived as before (the
+shipped configs, grids and checkpoints resolve to the same configs).
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from diacc.cli import main
+from diacc.config import (
+    ConfigError,
+    EnvConfig,
+    TrainConfig,
+    build_train_config,
+    override,
+    validate,
+)
+from diacc.experiments.grid import Cell
+from diacc.sim.scenario import Scenario, ScenarioError
+
+
+def _train_fails(tmp_path, monkeypatch, capsys, *argv: str) -> str:
+    """Run ``diacc train`` in an empty ``tmp_path``: exit 2, one line, nothing on disk."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["train", "--no-progress", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("diacc: error: ") and "\n" not in err
+    assert os.listdir(tmp_path) == []
+    return err
+
+
+def test_demand_refuses_a_vehicle_count_it_would_overwrite(tmp_path, monkeypatch, capsys):
+    err = _train_fails(
+        tmp_path,
+        monkeypatch,
+        capsys,
+        *("--set", "env.scenario.kind=demand", "--set", "env.scenario.n_vehicles=40"),
+    )
+    assert "n_vehicles 40 contradicts the demand: inflow_vph 2400 x demand_s 300 s makes 200" in err
+    with pytest.raises(ScenarioError, match="n_vehicles 40 contradicts the demand"):
+        Scenario(kind="demand", n_vehicles=40)
+    # the count it makes may be given (a stored config holds it), or left out
+    assert Scenario(kind="demand", n_vehicles=200).n_vehicles == 200
+    assert Scenario(kind="demand").n_vehicles == 200
+    assert Scenario().n_vehicles == 25
+
+
+@pytest.mark.parametrize(
+    ("setting", "name"),
+    [
+        ("env.scenario.cav_slots=8", "cav_slots 8"),
+        ("env.scenario.inflow_vph=3600", "inflow_vph 3600.0"),
+        ("env.scenario.demand_s=600", "demand_s 600.0"),
+    ],
+)
+def test_release_refuses_demand_settings_it_would_ignore(
+    tmp_path, monkeypatch, capsys, setting, name
+):
+    err = _train_fails(tmp_path, monkeypatch, capsys, "--set", setting)
+    assert f"env.scenario: {name} is a demand setting; a release (kind 'release') ignores it" in err
+    key, value = setting.removeprefix("env.scenario.").split("=")
+    with pytest.raises(ScenarioError, match="is a demand setting"):
+        Scenario(**{key: float(value) if key != "cav_slots" else int(value)})
+    # their defaults, as every stored release config holds them, are fine
+    assert Scenario(inflow_vph=2400.0, demand_s=300.0, cav_slots=16).kind == "release"
+
+
+def test_derived_count_follows_later_changes():
+    """override rebuilds a scenario deriving its count again: a new inflow is not refused
+    as contradicting the count the old one made, and a kind change resets the other
+    kind's settings."""
+    demand = build_train_config(sets=["env.scenario.kind=demand"])
+    assert demand.env.scenario.n_vehicles == 200
+    faster = override(demand, {"env.scenario.inflow_vph": 3600})
+    assert faster.env.scenario.n_vehicles == 300
+    release = override(faster, {"env.scenario.kind": "release"})
+    assert (release.env.scenario.n_vehicles, release.env.scenario.inflow_vph) == (25, 2400.0)
+    assert Scenario(kind="demand").replace(demand_s=600).n_vehicles == 400
+    # a grid's demand cell takes the run's duration, and its count with it
+    cell = Cell("train-50", 200, 0.4, "D1", 3600.0)
+    assert cell.scenario(base=Scenario(kind="demand", demand_s=600)).n_vehicles == 600
+
+
+def test_variant_refuses_a_contradicting_psar_flag():
+    with pytest.raises(ConfigError, match="env.use_psar=true contradicts variant 'mappo'"):
+        TrainConfig(variant="mappo", env=EnvConfig(use_psar=True))
+    with pytest.raises(ConfigError, match="env.use_psar=false contradicts variant 'diacc'"):
+        TrainConfig(variant="diacc", env=EnvConfig(use_psar=False))
+    # unset: the variant decides, as before
+    assert TrainConfig(variant="mappo", env=EnvConfig(map="train-50")).env.use_psar is False
+    assert TrainConfig(variant="diacc").env.use_psar is True
+    assert TrainConfig(variant="mappo", env=EnvConfig(use_psar=False)).env.use_psar is False
+    # a standalone env runs PSAR unless told otherwise
+    assert EnvConfig().use_psar is None and EnvConfig().psar_enabled
+    assert not EnvConfig(use_psar=False).psar_enabled
+    assert override(EnvConfig(), {"use_psar": "false"}).use_psar is False
+
+
+def test_batched_vector_needs_a_batched_backend(tmp_path, monkeypatch, capsys):
+    err = _train_fails(
+        tmp_path, monkeypatch, capsys, "--set", "vector=batched", "--backend", "sumo"
+    )
+    assert "vector 'batched' steps every env in one simulator, which backend 'sumo'" in err
+    validate(build_train_config(backend="sumo", sets=["vector=process"]))
+    validate(build_train_config(sets=["vector=batched"]))
