@@ -377,15 +377,15 @@ class PSARConfig:
     braking physics alone (about 1 s behind an HDV, ``min_gap_m`` +
     ``cav_time_gap_s`` behind a CAV whose command is known;
     ``cooperative_merge``: CAVs open a gap for a CAV asking to merge);
-    ``"stopping"`` (the default before 2026-12-02, kept by every checkpoint and
-    result made with it) lengthens the distance thresholds by a safe stopping
+    ``"stopping"`` (an earlier default, kept by every checkpoint and result made
+    with it) lengthens the distance thresholds by a safe stopping
     gap, which keeps CAVs ~2.3 s behind HDVs; ``"paper"`` keeps them fixed.
-    ``full_brake`` (``"headway"`` only): ``"threat"`` (the default on
-    2026-12-03, kept by checkpoints made with it) brakes beyond the planned
+    ``full_brake`` (``"headway"`` only): ``"threat"`` (an earlier
+    default, kept by checkpoints made with it) brakes beyond the planned
     rate ``safe_decel_mps2`` only when a vehicle ahead brakes harder, is a CAV, is closer than
     ``min_gap_m`` or is so much slower that planned braking falls short, and
     restores a gap a cut-in shortened over several steps;
-    ``"known"`` (the default since 2026-12-03, after ``"threat"``) is ``"threat"`` with a CAV leader
+    ``"known"`` (the default, after ``"threat"``) is ``"threat"`` with a CAV leader
     judged by its known command of this step rather than always a threat;
     ``"bound"`` (before; kept by checkpoints made with it) brakes up to the
     physical limit whenever the speed bound asks (each cut-in then counts as an
@@ -579,8 +579,8 @@ class ModelConfig:
         _check_fields(self)
 
 
-#: The paper-size learner (hidden sizes 128, one minibatch: the defaults before
-#: 2026-12-02; entropy bonus 0.01, the default before 2026-12-03) as config overrides;
+#: The paper-size learner (hidden sizes 128, one minibatch; entropy bonus 0.01: the
+#: defaults before the small learner and the lower bonus) as config overrides;
 #: ``configs/paper-learner.toml`` holds the same (a test keeps the two equal) and the
 #: benchmarks compare against it.
 PAPER_LEARNER: dict[str, Any] = {
@@ -659,9 +659,8 @@ class TrainConfig:
     # of 5 at the same compute (ModelConfig: measured with hidden 64); needs
     # n_envs x rollout_steps / chunk_len >= minibatches (validate)
     minibatches: int = ranged(4, 1)
-    # 0.001 since 2026-12-03 (the paper: 0.01, kept by PAPER_LEARNER): with 0.01 the policy
-    # kept 0.9 of 1.61 nats at 200k steps and its sampled actions lost to the heuristic;
-    # 3 seeds x 200k steps each (docs/results/learning-evidence.md, "Entropy bonus")
+    # a tenth of the paper's 0.01 (kept by PAPER_LEARNER): with 0.01 sampled actions lost
+    # to the heuristic (docs/results/learning-evidence.md, "Entropy bonus")
     entropy_coef: float = ranged(0.001, 0)
     value_coef: float = ranged(1.0, 0)
     huber_delta: float = ranged(10.0, 0, open_low=True)

@@ -102,7 +102,7 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         choices=SEED_STREAMS,
         default=DEFAULT_STREAM,
         help="episode seed stream: test (to report), validation (to choose seeds, settings, "
-        "checkpoints on; disjoint from test) or legacy (the one stream before 2026-12-04)",
+        "checkpoints on; disjoint from test) or legacy (the stream of older results)",
     )
 
 

@@ -146,7 +146,7 @@ def psar(
       the CAV's planned braking ``sim.cav.safe_decel_mps2`` over the step;
       ``"paper"`` is the literal reading, action 4 = one ``dv_action`` step,
       which cannot stop a CAV that closes faster than that.
-    * Horizon (``cfg.horizon``): ``"stopping"`` (the default before 2026-12-02)
+    * Horizon (``cfg.horizon``): ``"stopping"`` (an earlier default)
       lengthens d_warn and d_att, and the lane-change cancel distance d_LC,min to the target-lane
       front and rear vehicles, by Gipps' safe gap
       (:func:`~diacc.sim.kinematics.safe_gap_m`): one decision step of reaction,

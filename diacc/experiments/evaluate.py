@@ -429,7 +429,7 @@ def _psar_before_recorded(policy) -> dict:
     A checkpoint keeps the settings of its stored config; every other policy
     took :class:`~diacc.config.PSARConfig`'s defaults of the time: horizon
     ``"stopping"`` until it became ``"headway"``, ``full_brake`` ``"bound"`` until it
-    became ``"threat"`` (both 2026-12-02).
+    became ``"threat"`` (both changed together; docs/concepts/psar.md).
     """
     if isinstance(policy, CheckpointPolicy):
         psar = policy.base.psar

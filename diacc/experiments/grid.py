@@ -77,8 +77,8 @@ EVAL_SEED_TAG = 0xE7A1_5EED
 #: checkpoints), ``test`` for reporting: a number chosen on the episodes it is
 #: reported on overstates itself (issue 42). The two are disjoint by
 #: construction (validation seeds are even, test seeds odd). ``legacy`` is the
-#: single stream every evaluation used before 2026-12-04; results committed
-#: before then were played on it and stay reproducible with ``--stream legacy``.
+#: single stream every evaluation used before the two existed; results committed
+#: before them were played on it and stay reproducible with ``--stream legacy``.
 SEED_STREAMS = ("test", "validation", "legacy")
 #: The stream ``diacc eval`` reports on unless told otherwise.
 DEFAULT_STREAM = "test"
