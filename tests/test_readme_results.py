@@ -1,0 +1,24 @@
+"""README's main results table is regenerated from the committed result files (issue 42)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import check_readme_results  # noqa: E402
+
+
+def test_readme_main_table_matches_the_committed_results(capsys):
+    assert check_readme_results.main([]) == 0, capsys.readouterr().out
+
+
+def test_a_changed_number_is_found(tmp_path, capsys):
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    row = next(line for line in text.splitlines() if line.startswith("| **DIACC greedy** |"))
+    changed = tmp_path / "README.md"
+    changed.write_text(text.replace(row, row.replace("-20.7 %", "-24.6 %")), encoding="utf-8")
+    assert check_readme_results.main(["--readme", str(changed)]) == 1
+    assert "DIFFERS" in capsys.readouterr().out
