@@ -159,8 +159,8 @@ def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
         }
     actor, critic, value_norm = actor.to(device), critic.to(device), value_norm.to(device)
     params = list(actor.parameters()) + list(critic.parameters())
-    # fused: one kernel per parameter tensor instead of about ten (1.8 -> 0.3 ms a step on
-    # the CPU). A checkpoint restores the flag it was saved with, so old runs resume as they ran.
+    # fused: one kernel per parameter tensor instead of about ten (docs/benchmarks). A
+    # checkpoint restores the flag it was saved with, so old runs resume as they ran.
     fused = device.type in ("cpu", "cuda")
     optimizer = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps, fused=fused)
     if cfg.update_compile:

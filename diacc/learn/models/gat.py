@@ -229,7 +229,7 @@ class StarPool(torch.autograd.Function):
 
     Why by hand: autograd's backward of these few ops runs matrix products whose
     inner dimension is the head count (4) or the key count (7) on strided views
-    (transposes, slices of a concatenation), and CPU kernels run those 5-10x slower
+    (transposes, slices of a concatenation), and CPU kernels run those much slower
     than the same products on contiguous operands; here every product gets
     contiguous operands, and the head axis sits before the key axis throughout.
     Same maths as autograd (tests compare the two). ``alpha`` is returned for
@@ -243,7 +243,8 @@ class StarPool(torch.autograd.Function):
     @staticmethod
     def forward(ctx, q, x, valid, u_q, u_k, slope):  # type: ignore[override]
         n, k, f = x.shape
-        # (H, F) @ (F, M*K): this orientation runs ~3x faster than (M*K, F) @ (F, H).
+        # (H, F) @ (F, M*K): CPU kernels run this orientation faster than (M*K, F) @ (F, H)
+        # (docs/benchmarks, "Training throughput III").
         score_x = (u_k.t() @ x.reshape(n * k, f).t()).view(-1, n, k)  # (H, M, K)
         z = (q @ u_q)[:, :, None] + score_x.permute(1, 0, 2)  # (M, H, K)
         logits = nn.functional.leaky_relu(z, slope)
@@ -273,7 +274,7 @@ class StarPool(torch.autograd.Function):
         g_x = (g_score_x @ u_k.t()).view(n, k, f)  # (M, K, F)
         g_x = torch.baddbmm(g_x, alpha.transpose(1, 2).contiguous(), g_pooled)
         g_q = g_score_q @ u_q.t()  # (M, F)
-        g_u_q = (g_score_q.t() @ q).t()  # (F, H); (H, F) products: ~5x faster here
+        g_u_q = (g_score_q.t() @ q).t()  # (F, H), as an (H, F) product: the faster orientation
         g_u_k = (g_score_x.t() @ x_flat).t()  # (F, H)
         grads = (t.to(dtype) for t, dtype in zip((g_q, g_x, g_u_q, g_u_k), dtypes, strict=True))
         g_q, g_x, g_u_q, g_u_k = grads
