@@ -354,9 +354,13 @@ def _check_fits(payload: dict, cfg: TrainConfig, path: Path) -> None:
         raise CheckpointError(
             f"checkpoint {path} is for variant {payload['variant']!r}, not {cfg.variant!r}"
         )
-    # Older checkpoints stored only K, T and N; compare what a checkpoint holds.
+    # Older checkpoints stored only K, T and N; compare what a checkpoint holds. The
+    # critic's row count (max_vehicles) is a size, not a layout: the graph networks
+    # take any count (fine-tuning a release agent on a demand road needs more rows),
+    # and a network whose weights depend on it (the MLP critic) fails to load below.
     spec = asdict(ObservationSpec.from_config(cfg.env.obs))
-    if payload["obs_spec"] != {key: spec.get(key) for key in payload["obs_spec"]}:
+    held = {key: value for key, value in payload["obs_spec"].items() if key != "max_vehicles"}
+    if held != {key: spec.get(key) for key in held}:
         raise CheckpointError(f"checkpoint {path} was trained with another observation layout")
 
 
