@@ -269,8 +269,14 @@ def test_grid_sweeps_inflow(tmp_path):
     assert cells[0].key == "train-50_Q1600_rho0.40_D1"
     base = Scenario(kind="demand", demand_s=600, warmup_s=120, cav_slots=8)
     scenario = cells[1].scenario(base=base)
-    assert (scenario.kind, scenario.inflow_vph, scenario.n_vehicles) == ("demand", 3600, 600)
-    assert (scenario.warmup_s, scenario.cav_slots) == (120, 8)
+    # The cell fixes the traffic (default timing for every policy, so a demand-trained
+    # checkpoint meets the references' traffic); the agent slots are the policy's.
+    default = Scenario()
+    n_default = int(3600 * default.demand_s / 3600)
+    assert (scenario.kind, scenario.inflow_vph, scenario.n_vehicles) == ("demand", 3600, n_default)
+    assert (scenario.demand_s, scenario.warmup_s) == (default.demand_s, default.warmup_s)
+    assert scenario.cav_slots == 8
+    assert cells[1].scenario().n_vehicles == n_default
     assert load_grid("train")[0].inflow_vph == 0.0  # the paper's cells stay releases
     grid.write_text('[[cells]]\nmap = "train-50"\ninflow_vph = -5\ncav_penetration = 0.4\n'
                     'style_mix = "D1"\n')  # fmt: skip

@@ -130,14 +130,18 @@ class Cell:
         base = base or Scenario()
         rho = self.cav_penetration if cav_penetration is None else cav_penetration
         size: dict = {"n_vehicles": self.n_vehicles}
-        if self.inflow_vph:  # the run's demand settings, or the defaults; N follows from them
-            timing = base if base.kind == "demand" else Scenario()
+        if self.inflow_vph:
+            # The cell fixes the traffic: the default demand timing for every policy (a
+            # demand-trained checkpoint's own demand_s and warm-up would give it other
+            # traffic than the references it is compared with). N follows from it; the
+            # agent slots are the policy's own (how many CAVs it drives at once).
+            timing = Scenario()
             size = {
                 "kind": "demand",
                 "inflow_vph": self.inflow_vph,
                 "demand_s": timing.demand_s,
                 "warmup_s": timing.warmup_s,
-                "cav_slots": timing.cav_slots,
+                "cav_slots": (base if base.kind == "demand" else timing).cav_slots,
             }
         return Scenario(
             cav_penetration=rho,
