@@ -277,6 +277,17 @@ def test_grid_sweeps_inflow(tmp_path):
     assert (scenario.demand_s, scenario.warmup_s) == (default.demand_s, default.warmup_s)
     assert scenario.cav_slots == 8
     assert cells[1].scenario().n_vehicles == n_default
+    grid.write_text('[product]\nmap = ["train-50"]\ninflow_vph = [3600]\ndemand_s = [480]\n'
+                    'warmup_s = [120]\n')  # fmt: skip
+    (timed,) = load_grid(grid)
+    assert (timed.n_vehicles, timed.demand_s, timed.warmup_s) == (480, 480.0, 120.0)
+    assert timed.key == cells[1].key  # same seeds at any timing
+    scenario = timed.scenario(base=base)
+    assert (scenario.n_vehicles, scenario.demand_s, scenario.warmup_s) == (480, 480, 120)
+    grid.write_text('[[cells]]\nmap = "train-50"\nn_vehicles = 25\ndemand_s = 480\n'
+                    'cav_penetration = 0.4\nstyle_mix = "D1"\n')  # fmt: skip
+    with pytest.raises(GridError, match="demand_s needs inflow_vph"):
+        load_grid(grid)
     assert load_grid("train")[0].inflow_vph == 0.0  # the paper's cells stay releases
     grid.write_text('[[cells]]\nmap = "train-50"\ninflow_vph = -5\ncav_penetration = 0.4\n'
                     'style_mix = "D1"\n')  # fmt: skip

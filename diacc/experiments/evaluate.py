@@ -112,6 +112,8 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int, stream: str) ->
         "style_preset": driver.cfg.sim.style_preset,
         **cell.as_row(),
         "inflow_vph": cell.inflow_vph,
+        "demand_s": cell.demand_s,  # a demand cell's timing (0: the defaults)
+        "warmup_s": cell.warmup_s,
         "stream": stream,
         "episode": episode,
         "seed": seed,
@@ -657,8 +659,9 @@ def _cell_values(row: dict[str, str | None], source: str) -> dict:
     values = {"map": row["map"], "style_mix": row["style_mix"]}
     values["cav_penetration"] = float(row["cav_penetration"])  # a number (_check_numbers)
     inflow = float(row.get("inflow_vph") or 0.0)
-    if inflow:
-        return {**values, "inflow_vph": inflow}
+    if inflow:  # with its timing where set (older files: none, the defaults)
+        timing = {k: float(row[k]) for k in ("demand_s", "warmup_s") if float(row.get(k) or 0)}
+        return {**values, "inflow_vph": inflow, **timing}
     try:
         return {**values, "n_vehicles": int(row["n_vehicles"])}
     except ValueError:

@@ -21,9 +21,11 @@ A :class:`Cell` is one traffic condition of paper Tables II-III. Grids:
       style_mix = "D3"
 
   A cell with ``inflow_vph`` is a ``demand`` cell (:mod:`diacc.sim.scenario`):
-  vehicles enter at that rate over the run's ``scenario.demand_s`` (its
-  warm-up and agent slots too), and ``n_vehicles`` may be left out (it
-  follows from the inflow).
+  vehicles enter at that rate for the cell's ``demand_s`` seconds, the metrics
+  skip its first ``warmup_s`` (both optional: the scenario defaults, 300 and
+  0), and ``n_vehicles`` may be left out (it follows from the inflow). The
+  cell, not the policy, fixes the traffic: a demand-trained checkpoint meets
+  the same vehicles as the references (only its agent slots are its own).
 
   or as a product of value lists (every key optional, defaults as in ``train``;
   ``inflow_vph`` sweeps demand instead of N)::
@@ -39,6 +41,7 @@ Unknown keys, maps or mixes raise :class:`GridError` with a one-line message.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import zlib
@@ -69,7 +72,7 @@ MAX_CELLS = 10_000
 #: Columns that identify a cell in every results file, in this order.
 CELL_KEYS = ("map", "n_vehicles", "cav_penetration", "style_mix")
 #: Cell keys that may be left out: a demand cell's inflow (0: the paper's release).
-OPTIONAL_CELL_KEYS = ("inflow_vph",)
+OPTIONAL_CELL_KEYS = ("inflow_vph", "demand_s", "warmup_s")
 #: First word of every evaluation seed's entropy; training seeds start with the
 #: run seed (small integers), so evaluation episodes use other random streams.
 EVAL_SEED_TAG = 0xE7A1_5EED
@@ -101,6 +104,10 @@ class Cell:
     cav_penetration: float
     style_mix: str
     inflow_vph: float = 0.0  # > 0: a demand cell (vehicles enter at this rate)
+    # A demand cell's timing (0: the scenario's defaults). Not part of the key: a
+    # cell's seeds are the same at any timing (common random numbers).
+    demand_s: float = 0.0
+    warmup_s: float = 0.0
 
     @property
     def key(self) -> str:
@@ -131,16 +138,16 @@ class Cell:
         rho = self.cav_penetration if cav_penetration is None else cav_penetration
         size: dict = {"n_vehicles": self.n_vehicles}
         if self.inflow_vph:
-            # The cell fixes the traffic: the default demand timing for every policy (a
-            # demand-trained checkpoint's own demand_s and warm-up would give it other
-            # traffic than the references it is compared with). N follows from it; the
-            # agent slots are the policy's own (how many CAVs it drives at once).
+            # The cell fixes the traffic, for every policy alike (a demand-trained
+            # checkpoint's own timing would give it other vehicles than the references
+            # it is compared with). N follows from it; the agent slots are the
+            # policy's own (how many CAVs it drives at once).
             timing = Scenario()
             size = {
                 "kind": "demand",
                 "inflow_vph": self.inflow_vph,
-                "demand_s": timing.demand_s,
-                "warmup_s": timing.warmup_s,
+                "demand_s": self.demand_s or timing.demand_s,
+                "warmup_s": self.warmup_s or timing.warmup_s,
                 "cav_slots": (base if base.kind == "demand" else timing).cav_slots,
             }
         return Scenario(
@@ -204,6 +211,14 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
     inflow = values.get("inflow_vph", 0.0)
     if not isinstance(inflow, (int, float)) or isinstance(inflow, bool) or inflow < 0:
         raise GridError(f"{source}: inflow_vph must be a positive number, got {inflow!r}")
+    timing = {}
+    for key in ("demand_s", "warmup_s"):
+        value = values.get(key, 0.0)
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not value >= 0:
+            raise GridError(f"{source}: {key} must be a number >= 0, got {value!r}")
+        if value and not inflow:
+            raise GridError(f"{source}: {key} needs inflow_vph (a demand cell)")
+        timing[key] = float(value)
     if inflow and "n_vehicles" not in values:
         values = {**values, "n_vehicles": 1}  # set from the inflow below
     missing = [k for k in CELL_KEYS if k not in values]
@@ -223,7 +238,7 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
         raise GridError(f"{source}: cav_penetration must be a number in [0, 1], got {rho!r}")
     if not isinstance(mix, str) or mix not in STYLE_MIXES:
         raise GridError(f"{source}: unknown style mix {mix!r}; known: {', '.join(STYLE_MIXES)}")
-    cell = Cell(str(values["map"]), int(n), float(rho), str(mix), float(inflow))
+    cell = Cell(str(values["map"]), int(n), float(rho), str(mix), float(inflow), **timing)
     try:
         scenario = cell.scenario()
         # Placing the vehicles checks that they fit the map (once found in the first
@@ -231,8 +246,8 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
         draw_population(scenario, road, seed=0)
     except ScenarioError as exc:
         raise GridError(f"{source}: {exc}") from None
-    if inflow:  # N follows from the inflow (at the default demand_s)
-        cell = Cell(cell.map, scenario.n_vehicles, cell.cav_penetration, mix, float(inflow))
+    if inflow:  # N follows from the inflow and the cell's demand_s
+        cell = dataclasses.replace(cell, n_vehicles=scenario.n_vehicles)
     return cell
 
 

@@ -347,6 +347,8 @@ def table_from_results(
                 float(row["cav_penetration"]),
                 row["style_mix"],
                 float(row.get("inflow_vph") or 0.0),  # demand cells (older files: none)
+                float(row.get("demand_s") or 0.0),
+                float(row.get("warmup_s") or 0.0),
             )
             by_cell.setdefault(cell, []).append(row)
         for cell, cell_rows in by_cell.items():

@@ -292,7 +292,10 @@ def run(
                     cell = Cell(map_name, RELEASE_N, RHO if rho is None else rho, MIX)
                 else:
                     share = RHO if rho is None else rho
-                    cell = Cell(map_name, demand.n_vehicles, share, MIX, demand.inflow_vph)
+                    cell = Cell(
+                        map_name, demand.n_vehicles, share, MIX, demand.inflow_vph,
+                        demand.demand_s, demand.warmup_s,
+                    )  # fmt: skip
                 values = measure(
                     backend, cell, name, episodes, style_preset, steps, horizon, demand, sampled
                 )
