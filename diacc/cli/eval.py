@@ -197,7 +197,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
     p.add_argument("--out", required=True, type=Path, help="results directory (required)")
 
-    p = cli_scale.add_command(sub, "plot", "training curves or speed distributions (PNG + PDF)")
+    p = cli_scale.add_command(sub, "plot", "training curves, speed distributions or flow (PNG + PDF)")
     plot_sub = p.add_subparsers(dest="plot_kind", required=True, metavar="KIND")
     q = plot_sub.add_parser(
         "curves",
@@ -220,6 +220,24 @@ def add_parsers(sub) -> None:
         "--out", type=Path, default=Path("figures/speeds"), help="output path, .png and .pdf added"
     )
     q.add_argument("--map", default=None, help="only the samples of this map (all by default)")
+    q = plot_sub.add_parser(
+        "flow",
+        help="outflow and delay against inflow (demand cells)",
+        description="Outflow and delay per vehicle against inflow, one line per policy\n"
+        "and one column per backend, with 95 % bootstrap intervals over episodes,\n"
+        "outflow = inflow, and the pure-HDV capacity and its drop where a series is\n"
+        "named pure-hdv (diacc.experiments.flowplot).",
+    )
+    q.add_argument(
+        "results",
+        nargs="+",
+        type=Path,
+        help="diacc eval results directories of demand cells, or folders holding them "
+        "(<series>/q<inflow>/ as benchmarks/demand_flow.sh writes)",
+    )
+    q.add_argument(
+        "--out", type=Path, default=Path("figures/flow"), help="output path, .png and .pdf added"
+    )
     q = plot_sub.add_parser(
         "timespace",
         help="time-space diagram and speed profile of one episode",
@@ -336,6 +354,10 @@ def cmd_plot(args: argparse.Namespace) -> None:
         spec = parse_policy(args.policy, args.variant, args.actions == "sampled")
         cell = _episode_cell(args)
         paths = plot_timespace(spec, cell, args.out, None, _settings(args), seed=args.seed)
+    elif args.plot_kind == "flow":
+        from diacc.experiments.flowplot import plot_flow
+
+        paths, _ = plot_flow(args.results, args.out)
     else:
         paths = plots.plot_speeds(args.results, args.out, map_name=args.map)
     print("wrote " + ", ".join(map(str, paths)))
