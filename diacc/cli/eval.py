@@ -197,7 +197,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
     p.add_argument("--out", required=True, type=Path, help="results directory (required)")
 
-    p = cli_scale.add_command(sub, "plot", "training curves, speed distributions or flow (PNG + PDF)")
+    p = cli_scale.add_command(
+        sub, "plot", "training curves, speed distributions or flow (PNG + PDF)"
+    )
     plot_sub = p.add_subparsers(dest="plot_kind", required=True, metavar="KIND")
     q = plot_sub.add_parser(
         "curves",

@@ -86,7 +86,8 @@ def load_flow(roots: list[str | Path]) -> list[FlowPoint]:
             try:
                 inflow = float(row.get("inflow_vph") or 0.0)
             except ValueError:
-                raise PlotError(f"{path}: inflow_vph {row.get('inflow_vph')!r} is not a number") from None
+                bad = row.get("inflow_vph")
+                raise PlotError(f"{path}: inflow_vph {bad!r} is not a number") from None
             if inflow > 0:  # release cells have no inflow to plot against
                 groups.setdefault((row["backend"], series, inflow), []).append(row)
     if not groups:
@@ -140,7 +141,10 @@ def plot_flow(roots: list[str | Path], out: str | Path) -> tuple[list[Path], lis
             ):
                 y = np.array([getattr(p, mean) for p in line])
                 err = np.array(
-                    [[y_i - getattr(p, low), getattr(p, high) - y_i] for p, y_i in zip(line, y)]
+                    [
+                        [y_i - getattr(p, low), getattr(p, high) - y_i]
+                        for p, y_i in zip(line, y, strict=True)
+                    ]
                 ).T
                 ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label=series)
         inflows = sorted({p.inflow_vph for p in mine})
