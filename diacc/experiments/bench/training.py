@@ -35,7 +35,8 @@ The first update of every configuration pays start-up and is left out.
 ``--device cuda`` puts the learner on CUDA (rollouts stay on the CPU).
 
 ``diacc bench --training``; ``python -m diacc.experiments.bench.training --envs 16
---only learners``; ``--vector-only`` (= ``--only vector``) for the first
+--only learners``; ``--only demand`` for the demand scenario's row (4 envs x 600
+steps, 3600 veh/h; minutes per update, so never part of the default run); ``--vector-only`` (= ``--only vector``) for the first
 two vector rows; ``--profile`` for :mod:`diacc.experiments.bench.update_profile`.
 """
 
@@ -189,8 +190,22 @@ LEARNER_ROWS = (
     ("small learner + 3 epochs", {**SMALL_LEARNER, "epochs": 3}),
     ("small learner + 3 epochs + overlap", {**SMALL_LEARNER, "epochs": 3, "overlap": True}),
 )
-#: Row groups of ``--only``.
-GROUPS = ("learners", "vector", "threads", "all")
+#: Row groups of ``--only`` (``demand`` is never in ``all``: it takes minutes an update).
+GROUPS = ("learners", "vector", "threads", "demand", "all")
+#: The ``demand`` row: the default learner on 3600 veh/h into train-50 (480 s of demand,
+#: 120 s warm-up, 600-step episodes), critic rows for 320 vehicles on the road, 24
+#: minibatches (benchmarks/demand_training_speed.py's setting); 4 envs x 600 steps.
+DEMAND_ROW = (
+    "small learner, demand 3600 veh/h",
+    {
+        "env.map": "train-50", "minibatches": 24, "env.obs.max_vehicles": 320,
+        "env.sim.episode_steps": 600, "env.scenario.kind": "demand",
+        "env.scenario.inflow_vph": 3600.0, "env.scenario.demand_s": 480.0,
+        "env.scenario.warmup_s": 120.0,
+    },
+    False,
+)  # fmt: skip
+DEMAND_ENVS, DEMAND_ROLLOUT_STEPS = 4, 600
 
 
 def configurations(
@@ -209,6 +224,8 @@ def configurations(
     ]
     if vector_only or only == "vector":
         return vector_rows
+    if only == "demand":
+        return [DEMAND_ROW]
     rows = [(label, options, False) for label, options in LEARNER_ROWS]
     if with_compile and compile_available(device):
         rows.append(
@@ -267,6 +284,8 @@ def run(
     Returns the rows of :func:`measure` with ``label`` and ``busy`` added.
     """
     chosen = select_rows(configurations(device, with_compile, vector_only, only), labels)
+    if only == "demand":  # whole demand episodes, as a demand run trains
+        envs, rollout_steps = (DEMAND_ENVS,), DEMAND_ROLLOUT_STEPS
     if updates < 2:
         raise ValueError(f"updates must be >= 2 (the first one is not timed), got {updates}")
     load_before = os.getloadavg()
