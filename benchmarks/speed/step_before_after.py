@@ -80,7 +80,7 @@ def main() -> None:
         )
     before, after = (statistics.median(rates[k]) for k in ("before", "after"))
     # A round's two trees run back to back, so the ratio within a round shares its load.
-    paired = statistics.median(a / b for a, b in zip(rates["after"], rates["before"]))
+    paired = statistics.median(a / b for a, b in zip(rates["after"], rates["before"], strict=True))
     print(
         f"median: before {before:.0f}, after {after:.0f} env-steps/s: x{after / before:.2f}; "
         f"median of the rounds' ratios x{paired:.2f}; "

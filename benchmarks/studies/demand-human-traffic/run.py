@@ -9,8 +9,8 @@ the draw of a 40 % CAV cell with its CAV slots driven by normal human drivers
 prints the same runs of pure HDV as a side-by-side table).
 
 The committed results/humans.jsonl (README.md of this folder):
-    python benchmarks/studies/demand-human-traffic/run.py --traffic pure-hdv same-mix --inflow 2000 4400 \\
-        --seeds 2 --demand-s 480 --warmup-s 120 --preset zipper \\
+    python benchmarks/studies/demand-human-traffic/run.py --traffic pure-hdv same-mix \\
+        --inflow 2000 4400 --seeds 2 --demand-s 480 --warmup-s 120 --preset zipper \\
         --out benchmarks/studies/demand-human-traffic/results/humans.jsonl
 """
 

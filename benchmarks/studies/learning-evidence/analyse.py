@@ -18,7 +18,8 @@ change against same-mix and the heuristic, and the issue's target checks:
 The checks are made on the seed means; a row passes only if every check holds. The last
 column counts the seeds that meet every target on their own (and names them).
 
-    python benchmarks/studies/learning-evidence/analyse.py runs/l27-eval --out benchmarks/studies/learning-evidence/results
+    python benchmarks/studies/learning-evidence/analyse.py runs/l27-eval \\
+        --out benchmarks/studies/learning-evidence/results
 """
 
 from __future__ import annotations

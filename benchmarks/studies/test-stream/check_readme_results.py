@@ -9,8 +9,8 @@ script recomputes every one of those numbers from the committed episodes
 it prints each row that differs and exits 1 if any does. It re-simulates
 nothing (seconds); ``tests/test_readme_results.py`` runs it in CI.
 
-    python benchmarks/studies/test-stream/check_readme_results.py            # check README.md
-    python benchmarks/studies/test-stream/check_readme_results.py --print    # the rows as they should be
+    python benchmarks/studies/test-stream/check_readme_results.py          # check README.md
+    python benchmarks/studies/test-stream/check_readme_results.py --print  # the rows it should hold
 """
 
 from __future__ import annotations
