@@ -173,3 +173,34 @@ def test_readmes_quick_start_runs_at_a_tiny_budget(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "| same-mix | heuristic | diacc |" in proc.stdout
     assert "| Delay (s/veh) |" in proc.stdout
+
+
+#: A path into the tree as the pages name them (in code, links or prose).
+TREE_PATH = re.compile(
+    r"(?<![\w/.$-])(?:--out )?((?:benchmarks|checkpoints|configs|maps|tutorials|examples|tests"
+    r"|docs|diacc)/[\w.*+,/-]*[\w*])"
+)
+
+
+def test_every_path_the_pages_name_exists():
+    """A moved or renamed file breaks this test, not a reader's copy-paste. Outputs
+    (``--out PATH``) are not inputs; a tutorial page is generated from its script; the
+    rename map of benchmarks/README.md names old paths on purpose."""
+    readmes = [p for p in (REPO / "benchmarks").rglob("README.md") if "results" not in p.parts]
+    pages = [*PAGES, REPO / "checkpoints" / "README.md", *readmes]
+    missing = []
+    for page in pages:
+        text = page.read_text(encoding="utf-8").split("## Rename map")[0]
+        for m in TREE_PATH.finditer(text):
+            path = m.group(1)
+            if m.group(0).startswith("--out "):
+                continue
+            paths = [path]
+            if path.startswith("tutorials/") and path.endswith(".md"):
+                paths.append(path[:-3] + ".py")
+            if any(next(b.glob(p), None) for b in (REPO, page.parent) for p in paths):
+                continue
+            if path.startswith("docs/img/") and next(REPO.glob(path + ".*"), None):
+                continue  # a figure's prefix, as `diacc plot --out` takes it
+            missing.append(f"{page.relative_to(REPO)}: {path}")
+    assert not missing, "paths that do not exist:\n" + "\n".join(missing)
