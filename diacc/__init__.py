@@ -14,14 +14,18 @@ The factories import the simulator stack only when called, so ``import diacc``
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
-__all__ = ["__version__", "env", "load_policy", "parallel_env"]
+__all__ = ["CHECKPOINTS_DIR", "__version__", "env", "load_policy", "parallel_env"]
+
+#: The shipped trained agents (``checkpoints/`` of the clone diacc is installed from with
+#: ``pip install -e``, as ``maps/``): ``diacc.load_policy(diacc.CHECKPOINTS_DIR / name)``
+#: works from any working directory.
+CHECKPOINTS_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
 
 if TYPE_CHECKING:  # pragma: no cover
-    from pathlib import Path
-
     from diacc.envs.env import BottleneckEnv
     from diacc.experiments.agent import TrainedPolicy
 

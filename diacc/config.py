@@ -562,8 +562,8 @@ class ModelConfig:
     64-256": with 4 minibatches (:class:`TrainConfig`) this learner learned at
     least as fast per environment step as 128 wide networks with 1 minibatch, at
     half the update cost (3 seeds x 32k steps, docs/benchmarks/index.md,
-    ``benchmarks/results/learner-comparison-iii``); every committed trained agent
-    uses it. The paper's size is ``configs/paper-learner.toml``
+    ``benchmarks/studies/learner-settings/results/paper-vs-small-32k-3seeds``); every
+    committed trained agent uses it. The paper's size is ``configs/paper-learner.toml``
     (:data:`PAPER_LEARNER`). A checkpoint keeps the sizes it was trained with.
     """
 

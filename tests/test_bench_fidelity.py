@@ -23,7 +23,7 @@ def test_the_table_puts_both_backends_side_by_side(capsys):
     outflow = {"highway": float(cells[1]), "sumo": float(cells[4])}
     assert outflow == {r["backend"]: pytest.approx(r["outflow_vph"], abs=0.5) for r in records}
     assert cells[7].startswith(f"{outflow['highway'] / outflow['sumo'] - 1:+.1%}")
-    # The same record as benchmarks/demand_bottleneck.py writes, seed for seed.
+    # The same record as benchmarks/studies/demand-human-traffic/run.py writes, seed for seed.
     again = human_flow("pure-hdv", "sumo", 3000.0, 0, settings)
     assert json.dumps({**again, "seconds": 0}) == json.dumps({**records[1], "seconds": 0})
 

@@ -41,5 +41,6 @@ def test_docs_build_strict(tmp_path):
     api = (site / "api" / "index.html").read_text()
     assert "load_policy" in api and "TrainedPolicy" in api
     assert not (site / "hooks.py").exists()
+    assert (site / "history" / "learning-evidence" / "index.html").is_file()  # the dated record
     pages = [p.read_text() for p in site.rglob("*.html")]
     assert not any("facts.md" in page for page in pages)  # not in the repository

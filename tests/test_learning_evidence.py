@@ -1,12 +1,13 @@
-"""benchmarks/learning_evidence.py on committed evaluations: the target checks per group
-(seed means) and per seed, which can disagree (one failed seed among good ones)."""
+"""benchmarks/studies/learning-evidence/analyse.py on committed evaluations: the target
+checks per group (seed means) and per seed, which can disagree (one failed seed among good ones)."""
 
 import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARE = ROOT / "benchmarks" / "results" / "learning-evidence" / "share" / "eval"
+STUDY = ROOT / "benchmarks" / "studies" / "learning-evidence"
+SHARE = STUDY / "results" / "train50-train25-3to1" / "eval"
 
 
 def _rows(out: Path) -> dict[tuple[str, str], list[str]]:
@@ -23,7 +24,7 @@ def _rows(out: Path) -> dict[tuple[str, str], list[str]]:
 
 def test_seed_means_and_seeds_meeting_every_target(tmp_path):
     subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "learning_evidence.py"), str(SHARE),
+        [sys.executable, str(STUDY / "analyse.py"), str(SHARE),
          "--out", str(tmp_path)],
         check=True, capture_output=True, text=True,
     )  # fmt: skip

@@ -251,15 +251,16 @@ def test_env_batch_bench_reports_both_paths():
 
 
 def test_step_before_after_times_two_trees():
-    """benchmarks/step_before_after.py runs each tree in its own process and prints the ratio
-    (here the same tree twice)."""
+    """benchmarks/speed/step_before_after.py runs each tree in its own process and prints the
+    ratio (here the same tree twice)."""
     import subprocess
     import sys
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
     out = subprocess.run(
-        [sys.executable, str(root / "benchmarks" / "step_before_after.py"), str(root), str(root),
+        [sys.executable, str(root / "benchmarks" / "speed" / "step_before_after.py"),
+         str(root), str(root),
          "--envs", "2", "--timing-steps", "2", "--rounds", "1"],
         check=True, capture_output=True, text=True,
     )  # fmt: skip
@@ -267,14 +268,14 @@ def test_step_before_after_times_two_trees():
 
 
 def test_step_identity_finds_a_tree_identical_to_itself_and_settings_apart():
-    """benchmarks/step_identity.py: the same seeds give the same digest in two processes
+    """benchmarks/speed/step_identity.py: the same seeds give the same digest in two processes
     (the step is deterministic), and two settings give different digests."""
     import subprocess
     import sys
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    script = str(root / "benchmarks" / "step_identity.py")
+    script = str(root / "benchmarks" / "speed" / "step_identity.py")
     out = subprocess.run(
         [sys.executable, script, str(root), str(root), "--only", "nopsar", "masked"],
         capture_output=True, text=True,

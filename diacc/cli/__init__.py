@@ -284,7 +284,8 @@ def _bench_parser(sub) -> None:
         "--demand-s",
         type=float,
         default=None,
-        help="seconds of demand of --scenario demand (default 480, as benchmarks/results/demand)",
+        help="seconds of demand of --scenario demand (default 480, as the committed demand "
+        "results, benchmarks/studies/demand-human-traffic)",
     )
     p.add_argument(
         "--warmup-s",

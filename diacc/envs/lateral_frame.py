@@ -4,7 +4,7 @@ Why: every shipped map drops its *left* lanes, so an agent trained on them
 learns "move right before the drop". On a road that drops its *right* lanes
 that agent steers its CAVs into the ending lanes and traffic collapses
 (measured, train-50 mirrored, highway: +698 % delay against the same-mix
-baseline; ``benchmarks/results/learning-evidence/zero-shot``). The bottleneck
+baseline; ``benchmarks/studies/learning-evidence/results/zero-shot``). The bottleneck
 is mirror-symmetric apart from the human drivers' own habits, so under
 ``ObservationConfig.lateral_frame = "drop-left"`` (the default) a road that
 drops its right lanes is reflected before the agents see it: the map they

@@ -12,7 +12,7 @@ both and the difference is the simulator's. A second pair of columns times the
 simulator alone (:meth:`HighwayBackend.step` of E backends vs one
 :meth:`HighwayBackend.step_batch`). One process, one thread: the figures are
 per core. Automatic resets are included (short episodes make them frequent,
-as in training), the start-up is not. ``benchmarks/step_before_after.py``
+as in training), the start-up is not. ``benchmarks/speed/step_before_after.py``
 compares the stepping of two source trees.
 
 ``python -m diacc.experiments.bench.envbatch --envs 1 4 16``; ``diacc bench --env-batch``.

@@ -11,8 +11,8 @@ drop was seen (issue 44's target: highway within 10 % of SUMO at every
 inflow, the drop present on both).
 
 :func:`human_flow` measures one episode, also for
-``benchmarks/demand_bottleneck.py`` (which writes the JSON lines of
-``benchmarks/results/demand/``):
+``benchmarks/studies/demand-human-traffic/run.py`` (which writes the JSON lines of
+``benchmarks/studies/demand-human-traffic/results/``):
 
 * ``outflow_vph``: vehicles crossing the end of the reduction segment after
   the warm-up, per hour.

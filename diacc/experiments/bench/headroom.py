@@ -71,7 +71,7 @@ METRICS = (
     ("p_sce", "p(SCE)", "{:.1%}"),
     ("collision", "collision eps", "{:.0%}"),
 )
-#: Demand defaults: the committed demand results' (benchmarks/results/demand).
+#: Demand defaults: the committed demand results' (benchmarks/studies/demand-human-traffic).
 DEMAND_S = 480.0
 WARMUP_S = 120.0
 #: Cell of every row (the paper's training cell): N (release), rho, style mix.
