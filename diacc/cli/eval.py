@@ -235,7 +235,7 @@ def add_parsers(sub) -> None:
         nargs="+",
         type=Path,
         help="diacc eval results directories of demand cells, or folders holding them "
-        "(<series>/q<inflow>/ as benchmarks/demand_flow.sh writes)",
+        "(<series>/q<inflow>/ as benchmarks/studies/demand-training/flow.sh writes)",
     )
     q.add_argument(
         "--out", type=Path, default=Path("figures/flow"), help="output path, .png and .pdf added"

@@ -5,7 +5,7 @@ reaches its capacity; above it a queue forms and, with human drivers, the
 outflow often *falls* below the capacity (the capacity drop), which is what
 automated vehicles are meant to win back. This module reads ``diacc eval``
 results of demand cells (one directory per policy and inflow, as
-``benchmarks/demand_flow.sh`` writes them) and draws, per backend, the mean
+``benchmarks/studies/demand-training/flow.sh`` writes them) and draws, per backend, the mean
 outflow (``throughput_vph``: vehicles past the bottleneck's end per hour after
 the warm-up) of every policy against the inflow, with a 95 % bootstrap
 interval over episodes, the line outflow = inflow (every vehicle served), and,

@@ -36,8 +36,9 @@ The first update of every configuration pays start-up and is left out.
 
 ``diacc bench --training``; ``python -m diacc.experiments.bench.training --envs 16
 --only learners``; ``--only demand`` for the demand scenario's row (4 envs x 600
-steps, 3600 veh/h; minutes per update, so never part of the default run); ``--vector-only`` (= ``--only vector``) for the first
-two vector rows; ``--profile`` for :mod:`diacc.experiments.bench.update_profile`.
+steps, 3600 veh/h; minutes per update, so never part of the default run);
+``--vector-only`` (= ``--only vector``) for the first two vector rows; ``--profile``
+for :mod:`diacc.experiments.bench.update_profile`.
 """
 
 from __future__ import annotations

@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # Issue 44 items 3-4: outflow against inflow, one `diacc eval` per (policy, inflow), for
 # humans, the heuristic, the all-round release agent and the three demand-fine-tuned
-# agents (benchmarks/results/demand-finetune), every policy on the same seeded traffic of
+# agents (benchmarks/studies/demand-training/results/finetune), every policy on the same seeded traffic of
 # the `test` stream: train-50, rho = 0.4, D1, `realistic`, 480 s of demand, 120 s
 # warm-up, 480-step episodes, PSAR headway/known. Results: $OUT/flow/<label>/q<inflow>/
 # (diacc eval's directories; `diacc table` and `diacc plot flow` read them), packed into
 # $OUT/flow.tgz at the end (a lent machine returns only shallow folders).
-#   BACKEND=highway PARALLEL=16 LIMIT=270 EPISODES=4 EPISODES_3600=15 bash benchmarks/demand_flow.sh
+#   BACKEND=highway PARALLEL=16 LIMIT=270 EPISODES=4 EPISODES_3600=15 bash benchmarks/studies/demand-training/flow.sh
 #   (on a lent machine without highway-env: WHEELS=.whl installs it from wheels first)
 set -uo pipefail
 if [ -n "${WHEELS:-}" ]; then
@@ -22,9 +22,9 @@ LABELS=${LABELS:-release-3to1-s3 demand-ft-s1 demand-ft-s2 demand-ft-s3 same-mix
 GRIDS=$(mktemp -d)
 declare -A POLICY=(
   [release-3to1-s3]=checkpoints/diacc-train50+train25-3to1-realistic-headway-known-s3.pt
-  [demand-ft-s1]=benchmarks/results/demand-finetune/seed-1/checkpoint.pt
-  [demand-ft-s2]=benchmarks/results/demand-finetune/seed-2/checkpoint.pt
-  [demand-ft-s3]=benchmarks/results/demand-finetune/seed-3/checkpoint.pt
+  [demand-ft-s1]=benchmarks/studies/demand-training/results/finetune/seed-1/checkpoint.pt
+  [demand-ft-s2]=benchmarks/studies/demand-training/results/finetune/seed-2/checkpoint.pt
+  [demand-ft-s3]=benchmarks/studies/demand-training/results/finetune/seed-3/checkpoint.pt
 )
 mkdir -p "$OUT/flow"
 for q in $INFLOWS; do

@@ -6,7 +6,7 @@
 # deadline (checkpoint saved; `diacc train --resume` continues on any machine).
 # Prepared here (the image lacks highway-env and its needs; wheels for Python 3.12):
 #   pip download ... -d .whl gymnasium farama-notifications highway-env pettingzoo pygame-ce
-#   device run: bash benchmarks/demand_finetune_device.sh   (carry .whl)
+#   device run: bash benchmarks/studies/demand-training/finetune_device.sh   (carry .whl)
 set -uo pipefail
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
   --target /tmp/site .whl/*.whl || exit 1

@@ -8,7 +8,7 @@ alternating, one thread: a seeded rollout (``values=False``), then one full
 agent-samples are the rollout's decisions of alive CAVs; peak resident memory
 is the process's high-water mark after the update::
 
-    OMP_NUM_THREADS=1 python benchmarks/learner_per_agent_sample.py --rounds 2
+    OMP_NUM_THREADS=1 python benchmarks/speed/learner_per_agent_sample.py --rounds 2
 """
 
 from __future__ import annotations
