@@ -49,8 +49,9 @@ import numpy as np
 
 from diacc.envs.observation import ObservationError, check_road
 from diacc.errors import DiaccError
+from diacc.fields import ConfigError
 from diacc.sim.maps import MapError, load_map, map_tag
-from diacc.sim.scenario import STYLE_MIXES, Scenario, ScenarioError, draw_population
+from diacc.sim.scenario import STYLE_MIXES, Scenario, draw_population
 from diacc.tomlfile import read_toml
 
 #: Named grids (see module docstring).
@@ -225,7 +226,7 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
         # Placing the vehicles checks that they fit the map (once found in the first
         # episode, after the results directory was written).
         draw_population(scenario, road, seed=0)
-    except ScenarioError as exc:
+    except ConfigError as exc:
         raise GridError(f"{source}: {exc}") from None
     if inflow:  # N follows from the inflow (at the default demand_s)
         cell = Cell(cell.map, scenario.n_vehicles, cell.cav_penetration, mix, float(inflow))

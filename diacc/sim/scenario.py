@@ -36,7 +36,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.errors import DiaccError
+from diacc.fields import (
+    MAX_INFLOW_VPH,
+    MAX_VEHICLES,
+    VEHICLES_WHY,
+    ConfigError,
+    check_fields,
+    one_of,
+    ranged,
+)
 from diacc.sim.maps import Map
 
 STYLE_NAMES = ("aggressive", "normal", "cautious")
@@ -53,18 +61,11 @@ STYLE_MIXES: dict[str, tuple[float, float, float]] = {
 
 #: How vehicles enter (module docstring).
 SCENARIO_KINDS = ("release", "demand")
-#: Largest inflow accepted (veh/h): above what 4 lanes carry at any speed, so larger is a typo.
-MAX_INFLOW_VPH = 10_000.0
-#: Most vehicles of one scenario (a release's count, a demand's inflow x duration).
-#: A step's pairwise checks (gaps, neighbours, PSAR) grow with the square of the
-#: count: 2000 already take seconds per env step on one core, and a typo such as
-#: 10**12 must be an error, not an out-of-memory (docs/guide/faults.md, "Size bounds").
-MAX_VEHICLES = 2000
-_VEHICLES_WHY = "a step's pairwise checks grow with the square of the count"
 
 
-class ScenarioError(DiaccError, ValueError):
-    """Invalid scenario values; the message is one line."""
+class ScenarioError(ConfigError):
+    """Scenario settings that contradict each other (a field's own range is a
+    :class:`~diacc.fields.FieldError`); the message is one line."""
 
 
 @dataclass(frozen=True)
@@ -72,58 +73,46 @@ class Scenario:
     """What traffic to simulate (the seed is given to ``Backend.reset``)."""
 
     #: paper training cell: 25 vehicles (None: 25 in a release; a demand derives it),
-    n_vehicles: int | None = None
-    cav_penetration: float = 0.4  # 10 of them CAVs,
+    n_vehicles: int | None = ranged(None, 1, MAX_VEHICLES, why=VEHICLES_WHY)
+    cav_penetration: float = ranged(0.4, 0, 1)  # 10 of them CAVs,
     style_mix: str | tuple[float, float, float] = "D1"  # HDV styles of mix D1
     insert_start_m: float = 10.0  # x of the rearmost insertion row
-    insert_spacing_m: float = 8.0  # between consecutive vehicles (any lane)
-    insert_speed_mps: float = 10.0
-    kind: str = "release"  # or "demand" (module docstring)
-    inflow_vph: float = 2400.0  # demand: vehicles per hour entering the route
-    demand_s: float = 300.0  # demand: vehicles enter during [0, demand_s)
-    warmup_s: float = 0.0  # metrics ignore states before this time (traffic settles)
-    cav_slots: int = 16  # demand: agent slots, the most CAVs driven by the policy at once
+    insert_spacing_m: float = ranged(8.0, 0, open_low=True)  # between consecutive vehicles
+    insert_speed_mps: float = ranged(10.0, 0)
+    kind: str = one_of("release", SCENARIO_KINDS)  # or "demand" (module docstring)
+    # demand: vehicles per hour entering the route
+    inflow_vph: float = ranged(
+        2400.0, 0, MAX_INFLOW_VPH, open_low=True, why="more than 4 lanes carry"
+    )
+    demand_s: float = ranged(300.0, 0, open_low=True)  # demand: vehicles enter in [0, demand_s)
+    warmup_s: float = ranged(0.0, 0)  # metrics ignore states before this time (traffic settles)
+    # demand: agent slots, the most CAVs driven by the policy at once
+    cav_slots: int = ranged(16, 1, MAX_VEHICLES, why="no scenario holds more vehicles")
     #: ``""``: the CAV slots hold CAVs. A style name (:data:`STYLE_NAMES`): the
     #: same slots hold HDVs of that style instead (the ``same-mix`` baseline),
     #: so the draw keeps every other vehicle's style and every vehicle's slot and
     #: a comparison isolates what the CAVs' control changes.
-    cav_slot_style: str = ""
+    cav_slot_style: str = one_of("", ("", *STYLE_NAMES))
 
     def __post_init__(self) -> None:
-        if self.kind not in SCENARIO_KINDS:
-            raise ScenarioError(
-                f"unknown scenario kind {self.kind!r}; choose one of {', '.join(SCENARIO_KINDS)}"
-            )
+        check_fields(self)
         if self.kind == "release":
             self._refuse_demand_settings()
             if self.n_vehicles is None:
                 object.__setattr__(self, "n_vehicles", RELEASE_VEHICLES)
-        if not self.warmup_s >= 0:
-            raise ScenarioError(f"warmup_s must be >= 0, got {self.warmup_s!r}")
-        if self.kind == "demand":
-            if not 0 < self.inflow_vph <= MAX_INFLOW_VPH:
+        else:  # demand: N follows from the inflow, one vehicle per 3600 / inflow seconds
+            if self.warmup_s >= self.demand_s:
                 raise ScenarioError(
-                    f"inflow_vph must be in (0, {MAX_INFLOW_VPH:.0f}] veh/h, "
-                    f"got {self.inflow_vph!r}"
-                )
-            if not self.demand_s > 0 or self.warmup_s >= self.demand_s:
-                raise ScenarioError(
-                    f"demand_s must be > 0 and longer than warmup_s, got demand_s "
+                    f"demand_s must be longer than warmup_s, got demand_s "
                     f"{self.demand_s!r}, warmup_s {self.warmup_s!r}"
                 )
-            if not isinstance(self.cav_slots, int) or not 1 <= self.cav_slots <= MAX_VEHICLES:
-                raise ScenarioError(
-                    f"cav_slots must be an integer in [1, {MAX_VEHICLES}], got "
-                    f"{self.cav_slots!r} (no scenario holds more vehicles)"
-                )
-            # N follows from the demand: one vehicle per 3600 / inflow seconds.
             n_total = self.inflow_vph * self.demand_s / 3600.0
-            if not n_total <= MAX_VEHICLES:  # also catches an infinite demand_s
+            if not n_total <= MAX_VEHICLES:
                 raise ScenarioError(
                     f"demand_s {self.demand_s!r} s at inflow_vph {self.inflow_vph:g} makes "
                     f"{n_total:.3g} vehicles; at most {MAX_VEHICLES} "
                     f"(demand_s <= {3600.0 * MAX_VEHICLES / self.inflow_vph:g} s: "
-                    f"{_VEHICLES_WHY})"
+                    f"{VEHICLES_WHY})"
                 )
             derived = max(1, int(n_total))
             if self.n_vehicles is not None and self.n_vehicles != derived:
@@ -133,28 +122,12 @@ class Scenario:
                     "vehicles; a demand scenario derives its count, leave n_vehicles out"
                 )
             object.__setattr__(self, "n_vehicles", derived)
-        if not isinstance(self.n_vehicles, int) or self.n_vehicles < 1:
-            raise ScenarioError(f"n_vehicles must be a positive integer, got {self.n_vehicles!r}")
-        if self.n_vehicles > MAX_VEHICLES:
-            raise ScenarioError(
-                f"n_vehicles must be at most {MAX_VEHICLES}, got {self.n_vehicles} "
-                f"({_VEHICLES_WHY})"
-            )
-        if not 0.0 <= self.cav_penetration <= 1.0:
-            raise ScenarioError(f"cav_penetration must be in [0, 1], got {self.cav_penetration!r}")
         mix = self.mix
         if len(mix) != 3 or any(p < 0 for p in mix) or abs(sum(mix) - 1.0) > 1e-6:
             raise ScenarioError(
                 f"style_mix must be 3 non-negative shares (aggressive, normal, cautious) "
                 f"summing to 1, got {self.style_mix!r}"
             )
-        if self.cav_slot_style and self.cav_slot_style not in STYLE_NAMES:
-            raise ScenarioError(
-                f"unknown driving style {self.cav_slot_style!r} for the CAV slots; "
-                f"known: {', '.join(STYLE_NAMES)}"
-            )
-        if self.insert_spacing_m <= 0 or self.insert_speed_mps < 0:
-            raise ScenarioError("insert_spacing_m must be > 0 and insert_speed_mps >= 0")
 
     def _refuse_demand_settings(self) -> None:
         """One-line error if a release was given demand settings (it would ignore them)."""
