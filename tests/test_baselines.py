@@ -124,7 +124,7 @@ def test_eval_psar_horizon_reaches_every_policy_with_psar_and_is_recorded():
     assert settings.describe()["settings"]["psar_horizon"] == "headway"
     # Unset, the key is absent, so results written before the option stay reusable.
     assert "psar_horizon" not in EvalSettings().describe()["settings"]
-    with pytest.raises(PolicyError, match="unknown PSAR horizon 'soon'"):
+    with pytest.raises(ConfigError, match="'psar_horizon' must be one of .*, got 'soon'"):
         EvalSettings(psar_horizon="soon")
 
 

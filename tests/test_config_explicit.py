@@ -108,3 +108,57 @@ def test_batched_vector_needs_a_batched_backend(tmp_path, monkeypatch, capsys):
     assert "vector 'batched' steps every env in one simulator, which backend 'sumo'" in err
     validate(build_train_config(backend="sumo", sets=["vector=process"]))
     validate(build_train_config(sets=["vector=batched"]))
+
+
+def test_one_default_run_directory_rule():
+    """``run_dir`` left unset is ``runs/<variant>-<backend>-<map>-s<seed>`` of the config
+    itself, in Python as on the command line (issue 42 item 7: ``runs/diacc`` was the
+    field's default while ``--help`` said the rule); a given one is kept."""
+    assert TrainConfig().run_dir == "runs/diacc-highway-train-25-s1"
+    assert TrainConfig(variant="mappo", seed=3).run_dir == "runs/mappo-highway-train-25-s3"
+    assert build_train_config().run_dir == TrainConfig().run_dir
+    # derived, it follows the fields it names; set, it stays
+    moved = override(TrainConfig(), {"seed": 4, "env.backend": "sumo"})
+    assert moved.run_dir == "runs/diacc-sumo-train-25-s4"
+    assert override(TrainConfig(run_dir="out/r"), {"seed": 4}).run_dir == "out/r"
+    assert override(TrainConfig(), {"seed": 4, "run_dir": "out/s"}).run_dir == "out/s"
+
+
+def test_the_config_table_shows_a_derived_run_directory_as_unchanged():
+    from diacc.console import config_table
+
+    rows = {}
+    table = config_table(TrainConfig(seed=5), "t")
+    for key, value, default in zip(*(c._cells for c in table.columns), strict=True):
+        rows[key.replace("[bold]", "").replace("[/bold]", "")] = (value, default)
+    assert rows["run_dir"] == ("'runs/diacc-highway-train-25-s5'", "")
+    assert rows["seed"] == ("5", "1")
+
+
+def test_eval_settings_are_checked_like_every_config_section():
+    """EvalSettings goes through the fields' checks: a backend, preset or step count out
+    of range is a one-line ConfigError naming the field, before any episode runs."""
+    from diacc.experiments.policies import EvalSettings
+
+    for kwargs, match in [
+        ({"backend": "carla"}, "'backend' must be one of highway, sumo, got 'carla'"),
+        ({"style_preset": "calm"}, "'style_preset' must be one of .*, got 'calm'"),
+        ({"episode_steps": 0}, r"'episode_steps' must be in \[1, 10000\], got 0"),
+        ({"episode_steps": 2.5}, "'episode_steps' must be an integer, got 2.5"),
+        ({"psar_full_brake": "never"}, "'psar_full_brake' must be one of"),
+    ]:
+        with pytest.raises(ConfigError, match=match) as err:
+            EvalSettings(**kwargs)
+        assert "\n" not in str(err.value)
+    assert EvalSettings(episode_steps=40, style_preset="paper").episode_steps == 40
+
+
+def test_scenario_ranges_go_through_the_field_checks():
+    """Scenario's own ranges are field errors (one path for every section) and, typed
+    through the config, name the dotted key."""
+    with pytest.raises(ConfigError, match=r"config key 'cav_penetration' must be in \[0, 1\]"):
+        Scenario(cav_penetration=1.5)
+    with pytest.raises(ConfigError, match="config key 'env.scenario.cav_slots' must be in"):
+        override(TrainConfig(), {"env.scenario.kind": "demand", "env.scenario.cav_slots": 0})
+    with pytest.raises(ConfigError, match="'n_vehicles' must be an integer, got 2.5"):
+        Scenario(n_vehicles=2.5)
