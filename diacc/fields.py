@@ -28,7 +28,8 @@ from diacc.errors import DiaccError
 # (``hidden_dim=1000000000``) is a one-line error before anything is allocated or
 # written, not an allocator traceback or a hang. Each lies far above any setting
 # the project uses and below what a 24 GiB, 2-core machine holds or finishes; the
-# measurements behind them are in docs/guide/faults.md ("Size bounds").
+# measurements behind them are in docs/guide/faults.md ("Every size has an upper
+# bound").
 #: Highway integration steps per decision: each one is a pass over every vehicle.
 MAX_SUBSTEPS = 100
 #: Decisions per episode (and per rollout, which holds whole episodes).
@@ -49,7 +50,7 @@ MAX_EPOCHS = 100
 MAX_ROLLOUT_BYTES = 8 * 2**30
 #: Most vehicles of one scenario (a release's count, a demand's inflow x duration).
 #: A step's pairwise checks (gaps, neighbours, PSAR) grow with the square of the
-#: count: 2000 already take seconds per env step on one core, and a typo such as
+#: count (its step time and memory are in docs/guide/faults.md), and a typo such as
 #: 10**12 must be an error, not an out-of-memory.
 MAX_VEHICLES = 2000
 VEHICLES_WHY = "a step's pairwise checks grow with the square of the count"
