@@ -101,32 +101,44 @@ def check_fields(obj: Any, prefix: str = "") -> None:
         value, key = getattr(obj, f.name), f"{prefix}{f.name}"
         if dataclasses.is_dataclass(value) or value is None:
             continue
-        for item_key, item in (
-            [(f"{key}[{i}]", v) for i, v in enumerate(value)]
-            if isinstance(value, tuple)
-            else [(key, value)]
-        ):
+        for item_key, item in _items(key, value):
             if isinstance(item, float) and not math.isfinite(item):
                 raise FieldError(item_key, f"must be a finite number, got {item}")
         if "range" in f.metadata:
-            low, high, open_low = f.metadata["range"]
-            if isinstance(value, bool) or not isinstance(value, numbers.Real):
-                raise FieldError(key, f"must be a number, got {value!r}")
-            if str(f.type).startswith("int") and not isinstance(value, numbers.Integral):
-                raise FieldError(key, f"must be an integer, got {value!r}")
-            too_low = value <= low if open_low else value < low
-            if too_low or (high is not None and value > high):
-                why = f" ({f.metadata['why']})" if f.metadata.get("why") and not too_low else ""
-                raise FieldError(
-                    key, f"must be {range_text(low, high, open_low)}, got {value}{why}"
-                )
+            for item_key, item in _items(key, value):
+                _check_range(f, item_key, item)
         if "choices" in f.metadata and value not in f.metadata["choices"]:
             choices = f.metadata["choices"]
             names = ", ".join(c or '""' for c in choices)
             raise FieldError(key, f"must be one of {names}, got {value!r}")
 
 
+def _items(key: str, value: Any) -> list[tuple[str, Any]]:
+    """(key, value), or (``key[i]``, item) for each item of a tuple."""
+    if isinstance(value, tuple):
+        return [(f"{key}[{i}]", v) for i, v in enumerate(value)]
+    return [(key, value)]
+
+
+def _check_range(f: dataclasses.Field, key: str, value: Any) -> None:
+    """A :func:`ranged` field's value (or one item of it) a number in its range."""
+    low, high, open_low = f.metadata["range"]
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise FieldError(key, f"must be a number, got {value!r}")
+    if str(f.type).startswith("int") and not isinstance(value, numbers.Integral):
+        raise FieldError(key, f"must be an integer, got {value!r}")
+    too_low = value <= low if open_low else value < low
+    if too_low or (high is not None and value > high):
+        why = f" ({f.metadata['why']})" if f.metadata.get("why") and not too_low else ""
+        raise FieldError(key, f"must be {range_text(low, high, open_low)}, got {value}{why}")
+
+
+def _number(x: float) -> str:
+    """``10000`` for 10000.0, else as Python writes it."""
+    return str(int(x)) if float(x).is_integer() else str(x)
+
+
 def range_text(low: float, high: float | None, open_low: bool) -> str:
     if high is None:
-        return f"{'>' if open_low else '>='} {low}"
-    return f"in {'(' if open_low else '['}{low}, {high}]"
+        return f"{'>' if open_low else '>='} {_number(low)}"
+    return f"in {'(' if open_low else '['}{_number(low)}, {_number(high)}]"

@@ -94,8 +94,8 @@ def test_headroom_demand_tiny(tmp_path, capsys):
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--scenario", "demand", "--inflow", "-100"], "inflow_vph must be in (0, 10000]"),
-        (["--scenario", "demand", "--inflow", "1e6"], "inflow_vph must be in (0, 10000]"),
+        (["--scenario", "demand", "--inflow", "-100"], "--inflow must be in (0, 10000]"),
+        (["--scenario", "demand", "--inflow", "1e6"], "--inflow must be in (0, 10000]"),
         (["--scenario", "demand", "--inflow", "3600", "--warmup-s", "600"], "longer than warmup"),
         (
             ["--scenario", "demand", "--inflow", "3600", "--episode-steps", "100"],

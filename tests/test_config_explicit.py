@@ -162,3 +162,25 @@ def test_scenario_ranges_go_through_the_field_checks():
         override(TrainConfig(), {"env.scenario.kind": "demand", "env.scenario.cav_slots": 0})
     with pytest.raises(ConfigError, match="'n_vehicles' must be an integer, got 2.5"):
         Scenario(n_vehicles=2.5)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--safety", "--episodes", "0"], "--episodes must be in [1, 10000], got 0"),
+        (["--backend", "highway", "--timing-steps", "-3"], "--timing-steps must be in [1, 10000]"),
+        (["--backend", "highway", "--steps", "1000000000"], "--steps must be in [1, 10000]"),
+        (["--fidelity", "--inflow", "3600", "inf"], "--inflow must be a finite number, got inf"),
+        (["--fidelity", "--demand-s", "0"], "--demand-s must be > 0, got 0.0"),
+        (["--headroom", "--warmup-s", "-1"], "--warmup-s must be >= 0, got -1.0"),
+        (["--headway", "--inflow", "3600"], "--inflow needs --headroom with --scenario demand"),
+        (["--headroom", "--scenario", "demand", "--inflow", "1", "2"], "needs --inflow (one"),
+    ],
+)
+def test_bench_options_are_checked_in_one_place(capsys, argv, message):
+    """``diacc bench``'s shared options go through the fields' checks (BenchOptions):
+    one line naming the flag, before any benchmark runs."""
+    assert main(["bench", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("diacc: error: ") and "\n" not in err
+    assert message in err
