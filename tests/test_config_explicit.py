@@ -7,6 +7,7 @@ shipped configs, grids and checkpoints resolve to the same configs).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import pytest
@@ -21,7 +22,7 @@ from diacc.config import (
     validate,
 )
 from diacc.experiments.grid import Cell
-from diacc.sim.scenario import Scenario, ScenarioError
+from diacc.sim.scenario import Demand, Release, Scenario, ScenarioError
 
 
 def _train_fails(tmp_path, monkeypatch, capsys, *argv: str) -> str:
@@ -79,7 +80,8 @@ def test_derived_count_follows_later_changes():
     faster = override(demand, {"env.scenario.inflow_vph": 3600})
     assert faster.env.scenario.n_vehicles == 300
     release = override(faster, {"env.scenario.kind": "release"})
-    assert (release.env.scenario.n_vehicles, release.env.scenario.inflow_vph) == (25, 2400.0)
+    assert isinstance(release.env.scenario, Release) and release.env.scenario.n_vehicles == 25
+    assert not hasattr(release.env.scenario, "inflow_vph")  # a release has no demand settings
     assert Scenario(kind="demand").replace(demand_s=600).n_vehicles == 400
     # a grid's demand cell takes the run's duration, and its count with it
     cell = Cell("train-50", 200, 0.4, "D1", 3600.0)
@@ -184,3 +186,24 @@ def test_bench_options_are_checked_in_one_place(capsys, argv, message):
     err = capsys.readouterr().err.strip()
     assert err.startswith("diacc: error: ") and "\n" not in err
     assert message in err
+
+
+def test_scenario_is_release_or_demand_with_the_count_a_property():
+    """Two types, ``Scenario = Release | Demand``: a demand's count is derived (a
+    property, never a stored value that could disagree), a release has no demand
+    settings; ``Scenario(kind=...)`` builds the one named."""
+    release, demand = Scenario(), Scenario(kind="demand", inflow_vph=3600, demand_s=120)
+    assert type(release) is Release and type(demand) is Demand
+    assert isinstance(release, Scenario) and isinstance(demand, Scenario)
+    assert not isinstance(TrainConfig(), Scenario)
+    assert demand.n_vehicles == 120 and "n_vehicles" not in dataclasses.asdict(demand)
+    assert dataclasses.asdict(release)["n_vehicles"] == 25
+    assert not {"inflow_vph", "demand_s", "cav_slots"} & set(dataclasses.asdict(release))
+    with pytest.raises(TypeError):
+        Demand(n_vehicles=40)  # no such field: the count follows from the demand
+    with pytest.raises(ValueError, match="init=False"):
+        dataclasses.replace(release, kind="demand")  # the kind is the type
+    # a kind change through the config rebuilds the section as the other type
+    cfg = override(TrainConfig(), {"env.scenario.kind": "demand", "env.scenario.cav_slots": 8})
+    assert type(cfg.env.scenario) is Demand and cfg.env.scenario.n_slots == 8
+    assert type(override(TrainConfig(), {"env.scenario": demand}).env.scenario) is Demand

@@ -17,7 +17,7 @@ from typing import Any
 
 from diacc.config.train import TrainConfig, default_run_dir
 from diacc.fields import ConfigError, FieldError
-from diacc.sim.scenario import Scenario, ScenarioError
+from diacc.sim.scenario import SCENARIO_SETTINGS, Scenario, ScenarioError
 
 
 def override(config: Any, values: dict[str, Any]) -> Any:
@@ -42,21 +42,27 @@ def override(config: Any, values: dict[str, Any]) -> Any:
 
 
 def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
-    names = {f.name for f in dataclasses.fields(obj)}
+    # a scenario takes the keys of either kind (Release | Demand): Scenario.replace
+    # refuses those its kind would ignore
+    scenario = isinstance(obj, Scenario)
+    names = set(SCENARIO_SETTINGS) if scenario else {f.name for f in dataclasses.fields(obj)}
     changes = {}
     for key, value in tree.items():
         head, full_key = key.replace("-", "_"), f"{prefix}{key}"
         if head not in names:
             raise ConfigError(f"unknown config key {full_key!r}")
-        current = getattr(obj, head)
+        current = getattr(obj, head, SCENARIO_SETTINGS.get(head))
+        section = Scenario if isinstance(current, Scenario) else type(current)
         if dataclasses.is_dataclass(current) and isinstance(value, dict):
             changes[head] = _replace(current, value, f"{full_key}.")
         elif isinstance(value, dict):
             raise ConfigError(f"unknown config key {full_key + '.' + next(iter(value), '')!r}")
-        elif dataclasses.is_dataclass(current) and not isinstance(value, type(current)):
+        elif dataclasses.is_dataclass(current) and not isinstance(value, section):
             raise ConfigError(
                 f"config key {full_key!r} is a section; set its fields ({full_key}.NAME=VALUE)"
             )
+        elif dataclasses.is_dataclass(current):  # a whole section, built (so checked)
+            changes[head] = value
         else:
             changes[head] = _coerce(_unset_as(obj, head, current), value, full_key)
     if isinstance(obj, TrainConfig) and "variant" in changes and _rederive_psar(tree):
@@ -66,7 +72,7 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
         if obj.run_dir == default_run_dir(obj):  # derived, not set: derive it again
             changes["run_dir"] = ""
     try:
-        if isinstance(obj, Scenario):  # derives a demand's count again
+        if scenario:  # derives a demand's count again, may change the kind
             return obj.replace(**changes)
         return dataclasses.replace(obj, **changes)
     except FieldError as exc:  # a field of this section: name it by its full key

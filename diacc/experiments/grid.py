@@ -51,7 +51,7 @@ from diacc.envs.observation import ObservationError, check_road
 from diacc.errors import DiaccError
 from diacc.fields import ConfigError
 from diacc.sim.maps import MapError, load_map, map_tag
-from diacc.sim.scenario import STYLE_MIXES, Scenario, draw_population
+from diacc.sim.scenario import STYLE_MIXES, Demand, Scenario, draw_population
 from diacc.tomlfile import read_toml
 
 #: Named grids (see module docstring).
@@ -132,7 +132,7 @@ class Cell:
         rho = self.cav_penetration if cav_penetration is None else cav_penetration
         size: dict = {"n_vehicles": self.n_vehicles}
         if self.inflow_vph:  # the run's demand settings, or the defaults; N follows from them
-            timing = base if base.kind == "demand" else Scenario()
+            timing = base if base.kind == "demand" else Demand()
             size = {
                 "kind": "demand",
                 "inflow_vph": self.inflow_vph,
