@@ -53,7 +53,8 @@ def test_headroom_and_headway_bad_input(capsys):
         assert err.startswith("diacc: error: ") and "\n" not in err
         err_lines.append(err)
     assert (
-        "--episodes must be >= 1" in err_lines[0] and "--episode-steps must be >= 1" in err_lines[1]
+        "--episodes must be in [1, 10000], got 0" in err_lines[0]
+        and "--episode-steps must be in [1, 10000], got 0" in err_lines[1]
     )
     with pytest.raises(SystemExit):  # argparse: unknown horizon
         main(["bench", "--headroom", "--horizon", "tight"])
