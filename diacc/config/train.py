@@ -31,10 +31,9 @@ class ModelConfig:
     """Network sizes of actor and critic.
 
     The hidden sizes default to 64, the small end of the paper's "of the order
-    64-256": with 4 minibatches (:class:`TrainConfig`) this learner learned at
-    least as fast per environment step as 128 wide networks with 1 minibatch, at
-    half the update cost (3 seeds x 32k steps, docs/benchmarks/index.md,
-    ``benchmarks/results/learner-comparison-iii``); every committed trained agent
+    64-256", with 4 minibatches (:class:`TrainConfig`): the learner that learned at
+    least as fast per environment step as the paper's size for less update time
+    (the comparison: docs/benchmarks/index.md); every committed trained agent
     uses it. The paper's size is ``configs/paper-learner.toml``
     (:data:`PAPER_LEARNER`). A checkpoint keeps the sizes it was trained with.
     """
