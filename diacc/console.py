@@ -102,6 +102,10 @@ def config_table(config: Any, title: str):
     table.add_column("value")
     table.add_column("default if changed", style="dim")
     default = _flat(type(config)())
+    if "run_dir" in default:  # its default follows the config's variant, backend, map, seed
+        from diacc.config import default_run_dir
+
+        default["run_dir"] = default_run_dir(config)
     for key, value in _flat(config).items():
         changed = value != default[key]
         if "." in key and not changed:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from diacc.config import CAV_STYLE, NORMAL, STYLE_NAMES
+from diacc.config import CAV_STYLE, NORMAL, STYLE_NAMES, ConfigError
 from diacc.envs.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT
 from diacc.envs.episode import EpisodeDriver
 from diacc.envs.observation import ActorObs
@@ -23,7 +23,7 @@ from diacc.experiments.policies import (
     parse_policy,
 )
 from diacc.sim.maps import load_map
-from diacc.sim.scenario import Scenario, ScenarioError, draw_population
+from diacc.sim.scenario import Scenario, draw_population
 
 CELL = Cell("train-50", 20, 0.4, "D1")
 
@@ -52,7 +52,7 @@ def test_same_mix_names_and_bad_styles():
         parse_policy("same-mix:sleepy")
     with pytest.raises(PolicyError, match="same-mix:<style>"):
         SameMixPolicy("same-mix:")
-    with pytest.raises(ScenarioError, match="unknown driving style 'sleepy'"):
+    with pytest.raises(ConfigError, match="'cav_slot_style' must be one of .*, got 'sleepy'"):
         Scenario(cav_slot_style="sleepy")
     with pytest.raises(PolicyError, match="not to the same-mix baseline"):
         parse_policy("same-mix", variant="diacc")
@@ -124,7 +124,7 @@ def test_eval_psar_horizon_reaches_every_policy_with_psar_and_is_recorded():
     assert settings.describe()["settings"]["psar_horizon"] == "headway"
     # Unset, the key is absent, so results written before the option stay reusable.
     assert "psar_horizon" not in EvalSettings().describe()["settings"]
-    with pytest.raises(PolicyError, match="unknown PSAR horizon 'soon'"):
+    with pytest.raises(ConfigError, match="'psar_horizon' must be one of .*, got 'soon'"):
         EvalSettings(psar_horizon="soon")
 
 

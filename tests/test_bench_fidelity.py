@@ -37,7 +37,7 @@ def test_capacity_drop_needs_a_breakdown_and_a_lower_discharge():
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--inflow", "-5"], "inflow_vph must be in (0, 10000]"),
+        (["--inflow", "-5"], "--inflow must be in (0, 10000]"),
         (["--demand-s", "60", "--warmup-s", "90"], "longer than warmup"),
     ],
 )

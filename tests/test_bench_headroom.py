@@ -53,7 +53,8 @@ def test_headroom_and_headway_bad_input(capsys):
         assert err.startswith("diacc: error: ") and "\n" not in err
         err_lines.append(err)
     assert (
-        "--episodes must be >= 1" in err_lines[0] and "--episode-steps must be >= 1" in err_lines[1]
+        "--episodes must be in [1, 10000], got 0" in err_lines[0]
+        and "--episode-steps must be in [1, 10000], got 0" in err_lines[1]
     )
     with pytest.raises(SystemExit):  # argparse: unknown horizon
         main(["bench", "--headroom", "--horizon", "tight"])
@@ -94,8 +95,8 @@ def test_headroom_demand_tiny(tmp_path, capsys):
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--scenario", "demand", "--inflow", "-100"], "inflow_vph must be in (0, 10000]"),
-        (["--scenario", "demand", "--inflow", "1e6"], "inflow_vph must be in (0, 10000]"),
+        (["--scenario", "demand", "--inflow", "-100"], "--inflow must be in (0, 10000]"),
+        (["--scenario", "demand", "--inflow", "1e6"], "--inflow must be in (0, 10000]"),
         (["--scenario", "demand", "--inflow", "3600", "--warmup-s", "600"], "longer than warmup"),
         (
             ["--scenario", "demand", "--inflow", "3600", "--episode-steps", "100"],

@@ -30,7 +30,10 @@ from diacc.sim.scenario import MAX_VEHICLES, Scenario, ScenarioError
 
 #: (--set, what the one line must say)
 BOMBS = [
-    ("env.scenario.n_vehicles=1000000000000", "n_vehicles must be at most 2000, got 1000000000000"),
+    (
+        "env.scenario.n_vehicles=1000000000000",
+        "'env.scenario.n_vehicles' must be in [1, 2000], got 1000000000000 (",
+    ),
     ("model.hidden_dim=1000000000", "'model.hidden_dim' must be in [1, 1024], got 1000000000 ("),
     (
         "env.obs.max_vehicles=100000000",
@@ -67,16 +70,17 @@ def test_demand_duration_is_bounded_by_the_vehicles_it_makes(tmp_path, capsys, m
     assert "env.scenario: demand_s 1e+300 s at inflow_vph 2400 makes" in err
     assert "at most 2000 (demand_s <= 3000 s:" in err and "\n" not in err
     assert os.listdir(tmp_path) == []
-    for demand_s in (float("inf"), 3000.01):
-        with pytest.raises(ScenarioError, match="at most 2000"):
-            Scenario(kind="demand", demand_s=demand_s)
+    with pytest.raises(ScenarioError, match="at most 2000"):
+        Scenario(kind="demand", demand_s=3000.01)
+    with pytest.raises(ConfigError, match="'demand_s' must be a finite number"):
+        Scenario(kind="demand", demand_s=float("inf"))
     assert Scenario(kind="demand", demand_s=3000).n_vehicles == MAX_VEHICLES
 
 
 def test_scenario_bounds_hold_for_python_callers():
-    with pytest.raises(ScenarioError, match="n_vehicles must be at most 2000"):
+    with pytest.raises(ConfigError, match=r"'n_vehicles' must be in \[1, 2000\], got 2001"):
         Scenario(n_vehicles=MAX_VEHICLES + 1)
-    with pytest.raises(ScenarioError, match=r"cav_slots must be an integer in \[1, 2000\]"):
+    with pytest.raises(ConfigError, match=r"'cav_slots' must be in \[1, 2000\]"):
         Scenario(kind="demand", cav_slots=10**9)
     assert Scenario(n_vehicles=MAX_VEHICLES).n_vehicles == MAX_VEHICLES
 
@@ -84,7 +88,7 @@ def test_scenario_bounds_hold_for_python_callers():
 def test_a_grid_with_a_huge_count_is_one_line(tmp_path):
     grid = tmp_path / "huge.toml"
     grid.write_text('[product]\nmap = ["train-50"]\nn_vehicles = [1000000000000]\n')
-    with pytest.raises(GridError, match="n_vehicles must be at most 2000") as err:
+    with pytest.raises(GridError, match=r"'n_vehicles' must be in \[1, 2000\]") as err:
         load_grid(grid)
     assert "\n" not in str(err.value)
 

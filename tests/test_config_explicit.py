@@ -7,6 +7,7 @@ shipped configs, grids and checkpoints resolve to the same configs).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import pytest
@@ -21,7 +22,7 @@ from diacc.config import (
     validate,
 )
 from diacc.experiments.grid import Cell
-from diacc.sim.scenario import Scenario, ScenarioError
+from diacc.sim.scenario import Demand, Release, Scenario, ScenarioError
 
 
 def _train_fails(tmp_path, monkeypatch, capsys, *argv: str) -> str:
@@ -79,7 +80,8 @@ def test_derived_count_follows_later_changes():
     faster = override(demand, {"env.scenario.inflow_vph": 3600})
     assert faster.env.scenario.n_vehicles == 300
     release = override(faster, {"env.scenario.kind": "release"})
-    assert (release.env.scenario.n_vehicles, release.env.scenario.inflow_vph) == (25, 2400.0)
+    assert isinstance(release.env.scenario, Release) and release.env.scenario.n_vehicles == 25
+    assert not hasattr(release.env.scenario, "inflow_vph")  # a release has no demand settings
     assert Scenario(kind="demand").replace(demand_s=600).n_vehicles == 400
     # a grid's demand cell takes the run's duration, and its count with it
     cell = Cell("train-50", 200, 0.4, "D1", 3600.0)
@@ -108,3 +110,100 @@ def test_batched_vector_needs_a_batched_backend(tmp_path, monkeypatch, capsys):
     assert "vector 'batched' steps every env in one simulator, which backend 'sumo'" in err
     validate(build_train_config(backend="sumo", sets=["vector=process"]))
     validate(build_train_config(sets=["vector=batched"]))
+
+
+def test_one_default_run_directory_rule():
+    """``run_dir`` left unset is ``runs/<variant>-<backend>-<map>-s<seed>`` of the config
+    itself, in Python as on the command line (issue 42 item 7: ``runs/diacc`` was the
+    field's default while ``--help`` said the rule); a given one is kept."""
+    assert TrainConfig().run_dir == "runs/diacc-highway-train-25-s1"
+    assert TrainConfig(variant="mappo", seed=3).run_dir == "runs/mappo-highway-train-25-s3"
+    assert build_train_config().run_dir == TrainConfig().run_dir
+    # derived, it follows the fields it names; set, it stays
+    moved = override(TrainConfig(), {"seed": 4, "env.backend": "sumo"})
+    assert moved.run_dir == "runs/diacc-sumo-train-25-s4"
+    assert override(TrainConfig(run_dir="out/r"), {"seed": 4}).run_dir == "out/r"
+    assert override(TrainConfig(), {"seed": 4, "run_dir": "out/s"}).run_dir == "out/s"
+
+
+def test_the_config_table_shows_a_derived_run_directory_as_unchanged():
+    from diacc.console import config_table
+
+    rows = {}
+    table = config_table(TrainConfig(seed=5), "t")
+    for key, value, default in zip(*(c._cells for c in table.columns), strict=True):
+        rows[key.replace("[bold]", "").replace("[/bold]", "")] = (value, default)
+    assert rows["run_dir"] == ("'runs/diacc-highway-train-25-s5'", "")
+    assert rows["seed"] == ("5", "1")
+
+
+def test_eval_settings_are_checked_like_every_config_section():
+    """EvalSettings goes through the fields' checks: a backend, preset or step count out
+    of range is a one-line ConfigError naming the field, before any episode runs."""
+    from diacc.experiments.policies import EvalSettings
+
+    for kwargs, match in [
+        ({"backend": "carla"}, "'backend' must be one of highway, sumo, got 'carla'"),
+        ({"style_preset": "calm"}, "'style_preset' must be one of .*, got 'calm'"),
+        ({"episode_steps": 0}, r"'episode_steps' must be in \[1, 10000\], got 0"),
+        ({"episode_steps": 2.5}, "'episode_steps' must be an integer, got 2.5"),
+        ({"psar_full_brake": "never"}, "'psar_full_brake' must be one of"),
+    ]:
+        with pytest.raises(ConfigError, match=match) as err:
+            EvalSettings(**kwargs)
+        assert "\n" not in str(err.value)
+    assert EvalSettings(episode_steps=40, style_preset="paper").episode_steps == 40
+
+
+def test_scenario_ranges_go_through_the_field_checks():
+    """Scenario's own ranges are field errors (one path for every section) and, typed
+    through the config, name the dotted key."""
+    with pytest.raises(ConfigError, match=r"config key 'cav_penetration' must be in \[0, 1\]"):
+        Scenario(cav_penetration=1.5)
+    with pytest.raises(ConfigError, match="config key 'env.scenario.cav_slots' must be in"):
+        override(TrainConfig(), {"env.scenario.kind": "demand", "env.scenario.cav_slots": 0})
+    with pytest.raises(ConfigError, match="'n_vehicles' must be an integer, got 2.5"):
+        Scenario(n_vehicles=2.5)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--safety", "--episodes", "0"], "--episodes must be in [1, 10000], got 0"),
+        (["--backend", "highway", "--timing-steps", "-3"], "--timing-steps must be in [1, 10000]"),
+        (["--backend", "highway", "--steps", "1000000000"], "--steps must be in [1, 10000]"),
+        (["--fidelity", "--inflow", "3600", "inf"], "--inflow must be a finite number, got inf"),
+        (["--fidelity", "--demand-s", "0"], "--demand-s must be > 0, got 0.0"),
+        (["--headroom", "--warmup-s", "-1"], "--warmup-s must be >= 0, got -1.0"),
+        (["--headway", "--inflow", "3600"], "--inflow needs --headroom with --scenario demand"),
+        (["--headroom", "--scenario", "demand", "--inflow", "1", "2"], "needs --inflow (one"),
+    ],
+)
+def test_bench_options_are_checked_in_one_place(capsys, argv, message):
+    """``diacc bench``'s shared options go through the fields' checks (BenchOptions):
+    one line naming the flag, before any benchmark runs."""
+    assert main(["bench", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("diacc: error: ") and "\n" not in err
+    assert message in err
+
+
+def test_scenario_is_release_or_demand_with_the_count_a_property():
+    """Two types, ``Scenario = Release | Demand``: a demand's count is derived (a
+    property, never a stored value that could disagree), a release has no demand
+    settings; ``Scenario(kind=...)`` builds the one named."""
+    release, demand = Scenario(), Scenario(kind="demand", inflow_vph=3600, demand_s=120)
+    assert type(release) is Release and type(demand) is Demand
+    assert isinstance(release, Scenario) and isinstance(demand, Scenario)
+    assert not isinstance(TrainConfig(), Scenario)
+    assert demand.n_vehicles == 120 and "n_vehicles" not in dataclasses.asdict(demand)
+    assert dataclasses.asdict(release)["n_vehicles"] == 25
+    assert not {"inflow_vph", "demand_s", "cav_slots"} & set(dataclasses.asdict(release))
+    with pytest.raises(TypeError):
+        Demand(n_vehicles=40)  # no such field: the count follows from the demand
+    with pytest.raises(ValueError, match="init=False"):
+        dataclasses.replace(release, kind="demand")  # the kind is the type
+    # a kind change through the config rebuilds the section as the other type
+    cfg = override(TrainConfig(), {"env.scenario.kind": "demand", "env.scenario.cav_slots": 8})
+    assert type(cfg.env.scenario) is Demand and cfg.env.scenario.n_slots == 8
+    assert type(override(TrainConfig(), {"env.scenario": demand}).env.scenario) is Demand

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from diacc.cli import main
-from diacc.config import ModelConfig, TrainConfig
+from diacc.config import ConfigError, ModelConfig, TrainConfig
 from diacc.envs.env import BottleneckEnv
 from diacc.experiments.evaluate import (
     EPISODES_FILE,
@@ -24,7 +24,7 @@ from diacc.experiments.evaluate import (
     read_csv,
 )
 from diacc.experiments.grid import SEED_STREAMS, Cell, GridError, load_grid
-from diacc.experiments.policies import EvalSettings, PolicyError, PolicySpec
+from diacc.experiments.policies import EvalSettings, PolicySpec
 from diacc.learn.checkpoint import save_checkpoint
 from diacc.learn.mappo import make_agent
 from diacc.sim.maps import SEGMENT_KINDS
@@ -102,7 +102,7 @@ def test_validation_and_test_streams_are_disjoint():
 def test_unknown_stream_is_one_line():
     with pytest.raises(GridError, match="unknown seed stream 'tset'; use test, validation"):
         SMALL.seed(0, "tset")
-    with pytest.raises(PolicyError, match="unknown seed stream"):
+    with pytest.raises(ConfigError, match="'stream' must be one of test, validation, legacy"):
         EvalSettings(stream="tset")
 
 
@@ -381,7 +381,7 @@ def test_cli_eval_writes_results(tmp_path, capsys):
 
 # -------------------------------------------------------------- highway cooperative CAVs
 def test_highway_cooperative_cavs_drive_themselves():
-    from diacc.config import ConfigError, SimConfig
+    from diacc.config import SimConfig
     from diacc.sim.backends.base import CavCommands
     from diacc.sim.backends.highway.backend import HighwayBackend
     from diacc.sim.maps import load_map

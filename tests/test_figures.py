@@ -45,7 +45,8 @@ def test_plot_timespace_command_writes_a_figure(tmp_path, capsys):
 @pytest.mark.parametrize("flag", ["--episode-steps", "--steps"])  # --steps: the former name
 def test_plot_timespace_rejects_zero_steps(capsys, flag):
     assert main(["plot", "timespace", "--policy", "pure-hdv", flag, "0"]) == 2
-    assert "diacc: error: episode_steps must be >= 1, got 0" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "diacc: error: config key 'episode_steps' must be in [1, 10000], got 0" in err
 
 
 def test_speed_figures_one_per_map_with_a_caption(tmp_path, monkeypatch):

@@ -99,7 +99,13 @@ SHARED = {
     "diacc.fileio": None,
     "diacc.runlog": None,
     "diacc.threads": None,
-    "diacc.config": "diacc.sim",  # the Map and Scenario a config names
+    "diacc.fields": None,  # checked settings: every config section, the simulator's too
+    "diacc.config": "diacc.sim",  # the config tree nests the simulator's sections
+    "diacc.config.env": "diacc.sim",
+    "diacc.config.train": "diacc.sim",
+    "diacc.config.overrides": "diacc.sim",
+    "diacc.config.stored": "diacc.sim",
+    "diacc.config.checks": "diacc.sim",
     "diacc.console": "diacc.envs",  # prints EpisodeMetrics (learn and experiments use it)
     "diacc": "diacc.experiments",  # parallel_env, env, load_policy: lazy, on call
 }
@@ -128,6 +134,14 @@ def test_layers_import_downwards():
     module has to go into a layer or be listed in SHARED with its ceiling."""
     graph = _import_graph()
     assert {m for m in graph if _rank(m) < 0} == set(SHARED)
+    # the simulator's settings live in diacc.sim: the config imports sim, never back
+    assert [
+        f"{m} imports {n}"
+        for m, imported in sorted(graph.items())
+        if _rank(m) == 0
+        for n in sorted(imported)
+        if n == "diacc.config" or n.startswith("diacc.config.")
+    ] == []
     assert {LAYERS[_rank(m)] for m in graph if _rank(m) >= 0} == set(LAYERS)
     assert _upward_imports(graph) == []
     # the check sees a lazy upward import (as the AST finds it)

@@ -107,7 +107,7 @@ def test_missing_field_and_unknown_map(tmp_path):
     ],
 )
 def test_invalid_scenarios(kwargs, match):
-    with pytest.raises(ScenarioError, match=match):
+    with pytest.raises(ConfigError, match=match):
         Scenario(**kwargs)
 
 

@@ -282,7 +282,7 @@ def test_of_a_cav_waiting_at_a_lane_end_and_a_standing_cav_beside_it_one_moves(g
 
 
 def test_unknown_horizon_is_a_one_line_error():
-    with pytest.raises(ConfigError, match="psar.horizon") as err:
+    with pytest.raises(ConfigError, match="'horizon' must be one of") as err:
         PSARConfig(horizon="tight")
     assert "\n" not in str(err.value) and "headway" in str(err.value)
     with pytest.raises(ConfigError, match="cav_time_gap_s"):

@@ -201,4 +201,5 @@ def test_bench_safety_bad_episode_steps_is_one_line(capsys):
     from diacc.cli import main
 
     assert main(["bench", "--safety", "--episode-steps", "0"]) == 2
-    assert capsys.readouterr().err.strip() == "diacc: error: --episode-steps must be >= 1, got 0"
+    err = capsys.readouterr().err.strip()
+    assert err == "diacc: error: --episode-steps must be in [1, 10000], got 0"

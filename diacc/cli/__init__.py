@@ -345,17 +345,10 @@ def bench_device(name: str | None) -> str:
 
 
 def bench_lengths(args: argparse.Namespace) -> None:
-    """Check ``bench``'s step counts and give the hidden ``--steps`` the meaning it had
-    before it was split: episode steps of --headway / --headroom, else steps to time
-    (--safety ignored it); the new names win where both are given."""
-    lengths = {
-        "--steps": args.legacy_steps,
-        "--episode-steps": args.episode_steps,
-        "--timing-steps": args.timing_steps,
-    }
-    for flag, value in lengths.items():
-        if value is not None and value < 1:
-            raise ConfigError(f"{flag} must be >= 1, got {value}")
+    """Give ``bench``'s hidden ``--steps`` the meaning it had before it was split
+    (checked by :class:`~diacc.experiments.bench.options.BenchOptions`): episode steps of
+    --headway / --headroom, else steps to time (--safety ignored it); the new names win
+    where both are given."""
     if args.legacy_steps is None or args.safety:
         return
     if args.headway or args.headroom:
@@ -365,23 +358,11 @@ def bench_lengths(args: argparse.Namespace) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
+    from diacc.experiments.bench.options import BenchOptions
+
     ran = False
-    if args.episodes is not None and args.episodes < 1:
-        raise ConfigError(f"--episodes must be >= 1, got {args.episodes}")
+    BenchOptions.of(args)  # every shared option and their relations, checked in one place
     bench_lengths(args)
-    demand_flags = {
-        "--inflow": args.inflow,
-        "--demand-s": args.demand_s,
-        "--warmup-s": args.warmup_s,
-    }
-    given = [flag for flag, value in demand_flags.items() if value is not None]
-    given += ["--scenario demand"] * (args.scenario == "demand")
-    if args.fidelity and args.scenario == "release":
-        given = []  # --fidelity runs the demand scenario: its flags apply
-    if given and not (args.headroom and args.scenario == "demand"):
-        raise ConfigError(f"{given[0]} needs --headroom with --scenario demand or --fidelity")
-    if (args.agent or args.references) and not args.headroom:
-        raise ConfigError(f"{'--agent' if args.agent else '--references'} needs --headroom")
     if args.safety:
         from diacc.experiments.bench import safety
 
@@ -432,9 +413,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
         from diacc.experiments.bench import headroom
 
         demand = None
-        if args.scenario == "demand":
-            if args.inflow is None or len(args.inflow) != 1:
-                raise ConfigError("--scenario demand needs --inflow (one value, vehicles per hour)")
+        if args.scenario == "demand":  # one --inflow (BenchOptions)
             timing = {"demand_s": args.demand_s, "warmup_s": args.warmup_s}
             demand = headroom.demand_scenario(
                 args.inflow[0], **{k: v for k, v in timing.items() if v is not None}

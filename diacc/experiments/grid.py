@@ -52,8 +52,9 @@ import numpy as np
 
 from diacc.envs.observation import ObservationError, check_road
 from diacc.errors import DiaccError
+from diacc.fields import ConfigError
 from diacc.sim.maps import MapError, load_map, map_tag
-from diacc.sim.scenario import STYLE_MIXES, Scenario, ScenarioError, draw_population
+from diacc.sim.scenario import STYLE_MIXES, Demand, Scenario, draw_population
 from diacc.tomlfile import read_toml
 
 #: Named grids (see module docstring).
@@ -142,7 +143,7 @@ class Cell:
             # checkpoint's own timing would give it other vehicles than the references
             # it is compared with). N follows from it; the agent slots are the
             # policy's own (how many CAVs it drives at once).
-            timing = Scenario()
+            timing = Demand()
             size = {
                 "kind": "demand",
                 "inflow_vph": self.inflow_vph,
@@ -244,7 +245,7 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
         # Placing the vehicles checks that they fit the map (once found in the first
         # episode, after the results directory was written).
         draw_population(scenario, road, seed=0)
-    except ScenarioError as exc:
+    except ConfigError as exc:
         raise GridError(f"{source}: {exc}") from None
     if inflow:  # N follows from the inflow and the cell's demand_s
         cell = dataclasses.replace(cell, n_vehicles=scenario.n_vehicles)

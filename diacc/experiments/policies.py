@@ -32,9 +32,12 @@ from pathlib import Path
 import numpy as np
 
 from diacc.config import (
+    BACKENDS,
     FULL_BRAKE_MODES,
     HORIZON_MODES,
+    MAX_EPISODE_STEPS,
     STYLE_NAMES,
+    STYLE_PRESETS,
     VARIANTS,
     EnvConfig,
     PSARConfig,
@@ -44,8 +47,9 @@ from diacc.config import (
 from diacc.envs.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.envs.observation import ActorObs
 from diacc.errors import DiaccError
-from diacc.experiments.grid import DEFAULT_STREAM, Cell, check_stream
+from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS, Cell
 from diacc.experiments.userpolicy import Controller, is_user_spec
+from diacc.fields import check_fields, one_of, ranged
 from diacc.sim.maps import Map
 
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
@@ -76,36 +80,29 @@ class PolicyError(DiaccError, ValueError):
 
 @dataclass(frozen=True)
 class EvalSettings:
-    """Evaluation-wide overrides of a policy's own simulation settings (None = keep)."""
+    """Evaluation-wide overrides of a policy's own simulation settings (None = keep).
 
-    backend: str = "highway"
-    episode_steps: int | None = None
-    style_preset: str | None = None
+    Checked as every config section is (:func:`diacc.fields.check_fields`: a value
+    out of its choices or range is a one-line :class:`~diacc.config.ConfigError`
+    naming the field), when built, before any episode runs.
+    """
+
+    backend: str = one_of("highway", BACKENDS)
+    episode_steps: int | None = ranged(
+        None, 1, MAX_EPISODE_STEPS, why="an episode's steps are stored and replayed"
+    )
+    style_preset: str | None = one_of(None, tuple(STYLE_PRESETS))
     #: PSAR horizon of every policy with PSAR (baselines and checkpoints alike), so that a
     #: comparison's rules and learners are filtered by the same PSAR.
-    psar_horizon: str | None = None
+    psar_horizon: str | None = one_of(None, HORIZON_MODES)
     #: PSAR's ``full_brake`` of every policy with PSAR (:class:`~diacc.config.PSARConfig`).
-    psar_full_brake: str | None = None
+    psar_full_brake: str | None = one_of(None, FULL_BRAKE_MODES)
     #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
     #: ``validation`` to choose on, ``test`` to report.
-    stream: str = DEFAULT_STREAM
+    stream: str = one_of(DEFAULT_STREAM, SEED_STREAMS)
 
     def __post_init__(self) -> None:
-        try:
-            check_stream(self.stream)
-        except DiaccError as exc:
-            raise PolicyError(str(exc)) from None
-        if self.episode_steps is not None and self.episode_steps < 1:
-            raise PolicyError(f"episode_steps must be >= 1, got {self.episode_steps}")
-        if self.psar_horizon is not None and self.psar_horizon not in HORIZON_MODES:
-            raise PolicyError(
-                f"unknown PSAR horizon {self.psar_horizon!r}; use {', '.join(HORIZON_MODES)}"
-            )
-        if self.psar_full_brake is not None and self.psar_full_brake not in FULL_BRAKE_MODES:
-            raise PolicyError(
-                f"unknown PSAR full_brake {self.psar_full_brake!r}; use "
-                f"{', '.join(FULL_BRAKE_MODES)}"
-            )
+        check_fields(self)
 
     def apply(self, sim: SimConfig) -> SimConfig:
         changes = {}

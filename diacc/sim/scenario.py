@@ -22,11 +22,14 @@ Two kinds of scenario (``Scenario.kind``):
   once its lane's entry is free, so a queue at the entry delays it but
   never drops it.
 
-Settings are never silently overwritten: a demand scenario given an
-``n_vehicles`` other than the one its inflow and duration make, or a release
-given demand settings other than their defaults (``inflow_vph``,
-``demand_s``, ``cav_slots``), is a one-line :class:`ScenarioError`.
-:meth:`Scenario.replace` changes fields and derives the count again.
+The two kinds are two types, ``Scenario = Release | Demand``: a release has no
+demand settings and a demand no ``n_vehicles`` field (its count is a property,
+inflow x duration). ``Scenario(kind=..., **settings)`` builds the one ``kind``
+names and never overwrites a setting: a demand given an ``n_vehicles`` other than
+the one its inflow and duration make, or a release given demand settings other
+than their defaults (``inflow_vph``, ``demand_s``, ``cav_slots``), is a one-line
+:class:`ScenarioError`. :meth:`Release.replace` / :meth:`Demand.replace` change
+settings (the kind too) and derive the count again.
 """
 
 from __future__ import annotations
@@ -36,7 +39,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.errors import DiaccError
+from diacc.fields import (
+    MAX_INFLOW_VPH,
+    MAX_VEHICLES,
+    VEHICLES_WHY,
+    ConfigError,
+    FieldError,
+    check_fields,
+    one_of,
+    ranged,
+)
 from diacc.sim.maps import Map
 
 STYLE_NAMES = ("aggressive", "normal", "cautious")
@@ -53,144 +65,53 @@ STYLE_MIXES: dict[str, tuple[float, float, float]] = {
 
 #: How vehicles enter (module docstring).
 SCENARIO_KINDS = ("release", "demand")
-#: Largest inflow accepted (veh/h): above what 4 lanes carry at any speed, so larger is a typo.
-MAX_INFLOW_VPH = 10_000.0
-#: Most vehicles of one scenario (a release's count, a demand's inflow x duration).
-#: A step's pairwise checks (gaps, neighbours, PSAR) grow with the square of the
-#: count: 2000 already take seconds per env step on one core, and a typo such as
-#: 10**12 must be an error, not an out-of-memory (docs/guide/faults.md, "Size bounds").
-MAX_VEHICLES = 2000
-_VEHICLES_WHY = "a step's pairwise checks grow with the square of the count"
+_INFLOW_WHY = "more than 4 lanes carry"
 
 
-class ScenarioError(DiaccError, ValueError):
-    """Invalid scenario values; the message is one line."""
+class ScenarioError(ConfigError):
+    """Scenario settings that contradict each other (a field's own range is a
+    :class:`~diacc.fields.FieldError`); the message is one line."""
 
 
 @dataclass(frozen=True)
-class Scenario:
-    """What traffic to simulate (the seed is given to ``Backend.reset``)."""
+class _Traffic:
+    """The settings both kinds share (the seed is given to ``Backend.reset``)."""
 
-    #: paper training cell: 25 vehicles (None: 25 in a release; a demand derives it),
-    n_vehicles: int | None = None
-    cav_penetration: float = 0.4  # 10 of them CAVs,
+    cav_penetration: float = ranged(0.4, 0, 1)  # paper training cell: 10 of 25 CAVs,
     style_mix: str | tuple[float, float, float] = "D1"  # HDV styles of mix D1
     insert_start_m: float = 10.0  # x of the rearmost insertion row
-    insert_spacing_m: float = 8.0  # between consecutive vehicles (any lane)
-    insert_speed_mps: float = 10.0
-    kind: str = "release"  # or "demand" (module docstring)
-    inflow_vph: float = 2400.0  # demand: vehicles per hour entering the route
-    demand_s: float = 300.0  # demand: vehicles enter during [0, demand_s)
-    warmup_s: float = 0.0  # metrics ignore states before this time (traffic settles)
-    cav_slots: int = 16  # demand: agent slots, the most CAVs driven by the policy at once
+    insert_spacing_m: float = ranged(8.0, 0, open_low=True)  # between consecutive vehicles
+    insert_speed_mps: float = ranged(10.0, 0)
+    warmup_s: float = ranged(0.0, 0)  # metrics ignore states before this time (traffic settles)
     #: ``""``: the CAV slots hold CAVs. A style name (:data:`STYLE_NAMES`): the
     #: same slots hold HDVs of that style instead (the ``same-mix`` baseline),
     #: so the draw keeps every other vehicle's style and every vehicle's slot and
     #: a comparison isolates what the CAVs' control changes.
-    cav_slot_style: str = ""
+    cav_slot_style: str = one_of("", ("", *STYLE_NAMES))
 
     def __post_init__(self) -> None:
-        if self.kind not in SCENARIO_KINDS:
-            raise ScenarioError(
-                f"unknown scenario kind {self.kind!r}; choose one of {', '.join(SCENARIO_KINDS)}"
-            )
-        if self.kind == "release":
-            self._refuse_demand_settings()
-            if self.n_vehicles is None:
-                object.__setattr__(self, "n_vehicles", RELEASE_VEHICLES)
-        if not self.warmup_s >= 0:
-            raise ScenarioError(f"warmup_s must be >= 0, got {self.warmup_s!r}")
-        if self.kind == "demand":
-            if not 0 < self.inflow_vph <= MAX_INFLOW_VPH:
-                raise ScenarioError(
-                    f"inflow_vph must be in (0, {MAX_INFLOW_VPH:.0f}] veh/h, "
-                    f"got {self.inflow_vph!r}"
-                )
-            if not self.demand_s > 0 or self.warmup_s >= self.demand_s:
-                raise ScenarioError(
-                    f"demand_s must be > 0 and longer than warmup_s, got demand_s "
-                    f"{self.demand_s!r}, warmup_s {self.warmup_s!r}"
-                )
-            if not isinstance(self.cav_slots, int) or not 1 <= self.cav_slots <= MAX_VEHICLES:
-                raise ScenarioError(
-                    f"cav_slots must be an integer in [1, {MAX_VEHICLES}], got "
-                    f"{self.cav_slots!r} (no scenario holds more vehicles)"
-                )
-            # N follows from the demand: one vehicle per 3600 / inflow seconds.
-            n_total = self.inflow_vph * self.demand_s / 3600.0
-            if not n_total <= MAX_VEHICLES:  # also catches an infinite demand_s
-                raise ScenarioError(
-                    f"demand_s {self.demand_s!r} s at inflow_vph {self.inflow_vph:g} makes "
-                    f"{n_total:.3g} vehicles; at most {MAX_VEHICLES} "
-                    f"(demand_s <= {3600.0 * MAX_VEHICLES / self.inflow_vph:g} s: "
-                    f"{_VEHICLES_WHY})"
-                )
-            derived = max(1, int(n_total))
-            if self.n_vehicles is not None and self.n_vehicles != derived:
-                raise ScenarioError(
-                    f"n_vehicles {self.n_vehicles!r} contradicts the demand: inflow_vph "
-                    f"{self.inflow_vph:g} x demand_s {self.demand_s:g} s makes {derived} "
-                    "vehicles; a demand scenario derives its count, leave n_vehicles out"
-                )
-            object.__setattr__(self, "n_vehicles", derived)
-        if not isinstance(self.n_vehicles, int) or self.n_vehicles < 1:
-            raise ScenarioError(f"n_vehicles must be a positive integer, got {self.n_vehicles!r}")
-        if self.n_vehicles > MAX_VEHICLES:
-            raise ScenarioError(
-                f"n_vehicles must be at most {MAX_VEHICLES}, got {self.n_vehicles} "
-                f"({_VEHICLES_WHY})"
-            )
-        if not 0.0 <= self.cav_penetration <= 1.0:
-            raise ScenarioError(f"cav_penetration must be in [0, 1], got {self.cav_penetration!r}")
+        check_fields(self)
         mix = self.mix
         if len(mix) != 3 or any(p < 0 for p in mix) or abs(sum(mix) - 1.0) > 1e-6:
             raise ScenarioError(
                 f"style_mix must be 3 non-negative shares (aggressive, normal, cautious) "
                 f"summing to 1, got {self.style_mix!r}"
             )
-        if self.cav_slot_style and self.cav_slot_style not in STYLE_NAMES:
-            raise ScenarioError(
-                f"unknown driving style {self.cav_slot_style!r} for the CAV slots; "
-                f"known: {', '.join(STYLE_NAMES)}"
-            )
-        if self.insert_spacing_m <= 0 or self.insert_speed_mps < 0:
-            raise ScenarioError("insert_spacing_m must be > 0 and insert_speed_mps >= 0")
 
-    def _refuse_demand_settings(self) -> None:
-        """One-line error if a release was given demand settings (it would ignore them)."""
-        for name in _DEMAND_ONLY:
-            value, default = getattr(self, name), _DEFAULTS[name]
-            if value != default:
-                raise ScenarioError(
-                    f"{name} {value!r} is a demand setting; a release (kind 'release') "
-                    f"ignores it: set kind 'demand' or leave {name} at {default!r}"
-                )
-
-    def replace(self, **changes) -> Scenario:
-        """``dataclasses.replace`` that derives what follows from the kind again: a
-        demand's count (unless ``n_vehicles`` is among ``changes``), and, when the
-        kind changes, the other kind's settings return to their defaults unless given.
+    def replace(self, **changes) -> Release | Demand:
+        """A scenario with ``changes`` (``kind`` among them, or not): a demand's count
+        is derived again, and, when the kind changes, the other kind's settings return
+        to their defaults unless given.
 
         :func:`diacc.config.override` rebuilds scenarios with it, so that
         ``--set env.scenario.inflow_vph=3600`` on a demand scenario is not refused as
         contradicting the count its old inflow made.
         """
-        kind = changes.get("kind", self.kind)
-        if "n_vehicles" not in changes and (kind == "demand" or self.kind == "demand"):
-            changes["n_vehicles"] = None
+        kind = changes.pop("kind", self.kind)
+        own = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init}
         if kind != self.kind:
-            for name in _DEMAND_ONLY:
-                changes.setdefault(name, _DEFAULTS[name])
-        return dataclasses.replace(self, **changes)
-
-    @classmethod
-    def with_cavs(cls, n_vehicles: int, n_cavs: int, **kwargs) -> Scenario:
-        """Scenario with an exact CAV count (checked against ``n_vehicles``)."""
-        if n_cavs > n_vehicles:
-            raise ScenarioError(f"{n_cavs} CAVs requested but only {n_vehicles} vehicles")
-        if n_cavs < 0:
-            raise ScenarioError(f"n_cavs must be >= 0, got {n_cavs}")
-        return cls(n_vehicles=n_vehicles, cav_penetration=n_cavs / n_vehicles, **kwargs)
+            own = {name: value for name, value in own.items() if name in _SHARED}
+        return Scenario(kind=kind, **{**own, **changes})
 
     @property
     def mix(self) -> tuple[float, float, float]:
@@ -205,28 +126,128 @@ class Scenario:
     @property
     def n_cav_slots(self) -> int:
         """Vehicles drawn into CAV slots (CAVs, or HDVs of ``cav_slot_style``)."""
-        return int(round(self.cav_penetration * self.n_vehicles))
+        return int(round(self.cav_penetration * self.n_vehicles))  # type: ignore[attr-defined]
 
     @property
     def n_cavs(self) -> int:
         """CAVs on the road over the whole episode (0 when the slots hold humans)."""
         return 0 if self.cav_slot_style else self.n_cav_slots
 
+
+@dataclass(frozen=True)
+class Release(_Traffic):
+    """The paper's scenario: every vehicle starts at t = 0 (module docstring)."""
+
+    n_vehicles: int = ranged(25, 1, MAX_VEHICLES, why=VEHICLES_WHY)  # paper training cell
+    kind: str = dataclasses.field(default="release", init=False)
+
     @property
     def n_slots(self) -> int:
-        """Agent slots C: every CAV has its own in a release; in a demand scenario at
-        most ``cav_slots`` CAVs at once, a slot reused when its CAV leaves
-        (:class:`diacc.envs.env.BottleneckEnv`)."""
-        if self.kind == "demand":
-            return min(self.cav_slots, self.n_cavs)
+        """Agent slots C: every CAV has its own."""
         return self.n_cavs
+
+
+@dataclass(frozen=True)
+class Demand(_Traffic):
+    """Vehicles enter at ``inflow_vph`` for ``demand_s`` seconds (module docstring)."""
+
+    # vehicles per hour entering the route
+    inflow_vph: float = ranged(2400.0, 0, MAX_INFLOW_VPH, open_low=True, why=_INFLOW_WHY)
+    demand_s: float = ranged(300.0, 0, open_low=True)  # vehicles enter during [0, demand_s)
+    # agent slots, the most CAVs driven by the policy at once
+    cav_slots: int = ranged(16, 1, MAX_VEHICLES, why="no scenario holds more vehicles")
+    kind: str = dataclasses.field(default="demand", init=False)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.warmup_s >= self.demand_s:
+            raise ScenarioError(
+                f"demand_s must be longer than warmup_s, got demand_s "
+                f"{self.demand_s!r}, warmup_s {self.warmup_s!r}"
+            )
+        n_total = self.inflow_vph * self.demand_s / 3600.0
+        if not n_total <= MAX_VEHICLES:
+            raise ScenarioError(
+                f"demand_s {self.demand_s!r} s at inflow_vph {self.inflow_vph:g} makes "
+                f"{n_total:.3g} vehicles; at most {MAX_VEHICLES} "
+                f"(demand_s <= {3600.0 * MAX_VEHICLES / self.inflow_vph:g} s: {VEHICLES_WHY})"
+            )
+
+    @property
+    def n_vehicles(self) -> int:
+        """Vehicles of the whole demand: one per 3600 / inflow seconds."""
+        return max(1, int(self.inflow_vph * self.demand_s / 3600.0))
+
+    @property
+    def n_slots(self) -> int:
+        """Agent slots C: at most ``cav_slots`` CAVs at once, a slot reused when its CAV
+        leaves (:class:`diacc.envs.env.BottleneckEnv`)."""
+        return min(self.cav_slots, self.n_cavs)
+
+
+class _ScenarioType(type):
+    """``isinstance(x, Scenario)``: x is a :class:`Release` or a :class:`Demand`."""
+
+    def __instancecheck__(cls, obj: object) -> bool:
+        return isinstance(obj, _Traffic)
+
+
+class Scenario(metaclass=_ScenarioType):
+    """What traffic to simulate: ``Release | Demand``. ``Scenario(kind=..., **settings)``
+    builds the one ``kind`` names (default ``"release"``), refusing what it would
+    otherwise overwrite or ignore (one-line :class:`ScenarioError`)."""
+
+    def __new__(  # type: ignore[misc]
+        cls, kind: str = "release", n_vehicles: int | None = None, **settings
+    ) -> Release | Demand:
+        if kind not in SCENARIO_KINDS:
+            names = ", ".join(SCENARIO_KINDS)
+            raise FieldError("kind", f"must be one of {names}, got {kind!r}")
+        if kind == "release":
+            for name in _DEMAND_ONLY:
+                value = settings.pop(name, _DEMAND_DEFAULTS[name])
+                if value != _DEMAND_DEFAULTS[name]:
+                    raise ScenarioError(
+                        f"{name} {value!r} is a demand setting; a release (kind 'release') "
+                        f"ignores it: set kind 'demand' or leave {name} at "
+                        f"{_DEMAND_DEFAULTS[name]!r}"
+                    )
+            count = {} if n_vehicles is None else {"n_vehicles": n_vehicles}
+            return Release(**settings, **count)
+        demand = Demand(**settings)
+        if n_vehicles is not None and n_vehicles != demand.n_vehicles:
+            raise ScenarioError(
+                f"n_vehicles {n_vehicles!r} contradicts the demand: inflow_vph "
+                f"{demand.inflow_vph:g} x demand_s {demand.demand_s:g} s makes "
+                f"{demand.n_vehicles} vehicles; a demand scenario derives its count, "
+                "leave n_vehicles out"
+            )
+        return demand
+
+    @staticmethod
+    def with_cavs(n_vehicles: int, n_cavs: int, **kwargs) -> Release:
+        """A release with an exact CAV count (checked against ``n_vehicles``)."""
+        if n_cavs > n_vehicles:
+            raise ScenarioError(f"{n_cavs} CAVs requested but only {n_vehicles} vehicles")
+        if n_cavs < 0:
+            raise ScenarioError(f"n_cavs must be >= 0, got {n_cavs}")
+        return Release(n_vehicles=n_vehicles, cav_penetration=n_cavs / n_vehicles, **kwargs)
 
 
 #: A release's vehicle count when none is given (the paper's training cell).
 RELEASE_VEHICLES = 25
-#: Settings only a demand scenario reads; a release refuses values other than these.
+#: Settings only a demand scenario has; a release refuses values other than these.
 _DEMAND_ONLY = ("inflow_vph", "demand_s", "cav_slots")
-_DEFAULTS = {f.name: f.default for f in dataclasses.fields(Scenario)}
+_DEMAND_DEFAULTS = {f.name: f.default for f in dataclasses.fields(Demand) if f.name in _DEMAND_ONLY}
+#: Settings both kinds have.
+_SHARED = {f.name for f in dataclasses.fields(_Traffic)}
+#: Every key a scenario takes, with its default (``n_vehicles``: a release's).
+SCENARIO_SETTINGS = {
+    **{f.name: f.default for f in dataclasses.fields(_Traffic)},
+    "n_vehicles": RELEASE_VEHICLES,
+    "kind": "release",
+    **_DEMAND_DEFAULTS,
+}
 
 
 @dataclass(frozen=True)

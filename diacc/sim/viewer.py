@@ -32,9 +32,10 @@ from highway_env.road.road import Road  # noqa: E402
 from highway_env.vehicle.graphics import VehicleGraphics  # noqa: E402
 from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
 
-from diacc.config import AGGRESSIVE, CAUTIOUS, NORMAL, SimConfig  # noqa: E402
 from diacc.sim.backends.highway.road import build_road_network, to_highway_env_y  # noqa: E402
 from diacc.sim.maps import Map  # noqa: E402
+from diacc.sim.scenario import AGGRESSIVE, CAUTIOUS, NORMAL  # noqa: E402
+from diacc.sim.settings import SimConfig  # noqa: E402
 from diacc.sim.state import TrafficState  # noqa: E402
 
 #: Vehicle colours (RGB): CAVs green as highway-env's ego, HDVs by style.

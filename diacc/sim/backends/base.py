@@ -40,10 +40,10 @@ from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
-from diacc.config import BACKENDS, SimConfig
 from diacc.errors import DiaccError
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario
+from diacc.sim.settings import BACKENDS, SimConfig
 from diacc.sim.state import TrafficState
 
 
@@ -91,9 +91,9 @@ _LOADERS: dict[str, Callable[[], type[Backend]]] = {}
 
 
 def register_backend(name: str, loader: Callable[[], type[Backend]]) -> None:
-    """Make backend ``name`` (one of :data:`diacc.config.BACKENDS`) buildable by name."""
+    """Make backend ``name`` (one of :data:`diacc.sim.settings.BACKENDS`) buildable by name."""
     if name not in BACKENDS:
-        raise BackendError(f"backend {name!r} is not in diacc.config.BACKENDS")
+        raise BackendError(f"backend {name!r} is not in diacc.sim.settings.BACKENDS")
     _LOADERS[name] = loader
 
 

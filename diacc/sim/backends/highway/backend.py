@@ -67,7 +67,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.config import STYLE_PRESETS, SimConfig
 from diacc.sim.backends.base import BackendError, CavCommands
 from diacc.sim.backends.highway.models import (
     HighwayModel,
@@ -77,9 +76,11 @@ from diacc.sim.backends.highway.models import (
 )
 from diacc.sim.backends.highway.road import LaneTables, build_road_network
 from diacc.sim.backends.highway.simstate import HighwayCaches, HighwayParams, HighwayState
+from diacc.sim.drivers import STYLE_PRESETS
 from diacc.sim.kinematics import lane_change_reach_m, safe_gap_m
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario, draw_population
+from diacc.sim.settings import SimConfig
 from diacc.sim.state import TrafficState, flat_offsets, take, take_last
 
 _EMPTY_PAIRS = np.zeros((0, 2), dtype=np.int32)

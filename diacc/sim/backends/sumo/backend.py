@@ -41,7 +41,6 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.config import SimConfig
 from diacc.fileio import atomic_write
 from diacc.runlog import log
 from diacc.sim.backends.base import BackendError, CavCommands
@@ -51,6 +50,7 @@ from diacc.sim.backends.sumo.vtypes import vtypes_key, vtypes_xml
 from diacc.sim.backends.sumo.worker import WorkerSpec
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario, draw_population
+from diacc.sim.settings import SimConfig
 from diacc.sim.state import TrafficState
 from diacc.threads import worker_env
 

@@ -22,7 +22,9 @@ from __future__ import annotations
 import hashlib
 from xml.sax.saxutils import quoteattr
 
-from diacc.config import STYLE_NAMES, STYLE_PRESETS, SimConfig
+from diacc.sim.drivers import STYLE_PRESETS
+from diacc.sim.scenario import STYLE_NAMES
+from diacc.sim.settings import SimConfig
 
 #: vType id per style code (index = ``TrafficState.style``), CAVs use ``CAV_TYPE``.
 HDV_TYPES = tuple(f"hdv_{name}" for name in STYLE_NAMES)

@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.config import SimConfig
 from diacc.errors import DiaccError
 from diacc.sim.backends.sumo import wire
 from diacc.sim.backends.sumo.net import ROUTE_ID, lane_ids
@@ -34,6 +33,7 @@ from diacc.sim.backends.sumo.vtypes import CAV_TYPE, HDV_TYPES
 from diacc.sim.kinematics import lane_change_reach_m
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Population
+from diacc.sim.settings import SimConfig
 from diacc.sim.state import TrafficState
 
 #: laneChangeMode of commanded CAVs: 0 = no lane change of SUMO's own (strategic,
