@@ -1,6 +1,6 @@
 """Command-line parsers and handlers for ``diacc eval | table | plot | render | scorecard``.
 
-Registered by :mod:`diacc.cli` (``add_parsers`` and ``COMMANDS``); errors are
+Registered by :mod:`diacc.cli.parser` (``add_parsers`` and ``COMMANDS``); errors are
 the one-line exceptions of the modules they call.
 """
 

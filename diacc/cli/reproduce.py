@@ -1,4 +1,5 @@
-"""Command-line parser and handler of ``diacc reproduce`` (registered by :mod:`diacc.cli`).
+"""Command-line parser and handler of ``diacc reproduce`` (registered by
+:mod:`diacc.cli.parser`).
 
 Every value is checked before anything is trained or written; bad input is a
 one-line ``diacc: error: ...`` with exit code 2 (list options are parsed here,
