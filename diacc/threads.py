@@ -1,8 +1,9 @@
 """Thread policy: how many torch / OpenMP threads each diacc process uses.
 
 torch starts with one intra-op thread per core. On a 2-core machine that made
-training 13x slower whenever anything else ran (issue 14): an OpenMP thread
-that finishes a parallel region spins waiting for the next one, so two spinning
+training several times slower whenever anything else ran (issue 14; the
+"thread policy" rows of docs/benchmarks/index.md): an OpenMP thread that
+finishes a parallel region spins waiting for the next one, so two spinning
 threads and any second process (a SUMO worker, an evaluator, another run)
 fight for two cores. diacc therefore sets thread counts itself:
 

@@ -8,7 +8,8 @@ import re
 
 import pytest
 
-from diacc import __version__, cli
+from diacc import __version__
+from diacc.cli import bench as cli_bench
 from diacc.cli import build_parser, main
 
 
@@ -215,7 +216,7 @@ def test_steps_means_environment_steps_of_training_only():
 )
 def test_bench_former_steps_keeps_its_meaning(argv, episode_steps, timing_steps):
     args = _parse("bench", *argv)
-    cli.bench_lengths(args)
+    cli_bench.bench_lengths(args)
     assert (args.episode_steps, args.timing_steps) == (episode_steps, timing_steps)
 
 
@@ -240,7 +241,7 @@ def test_device_defaults_to_the_training_config_default_everywhere():
         assert action.default is None and action.choices == ("auto", "cpu", "cuda")
         text = " ".join(commands[name].format_help().split())
         assert f"(default: {TrainConfig.device})" in text
-    assert cli.bench_device(None) in ("cpu", "cuda")  # what auto means on this machine
+    assert cli_bench.bench_device(None) in ("cpu", "cuda")  # what auto means on this machine
 
 
 def test_simulate_former_steps_runs(capsys):

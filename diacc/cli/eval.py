@@ -1,6 +1,6 @@
 """Command-line parsers and handlers for ``diacc eval | table | plot | render | scorecard``.
 
-Registered by :mod:`diacc.cli` (``add_parsers`` and ``COMMANDS``); errors are
+Registered by :mod:`diacc.cli.parser` (``add_parsers`` and ``COMMANDS``); errors are
 the one-line exceptions of the modules they call.
 """
 
@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from diacc.cli import scale as cli_scale
+from diacc.cli import options
 from diacc.config import (
     ACTION_MODES,
     BACKENDS,
@@ -108,7 +108,7 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
 
 def add_parsers(sub) -> None:
     """Add the evaluation subcommands to the main parser."""
-    p = cli_scale.add_command(
+    p = options.add_command(
         sub,
         "eval",
         "evaluate a policy or baseline on a grid of scenarios",
@@ -127,9 +127,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", required=True, type=Path, help="results directory (required)")
     p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    cli_scale.add_engine_args(p)
+    options.add_engine_args(p)
 
-    p = cli_scale.add_command(
+    p = options.add_command(
         sub, "table", "paper-style table (Tables II/III) from results directories", TABLE_RULES
     )
     p.add_argument("results", nargs="+", type=Path, help="results directories, one per column")
@@ -159,7 +159,7 @@ def add_parsers(sub) -> None:
     )
     p.add_argument("--out", type=Path, default=None, help="write to a file instead of stdout")
 
-    p = cli_scale.add_command(
+    p = options.add_command(
         sub,
         "scorecard",
         "a policy through the standard suite against same-mix, the heuristic and DIACC",
@@ -197,7 +197,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
     p.add_argument("--out", required=True, type=Path, help="results directory (required)")
 
-    p = cli_scale.add_command(
+    p = options.add_command(
         sub, "plot", "training curves, speed distributions or flow (PNG + PDF)"
     )
     plot_sub = p.add_subparsers(dest="plot_kind", required=True, metavar="KIND")
@@ -284,7 +284,7 @@ def _episode_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--seed",
-        type=cli_scale.seed_type,
+        type=options.seed_type,
         default=None,
         help="traffic seed (default: episode 0 of --stream)",
     )
@@ -317,7 +317,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
         _settings(args),
         workers=args.workers,
         progress=not args.no_progress,
-        engine=cli_scale.eval_engine(args),
+        engine=options.eval_engine(args),
     )
     print(
         f"{len(summary.cells_run)} cells run, {len(summary.cells_skipped)} already done; "
@@ -397,7 +397,7 @@ def cmd_scorecard(args: argparse.Namespace) -> None:
         run_scorecard,
     )
 
-    backends = tuple(cli_scale._csv_list(args.backends))
+    backends = tuple(options.csv_list(args.backends))
     unknown = [b for b in backends if b not in BACKENDS]
     if unknown or not backends:
         raise ConfigError(f"unknown backend {(unknown or [''])[0]!r}; use {', '.join(BACKENDS)}")
@@ -405,7 +405,7 @@ def cmd_scorecard(args: argparse.Namespace) -> None:
         policy=parse_policy(args.policy, sampled=args.actions == "sampled"),
         out_dir=args.out,
         episodes=args.episodes,
-        suites=tuple(SUITES) if args.suites == "all" else tuple(cli_scale._csv_list(args.suites)),
+        suites=tuple(SUITES) if args.suites == "all" else tuple(options.csv_list(args.suites)),
         backends=backends,
         agent=args.agent or DEFAULT_AGENT,
         episode_steps=args.episode_steps,

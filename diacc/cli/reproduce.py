@@ -1,4 +1,5 @@
-"""Command-line parser and handler of ``diacc reproduce`` (registered by :mod:`diacc.cli`).
+"""Command-line parser and handler of ``diacc reproduce`` (registered by
+:mod:`diacc.cli.parser`).
 
 Every value is checked before anything is trained or written; bad input is a
 one-line ``diacc: error: ...`` with exit code 2 (list options are parsed here,
@@ -12,7 +13,7 @@ import dataclasses
 import functools
 from pathlib import Path
 
-from diacc.cli import scale as cli_scale
+from diacc.cli import options
 from diacc.config import (
     ACTION_MODES,
     BACKENDS,
@@ -130,7 +131,7 @@ def add_parsers(sub) -> None:
         help="evaluation seed stream (default: validation with --sweep/--study, which choose "
         "a setting, test otherwise; see 'diacc eval --help')",
     )
-    cli_scale.add_device_arg(p, "torch device of every training run's PPO update")
+    options.add_device_arg(p, "torch device of every training run's PPO update")
     p.add_argument(
         "--set",
         action="append",
@@ -162,11 +163,11 @@ def add_parsers(sub) -> None:
     p.add_argument("--cpus-per-run", type=float, default=1.0, help="CPUs Ray reserves per run")
     p.add_argument("--dry-run", action="store_true", help="print the plan and stop")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    cli_scale.add_engine_args(p)
+    options.add_engine_args(p)
 
 
 def _names(text: str) -> tuple[str, ...]:
-    return tuple(cli_scale._csv_list(text))
+    return tuple(options.csv_list(text))
 
 
 def cmd_reproduce(args: argparse.Namespace) -> None:
@@ -185,7 +186,7 @@ def cmd_reproduce(args: argparse.Namespace) -> None:
     config, notes = resolve_config(
         args.budget,
         steps=args.steps,
-        seeds=None if args.seeds is None else tuple(cli_scale._csv_list(args.seeds, int)),
+        seeds=None if args.seeds is None else tuple(options.csv_list(args.seeds, int)),
         envs=args.envs,
         episodes=args.episodes,
         maps=None if args.maps is None else _names(args.maps),

@@ -5,8 +5,9 @@ same seed (:meth:`diacc.experiments.grid.Cell.seed`), so a column is compared
 with its reference (``same-mix``) episode by episode: pairs are the episodes
 whose seed both hold, and the interval comes from resampling those pairs (the
 same resample for both sides), which removes the traffic's own spread from
-the comparison. Ten episodes leave p(SCE) at +-4-5 pp; a claim whose interval
-holds 0 is "no measurable difference" (issue 42).
+the comparison. A claim whose interval holds 0 is "no measurable difference"
+(issue 42); how wide the intervals of a given episode count are, and so how many
+episodes README's claims need, is in docs/concepts/baselines.md ("Seed streams").
 
 The bootstrap is the percentile interval over :data:`RESAMPLES` resamples,
 drawn by a generator seeded with :data:`BOOTSTRAP_SEED` for every comparison,
