@@ -17,8 +17,9 @@ from diacc.envs.episode import EpisodeDriver, play_episode
 from diacc.envs.observation import unstack
 from diacc.envs.vector import make_vector_env
 from diacc.experiments.policies import ScriptedPolicy
-from diacc.learn.mappo import collect_rollout, make_agent, seed_everything, train
+from diacc.learn.mappo import make_agent, seed_everything, train
 from diacc.learn.models.inputs import to_tensors
+from diacc.learn.ppo import collect_rollout
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import parse_map
 from diacc.sim.scenario import Scenario, ScenarioError, draw_population

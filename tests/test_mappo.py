@@ -12,17 +12,11 @@ from helpers import SHORT_MAP
 from diacc.config import TrainConfig, override
 from diacc.envs.reward import temperature
 from diacc.envs.vector import make_vector_env
+from diacc.learn.agent import make_agent
+from diacc.learn.buffer import make_batch
 from diacc.learn.checkpoint import CheckpointError, config_from_checkpoint, load_checkpoint
-from diacc.learn.mappo import (
-    collect_rollout,
-    evaluate_batch,
-    make_agent,
-    make_batch,
-    ppo_update,
-    rollout_gae,
-    seed_everything,
-    train,
-)
+from diacc.learn.mappo import seed_everything, train
+from diacc.learn.ppo import collect_rollout, evaluate_batch, ppo_update, rollout_gae
 from diacc.sim.scenario import Scenario
 
 TINY = {
@@ -163,16 +157,16 @@ def test_the_learners_temperature_makes_the_rollouts_rewards(tmp_path):
 
 
 def test_training_passes_the_annealed_temperature_to_each_rollout(tmp_path, monkeypatch):
-    from diacc.learn import mappo
+    from diacc.learn import trainer
 
     cfg = tiny_config(tmp_path, **{"env.reward.tau_anneal_fraction": 0.5})
-    taus, real = [], mappo.collect_rollout
+    taus, real = [], trainer.collect_rollout
 
     def spy(agent, envs, cfg, update, tau, **options):
         taus.append(tau)
         return real(agent, envs, cfg, update, tau, **options)
 
-    monkeypatch.setattr(mappo, "collect_rollout", spy)
+    monkeypatch.setattr(trainer, "collect_rollout", spy)
     train(cfg, progress=False)
     steps = cfg.rollout_steps * cfg.n_envs  # 40 of 80: the schedule ends after the first
     assert taus == [temperature(0, 80, cfg.env.reward), temperature(steps, 80, cfg.env.reward)]
@@ -299,7 +293,7 @@ def test_values_after_the_rollout_equal_values_stepped_with_the_envs(tmp_path, c
     """rollout_values (one pass per chunk, after the loop) gives the values, hidden states,
     truncation bootstraps and V(s_S) of the critic stepped along with the envs."""
     from diacc.envs.observation import stack
-    from diacc.learn.mappo import critic_inputs
+    from diacc.learn.ppo import critic_inputs
 
     cfg = tiny_config(tmp_path, critic_values=critic_values)
     agent, roll, _ = rollout_batch(cfg)
@@ -329,7 +323,7 @@ def test_values_after_the_rollout_equal_values_stepped_with_the_envs(tmp_path, c
 def test_proximal_policy_of_an_unlagged_rollout_is_the_behaviour_policy(rollout_and_batch):
     """add_proximal_policy replays the actor: on a rollout the same parameters collected,
     its log-probs are the stored ones and every behaviour weight is 1."""
-    from diacc.learn.mappo import add_proximal_policy
+    from diacc.learn.ppo import add_proximal_policy
 
     cfg, agent, roll, batch = rollout_and_batch
     lagged = copy.copy(batch)

@@ -338,7 +338,7 @@ def _bench_parser(sub) -> None:
 def bench_device(name: str | None) -> str:
     """The concrete torch device (``cpu``, ``cuda``) of ``--device``, so that the
     benchmark tables name the device they measured, not ``auto``."""
-    from diacc.learn.mappo import resolve_device
+    from diacc.learn.trainer import resolve_device
 
     return str(resolve_device(name or TrainConfig.device))
 
