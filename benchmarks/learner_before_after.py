@@ -55,7 +55,10 @@ if what == "update":
     set_torch_threads(1)
     agent = agent_module.make_agent(cfg, torch.device("cpu"))
     vec = make_vector_env(cfg.env, envs, cfg.seed, cfg.vector)
-    roll, next_value, _ = learner.collect_rollout(agent, vec, cfg, 0, cfg.env.reward.tau_init)
+    # The rollout's 5th argument: the training step (after issue 43), tau (before); both
+    # give tau_init here.
+    start = 0 if learner.__name__.endswith(".ppo") else cfg.env.reward.tau_init
+    roll, next_value, _ = learner.collect_rollout(agent, vec, cfg, 0, start)
     vec.close()
     adv, ret = learner.rollout_gae(roll, next_value, cfg)
     batch = buffer.make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))

@@ -159,7 +159,7 @@ def test_refilled_slot_acts_from_a_fresh_recurrent_state(tmp_path, short_map):
     agent = make_agent(cfg, torch.device("cpu"))
     envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
-        roll, _, _ = collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
+        roll, _, _ = collect_rollout(agent, envs, cfg, 0, global_step=0)
     finally:
         envs.close()
     refill = roll.agent_start & ~roll.episode_start[:, :, None]  # (S, E, C)

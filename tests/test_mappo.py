@@ -50,7 +50,7 @@ def rollout_batch(cfg: TrainConfig):
     agent = make_agent(cfg, torch.device("cpu"))
     envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
-        roll, next_value, stats = collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
+        roll, next_value, stats = collect_rollout(agent, envs, cfg, 0, global_step=0)
     finally:
         envs.close()
     adv, ret = rollout_gae(roll, next_value, cfg)
@@ -121,22 +121,24 @@ def test_dead_steps_contribute_nothing(rollout_and_batch):
     assert torch.equal(results[0], results[1])
 
 
-def _rollout_at(cfg: TrainConfig, tau: float):
-    """One seeded rollout of a fresh agent at softmin temperature ``tau``."""
+def _rollout_at(cfg: TrainConfig, global_step: int):
+    """One seeded rollout of a fresh agent at training step ``global_step``."""
     seed_everything(cfg.seed)
     agent = make_agent(cfg, torch.device("cpu"))
     envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
-        return collect_rollout(agent, envs, cfg, 0, tau)
+        return collect_rollout(agent, envs, cfg, 0, global_step)
     finally:
         envs.close()
 
 
-def test_the_learners_temperature_makes_the_rollouts_rewards(tmp_path):
-    """Same seed, two temperatures: the same transitions, other team rewards; the
-    episode returns sum the team rewards the learner made."""
+def test_the_training_step_sets_the_temperature_of_the_rollouts_rewards(tmp_path):
+    """Same seed, the start and the end of the schedule (tau 2 and 0.05): the same
+    transitions, other team rewards; the episode returns sum the envs' team rewards."""
     cfg = tiny_config(tmp_path)
-    (hot, _, hot_stats), (cold, _, cold_stats) = (_rollout_at(cfg, tau) for tau in (2.0, 0.05))
+    hot, _, hot_stats = _rollout_at(cfg, 0)
+    cold, _, cold_stats = _rollout_at(cfg, cfg.total_steps)
+    assert (hot_stats.tau, cold_stats.tau) == (2.0, 0.05)
     np.testing.assert_array_equal(hot.actions, cold.actions)
     np.testing.assert_array_equal(hot.alive, cold.alive)
     assert not np.array_equal(hot.rewards, cold.rewards)
@@ -156,21 +158,23 @@ def test_the_learners_temperature_makes_the_rollouts_rewards(tmp_path):
         assert list(stats.episodes[0])[:2] == ["return", "length"]  # progress.jsonl's order
 
 
-def test_training_passes_the_annealed_temperature_to_each_rollout(tmp_path, monkeypatch):
+def test_training_anneals_the_envs_temperature_rollout_by_rollout(tmp_path, monkeypatch):
+    """The trainer gives each rollout its global step; the envs' team rewards are made at
+    the schedule's temperature there, constant within the rollout."""
     from diacc.learn import trainer
 
     cfg = tiny_config(tmp_path, **{"env.reward.tau_anneal_fraction": 0.5})
     taus, real = [], trainer.collect_rollout
 
-    def spy(agent, envs, cfg, update, tau, **options):
-        taus.append(tau)
-        return real(agent, envs, cfg, update, tau, **options)
+    def spy(agent, envs, cfg, update, global_step, **options):
+        out = real(agent, envs, cfg, update, global_step, **options)
+        assert envs.team_reward.step == global_step  # the trainer's step: the env did not count
+        taus.append(temperature(global_step, cfg.total_steps, cfg.env.reward))
+        return out
 
     monkeypatch.setattr(trainer, "collect_rollout", spy)
     train(cfg, progress=False)
-    steps = cfg.rollout_steps * cfg.n_envs  # 40 of 80: the schedule ends after the first
-    assert taus == [temperature(0, 80, cfg.env.reward), temperature(steps, 80, cfg.env.reward)]
-    assert taus == pytest.approx([2.0, 0.05])
+    assert taus == pytest.approx([2.0, 0.05])  # 40 of 80 steps: the schedule ends after one
     import json
 
     rows = [json.loads(line) for line in (tmp_path / "run" / "progress.jsonl").open()]

@@ -130,7 +130,7 @@ def tiny_batch(tmp_path_factory):
     agent = mappo.make_agent(cfg, torch.device("cpu"))
     envs = trainer.make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
-        roll, next_value, _ = ppo.collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
+        roll, next_value, _ = ppo.collect_rollout(agent, envs, cfg, 0, global_step=0)
     finally:
         envs.close()
     adv, ret = ppo.rollout_gae(roll, next_value, cfg)
@@ -230,9 +230,9 @@ def test_overlapped_training_is_reproducible_lagged_and_resumes_exactly(tmp_path
     calls = []
     real = trainer.collect_rollout
 
-    def spy(agent, envs, cfg, update, tau, sync=True, values=True):
+    def spy(agent, envs, cfg, update, global_step, sync=True, values=True):
         calls.append((update, sync))
-        return real(agent, envs, cfg, update, tau, sync, values)
+        return real(agent, envs, cfg, update, global_step, sync, values)
 
     monkeypatch.setattr(trainer, "collect_rollout", spy)
     extra = {"total_steps": 160, "checkpoint_every": 2}  # 4 updates of 40 steps

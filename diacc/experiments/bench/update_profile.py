@@ -161,7 +161,7 @@ def profile(
     agent = make_agent(cfg, torch.device("cpu"))
     envs = make_vector_env(cfg.env, n_envs, cfg.seed, cfg.vector)
     try:
-        roll, next_value, _ = ppo.collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
+        roll, next_value, _ = ppo.collect_rollout(agent, envs, cfg, 0, global_step=0)
         n_cavs = envs.n_cavs
     finally:
         envs.close()
