@@ -125,7 +125,7 @@ def _rollout_at(cfg: TrainConfig, global_step: int):
     """One seeded rollout of a fresh agent at training step ``global_step``."""
     seed_everything(cfg.seed)
     agent = make_agent(cfg, torch.device("cpu"))
-    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
+    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed, total_steps=cfg.total_steps)
     try:
         return collect_rollout(agent, envs, cfg, 0, global_step)
     finally:
@@ -138,13 +138,13 @@ def test_the_training_step_sets_the_temperature_of_the_rollouts_rewards(tmp_path
     cfg = tiny_config(tmp_path)
     hot, _, hot_stats = _rollout_at(cfg, 0)
     cold, _, cold_stats = _rollout_at(cfg, cfg.total_steps)
-    assert (hot_stats.tau, cold_stats.tau) == (2.0, 0.05)
+    assert (hot_stats.tau, cold_stats.tau) == pytest.approx((2.0, 0.05))
     np.testing.assert_array_equal(hot.actions, cold.actions)
     np.testing.assert_array_equal(hot.alive, cold.alive)
     assert not np.array_equal(hot.rewards, cold.rewards)
     assert (cold.rewards <= hot.rewards + 1e-12).all()  # the softmin leans to the worst CAV
     assert hot_stats.reward_terms["tau"] == [2.0] * cfg.rollout_steps
-    assert cold_stats.reward_terms["tau"] == [0.05] * cfg.rollout_steps
+    assert cold_stats.reward_terms["tau"] == [cold_stats.tau] * cfg.rollout_steps
     assert hot_stats.reward_terms["global"] == cold_stats.reward_terms["global"]
     for roll, stats in ((hot, hot_stats), (cold, cold_stats)):
         acc, returns = np.zeros(cfg.n_envs), []

@@ -172,6 +172,7 @@ def collect_rollout(
     return roll, next_value, stats
 
 
+# ----------------------------------------------------------------------------- values and GAE
 @torch.no_grad()
 def rollout_values(critic, value_norm: ValueNorm, roll: Rollout, cfg: TrainConfig, device):
     """The critic's values of a collected rollout; returns V(s_S) (E,) for bootstrapping.
@@ -253,6 +254,7 @@ def critic_inputs(critic_state, actor_obs, per_agent: bool, device) -> dict[str,
     return tensors
 
 
+# ----------------------------------------------------------------------------- replay
 def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: int):
     """Replay critic sequences ``envs_idx`` and their CAVs' actor sequences.
 
