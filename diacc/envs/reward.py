@@ -162,7 +162,6 @@ class TeamReward:
     softmin_weight: np.ndarray  # (C,) w_i, sums to 1 over alive CAVs
     ego_softmin: float  # sum_i w_i r_e^i
     total: float  # R
-    tau: float  # the softmin temperature it was made at
 
 
 def team_reward(
@@ -202,7 +201,7 @@ def team_reward(
         + cfg.delay_weight * delay
     )
     scalar = float if weights.ndim == 1 else np.asarray
-    return TeamReward(weights, scalar(ego_softmin), scalar(total), tau)
+    return TeamReward(softmin_weight=weights, ego_softmin=scalar(ego_softmin), total=scalar(total))
 
 
 class AnnealedTeamReward:

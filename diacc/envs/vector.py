@@ -109,7 +109,7 @@ class VectorStep:
     restarted: np.ndarray  # (E,) bool: the simulator crashed, the step was cut (no reward terms)
     restarts: int
     slot_start: np.ndarray  # (E, C) bool: a new CAV took the slot; its next action starts afresh
-    team: TeamReward | None = None  # R (E,), its softmin parts and tau; None before score()
+    team: TeamReward | None = None  # R (E,) and its softmin parts; None before score()
 
 
 def score(out: VectorStep, reward: AnnealedTeamReward) -> VectorStep:

@@ -154,7 +154,7 @@ def collect_rollout(
             terms = {
                 "ego_softmin": team.ego_softmin[reported],
                 **out.reward_terms,
-                "tau": np.full(int(reported.sum()), team.tau),
+                "tau": np.full(int(reported.sum()), stats.tau),
             }
             for key, values_ in terms.items():
                 stats.reward_terms.setdefault(key, []).append(float(values_.mean()))
