@@ -19,11 +19,17 @@ from ray.tune.registry import register_env
 
 import diacc
 
+#: Env steps sampled per training iteration (``train_batch_size``).
+BATCH_STEPS = 64
 
-def make_env(_config: dict) -> ParallelPettingZooEnv:
+
+def make_env(config: dict) -> ParallelPettingZooEnv:
+    # total_steps: the budget in env steps, so that the team reward's temperature anneals
+    # over this run as over a `diacc train` run (each env counts its own steps).
     return ParallelPettingZooEnv(
         diacc.parallel_env(
             observation_format="flat",
+            total_steps=config["total_steps"],
             map="train-50",
             scenario={"n_vehicles": 8, "cav_penetration": 0.25},
             sim={"episode_steps": 20},
@@ -41,10 +47,10 @@ def main() -> None:
     register_env("diacc", make_env)
     config = (
         PPOConfig()
-        .environment("diacc")
+        .environment("diacc", env_config={"total_steps": BATCH_STEPS * args.iterations})
         .env_runners(num_env_runners=0)  # sample in this process: tiny and CI friendly
         .multi_agent(policies={"shared"}, policy_mapping_fn=lambda agent_id, *a, **k: "shared")
-        .training(train_batch_size=64, minibatch_size=32, num_epochs=1)
+        .training(train_batch_size=BATCH_STEPS, minibatch_size=32, num_epochs=1)
         .debugging(seed=args.seed)
     )
     algo = config.build_algo()

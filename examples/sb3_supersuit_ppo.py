@@ -31,8 +31,12 @@ def main() -> None:
     # diacc's episodes are seeded by the env itself (0, 1, 2, ... from the first reset).
     set_random_seed(args.seed)
 
+    n_cavs = 2  # 8 vehicles, a quarter of them CAVs
+    # total_steps: the budget in env steps (each env step is one agent step per CAV), so
+    # that the team reward's temperature anneals over this run as over a `diacc train` run.
     env = diacc.parallel_env(
         observation_format="flat",
+        total_steps=max(1, args.steps // n_cavs),
         map="train-50",
         scenario={"n_vehicles": 8, "cav_penetration": 0.25},
         sim={"episode_steps": 20},

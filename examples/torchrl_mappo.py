@@ -37,8 +37,11 @@ def main() -> None:
     args = parser.parse_args()
     torch.manual_seed(args.seed)
 
+    # total_steps: the budget in env steps, so that the team reward's temperature anneals
+    # over this run as over a `diacc train` run (the env counts its own steps).
     zoo_env = diacc.parallel_env(
         observation_format="flat",
+        total_steps=args.frames * args.iterations,
         map="train-50",
         scenario={"n_vehicles": 8, "cav_penetration": 0.25},
         sim={"episode_steps": 20},

@@ -258,7 +258,7 @@ def test_runs_saved_with_device_cpu_resume_under_the_auto_default():
     import torch
 
     from diacc.config import TrainConfig
-    from diacc.learn.mappo import check_resume_config
+    from diacc.learn.trainer import check_resume_config
 
     saved = dataclasses.asdict(TrainConfig(device="cpu"))
     changed = check_resume_config(saved, TrainConfig(device="auto"), Path("run"), True)

@@ -17,8 +17,9 @@ from diacc.envs.episode import EpisodeDriver, play_episode
 from diacc.envs.observation import unstack
 from diacc.envs.vector import make_vector_env
 from diacc.experiments.policies import ScriptedPolicy
-from diacc.learn.mappo import collect_rollout, make_agent, seed_everything, train
+from diacc.learn.mappo import make_agent, seed_everything, train
 from diacc.learn.models.inputs import to_tensors
+from diacc.learn.ppo import collect_rollout
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import parse_map
 from diacc.sim.scenario import Demand, Scenario, draw_population
@@ -158,7 +159,7 @@ def test_refilled_slot_acts_from_a_fresh_recurrent_state(tmp_path, short_map):
     agent = make_agent(cfg, torch.device("cpu"))
     envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
-        roll, _, _ = collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
+        roll, _, _ = collect_rollout(agent, envs, cfg, 0, global_step=0)
     finally:
         envs.close()
     refill = roll.agent_start & ~roll.episode_start[:, :, None]  # (S, E, C)

@@ -8,7 +8,7 @@ from pettingzoo.test import parallel_api_test
 
 from diacc.envs.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.envs.env import BottleneckEnv, EnvConfig
-from diacc.envs.reward import team_reward
+from diacc.envs.reward import team_reward, temperature
 from diacc.sim.scenario import Scenario
 
 BACKENDS = ["highway", "sumo"]
@@ -84,15 +84,14 @@ def test_batched_api_shapes_and_reward(backend):
         assert actor.self_state.shape[0] == env.n_cavs == 10
         assert critic.nodes.shape == (40, actor.ego_hist.shape[-1])
         out = env.step_arrays(np.zeros(env.n_cavs, np.int64))
-        assert (
-            np.isfinite(env.reward_of(out)) and out.alive.shape == (10,) and out.ego.shape == (10,)
-        )
+        assert np.isfinite(out.reward) and out.alive.shape == (10,) and out.ego.shape == (10,)
         assert set(out.reward_terms) >= {"global", "completion", "individual", "delay"}
-        # The temperature's parts are the trainer's (diacc.learn.mappo), not the env's.
-        assert not {"ego_softmin", "tau"} & set(out.reward_terms)
+        # The first step of training: R at tau_init, from the terms the step carries.
         parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
-        team = team_reward(*parts, env.temperature, env.config.reward)
-        assert env.reward_of(out) == team.total and env.temperature == env.config.reward.tau_init
+        assert (
+            out.reward == team_reward(*parts, env.config.reward.tau_init, env.config.reward).total
+        )
+        assert env.team_reward.step == 1
         np.testing.assert_array_equal(out.actor_obs.action_memory[:, 0], 0)
     finally:
         env.close()
@@ -104,11 +103,12 @@ def test_same_seed_same_episode():
     actions = rng.integers(0, 5, (20, env.n_cavs))
     runs = []
     for _ in range(2):
+        env.set_training_step(0)  # the same temperatures too
         env.reset_arrays(seed=11)
         rewards = []
         for a in actions:
             out = env.step_arrays(a)
-            rewards.append(env.reward_of(out))
+            rewards.append(out.reward)
             if out.terminated or out.truncated:
                 break
         runs.append((rewards, out.state.x_m.copy()))
@@ -117,22 +117,35 @@ def test_same_seed_same_episode():
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
 
 
-def test_pettingzoo_rewards_use_the_envs_own_temperature():
-    """The env scores its PettingZoo rewards at :attr:`BottleneckEnv.temperature`
-    (``tau_init``); a trainer that anneals tau makes the team reward from the terms."""
-    env = BottleneckEnv(EnvConfig())
-    actions = np.random.default_rng(1).integers(0, 5, (8, env.n_cavs))
-    runs = {}
+def test_env_rewards_follow_the_training_schedule():
+    """Each step's reward (array and PettingZoo API alike) is the team reward at the
+    schedule's temperature: the env counts its own steps (tau_init -> tau_final over half
+    of ``total_steps``) until a trainer sets the step, which then stays the trainer's."""
+    cfg = EnvConfig(scenario=Scenario(n_vehicles=8, cav_penetration=0.5))
+    arrays, zoo = BottleneckEnv(cfg, total_steps=8), BottleneckEnv(cfg, total_steps=8)
+    actions = np.random.default_rng(1).integers(0, 5, (6, arrays.n_cavs))
     try:
-        for tau in (env.config.reward.tau_init, 0.05):
-            env.temperature = tau
-            env.reset_arrays(seed=4)
-            steps = [env.step_arrays(a) for a in actions]
-            runs[tau] = (steps, [env.reward_of(out) for out in steps])
+        arrays.reset_arrays(seed=4)
+        zoo.reset(seed=4)
+        taus = []
+        for t, a in enumerate(actions):
+            agents = list(zoo.agents)
+            out = arrays.step_arrays(a)
+            _, rewards, *_ = zoo.step({agent: int(a[zoo.agent_slots()[agent]]) for agent in agents})
+            taus.append(temperature(t, 8, cfg.reward))
+            parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
+            assert out.reward == team_reward(*parts, taus[-1], cfg.reward).total
+            assert set(rewards.values()) == {out.reward}
+            if out.terminated or out.truncated:
+                break
+        assert taus[:5] == pytest.approx([2.0, 1.5125, 1.025, 0.5375, 0.05])
+        arrays.set_training_step(0)
+        arrays.reset_arrays(seed=4)
+        arrays.step_arrays(actions[0])
+        second = arrays.step_arrays(actions[1])
+        assert arrays.team_reward.step == 0 and arrays.team_reward.tau == cfg.reward.tau_init
+        parts = (second.ego, second.alive, second.global_reward, second.completion, second.delay)
+        assert second.reward == team_reward(*parts, cfg.reward.tau_init, cfg.reward).total
     finally:
-        env.close()
-    (hot, hot_rewards), (cold, cold_rewards) = runs.values()
-    for a, b in zip(hot, cold, strict=True):
-        np.testing.assert_array_equal(a.ego, b.ego)  # the terms need no temperature
-        assert (a.global_reward, a.completion, a.delay) == (b.global_reward, b.completion, b.delay)
-    assert hot_rewards != cold_rewards
+        arrays.close()
+        zoo.close()

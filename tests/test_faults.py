@@ -199,10 +199,10 @@ def test_case2_vector_worker_killed_during_the_update(tmp_path, monkeypatch):
     """A process-vector worker killed while idle (PPO update): replaced, logged, run completes."""
     from test_mappo import tiny_config
 
-    from diacc.learn import mappo
+    from diacc.learn import mappo, ppo, trainer
 
     made, killed = [], []
-    real_make, real_update = mappo.make_vector_env, mappo.ppo_update
+    real_make, real_update = trainer.make_vector_env, ppo.ppo_update
 
     def make_vector_env(*args, **kwargs):
         made.append(real_make(*args, **kwargs))
@@ -216,8 +216,8 @@ def test_case2_vector_worker_killed_during_the_update(tmp_path, monkeypatch):
             killed.append(worker.pid)
         return real_update(*args, **kwargs)
 
-    monkeypatch.setattr(mappo, "make_vector_env", make_vector_env)
-    monkeypatch.setattr(mappo, "ppo_update", ppo_update)
+    monkeypatch.setattr(trainer, "make_vector_env", make_vector_env)
+    monkeypatch.setattr(ppo, "ppo_update", ppo_update)
     cfg = tiny_config(tmp_path, vector="process", checkpoint_every=1)
     run = mappo.train(cfg, progress=False)
     assert killed and _checkpoint_update(run) == 2
@@ -231,11 +231,11 @@ def test_case3_nonfinite_gradient_stops_before_the_update(tmp_path, monkeypatch)
     """A NaN gradient in update 2: one-line error naming it; update 1's checkpoint intact."""
     from test_mappo import tiny_config
 
-    from diacc.learn import checkpoint, mappo
+    from diacc.learn import checkpoint, mappo, trainer
 
     cfg = tiny_config(tmp_path, checkpoint_every=1, total_steps=80)
     backward_calls = []
-    real_make_agent = mappo.make_agent
+    real_make_agent = trainer.make_agent
 
     def make_agent(cfg_, device):
         agent = real_make_agent(cfg_, device)
@@ -249,7 +249,7 @@ def test_case3_nonfinite_gradient_stops_before_the_update(tmp_path, monkeypatch)
         param.register_hook(poison)
         return agent
 
-    monkeypatch.setattr(mappo, "make_agent", make_agent)
+    monkeypatch.setattr(trainer, "make_agent", make_agent)
     with pytest.raises(mappo.TrainingError) as info:
         mappo.train(cfg, progress=False)
     message = str(info.value)

@@ -10,7 +10,8 @@ from test_mappo import rollout_batch, tiny_config
 
 from diacc.config import override
 from diacc.experiments.policies import CheckpointPolicy
-from diacc.learn.mappo import evaluate_batch, train
+from diacc.learn.mappo import train
+from diacc.learn.ppo import evaluate_batch
 
 ALL_OPTIONS = {
     "critic_values": "per_agent",
@@ -82,7 +83,7 @@ def test_per_agent_gae_is_the_team_gae_of_each_slot():
     """GAE per agent = the team GAE run on each slot's values, with the shared reward."""
     from diacc.config import TrainConfig
     from diacc.learn.buffer import Rollout, compute_gae
-    from diacc.learn.mappo import rollout_gae
+    from diacc.learn.ppo import rollout_gae
 
     rng = np.random.default_rng(0)
     S, E, C = 6, 2, 3

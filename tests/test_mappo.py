@@ -12,17 +12,11 @@ from helpers import SHORT_MAP
 from diacc.config import TrainConfig, override
 from diacc.envs.reward import temperature
 from diacc.envs.vector import make_vector_env
+from diacc.learn.agent import make_agent
+from diacc.learn.buffer import make_batch
 from diacc.learn.checkpoint import CheckpointError, config_from_checkpoint, load_checkpoint
-from diacc.learn.mappo import (
-    collect_rollout,
-    evaluate_batch,
-    make_agent,
-    make_batch,
-    ppo_update,
-    rollout_gae,
-    seed_everything,
-    train,
-)
+from diacc.learn.mappo import seed_everything, train
+from diacc.learn.ppo import collect_rollout, evaluate_batch, ppo_update, rollout_gae
 from diacc.sim.scenario import Scenario
 
 TINY = {
@@ -56,7 +50,7 @@ def rollout_batch(cfg: TrainConfig):
     agent = make_agent(cfg, torch.device("cpu"))
     envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
-        roll, next_value, stats = collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
+        roll, next_value, stats = collect_rollout(agent, envs, cfg, 0, global_step=0)
     finally:
         envs.close()
     adv, ret = rollout_gae(roll, next_value, cfg)
@@ -127,28 +121,30 @@ def test_dead_steps_contribute_nothing(rollout_and_batch):
     assert torch.equal(results[0], results[1])
 
 
-def _rollout_at(cfg: TrainConfig, tau: float):
-    """One seeded rollout of a fresh agent at softmin temperature ``tau``."""
+def _rollout_at(cfg: TrainConfig, global_step: int):
+    """One seeded rollout of a fresh agent at training step ``global_step``."""
     seed_everything(cfg.seed)
     agent = make_agent(cfg, torch.device("cpu"))
-    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
+    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed, total_steps=cfg.total_steps)
     try:
-        return collect_rollout(agent, envs, cfg, 0, tau)
+        return collect_rollout(agent, envs, cfg, 0, global_step)
     finally:
         envs.close()
 
 
-def test_the_learners_temperature_makes_the_rollouts_rewards(tmp_path):
-    """Same seed, two temperatures: the same transitions, other team rewards; the
-    episode returns sum the team rewards the learner made."""
+def test_the_training_step_sets_the_temperature_of_the_rollouts_rewards(tmp_path):
+    """Same seed, the start and the end of the schedule (tau 2 and 0.05): the same
+    transitions, other team rewards; the episode returns sum the envs' team rewards."""
     cfg = tiny_config(tmp_path)
-    (hot, _, hot_stats), (cold, _, cold_stats) = (_rollout_at(cfg, tau) for tau in (2.0, 0.05))
+    hot, _, hot_stats = _rollout_at(cfg, 0)
+    cold, _, cold_stats = _rollout_at(cfg, cfg.total_steps)
+    assert (hot_stats.tau, cold_stats.tau) == pytest.approx((2.0, 0.05))
     np.testing.assert_array_equal(hot.actions, cold.actions)
     np.testing.assert_array_equal(hot.alive, cold.alive)
     assert not np.array_equal(hot.rewards, cold.rewards)
     assert (cold.rewards <= hot.rewards + 1e-12).all()  # the softmin leans to the worst CAV
     assert hot_stats.reward_terms["tau"] == [2.0] * cfg.rollout_steps
-    assert cold_stats.reward_terms["tau"] == [0.05] * cfg.rollout_steps
+    assert cold_stats.reward_terms["tau"] == [cold_stats.tau] * cfg.rollout_steps
     assert hot_stats.reward_terms["global"] == cold_stats.reward_terms["global"]
     for roll, stats in ((hot, hot_stats), (cold, cold_stats)):
         acc, returns = np.zeros(cfg.n_envs), []
@@ -162,21 +158,23 @@ def test_the_learners_temperature_makes_the_rollouts_rewards(tmp_path):
         assert list(stats.episodes[0])[:2] == ["return", "length"]  # progress.jsonl's order
 
 
-def test_training_passes_the_annealed_temperature_to_each_rollout(tmp_path, monkeypatch):
-    from diacc.learn import mappo
+def test_training_anneals_the_envs_temperature_rollout_by_rollout(tmp_path, monkeypatch):
+    """The trainer gives each rollout its global step; the envs' team rewards are made at
+    the schedule's temperature there, constant within the rollout."""
+    from diacc.learn import trainer
 
     cfg = tiny_config(tmp_path, **{"env.reward.tau_anneal_fraction": 0.5})
-    taus, real = [], mappo.collect_rollout
+    taus, real = [], trainer.collect_rollout
 
-    def spy(agent, envs, cfg, update, tau, **options):
-        taus.append(tau)
-        return real(agent, envs, cfg, update, tau, **options)
+    def spy(agent, envs, cfg, update, global_step, **options):
+        out = real(agent, envs, cfg, update, global_step, **options)
+        assert envs.team_reward.step == global_step  # the trainer's step: the env did not count
+        taus.append(temperature(global_step, cfg.total_steps, cfg.env.reward))
+        return out
 
-    monkeypatch.setattr(mappo, "collect_rollout", spy)
+    monkeypatch.setattr(trainer, "collect_rollout", spy)
     train(cfg, progress=False)
-    steps = cfg.rollout_steps * cfg.n_envs  # 40 of 80: the schedule ends after the first
-    assert taus == [temperature(0, 80, cfg.env.reward), temperature(steps, 80, cfg.env.reward)]
-    assert taus == pytest.approx([2.0, 0.05])
+    assert taus == pytest.approx([2.0, 0.05])  # 40 of 80 steps: the schedule ends after one
     import json
 
     rows = [json.loads(line) for line in (tmp_path / "run" / "progress.jsonl").open()]
@@ -299,7 +297,7 @@ def test_values_after_the_rollout_equal_values_stepped_with_the_envs(tmp_path, c
     """rollout_values (one pass per chunk, after the loop) gives the values, hidden states,
     truncation bootstraps and V(s_S) of the critic stepped along with the envs."""
     from diacc.envs.observation import stack
-    from diacc.learn.mappo import critic_inputs
+    from diacc.learn.ppo import critic_inputs
 
     cfg = tiny_config(tmp_path, critic_values=critic_values)
     agent, roll, _ = rollout_batch(cfg)
@@ -329,7 +327,7 @@ def test_values_after_the_rollout_equal_values_stepped_with_the_envs(tmp_path, c
 def test_proximal_policy_of_an_unlagged_rollout_is_the_behaviour_policy(rollout_and_batch):
     """add_proximal_policy replays the actor: on a rollout the same parameters collected,
     its log-probs are the stored ones and every behaviour weight is 1."""
-    from diacc.learn.mappo import add_proximal_policy
+    from diacc.learn.ppo import add_proximal_policy
 
     cfg, agent, roll, batch = rollout_and_batch
     lagged = copy.copy(batch)

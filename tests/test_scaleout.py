@@ -17,7 +17,7 @@ from diacc.experiments.evaluate import evaluate  # noqa: E402
 from diacc.experiments.grid import make_cell  # noqa: E402
 from diacc.experiments.policies import EvalSettings, parse_policy  # noqa: E402
 from diacc.experiments.scaleout import RayEngine, run_sweep, sweep_configs  # noqa: E402
-from diacc.learn.mappo import TIMING_KEYS  # noqa: E402
+from diacc.learn.progress import TIMING_KEYS  # noqa: E402
 
 #: progress.jsonl keys that measure time, not learning
 

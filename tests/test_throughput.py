@@ -22,7 +22,8 @@ from diacc.config import (
     validate,
 )
 from diacc.envs.observation import ObservationSpec
-from diacc.learn import checkpoint, mappo
+from diacc.learn import agent as agent_module
+from diacc.learn import buffer, checkpoint, mappo, ppo, trainer
 from diacc.learn.models.inputs import to_tensors
 from diacc.learn.models.layers import embed_all, embed_present, mlp
 from diacc.learn.models.registry import build_networks
@@ -127,22 +128,22 @@ def tiny_batch(tmp_path_factory):
     cfg = tiny_config(tmp_path_factory.mktemp("b"))
     mappo.seed_everything(cfg.seed)
     agent = mappo.make_agent(cfg, torch.device("cpu"))
-    envs = mappo.make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
+    envs = trainer.make_vector_env(cfg.env, cfg.n_envs, cfg.seed)
     try:
-        roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
+        roll, next_value, _ = ppo.collect_rollout(agent, envs, cfg, 0, global_step=0)
     finally:
         envs.close()
-    adv, ret = mappo.rollout_gae(roll, next_value, cfg)
-    return cfg, agent, mappo.make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
+    adv, ret = ppo.rollout_gae(roll, next_value, cfg)
+    return cfg, agent, buffer.make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
 
 
 def test_bf16_update_stays_close_to_fp32(tiny_batch):
     cfg, agent, batch = tiny_batch
     every_env = torch.arange(batch.critic_h0.shape[0])
     with torch.no_grad():
-        fp32 = mappo.evaluate_batch(agent, batch, every_env, 4)
+        fp32 = ppo.evaluate_batch(agent, batch, every_env, 4)
         with torch.autocast("cpu", torch.bfloat16):
-            bf16 = mappo.evaluate_batch(agent, batch, every_env, 4)
+            bf16 = ppo.evaluate_batch(agent, batch, every_env, 4)
     assert bf16[0].dtype == bf16[2].dtype == torch.float32  # losses are taken in fp32
     assert (bf16[0] - fp32[0]).abs().max() < 0.05  # log-probs
     assert (bf16[2] - fp32[2]).abs().max() < 0.05  # normalised values
@@ -150,7 +151,7 @@ def test_bf16_update_stays_close_to_fp32(tiny_batch):
     for flag in (False, True):
         a = copy.deepcopy(agent)
         torch.manual_seed(0)
-        stats = mappo.ppo_update(a, batch, override(cfg, {"update_bf16": flag}), 4)
+        stats = ppo.ppo_update(a, batch, override(cfg, {"update_bf16": flag}), 4)
         assert all(np.isfinite(v) for v in stats.values())
         results[flag] = torch.cat([p.detach().ravel() for p in a.actor.parameters()])
     start = torch.cat([p.detach().ravel() for p in agent.actor.parameters()])
@@ -167,7 +168,7 @@ def test_separate_rollout_networks_train_exactly_like_shared_ones(tmp_path, monk
     plumbing of ``--device cuda`` (rollouts on the CPU), tested without a GPU."""
     shared = tiny_config(tmp_path / "shared")
     mappo.train(shared, progress=False)
-    monkeypatch.setattr(mappo, "ROLLOUT_DEVICE", torch.device("cpu", 0))
+    monkeypatch.setattr(agent_module, "ROLLOUT_DEVICE", torch.device("cpu", 0))
     split = tiny_config(tmp_path / "split")
     agent = mappo.make_agent(split, torch.device("cpu"))
     assert agent.rollout_actor is not agent.actor
@@ -193,7 +194,7 @@ def test_compiled_update_matches_eager(tiny_batch):
             a.actor_sequence = torch.compile(a.actor.forward_sequence)
             a.critic_sequence = torch.compile(a.critic.forward_sequence)
         torch.manual_seed(0)
-        mappo.ppo_update(a, batch, c, 4)
+        ppo.ppo_update(a, batch, c, 4)
         results.append(torch.cat([p.detach().ravel() for p in a.actor.parameters()]))
     torch.testing.assert_close(results[0], results[1], rtol=1e-3, atol=1e-5)
 
@@ -227,13 +228,13 @@ def test_overlapped_training_is_reproducible_lagged_and_resumes_exactly(tmp_path
     it is not the synchronous run (the rollouts act with lagged parameters).
     """
     calls = []
-    real = mappo.collect_rollout
+    real = trainer.collect_rollout
 
-    def spy(agent, envs, cfg, update, tau, sync=True, values=True):
+    def spy(agent, envs, cfg, update, global_step, sync=True, values=True):
         calls.append((update, sync))
-        return real(agent, envs, cfg, update, tau, sync, values)
+        return real(agent, envs, cfg, update, global_step, sync, values)
 
-    monkeypatch.setattr(mappo, "collect_rollout", spy)
+    monkeypatch.setattr(trainer, "collect_rollout", spy)
     extra = {"total_steps": 160, "checkpoint_every": 2}  # 4 updates of 40 steps
     runs = {}
     for name, overlap in (("a", True), ("b", True), ("sync", False)):

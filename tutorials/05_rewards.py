@@ -26,10 +26,10 @@
 #   The team is then judged by its worst-off member, which pushes CAVs to help
 #   the one stuck behind a merge instead of racing ahead;
 # * `tau` is annealed linearly from 2 to 0.05 over the first half of training.
-#   The temperature is the learner's: an environment step returns the terms
-#   that need none (`reward_terms`), and the trainer aggregates them with
-#   `team_reward` at the temperature of its current update. (The PettingZoo
-#   env's own `rewards` use a fixed temperature, `env.temperature` = `tau_init`.)
+#   The schedule lives with the reward (`AnnealedTeamReward`): every
+#   environment emits R at the temperature of the training step it is at
+#   (its own step count, or the trainer's, `env.set_training_step`), so the
+#   PettingZoo `rewards` are the R that `diacc train` trains on.
 #
 # We plot the weights against `tau`, the schedule over training, and the
 # reward terms of a real traffic state.
@@ -101,7 +101,7 @@ ax_agg.legend(fontsize=8)
 #
 # `temperature(step, total_steps, cfg)` gives `tau` at any environment step:
 # linear from `tau_init` to `tau_final` over `tau_anneal_fraction` of the run,
-# then constant. The trainer calls it once per update.
+# then constant. The trainer's rollouts read it once per update.
 
 # %%
 total_steps = TrainConfig().total_steps

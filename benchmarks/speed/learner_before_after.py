@@ -37,25 +37,36 @@ SNIPPET = r"""
 import json, sys, time
 import torch
 from diacc.config import EnvConfig, TrainConfig, override
-from diacc.learn import mappo
+try:  # the learner split into ppo / buffer / agent (issue 43)
+    from diacc.learn import agent as agent_module, buffer, ppo
+    from diacc.envs.vector import make_vector_env
+    from diacc.learn.trainer import seed_everything
+    learner = ppo
+except ImportError:  # one module before it
+    from diacc.learn import mappo as learner
+    agent_module = buffer = learner
+    make_vector_env, seed_everything = learner.make_vector_env, learner.seed_everything
 from diacc.threads import set_torch_threads
 what, envs, steps, updates, repeats, demand_envs = sys.argv[1], *map(int, sys.argv[2:7])
 if what == "update":
     cfg = override(TrainConfig(), {"n_envs": envs, "rollout_steps": steps, "device": "cpu",
         "env.map": "train-50", "env.sim.episode_steps": min(steps, EnvConfig().sim.episode_steps)})
-    mappo.seed_everything(1)
+    seed_everything(1)
     set_torch_threads(1)
-    agent = mappo.make_agent(cfg, torch.device("cpu"))
-    vec = mappo.make_vector_env(cfg.env, envs, cfg.seed, cfg.vector)
-    roll, next_value, _ = mappo.collect_rollout(agent, vec, cfg, 0, cfg.env.reward.tau_init)
+    agent = agent_module.make_agent(cfg, torch.device("cpu"))
+    vec = make_vector_env(cfg.env, envs, cfg.seed, cfg.vector)
+    # The rollout's 5th argument: the training step (after issue 43), tau (before); both
+    # give tau_init here.
+    start = 0 if learner.__name__.endswith(".ppo") else cfg.env.reward.tau_init
+    roll, next_value, _ = learner.collect_rollout(agent, vec, cfg, 0, start)
     vec.close()
-    adv, ret = mappo.rollout_gae(roll, next_value, cfg)
-    batch = mappo.make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
+    adv, ret = learner.rollout_gae(roll, next_value, cfg)
+    batch = buffer.make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
     import resource
     seconds, faults, system = [], [], []
     for _ in range(repeats + 1):
         r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.thread_time()
-        mappo.ppo_update(agent, batch, cfg, vec.n_cavs)
+        learner.ppo_update(agent, batch, cfg, vec.n_cavs)
         r1 = resource.getrusage(resource.RUSAGE_SELF)
         seconds.append(time.thread_time() - t0)
         faults.append(r1.ru_minflt - r0.ru_minflt)

@@ -31,24 +31,25 @@ done
 taskset -c 8,9 timeout "$LIMIT" python3 - > /tmp/gpu.txt 2>&1 <<'PY' &
 import time, torch
 from diacc.config import PAPER_LEARNER, EnvConfig, TrainConfig, override
-from diacc.learn import mappo
+from diacc.envs.vector import make_vector_env
+from diacc.learn import agent as agent_module, ppo, trainer
 torch.set_num_threads(1)
 for label, extra in (("small learner", {}), ("paper learner", PAPER_LEARNER)):
     for envs, steps in ((16, 50), (20, 100)):
         cfg = override(TrainConfig(), {"n_envs": envs, "rollout_steps": steps, "device": "cuda",
             "env.map": "train-50", "env.sim.episode_steps": min(steps, EnvConfig().sim.episode_steps), **extra})
-        mappo.seed_everything(1)
+        trainer.seed_everything(1)
         dev = torch.device("cuda")
-        agent = mappo.make_agent(cfg, dev)
-        vec = mappo.make_vector_env(cfg.env, envs, cfg.seed, cfg.vector)
-        roll, _, _ = mappo.collect_rollout(agent, vec, cfg, 0, cfg.env.reward.tau_init, values=False)
+        agent = agent_module.make_agent(cfg, dev)
+        vec = make_vector_env(cfg.env, envs, cfg.seed, cfg.vector)
+        roll, _, _ = ppo.collect_rollout(agent, vec, cfg, 0, 0, values=False)
         vec.close()
         for bf16 in (False, True):
             c = override(cfg, {"update_bf16": bf16})
             times = []
             for _ in range(4):
                 torch.cuda.synchronize(); t0 = time.perf_counter()
-                mappo.learn(agent, roll, None, c, dev, vec.n_cavs)
+                ppo.learn(agent, roll, None, c, dev, vec.n_cavs)
                 torch.cuda.synchronize(); times.append(time.perf_counter() - t0)
             best = min(times[1:])
             print(f"{label} {envs}x{steps} bf16={bf16}: values + GAE + PPO update {best:.3f} s "

@@ -34,17 +34,20 @@ CASES = {
 CHILD = """
 import json, resource, sys, time, torch
 from diacc.config import TrainConfig, override
-from diacc.learn import mappo
+from diacc.envs.vector import make_vector_env
+from diacc.learn import ppo
+from diacc.learn.agent import make_agent
+from diacc.learn.trainer import seed_everything
 from diacc.threads import set_torch_threads
 set_torch_threads(1)
 cfg = override(TrainConfig(), {"device": "cpu", **json.loads(sys.argv[1])})
-mappo.seed_everything(1)
-agent = mappo.make_agent(cfg, torch.device("cpu"))
-vec = mappo.make_vector_env(cfg.env, cfg.n_envs, cfg.seed, cfg.vector)
-roll, _, stats = mappo.collect_rollout(agent, vec, cfg, 0, cfg.env.reward.tau_init, values=False)
+seed_everything(1)
+agent = make_agent(cfg, torch.device("cpu"))
+vec = make_vector_env(cfg.env, cfg.n_envs, cfg.seed, cfg.vector)
+roll, _, stats = ppo.collect_rollout(agent, vec, cfg, 0, 0, values=False)
 vec.close()
 t0 = time.thread_time()
-mappo.learn(agent, roll, None, cfg, torch.device("cpu"), vec.n_cavs)
+ppo.learn(agent, roll, None, cfg, torch.device("cpu"), vec.n_cavs)
 cpu_s = time.thread_time() - t0
 peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({"cpu_s": cpu_s, "samples": stats.decisions, "peak_mib": peak_mib}))
@@ -58,7 +61,8 @@ def run(case: str) -> dict:
         env=env, capture_output=True, text=True, check=False,
     )  # fmt: skip
     if out.returncode:
-        sys.exit(f"learner_per_agent_sample: {case} failed: {out.stderr.strip().splitlines()[-1]}")
+        last = out.stderr.strip().splitlines()[-1]
+        sys.exit(f"learner_per_agent_sample: {case} failed: {last}")
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 

@@ -149,7 +149,7 @@ def add_parsers(sub) -> None:
 def bench_device(name: str | None) -> str:
     """The concrete torch device (``cpu``, ``cuda``) of ``--device``, so that the
     benchmark tables name the device they measured, not ``auto``."""
-    from diacc.learn.mappo import resolve_device
+    from diacc.learn.trainer import resolve_device
 
     return str(resolve_device(name or TrainConfig.device))
 

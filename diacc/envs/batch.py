@@ -233,7 +233,7 @@ class Transition:
 
     def logged_terms(self, rows: np.ndarray) -> dict[str, np.ndarray]:
         """Envs ``rows``' reward parts for the logs, (R,) each ({} for no rows; the
-        temperature's parts are the trainer's)."""
+        softmin's parts come with the team reward, ``VectorStep.team``)."""
         if len(rows) == 0:
             return {}
         terms, alive = self.terms, self.terms.alive[rows]

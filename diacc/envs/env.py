@@ -15,16 +15,13 @@ order of their vehicle indices. Each step:
 4. the backend advances one decision step and returns a TrafficState, from
    which the observations, the reward and the events are built.
 
-**Reward and temperature.** The step's reward terms
-(:func:`~diacc.envs.reward.reward_terms`: each CAV's ego reward, the global,
-completion and delay terms) need no temperature and are what
-:class:`StepResult` carries for a trainer. The team reward
-:meth:`BottleneckEnv.reward_of` (the PettingZoo ``rewards``) aggregates them with
-:func:`~diacc.envs.reward.team_reward` at the env's own softmin temperature
-:attr:`BottleneckEnv.temperature`, ``tau_init`` unless set; the env never
-anneals it. A trainer that anneals tau (:mod:`diacc.learn.mappo`) makes the
-team reward from the terms at its own temperature, so a training step never
-computes the env's.
+**Reward and temperature.** Each step emits the team reward R
+(``StepResult.reward``, every agent's PettingZoo reward) at the softmin
+temperature of the training schedule, the same R diacc's trainer trains on:
+:attr:`BottleneckEnv.team_reward` (:class:`~diacc.envs.reward.AnnealedTeamReward`)
+anneals tau over ``total_steps`` env steps, counting this env's steps unless a
+trainer sets its progress (:meth:`BottleneckEnv.set_training_step`).
+:class:`StepResult` also carries the terms R is made of.
 
 The episode terminates on a collision or when every vehicle has left, and is
 truncated at ``episode_steps``. A CAV that has left the route is done and is
@@ -69,7 +66,7 @@ from diacc.envs.batch import EnvBatch, Simulators, Transition, decide
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, unstack
 from diacc.envs.psar import PSARResult
-from diacc.envs.reward import team_reward
+from diacc.envs.reward import AnnealedTeamReward
 from diacc.envs.spaces import agent_observation, check_format, observation_space, state_space
 from diacc.errors import DiaccError
 from diacc.sim.backends.base import Backend, make_backend
@@ -137,6 +134,7 @@ class StepResult:
     global_reward: float  # r_g
     completion: float  # r_done
     delay: float  # delay term before its weight
+    reward: float = float("nan")  # team reward R at the schedule's temperature (step_arrays)
 
     @classmethod
     def of(cls, out: Transition, e: int) -> StepResult:
@@ -165,10 +163,9 @@ class StepResult:
 class BottleneckEnv(ParallelEnv):
     """CAVs crossing a highway bottleneck among HDVs (see module docstring).
 
-    Every agent's reward is the team reward at the softmin temperature
-    :attr:`temperature` (``tau_init`` unless set; never annealed here). A trainer
-    that anneals tau makes the team reward from :class:`StepResult`'s terms with
-    :func:`~diacc.envs.reward.team_reward` (as :mod:`diacc.learn.mappo` does).
+    Every agent's reward is the team reward at the temperature of
+    :attr:`team_reward`'s schedule (module docstring): ``total_steps`` is the
+    schedule's length in env steps (default: ``TrainConfig``'s budget).
     """
 
     metadata = {
@@ -184,12 +181,14 @@ class BottleneckEnv(ParallelEnv):
         render_mode: str | None = None,
         backend: Backend | None = None,
         observation_format: str = "dict",
+        total_steps: int | None = None,
     ) -> None:
         """``backend``: the simulator to run on (e.g. one env of a batch), by default a new
         one of ``config.backend`` on ``config.map``. ``render_mode``: ``None``,
         ``"rgb_array"`` (:meth:`render` returns a frame) or ``"human"`` (a window,
         refreshed every step; refused without a display). ``observation_format``:
-        ``"dict"`` or ``"flat"`` (:mod:`diacc.envs.spaces`)."""
+        ``"dict"`` or ``"flat"`` (:mod:`diacc.envs.spaces`). ``total_steps``: length of the
+        reward's temperature schedule in env steps (:attr:`team_reward`)."""
         self.config = config or EnvConfig()
         self.render_mode = check_render_mode(render_mode)
         self.observation_format = check_format(observation_format)
@@ -203,9 +202,8 @@ class BottleneckEnv(ParallelEnv):
         self.n_cavs = self.config.scenario.n_slots  # C agent slots
         self.possible_agents = [f"cav_{k}" for k in range(self.config.scenario.n_cavs)]
         self.agents: list[str] = []
-        #: Softmin temperature of :meth:`reward_of` (module docstring): fixed,
-        #: ``tau_init`` unless set; a trainer that anneals tau makes its own team reward.
-        self.temperature = self.config.reward.tau_init
+        #: The team reward of each step and its temperature schedule (module docstring).
+        self.team_reward = AnnealedTeamReward(self.config.reward, total_steps)
         self.state_: TrafficState | None = None
         self._viewer = None  # diacc.sim.viewer.Viewer, made by the first render()
         self._window = None  # diacc.sim.viewer.Window of render_mode "human"
@@ -243,6 +241,9 @@ class BottleneckEnv(ParallelEnv):
         if out.crashed[0]:
             raise self.batch.sims.errors[0]
         result = StepResult.of(out, 0)
+        parts = (result.ego, result.alive, result.global_reward, result.completion, result.delay)
+        result.reward = float(self.team_reward(*parts).total)
+        self.team_reward.advance(1)
         self.state_ = result.state
         self._over = result.terminated or result.truncated
         return result
@@ -278,10 +279,10 @@ class BottleneckEnv(ParallelEnv):
         live = np.sort(live[state.active[live]])
         return [f"cav_{k}" for k in self.cav_ordinal[live]]
 
-    def reward_of(self, out: StepResult) -> float:
-        """Team reward R_t (paper eq. reward_all) of a step at :attr:`temperature`."""
-        parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
-        return float(team_reward(*parts, self.temperature, self.config.reward).total)
+    def set_training_step(self, step: int) -> None:
+        """Training progress in env steps, for the reward's temperature; from now on
+        the env no longer counts its own steps (:class:`~diacc.envs.reward.AnnealedTeamReward`)."""
+        self.team_reward.set_training_step(step)
 
     # ------------------------------------------------------------------ PettingZoo API
     def observation_space(self, agent: str) -> gymnasium.spaces.Space:
@@ -334,11 +335,10 @@ class BottleneckEnv(ParallelEnv):
         index.update(self.agent_slots())
         joining = [] if ended else [a for a in self._live_agents(out.state) if a not in acting]
         observations, rewards, terms, truncs, infos = {}, {}, {}, {}, {}
-        team = self.reward_of(out)
         for agent in acting + joining:
             i = index[agent]
             observations[agent] = self._agent_obs(out.actor_obs, i)
-            rewards[agent] = team
+            rewards[agent] = out.reward
             terms[agent] = out.terminated or not out.alive[i]
             truncs[agent] = out.truncated
             infos[agent] = {

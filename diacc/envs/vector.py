@@ -5,12 +5,10 @@ Every flavour adapts the one step function of :mod:`diacc.envs.batch`
 needs around it (:class:`VectorEnv`): automatic reset with per-episode seeds
 derived from the run seed, the final observations of each finished episode
 (to bootstrap truncated episodes), episode metrics, and recovery from a
-crashed simulator. A step reports the reward's terms that need no temperature
-(each CAV's ego reward, the global, completion and delay terms,
-:func:`~diacc.envs.reward.reward_terms`), not a team reward: the softmin
-temperature anneals over training and is the trainer's, which makes the team
-reward of them (:func:`~diacc.envs.reward.team_reward`,
-:func:`diacc.learn.mappo.collect_rollout`), and the episodes' returns.
+crashed simulator. A step reports the team reward R (``VectorStep.team``) at
+the annealed temperature of the envs' :class:`~diacc.envs.reward.AnnealedTeamReward`
+(the trainer sets its training step before each rollout:
+:meth:`VectorEnv.set_training_step`), beside the terms R is made of.
 
 * :class:`SyncVectorEnv`: every env on its own simulator, stepped one after
   another in this process (any backend).
@@ -50,6 +48,7 @@ from diacc.config import EnvConfig, preset_road
 from diacc.envs.batch import EnvBatch, Simulators
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, concat, unstack
+from diacc.envs.reward import AnnealedTeamReward, TeamReward
 from diacc.runlog import join_parent_log, log
 from diacc.sim.backends.base import backend_class, make_backend
 from diacc.sim.maps import load_map
@@ -87,9 +86,9 @@ def episode_seed(run_seed: int, env_index: int, episode: int) -> int:
 class VectorStep:
     """One step of E environments, after the automatic resets.
 
-    The team reward of the step is :func:`~diacc.envs.reward.team_reward` of
-    ``ego``, ``alive``, ``global_reward``, ``completion`` and ``delay`` at the
-    trainer's temperature.
+    ``team`` is the step's team reward R (:func:`score`):
+    :func:`~diacc.envs.reward.team_reward` of ``ego``, ``alive``,
+    ``global_reward``, ``completion`` and ``delay`` at the schedule's temperature.
     """
 
     actor_obs: ActorObs  # fields (E, C, ...)
@@ -110,6 +109,17 @@ class VectorStep:
     restarted: np.ndarray  # (E,) bool: the simulator crashed, the step was cut (no reward terms)
     restarts: int
     slot_start: np.ndarray  # (E, C) bool: a new CAV took the slot; its next action starts afresh
+    team: TeamReward | None = None  # R (E,) and its softmin parts; None before score()
+
+
+def score(out: VectorStep, reward: AnnealedTeamReward) -> VectorStep:
+    """``out`` with its team reward at ``reward``'s temperature; counts the E env steps.
+
+    A crashed env's terms are 0 and no CAV is on the road, so its R is 0.
+    """
+    out.team = reward(out.ego, out.alive, out.global_reward, out.completion, out.delay)
+    reward.advance(len(out.terminated))
+    return out
 
 
 def concat_steps(parts: list[VectorStep]) -> VectorStep:
@@ -198,7 +208,9 @@ class VectorEnv:
     ``env_indices``: the run's envs this object holds (their seeds; all of
     ``range(n_envs)`` by default; a worker process holds a group).
     ``env_maps``: the map of each of the run's envs (``config.map`` for all by
-    default; :func:`maps_of_envs`).
+    default; :func:`maps_of_envs`). ``total_steps``: the length (env steps) of
+    the temperature schedule of :attr:`team_reward`
+    (:class:`~diacc.envs.reward.AnnealedTeamReward`).
     """
 
     #: One batched simulator per map (else one simulator per env).
@@ -211,8 +223,10 @@ class VectorEnv:
         run_seed: int,
         env_indices: list[int] | None = None,
         env_maps: list[str] | None = None,
+        total_steps: int | None = None,
     ) -> None:
         self.config, self.run_seed = config, run_seed
+        self.team_reward = AnnealedTeamReward(config.reward, total_steps)
         self.env_index = list(range(n_envs)) if env_indices is None else list(env_indices)
         maps = [config.map if env_maps is None else env_maps[e] for e in self.env_index]
         self.n_envs, self.n_cavs = len(self.env_index), config.scenario.n_slots
@@ -267,7 +281,16 @@ class VectorEnv:
         self.recorders[g].start(rows)
         self.recorders[g].record(batch.state.traffic, rows=restarted)
 
+    def set_training_step(self, step: int) -> None:
+        """Training progress in env steps, for the reward's temperature (the trainer's
+        one call, before each rollout: :class:`~diacc.envs.reward.AnnealedTeamReward`)."""
+        self.team_reward.set_training_step(step)
+
     def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
+        return score(self.step_terms(actions), self.team_reward)
+
+    def step_terms(self, actions: np.ndarray) -> VectorStep:
+        """:meth:`step` without the team reward (a worker's part: its parent scores)."""
         parts, start = [], 0
         for g, (batch, members) in enumerate(self.groups):
             parts.append(self._step_group(g, batch, members, actions[start : start + len(members)]))
@@ -369,7 +392,7 @@ def _worker(
         while True:
             command, payload = conn.recv()
             if command == "step":
-                conn.send(group.step(payload))
+                conn.send(group.step_terms(payload))
             elif command == "reset":
                 conn.send(group.reset(payload))
             elif command == "close":
@@ -385,7 +408,8 @@ class ProcessVectorEnv:
     """E environments in W worker processes (a group of about E / W each), stepped in parallel.
 
     W defaults to one worker per CPU core (at most E): more workers than cores
-    only add switching, fewer leave cores idle.
+    only add switching, fewer leave cores idle. The team reward is made here,
+    in the parent, which holds the temperature schedule (:meth:`set_training_step`).
     """
 
     def __init__(
@@ -395,8 +419,10 @@ class ProcessVectorEnv:
         run_seed: int,
         n_workers: int | None = None,
         env_maps: list[str] | None = None,
+        total_steps: int | None = None,
     ) -> None:
         self.config, self.run_seed, self.env_maps = config, run_seed, env_maps
+        self.team_reward = AnnealedTeamReward(config.reward, total_steps)
         self.n_envs, self.n_cavs = n_envs, config.scenario.n_slots
         n_workers = min(n_envs, n_workers or os.cpu_count() or 1)
         self.groups = [g.tolist() for g in np.array_split(np.arange(n_envs), n_workers)]
@@ -496,7 +522,9 @@ class ProcessVectorEnv:
             parts.append(reply if reply is not None else self._restart(w))
         out = concat_steps(parts)
         self._last_critic = [unstack(out.critic_state, e, copy=True) for e in range(self.n_envs)]
-        return out
+        return score(out, self.team_reward)
+
+    set_training_step = VectorEnv.set_training_step
 
     def close(self) -> None:
         for p, w in zip(self.pipes, self.workers, strict=True):
@@ -515,13 +543,15 @@ def make_vector_env(
     run_seed: int,
     mode: str = "auto",
     extra_maps: tuple[str, ...] = (),
+    total_steps: int | None = None,
 ):
     """``mode``: ``sync``, ``batched``, ``process`` or ``auto`` (the backend's ``vector_mode``).
 
     ``auto`` steps a single environment on its own (``sync``): a batch of one
     gives the same results but pays the batching (measured x0.70 env-steps/s,
     ``diacc bench --env-batch``). ``extra_maps``: maps beside ``config.map`` that
-    the environments are split over (:func:`maps_of_envs`).
+    the environments are split over (:func:`maps_of_envs`). ``total_steps``: the
+    length of the reward's temperature schedule (:class:`VectorEnv`), the run's budget.
     """
     env_maps = maps_of_envs((config.map, *extra_maps), n_envs) if extra_maps else None
     if mode == "auto":
@@ -529,9 +559,13 @@ def make_vector_env(
         if mode == "batched" and n_envs == 1:
             mode = "sync"
     if mode == "sync":
-        return SyncVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
+        return SyncVectorEnv(config, n_envs, run_seed, env_maps=env_maps, total_steps=total_steps)
     if mode == "batched":
-        return BatchedVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
+        return BatchedVectorEnv(
+            config, n_envs, run_seed, env_maps=env_maps, total_steps=total_steps
+        )
     if mode == "process":
-        return ProcessVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
+        return ProcessVectorEnv(
+            config, n_envs, run_seed, env_maps=env_maps, total_steps=total_steps
+        )
     raise ValueError(f"unknown vector mode {mode!r}; choose sync, batched, process or auto")

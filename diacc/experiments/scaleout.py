@@ -239,7 +239,7 @@ def stored_config_changes(cfg: TrainConfig) -> list[str]:
     with the ``stopping`` horizon is not continued under today's ``headway``.
     """
     from diacc.learn.checkpoint import config_from_checkpoint
-    from diacc.learn.mappo import check_resume_config
+    from diacc.learn.trainer import check_resume_config
 
     path = Path(cfg.run_dir) / "config.json"
     if not path.exists():

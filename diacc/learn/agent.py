@@ -1,18 +1,24 @@
 """The learner's state: networks, optimiser and value normaliser (:class:`Agent`).
 
-Its own module because both the trainer (:mod:`diacc.learn.mappo`, which builds
-and updates it) and the checkpoint files (:mod:`diacc.learn.checkpoint`, which
-save and restore it) need it, and the trainer imports the checkpoint module:
-with the class here neither imports the other.
+Its own module because the algorithm (:mod:`diacc.learn.ppo`, which updates
+it), the trainer (:mod:`diacc.learn.trainer`, which builds it with
+:func:`make_agent`) and the checkpoint files (:mod:`diacc.learn.checkpoint`,
+which save and restore it) all need it: with the class here none of them
+imports another for it.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 
+from diacc.config import TrainConfig
+from diacc.envs.observation import ObservationSpec
+from diacc.learn.models.agent_value import AgentValueCritic
+from diacc.learn.models.registry import build_networks
 from diacc.learn.valuenorm import ValueNorm
 
 
@@ -21,7 +27,7 @@ class Agent:
     """Everything that learns or is saved: networks, optimiser, value normaliser.
 
     ``actor``, ``critic`` and ``value_norm`` are the learner, on the update's
-    device. Rollouts use ``rollout_*`` on :data:`diacc.learn.mappo.ROLLOUT_DEVICE`: the same
+    device. Rollouts use ``rollout_*`` on :data:`ROLLOUT_DEVICE`: the same
     modules when the learner is on the CPU, else CPU copies that
     :meth:`sync_rollout` refreshes. The update replays sequences through
     :meth:`replay_actor` / :meth:`replay_critic`: the learner's
@@ -63,3 +69,34 @@ class Agent:
         for copy_, learner in pairs:
             if copy_ is not learner:
                 copy_.load_state_dict(learner.state_dict())
+
+
+#: Where rollout forwards run: one small batch per decision step, between CPU-bound
+#: environment steps, so a GPU would only add transfers and kernel launches.
+ROLLOUT_DEVICE = torch.device("cpu")
+
+
+def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
+    """The networks of ``cfg.variant`` with the learner on ``device`` (rollouts on the CPU)."""
+    actor, critic = build_networks(cfg.variant, cfg.model, ObservationSpec.from_config(cfg.env.obs))
+    if cfg.critic_values == "per_agent":
+        critic = AgentValueCritic(critic, cfg.model)
+    value_norm = ValueNorm()
+    extras = {}
+    # Separate rollout networks: on another device, or when rollouts run beside the update.
+    if device != ROLLOUT_DEVICE or cfg.overlap:
+        extras = {
+            "rollout_actor": copy.deepcopy(actor),
+            "rollout_critic": copy.deepcopy(critic),
+            "rollout_value_norm": copy.deepcopy(value_norm),
+        }
+    actor, critic, value_norm = actor.to(device), critic.to(device), value_norm.to(device)
+    params = list(actor.parameters()) + list(critic.parameters())
+    # fused: one kernel per parameter tensor instead of about ten (docs/benchmarks). A
+    # checkpoint restores the flag it was saved with, so old runs resume as they ran.
+    fused = device.type in ("cpu", "cuda")
+    optimizer = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps, fused=fused)
+    if cfg.update_compile:
+        extras["actor_sequence"] = torch.compile(actor.forward_sequence)
+        extras["critic_sequence"] = torch.compile(critic.forward_sequence)
+    return Agent(actor, critic, value_norm, optimizer, **extras)

@@ -1,16 +1,23 @@
-"""Rollout storage and generalised advantage estimation (GAE).
+"""Rollout storage, generalised advantage estimation (GAE) and the update's batch.
 
 Shapes: S rollout steps, E environments, C CAV slots per environment. The
 team reward, the critic's value and the episode flags are per environment
 (S, E); actions, log-probabilities and the alive mask are per CAV (S, E, C).
 Observations are stored as stacked containers (see :mod:`diacc.envs.observation`).
+:func:`make_batch` cuts a filled rollout into the time-major sequences the
+recurrent update replays (:class:`Batch`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
+import torch
+
+from diacc.envs.observation import stack
+from diacc.learn.models.agent_value import AGENT_KEY, agent_features
+from diacc.learn.models.inputs import to_tensors
 
 
 def compute_gae(
@@ -62,7 +69,7 @@ class Rollout:
     agent_start: np.ndarray  # (S, E, C) bool: episode start, or a new CAV in the slot at s_t
     actor_hidden: np.ndarray  # (S, E, C, H) hidden state *before* step t
     critic_hidden: np.ndarray  # (S, E, H)
-    # Filled by the rollout for the values computed after it (mappo.rollout_values):
+    # Filled by the rollout for the values computed after it (ppo.rollout_values):
     cut_states: list  # (t, env, final CriticState, final ActorObs) of each truncated episode
     next_actor_obs: object = None  # stacked ActorObs of s_S, the state after the last step
     next_critic_state: object = None  # stacked CriticState of s_S
@@ -92,3 +99,91 @@ class Rollout:
             critic_hidden=np.zeros((steps, envs, critic_h), f),
             cut_states=[],
         )
+
+
+def flatten_agents(container, n_axes: int = 2):
+    """Merge the first ``n_axes`` axes of every field: (E, C, ...) -> (E*C, ...)."""
+    cls = type(container)
+    return cls(
+        **{
+            f.name: (lambda a: a.reshape(-1, *a.shape[n_axes:]))(getattr(container, f.name))
+            for f in fields(cls)
+        }
+    )
+
+
+def chunk_time_major(arrays: np.ndarray, chunk_len: int) -> np.ndarray:
+    """(S, B, ...) -> (L, S/L * B, ...): sequences of L steps, one per (chunk, b)."""
+    steps, batch = arrays.shape[:2]
+    out = arrays.reshape(steps // chunk_len, chunk_len, batch, *arrays.shape[2:])
+    return out.swapaxes(0, 1).reshape(chunk_len, (steps // chunk_len) * batch, *arrays.shape[2:])
+
+
+@dataclass
+class Batch:
+    """A rollout cut into sequences of L = ``chunk_len`` steps, time-major.
+
+    Actor tensors are (L, B_a, ...) with B_a = chunks * E * C, ordered
+    (chunk, env, cav); critic tensors are (L, B_c, ...) with B_c = chunks * E.
+    So the agents of critic sequence j are actor sequences j*C .. j*C + C-1.
+    """
+
+    actor_obs: dict[str, torch.Tensor]
+    critic_state: dict[str, torch.Tensor]
+    actor_h0: torch.Tensor  # (B_a, H) hidden state at each chunk start
+    critic_h0: torch.Tensor  # (B_c, H)
+    actor_start: torch.Tensor  # (L, B_a) bool
+    critic_start: torch.Tensor  # (L, B_c) bool
+    actions: torch.Tensor  # (L, B_a)
+    logprobs: torch.Tensor  # (L, B_a)
+    alive: torch.Tensor  # (L, B_a) float, 0 for dead/absent CAVs
+    advantages: torch.Tensor  # (L, B_a) normalised over alive CAVs
+    returns: torch.Tensor  # (L, B_c) unnormalised; (L, B_c, C) with per-agent values
+    old_values_normalised: torch.Tensor  # (L, B_c) critic outputs at rollout time (or C)
+    # A rollout collected one update behind (overlap): the learner's own log-probs before
+    # this update (PPO's clip centre) and the weights pi_prox / pi_behaviour; else None.
+    prox_logprobs: torch.Tensor | None = None  # (L, B_a)
+    behaviour_weights: torch.Tensor | None = None  # (L, B_a)
+
+
+def make_batch(
+    roll: Rollout, advantages: np.ndarray, returns: np.ndarray, chunk_len: int, device: torch.device
+) -> Batch:
+    S, E, C = roll.actions.shape
+    L = chunk_len
+
+    def per_agent(array: np.ndarray) -> np.ndarray:  # (S, E, C, ...) -> (L, B_a, ...)
+        return chunk_time_major(array.reshape(S, E * C, *array.shape[3:]), L)
+
+    def tensor(array: np.ndarray, dtype=torch.float32) -> torch.Tensor:
+        return torch.as_tensor(array, dtype=dtype, device=device)
+
+    actor, critic = stack(roll.actor_obs), stack(roll.critic_state)
+    critic_arrays = {f.name: getattr(critic, f.name) for f in fields(critic)}
+    if advantages.ndim == 3:  # per-agent values: each CAV its own advantage
+        adv = advantages.copy()  # (S, E, C)
+        critic_arrays[AGENT_KEY] = agent_features(actor.self_state, actor.alive)  # (S, E, C, F)
+    else:
+        adv = np.repeat(advantages[:, :, None], C, axis=2)  # (S, E, C): team advantage per CAV
+    alive_adv = adv[roll.alive]
+    if alive_adv.size > 1:
+        adv = (adv - alive_adv.mean()) / (alive_adv.std() + 1e-8)
+    starts = roll.agent_start  # (S, E, C): episode starts and refilled slots
+    return Batch(
+        actor_obs=to_tensors(
+            {f.name: per_agent(getattr(actor, f.name)) for f in fields(actor)}, device
+        ),
+        critic_state=to_tensors(
+            {name: chunk_time_major(array, L) for name, array in critic_arrays.items()}, device
+        ),
+        actor_h0=tensor(roll.actor_hidden[::L].reshape(-1, roll.actor_hidden.shape[-1])),
+        critic_h0=tensor(roll.critic_hidden[::L].reshape(-1, roll.critic_hidden.shape[-1])),
+        actor_start=tensor(per_agent(starts), torch.bool),
+        critic_start=tensor(chunk_time_major(roll.episode_start, L), torch.bool),
+        actions=tensor(per_agent(roll.actions), torch.long),
+        logprobs=tensor(per_agent(roll.logprobs)),
+        alive=tensor(per_agent(roll.alive)),
+        advantages=tensor(per_agent(adv)),
+        returns=tensor(chunk_time_major(returns, L)),
+        old_values_normalised=tensor(chunk_time_major(roll.values_normalised, L)),
+    )

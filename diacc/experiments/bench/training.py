@@ -60,8 +60,7 @@ from rich.table import Table
 
 from diacc.config import PAPER_LEARNER, EnvConfig, TrainConfig, override
 from diacc.errors import DiaccError
-from diacc.learn import mappo
-from diacc.learn.mappo import train
+from diacc.learn.trainer import resolve_device, train
 
 PAPER_STEPS = 3_000_000
 #: The smaller networks of the learner-cost rows (the paper: hidden sizes "of the order 64-256").
@@ -408,7 +407,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     args = p.parse_args(argv)
     # a missing CUDA device fails before any row runs; the table names cpu or cuda, not auto
-    device = str(mappo.resolve_device(args.device))
+    device = str(resolve_device(args.device))
     if args.profile:
         from diacc.experiments.bench import update_profile
 

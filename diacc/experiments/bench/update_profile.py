@@ -3,7 +3,7 @@
 The update is the learner's whole cost and it scales with samples, so this
 profile decides what to make cheaper. It collects one real rollout (highway,
 the default scenario), cuts it into the update's batch and runs
-:func:`diacc.learn.mappo.ppo_update` once with timing hooks on the networks'
+:func:`diacc.learn.ppo.ppo_update` once with timing hooks on the networks'
 parts (embeddings, the GATs, context/fusion MLPs, cross-attention, GRU cells,
 heads). Forward time of a part runs from its forward pre-hook to its forward
 hook; backward time from its backward pre-hook (gradient of the output ready)
@@ -33,7 +33,11 @@ import torch
 from torch import nn
 
 from diacc.config import PAPER_LEARNER, EnvConfig, TrainConfig, override
-from diacc.learn import mappo
+from diacc.envs.vector import make_vector_env
+from diacc.learn import ppo
+from diacc.learn.agent import Agent, make_agent
+from diacc.learn.buffer import make_batch
+from diacc.learn.trainer import seed_everything
 from diacc.threads import set_torch_threads
 
 #: Networks' parts that are timed, by attribute path from the actor / critic.
@@ -112,7 +116,7 @@ def _part(net: nn.Module, path: str) -> nn.Module | None:
 
 
 @contextmanager
-def epoch_clock(agent: mappo.Agent, laps: list[float]) -> Iterator[None]:
+def epoch_clock(agent: Agent, laps: list[float]) -> Iterator[None]:
     """Record the wall time of each PPO epoch: ``ppo_update`` calls randperm once per epoch."""
     real = torch.randperm
     last = [time.thread_time()]
@@ -152,17 +156,17 @@ def profile(
             **options,
         },
     )
-    mappo.seed_everything(cfg.seed)
+    seed_everything(cfg.seed)
     set_torch_threads(cfg.torch_threads)
-    agent = mappo.make_agent(cfg, torch.device("cpu"))
-    envs = mappo.make_vector_env(cfg.env, n_envs, cfg.seed, cfg.vector)
+    agent = make_agent(cfg, torch.device("cpu"))
+    envs = make_vector_env(cfg.env, n_envs, cfg.seed, cfg.vector)
     try:
-        roll, next_value, _ = mappo.collect_rollout(agent, envs, cfg, 0, cfg.env.reward.tau_init)
+        roll, next_value, _ = ppo.collect_rollout(agent, envs, cfg, 0, global_step=0)
         n_cavs = envs.n_cavs
     finally:
         envs.close()
-    advantages, returns = mappo.rollout_gae(roll, next_value, cfg)
-    batch = mappo.make_batch(roll, advantages, returns, cfg.chunk_len, torch.device("cpu"))
+    advantages, returns = ppo.rollout_gae(roll, next_value, cfg)
+    batch = make_batch(roll, advantages, returns, cfg.chunk_len, torch.device("cpu"))
     timer = PartTimer()
     for net_name, net, parts in (
         ("actor", agent.actor, ACTOR_PARTS),
@@ -175,13 +179,13 @@ def profile(
     laps: list[float] = []
     start = time.thread_time()
     with epoch_clock(agent, laps):
-        mappo.ppo_update(agent, batch, cfg, n_cavs)
+        ppo.ppo_update(agent, batch, cfg, n_cavs)
     total = time.thread_time() - start
     timer.detach()
     ops = ""
     if op_table:
         with torch.profiler.profile() as prof:
-            mappo.ppo_update(agent, batch, cfg, n_cavs)
+            ppo.ppo_update(agent, batch, cfg, n_cavs)
         ops = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=op_table)
     return {
         "total_s": total,
