@@ -10,6 +10,7 @@ import pytest
 from diacc.config import AGGRESSIVE, CAUTIOUS, STYLE_PRESETS, SimConfig
 from diacc.sim.backends.base import Backend, CavCommands
 from diacc.sim.backends.highway.backend import HighwayBackend
+from diacc.sim.backends.highway.dynamics import refresh_road_facts, refresh_speed_bounds
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario
 from diacc.sim.state import validate_state
@@ -48,8 +49,8 @@ def single_lane_backend(n: int, x_m: list[float], speed_mps: list[float], styles
     backend.state.lane_to = np.zeros((1, n), dtype=np.intp)
     backend.state.y_m = backend.road.lane_center_y_m(backend.state.lane_from).astype(float)
     backend.caches.leaders_dirty[:] = True
-    backend._refresh_road_facts(np.ones(1, bool))
-    backend._refresh_speed_bounds()
+    refresh_road_facts(backend, np.ones(1, bool))
+    refresh_speed_bounds(backend)
     return backend
 
 
@@ -80,7 +81,7 @@ def test_follower_keeps_min_gap_behind_stopping_leader(style):
     backend.params.idm.min_gap_m[:] = preset.min_gap_m
     backend.params.idm.headway_s[:] = preset.time_headway_s
     backend.state.crashed[0, 0] = True
-    backend._refresh_speed_bounds()
+    refresh_speed_bounds(backend)
     backend.caches.leaders_dirty[:] = True
     gaps = []
     for _ in range(30):
@@ -107,7 +108,7 @@ def _steady_headway(style: int) -> float:
     backend.state.is_cav[0, 0] = True
     backend.state.cav_accel_mps2[0, 0] = 0.0
     backend.state.cav_target_mps[0, 0] = 15.0
-    backend._refresh_speed_bounds()
+    refresh_speed_bounds(backend)
     for _ in range(40):
         s = backend.step(CavCommands.idle(2))
     return (s.x_m[0] - s.x_m[1] - SIM.vehicle_length_m) / s.speed_mps[1]

@@ -227,20 +227,20 @@ class HighwayParams(EnvRows):
 class HighwayCaches(EnvRows):
     """Quantities derived from state and parameters, kept between sub-steps.
 
-    Each group is refreshed by one backend method, when its inputs may have
-    changed (the method's docstring says when). Those refreshed on events
+    Each group is refreshed by one function of :mod:`.dynamics`, when its inputs may have
+    changed (its docstring says when). Those refreshed on events
     only are part of a running batch's state: copy them along with it.
     """
 
-    # HighwayBackend._refresh_road_facts: at decisions and lane-change starts.
+    # dynamics.refresh_road_facts: at decisions and lane-change starts.
     desired_mps: np.ndarray  # (E, V) float64 speed limit of the vehicle's segment
     inv_desired_s_per_m: np.ndarray  # (E, V) float64 1 / max(desired_mps, 1e-3)
     end_x_m: np.ndarray  # (E, V) float64 centre x at which the destination lane ends
-    # HighwayBackend._refresh_speed_bounds: at commands, resets, contacts and arrivals.
+    # dynamics.refresh_speed_bounds: at commands, resets, contacts and arrivals.
     v_lo_mps: np.ndarray  # (E, V) float64 lowest speed a sub-step may reach
     v_hi_mps: np.ndarray  # (E, V) float64 highest speed a sub-step may reach
     half_dt_active_s: np.ndarray  # (E, V) float64 dt / 2 on the road, 0 off it
-    # HighwayBackend._refresh_leaders: in the envs marked in leaders_dirty.
+    # dynamics.refresh_leaders: in the envs marked in leaders_dirty.
     leader: np.ndarray  # (E, V) intp nearest active vehicle ahead sharing a lane
     has_leader: np.ndarray  # (E, V) bool ``leader`` is real
     guarded: np.ndarray  # (E, V) bool an HDV behind an HDV leader (last-resort guard)
