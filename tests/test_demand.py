@@ -77,11 +77,11 @@ def test_both_backends_replay_the_same_arrivals(tmp_path):
         env = BottleneckEnv(EnvConfig(backend=backend, map=str(road)))  # the map with its preset
         sim = make_backend(backend, env.road, env.config.sim)
         env.close()
-        state = sim.reset(scenario, 5)
+        state = sim.reset(scenario, 5).env(0)
         first = np.full(state.n_vehicles, -1)
         lane = np.full(state.n_vehicles, -1)
         for t in range(45):
-            state = sim.step(CavCommands.idle(state.n_vehicles))
+            state = sim.step(CavCommands.idle(state.n_vehicles)).env(0)
             new = state.active & (first < 0)
             first[new], lane[new] = t, state.lane[new]
         sim.close()

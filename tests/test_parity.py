@@ -57,10 +57,10 @@ def _pure_hdv_metrics(
     try:
         for seed in seeds:
             recorder = EpisodeRecorder(road)
-            state = backend.reset(scenario, seed)
+            state = backend.reset(scenario, seed).env(0)
             recorder.record(state)
             for _ in range(sim.episode_steps):
-                state = backend.step(CavCommands.idle(scenario.n_vehicles))
+                state = backend.step(CavCommands.idle(scenario.n_vehicles)).env(0)
                 recorder.record(state)
                 if state.arrived.all():
                     break
@@ -109,8 +109,8 @@ def test_states_share_fields_dtypes_shapes_and_conventions():
     for name in ("highway", "sumo"):
         backend = make_backend(name, road, SIM)
         try:
-            start = backend.reset(scenario, seed=7)
-            after = [backend.step(CavCommands.idle(25)) for _ in range(5)][-1]
+            start = backend.reset(scenario, seed=7).env(0)
+            after = [backend.step(CavCommands.idle(25)).env(0) for _ in range(5)][-1]
         finally:
             backend.close()
         for state in (start, after):

@@ -16,7 +16,7 @@ reward of them (:func:`~diacc.envs.reward.team_reward`,
   another in this process (any backend).
 * :class:`BatchedVectorEnv` (``highway`` only, its default): each map's envs
   are rows of one batched simulator
-  (:meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step_stacked`), with
+  (:meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step`), with
   the same results per env as E simulators (``tests/test_vector.py``). Pipes
   would cost more than they save here.
 * :class:`ProcessVectorEnv` splits the environments into one group per

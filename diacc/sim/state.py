@@ -69,6 +69,11 @@ class TrafficState:
         return int(self.vehicle_id.shape[-1])
 
     @property
+    def n_envs(self) -> int:
+        """E, the envs of a batch (its ``time_s`` is (E,))."""
+        return len(self.time_s)
+
+    @property
     def is_batch(self) -> bool:
         """A batch of envs ((E, V) arrays, (E,) ``time_s``), not one env's state."""
         return self.vehicle_id.ndim == 2
@@ -106,6 +111,30 @@ class TrafficState:
             **per_vehicle,
         )
 
+    @classmethod
+    def concat(cls, batches: Sequence[TrafficState]) -> TrafficState:
+        """One batch of the ``batches`` (same vehicle count) one after another: env ``e`` of
+        the k-th is env ``e + (envs before it)`` of the result (copies; what backends
+        return, a batch each, become one batch)."""
+        offsets = np.cumsum([0] + [b.n_envs for b in batches[:-1]])
+
+        def renumbered(name: str) -> np.ndarray:
+            rows = [getattr(b, name).copy() for b in batches]
+            for out, offset in zip(rows, offsets, strict=True):
+                out[:, 0] += offset
+            return np.concatenate(rows)
+
+        return cls(
+            time_s=np.concatenate([b.time_s for b in batches]),
+            step=np.concatenate([b.step for b in batches]),
+            collisions=renumbered("collisions"),
+            arrivals=renumbered("arrivals"),
+            **{
+                name: np.concatenate([getattr(b, name) for b in batches])
+                for name in PER_VEHICLE_FIELDS
+            },
+        )
+
     def env(self, e: int, copy: bool = True) -> TrafficState:
         """Env ``e`` of a batch as a single-env state (copies, or views of the batch's rows)."""
         per_vehicle = {
@@ -139,14 +168,14 @@ class TrafficState:
         )
 
     def set_env(self, e: int, state: TrafficState) -> None:
-        """Make env ``e`` of this batch the single-env ``state`` (in place, copies)."""
+        """Make env ``e`` of this batch the batch of one ``state`` (in place, copies)."""
         for name in PER_VEHICLE_FIELDS:
-            getattr(self, name)[e] = getattr(state, name)
-        self.time_s[e], self.step[e] = state.time_s, state.step
+            getattr(self, name)[e] = getattr(state, name)[0]
+        self.time_s[e], self.step[e] = state.time_s[0], state.step[0]
 
-        def replaced(rows: np.ndarray, own: np.ndarray) -> np.ndarray:  # env-major, as stack()
-            own = own.reshape(len(own), rows.shape[1] - 1)  # (K, 2) pairs or (A, 1) arrivals
-            own = np.hstack([np.full((len(own), 1), e, np.int32), own.astype(np.int32)])
+        def replaced(rows: np.ndarray, own: np.ndarray) -> np.ndarray:  # env-major, as concat()
+            own = own.copy()
+            own[:, 0] = e
             rows = np.concatenate([rows[rows[:, 0] != e], own])
             return rows[np.argsort(rows[:, 0], kind="stable")]
 

@@ -68,11 +68,7 @@ import numpy as np
 from diacc.config import SimConfig
 from diacc.sim.backends.base import BackendError, CavCommands
 from diacc.sim.backends.highway.dynamics import refresh_road_facts, refresh_speed_bounds, substep
-from diacc.sim.backends.highway.export import (
-    batch_traffic_state,
-    env_traffic_state,
-    reported_lane,
-)
+from diacc.sim.backends.highway.export import traffic_state
 from diacc.sim.backends.highway.insertion import (
     CooperativeCavParams,
     initial_records,
@@ -88,7 +84,7 @@ from diacc.sim.state import TrafficState
 
 __all__ = ["CooperativeCavParams", "HighwayBackend"]
 
-_EMPTY_PAIRS = np.zeros((0, 2), dtype=np.int32)
+_NO_EVENTS = np.zeros((0, 3), dtype=np.int32)
 
 
 class HighwayBackend:
@@ -97,10 +93,9 @@ class HighwayBackend:
     One object simulates ``n_envs`` environments of the same map and
     scenario, each its own block of (V,) rows in (E, V) arrays: every sub-step
     updates all vehicles of all envs at once, and nothing couples two envs.
-    The :class:`~diacc.sim.backends.base.Backend` methods :meth:`reset` and
-    :meth:`step` are the E = 1 case; a batch is reset env by env
-    (:meth:`reset_env`) and stepped together (:meth:`step_batch`), with the
-    same results per env as E separate backends (``tests/test_highway_batch.py``).
+    It is reset env by env (:meth:`reset`) and stepped together
+    (:meth:`step`), with the same results per env as E separate backends
+    (``tests/test_highway_batch.py``); E = 1 is one env.
 
     The arrays are three records (:mod:`.simstate`), created at the first
     reset: :attr:`state` (what a step changes), :attr:`params` (per-vehicle
@@ -111,7 +106,7 @@ class HighwayBackend:
     Work that the single-env simulator skips when nothing happened (leader
     search, lane-change decisions, the exact box test) is skipped only when
     it is a no-op for every env; where some envs need it, its results are
-    kept for those envs alone (:func:`_rows_where`), so skipping stays
+    kept for those envs alone (:func:`.dynamics.rows_where`), so skipping stays
     invisible in the results.
 
     A demand episode holds every vehicle of the episode (hundreds) while a few
@@ -159,28 +154,15 @@ class HighwayBackend:
         }
 
     # ------------------------------------------------------------------ API
-    def reset(self, scenario: Scenario, seed: int) -> TrafficState:
-        """Insert ``draw_population(scenario, road, seed)`` and return the t = 0 state (E = 1)."""
-        self._check_single()
-        return self.reset_env(0, scenario, seed)
-
-    def step(self, commands: CavCommands) -> TrafficState:
-        """Advance one decision step (``sim.substeps`` integration sub-steps); E = 1."""
-        self._check_single()
-        batch = CavCommands(
-            np.asarray(commands.lane_change)[None], np.asarray(commands.speed_change_mps)[None]
-        )
-        return self.step_batch(batch)[0]
-
-    def close(self) -> None:
-        """Nothing to release: the simulation is arrays in this process."""
-
-    def reset_env(self, env: int, scenario: Scenario, seed: int) -> TrafficState:
-        """Start env ``env`` of the batch anew with ``draw_population(scenario, road, seed)``.
+    def reset(self, scenario: Scenario, seed: int, env: int = 0) -> TrafficState:
+        """Start env ``env`` anew with ``draw_population(scenario, road, seed)``; its t = 0
+        state, a batch of one.
 
         The other envs are untouched. Every env must be reset once before the
-        first :meth:`step_batch`; all envs carry the same number of vehicles.
+        first :meth:`step`; all envs carry the same number of vehicles.
         """
+        if not 0 <= env < self.n_envs:
+            raise BackendError(f"env {env} is not one of the backend's {self.n_envs}")
         pop = draw_population(scenario, self.road, seed)
         n = pop.n_vehicles
         if not self._ready.any():
@@ -197,18 +179,11 @@ class HighwayBackend:
         self.caches.leaders_dirty[env] = True
         refresh_road_facts(self, only)
         refresh_speed_bounds(self)
-        return env_traffic_state(
-            self, env, reported_lane(self), np.zeros(n), _EMPTY_PAIRS, np.zeros(0, np.int32)
-        )
+        return traffic_state(self, env, np.zeros((1, n)), _NO_EVENTS, _NO_EVENTS[:, :2])
 
-    def step_batch(self, commands: CavCommands) -> list[TrafficState]:
-        """Advance every env one decision step; ``commands`` arrays are (E, V); a state per env."""
-        batch = self.step_stacked(commands)
-        return [batch.env(e) for e in range(self.n_envs)]
-
-    def step_stacked(self, commands: CavCommands) -> TrafficState:
-        """Advance every env one decision step; ``commands`` arrays are (E, V); one (E, V)
-        batch state (:mod:`diacc.sim.state`), what :class:`diacc.envs.batch.EnvBatch` steps on."""
+    def step(self, commands: CavCommands) -> TrafficState:
+        """Advance every env one decision step (``sim.substeps`` integration sub-steps);
+        ``commands`` arrays are (E, V), the state an (E, V) batch (:mod:`diacc.sim.state`)."""
         state, params, caches = self.state, self.params, self.caches
         if not self._ready.all():
             raise BackendError("step before every env of the batch was reset")
@@ -243,9 +218,11 @@ class HighwayBackend:
             else np.zeros((0, 3), np.int32)
         )  # (K, 3) env, i, j
         contacts[:, 1:] += lo
-        return batch_traffic_state(
-            self, accel, contacts, np.argwhere(new_arrivals).astype(np.int32).reshape(-1, 2)
-        )
+        arrivals = np.argwhere(new_arrivals).astype(np.int32).reshape(-1, 2)  # (A, 2) env, i
+        return traffic_state(self, None, accel, contacts, arrivals)
+
+    def close(self) -> None:
+        """Nothing to release: the simulation is arrays in this process."""
 
     def _step_vehicles(self, lane_cmd: np.ndarray, dv_cmd: np.ndarray) -> np.ndarray:
         """The sub-steps of a decision step for the vehicles of :attr:`state` (all of them,
@@ -326,14 +303,8 @@ class HighwayBackend:
         return new_contacts
 
     # ------------------------------------------------------------ internals
-    def _check_single(self) -> None:
-        if self.n_envs != 1:
-            raise BackendError(
-                f"a batch of {self.n_envs} envs is reset with reset_env and stepped with step_batch"
-            )
-
     def _allocate(self, n: int) -> None:
-        """The (E, V) records of the batch (every row is written by :meth:`reset_env`)
+        """The (E, V) records of the batch (every row is written by :meth:`reset`)
         and the constants that follow from the batch's shape."""
         n_envs = self.n_envs
         self.state = HighwayState.zeros(n_envs, n)

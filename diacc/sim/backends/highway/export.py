@@ -25,62 +25,38 @@ def reported_lane(hw: HighwayBackend) -> np.ndarray:
     return np.minimum(np.maximum(np.floor(state.y_m / hw.road.lane_width_m), lo), hi)
 
 
-def env_traffic_state(
+def traffic_state(
     hw: HighwayBackend,
-    e: int,
-    lane: np.ndarray,
+    env: int | None,
     accel_mps2: np.ndarray,
     collisions: np.ndarray,
     arrivals: np.ndarray,
 ) -> TrafficState:
-    """Env ``e``'s TrafficState (copies of its rows); ``lane`` is :func:`reported_lane`."""
+    """Every env's TrafficState as one (E, V) batch, or env ``env``'s alone as a batch of
+    one (copies); ``accel_mps2`` is (E, V) (or (1, V)), ``collisions`` and ``arrivals``
+    are (K, 3) rows (env, i, j) and (A, 2) rows (env, i) of the batch returned."""
     state, params = hw.state, hw.params
-    n = state.x_m.shape[1]
+    rows = slice(None) if env is None else slice(env, env + 1)
+    x_m = state.x_m[rows]
+    shape = x_m.shape
+    lane = reported_lane(hw)[rows]
     return TrafficState(
-        time_s=float(state.time_s[e]),
-        step=int(state.step_count[e]),
-        vehicle_id=np.arange(n, dtype=np.int32),
-        x_m=state.x_m[e].copy(),
-        y_m=state.y_m[e].copy(),
-        speed_mps=state.speed_mps[e].copy(),
-        accel_mps2=np.asarray(accel_mps2, dtype=np.float64).copy(),
-        heading_rad=state.heading_rad[e].copy(),
-        lane=lane[e].astype(np.int16),
-        segment=hw.tables.segment_of(state.x_m[e]).astype(np.int16),
-        length_m=np.full(n, hw.sim.vehicle_length_m),
-        width_m=np.full(n, hw.sim.vehicle_width_m),
-        is_cav=params.reported_cav[e].copy(),
-        style=params.style[e].copy(),
-        active=state.active[e].copy(),
-        arrived=state.arrived[e].copy(),
-        collisions=collisions.astype(np.int32).reshape(-1, 2),
-        arrivals=arrivals.astype(np.int32),
-    )
-
-
-def batch_traffic_state(
-    hw: HighwayBackend, accel_mps2: np.ndarray, collisions: np.ndarray, arrivals: np.ndarray
-) -> TrafficState:
-    """Every env's TrafficState as one (E, V) batch (copies); rows (env, i, j) and (env, i)."""
-    state, params = hw.state, hw.params
-    shape = state.x_m.shape
-    return TrafficState(
-        time_s=state.time_s.copy(),
-        step=state.step_count.copy(),
+        time_s=state.time_s[rows].copy(),
+        step=state.step_count[rows].copy(),
         vehicle_id=np.broadcast_to(np.arange(shape[1], dtype=np.int32), shape).copy(),
-        x_m=state.x_m.copy(),
-        y_m=state.y_m.copy(),
-        speed_mps=state.speed_mps.copy(),
+        x_m=x_m.copy(),
+        y_m=state.y_m[rows].copy(),
+        speed_mps=state.speed_mps[rows].copy(),
         accel_mps2=np.asarray(accel_mps2, dtype=np.float64).copy(),
-        heading_rad=state.heading_rad.copy(),
-        lane=reported_lane(hw).astype(np.int16),
-        segment=hw.tables.segment_of(state.x_m).astype(np.int16),
+        heading_rad=state.heading_rad[rows].copy(),
+        lane=lane.astype(np.int16),
+        segment=hw.tables.segment_of(x_m).astype(np.int16),
         length_m=np.full(shape, hw.sim.vehicle_length_m),
         width_m=np.full(shape, hw.sim.vehicle_width_m),
-        is_cav=params.reported_cav.copy(),
-        style=params.style.copy(),
-        active=state.active.copy(),
-        arrived=state.arrived.copy(),
+        is_cav=params.reported_cav[rows].copy(),
+        style=params.style[rows].copy(),
+        active=state.active[rows].copy(),
+        arrived=state.arrived[rows].copy(),
         collisions=collisions,
         arrivals=arrivals,
     )

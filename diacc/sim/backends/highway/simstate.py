@@ -17,7 +17,7 @@ All three share the row operations of :class:`EnvRows`: :meth:`~EnvRows.copy`
 (a deep copy, so a batch can be checkpointed and restored exactly),
 :meth:`~EnvRows.env` (one env as an E = 1 record) and
 :meth:`~EnvRows.set_env` (write one env's row of every field, which is how
-``reset_env`` starts an env: a field cannot be forgotten, since the record's
+``reset`` starts an env: a field cannot be forgotten, since the record's
 constructor needs them all). Arrays are (E, V) unless the field's comment
 says otherwise; E is the batch size, V the vehicles per env.
 """
@@ -157,7 +157,7 @@ class HighwayState(EnvRows):
 
     @classmethod
     def zeros(cls, n_envs: int, n_vehicles: int) -> HighwayState:
-        """A batch record before any reset (``reset_env`` writes every row)."""
+        """A batch record before any reset (a reset writes every row of its env)."""
         shape = (n_envs, n_vehicles)
         f64, flag, lane = np.zeros(shape), np.zeros(shape, bool), np.zeros(shape, np.intp)
         return cls(
@@ -205,7 +205,7 @@ class HighwayParams(EnvRows):
 
     @classmethod
     def zeros(cls, n_envs: int, n_vehicles: int, idm_delta: float) -> HighwayParams:
-        """A batch record before any reset (``reset_env`` writes every row)."""
+        """A batch record before any reset (a reset writes every row of its env)."""
         shape = (n_envs, n_vehicles)
         return cls(
             idm=IdmParams(
