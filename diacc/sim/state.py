@@ -135,6 +135,24 @@ class TrafficState:
             },
         )
 
+    def tile(self, k: int) -> TrafficState:
+        """``k`` copies of this batch one after another: env ``e`` of copy ``j`` is env
+        ``j E + e`` (one call over every candidate of a batch; :mod:`diacc.envs.action_mask`)."""
+        n_envs = self.n_envs
+
+        def events(rows: np.ndarray) -> np.ndarray:  # (k R, ...) env-major, as concat()
+            out = np.tile(rows, (k, 1))
+            out[:, 0] += np.repeat(np.arange(k, dtype=np.int32) * n_envs, len(rows))
+            return out
+
+        return TrafficState(
+            time_s=np.tile(self.time_s, k),
+            step=np.tile(self.step, k),
+            collisions=events(self.collisions),
+            arrivals=events(self.arrivals),
+            **{name: np.tile(getattr(self, name), (k, 1)) for name in PER_VEHICLE_FIELDS},
+        )
+
     def env(self, e: int, copy: bool = True) -> TrafficState:
         """Env ``e`` of a batch as a single-env state (copies, or views of the batch's rows)."""
         per_vehicle = {
