@@ -2,8 +2,8 @@
 
 With the paper's literal reading the actor samples any of the 5 actions and
 PSAR overrides the unsafe ones, so the policy gradient is taken on actions
-that never happened (measured: PSAR rewrote 27-41 % of the shipped agents'
-decisions). Masking them out of the distribution before sampling makes the
+that never happened (how often PSAR rewrote the shipped agents' decisions:
+docs/concepts/learning-options.md). Masking them out of the distribution before sampling makes the
 sampled action the executed one and lets greedy evaluation pick the best
 *allowed* action instead of repeating a suppressed one (the deadlock at lane
 ends). The mask runs PSAR (:func:`diacc.envs.psar.psar`, unchanged) once on all

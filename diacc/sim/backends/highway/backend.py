@@ -69,13 +69,9 @@ from diacc.config import SimConfig
 from diacc.sim.backends.base import BackendError, CavCommands
 from diacc.sim.backends.highway.dynamics import refresh_road_facts, refresh_speed_bounds, substep
 from diacc.sim.backends.highway.export import traffic_state
-from diacc.sim.backends.highway.insertion import (
-    CooperativeCavParams,
-    initial_records,
-    insert_due,
-)
+from diacc.sim.backends.highway.insertion import initial_records, insert_due
 from diacc.sim.backends.highway.lanes import apply_cav_commands, decide_lane_changes
-from diacc.sim.backends.highway.models import HighwayModel
+from diacc.sim.backends.highway.models import CooperativeCavParams, HighwayModel
 from diacc.sim.backends.highway.road import LaneTables, build_road_network
 from diacc.sim.backends.highway.simstate import HighwayCaches, HighwayParams, HighwayState
 from diacc.sim.maps import Map

@@ -8,15 +8,11 @@ up to date; each docstring says on which events.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from diacc.sim.backends.highway.models import box_contacts
+from diacc.sim.backends.highway.simstate import HighwaySim
 from diacc.sim.state import flat_offsets, take, take_last
-
-if TYPE_CHECKING:
-    from diacc.sim.backends.highway.backend import HighwayBackend
 
 
 def rows_where(mask: np.ndarray, new: np.ndarray, old: np.ndarray) -> np.ndarray:
@@ -24,7 +20,7 @@ def rows_where(mask: np.ndarray, new: np.ndarray, old: np.ndarray) -> np.ndarray
     return np.where(mask.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
 
 
-def refresh_road_facts(hw: HighwayBackend, envs: np.ndarray) -> None:
+def refresh_road_facts(hw: HighwaySim, envs: np.ndarray) -> None:
     """Per-vehicle desired speed and end of the destination lane, in the (E,) ``envs``.
 
     Refreshed at every decision and lane-change start rather than every
@@ -41,7 +37,7 @@ def refresh_road_facts(hw: HighwayBackend, envs: np.ndarray) -> None:
     caches.inv_desired_s_per_m = 1.0 / np.maximum(caches.desired_mps, 1e-3)
 
 
-def refresh_speed_bounds(hw: HighwayBackend) -> None:
+def refresh_speed_bounds(hw: HighwaySim) -> None:
     """Per-vehicle speed window of a sub-step: [0, inf) for HDVs, up to / down to
     the commanded target for CAVs, frozen for wrecked and arrived vehicles.
 
@@ -58,9 +54,7 @@ def refresh_speed_bounds(hw: HighwayBackend) -> None:
     caches.half_dt_active_s = np.where(state.active, 0.5 * hw.dt_s, 0.0)
 
 
-def idm_fast(
-    hw: HighwayBackend, v: np.ndarray, gap_m: np.ndarray, lead_v: np.ndarray
-) -> np.ndarray:
+def idm_fast(hw: HighwaySim, v: np.ndarray, gap_m: np.ndarray, lead_v: np.ndarray) -> np.ndarray:
     """:func:`idm_accel` with per-vehicle constants folded in (the sub-step hot path)."""
     params, caches = hw.params, hw.caches
     p = params.idm
@@ -71,7 +65,7 @@ def idm_fast(
     return p.accel_mps2 * (1.0 - free - ratio * ratio)
 
 
-def refresh_leaders(hw: HighwayBackend) -> None:
+def refresh_leaders(hw: HighwaySim) -> None:
     """Leader of every vehicle in the envs marked dirty: nearest active vehicle
     ahead sharing a lane.
 
@@ -121,7 +115,7 @@ def refresh_leaders(hw: HighwayBackend) -> None:
     caches.leaders_dirty = np.zeros_like(caches.leaders_dirty)
 
 
-def substep(hw: HighwayBackend) -> np.ndarray:
+def substep(hw: HighwaySim) -> np.ndarray:
     """Integrate one sub-step for all vehicles; return the (E, V, V) contact matrix.
 
     (``np.count_nonzero`` tests a bool array for any True at a third of the cost

@@ -7,17 +7,13 @@ with the next step.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
+from diacc.sim.backends.highway.simstate import HighwaySim
 from diacc.sim.state import TrafficState
 
-if TYPE_CHECKING:
-    from diacc.sim.backends.highway.backend import HighwayBackend
 
-
-def reported_lane(hw: HighwayBackend) -> np.ndarray:
+def reported_lane(hw: HighwaySim) -> np.ndarray:
     """(E, V) reported lane: the one the centre is in, within the manoeuvre's two."""
     state = hw.state
     lo = np.minimum(state.lane_from, state.lane_to)
@@ -26,7 +22,7 @@ def reported_lane(hw: HighwayBackend) -> np.ndarray:
 
 
 def traffic_state(
-    hw: HighwayBackend,
+    hw: HighwaySim,
     env: int | None,
     accel_mps2: np.ndarray,
     collisions: np.ndarray,

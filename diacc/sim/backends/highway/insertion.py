@@ -9,39 +9,16 @@ scenario vehicles wait *pending* at their slot until they depart
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from diacc.config import STYLE_PRESETS
 from diacc.sim.backends.highway.dynamics import refresh_road_facts, refresh_speed_bounds
 from diacc.sim.backends.highway.models import IdmParams
-from diacc.sim.backends.highway.simstate import HighwayParams, HighwayState
+from diacc.sim.backends.highway.simstate import HighwayParams, HighwaySim, HighwayState
 from diacc.sim.scenario import Population
 
-if TYPE_CHECKING:
-    from diacc.sim.backends.highway.backend import HighwayBackend
 
-
-@dataclass(frozen=True)
-class CooperativeCavParams:
-    """IDM/MOBIL image of a CACC CAV with cooperative lane changes (cooperative baseline).
-
-    The time headway and minimum gap are the CAV vType's (``CavParams``), which
-    is also what SUMO's CACC model is given on the ``sumo`` backend, so the
-    baseline means the same on both; politeness 1 weighs the followers' gain as
-    much as the own (SUMO's ``lcCooperative = 1``). Acceleration limits are the
-    CAVs' (``SimConfig.cav``).
-    """
-
-    time_headway_s: float = 1.0
-    min_gap_m: float = 1.0
-    politeness: float = 1.0
-    lc_gain_threshold_mps2: float = 0.1
-
-
-def initial_records(hw: HighwayBackend, pop: Population) -> tuple[HighwayParams, HighwayState]:
+def initial_records(hw: HighwaySim, pop: Population) -> tuple[HighwayParams, HighwayState]:
     """The E = 1 parameter and state records of population ``pop`` at t = 0."""
     n = pop.n_vehicles
     styles = STYLE_PRESETS[hw.sim.style_preset]
@@ -114,7 +91,7 @@ def initial_records(hw: HighwayBackend, pop: Population) -> tuple[HighwayParams,
     return params, state
 
 
-def insert_due(hw: HighwayBackend, now_s: np.ndarray) -> None:
+def insert_due(hw: HighwaySim, now_s: np.ndarray) -> None:
     """Let pending vehicles whose departure time ``now_s`` (E,) has come enter where
     their lane's entry is free (module docstring, "Departure")."""
     state, params, caches = hw.state, hw.params, hw.caches

@@ -8,8 +8,6 @@ every ``decision_period_s`` (:func:`decide_lane_changes`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from diacc.sim.backends.highway.dynamics import (
@@ -18,14 +16,12 @@ from diacc.sim.backends.highway.dynamics import (
     rows_where,
 )
 from diacc.sim.backends.highway.models import idm_accel
+from diacc.sim.backends.highway.simstate import HighwaySim
 from diacc.sim.kinematics import lane_change_reach_m, safe_gap_m
 from diacc.sim.state import take, take_last
 
-if TYPE_CHECKING:
-    from diacc.sim.backends.highway.backend import HighwayBackend
 
-
-def apply_cav_commands(hw: HighwayBackend, lane_cmd: np.ndarray, dv_cmd: np.ndarray) -> None:
+def apply_cav_commands(hw: HighwaySim, lane_cmd: np.ndarray, dv_cmd: np.ndarray) -> None:
     """Fix each CAV's acceleration for the step and start commanded lane changes."""
     state = hw.state
     seg = hw.tables.segment_of(hw.state.x_m)
@@ -52,9 +48,7 @@ def apply_cav_commands(hw: HighwayBackend, lane_cmd: np.ndarray, dv_cmd: np.ndar
     start_changes(hw, ok, dest_c, hw.sim.step_s)
 
 
-def start_changes(
-    hw: HighwayBackend, start: np.ndarray, dest: np.ndarray, duration_s: float
-) -> None:
+def start_changes(hw: HighwaySim, start: np.ndarray, dest: np.ndarray, duration_s: float) -> None:
     state, caches = hw.state, hw.caches
     width = hw.road.lane_width_m
     direction = np.sign(dest - state.lane_from)
@@ -68,12 +62,12 @@ def start_changes(
         caches.moving = rows_where(started, moving, caches.moving)
 
 
-def peers(hw: HighwayBackend) -> np.ndarray:
+def peers(hw: HighwaySim) -> np.ndarray:
     """(E, V, V) bool: j is another vehicle on the road."""
     return hw.not_self & hw.state.active[:, None, :]
 
 
-def decide_lane_changes(hw: HighwayBackend) -> None:
+def decide_lane_changes(hw: HighwaySim) -> None:
     """MOBIL for HDVs, forced merges for vehicles in ending lanes, yielding followers.
 
     All vehicles and all three lanes (right, own, left) are evaluated at

@@ -27,11 +27,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
-from diacc.sim.backends.highway.models import IdmParams
+from diacc.config import SimConfig
+from diacc.sim.backends.highway.models import CooperativeCavParams, HighwayModel, IdmParams
+from diacc.sim.backends.highway.road import LaneTables
+from diacc.sim.maps import Map
 
 
 def _map_arrays(value: Any, fn: Callable[[np.ndarray], np.ndarray]) -> Any:
@@ -271,3 +274,27 @@ class HighwayCaches(EnvRows):
             leaders_dirty=np.ones(n_envs, bool),
             heading_nonzero=False,
         )
+
+
+class HighwaySim(Protocol):
+    """What the highway backend's seams (:mod:`.insertion`, :mod:`.lanes`,
+    :mod:`.dynamics`, :mod:`.export`) read and write of it: the records, the
+    settings, and the constant arrays of the current vehicle window."""
+
+    road: Map
+    sim: SimConfig
+    model: HighwayModel
+    cooperative: CooperativeCavParams
+    cav_mode: str
+    tables: LaneTables
+    n_envs: int
+    dt_s: float
+    state: HighwayState
+    params: HighwayParams
+    caches: HighwayCaches
+    stats: dict[str, np.ndarray]  # (E,) int64 event counters each
+    no_contact: np.ndarray  # (E, W, W) bool, all False
+    not_self: np.ndarray  # (W, W) bool, j is not i
+    own_index: np.ndarray  # (E, W) each vehicle's own index
+    sides: np.ndarray  # (3,) lane offsets right, own, left
+    min_accel_mps2: float

@@ -1,11 +1,11 @@
 """Compact encoding of the per-step messages between SumoBackend and its worker.
 
-A decision step is one round trip over the worker's pipe. Pickling and
-unpickling the reply, a :class:`~diacc.sim.state.TrafficState` dataclass of 16
-small arrays, cost 60-100 us per step (measured: about as much as all the
-Python work of the worker's step), and the command tuple another 10-25 us;
-this encoding costs about 15 and 2 us. So the two messages of every step
-travel as raw bytes:
+A decision step is one round trip over the worker's pipe. Pickling the
+reply, a :class:`~diacc.sim.state.TrafficState` dataclass of 16 small arrays,
+and the command tuple costs about as much as all the Python work of the
+worker's step; raw bytes cost a fraction of that (the SUMO backend's overhead
+is in docs/benchmarks, "SUMO backend vs raw libsumo loop"). So the two
+messages of every step travel as raw bytes:
 
 * step request: :data:`STEP_REQUEST`, then ``lane_change`` as int8 and
   ``speed_change_mps`` as float64, one value per vehicle;
