@@ -57,11 +57,13 @@ def _pure_hdv_metrics(
     try:
         for seed in seeds:
             recorder = EpisodeRecorder(road)
-            state = backend.reset(scenario, seed).env(0)
-            recorder.record(state)
+            batch = backend.reset(scenario, seed)
+            recorder.record(batch)
+            state = batch.env(0)
             for _ in range(sim.episode_steps):
-                state = backend.step(CavCommands.idle(scenario.n_vehicles)).env(0)
-                recorder.record(state)
+                batch = backend.step(CavCommands.idle(scenario.n_vehicles))
+                recorder.record(batch)
+                state = batch.env(0)
                 if state.arrived.all():
                     break
             summary = recorder.summary()

@@ -207,6 +207,9 @@ class BottleneckEnv(ParallelEnv):
         #: ``tau_init`` unless set; a trainer that anneals tau makes its own team reward.
         self.temperature = self.config.reward.tau_init
         self.state_: TrafficState | None = None
+        #: The last step as the batch of one it is (:class:`~diacc.envs.batch.Transition`):
+        #: what evaluation records, without unbatching and rebatching it.
+        self.transition: Transition | None = None
         self._viewer = None  # diacc.sim.viewer.Viewer, made by the first render()
         self._window = None  # diacc.sim.viewer.Window of render_mode "human"
         self._recorder: EpisodeRecorder | None = None  # episode metrics of the dict API
@@ -229,6 +232,7 @@ class BottleneckEnv(ParallelEnv):
         self._seed = seed = check_seed(seed)
         self.batch.reset([0], [seed])
         self.state_ = self.batch.state.traffic.env(0)
+        self.transition = None
         self.agents = self._live_agents(self.state_)
         self._recorder = None  # the dict API's reset() starts one; the batched API needs none
         actor, critic = self.batch.observe()
@@ -242,6 +246,7 @@ class BottleneckEnv(ParallelEnv):
         out = self.batch.step(check_action_array(actions, self.n_cavs)[None])
         if out.crashed[0]:
             raise self.batch.sims.errors[0]
+        self.transition = out
         result = StepResult.of(out, 0)
         self.state_ = result.state
         self._over = result.terminated or result.truncated
@@ -265,6 +270,12 @@ class BottleneckEnv(ParallelEnv):
         "unserved_cavs", "CAVs on the road without a slot (they drive themselves).", int
     )
     steps = _env_zero("steps", "Decision steps of the episode so far.", int)
+
+    @property
+    def traffic(self) -> TrafficState:
+        """The current state as the batch of one the env steps ((1, V) arrays; :attr:`state_`
+        is the same as one env's (V,) arrays)."""
+        return self.batch.state.traffic
 
     @property
     def neighbours(self) -> tuple[np.ndarray, np.ndarray]:
@@ -307,7 +318,7 @@ class BottleneckEnv(ParallelEnv):
         self._recorder = EpisodeRecorder(
             self.road, self.config.events, self.config.scenario.warmup_s
         )
-        self._recorder.record(self.state_)
+        self._recorder.record(self.traffic)
         observations = self.agent_observations(actor_obs)
         if self.render_mode == "human":
             self.render()
@@ -327,7 +338,7 @@ class BottleneckEnv(ParallelEnv):
             batch[index[agent]] = action
         out = self.step_arrays(batch)
         if self._recorder is not None:
-            self._recorder.record(out.state, psar=out.psar)
+            self._recorder.record(self.transition.state, psar=self.transition.decision.psar)
         acting = list(self.agents)
         ended = out.terminated or out.truncated
         # CAVs that took a slot in this step join (PettingZoo lets agents appear).
