@@ -23,12 +23,16 @@ not entered yet is *pending*: neither active nor arrived, at its entry slot
 Batches
 -------
 A batch of E environments of the same scenario is one TrafficState whose
-per-vehicle arrays carry a leading env axis, (E, V), each env its own block
-(:meth:`TrafficState.stack`, :meth:`TrafficState.env`). Its ``time_s`` and
-``step`` are (E,) arrays, ``collisions`` rows are (env, i, j) and
-``arrivals`` rows (env, i). Functions that read states index vehicles with
-:func:`take` and broadcast over leading axes, so the same code serves one
-state and a batch.
+per-vehicle arrays carry a leading env axis, (E, V), each env its own block.
+Its ``time_s`` and ``step`` are (E,) arrays, ``collisions`` rows are
+(env, i, j) and ``arrivals`` rows (env, i). Every backend returns batches
+(E = 1 for one env; :mod:`diacc.sim.backends.base`); they join with
+:meth:`TrafficState.concat`, split with :meth:`TrafficState.envs`. One env's
+state with (V,) arrays, a scalar ``time_s`` and (K, 2) ``collisions``
+(:meth:`TrafficState.env`, :meth:`TrafficState.stack` back) is the view the
+PettingZoo env, the viewer and the tutorials show. Functions that read states
+index vehicles with :func:`take` and broadcast over leading axes, so the same
+code serves both.
 """
 
 from __future__ import annotations
