@@ -40,7 +40,7 @@ def episode():
     road = preset_road(load_map(config.map), config.sim.style_preset)
     batch = HighwayBackend(road, config.sim, n_envs=N_ENVS)
     scenario = Scenario.with_cavs(N_VEHICLES, N_CAVS)
-    states = [batch.reset_env(e, scenario, 100 + e) for e in range(N_ENVS)]
+    states = [batch.reset(scenario, 100 + e, env=e).env(0) for e in range(N_ENVS)]
     builders = [ObservationBuilder(road, config.obs, config.sim.episode_steps) for _ in states]
     for b, s in zip(builders, states, strict=True):
         b.reset(s)
@@ -48,7 +48,8 @@ def episode():
     history = [states]
     for _ in range(12):
         lane = rng.integers(-1, 2, (N_ENVS, N_VEHICLES)).astype(np.int8)
-        states = batch.step_batch(CavCommands(lane, rng.normal(0, 2, (N_ENVS, N_VEHICLES))))
+        stepped = batch.step(CavCommands(lane, rng.normal(0, 2, (N_ENVS, N_VEHICLES))))
+        states = [stepped.env(e) for e in range(N_ENVS)]
         for b, s in zip(builders, states, strict=True):
             b.push(s)
         history.append(states)
@@ -118,7 +119,7 @@ def test_observations_of_a_batch(episode):
     fresh = ObservationBuilder(road, config.obs, config.sim.episode_steps)
     fresh.reset(history[0][0])
     state = TrafficState.stack(history[-1])
-    state.set_env(1, history[0][0])
+    state.set_env(1, TrafficState.stack([history[0][0]]))
     batched.reset_rows(np.array([1]), state)
     actor, critic = batched.actor(cav_index, memory, last), batched.critic()
     assert_rows_equal(actor, critic, range(N_ENVS), [builders[0], fresh, builders[2]])

@@ -23,6 +23,7 @@ from diacc.learn.ppo import collect_rollout
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import parse_map
 from diacc.sim.scenario import Demand, Scenario, draw_population
+from diacc.sim.state import TrafficState
 
 BACKENDS = ["highway", "sumo"]
 
@@ -78,11 +79,11 @@ def test_both_backends_replay_the_same_arrivals(tmp_path):
         env = BottleneckEnv(EnvConfig(backend=backend, map=str(road)))  # the map with its preset
         sim = make_backend(backend, env.road, env.config.sim)
         env.close()
-        state = sim.reset(scenario, 5)
+        state = sim.reset(scenario, 5).env(0)
         first = np.full(state.n_vehicles, -1)
         lane = np.full(state.n_vehicles, -1)
         for t in range(45):
-            state = sim.step(CavCommands.idle(state.n_vehicles))
+            state = sim.step(CavCommands.idle(state.n_vehicles)).env(0)
             new = state.active & (first < 0)
             first[new], lane[new] = t, state.lane[new]
         sim.close()
@@ -228,7 +229,9 @@ def test_episode_that_ends_in_the_warmup_has_an_empty_summary():
     from diacc.sim.maps import load_map
 
     recorder = EpisodeRecorder(preset_road(load_map("train-50"), "realistic"), warmup_s=10.0)
-    recorder.record(make_state([50, 10], [0, 1], segment=[0, 0], time_s=5, step=5))
+    recorder.record(
+        TrafficState.stack([make_state([50, 10], [0, 1], segment=[0, 0], time_s=5, step=5)])
+    )
     summary = recorder.summary()
     assert summary.n_vehicles == 0 and math.isnan(summary.mean_speed_mps)
     assert len(recorder.speed_samples().speed_mps) == 0
@@ -331,11 +334,23 @@ def test_flows_count_the_window_after_the_warm_up():
     road = preset_road(load_map("train-50"), "realistic")  # reduction ends at 800 m
     recorder = EpisodeRecorder(road, warmup_s=10.0)
     pending = dict(active=[True, True, False], speed_mps=25.0)
-    recorder.record(make_state([850, 700, 10], [0, 0, 1], segment=[2, 1, 0], **pending))
     recorder.record(
-        make_state([900, 790, 10], [0, 0, 1], segment=[2, 1, 0], time_s=10, step=10, **pending)
+        TrafficState.stack([make_state([850, 700, 10], [0, 0, 1], segment=[2, 1, 0], **pending)])
     )
-    recorder.record(make_state([950, 810, 60], [0, 0, 1], segment=[2, 2, 0], time_s=20, step=20))
+    recorder.record(
+        TrafficState.stack(
+            [
+                make_state(
+                    [900, 790, 10], [0, 0, 1], segment=[2, 1, 0], time_s=10, step=10, **pending
+                )
+            ]
+        )
+    )
+    recorder.record(
+        TrafficState.stack(
+            [make_state([950, 810, 60], [0, 0, 1], segment=[2, 2, 0], time_s=20, step=20)]
+        )
+    )
     m = recorder.summary()
     assert m.throughput_vph == pytest.approx(3600.0 / 10.0)  # vehicle 1 alone, in 10 s
     assert m.n_vehicles == 3

@@ -390,16 +390,20 @@ def test_highway_cooperative_cavs_drive_themselves():
     scenario = SMALL.scenario()
     coop = [HighwayBackend(road, SimConfig(cav_mode="cooperative")) for _ in range(2)]
     commanded = HighwayBackend(road, sim)
-    states = [b.reset(scenario, 7) for b in (*coop, commanded)]
+    states = [b.reset(scenario, 7).env(0) for b in (*coop, commanded)]
     cav = states[0].is_cav
     assert cav.sum() == scenario.n_cavs and np.array_equal(states[2].is_cav, cav)
     rng = np.random.default_rng(0)
     for _ in range(8):
         idle = CavCommands.idle(cav.size)
         noisy = CavCommands(
-            rng.integers(-1, 2, cav.size).astype(np.int8), rng.normal(0, 2, cav.size)
+            rng.integers(-1, 2, cav.size).astype(np.int8)[None], rng.normal(0, 2, cav.size)[None]
         )
-        states = [coop[0].step(idle), coop[1].step(noisy), commanded.step(idle)]
+        states = [
+            coop[0].step(idle).env(0),
+            coop[1].step(noisy).env(0),
+            commanded.step(idle).env(0),
+        ]
     assert np.array_equal(states[0].x_m, states[1].x_m)  # cooperative CAVs ignore commands
     assert np.array_equal(states[0].is_cav, cav)  # and are still reported as CAVs
     # Commanded CAVs hold their speed when idle; cooperative ones accelerate on their own.

@@ -10,6 +10,7 @@ import pytest
 from diacc.config import AGGRESSIVE, CAUTIOUS, STYLE_PRESETS, SimConfig
 from diacc.sim.backends.base import Backend, CavCommands
 from diacc.sim.backends.highway.backend import HighwayBackend
+from diacc.sim.backends.highway.dynamics import refresh_road_facts, refresh_speed_bounds
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario
 from diacc.sim.state import validate_state
@@ -25,9 +26,9 @@ def make(map_name: str = "train-25") -> HighwayBackend:
 def run_hdv_episode(map_name: str, n: int, seed: int, max_steps: int = 200):
     """Pure-HDV episode until all arrived; returns (backend, states)."""
     backend = make(map_name)
-    states = [backend.reset(Scenario.with_cavs(n, 0), seed)]
+    states = [backend.reset(Scenario.with_cavs(n, 0), seed).env(0)]
     for _ in range(max_steps):
-        states.append(backend.step(CavCommands.idle(n)))
+        states.append(backend.step(CavCommands.idle(n)).env(0))
         if not states[-1].active.any():
             break
     return backend, states
@@ -48,18 +49,18 @@ def single_lane_backend(n: int, x_m: list[float], speed_mps: list[float], styles
     backend.state.lane_to = np.zeros((1, n), dtype=np.intp)
     backend.state.y_m = backend.road.lane_center_y_m(backend.state.lane_from).astype(float)
     backend.caches.leaders_dirty[:] = True
-    backend._refresh_road_facts(np.ones(1, bool))
-    backend._refresh_speed_bounds()
+    refresh_road_facts(backend, np.ones(1, bool))
+    refresh_speed_bounds(backend)
     return backend
 
 
 def test_protocol_and_state_valid():
     backend = make()
     assert isinstance(backend, Backend) and backend.name == "highway"
-    state = backend.reset(Scenario(), 3)
+    state = backend.reset(Scenario(), 3).env(0)
     validate_state(state)
     assert state.is_cav.sum() == 10 and state.collisions.shape == (0, 2)
-    state = backend.step(CavCommands.idle(25))
+    state = backend.step(CavCommands.idle(25)).env(0)
     validate_state(state)
     assert state.step == 1 and state.time_s == pytest.approx(SIM.step_s)
 
@@ -67,7 +68,7 @@ def test_protocol_and_state_valid():
 def test_idm_free_road_reaches_desired_speed():
     backend = single_lane_backend(1, [10.0], [5.0])
     for _ in range(40):
-        state = backend.step(CavCommands.idle(1))
+        state = backend.step(CavCommands.idle(1)).env(0)
     assert state.speed_mps[0] == pytest.approx(25.0, abs=0.6)
 
 
@@ -80,11 +81,11 @@ def test_follower_keeps_min_gap_behind_stopping_leader(style):
     backend.params.idm.min_gap_m[:] = preset.min_gap_m
     backend.params.idm.headway_s[:] = preset.time_headway_s
     backend.state.crashed[0, 0] = True
-    backend._refresh_speed_bounds()
+    refresh_speed_bounds(backend)
     backend.caches.leaders_dirty[:] = True
     gaps = []
     for _ in range(30):
-        s = backend.step(CavCommands.idle(2))
+        s = backend.step(CavCommands.idle(2)).env(0)
         gaps.append(s.x_m[0] - s.x_m[1] - SIM.vehicle_length_m)
     assert min(gaps) >= preset.min_gap_m - 1e-6
     assert s.speed_mps[1] < 0.1 and len(s.collisions) == 0
@@ -107,9 +108,9 @@ def _steady_headway(style: int) -> float:
     backend.state.is_cav[0, 0] = True
     backend.state.cav_accel_mps2[0, 0] = 0.0
     backend.state.cav_target_mps[0, 0] = 15.0
-    backend._refresh_speed_bounds()
+    refresh_speed_bounds(backend)
     for _ in range(40):
-        s = backend.step(CavCommands.idle(2))
+        s = backend.step(CavCommands.idle(2)).env(0)
     return (s.x_m[0] - s.x_m[1] - SIM.vehicle_length_m) / s.speed_mps[1]
 
 
@@ -142,7 +143,7 @@ def test_same_seed_same_trajectory_different_seed_differs():
 
 def _cav_backend():
     backend = make()
-    state = backend.reset(Scenario.with_cavs(25, 10), 0)
+    state = backend.reset(Scenario.with_cavs(25, 10), 0).env(0)
     return backend, state
 
 
@@ -150,8 +151,8 @@ def test_cav_lane_change_completes_within_step():
     backend, state = _cav_backend()
     cav = int(np.flatnonzero(state.is_cav & (state.lane < 3))[0])
     cmd = CavCommands.idle(25)
-    cmd.lane_change[cav] = 1
-    after = backend.step(cmd)
+    cmd.lane_change[0, cav] = 1
+    after = backend.step(cmd).env(0)
     assert after.lane[cav] == state.lane[cav] + 1
     assert after.y_m[cav] == pytest.approx(backend.road.lane_center_y_m(state.lane[cav] + 1))
 
@@ -160,21 +161,21 @@ def test_cav_lane_change_towards_missing_lane_ignored():
     backend, state = _cav_backend()
     cav = int(np.flatnonzero(state.is_cav & (state.lane == 0))[0])
     cmd = CavCommands.idle(25)
-    cmd.lane_change[cav] = -1
-    after = backend.step(cmd)
+    cmd.lane_change[0, cav] = -1
+    after = backend.step(cmd).env(0)
     assert after.lane[cav] == 0
 
 
 def test_cav_speed_change_and_clip():
     backend, state = _cav_backend()
     cmd = CavCommands.idle(25)
-    cmd.speed_change_mps[state.is_cav] = 2.0
-    after = backend.step(cmd)
+    cmd.speed_change_mps[0, state.is_cav] = 2.0
+    after = backend.step(cmd).env(0)
     assert np.allclose(after.speed_mps[state.is_cav], state.speed_mps[state.is_cav] + 2.0)
-    cmd.speed_change_mps[state.is_cav] = 50.0
-    after = backend.step(cmd)  # clipped to the 25 m/s limit, reached within the 5 m/s2 limit
+    cmd.speed_change_mps[0, state.is_cav] = 50.0
+    after = backend.step(cmd).env(0)  # clipped to the 25 m/s limit, reached within the 5 m/s2 limit
     assert np.allclose(after.speed_mps[state.is_cav], 17.0)
-    after = backend.step(cmd)
+    after = backend.step(cmd).env(0)
     assert np.allclose(after.speed_mps[after.is_cav & after.active], 22.0)
 
 
@@ -184,7 +185,7 @@ def test_cav_driving_into_leader_collides():
     cmd = CavCommands.idle(2)
     pairs = []
     for _ in range(3):
-        state = backend.step(cmd)
+        state = backend.step(cmd).env(0)
         pairs += [tuple(p) for p in state.collisions]
     assert pairs == [(0, 1)]  # reported once, i < j
     assert state.speed_mps[1] == 0.0 and state.active.all()
@@ -194,18 +195,18 @@ def test_heading_follows_lateral_motion():
     backend, state = _cav_backend()
     cav = int(np.flatnonzero(state.is_cav & (state.lane < 3))[0])
     cmd = CavCommands.idle(25)
-    cmd.lane_change[cav] = 1
-    moved = backend.step(cmd)  # heading of the last sub-step: still turning left
+    cmd.lane_change[0, cav] = 1
+    moved = backend.step(cmd).env(0)  # heading of the last sub-step: still turning left
     expected = np.arctan2(backend.road.lane_width_m / SIM.step_s, moved.speed_mps[cav])
     assert moved.heading_rad[cav] == pytest.approx(min(expected, backend.model.max_heading_rad))
-    straight = backend.step(CavCommands.idle(25))
+    straight = backend.step(CavCommands.idle(25)).env(0)
     assert straight.heading_rad[cav] == 0.0
 
 
 def test_render_non_blank_frame_with_highlight():
     backend, state = _cav_backend()
     for _ in range(3):
-        state = backend.step(CavCommands.idle(25))
+        state = backend.step(CavCommands.idle(25)).env(0)
     viewer = Viewer(backend.road, backend.sim)
     frame = viewer.draw(state)
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3

@@ -42,35 +42,41 @@ def test_batch_equals_separate_backends(map_name, cav_mode):
     episodes = [0] * n_envs
     for e in range(n_envs):
         assert_same_state(
-            batch.reset_env(e, scenario, 10 * e), alone[e].reset(scenario, 10 * e), "reset"
+            batch.reset(scenario, 10 * e, env=e), alone[e].reset(scenario, 10 * e), "reset"
         )
     rng = np.random.default_rng(0)
     ends = collisions = 0
     for t in range(steps):
         lane = rng.integers(-1, 2, (n_envs, N_VEHICLES)).astype(np.int8)
         speed = rng.normal(0.0, 2.0, (n_envs, N_VEHICLES))
-        states = batch.step_batch(CavCommands(lane, speed))
+        commands = CavCommands(lane, speed)
+        states = batch.step(commands)
         for e in range(n_envs):
-            single = alone[e].step(CavCommands(lane[e], speed[e]))
-            assert_same_state(states[e], single, f"step {t} env {e}")
+            single = alone[e].step(commands.env(e))
+            assert_same_state(states.envs(np.array([e])), single, f"step {t} env {e}")
             collisions += len(single.collisions) > 0
-            if len(single.collisions) or not single.active.any() or single.step >= EPISODE_STEPS:
+            if len(single.collisions) or not single.active.any() or single.step[0] >= EPISODE_STEPS:
                 ends += 1
                 episodes[e] += 1
                 seed = 10 * e + episodes[e]
                 assert_same_state(
-                    batch.reset_env(e, scenario, seed), alone[e].reset(scenario, seed), "reset"
+                    batch.reset(scenario, seed, env=e), alone[e].reset(scenario, seed), "reset"
                 )
         for key, counts in batch.stats.items():
             assert list(counts) == [int(b.stats[key][0]) for b in alone], key
     assert ends >= n_envs and (cav_mode == "cooperative" or collisions > 0)  # the test saw events
 
 
-def test_batch_must_be_stepped_as_a_batch():
+def test_batch_is_reset_env_by_env_and_stepped_whole():
     sim = SimConfig()
     batch = HighwayBackend(load_map("train-25"), sim, n_envs=2)
-    with pytest.raises(BackendError, match="step_batch"):
-        batch.reset(Scenario(), 0)
-    batch.reset_env(0, Scenario(), 0)
+    with pytest.raises(BackendError, match="env 2 is not one of the backend's 2"):
+        batch.reset(Scenario(), 0, env=2)
+    first = batch.reset(Scenario(), 0)
+    assert first.n_envs == 1 and first.x_m.shape == (1, 25)
     with pytest.raises(BackendError, match="reset"):
-        batch.step_batch(CavCommands(np.zeros((2, 25), np.int8), np.zeros((2, 25))))
+        batch.step(CavCommands.idle(25, n_envs=2))
+    batch.reset(Scenario(), 1, env=1)
+    with pytest.raises(BackendError, match=r"commands must have shape \(2, 25\)"):
+        batch.step(CavCommands.idle(25))
+    assert batch.step(CavCommands.idle(25, n_envs=2)).x_m.shape == (2, 25)

@@ -35,7 +35,7 @@ def make_batch(scenario: Scenario) -> HighwayBackend:
     sim = SimConfig()
     batch = HighwayBackend(preset_road(load_map("train-50"), sim.style_preset), sim, n_envs=N_ENVS)
     for e in range(N_ENVS):
-        batch.reset_env(e, scenario, 5 + e)
+        batch.reset(scenario, 5 + e, env=e)
     return batch
 
 
@@ -50,7 +50,7 @@ def test_copied_records_restore_a_running_batch_exactly():
     n = batch.state.x_m.shape[1]
     rng = np.random.default_rng(3)
     for _ in range(15):
-        batch.step_batch(commands(rng, n))
+        batch.step(commands(rng, n))
     saved = (batch.state.copy(), batch.params.copy(), batch.caches.copy())
     saved_stats = {key: counts.copy() for key, counts in batch.stats.items()}
     for record, copy in zip((batch.state, batch.params, batch.caches), saved, strict=True):
@@ -59,24 +59,23 @@ def test_copied_records_restore_a_running_batch_exactly():
         for name, value in ours.items():
             assert not np.shares_memory(value, theirs[name]), name
     script = [commands(rng, n) for _ in range(30)]
-    first = [batch.step_batch(c) for c in script]
+    first = [batch.step(c) for c in script]
     batch.state, batch.params, batch.caches = (r.copy() for r in saved)
     batch.stats = {key: counts.copy() for key, counts in saved_stats.items()}
-    again = [batch.step_batch(c) for c in script]
+    again = [batch.step(c) for c in script]
     for t, (a, b) in enumerate(zip(first, again, strict=True)):
-        for e in range(N_ENVS):
-            assert_same_state(a[e], b[e], f"step {t} env {e}")
+        assert_same_state(a, b, f"step {t}")
     assert batch.state.pending.sum() < saved[0].pending.sum()  # vehicles entered meanwhile
 
 
-def test_reset_env_writes_every_row_of_state_and_params():
+def test_reset_of_one_env_writes_every_row_of_state_and_params():
     """A reset env holds exactly what a fresh backend holds after the same reset."""
     scenario = Scenario.with_cavs(N_VEHICLES, 10)
     batch = make_batch(scenario)
     rng = np.random.default_rng(0)
     for _ in range(20):
-        batch.step_batch(commands(rng, N_VEHICLES))
-    batch.reset_env(1, scenario, 77)
+        batch.step(commands(rng, N_VEHICLES))
+    batch.reset(scenario, 77, env=1)
     sim = SimConfig()
     fresh = HighwayBackend(preset_road(load_map("train-50"), sim.style_preset), sim)
     fresh.reset(scenario, 77)
@@ -89,7 +88,7 @@ def test_reset_env_writes_every_row_of_state_and_params():
 
 def test_env_rows_read_and_write_one_env():
     batch = make_batch(Scenario.with_cavs(N_VEHICLES, 10))
-    batch.step_batch(commands(np.random.default_rng(1), N_VEHICLES))
+    batch.step(commands(np.random.default_rng(1), N_VEHICLES))
     row = batch.state.env(1)
     assert row.x_m.shape == (1, N_VEHICLES) and row.contact.shape == (1, N_VEHICLES, N_VEHICLES)
     assert row.time_s.shape == (1,)

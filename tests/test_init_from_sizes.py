@@ -22,7 +22,9 @@ def test_init_from_takes_another_critic_row_count_where_the_weights_allow(tmp_pa
     train(source, progress=False)
     path = tmp_path / "a" / "run" / "checkpoint.pt"
     more = {"env.obs.max_vehicles": 2 * source.env.obs.max_vehicles}
-    tuned = tiny_config(tmp_path / "b", total_steps=40, init_from=str(path), variant=variant, **more)
+    tuned = tiny_config(
+        tmp_path / "b", total_steps=40, init_from=str(path), variant=variant, **more
+    )
     agent = make_agent(tuned, torch.device("cpu"))
     if variant == "mappo-iadm":  # MLP critic: its input width grows with the rows
         with pytest.raises(CheckpointError, match=r"does not match the mappo-iadm networks"):

@@ -12,6 +12,7 @@ from helpers import make_state
 from diacc.envs.metrics import EpisodeRecorder, MetricsError
 from diacc.envs.psar import PSARResult
 from diacc.sim.maps import load_map
+from diacc.sim.state import TrafficState
 
 ROAD = load_map("train-25")  # segments: multilane 0-500, reduction25 500-800, multilane
 CAV = [True, True, False, False]
@@ -58,25 +59,31 @@ def episode() -> list:
     return [s0, s1, s2]
 
 
+def one(state: TrafficState) -> TrafficState:
+    """One env's state as the batch of one a recorder takes."""
+    return TrafficState.stack([state])
+
+
 def psar_result(mask: list[int]) -> PSARResult:
+    """One env's PSAR result as a batch of one, (1, C)."""
     n = len(mask)
     return PSARResult(
-        action=np.zeros(n, np.int64),
-        speed_change_mps=np.zeros(n),
-        rule=np.zeros(n, np.int8),
-        rule_mask=np.array(mask, np.int8),
-        decel_lc_mps2=np.zeros(n),
-        invalid_lc=np.zeros(n, bool),
-        active=np.ones(n, bool),
+        action=np.zeros((1, n), np.int64),
+        speed_change_mps=np.zeros((1, n)),
+        rule=np.zeros((1, n), np.int8),
+        rule_mask=np.array([mask], np.int8),
+        decel_lc_mps2=np.zeros((1, n)),
+        invalid_lc=np.zeros((1, n), bool),
+        active=np.ones((1, n), bool),
     )
 
 
 def recorded() -> EpisodeRecorder:
     rec = EpisodeRecorder(ROAD)
     s0, s1, s2 = episode()
-    rec.record(s0)
-    rec.record(s1, psar_result([0b0001, 0]))  # Cancel-LC
-    rec.record(s2, psar_result([0b0101, 0b1000]))  # Cancel-LC + Force-Brake, Suppr-Accel
+    rec.record(one(s0))
+    rec.record(one(s1), psar_result([0b0001, 0]))  # Cancel-LC
+    rec.record(one(s2), psar_result([0b0101, 0b1000]))  # Cancel-LC + Force-Brake, Suppr-Accel
     return rec
 
 
@@ -123,15 +130,15 @@ def test_recorder_rejects_inconsistent_input():
     rec = EpisodeRecorder(ROAD)
     with pytest.raises(MetricsError, match="no state"):
         rec.summary()
-    rec.record(make_state([0.0, 10.0], [0, 1]))
+    rec.record(one(make_state([0.0, 10.0], [0, 1])))
     with pytest.raises(MetricsError, match="vehicles"):
-        rec.record(make_state([0.0], [0]))
+        rec.record(one(make_state([0.0], [0])))
 
 
 def test_flow_metrics_match_hand_computation():
     recorder = EpisodeRecorder(ROAD)
     for state in episode():
-        recorder.record(state)
+        recorder.record(one(state))
     m = recorder.summary()
     # Only vehicle 3 is past the reduction's end (800 m): 1 vehicle in 2 s.
     assert m.throughput_vph == pytest.approx(1800.0)
@@ -149,8 +156,8 @@ def test_delay_uses_each_segments_limit():
 
     road = preset_road(load_map("train-50"), "paper-congestion")  # reduction at 15 m/s
     recorder = EpisodeRecorder(road)
-    recorder.record(make_state([450.0], [0], 20.0, segment=0, time_s=0.0, step=0))
-    recorder.record(make_state([850.0], [0], 20.0, segment=2, time_s=30.0, step=30))
+    recorder.record(one(make_state([450.0], [0], 20.0, segment=0, time_s=0.0, step=0)))
+    recorder.record(one(make_state([850.0], [0], 20.0, segment=2, time_s=30.0, step=30)))
     m = recorder.summary()
     # free flow 450 -> 850 m: 50 / 25 + 300 / 15 + 50 / 25 = 24 s; still on the road at t = 30
     assert m.total_delay_s == pytest.approx(6.0)
@@ -177,20 +184,23 @@ def test_a_batch_recorder_equals_one_recorder_per_env_with_episodes_out_of_step(
     alone = [EpisodeRecorder(ROAD, cfg.events, warmup_s=3.0) for _ in range(3)]
     together.record(batch.state.traffic)
     for e in range(3):
-        alone[e].record(batch.state.traffic.env(e))
+        alone[e].record(batch.state.traffic.envs(np.array([e])))
     finished = []
     for t in range(30):
         out = batch.step(rng.integers(0, 5, (3, batch.n_cavs)))
         together.record(out.state, psar=out.decision.psar, critical=out.critical)
         for e in range(3):
-            alone[e].record(out.state.env(e), psar=out.decision.env(e).psar)
+            alone[e].record(
+                out.state.envs(np.array([e])),
+                psar=PSARResult(*(v[e : e + 1] for v in vars(out.decision.psar).values())),
+            )
         if t == 12:  # env 1 starts its next episode; the others go on
             finished.append((together.summary(1), alone[1].summary()))
             batch.reset(np.array([1]), [21])
             together.start(np.array([1]))
             together.record(batch.state.traffic, rows=np.array([False, True, False]))
             alone[1] = EpisodeRecorder(ROAD, cfg.events, warmup_s=3.0)
-            alone[1].record(batch.state.traffic.env(1))
+            alone[1].record(batch.state.traffic.envs(np.array([1])))
     finished += [(together.summary(e), alone[e].summary()) for e in range(3)]
     for mine, theirs in finished:
         assert repr(mine.as_dict()) == repr(theirs.as_dict())

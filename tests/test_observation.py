@@ -424,7 +424,7 @@ def test_observations_from_real_backends(road, backend_name):
     scenario = Scenario.with_cavs(25, 10)
     backend = make_backend(backend_name, road, SimConfig())
     try:
-        state = backend.reset(scenario, seed=3)
+        state = backend.reset(scenario, seed=3).env(0)
         cav_index = np.flatnonzero(state.is_cav)
         assert cav_index.shape == (10,)
         b = ObservationBuilder(road, CFG, episode_steps=100)
@@ -441,9 +441,9 @@ def test_observations_from_real_backends(road, backend_name):
             if step == 0:
                 assert np.all(obs.hdv_mask.sum(1) + obs.cav_mask.sum(1) == K)
             cmd = CavCommands.idle(state.n_vehicles)
-            cmd.speed_change_mps[cav_index] = rng.choice([-2.0, 0.0, 2.0], size=10)
+            cmd.speed_change_mps[0, cav_index] = rng.choice([-2.0, 0.0, 2.0], size=10)
             refined = rng.integers(0, 5, state.n_vehicles)
-            state = backend.step(cmd)
+            state = backend.step(cmd).env(0)
             b.push(state)
         # After 6 pushes of a moving flow the ego history is a real trajectory.
         alive = obs.alive
@@ -458,7 +458,7 @@ def test_full_episode_on_real_backends_masks_cavs_that_left(backend_name):
     road = load_map("train-50")
     backend = make_backend(backend_name, road, SimConfig())
     try:
-        state = backend.reset(Scenario.with_cavs(40, 16), seed=1)
+        state = backend.reset(Scenario.with_cavs(40, 16), seed=1).env(0)
         cav_index = np.flatnonzero(state.is_cav)
         b = ObservationBuilder(road, CFG, episode_steps=100)
         b.reset(state)
@@ -476,8 +476,8 @@ def test_full_episode_on_real_backends_masks_cavs_that_left(backend_name):
             if not state.active.any():
                 break
             cmd = CavCommands.idle(40)
-            cmd.speed_change_mps[cav_index] = 2.0
-            state = backend.step(cmd)
+            cmd.speed_change_mps[0, cav_index] = 2.0
+            state = backend.step(cmd).env(0)
             b.push(state)
         assert saw_dead
     finally:

@@ -57,11 +57,13 @@ def _pure_hdv_metrics(
     try:
         for seed in seeds:
             recorder = EpisodeRecorder(road)
-            state = backend.reset(scenario, seed)
-            recorder.record(state)
+            batch = backend.reset(scenario, seed)
+            recorder.record(batch)
+            state = batch.env(0)
             for _ in range(sim.episode_steps):
-                state = backend.step(CavCommands.idle(scenario.n_vehicles))
-                recorder.record(state)
+                batch = backend.step(CavCommands.idle(scenario.n_vehicles))
+                recorder.record(batch)
+                state = batch.env(0)
                 if state.arrived.all():
                     break
             summary = recorder.summary()
@@ -109,8 +111,8 @@ def test_states_share_fields_dtypes_shapes_and_conventions():
     for name in ("highway", "sumo"):
         backend = make_backend(name, road, SIM)
         try:
-            start = backend.reset(scenario, seed=7)
-            after = [backend.step(CavCommands.idle(25)) for _ in range(5)][-1]
+            start = backend.reset(scenario, seed=7).env(0)
+            after = [backend.step(CavCommands.idle(25)).env(0) for _ in range(5)][-1]
         finally:
             backend.close()
         for state in (start, after):

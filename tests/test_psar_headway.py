@@ -299,7 +299,7 @@ def test_a_batch_of_states_is_refined_as_each_state_alone():
 
     road = load_map("train-50")
     backend = HighwayBackend(road, SIM, n_envs=3)
-    states = [backend.reset_env(e, Scenario.with_cavs(25, 10), 7 + e) for e in range(3)]
+    states = [backend.reset(Scenario.with_cavs(25, 10), 7 + e, env=e).env(0) for e in range(3)]
     cav_index = np.stack([np.flatnonzero(s.is_cav) for s in states])  # (E, C)
     rng = np.random.default_rng(5)
     for _ in range(8):
@@ -311,4 +311,5 @@ def test_a_batch_of_states_is_refined_as_each_state_alone():
                 assert np.array_equal(getattr(single, f.name), getattr(batch, f.name)[e]), f.name
         speed = np.zeros((3, 25))
         np.put_along_axis(speed, cav_index, batch.speed_change_mps, axis=-1)
-        states = backend.step_batch(CavCommands(np.zeros((3, 25), np.int8), speed))
+        stepped = backend.step(CavCommands(np.zeros((3, 25), np.int8), speed))
+        states = [stepped.env(e) for e in range(3)]

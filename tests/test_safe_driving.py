@@ -147,21 +147,21 @@ def test_cav_stops_at_the_end_of_its_lane_and_can_change_later(backend_name):
     backend = make_backend(backend_name, road, SIM)
     try:
         for seed in range(20):
-            state = backend.reset(Scenario(n_vehicles=1, cav_penetration=1.0), seed)
+            state = backend.reset(Scenario(n_vehicles=1, cav_penetration=1.0), seed).env(0)
             cav = int(np.flatnonzero(state.is_cav)[0])
             if state.lane[cav] == 2:
                 break
         assert state.lane[cav] == 2
         cmd = CavCommands.idle(1)
         for _ in range(40):
-            cmd.speed_change_mps[cav] = 2.0
-            state = backend.step(cmd)
+            cmd.speed_change_mps[0, cav] = 2.0
+            state = backend.step(cmd).env(0)
             if state.speed_mps[cav] == 0.0 and state.x_m[cav] > 400:
                 break
         assert state.lane[cav] == 2 and state.speed_mps[cav] == 0.0
         assert state.x_m[cav] + 0.5 * state.length_m[cav] == pytest.approx(500.0, abs=0.1)
-        cmd.speed_change_mps[cav], cmd.lane_change[cav] = 0.0, -1
-        state = backend.step(cmd)  # from standstill, within the step
+        cmd.speed_change_mps[0, cav], cmd.lane_change[0, cav] = 0.0, -1
+        state = backend.step(cmd).env(0)  # from standstill, within the step
         assert state.lane[cav] == 1
         assert state.y_m[cav] == pytest.approx(road.lane_center_y_m(1), abs=0.05)
     finally:

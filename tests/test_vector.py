@@ -14,13 +14,13 @@ from diacc.envs.env import EnvConfig
 from diacc.envs.observation import concat
 from diacc.envs.vector import (
     BatchedVectorEnv,
-    ProcessVectorEnv,
     SyncVectorEnv,
     concat_steps,
     episode_seed,
     make_vector_env,
     maps_of_envs,
 )
+from diacc.envs.vector_process import ProcessVectorEnv
 from diacc.sim.scenario import Scenario
 
 CONFIG = EnvConfig(scenario=Scenario(n_vehicles=10, cav_penetration=0.3))
@@ -46,7 +46,7 @@ def test_episode_seeds_are_distinct_and_reproducible():
 
 def test_process_workers_match_in_process_envs():
     sync = SyncVectorEnv(CONFIG, 2, run_seed=5)
-    procs = ProcessVectorEnv(CONFIG, 2, run_seed=5)
+    procs = ProcessVectorEnv(SyncVectorEnv, CONFIG, 2, run_seed=5)
     in_process, in_workers = [], []
     try:
         a, b = _run(sync, outs=in_process), _run(procs, outs=in_workers)
@@ -180,7 +180,7 @@ def test_auto_mode_batches_highway_only():
 
 
 def test_crashed_worker_is_restarted_and_its_episode_cut():
-    envs = ProcessVectorEnv(CONFIG, 2, run_seed=5)
+    envs = ProcessVectorEnv(SyncVectorEnv, CONFIG, 2, run_seed=5)
     try:
         envs.reset()
         os.kill(envs.workers[1].pid, signal.SIGKILL)

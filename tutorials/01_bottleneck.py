@@ -81,16 +81,19 @@ for seg, row in zip(road.segments, exists, strict=True):
 # MOBIL lane changes, and the backend's command input is ignored: we pass
 # `CavCommands.idle` each step.
 #
-# The backend returns a `TrafficState` of arrays, one entry per vehicle. We
-# stack the fields we need into `(T, V)` arrays for plotting.
+# The backend returns a `TrafficState` of arrays with a leading env axis (a
+# backend may simulate many envs at once; this one holds one), and `.env(0)`
+# is env 0's state, one entry per vehicle. We stack the fields we need into
+# `(T, V)` arrays for plotting.
 
 # %%
 scenario = Scenario(n_vehicles=25, cav_penetration=0.0, style_mix="D1")
 backend = make_backend("highway", road)
 viewer = Viewer(road, backend.sim)
-state = backend.reset(scenario, seed=0)
+batch = backend.reset(scenario, seed=0)
+state = batch.env(0)
 recorder = EpisodeRecorder(road)
-recorder.record(state)
+recorder.record(batch)  # the recorder takes the backend's batch as it is
 idle = CavCommands.idle(state.n_vehicles)
 
 time_s, x_m, speed_mps, active = [], [], [], []
@@ -105,8 +108,9 @@ for _ in range(120):
         frame = viewer.draw(state)  # (H, W, 3) uint8, highway-env's own renderer
     if not state.active.any():
         break
-    state = backend.step(idle)
-    recorder.record(state)
+    batch = backend.step(idle)
+    state = batch.env(0)
+    recorder.record(batch)
 backend.close()
 
 time_s = np.array(time_s)  # (T,)

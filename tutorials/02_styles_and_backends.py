@@ -105,11 +105,11 @@ def simulate(backend_name: str, max_steps: int = 120) -> list:
     """All states of one pure-HDV episode (until every vehicle has left)."""
     backend = make_backend(backend_name, road)
     try:
-        state = backend.reset(scenario, SEED)
+        state = backend.reset(scenario, SEED).env(0)  # env 0 of the backend's batch
         idle = CavCommands.idle(state.n_vehicles)
         states = [state]
         while state.active.any() and len(states) <= max_steps:
-            state = backend.step(idle)
+            state = backend.step(idle).env(0)
             states.append(state)
     finally:
         backend.close()

@@ -2,8 +2,8 @@
 
 With the paper's literal reading the actor samples any of the 5 actions and
 PSAR overrides the unsafe ones, so the policy gradient is taken on actions
-that never happened (measured: PSAR rewrote 27-41 % of the shipped agents'
-decisions). Masking them out of the distribution before sampling makes the
+that never happened (how often PSAR rewrote the shipped agents' decisions:
+docs/concepts/learning-options.md). Masking them out of the distribution before sampling makes the
 sampled action the executed one and lets greedy evaluation pick the best
 *allowed* action instead of repeating a suppressed one (the deadlock at lane
 ends). The mask runs PSAR (:func:`diacc.envs.psar.psar`, unchanged) once on all
@@ -39,27 +39,26 @@ from diacc.sim.state import TrafficState, take
 def psar_action_mask(
     state: TrafficState, cav_index: np.ndarray, config: EnvConfig, road: Map
 ) -> np.ndarray:
-    """(..., C, 5) bool: candidate actions PSAR would execute unchanged (module docstring).
+    """(E, C, 5) bool: candidate actions PSAR would execute unchanged (module docstring).
 
-    ``state`` and ``cav_index`` as for :func:`diacc.envs.psar.psar`: one state with
-    (C,) slots, or a batch of states with (E, C) ones.
+    ``state`` is a batch of E envs (:mod:`diacc.sim.state`), ``cav_index`` its
+    (E, C) agent slots.
     """
     cfg = dataclasses.replace(config.psar, coordinate_lane_changes=False)
     cav_index = np.asarray(cav_index)
-    n_actions, n_cavs = len(ACTION_NAMES), cav_index.shape[-1]
-    # One PSAR call for every candidate: the state tiled candidate-major to (5 E, V).
-    singles = [state.env(e) for e in range(len(state.x_m))] if state.is_batch else [state]
-    tiled = TrafficState.stack(singles * n_actions)  # (5 E, V)
-    slots = np.tile(cav_index.reshape(-1, n_cavs), (n_actions, 1))  # (5 E, C)
-    candidate = np.repeat(np.arange(n_actions), len(singles))[:, None]  # (5 E, 1)
+    n_actions = len(ACTION_NAMES)
+    # One PSAR call for every candidate: the batch tiled candidate-major to (5 E, V).
+    tiled = state.tile(n_actions)  # (5 E, V)
+    slots = np.tile(cav_index, (n_actions, 1))  # (5 E, C)
+    candidate = np.repeat(np.arange(n_actions), state.n_envs)[:, None]  # (5 E, 1)
     proposed = np.broadcast_to(candidate, slots.shape)  # (5 E, C)
     refined = psar(tiled, slots, proposed, cfg, road, config.sim).action  # (5 E, C)
-    refined = np.moveaxis(refined.reshape(n_actions, *cav_index.shape), 0, -1)  # (..., C, 5)
-    allowed = refined == np.arange(n_actions)  # (..., C, 5)
-    none_left = ~allowed.any(axis=-1)  # (..., C)
-    fallback = np.eye(n_actions, dtype=bool)[refined[..., REMAIN]]  # (..., C, 5)
+    refined = np.moveaxis(refined.reshape(n_actions, *cav_index.shape), 0, -1)  # (E, C, 5)
+    allowed = refined == np.arange(n_actions)  # (E, C, 5)
+    none_left = ~allowed.any(axis=-1)  # (E, C)
+    fallback = np.eye(n_actions, dtype=bool)[refined[..., REMAIN]]  # (E, C, 5)
     allowed |= none_left[..., None] & fallback
-    alive = take(state.active, cav_index)  # (..., C)
+    alive = take(state.active, cav_index)  # (E, C)
     return allowed | ~alive[..., None]
 
 

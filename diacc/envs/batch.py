@@ -135,8 +135,8 @@ class Simulators:
     """E simulations of one map, stepped as one: (E, V) commands in, one (E, V) state out.
 
     Either one backend whose ``vector_mode`` is ``"batched"`` and that holds
-    every env (``reset_env``/``step_stacked``, the ``highway`` backend), or one
-    backend per env, stepped one after another.
+    every env (the ``highway`` backend), or one backend per env, stepped one
+    after another; every backend speaks batches (:mod:`diacc.sim.backends.base`).
     """
 
     def __init__(self, backends: Sequence[Backend]) -> None:
@@ -150,9 +150,9 @@ class Simulators:
         self.errors: dict[int, BackendError] = {}
 
     def reset(self, e: int, scenario: Scenario, seed: int) -> TrafficState:
-        """Start env ``e``'s simulation anew; its first state (one env's)."""
+        """Start env ``e``'s simulation anew; its first state (a batch of one)."""
         if self.batched:
-            return self.backends[0].reset_env(e, scenario, seed)
+            return self.backends[0].reset(scenario, seed, env=e)
         self._latest[e] = self.backends[e].reset(scenario, seed)
         return self._latest[e]
 
@@ -162,15 +162,13 @@ class Simulators:
         crashed = np.zeros(self.n_envs, bool)
         self.errors = {}
         if self.batched:
-            return self.backends[0].step_stacked(commands), crashed
+            return self.backends[0].step(commands), crashed
         for e, backend in enumerate(self.backends):
             try:
-                self._latest[e] = backend.step(
-                    CavCommands(commands.lane_change[e], commands.speed_change_mps[e])
-                )
+                self._latest[e] = backend.step(commands.env(e))
             except BackendError as err:
                 crashed[e], self.errors[e] = True, err
-        return TrafficState.stack(self._latest), crashed
+        return TrafficState.concat(self._latest), crashed
 
     def close(self) -> None:
         for backend in self.backends:
@@ -294,7 +292,7 @@ class EnvBatch:
         if self.state is None or len(rows) == self.n_envs:
             if not np.array_equal(rows, np.arange(self.n_envs)):
                 raise ValueError(f"the first reset starts every env in order, got rows {rows}")
-            self.state = EpisodeState.start(TrafficState.stack(firsts), self.n_cavs)
+            self.state = EpisodeState.start(TrafficState.concat(firsts), self.n_cavs)
             self.builder.reset(self.state.traffic)
         else:
             st = self.state

@@ -205,6 +205,9 @@ class BottleneckEnv(ParallelEnv):
         #: The team reward of each step and its temperature schedule (module docstring).
         self.team_reward = AnnealedTeamReward(self.config.reward, total_steps)
         self.state_: TrafficState | None = None
+        #: The last step as the batch of one it is (:class:`~diacc.envs.batch.Transition`):
+        #: what evaluation records, without unbatching and rebatching it.
+        self.transition: Transition | None = None
         self._viewer = None  # diacc.sim.viewer.Viewer, made by the first render()
         self._window = None  # diacc.sim.viewer.Window of render_mode "human"
         self._recorder: EpisodeRecorder | None = None  # episode metrics of the dict API
@@ -227,6 +230,7 @@ class BottleneckEnv(ParallelEnv):
         self._seed = seed = check_seed(seed)
         self.batch.reset([0], [seed])
         self.state_ = self.batch.state.traffic.env(0)
+        self.transition = None
         self.agents = self._live_agents(self.state_)
         self._recorder = None  # the dict API's reset() starts one; the batched API needs none
         actor, critic = self.batch.observe()
@@ -240,6 +244,7 @@ class BottleneckEnv(ParallelEnv):
         out = self.batch.step(check_action_array(actions, self.n_cavs)[None])
         if out.crashed[0]:
             raise self.batch.sims.errors[0]
+        self.transition = out
         result = StepResult.of(out, 0)
         parts = (result.ego, result.alive, result.global_reward, result.completion, result.delay)
         result.reward = float(self.team_reward(*parts).total)
@@ -266,6 +271,12 @@ class BottleneckEnv(ParallelEnv):
         "unserved_cavs", "CAVs on the road without a slot (they drive themselves).", int
     )
     steps = _env_zero("steps", "Decision steps of the episode so far.", int)
+
+    @property
+    def traffic(self) -> TrafficState:
+        """The current state as the batch of one the env steps ((1, V) arrays; :attr:`state_`
+        is the same as one env's (V,) arrays)."""
+        return self.batch.state.traffic
 
     @property
     def neighbours(self) -> tuple[np.ndarray, np.ndarray]:
@@ -308,7 +319,7 @@ class BottleneckEnv(ParallelEnv):
         self._recorder = EpisodeRecorder(
             self.road, self.config.events, self.config.scenario.warmup_s
         )
-        self._recorder.record(self.state_)
+        self._recorder.record(self.traffic)
         observations = self.agent_observations(actor_obs)
         if self.render_mode == "human":
             self.render()
@@ -328,7 +339,7 @@ class BottleneckEnv(ParallelEnv):
             batch[index[agent]] = action
         out = self.step_arrays(batch)
         if self._recorder is not None:
-            self._recorder.record(out.state, psar=out.psar)
+            self._recorder.record(self.transition.state, psar=self.transition.decision.psar)
         acting = list(self.agents)
         ended = out.terminated or out.truncated
         # CAVs that took a slot in this step join (PettingZoo lets agents appear).

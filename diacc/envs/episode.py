@@ -81,10 +81,16 @@ class EpisodeDriver:
 
 
 def play_episode(driver: EpisodeDriver, seed: int) -> EpisodeRecorder:
-    """Play one seeded episode to its end; the recorder holds every state (the metrics' input)."""
+    """Play one seeded episode to its end; the recorder holds every state (the metrics' input).
+
+    It records the env's batch of one as the env steps it (:attr:`BottleneckEnv.traffic`,
+    :attr:`BottleneckEnv.transition`), not the driver's one-env view of it.
+    """
     recorder = EpisodeRecorder(driver.road, driver.cfg.events, driver.cfg.scenario.warmup_s)
-    recorder.record(driver.reset(seed))
+    env = driver.env
+    driver.reset(seed)
+    recorder.record(env.traffic)
     while not driver.done:
-        state = driver.step()
-        recorder.record(state, psar=driver.psar)
+        driver.step()
+        recorder.record(env.transition.state, psar=env.transition.decision.psar)
     return recorder

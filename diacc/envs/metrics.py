@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import csv
 import io
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -237,17 +237,12 @@ class EpisodeRecorder:
     ) -> None:
         """Add one state (and the PSAR result of the step that led to it, if any).
 
-        ``state`` is a batch of E envs, or one env's state when E = 1 (and then
-        ``psar`` and ``critical`` are one env's too). ``critical``: (E, V) bool,
+        ``state`` is a batch of E envs (:mod:`diacc.sim.state`; one env is E = 1),
+        ``psar`` its (E, C) PSAR result. ``critical``: (E, V) bool,
         ``safety_critical_events(state, events).any`` if the caller has it already.
         ``rows``: (E,) bool, the envs this state counts for (default all; a
         crashed simulator's row is left out).
         """
-        if not state.is_batch:  # one env's state: a batch of one
-            state = TrafficState.stack([state])
-            if psar is not None:
-                psar = PSARResult(*(getattr(psar, f.name)[None] for f in fields(PSARResult)))
-            critical = None if critical is None else np.asarray(critical)[None]
         if state.x_m.shape[0] != self.n_envs:
             raise MetricsError(f"state holds {state.x_m.shape[0]} envs, the recorder {self.n_envs}")
         if self._n is None:

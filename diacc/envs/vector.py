@@ -14,10 +14,10 @@ the annealed temperature of the envs' :class:`~diacc.envs.reward.AnnealedTeamRew
   another in this process (any backend).
 * :class:`BatchedVectorEnv` (``highway`` only, its default): each map's envs
   are rows of one batched simulator
-  (:meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step_stacked`), with
+  (:meth:`~diacc.sim.backends.highway.backend.HighwayBackend.step`), with
   the same results per env as E simulators (``tests/test_vector.py``). Pipes
   would cost more than they save here.
-* :class:`ProcessVectorEnv` splits the environments into one group per
+* :class:`~diacc.envs.vector_process.ProcessVectorEnv` splits the environments into one group per
   worker process (``spawn`` start method; each SUMO environment still runs
   libsumo in a worker of its own), so groups step in parallel. A worker that
   dies is restarted and logged when it is found dead: stepping (the episodes
@@ -37,10 +37,7 @@ every map, so the trainer sees E environments as before.
 
 from __future__ import annotations
 
-import multiprocessing as mp
-import os
-import signal
-from dataclasses import dataclass, fields, replace
+from dataclasses import fields, replace
 
 import numpy as np
 
@@ -48,14 +45,11 @@ from diacc.config import EnvConfig, preset_road
 from diacc.envs.batch import EnvBatch, Simulators
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, concat, unstack
-from diacc.envs.reward import AnnealedTeamReward, TeamReward
-from diacc.runlog import join_parent_log, log
+from diacc.envs.reward import AnnealedTeamReward
+from diacc.envs.vector_process import ProcessVectorEnv
+from diacc.envs.vector_step import VectorStep, concat_steps, score
 from diacc.sim.backends.base import backend_class, make_backend
 from diacc.sim.maps import load_map
-from diacc.threads import worker_environment
-
-#: Restarts of one worker in a row (within one call) before the vector env gives up.
-MAX_RESTARTS = 3
 
 
 def maps_of_envs(maps: tuple[str, ...], n_envs: int) -> list[str]:
@@ -82,121 +76,6 @@ def episode_seed(run_seed: int, env_index: int, episode: int) -> int:
     return int(np.random.SeedSequence([run_seed, env_index, episode]).generate_state(1)[0] >> 1)
 
 
-@dataclass
-class VectorStep:
-    """One step of E environments, after the automatic resets.
-
-    ``team`` is the step's team reward R (:func:`score`):
-    :func:`~diacc.envs.reward.team_reward` of ``ego``, ``alive``,
-    ``global_reward``, ``completion`` and ``delay`` at the schedule's temperature.
-    """
-
-    actor_obs: ActorObs  # fields (E, C, ...)
-    critic_state: CriticState  # fields (E, ...)
-    ego: np.ndarray  # (E, C) ego reward r_e of each CAV slot
-    global_reward: np.ndarray  # (E,) r_g
-    completion: np.ndarray  # (E,) r_done
-    delay: np.ndarray  # (E,) delay term before its weight
-    terminated: np.ndarray  # (E,) bool
-    truncated: np.ndarray  # (E,) bool
-    alive: np.ndarray  # (E, C) bool: CAV on the road after the step (the reward's mask)
-    refined_action: np.ndarray  # (E, C)
-    psar_rule_mask: np.ndarray  # (E, C)
-    final_critic_state: list[CriticState | None]  # (E,)
-    final_actor_obs: list[ActorObs | None]  # (E,) (None also after a simulator crash)
-    episodes: dict[int, dict]  # env index -> metrics of the episode that ended there this step
-    reward_terms: dict[str, np.ndarray]  # logged parts of the reward, (E',) over ~restarted envs
-    restarted: np.ndarray  # (E,) bool: the simulator crashed, the step was cut (no reward terms)
-    restarts: int
-    slot_start: np.ndarray  # (E, C) bool: a new CAV took the slot; its next action starts afresh
-    team: TeamReward | None = None  # R (E,) and its softmin parts; None before score()
-
-
-def score(out: VectorStep, reward: AnnealedTeamReward) -> VectorStep:
-    """``out`` with its team reward at ``reward``'s temperature; counts the E env steps.
-
-    A crashed env's terms are 0 and no CAV is on the road, so its R is 0.
-    """
-    out.team = reward(out.ego, out.alive, out.global_reward, out.completion, out.delay)
-    reward.advance(len(out.terminated))
-    return out
-
-
-def concat_steps(parts: list[VectorStep]) -> VectorStep:
-    """The steps of groups of envs as one, in group order (env indices follow on)."""
-    if len(parts) == 1:
-        return parts[0]
-    offsets = np.cumsum([0] + [len(p.terminated) for p in parts])
-    terms = [p.reward_terms for p in parts if p.reward_terms]
-    return VectorStep(
-        actor_obs=concat([p.actor_obs for p in parts]),
-        critic_state=concat([p.critic_state for p in parts]),
-        **{name: np.concatenate([getattr(p, name) for p in parts]) for name in _ARRAY_FIELDS},
-        final_critic_state=[c for p in parts for c in p.final_critic_state],
-        final_actor_obs=[a for p in parts for a in p.final_actor_obs],
-        episodes={
-            int(o) + e: m
-            for p, o in zip(parts, offsets, strict=False)
-            for e, m in p.episodes.items()
-        },
-        reward_terms={
-            key: np.concatenate([t[key] for t in terms]) for key in (terms[0] if terms else {})
-        },
-        restarts=sum(p.restarts for p in parts),
-    )
-
-
-#: VectorStep's fields that are plain (E, ...) arrays.
-_ARRAY_FIELDS = (
-    "ego",
-    "global_reward",
-    "completion",
-    "delay",
-    "terminated",
-    "truncated",
-    "alive",
-    "refined_action",
-    "psar_rule_mask",
-    "restarted",
-    "slot_start",
-)
-
-
-def cut_steps(
-    actor: ActorObs, critic: CriticState, finals: list[CriticState | None], n_cavs: int
-) -> VectorStep:
-    """The step reported for envs whose simulator crashed: episode cut, no reward, fresh start.
-
-    ``actor``/``critic``: the envs' first observations of their new episodes;
-    ``finals``: each env's last state before the crash. No CAV is on the road and
-    every reward term is 0, so the team reward is 0 at any temperature. A crash is
-    not the episode's end but ours, so it is a *truncation*: the trainer
-    bootstraps from the last state the simulator reached (a termination would
-    teach the critic that a crash is worth 0).
-    """
-    n = len(finals)
-    return VectorStep(
-        actor_obs=actor,
-        critic_state=critic,
-        ego=np.zeros((n, n_cavs)),
-        global_reward=np.zeros(n),
-        completion=np.zeros(n),
-        delay=np.zeros(n),
-        terminated=np.zeros(n, bool),
-        truncated=np.ones(n, bool),
-        alive=np.zeros((n, n_cavs), bool),
-        refined_action=np.zeros((n, n_cavs), np.int64),
-        psar_rule_mask=np.zeros((n, n_cavs), np.int8),
-        final_critic_state=list(finals),
-        final_actor_obs=[None] * n,
-        episodes={},
-        reward_terms={},
-        restarted=np.ones(n, bool),
-        restarts=n,
-        slot_start=np.zeros((n, n_cavs), bool),
-    )
-
-
 class VectorEnv:
     """E environments: one :class:`~diacc.envs.batch.EnvBatch` per map, with automatic
     reset, per-episode seeds (:func:`episode_seed`), episode metrics and recovery from
@@ -208,9 +87,7 @@ class VectorEnv:
     ``env_indices``: the run's envs this object holds (their seeds; all of
     ``range(n_envs)`` by default; a worker process holds a group).
     ``env_maps``: the map of each of the run's envs (``config.map`` for all by
-    default; :func:`maps_of_envs`). ``total_steps``: the length (env steps) of
-    the temperature schedule of :attr:`team_reward`
-    (:class:`~diacc.envs.reward.AnnealedTeamReward`).
+    default; :func:`maps_of_envs`).
     """
 
     #: One batched simulator per map (else one simulator per env).
@@ -374,169 +251,6 @@ class BatchedVectorEnv(VectorEnv):
     batched = True
 
 
-def _worker(
-    conn,
-    config: EnvConfig,
-    run_seed: int,
-    env_indices: list[int],
-    episode: int,
-    env_maps: list[str] | None = None,
-) -> None:
-    # Ctrl-C is for the trainer, which stops at the next update boundary; the
-    # worker (and the SUMO processes it starts, which inherit this) carries on.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    join_parent_log()  # e.g. a SUMO worker restarted at reset
-    group = SyncVectorEnv(config, 0, run_seed, env_indices, env_maps)
-    group.episode = [episode] * group.n_envs
-    try:
-        while True:
-            command, payload = conn.recv()
-            if command == "step":
-                conn.send(group.step_terms(payload))
-            elif command == "reset":
-                conn.send(group.reset(payload))
-            elif command == "close":
-                break
-    except (EOFError, KeyboardInterrupt):
-        pass
-    finally:
-        group.close()
-        conn.close()
-
-
-class ProcessVectorEnv:
-    """E environments in W worker processes (a group of about E / W each), stepped in parallel.
-
-    W defaults to one worker per CPU core (at most E): more workers than cores
-    only add switching, fewer leave cores idle. The team reward is made here,
-    in the parent, which holds the temperature schedule (:meth:`set_training_step`).
-    """
-
-    def __init__(
-        self,
-        config: EnvConfig,
-        n_envs: int,
-        run_seed: int,
-        n_workers: int | None = None,
-        env_maps: list[str] | None = None,
-        total_steps: int | None = None,
-    ) -> None:
-        self.config, self.run_seed, self.env_maps = config, run_seed, env_maps
-        self.team_reward = AnnealedTeamReward(config.reward, total_steps)
-        self.n_envs, self.n_cavs = n_envs, config.scenario.n_slots
-        n_workers = min(n_envs, n_workers or os.cpu_count() or 1)
-        self.groups = [g.tolist() for g in np.array_split(np.arange(n_envs), n_workers)]
-        self.ctx = mp.get_context("spawn")
-        self.restarts = 0
-        self._last_critic: list[CriticState | None] = [None] * n_envs  # bootstrap on a crash
-        self.workers: list = [None] * n_workers
-        self.pipes: list = [None] * n_workers
-        for w in range(n_workers):
-            self._start(w, episode=0)
-
-    def _start(self, w: int, episode: int) -> None:
-        parent, child = self.ctx.Pipe()
-        proc = self.ctx.Process(
-            target=_worker,
-            args=(child, self.config, self.run_seed, self.groups[w], episode, self.env_maps),
-            daemon=True,
-        )
-        with worker_environment():  # one library thread per worker (diacc.threads)
-            proc.start()
-        child.close()
-        self.workers[w], self.pipes[w] = proc, parent
-
-    def _replace(self, w: int) -> None:
-        """Start a new worker in place of dead worker ``w``; logged, and bounded per call."""
-        old = self.workers[w]
-        old.kill()
-        old.join()
-        self.restarts += 1
-        log.warning(
-            "vector env worker %d (envs %s, pid %s) died (exit code %s); started a new one "
-            "and cut its episodes",
-            w,
-            self.groups[w],
-            old.pid,
-            old.exitcode,
-        )
-        # Episode numbers keep counting up, so a restarted env never repeats a seed.
-        self._start(w, episode=1_000_000 + self.restarts)
-
-    def _call(self, w: int, message: tuple):
-        """Send ``message`` to worker ``w`` and return its reply, replacing the worker if dead."""
-        for attempt in range(1, MAX_RESTARTS + 2):
-            try:
-                self.pipes[w].send(message)
-                return self.pipes[w].recv()
-            except (EOFError, ConnectionError, OSError):
-                if attempt > MAX_RESTARTS:
-                    raise RuntimeError(
-                        f"vector env worker {w} died {attempt} times in a row; giving up"
-                    ) from None
-                self._replace(w)
-
-    def _restart(self, w: int) -> VectorStep:
-        """Replace a dead worker; every episode of its group is cut."""
-        self._replace(w)
-        finals = [self._last_critic[e] for e in self.groups[w]]
-        actor, critic = self._call(w, ("reset", None))
-        return cut_steps(actor, critic, finals, self.n_cavs)
-
-    def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
-        """Reset every environment (optionally restarting their episode counters).
-
-        A worker that died meanwhile (e.g. idle during the trainer's update) is
-        replaced here, with the same seeds.
-        """
-        sent = [self._send(w, ("reset", first_episode)) for w in range(len(self.pipes))]
-        pairs = []
-        for w, ok in enumerate(sent):
-            reply = self._receive(w) if ok else None
-            if reply is None:  # same seeds on the new worker: the reset is unchanged
-                self._replace(w)
-                reply = self._call(w, ("reset", first_episode))
-            pairs.append(reply)
-        actor, critic = concat([a for a, _ in pairs]), concat([c for _, c in pairs])
-        self._last_critic = [unstack(critic, e, copy=True) for e in range(self.n_envs)]
-        return actor, critic
-
-    def _send(self, w: int, message: tuple) -> bool:
-        try:
-            self.pipes[w].send(message)
-            return True
-        except (ConnectionError, OSError):
-            return False
-
-    def _receive(self, w: int):
-        try:
-            return self.pipes[w].recv()
-        except (EOFError, ConnectionError, OSError):
-            return None
-
-    def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
-        sent = [self._send(w, ("step", actions[group])) for w, group in enumerate(self.groups)]
-        parts: list[VectorStep] = []
-        for w, ok in enumerate(sent):
-            reply = self._receive(w) if ok else None
-            parts.append(reply if reply is not None else self._restart(w))
-        out = concat_steps(parts)
-        self._last_critic = [unstack(out.critic_state, e, copy=True) for e in range(self.n_envs)]
-        return score(out, self.team_reward)
-
-    set_training_step = VectorEnv.set_training_step
-
-    def close(self) -> None:
-        for p, w in zip(self.pipes, self.workers, strict=True):
-            try:
-                p.send(("close", None))
-            except (BrokenPipeError, OSError):
-                pass
-            w.join(timeout=5)
-            if w.is_alive():
-                w.kill()
-
-
 def make_vector_env(
     config: EnvConfig,
     n_envs: int,
@@ -548,10 +262,11 @@ def make_vector_env(
     """``mode``: ``sync``, ``batched``, ``process`` or ``auto`` (the backend's ``vector_mode``).
 
     ``auto`` steps a single environment on its own (``sync``): a batch of one
-    gives the same results but pays the batching (measured x0.70 env-steps/s,
-    ``diacc bench --env-batch``). ``extra_maps``: maps beside ``config.map`` that
-    the environments are split over (:func:`maps_of_envs`). ``total_steps``: the
-    length of the reward's temperature schedule (:class:`VectorEnv`), the run's budget.
+    gives the same results but pays the batching (``diacc bench --env-batch``;
+    figures in docs/benchmarks, "env stepping per core"). ``extra_maps``: maps
+    beside ``config.map`` that the environments are split over (:func:`maps_of_envs`).
+    ``total_steps``: the length of the reward's temperature schedule (:class:`VectorEnv`),
+    the run's budget.
     """
     env_maps = maps_of_envs((config.map, *extra_maps), n_envs) if extra_maps else None
     if mode == "auto":
@@ -566,6 +281,6 @@ def make_vector_env(
         )
     if mode == "process":
         return ProcessVectorEnv(
-            config, n_envs, run_seed, env_maps=env_maps, total_steps=total_steps
+            SyncVectorEnv, config, n_envs, run_seed, env_maps=env_maps, total_steps=total_steps
         )
     raise ValueError(f"unknown vector mode {mode!r}; choose sync, batched, process or auto")

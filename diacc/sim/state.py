@@ -23,12 +23,16 @@ not entered yet is *pending*: neither active nor arrived, at its entry slot
 Batches
 -------
 A batch of E environments of the same scenario is one TrafficState whose
-per-vehicle arrays carry a leading env axis, (E, V), each env its own block
-(:meth:`TrafficState.stack`, :meth:`TrafficState.env`). Its ``time_s`` and
-``step`` are (E,) arrays, ``collisions`` rows are (env, i, j) and
-``arrivals`` rows (env, i). Functions that read states index vehicles with
-:func:`take` and broadcast over leading axes, so the same code serves one
-state and a batch.
+per-vehicle arrays carry a leading env axis, (E, V), each env its own block.
+Its ``time_s`` and ``step`` are (E,) arrays, ``collisions`` rows are
+(env, i, j) and ``arrivals`` rows (env, i). Every backend returns batches
+(E = 1 for one env; :mod:`diacc.sim.backends.base`); they join with
+:meth:`TrafficState.concat`, split with :meth:`TrafficState.envs`. One env's
+state with (V,) arrays, a scalar ``time_s`` and (K, 2) ``collisions``
+(:meth:`TrafficState.env`, :meth:`TrafficState.stack` back) is the view the
+PettingZoo env, the viewer and the tutorials show. Functions that read states
+index vehicles with :func:`take` and broadcast over leading axes, so the same
+code serves both.
 """
 
 from __future__ import annotations
@@ -69,6 +73,11 @@ class TrafficState:
         return int(self.vehicle_id.shape[-1])
 
     @property
+    def n_envs(self) -> int:
+        """E, the envs of a batch (its ``time_s`` is (E,))."""
+        return len(self.time_s)
+
+    @property
     def is_batch(self) -> bool:
         """A batch of envs ((E, V) arrays, (E,) ``time_s``), not one env's state."""
         return self.vehicle_id.ndim == 2
@@ -106,6 +115,48 @@ class TrafficState:
             **per_vehicle,
         )
 
+    @classmethod
+    def concat(cls, batches: Sequence[TrafficState]) -> TrafficState:
+        """One batch of the ``batches`` (same vehicle count) one after another: env ``e`` of
+        the k-th is env ``e + (envs before it)`` of the result (copies; what backends
+        return, a batch each, become one batch)."""
+        offsets = np.cumsum([0] + [b.n_envs for b in batches[:-1]])
+
+        def renumbered(name: str) -> np.ndarray:
+            rows = [getattr(b, name).copy() for b in batches]
+            for out, offset in zip(rows, offsets, strict=True):
+                out[:, 0] += offset
+            return np.concatenate(rows)
+
+        return cls(
+            time_s=np.concatenate([b.time_s for b in batches]),
+            step=np.concatenate([b.step for b in batches]),
+            collisions=renumbered("collisions"),
+            arrivals=renumbered("arrivals"),
+            **{
+                name: np.concatenate([getattr(b, name) for b in batches])
+                for name in PER_VEHICLE_FIELDS
+            },
+        )
+
+    def tile(self, k: int) -> TrafficState:
+        """``k`` copies of this batch one after another: env ``e`` of copy ``j`` is env
+        ``j E + e`` (one call over every candidate of a batch; :mod:`diacc.envs.action_mask`)."""
+        n_envs = self.n_envs
+
+        def events(rows: np.ndarray) -> np.ndarray:  # (k R, ...) env-major, as concat()
+            out = np.tile(rows, (k, 1))
+            out[:, 0] += np.repeat(np.arange(k, dtype=np.int32) * n_envs, len(rows))
+            return out
+
+        return TrafficState(
+            time_s=np.tile(self.time_s, k),
+            step=np.tile(self.step, k),
+            collisions=events(self.collisions),
+            arrivals=events(self.arrivals),
+            **{name: np.tile(getattr(self, name), (k, 1)) for name in PER_VEHICLE_FIELDS},
+        )
+
     def env(self, e: int, copy: bool = True) -> TrafficState:
         """Env ``e`` of a batch as a single-env state (copies, or views of the batch's rows)."""
         per_vehicle = {
@@ -139,14 +190,14 @@ class TrafficState:
         )
 
     def set_env(self, e: int, state: TrafficState) -> None:
-        """Make env ``e`` of this batch the single-env ``state`` (in place, copies)."""
+        """Make env ``e`` of this batch the batch of one ``state`` (in place, copies)."""
         for name in PER_VEHICLE_FIELDS:
-            getattr(self, name)[e] = getattr(state, name)
-        self.time_s[e], self.step[e] = state.time_s, state.step
+            getattr(self, name)[e] = getattr(state, name)[0]
+        self.time_s[e], self.step[e] = state.time_s[0], state.step[0]
 
-        def replaced(rows: np.ndarray, own: np.ndarray) -> np.ndarray:  # env-major, as stack()
-            own = own.reshape(len(own), rows.shape[1] - 1)  # (K, 2) pairs or (A, 1) arrivals
-            own = np.hstack([np.full((len(own), 1), e, np.int32), own.astype(np.int32)])
+        def replaced(rows: np.ndarray, own: np.ndarray) -> np.ndarray:  # env-major, as concat()
+            own = own.copy()
+            own[:, 0] = e
             rows = np.concatenate([rows[rows[:, 0] != e], own])
             return rows[np.argsort(rows[:, 0], kind="stable")]
 

@@ -10,7 +10,7 @@ batched ``highway`` simulator for all E envs); both run the one step function
 of :mod:`diacc.envs.batch`, so PSAR, observations and rewards are batched in
 both and the difference is the simulator's. A second pair of columns times the
 simulator alone (:meth:`HighwayBackend.step` of E backends vs one
-:meth:`HighwayBackend.step_batch`). One process, one thread: the figures are
+:meth:`HighwayBackend.step` of one backend of E envs). One process, one thread: the figures are
 per core. Automatic resets are included (short episodes make them frequent,
 as in training), the start-up is not. ``benchmarks/speed/step_before_after.py``
 compares the stepping of two source trees.
@@ -76,7 +76,7 @@ def time_simulator(config: EnvConfig, n_envs: int, batched: bool, steps: int, se
     def reset(b: HighwayBackend, e: int) -> None:
         nonlocal episodes
         episodes += 1
-        b.reset_env(e, config.scenario, seed + episodes)
+        b.reset(config.scenario, seed + episodes, env=e)
 
     for b in backends:
         for e in range(b.n_envs):
@@ -85,14 +85,23 @@ def time_simulator(config: EnvConfig, n_envs: int, batched: bool, steps: int, se
     for t in range(steps):
         start = time.perf_counter()
         if batched:
-            states = backends[0].step_batch(CavCommands(lane[t], speed[t]))
+            states = [backends[0].step(CavCommands(lane[t], speed[t]))]
         else:
-            states = [b.step(CavCommands(lane[t, e], speed[t, e])) for e, b in enumerate(backends)]
+            commands = CavCommands(lane[t], speed[t])
+            states = [b.step(commands.env(e)) for e, b in enumerate(backends)]
         seconds += time.perf_counter() - start
-        for e, s in enumerate(states):  # resets are not timed: the env's own cost
-            if len(s.collisions) or not s.active.any() or s.step >= sim.episode_steps:
-                b = backends[0] if batched else backends[e]
-                reset(b, e if batched else 0)
+        # Resets are not timed: the env's own cost. One flag per env of the E = 1 or E batches.
+        ended = np.concatenate(
+            [
+                np.isin(np.arange(s.n_envs), s.collisions[:, 0])
+                | ~s.active.any(axis=1)
+                | (s.step >= sim.episode_steps)
+                for s in states
+            ]
+        )
+        for e in np.flatnonzero(ended):
+            b = backends[0] if batched else backends[e]
+            reset(b, int(e) if batched else 0)
     return n_envs * steps / seconds
 
 
@@ -144,7 +153,7 @@ def run(envs: tuple[int, ...] = (1, 4, 16), steps: int = 60, seed: int = 0) -> l
     print(
         "env step = simulator + PSAR + observations + reward + episode recorder "
         "(SyncVectorEnv vs BatchedVectorEnv: PSAR and the rest batched in both); "
-        "simulator = HighwayBackend.step one after another vs step_batch"
+        "simulator = HighwayBackend.step of E backends one after another vs one of E envs"
     )
     return rows
 

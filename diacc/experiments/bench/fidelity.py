@@ -89,8 +89,9 @@ def human_flow(
     lane_end = road.lane_end_m()  # (S, L)
     t0 = time.perf_counter()
     try:
-        state = sim_backend.reset(scenario, seed)
-        recorder.record(state)
+        batch = sim_backend.reset(scenario, seed)  # a batch of one
+        recorder.record(batch)
+        state = batch.env(0)  # its (V,) arrays
         n = state.n_vehicles
         passed = np.zeros(n, bool)  # (V,) crossed the reduction end
         cross_t = []  # crossing times
@@ -98,8 +99,9 @@ def human_flow(
         longest_s = np.zeros(n)
         upstream = []  # (t, mean speed 100 m before the drop)
         for _ in range(sim.episode_steps):
-            state = sim_backend.step(CavCommands.idle(n))
-            recorder.record(state)
+            batch = sim_backend.step(CavCommands.idle(n))
+            recorder.record(batch)
+            state = batch.env(0)
             now = state.x_m >= red_end_m
             new = (now | state.arrived) & ~passed
             cross_t += [state.time_s] * int(new.sum())

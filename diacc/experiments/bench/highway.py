@@ -41,10 +41,12 @@ _STOCK_ACTIONS = np.array([1, 0, 2, 3, 4])
 
 
 def _random_commands(rng: np.random.Generator, n: int, speed_change_mps: float) -> CavCommands:
-    """Seeded random CAV commands drawn from :data:`ACTION_PROBS`."""
+    """Seeded random CAV commands of one env drawn from :data:`ACTION_PROBS`, (1, V)."""
     action = rng.choice(5, size=n, p=ACTION_PROBS)
     lane, speed = _OUR_ACTIONS[action].T
-    return CavCommands(lane.astype(np.int8), speed.astype(np.float64) * speed_change_mps)
+    return CavCommands(
+        lane.astype(np.int8)[None], speed.astype(np.float64)[None] * speed_change_mps
+    )
 
 
 def time_ours(
@@ -62,7 +64,7 @@ def time_ours(
         t0 = time.perf_counter()
         state = backend.step(commands)
         elapsed_s += time.perf_counter() - t0
-        if len(state.collisions) or not state.active.any() or state.step >= sim.episode_steps:
+        if len(state.collisions) or not state.active.any() or state.step[0] >= sim.episode_steps:
             episode += 1
             state = backend.reset(scenario, seed + episode)
     backend.close()

@@ -1,9 +1,11 @@
 """The Backend protocol: what every simulator behind diacc must offer.
 
-A backend owns one simulation of one :class:`~diacc.sim.maps.Map`. It is reset
-with a :class:`~diacc.sim.scenario.Scenario` and a seed, stepped with commands for
-the CAVs (HDVs drive themselves), and returns a
-:class:`~diacc.sim.state.TrafficState` in the shared coordinate convention.
+A backend owns ``n_envs`` simulations (E, one unless it batches envs, as
+``highway`` does) of one :class:`~diacc.sim.maps.Map`. Each env is reset with a
+:class:`~diacc.sim.scenario.Scenario` and a seed; all are stepped together with
+(E, V) commands for the CAVs (HDVs drive themselves), and every state returned is
+a :class:`~diacc.sim.state.TrafficState` batch in the shared coordinate
+convention: the reset env's as a batch of one, a step's as the (E, V) batch.
 Everything past the backend (observations, PSAR, metrics, the viewer
 :mod:`diacc.sim.viewer`) reads only that state, so nothing else needs to know
 which simulator runs. Each backend is a package: ``highway/`` and ``sumo/``.
@@ -53,15 +55,20 @@ class BackendError(DiaccError, RuntimeError):
 
 @dataclass
 class CavCommands:
-    """Commands for one step, indexed by vehicle index (HDV entries ignored)."""
+    """Commands of E envs for one step, indexed by env and vehicle (HDV entries ignored)."""
 
-    lane_change: np.ndarray  # (V,) int8 in {-1, 0, +1}, +1 = one lane to the left
-    speed_change_mps: np.ndarray  # (V,) float64
+    lane_change: np.ndarray  # (E, V) int8 in {-1, 0, +1}, +1 = one lane to the left
+    speed_change_mps: np.ndarray  # (E, V) float64
 
     @classmethod
-    def idle(cls, n_vehicles: int) -> CavCommands:
+    def idle(cls, n_vehicles: int, n_envs: int = 1) -> CavCommands:
         """Commands that keep every CAV in its lane at its speed."""
-        return cls(np.zeros(n_vehicles, np.int8), np.zeros(n_vehicles, np.float64))
+        shape = (n_envs, n_vehicles)
+        return cls(np.zeros(shape, np.int8), np.zeros(shape, np.float64))
+
+    def env(self, e: int) -> CavCommands:
+        """Env ``e``'s commands as a batch of one (views)."""
+        return CavCommands(self.lane_change[e : e + 1], self.speed_change_mps[e : e + 1])
 
 
 @runtime_checkable
@@ -75,10 +82,16 @@ class Backend(Protocol):
     vector_mode: Literal["sync", "batched", "process"]
     road: Map
     sim: SimConfig
+    #: E, the envs this backend simulates (1 unless its ``vector_mode`` is "batched").
+    n_envs: int
 
-    def reset(self, scenario: Scenario, seed: int) -> TrafficState: ...
+    def reset(self, scenario: Scenario, seed: int, env: int = 0) -> TrafficState:
+        """Start env ``env`` anew; its first state, a batch of one."""
+        ...
 
-    def step(self, commands: CavCommands) -> TrafficState: ...
+    def step(self, commands: CavCommands) -> TrafficState:
+        """Advance every env one decision step with (E, V) commands; the (E, V) state."""
+        ...
 
     def close(self) -> None: ...
 

@@ -53,6 +53,23 @@ class HighwayModel:
 
 
 @dataclass(frozen=True)
+class CooperativeCavParams:
+    """IDM/MOBIL image of a CACC CAV with cooperative lane changes (cooperative baseline).
+
+    The time headway and minimum gap are the CAV vType's (``CavParams``), which
+    is also what SUMO's CACC model is given on the ``sumo`` backend, so the
+    baseline means the same on both; politeness 1 weighs the followers' gain as
+    much as the own (SUMO's ``lcCooperative = 1``). Acceleration limits are the
+    CAVs' (``SimConfig.cav``).
+    """
+
+    time_headway_s: float = 1.0
+    min_gap_m: float = 1.0
+    politeness: float = 1.0
+    lc_gain_threshold_mps2: float = 0.1
+
+
+@dataclass(frozen=True)
 class IdmParams:
     """Per-vehicle IDM parameters, each (E, V): one row per environment of a batch."""
 

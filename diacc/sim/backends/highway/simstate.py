@@ -17,7 +17,7 @@ All three share the row operations of :class:`EnvRows`: :meth:`~EnvRows.copy`
 (a deep copy, so a batch can be checkpointed and restored exactly),
 :meth:`~EnvRows.env` (one env as an E = 1 record) and
 :meth:`~EnvRows.set_env` (write one env's row of every field, which is how
-``reset_env`` starts an env: a field cannot be forgotten, since the record's
+``reset`` starts an env: a field cannot be forgotten, since the record's
 constructor needs them all). Arrays are (E, V) unless the field's comment
 says otherwise; E is the batch size, V the vehicles per env.
 """
@@ -27,11 +27,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
-from diacc.sim.backends.highway.models import IdmParams
+from diacc.sim.backends.highway.models import CooperativeCavParams, HighwayModel, IdmParams
+from diacc.sim.backends.highway.road import LaneTables
+from diacc.sim.maps import Map
+from diacc.sim.settings import SimConfig
 
 
 def _map_arrays(value: Any, fn: Callable[[np.ndarray], np.ndarray]) -> Any:
@@ -157,7 +160,7 @@ class HighwayState(EnvRows):
 
     @classmethod
     def zeros(cls, n_envs: int, n_vehicles: int) -> HighwayState:
-        """A batch record before any reset (``reset_env`` writes every row)."""
+        """A batch record before any reset (a reset writes every row of its env)."""
         shape = (n_envs, n_vehicles)
         f64, flag, lane = np.zeros(shape), np.zeros(shape, bool), np.zeros(shape, np.intp)
         return cls(
@@ -205,7 +208,7 @@ class HighwayParams(EnvRows):
 
     @classmethod
     def zeros(cls, n_envs: int, n_vehicles: int, idm_delta: float) -> HighwayParams:
-        """A batch record before any reset (``reset_env`` writes every row)."""
+        """A batch record before any reset (a reset writes every row of its env)."""
         shape = (n_envs, n_vehicles)
         return cls(
             idm=IdmParams(
@@ -227,20 +230,20 @@ class HighwayParams(EnvRows):
 class HighwayCaches(EnvRows):
     """Quantities derived from state and parameters, kept between sub-steps.
 
-    Each group is refreshed by one backend method, when its inputs may have
-    changed (the method's docstring says when). Those refreshed on events
+    Each group is refreshed by one function of :mod:`.dynamics`, when its inputs may have
+    changed (its docstring says when). Those refreshed on events
     only are part of a running batch's state: copy them along with it.
     """
 
-    # HighwayBackend._refresh_road_facts: at decisions and lane-change starts.
+    # dynamics.refresh_road_facts: at decisions and lane-change starts.
     desired_mps: np.ndarray  # (E, V) float64 speed limit of the vehicle's segment
     inv_desired_s_per_m: np.ndarray  # (E, V) float64 1 / max(desired_mps, 1e-3)
     end_x_m: np.ndarray  # (E, V) float64 centre x at which the destination lane ends
-    # HighwayBackend._refresh_speed_bounds: at commands, resets, contacts and arrivals.
+    # dynamics.refresh_speed_bounds: at commands, resets, contacts and arrivals.
     v_lo_mps: np.ndarray  # (E, V) float64 lowest speed a sub-step may reach
     v_hi_mps: np.ndarray  # (E, V) float64 highest speed a sub-step may reach
     half_dt_active_s: np.ndarray  # (E, V) float64 dt / 2 on the road, 0 off it
-    # HighwayBackend._refresh_leaders: in the envs marked in leaders_dirty.
+    # dynamics.refresh_leaders: in the envs marked in leaders_dirty.
     leader: np.ndarray  # (E, V) intp nearest active vehicle ahead sharing a lane
     has_leader: np.ndarray  # (E, V) bool ``leader`` is real
     guarded: np.ndarray  # (E, V) bool an HDV behind an HDV leader (last-resort guard)
@@ -271,3 +274,27 @@ class HighwayCaches(EnvRows):
             leaders_dirty=np.ones(n_envs, bool),
             heading_nonzero=False,
         )
+
+
+class HighwaySim(Protocol):
+    """What the highway backend's seams (:mod:`.insertion`, :mod:`.lanes`,
+    :mod:`.dynamics`, :mod:`.export`) read and write of it: the records, the
+    settings, and the constant arrays of the current vehicle window."""
+
+    road: Map
+    sim: SimConfig
+    model: HighwayModel
+    cooperative: CooperativeCavParams
+    cav_mode: str
+    tables: LaneTables
+    n_envs: int
+    dt_s: float
+    state: HighwayState
+    params: HighwayParams
+    caches: HighwayCaches
+    stats: dict[str, np.ndarray]  # (E,) int64 event counters each
+    no_contact: np.ndarray  # (E, W, W) bool, all False
+    not_self: np.ndarray  # (W, W) bool, j is not i
+    own_index: np.ndarray  # (E, W) each vehicle's own index
+    sides: np.ndarray  # (3,) lane offsets right, own, left
+    min_accel_mps2: float

@@ -69,6 +69,8 @@ class SumoBackend:
     name = "sumo"
     #: libsumo holds one simulation per process: environments step in worker processes.
     vector_mode = "process"
+    #: One simulation: every state is a batch of one.
+    n_envs = 1
 
     def __init__(self, road: Map, sim: SimConfig) -> None:
         self.road = road
@@ -176,8 +178,11 @@ class SumoBackend:
             ) from None
 
     # ---- Backend protocol -----------------------------------------------------
-    def reset(self, scenario: Scenario, seed: int) -> TrafficState:
-        """Insert ``draw_population(scenario, road, seed)`` at t = 0, SUMO seeded by ``seed``."""
+    def reset(self, scenario: Scenario, seed: int, env: int = 0) -> TrafficState:
+        """Insert ``draw_population(scenario, road, seed)`` at t = 0, SUMO seeded by ``seed``;
+        the state as a batch of one (``env`` is 0, the only one)."""
+        if env != 0:
+            raise BackendError(f"env {env}: a SUMO backend simulates env 0 only")
         population = draw_population(scenario, self.road, seed)
         if self._pending:
             self._receive(REQUEST_TIMEOUT_S, "finishing a step before reset")
@@ -209,12 +214,12 @@ class SumoBackend:
         n = self._state.n_vehicles
         lane_change = np.asarray(commands.lane_change)
         speed_change = np.asarray(commands.speed_change_mps, dtype=np.float64)
-        if lane_change.shape != (n,) or speed_change.shape != (n,):
+        if lane_change.shape != (1, n) or speed_change.shape != (1, n):
             raise BackendError(
-                f"CavCommands arrays must have shape ({n},), got {lane_change.shape} and "
+                f"CavCommands arrays must have shape (1, {n}), got {lane_change.shape} and "
                 f"{speed_change.shape}"
             )
-        self._send(wire.encode_step_request(lane_change, speed_change), "stepping")
+        self._send(wire.encode_step_request(lane_change[0], speed_change[0]), "stepping")
         self._pending = True
 
     def step_wait(self) -> TrafficState:
@@ -226,7 +231,8 @@ class SumoBackend:
         return self._state
 
     def step(self, commands: CavCommands) -> TrafficState:
-        """Apply CAV commands (ignored in ``cooperative`` mode) and advance ``sim.step_s``."""
+        """Apply (1, V) CAV commands (ignored in ``cooperative`` mode) and advance
+        ``sim.step_s``; the state as a batch of one."""
         self.step_async(commands)
         return self.step_wait()
 

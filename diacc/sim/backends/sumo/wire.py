@@ -1,11 +1,11 @@
 """Compact encoding of the per-step messages between SumoBackend and its worker.
 
-A decision step is one round trip over the worker's pipe. Pickling and
-unpickling the reply, a :class:`~diacc.sim.state.TrafficState` dataclass of 16
-small arrays, cost 60-100 us per step (measured: about as much as all the
-Python work of the worker's step), and the command tuple another 10-25 us;
-this encoding costs about 15 and 2 us. So the two messages of every step
-travel as raw bytes:
+A decision step is one round trip over the worker's pipe. Pickling the
+reply, a :class:`~diacc.sim.state.TrafficState` dataclass of 16 small arrays,
+and the command tuple costs about as much as all the Python work of the
+worker's step; raw bytes cost a fraction of that (the SUMO backend's overhead
+is in docs/benchmarks, "SUMO backend vs raw libsumo loop"). So the two
+messages of every step travel as raw bytes:
 
 * step request: :data:`STEP_REQUEST`, then ``lane_change`` as int8 and
   ``speed_change_mps`` as float64, one value per vehicle;
@@ -71,7 +71,8 @@ def encode_state(state: TrafficState) -> bytes:
 
 
 def decode_state(message: bytes) -> TrafficState:
-    """The :class:`TrafficState` of a state reply; its arrays are writable views of one copy."""
+    """The :class:`TrafficState` of a state reply as a batch of one (what the backend
+    returns); its per-vehicle arrays are writable views of one copy."""
     buffer = bytearray(memoryview(message)[1:])  # drop the tag: offsets start aligned
     time_s, step, n, n_collisions, n_arrivals = _HEADER.unpack_from(buffer)
     counts = {"collisions": 2 * n_collisions, "arrivals": n_arrivals}
@@ -85,5 +86,13 @@ def decode_state(message: bytes) -> TrafficState:
     for name, size in zip(_FIELDS, sizes, strict=True):
         arrays[name] = np.frombuffer(buffer, FIELD_DTYPES[name], counts.get(name, n), offset)
         offset += size
-    arrays["collisions"] = arrays["collisions"].reshape(n_collisions, 2)
-    return TrafficState(time_s=time_s, step=step, **arrays)
+    # The worker's one simulation as a batch of one: env 0 in front of each event row.
+    pairs = arrays.pop("collisions").reshape(n_collisions, 2)
+    arrivals = arrays.pop("arrivals")
+    return TrafficState(
+        time_s=np.array([time_s]),
+        step=np.array([step], np.int64),
+        collisions=np.hstack([np.zeros((n_collisions, 1), np.int32), pairs]),
+        arrivals=np.stack([np.zeros(n_arrivals, np.int32), arrivals], axis=1),
+        **{name: values.reshape(1, n) for name, values in arrays.items()},
+    )
