@@ -39,7 +39,7 @@ class Context:
     episode_steps: int
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Slots:
     """The CAV slots observed and the per-call inputs, gathered once; (..., C) each."""
 
@@ -135,15 +135,15 @@ def relative_nodes(
 
     x, y = gather(hist.x_m), gather(hist.y_m)
     v, heading = gather(hist.speed_mps), gather(hist.heading_rad)
-    is_cav = np.broadcast_to(take(state.is_cav, idx)[..., None], x.shape)
-    return stack_last(
+    is_cav = take(state.is_cav, idx)[..., None].astype(np.float64)  # (..., C, M, 1)
+    return stack_last(  # (stack_last broadcasts is_cav over T)
         [
             (x - ego_x[..., None, None]) / DX_SCALE_M,
             (y - ego_y[..., None, None]) / sc.lane_w_m,
             (v - ego_v[..., None, None]) / sc.v_max_mps,
             heading,
             v / sc.v_max_mps,
-            is_cav.astype(np.float64),
+            is_cav,
         ],
     )  # (..., C, M, T, F)
 
@@ -179,15 +179,14 @@ def ego_lane_features(ctx: Context, frame: Frame, slots: Slots) -> dict[str, np.
             n_cav / safe,
         ],
     )  # (..., C, 3, 4)
-    lane_mask = exists & slots.alive[..., None]
-    return {"lane_stats": clip_f32(stats * lane_mask[..., None]), "lane_mask": lane_mask}
+    exists &= slots.alive[..., None]  # the lane mask
+    stats *= exists[..., None]
+    return {"lane_stats": clip_f32(stats), "lane_mask": exists}
 
 
 def road_features(ctx: Context, frame: Frame, slots: Slots) -> dict[str, np.ndarray]:
     """``road`` (..., C, 4 S): the static road table, per CAV alive."""
-    table = ctx.scales.road_table
-    road = np.broadcast_to(table, slots.index.shape + table.shape)
-    return {"road": clip_f32(road * slots.alive[..., None])}
+    return {"road": clip_f32(ctx.scales.road_table * slots.alive[..., None])}  # (..., C, 4S)
 
 
 def memory_features(ctx: Context, frame: Frame, slots: Slots) -> dict[str, np.ndarray]:
