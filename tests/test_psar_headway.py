@@ -313,3 +313,14 @@ def test_a_batch_of_states_is_refined_as_each_state_alone():
         speed = np.zeros((3, 25))
         np.put_along_axis(speed, cav_index, batch.speed_change_mps, axis=-1)
         states = backend.step_batch(CavCommands(np.zeros((3, 25), np.int8), speed))
+
+
+def test_every_psar_option_value_has_its_rule_block():
+    """HORIZONS and FORCE_BRAKES, the one place each option picks its block, cover every
+    value PSARConfig accepts (a new value without a block would be a KeyError mid-step)."""
+    from diacc.config import FORCE_BRAKE_MODES, HORIZON_MODES
+    from diacc.envs.psar.car_following import FORCE_BRAKES
+    from diacc.envs.psar.horizons import HORIZONS
+
+    assert set(HORIZONS) == set(HORIZON_MODES)
+    assert set(FORCE_BRAKES) == set(FORCE_BRAKE_MODES)
