@@ -91,7 +91,7 @@ def max_brake_mps(
     closer than ``cfg.min_gap_m``, or is so much slower that braking at the
     planned rate would not keep ``cfg.min_gap_m`` even if it only went on as
     it does now (its current deceleration, then the planned rate: a standing
-    HDV approached at speed; docs/results/learning-evidence.md);
+    HDV approached at speed; docs/concepts/psar.md);
     otherwise at most the planned rate, and a gap that a cut-in shortened is
     restored over the next steps. Without it, every cut-in inside the headway
     bound is answered by braking at 5 m/s², an emergency by the metrics'

@@ -5,7 +5,7 @@ the same-lane leader, the end of the own lane (not for a CAV leaving it: the
 road checked the change's reach) and each CAV ahead that changes, or asks to
 change, into the lane in this step (each one, not only the nearest: a nearer
 one that only asks may drive on and uncover one that moves in standing;
-docs/concepts/psar.md). An HDV leader, whose command is unknown, may brake at
+docs/concepts/psar.md, "Code"). An HDV leader, whose command is unknown, may brake at
 once as hard as its style's deceleration (at least the planned rate
 ``sim.cav.safe_decel_mps2``), and the CAV plans to answer with its full
 braking ``sim.cav.decel_mps2``: about one second of headway (Gipps with one

@@ -126,8 +126,9 @@ class StoppingHorizon(PaperHorizon):
         """A gap shorter than the one a lane change needs to enter (d_LC,min + Gipps) is
         closed in effect, even at equal speeds: the leader may brake in this very step,
         and a CAV that answers a step late keeps closing at that step's braking until it
-        hits (bench --safety, test-50). Judged at the CAV's current speed (as for
-        ``remain``), whatever it proposed; a standing CAV is not closing."""
+        hits (``diacc bench --safety``, docs/concepts/psar.md). Judged at the CAV's
+        current speed (as for ``remain``), whatever it proposed; a standing CAV is not
+        closing."""
         hold_m = self.cfg.d_lc_min_m + self.front_margin_m(front, np.full(self.cavs.shape, REMAIN))
         return (self.cavs.speed_mps > 0.0) & (gap_m <= hold_m)
 
