@@ -11,23 +11,18 @@ Its second branch sets ``remain`` even if the proposal was ``decelerate``
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from diacc.config import PSARConfig, SimConfig
 from diacc.envs.actions import ACCELERATE, DECELERATE, REMAIN, action_speed_change_mps
 from diacc.envs.psar.result import FORCE_BRAKE, SUPPR_ACCEL, rule_bit
-from diacc.envs.psar.scene import Cavs, Obstacles
+from diacc.envs.psar.scene import Cavs, Margins, Obstacles
 from diacc.envs.safety import PairKinematics
 from diacc.sim.kinematics import nan_to_num
 
-if TYPE_CHECKING:
-    from diacc.envs.psar.horizons import PaperHorizon
-
 
 def threshold_car_following(
-    horizon: PaperHorizon,
+    horizon: Margins,
     cavs: Cavs,
     a: np.ndarray,
     b_lc_mps2: np.ndarray,
@@ -63,7 +58,7 @@ def threshold_car_following(
 
 
 def _branches(
-    horizon: PaperHorizon,
+    horizon: Margins,
     has_leader: np.ndarray,
     front: PairKinematics,
     a: np.ndarray,

@@ -10,8 +10,6 @@ margins (:mod:`diacc.envs.psar.horizons`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from diacc.config import PSARConfig, SimConfig
@@ -23,13 +21,10 @@ from diacc.envs.actions import (
     lane_change_allowed,
 )
 from diacc.envs.psar.result import CANCEL_LC, DECEL_LC, rule_bit
-from diacc.envs.psar.scene import Cavs, Obstacles
+from diacc.envs.psar.scene import Cavs, Margins, Obstacles
 from diacc.sim.kinematics import nan_to_num
 from diacc.sim.maps import Map
 from diacc.sim.state import take
-
-if TYPE_CHECKING:
-    from diacc.envs.psar.horizons import PaperHorizon
 
 
 def refuse_impossible(
@@ -51,7 +46,7 @@ def check_lane_changes(
     a: np.ndarray,
     is_lc: np.ndarray,
     near: Obstacles,
-    horizon: PaperHorizon,
+    horizon: Margins,
     cfg: PSARConfig,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Lines 2-16 on the lane changes ``is_lc`` of actions ``a`` (..., C).
@@ -78,7 +73,7 @@ def _check_front(
     a: np.ndarray,
     is_lc: np.ndarray,
     near: Obstacles,
-    horizon: PaperHorizon,
+    horizon: Margins,
     cfg: PSARConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Cancel-LC and Decel-LC against the target lane's front vehicle and its end (a
@@ -114,7 +109,7 @@ def _check_rear(
     still_lc: np.ndarray,
     near: Obstacles,
     b_lc_mps2: np.ndarray,
-    horizon: PaperHorizon,
+    horizon: Margins,
     cfg: PSARConfig,
 ) -> np.ndarray:
     """(..., C) Cancel-LC by the target lane's rear vehicle ``k``.
@@ -138,7 +133,7 @@ def _check_rear(
 
 
 def clashes(
-    cavs: Cavs, offset: np.ndarray, moving: np.ndarray, horizon: PaperHorizon, cfg: PSARConfig
+    cavs: Cavs, offset: np.ndarray, moving: np.ndarray, horizon: Margins, cfg: PSARConfig
 ) -> np.ndarray:
     """(..., C) lane changes ``moving`` that connected CAVs' coordination cancels
     (``cfg.coordinate_lane_changes``; Algorithm 1 is per agent and misses both cases).

@@ -7,6 +7,7 @@ these same arrays, so the blocks agree on which vehicle is "the leader".
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -140,3 +141,18 @@ def slot_of(state: TrafficState, cav_index: np.ndarray) -> np.ndarray:
     # Repeated vehicles (empty slots): the last slot wins.
     slots.reshape(-1)[flat] = np.broadcast_to(np.arange(cav_index.shape[-1]), flat.shape)
     return slots
+
+
+class Margins(Protocol):
+    """What the rule blocks ask of a horizon (:mod:`diacc.envs.psar.horizons`): the
+    distances it adds to Algorithm 1's, each (..., C) or broadcasting."""
+
+    def front_margin_m(
+        self, kin: PairKinematics, action: np.ndarray, front_is_cav: np.ndarray | None = None
+    ) -> np.ndarray: ...
+
+    def rear_margin_m(self, rear_index: np.ndarray) -> np.ndarray | float: ...
+
+    def clash_margin_m(self, speed_i_mps: np.ndarray, speed_j_mps: np.ndarray): ...
+
+    def holds_short(self, front: PairKinematics, gap_m: np.ndarray) -> np.ndarray | bool: ...
