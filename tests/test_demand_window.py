@@ -12,7 +12,7 @@ import torch
 from helpers import SHORT_MAP
 from test_demand import tiny_demand_run
 
-import diacc.envs.observation as observation
+import diacc.envs.observation.frames as observation_frames
 import diacc.envs.safety as safety
 import diacc.learn.models.gat as gat
 from diacc.config import EnvConfig, EventConfig, ObservationConfig, SimConfig
@@ -130,7 +130,7 @@ def test_window_searches_equal_searches_over_all_vehicles(short_map, monkeypatch
         (builder._neighbours(s), safety.safety_critical_events(s, EventConfig())) for s in cases
     ]
     assert any(0 < on_road_window(s.active)[0] for s in cases)  # the window left vehicles out
-    monkeypatch.setattr(observation, "on_road_window", all_vehicles)
+    monkeypatch.setattr(observation_frames, "on_road_window", all_vehicles)
     monkeypatch.setattr(safety, "on_road_window", all_vehicles)
     for s, (nbr, events) in zip(cases, windowed, strict=True):
         for a, b in zip(nbr, builder._neighbours(s), strict=True):

@@ -502,3 +502,52 @@ def test_matched_horizon_options_keep_the_layout(road):
     np.testing.assert_allclose(obs.road[0].reshape(MAX_SEGMENTS, 4)[:3, 3], expected, atol=1e-6)
     assert 15.0 / 25.0 in expected  # the preset lowered one segment
     check_layout(obs, crit, 1, cfg)
+
+
+@pytest.mark.parametrize("compact", [False, True])
+@pytest.mark.parametrize("step_input", [False, True])
+@pytest.mark.parametrize("limits", [False, True])
+def test_chosen_feature_functions_fill_every_field_once(road, compact, step_input, limits):
+    """Whatever the options pick (features_for), the functions together fill each field of
+    ActorObs and CriticState exactly once: none missing, none written twice."""
+    import dataclasses
+
+    from diacc.envs.observation import features_for
+
+    cfg = dataclasses.replace(CFG, critic_step_input=step_input, road_speed_limits=limits)
+    features = features_for(cfg, compact)
+    b = ObservationBuilder(road, cfg, episode_steps=100, compact_critic=compact)
+    state = random_state(road, 20, 6, seed=3)
+    b.reset(state)
+    frame = b._require_frame()
+    from diacc.envs.observation.actor_features import Slots
+
+    slots = Slots.of(state, np.arange(6), np.zeros((6, 2), np.int64), np.zeros(20, np.int64))
+    for funcs, container, args in (
+        (features.actor, ActorObs, (b._ctx, frame, slots)),
+        (features.critic, CriticState, (b._ctx, frame)),
+    ):
+        written = [name for f in funcs for name in f(*args)]
+        assert sorted(written) == sorted(f.name for f in dataclasses.fields(container))
+    assert b.critic().traffic[3] == 0.0  # step 0 ...
+    b.push(random_state(road, 20, 6, seed=4, step=7))  # ... a later step shows the clock
+    assert (b.critic().traffic[3] > 0) == step_input
+
+
+def test_a_feature_function_can_be_replaced(road):
+    """ObservationBuilder(features=...) composes other functions of the same layout."""
+    import dataclasses
+
+    from diacc.envs.observation import features_for
+
+    def no_traffic(ctx, frame):
+        return {"traffic": np.zeros(frame.state.x_m.shape[:-1] + (4,), np.float32)}
+
+    default = features_for(CFG)
+    plugged = dataclasses.replace(default, critic=default.critic[:-1] + (no_traffic,))
+    state = random_state(road, 20, 6, seed=5, step=30)
+    ours, theirs = (ObservationBuilder(road, CFG, 100, features=f) for f in (default, plugged))
+    for b in (ours, theirs):
+        b.reset(state)
+    assert ours.critic().traffic.any() and not theirs.critic().traffic.any()
+    np.testing.assert_array_equal(ours.critic().nodes, theirs.critic().nodes)

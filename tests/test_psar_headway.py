@@ -16,7 +16,8 @@ from helpers import make_state
 
 from diacc.config import ConfigError, PSARConfig, SimConfig
 from diacc.envs.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
-from diacc.envs.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, _exit_room_m, psar
+from diacc.envs.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, psar
+from diacc.envs.psar.headway_bound import exit_room_m
 from diacc.sim.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
 from diacc.sim.maps import load_map
 
@@ -254,7 +255,7 @@ def test_outer_lane_of_a_double_drop_is_left_before_its_end():
     # lane 3's wall moves back by 2.5 + 0.5 m; lane 2 (lane 1 survives) keeps its end.
     road = load_map("train-50")
     state = make_state([400.0, 400.0], [3, 2], 10.0, is_cav=True)
-    assert _exit_room_m(state, np.array([0, 1]), road).tolist() == pytest.approx([3.0, 0.0])
+    assert exit_room_m(state, np.array([0, 1]), road).tolist() == pytest.approx([3.0, 0.0])
 
 
 def test_a_standing_cav_at_a_lane_end_may_still_leave_it():
@@ -313,3 +314,14 @@ def test_a_batch_of_states_is_refined_as_each_state_alone():
         np.put_along_axis(speed, cav_index, batch.speed_change_mps, axis=-1)
         stepped = backend.step(CavCommands(np.zeros((3, 25), np.int8), speed))
         states = [stepped.env(e) for e in range(3)]
+
+
+def test_every_psar_option_value_has_its_rule_block():
+    """HORIZONS and FORCE_BRAKES, the one place each option picks its block, cover every
+    value PSARConfig accepts (a new value without a block would be a KeyError mid-step)."""
+    from diacc.config import FORCE_BRAKE_MODES, HORIZON_MODES
+    from diacc.envs.psar.car_following import FORCE_BRAKES
+    from diacc.envs.psar.horizons import HORIZONS
+
+    assert set(HORIZONS) == set(HORIZON_MODES)
+    assert set(FORCE_BRAKES) == set(FORCE_BRAKE_MODES)

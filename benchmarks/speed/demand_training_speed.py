@@ -68,7 +68,7 @@ def config(args: argparse.Namespace, mode: str, run_dir: str):
 def switch_window_off() -> None:
     """Every vehicle stepped, searched and given a critic row: the code before the window."""
     import diacc.envs.batch
-    import diacc.envs.observation
+    import diacc.envs.observation.frames
     import diacc.envs.safety
     import diacc.learn.models.gat
     from diacc.sim.backends.highway.backend import HighwayBackend
@@ -81,7 +81,7 @@ def switch_window_off() -> None:
             super().__init__(road, cfg, episode_steps, compact_critic=False)
 
     HighwayBackend.windowed = False
-    diacc.envs.observation.on_road_window = every_vehicle
+    diacc.envs.observation.frames.on_road_window = every_vehicle
     diacc.envs.safety.on_road_window = every_vehicle
     diacc.envs.batch.ObservationBuilder = FullCritic  # where the step builds its builder
     diacc.learn.models.gat.DENSE_MAX_NODES = 10**9
