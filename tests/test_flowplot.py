@@ -76,3 +76,28 @@ def test_interval_and_errors():
     assert mean == 2.5 and 1.0 <= low < mean < high <= 4.0
     with pytest.raises(PlotError, match="no episodes.csv"):
         plot_flow([], "x")
+
+
+def test_a_table_tells_apart_results_of_one_policy_in_folders_of_one_name(flow_results, tmp_path):
+    """``diacc table`` of ``a/q1200`` and ``b/q1200`` holding the same policy: two columns
+    with their own numbers (they were one label, and one column's numbers twice)."""
+    import shutil
+
+    from diacc.experiments.report import build_table
+
+    source = flow_results / "highway" / "same-mix" / "q1200"
+    for name in ("a", "b"):
+        shutil.copytree(source, tmp_path / name / "q1200")
+    path = tmp_path / "b" / "q1200" / "episodes.csv"
+    rows = list(csv.DictReader(path.open()))
+    for row in rows:
+        row["throughput_vph"] = str(float(row["throughput_vph"]) + 100.0)
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    table = build_table([tmp_path / "a" / "q1200", tmp_path / "b" / "q1200"], rows=("throughput",))
+    assert table.columns == ["same-mix (highway) [a/q1200]", "same-mix (highway) [b/q1200]"]
+    (cell,) = table.cells
+    a, b = (table.stats[(cell.key, "throughput", c)].mean for c in table.columns)
+    assert b == pytest.approx(a + 100.0)

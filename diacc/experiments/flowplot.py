@@ -148,21 +148,25 @@ def plot_flow(roots: list[str | Path], out: str | Path) -> tuple[list[Path], lis
                 ).T
                 ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label=series)
         inflows = sorted({p.inflow_vph for p in mine})
-        top.plot(inflows, inflows, color="grey", lw=0.8, ls=":", label="outflow = inflow")
+        (served,) = top.plot(
+            inflows, inflows, color="grey", lw=0.8, ls=":", label="outflow = inflow"
+        )
         marked = capacity(points, backend)
         if marked is not None:
             cap, drop = marked
             top.axhline(cap, color="black", lw=0.8, ls="--")
             top.annotate(
                 f"pure-HDV capacity {cap:.0f} veh/h; drop {drop:.0%} at {inflows[-1]:.0f}",
-                (inflows[0], cap),
+                (inflows[-1], cap),
                 textcoords="offset points",
                 xytext=(0, 4),
+                ha="right",
                 fontsize=8,
             )
         top.set_title(backend)
         top.set_ylabel("outflow (veh/h)")
         bottom.set_ylabel("delay per vehicle (s)")
         bottom.set_xlabel("inflow (veh/h)")
-        top.legend(fontsize=8)
+        top.legend(handles=[served], fontsize=8, loc="upper left")
+        bottom.legend(fontsize=8, loc="upper left")  # the policies, where the curves leave room
     return _save(fig, out), points

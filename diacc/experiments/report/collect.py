@@ -145,6 +145,17 @@ def _check_options(speed_std: str, rows: tuple[str, ...] | list[str]) -> None:
         )
 
 
+def _distinct_names(dirs: list[Path]) -> list[str]:
+    """The shortest trailing parts of each directory's path that tell them apart
+    (``q3600`` twice becomes ``same-mix/q3600`` and ``heuristic/q3600``)."""
+    parts = [Path(d).resolve().parts for d in dirs]
+    for depth in range(1, max(map(len, parts)) + 1):
+        names = ["/".join(p[-depth:]) for p in parts]
+        if len(set(names)) == len(names):
+            return names
+    return [str(d) for d in dirs]  # the same directory twice: nothing tells them apart
+
+
 def table_from_results(
     loaded: list[tuple[Path, dict, list[dict[str, str]]]],
     speed_std: str = "samples",
@@ -158,7 +169,8 @@ def table_from_results(
     if len(set(labels)) < len(labels):  # same policy twice: tell them apart by backend, then dir
         labels = [f"{meta['policy']} ({meta['backend']})" for _, meta, _ in loaded]
     if len(set(labels)) < len(labels):
-        labels = [f"{lab} [{d.name}]" for lab, (d, _, _) in zip(labels, loaded, strict=True)]
+        names = _distinct_names([d for d, _, _ in loaded])
+        labels = [f"{lab} [{n}]" for lab, n in zip(labels, names, strict=True)]
     stats: dict[tuple[str, str, str], Stat] = {}
     values: dict[tuple[str, str, str], EpisodeValues] = {}
     cells: dict[str, Cell] = {}
