@@ -33,7 +33,7 @@ env is reported ``crashed`` and its row keeps the state before the step.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -68,16 +68,6 @@ class Decision:
     rule_mask: np.ndarray  # (E, C) int8 bitmask of the rules that took effect
     psar: PSARResult | None  # full PSAR result, (E, C) fields (None when PSAR is off)
     commands: CavCommands  # what the backends are asked to do, (E, V) arrays
-
-    def env(self, e: int) -> Decision:
-        """Env ``e``'s decision, (C,) arrays."""
-        psar = None
-        if self.psar is not None:
-            psar = PSARResult(*(getattr(self.psar, f.name)[e] for f in fields(PSARResult)))
-        commands = CavCommands(self.commands.lane_change[e], self.commands.speed_change_mps[e])
-        return Decision(
-            self.proposed[e], self.refined[e], self.rule[e], self.rule_mask[e], psar, commands
-        )
 
 
 def decide(

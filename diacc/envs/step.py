@@ -86,7 +86,8 @@ class Transition:
 
     @property
     def reward(self):
-        """(E,) the team reward R (``team.total``; NaN before the step is scored)."""
+        """(E,) the team reward R (``team.total``; a float in one env's view; NaN before
+        the step is scored)."""
         return float("nan") if self.team is None else self.team.total
 
     def env(self, e: int) -> Transition:
