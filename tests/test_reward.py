@@ -103,7 +103,7 @@ def test_annealed_team_reward_counts_env_steps_until_a_trainer_sets_them():
 
 
 def test_vector_envs_emit_the_team_reward_of_their_schedule():
-    """``VectorStep.team`` is :func:`team_reward` of the step's terms at the schedule's tau:
+    """``Transition.team`` is :func:`team_reward` of the step's terms at the schedule's tau:
     counting E env steps per step, until the trainer sets the step (then constant)."""
     from diacc.config import EnvConfig
     from diacc.envs.vector import make_vector_env

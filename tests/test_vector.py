@@ -188,7 +188,7 @@ def test_crashed_worker_is_restarted_and_its_episode_cut():
         out = envs.step(np.zeros((2, envs.n_cavs), np.int64))
         assert out.restarts == 1 and envs.restarts == 1
         # A crash is a truncation, bootstrapped from the last state before it.
-        assert out.truncated[1] and not out.terminated[1] and out.restarted.tolist() == [0, 1]
+        assert out.truncated[1] and not out.terminated[1] and out.crashed.tolist() == [0, 1]
         assert not out.ego[1].any() and out.global_reward[1] == out.completion[1] == 0.0
         assert out.final_critic_state[1] is not None and not out.alive[1].any()
         assert out.actor_obs.alive[1].all(), "the restarted env starts a fresh episode"
@@ -209,7 +209,7 @@ def test_sumo_crash_inside_a_rollout_is_a_truncation():
         os.kill(envs.groups[0][0].sims.backends[0].worker_pid, signal.SIGKILL)
         out = envs.step(np.zeros((1, envs.n_cavs), np.int64))
         assert out.restarts == 1
-        assert out.truncated[0] and not out.terminated[0] and out.restarted[0]
+        assert out.truncated[0] and not out.terminated[0] and out.crashed[0]
         assert not out.ego[0].any() and out.global_reward[0] == out.completion[0] == 0.0
         final = out.final_critic_state[0]
         np.testing.assert_array_equal(final.nodes, before.critic_state.nodes[0])
@@ -232,7 +232,7 @@ def test_a_crashed_simulator_cuts_only_its_own_env():
         alone.step(actions[:1])
         os.kill(envs.groups[0][0].sims.backends[1].worker_pid, signal.SIGKILL)
         out, one = envs.step(actions), alone.step(actions[:1])
-        assert out.restarts == 1 and out.restarted.tolist() == [False, True]
+        assert out.restarts == 1 and out.crashed.tolist() == [False, True]
         assert out.truncated[1] and not out.alive[1].any() and 1 not in out.episodes
         np.testing.assert_array_equal(out.actor_obs.self_state[0], one.actor_obs.self_state[0])
         assert out.global_reward[0] == one.global_reward[0]

@@ -71,17 +71,48 @@ SETTINGS: dict[str, tuple[dict, str, int, int]] = {
 }
 
 
-#: Dataclass fields left out of the digest: ``VectorStep.team`` (the team reward, emitted
-#: by the envs since issue 43) is made of hashed fields, and trees before it lack it.
-NOT_HASHED = frozenset({"team"})
+#: What of a vector env's step is hashed, in this order, by name: the fields of the
+#: step type before issue 43 made one step-result type (``VectorStep``), read from either
+#: tree's step type (:func:`_step_content`). The team reward is left out: it is made of
+#: hashed fields, and trees before it lack it.
+STEP_CONTENT = (
+    "actor_obs",
+    "critic_state",
+    "ego",
+    "global_reward",
+    "completion",
+    "delay",
+    "terminated",
+    "truncated",
+    "alive",
+    "refined_action",
+    "psar_rule_mask",
+    "final_critic_state",
+    "final_actor_obs",
+    "episodes",
+    "reward_terms",
+    "restarted",
+    "restarts",
+    "slot_start",
+)
+
+#: A content's name in the other tree's step type (``restarted`` is ``crashed`` in
+#: ``diacc.envs.step.Transition``).
+OTHER_NAME = {"restarted": "crashed"}
+
+
+def _step_content(step) -> dict:
+    """``step``'s :data:`STEP_CONTENT` by name, whichever tree's step type holds it."""
+    return {
+        name: getattr(step, name if hasattr(step, name) else OTHER_NAME[name])
+        for name in STEP_CONTENT
+    }
 
 
 def _feed(h, obj) -> None:
     """Hash ``obj`` (dataclasses, arrays with dtype and shape, dicts, sequences, scalars)."""
     if dataclasses.is_dataclass(obj):
         for f in dataclasses.fields(obj):
-            if f.name in NOT_HASHED:
-                continue
             h.update(f.name.encode())
             _feed(h, getattr(obj, f.name))
     elif isinstance(obj, np.ndarray):
@@ -111,7 +142,9 @@ def trace(name: str) -> str:
         _feed(h, envs.reset(first_episode=0))
         for _ in range(steps):
             actions = rng.choice(5, size=(n_envs, envs.n_cavs), p=(0.5, 0.05, 0.05, 0.2, 0.2))
-            _feed(h, envs.step(actions))
+            for name, value in _step_content(envs.step(actions)).items():
+                h.update(name.encode())  # as a dataclass field (digests of older scripts)
+                _feed(h, value)
             for batch, _ in envs.groups:
                 _feed(h, batch.state.traffic)
     finally:

@@ -33,7 +33,7 @@ env is reported ``crashed`` and its row keeps the state before the step.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -48,8 +48,9 @@ from diacc.envs.actions import (
 from diacc.envs.lateral_frame import is_mirrored, mirror_actions
 from diacc.envs.observation import ActorObs, CriticState, ObservationBuilder
 from diacc.envs.psar import PSARResult, psar
-from diacc.envs.reward import RewardTerms, reward_terms
+from diacc.envs.reward import reward_terms
 from diacc.envs.safety import safety_critical_events
+from diacc.envs.step import Transition
 from diacc.sim.backends.base import Backend, BackendError, CavCommands
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario
@@ -67,16 +68,6 @@ class Decision:
     rule_mask: np.ndarray  # (E, C) int8 bitmask of the rules that took effect
     psar: PSARResult | None  # full PSAR result, (E, C) fields (None when PSAR is off)
     commands: CavCommands  # what the backends are asked to do, (E, V) arrays
-
-    def env(self, e: int) -> Decision:
-        """Env ``e``'s decision, (C,) arrays."""
-        psar = None
-        if self.psar is not None:
-            psar = PSARResult(*(getattr(self.psar, f.name)[e] for f in fields(PSARResult)))
-        commands = CavCommands(self.commands.lane_change[e], self.commands.speed_change_mps[e])
-        return Decision(
-            self.proposed[e], self.refined[e], self.rule[e], self.rule_mask[e], psar, commands
-        )
 
 
 def decide(
@@ -213,56 +204,6 @@ class EpisodeState:
         )
 
 
-@dataclass
-class Transition:
-    """One :meth:`EnvBatch.step` of E envs (C = agent slots), before any reset."""
-
-    actor_obs: ActorObs  # (E, C, ...) observations of the state reached
-    critic_state: CriticState  # (E, ...)
-    state: TrafficState  # (E, V) the state reached
-    decision: Decision  # (E, C) what PSAR made of the proposed actions
-    terms: RewardTerms  # (E, C) and (E,): the reward's parts that need no temperature, and
-    # ``terms.alive`` (E, C): CAV on the road after the step (the reward's mask)
-    critical: np.ndarray  # (E, V) bool safety-critical events (the metrics' p(SCE))
-    slot_start: np.ndarray  # (E, C) bool a new CAV took the slot; its next action starts afresh
-    terminated: np.ndarray  # (E,) bool a collision, or every vehicle gone
-    truncated: np.ndarray  # (E,) bool episode_steps reached
-    crashed: np.ndarray  # (E,) bool the simulator failed: nothing of the row is valid
-
-    def logged_terms(self, rows: np.ndarray) -> dict[str, np.ndarray]:
-        """Envs ``rows``' reward parts for the logs, (R,) each ({} for no rows; the
-        softmin's parts come with the team reward, ``VectorStep.team``)."""
-        if len(rows) == 0:
-            return {}
-        terms, alive = self.terms, self.terms.alive[rows]
-        return {
-            "individual": _alive_means(terms.ego[rows], alive),
-            "global": terms.global_reward[rows].astype(np.float64),
-            "completion": terms.completion[rows].astype(np.float64),
-            # Logged so that a learning curve shows whether closeness fires.
-            "warning": _alive_means(terms.warning[rows], alive),
-            "delay": terms.delay[rows].astype(np.float64),
-        }
-
-
-def _alive_means(values: np.ndarray, alive: np.ndarray) -> np.ndarray:
-    """(R,) mean of each row of ``values`` (R, C) over its ``alive`` entries, 0 for none.
-
-    Rows with the same number of alive entries are averaged together: a row's
-    mean is then bit for bit that of its entries alone (``values[r][alive[r]].mean()``).
-    """
-    n_cav = values.shape[-1]
-    # every CAV on the road: one plain mean (none at all, pure HDV: 0, not 0 / 0)
-    if n_cav and np.count_nonzero(alive) == alive.size:
-        return (values.sum(axis=-1) / n_cav).astype(np.float64)
-    out = np.zeros(len(values))
-    counts = alive.sum(axis=-1)  # (R,)
-    for n in sorted(set(counts.tolist()) - {0}):
-        same = np.flatnonzero(counts == n)
-        out[same] = values[same][alive[same]].reshape(len(same), n).sum(axis=-1) / n  # = mean
-    return out
-
-
 # ----------------------------------------------------------------------------- the batch
 class EnvBatch:
     """E episodes of one map and configuration, advanced by one step function."""
@@ -313,7 +254,8 @@ class EnvBatch:
         self._fill_slots(rows)
 
     def step(self, actions: np.ndarray) -> Transition:
-        """Advance every env one decision step with the (E, C) proposed actions."""
+        """Advance every env one decision step with the (E, C) proposed actions (the
+        step's :class:`~diacc.envs.step.Transition`, with its state, PSAR result and events)."""
         st, cfg = self.state, self.config
         assert st is not None, "reset() before step()"
         decision = decide(st.traffic, st.cav_index, actions, cfg, self.road)  # 1.
@@ -332,14 +274,17 @@ class EnvBatch:
         return Transition(
             actor_obs=actor,
             critic_state=critic,
-            state=traffic,
-            decision=decision,
             terms=terms,
-            critical=safety_critical_events(traffic, cfg.events).any,
+            refined_action=decision.refined,
+            psar_rule=decision.rule,
+            psar_rule_mask=decision.rule_mask,
             slot_start=st.slot_start.copy(),
             terminated=terminated,
             truncated=~terminated & (st.steps >= cfg.sim.episode_steps),
             crashed=crashed,
+            state=traffic,
+            psar=decision.psar,
+            critical=safety_critical_events(traffic, cfg.events).any,
         )
 
     def observe(self, rows: np.ndarray | None = None) -> tuple[ActorObs, CriticState]:

@@ -16,12 +16,13 @@ order of their vehicle indices. Each step:
    which the observations, the reward and the events are built.
 
 **Reward and temperature.** Each step emits the team reward R
-(``StepResult.reward``, every agent's PettingZoo reward) at the softmin
+(``Transition.reward``, every agent's PettingZoo reward) at the softmin
 temperature of the training schedule, the same R diacc's trainer trains on:
 :attr:`BottleneckEnv.team_reward` (:class:`~diacc.envs.reward.AnnealedTeamReward`)
 anneals tau over ``total_steps`` env steps, counting this env's steps unless a
 trainer sets its progress (:meth:`BottleneckEnv.set_training_step`).
-:class:`StepResult` also carries the terms R is made of.
+The step (:class:`~diacc.envs.step.Transition`, env 0's view of the batch's) also
+carries the terms R is made of.
 
 The episode terminates on a collision or when every vehicle has left, and is
 truncated at ``episode_steps``. A CAV that has left the route is done and is
@@ -33,7 +34,7 @@ CAV). In a ``demand`` scenario CAVs enter and leave: a CAV that enters takes
 the first free slot (CAVs in order of entry), keeps it until it leaves, and
 its slot stays pointed at it for the step it arrives (so the reward sees the
 arrival) and is free from the next step on. A refilled slot is flagged in
-``StepResult.slot_start``: the policy starts that slot's recurrent state
+``Transition.slot_start``: the policy starts that slot's recurrent state
 afresh. An empty slot points at a vehicle that is not on the road, so every
 consumer of ``cav_index`` sees it dead (``alive`` False) without knowing
 about slots. CAVs that find no free slot (more than ``cav_slots`` at once)
@@ -53,7 +54,7 @@ of :mod:`diacc.envs.batch` with a batch of one env; the vector envs of training
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import fields
 
 import gymnasium
 import numpy as np
@@ -62,12 +63,12 @@ from pettingzoo import ParallelEnv
 from diacc.config import EnvConfig, preset_road
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.api_checks import EnvCallError, check_action_array, check_actions, check_seed
-from diacc.envs.batch import EnvBatch, Simulators, Transition, decide
+from diacc.envs.batch import EnvBatch, Simulators, decide
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, unstack
-from diacc.envs.psar import PSARResult
 from diacc.envs.reward import AnnealedTeamReward
 from diacc.envs.spaces import agent_observation, check_format, observation_space, state_space
+from diacc.envs.step import Transition
 from diacc.errors import DiaccError
 from diacc.sim.backends.base import Backend, make_backend
 from diacc.sim.maps import Map, load_map
@@ -79,7 +80,6 @@ __all__ = [
     "EnvCallError",
     "EnvConfig",
     "RenderModeError",
-    "StepResult",
     "decide",
 ]
 
@@ -111,53 +111,6 @@ def _env_zero(name: str, doc: str, convert=None) -> property:
 
 class RenderModeError(DiaccError, ValueError):
     """A render mode this environment cannot honour here; one line."""
-
-
-@dataclass
-class StepResult:
-    """What :meth:`BottleneckEnv.step_arrays` returns (C = CAV slots)."""
-
-    actor_obs: ActorObs
-    critic_state: CriticState
-    terminated: bool
-    truncated: bool
-    alive: np.ndarray  # (C,) bool: CAV on the road after the step (the reward's mask)
-    refined_action: np.ndarray  # (C,) int64 action executed
-    psar_rule: np.ndarray  # (C,) int8 last PSAR rule that took effect (0 none)
-    psar_rule_mask: np.ndarray  # (C,) int8 bitmask of the rules that took effect
-    psar: PSARResult | None  # full PSAR result (None when PSAR is off)
-    state: TrafficState
-    reward_terms: dict[str, float]  # logged parts of the reward that need no temperature
-    slot_start: np.ndarray  # (C,) bool: a new CAV took the slot; its next action starts afresh
-    # What team_reward aggregates (with ``alive``), at any temperature:
-    ego: np.ndarray  # (C,) ego reward r_e of each CAV slot (0 off the road)
-    global_reward: float  # r_g
-    completion: float  # r_done
-    delay: float  # delay term before its weight
-    reward: float = float("nan")  # team reward R at the schedule's temperature (step_arrays)
-
-    @classmethod
-    def of(cls, out: Transition, e: int) -> StepResult:
-        """Env ``e``'s part of a batch's transition."""
-        decision, terms = out.decision.env(e), out.terms.env(e)
-        return cls(
-            actor_obs=unstack(out.actor_obs, e),
-            critic_state=unstack(out.critic_state, e),
-            terminated=bool(out.terminated[e]),
-            truncated=bool(out.truncated[e]),
-            alive=out.terms.alive[e],
-            refined_action=decision.refined,
-            psar_rule=decision.rule,
-            psar_rule_mask=decision.rule_mask,
-            psar=decision.psar,
-            state=out.state.env(e),
-            reward_terms={k: float(v[0]) for k, v in out.logged_terms(np.array([e])).items()},
-            slot_start=out.slot_start[e],
-            ego=terms.ego,
-            global_reward=terms.global_reward,
-            completion=terms.completion,
-            delay=terms.delay,
-        )
 
 
 class BottleneckEnv(ParallelEnv):
@@ -205,7 +158,7 @@ class BottleneckEnv(ParallelEnv):
         #: The team reward of each step and its temperature schedule (module docstring).
         self.team_reward = AnnealedTeamReward(self.config.reward, total_steps)
         self.state_: TrafficState | None = None
-        #: The last step as the batch of one it is (:class:`~diacc.envs.batch.Transition`):
+        #: The last step as the batch of one it is (:class:`~diacc.envs.step.Transition`):
         #: what evaluation records, without unbatching and rebatching it.
         self.transition: Transition | None = None
         self._viewer = None  # diacc.sim.viewer.Viewer, made by the first render()
@@ -236,8 +189,9 @@ class BottleneckEnv(ParallelEnv):
         actor, critic = self.batch.observe()
         return unstack(actor, 0), unstack(critic, 0)
 
-    def step_arrays(self, actions: np.ndarray) -> StepResult:
-        """Advance one decision step with proposed actions (C,) for every CAV slot."""
+    def step_arrays(self, actions: np.ndarray) -> Transition:
+        """Advance one decision step with proposed actions (C,) for every CAV slot; the
+        step in env 0's view ((C,) arrays), with its team reward (``reward``)."""
         if self.state_ is None or self._over:
             what = "has ended" if self._over else "has not started"
             raise EnvCallError(f"the episode {what}; call reset() before step()")
@@ -245,9 +199,9 @@ class BottleneckEnv(ParallelEnv):
         if out.crashed[0]:
             raise self.batch.sims.errors[0]
         self.transition = out
-        result = StepResult.of(out, 0)
+        result = out.env(0)
         parts = (result.ego, result.alive, result.global_reward, result.completion, result.delay)
-        result.reward = float(self.team_reward(*parts).total)
+        result.team = self.team_reward(*parts)
         self.team_reward.advance(1)
         self.state_ = result.state
         self._over = result.terminated or result.truncated
@@ -339,7 +293,7 @@ class BottleneckEnv(ParallelEnv):
             batch[index[agent]] = action
         out = self.step_arrays(batch)
         if self._recorder is not None:
-            self._recorder.record(self.transition.state, psar=self.transition.decision.psar)
+            self._recorder.record(self.transition.state, psar=self.transition.psar)
         acting = list(self.agents)
         ended = out.terminated or out.truncated
         # CAVs that took a slot in this step join (PettingZoo lets agents appear).

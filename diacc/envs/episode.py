@@ -92,5 +92,5 @@ def play_episode(driver: EpisodeDriver, seed: int) -> EpisodeRecorder:
     recorder.record(env.traffic)
     while not driver.done:
         driver.step()
-        recorder.record(env.transition.state, psar=env.transition.decision.psar)
+        recorder.record(env.transition.state, psar=env.transition.psar)
     return recorder

@@ -5,7 +5,7 @@ Every flavour adapts the one step function of :mod:`diacc.envs.batch`
 needs around it (:class:`VectorEnv`): automatic reset with per-episode seeds
 derived from the run seed, the final observations of each finished episode
 (to bootstrap truncated episodes), episode metrics, and recovery from a
-crashed simulator. A step reports the team reward R (``VectorStep.team``) at
+crashed simulator. A step reports the team reward R (``Transition.team``) at
 the annealed temperature of the envs' :class:`~diacc.envs.reward.AnnealedTeamReward`
 (the trainer sets its training step before each rollout:
 :meth:`VectorEnv.set_training_step`), beside the terms R is made of.
@@ -46,8 +46,8 @@ from diacc.envs.batch import EnvBatch, Simulators
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, concat, unstack
 from diacc.envs.reward import AnnealedTeamReward
+from diacc.envs.step import Transition, concat_steps, kept_rows, score
 from diacc.envs.vector_process import ProcessVectorEnv
-from diacc.envs.vector_step import VectorStep, concat_steps, score
 from diacc.sim.backends.base import backend_class, make_backend
 from diacc.sim.maps import load_map
 
@@ -163,10 +163,10 @@ class VectorEnv:
         one call, before each rollout: :class:`~diacc.envs.reward.AnnealedTeamReward`)."""
         self.team_reward.set_training_step(step)
 
-    def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
+    def step(self, actions: np.ndarray) -> Transition:  # actions (E, C)
         return score(self.step_terms(actions), self.team_reward)
 
-    def step_terms(self, actions: np.ndarray) -> VectorStep:
+    def step_terms(self, actions: np.ndarray) -> Transition:
         """:meth:`step` without the team reward (a worker's part: its parent scores)."""
         parts, start = [], 0
         for g, (batch, members) in enumerate(self.groups):
@@ -176,7 +176,7 @@ class VectorEnv:
 
     def _step_group(
         self, g: int, batch: EnvBatch, members: np.ndarray, actions: np.ndarray
-    ) -> VectorStep:
+    ) -> Transition:
         """One step of one batch: record every env's state, end and restart episodes."""
         before = self._critic[g]  # the states a crashed simulator last reached
         out = batch.step(actions)
@@ -185,7 +185,7 @@ class VectorEnv:
         final_actors: list[ActorObs | None] = [None] * len(members)
         episodes = {}
         recorder = self.recorders[g]
-        recorder.record(out.state, psar=out.decision.psar, critical=out.critical, rows=~crashed)
+        recorder.record(out.state, psar=out.psar, critical=out.critical, rows=~crashed)
         for row in np.flatnonzero(crashed).tolist():
             finals[row] = unstack(before, row)
         for row in np.flatnonzero(ended & ~crashed).tolist():
@@ -206,32 +206,21 @@ class VectorEnv:
                     getattr(container, f.name)[restart] = getattr(new, f.name)
         self._critic[g] = critic
         kept = ~crashed
-
-        def of_kept(values: np.ndarray, fill: float | int = 0) -> np.ndarray:
-            """``values`` of the envs whose step happened, ``fill`` in the others."""
-            if not crashed.any():
-                return values
-            return np.where(kept.reshape((-1,) + (1,) * (values.ndim - 1)), values, fill)
-
-        return VectorStep(
+        return replace(
+            kept_rows(out, kept),  # no reward nor PSAR outcome where the simulator crashed
             actor_obs=actor,
             critic_state=critic,
-            ego=of_kept(out.terms.ego, 0.0),
-            global_reward=of_kept(out.terms.global_reward, 0.0),
-            completion=of_kept(out.terms.completion, 0.0),
-            delay=of_kept(out.terms.delay, 0.0),
             terminated=out.terminated & kept,
             truncated=out.truncated | crashed,
-            alive=out.terms.alive & kept[:, None],
-            refined_action=of_kept(out.decision.refined),
-            psar_rule_mask=of_kept(out.decision.rule_mask).astype(np.int8),
+            slot_start=batch.state.slot_start & kept[:, None],
+            state=None,
+            psar=None,
+            critical=None,
             final_critic_state=finals,
             final_actor_obs=final_actors,
             episodes=episodes,
             reward_terms=out.logged_terms(np.flatnonzero(kept)),  # of the envs whose step happened
-            restarted=crashed,
             restarts=int(crashed.sum()),
-            slot_start=batch.state.slot_start & kept[:, None],
         )
 
     def close(self) -> None:

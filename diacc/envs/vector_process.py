@@ -5,7 +5,7 @@ the environments into one group per ``spawn``-ed worker process, each group
 an object of ``group_class`` (:class:`~diacc.envs.vector.SyncVectorEnv`, which
 :func:`~diacc.envs.vector.make_vector_env` passes); a worker that dies is
 replaced, logged, and its group's episodes are cut
-(:func:`~diacc.envs.vector_step.cut_steps`).
+(:func:`~diacc.envs.step.cut_steps`).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 from diacc.config import EnvConfig
 from diacc.envs.observation import ActorObs, CriticState, concat, unstack
 from diacc.envs.reward import AnnealedTeamReward
-from diacc.envs.vector_step import VectorStep, concat_steps, cut_steps, score
+from diacc.envs.step import Transition, concat_steps, cut_steps, score
 from diacc.runlog import join_parent_log, log
 from diacc.threads import worker_environment
 
@@ -141,7 +141,7 @@ class ProcessVectorEnv:
                     ) from None
                 self._replace(w)
 
-    def _restart(self, w: int) -> VectorStep:
+    def _restart(self, w: int) -> Transition:
         """Replace a dead worker; every episode of its group is cut."""
         self._replace(w)
         finals = [self._last_critic[e] for e in self.groups[w]]
@@ -179,9 +179,9 @@ class ProcessVectorEnv:
         except (EOFError, ConnectionError, OSError):
             return None
 
-    def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
+    def step(self, actions: np.ndarray) -> Transition:  # actions (E, C)
         sent = [self._send(w, ("step", actions[group])) for w, group in enumerate(self.groups)]
-        parts: list[VectorStep] = []
+        parts: list[Transition] = []
         for w, ok in enumerate(sent):
             reply = self._receive(w) if ok else None
             parts.append(reply if reply is not None else self._restart(w))

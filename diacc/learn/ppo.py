@@ -83,7 +83,7 @@ def collect_rollout(
     The actor runs on the agent's rollout networks (:data:`ROLLOUT_DEVICE`),
     refreshed from the learner first unless ``sync`` is False (overlap: the
     learner is being updated meanwhile). The team reward of each step is the
-    one the envs emit (``VectorStep.team``), at the temperature of training
+    one the envs emit (``Transition.team``), at the temperature of training
     step ``global_step`` (the env steps before this update; set in the envs
     here, :meth:`~diacc.envs.vector.VectorEnv.set_training_step`, so tau is
     the same for the whole rollout); each ended episode's ``return`` sums them
@@ -149,7 +149,7 @@ def collect_rollout(
         stats.psar_counts += rule_counts(out.psar_rule_mask[roll.alive[t]])
         stats.decisions += int(roll.alive[t].sum())
         stats.restarts += out.restarts
-        reported = ~out.restarted  # envs whose simulator did not crash in this step
+        reported = ~out.crashed  # envs whose simulator did not crash in this step
         if reported.any():
             terms = {
                 "ego_softmin": team.ego_softmin[reported],
