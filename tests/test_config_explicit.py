@@ -83,9 +83,12 @@ def test_derived_count_follows_later_changes():
     assert isinstance(release.env.scenario, Release) and release.env.scenario.n_vehicles == 25
     assert not hasattr(release.env.scenario, "inflow_vph")  # a release has no demand settings
     assert Scenario(kind="demand").replace(demand_s=600).n_vehicles == 400
-    # a grid's demand cell takes the run's duration, and its count with it
+    # a grid's demand cell fixes its traffic, whatever the run's duration: its own
+    # demand_s, else the default, and its count with it
     cell = Cell("train-50", 200, 0.4, "D1", 3600.0)
-    assert cell.scenario(base=Scenario(kind="demand", demand_s=600)).n_vehicles == 600
+    assert cell.scenario(base=Scenario(kind="demand", demand_s=600)).n_vehicles == 300
+    timed = Cell("train-50", 600, 0.4, "D1", 3600.0, demand_s=600.0)
+    assert timed.scenario(base=Scenario(kind="demand", demand_s=120)).n_vehicles == 600
 
 
 def test_variant_refuses_a_contradicting_psar_flag():
