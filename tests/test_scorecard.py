@@ -84,3 +84,17 @@ def test_scoring_the_shipped_agent_does_not_evaluate_it_twice(tmp_path):
     assert list(_specs(agent)) == ["policy", "same-mix", "heuristic"]
     sampled = ScorecardConfig(PolicySpec(DEFAULT_AGENT, sampled=True), tmp_path)
     assert list(_specs(sampled)) == ["policy", *REFERENCES]
+
+
+@pytest.mark.parametrize(
+    "checkpoint", sorted(p.name for p in (REPO_ROOT / "checkpoints").glob("*.pt"))
+)
+def test_every_shipped_agent_gets_a_scorecard(tmp_path, checkpoint):
+    """Issue 42: the scorecard runs on every shipped agent (tiny budget, its training cell)."""
+    out = tmp_path / "card"
+    argv = ["scorecard", "--policy", f"checkpoints/{checkpoint}", *TINY, "--out", str(out)]
+    assert main(argv) == 0
+    card = json.loads((out / "scorecard.json").read_text())
+    delay = next(e for e in card["entries"] if e["metric"] == "delay")
+    assert delay["n_episodes"] == 2 and "same-mix" in delay["vs"]
+    assert delay["vs"]["same-mix"]["n_pairs"] == 2
