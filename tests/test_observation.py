@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from diacc.config import ObservationConfig, SimConfig
-from diacc.envs.observation import ObservationBuilder as BatchBuilder
 from diacc.envs.observation import (
     DX_SCALE_M,
     FEATURE_CLIP,
@@ -18,6 +17,7 @@ from diacc.envs.observation import (
     ObservationError,
     ObservationSpec,
 )
+from diacc.envs.observation import ObservationBuilder as BatchBuilder
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import load_map, parse_map
 from diacc.sim.scenario import Scenario
