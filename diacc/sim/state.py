@@ -205,7 +205,7 @@ class TrafficState:
 def on_road_window(active: np.ndarray) -> tuple[int, int]:
     """Smallest vehicle index window ``lo:hi`` holding every vehicle on the road.
 
-    ``active`` is (V,) or a batch's (E, V); the window is the union over the
+    ``active`` is a batch's (E, V); the window is the union over the
     envs, ``(0, 0)`` when no vehicle is on the road. Vehicles enter in index
     order and leave roughly so, so in a demand episode (hundreds of vehicles,
     a few dozen on the road) work restricted to the window scales with the

@@ -38,7 +38,7 @@ PAIRS = ("cav_behind_hdv", "cav_behind_cav", "hdv")
 def time_gaps(
     state: TrafficState, speed_limit_mps: np.ndarray | None = None
 ) -> dict[str, np.ndarray]:
-    """Time gaps (s) of the moving vehicles of one state, by :data:`PAIRS` class.
+    """Time gaps (s) of the moving vehicles of a batch of one env, by :data:`PAIRS` class.
 
     With ``speed_limit_mps`` ((S,) per segment) only vehicles at least
     :data:`CRUISE_MARGIN_MPS` below their segment's limit count: a vehicle
