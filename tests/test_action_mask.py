@@ -31,7 +31,7 @@ def mask_of(
         is_cav=[True] + [False] * len(others),
         **kw,
     )
-    return psar_action_mask(TrafficState.stack([state]), np.array([[0]]), cfg, ROAD)[0, 0].tolist()
+    return psar_action_mask(TrafficState.concat([state]), np.array([[0]]), cfg, ROAD)[0, 0].tolist()
 
 
 def allowed(*actions: int) -> list[bool]:
@@ -76,9 +76,9 @@ def test_batch_of_states_matches_one_state_at_a_time():
         make_state([100.0, 109.0, 300.0], [0, 0, 3], [20.0, 21.0, 20.0], is_cav=cav),
     ]
     cavs = np.array([[0, 2], [0, 2]])
-    batch = psar_action_mask(TrafficState.stack(states), cavs, CFG, ROAD)  # (E, C, 5)
+    batch = psar_action_mask(TrafficState.concat(states), cavs, CFG, ROAD)  # (E, C, 5)
     for e, state in enumerate(states):
-        alone = psar_action_mask(TrafficState.stack([state]), cavs[e : e + 1], CFG, ROAD)
+        alone = psar_action_mask(TrafficState.concat([state]), cavs[e : e + 1], CFG, ROAD)
         assert batch[e].tolist() == alone[0].tolist()
     assert batch.any(axis=-1).all()
 

@@ -71,7 +71,7 @@ def test_same_mix_runs_with_the_cells_vehicles(backend):
         driver.close()
     assert row["policy"] == "same-mix" and row["n_cavs"] == 0 and row["n_vehicles_seen"] == 20
     cav_slots = draw_population(CELL.scenario(), driver.road, CELL.seed(0, "test")).is_cav
-    assert np.all(state.style[cav_slots] == NORMAL) and not state.is_cav.any()
+    assert np.all(state.style[0, cav_slots] == NORMAL) and not state.is_cav.any()  # E = 1
 
 
 def _obs(x_m: list[float], lane: list[int], road, alive=None) -> ActorObs:

@@ -26,10 +26,10 @@ N_ENVS, N_VEHICLES, N_CAVS = 3, 25, 10
 
 
 def assert_fields_equal(batch, singles) -> None:
+    """Env ``e`` of ``batch`` equals the E = 1 batch ``singles[e]``."""
     for e, single in enumerate(singles):
         for f in fields(single):
-            a, b = getattr(single, f.name), getattr(batch, f.name)
-            b = b[e]
+            a, b = getattr(single, f.name)[0], getattr(batch, f.name)[e]
             assert np.array_equal(a, b) and np.asarray(a).dtype == np.asarray(b).dtype, (e, f.name)
 
 
@@ -53,7 +53,7 @@ def episode():
         for b, s in zip(builders, states, strict=True):
             b.push(s)
         history.append(states)
-    cav_index = np.stack([np.flatnonzero(s.is_cav) for s in states])  # (E, C)
+    cav_index = np.stack([np.flatnonzero(s.is_cav[0]) for s in states])  # (E, C)
     return config, road, history, builders, cav_index
 
 
@@ -61,15 +61,16 @@ def test_psar_reward_and_events_of_a_batch(episode):
     config, road, history, _, cav_index = episode
     rng = np.random.default_rng(4)
     for states in history:
-        batch = TrafficState.stack(states)
+        batch = TrafficState.concat(states)
         actions = rng.integers(0, 5, cav_index.shape)
         singles = [
-            psar(s, c, a, config.psar, road, config.sim)
+            psar(s, c[None], a[None], config.psar, road, config.sim)
             for s, c, a in zip(states, cav_index, actions, strict=True)
         ]
         assert_fields_equal(psar(batch, cav_index, actions, config.psar, road, config.sim), singles)
         singles = [
-            reward_terms(s, c, road, config.reward) for s, c in zip(states, cav_index, strict=True)
+            reward_terms(s, c[None], road, config.reward)
+            for s, c in zip(states, cav_index, strict=True)
         ]
         terms = reward_terms(batch, cav_index, road, config.reward)
         assert_fields_equal(terms, singles)
@@ -96,15 +97,17 @@ def test_observations_of_a_batch(episode):
     memory = rng.integers(0, 5, cav_index.shape + (2,))  # (E, C, 2)
     last = rng.integers(0, 5, (N_ENVS, N_VEHICLES))  # (E, V)
     batched = ObservationBuilder(road, config.obs, config.sim.episode_steps)
-    batched.reset(TrafficState.stack(history[0]))
+    batched.reset(TrafficState.concat(history[0]))
     for states in history[1:]:
-        batched.push(TrafficState.stack(states))
+        batched.push(TrafficState.concat(states))
+
+    args = (cav_index, memory, last)
 
     def assert_rows_equal(actor, critic, rows, singles) -> None:
         for k, (e, b) in enumerate(zip(rows, singles, strict=True)):
             for got, single in (
-                (unstack(actor, k), b.actor(cav_index[e], memory[e], last[e])),
-                (unstack(critic, k), b.critic()),
+                (unstack(actor, k), unstack(b.actor(*(a[e : e + 1] for a in args)), 0)),
+                (unstack(critic, k), unstack(b.critic(), 0)),
             ):
                 for f in fields(single):
                     a, c = getattr(single, f.name), getattr(got, f.name)
@@ -118,8 +121,8 @@ def test_observations_of_a_batch(episode):
     # Env 1 starts a new episode: its history is its first state again, the others keep theirs.
     fresh = ObservationBuilder(road, config.obs, config.sim.episode_steps)
     fresh.reset(history[0][0])
-    state = TrafficState.stack(history[-1])
-    state.set_env(1, TrafficState.stack([history[0][0]]))
+    state = TrafficState.concat(history[-1])
+    state.set_env(1, history[0][0])
     batched.reset_rows(np.array([1]), state)
     actor, critic = batched.actor(cav_index, memory, last), batched.critic()
     assert_rows_equal(actor, critic, range(N_ENVS), [builders[0], fresh, builders[2]])

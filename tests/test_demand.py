@@ -84,10 +84,10 @@ def test_both_backends_replay_the_same_arrivals(tmp_path):
         lane = np.full(state.n_vehicles, -1)
         for t in range(45):
             state = sim.step(CavCommands.idle(state.n_vehicles)).env(0)
-            new = state.active & (first < 0)
-            first[new], lane[new] = t, state.lane[new]
+            new = state.active[0] & (first < 0)  # state: a batch of one env
+            first[new], lane[new] = t, state.lane[0][new]
         sim.close()
-        entered[backend] = (first, lane, state.style.copy())
+        entered[backend] = (first, lane, state.style[0].copy())
     (f_h, l_h, s_h), (f_s, l_s, s_s) = entered["highway"], entered["sumo"]
     assert (f_h >= 0).all() and (f_s >= 0).all()
     assert np.abs(f_h - f_s).max() <= 1
@@ -106,7 +106,7 @@ def _slot_episode(backend: str, road: str, seed: int = 3):
             occupants.append(env.slot_vehicle.copy())
             refills.append(out.slot_start)
             served |= set(env.slot_vehicle[env.slot_vehicle >= 0].tolist())
-            assert np.array_equal(out.alive, out.state.active[env.cav_index])
+            assert np.array_equal(out.alive, out.state.active[0, env.cav_index])
             if out.terminated or out.truncated:
                 return env, np.array(occupants), np.array(refills), served, out
     finally:
@@ -230,7 +230,7 @@ def test_episode_that_ends_in_the_warmup_has_an_empty_summary():
 
     recorder = EpisodeRecorder(preset_road(load_map("train-50"), "realistic"), warmup_s=10.0)
     recorder.record(
-        TrafficState.stack([make_state([50, 10], [0, 1], segment=[0, 0], time_s=5, step=5)])
+        TrafficState.concat([make_state([50, 10], [0, 1], segment=[0, 0], time_s=5, step=5)])
     )
     summary = recorder.summary()
     assert summary.n_vehicles == 0 and math.isnan(summary.mean_speed_mps)
@@ -335,10 +335,10 @@ def test_flows_count_the_window_after_the_warm_up():
     recorder = EpisodeRecorder(road, warmup_s=10.0)
     pending = dict(active=[True, True, False], speed_mps=25.0)
     recorder.record(
-        TrafficState.stack([make_state([850, 700, 10], [0, 0, 1], segment=[2, 1, 0], **pending)])
+        TrafficState.concat([make_state([850, 700, 10], [0, 0, 1], segment=[2, 1, 0], **pending)])
     )
     recorder.record(
-        TrafficState.stack(
+        TrafficState.concat(
             [
                 make_state(
                     [900, 790, 10], [0, 0, 1], segment=[2, 1, 0], time_s=10, step=10, **pending
@@ -347,7 +347,7 @@ def test_flows_count_the_window_after_the_warm_up():
         )
     )
     recorder.record(
-        TrafficState.stack(
+        TrafficState.concat(
             [make_state([950, 810, 60], [0, 0, 1], segment=[2, 2, 0], time_s=20, step=20)]
         )
     )

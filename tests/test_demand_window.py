@@ -18,7 +18,7 @@ import diacc.learn.models.gat as gat
 from diacc.config import EnvConfig, EventConfig, ObservationConfig, SimConfig
 from diacc.envs.actions import LANE_RIGHT
 from diacc.envs.env import BottleneckEnv
-from diacc.envs.observation import ObservationBuilder, ObservationError
+from diacc.envs.observation import ObservationBuilder, ObservationError, unstack
 from diacc.sim.scenario import Scenario
 from diacc.sim.state import TrafficState, on_road_window
 
@@ -69,8 +69,8 @@ def test_demand_critic_rows_hold_the_vehicles_on_the_road_first(short_map):
     on_road = []
     for t, (state, critic) in enumerate(steps):
         (reference.reset if t == 0 else reference.push)(state)
-        full = reference.critic()
-        vehicles = np.flatnonzero(state.active)  # (n,) on the road, in index order
+        full = unstack(reference.critic(), 0)  # state: a batch of one env
+        vehicles = np.flatnonzero(state.active[0])  # (n,) on the road, in index order
         n = len(vehicles)
         on_road.append(n)
         assert critic.nodes.shape == (24, 6)
@@ -102,9 +102,9 @@ def test_release_critic_layout_is_unchanged(short_map):
     env, steps = episode(env_config(short_map, release, max_vehicles=40))
     assert not env.batch.builder.compact_critic
     for state, critic in steps:
-        np.testing.assert_array_equal(critic.node_mask[:12], state.active)
+        np.testing.assert_array_equal(critic.node_mask[:12], state.active[0])
         assert not critic.node_mask[12:].any()
-        x = np.where(state.active, state.x_m / env.road.length_m, 0.0).astype(np.float32)
+        x = np.where(state.active[0], state.x_m[0] / env.road.length_m, 0.0).astype(np.float32)
         np.testing.assert_array_equal(critic.nodes[:12, 0], np.clip(x, -5, 5))
     assert steps[-1][0].arrived.any()
 
@@ -118,7 +118,7 @@ def test_window_searches_equal_searches_over_all_vehicles(short_map, monkeypatch
     """Neighbour sets and safety events, single states and batches, demand and release."""
     _, demand = episode(env_config(short_map, DEMAND, max_vehicles=24))
     states = [state for state, _ in demand]
-    batches = [TrafficState.stack([a, b]) for a, b in zip(states[::2], states[1::2], strict=False)]
+    batches = [TrafficState.concat([a, b]) for a, b in zip(states[::2], states[1::2], strict=False)]
     empty = states[0].copy()
     empty.active[:] = False
     assert on_road_window(empty.active) == (0, 0)

@@ -48,11 +48,11 @@ def _two_cav_episode(backend: str, use_psar: bool, tmp_path) -> tuple[int, int]:
     )
     try:
         env.reset_arrays(seed=0)
-        state = env.state_
-        front, rear = np.argsort(-state.x_m[env.cav_index])  # agent slots
+        state = env.state_  # a batch of one env
+        front, rear = np.argsort(-state.x_m[0, env.cav_index])  # agent slots
         toward = (
             LANE_LEFT
-            if state.lane[env.cav_index[front]] > state.lane[env.cav_index[rear]]
+            if state.lane[0, env.cav_index[front]] > state.lane[0, env.cav_index[rear]]
             else LANE_RIGHT
         )
         collisions = 0

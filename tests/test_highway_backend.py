@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import first_env
 
 from diacc.config import AGGRESSIVE, CAUTIOUS, STYLE_PRESETS, SimConfig
 from diacc.sim.backends.base import Backend, CavCommands
@@ -26,9 +27,9 @@ def make(map_name: str = "train-25") -> HighwayBackend:
 def run_hdv_episode(map_name: str, n: int, seed: int, max_steps: int = 200):
     """Pure-HDV episode until all arrived; returns (backend, states)."""
     backend = make(map_name)
-    states = [backend.reset(Scenario.with_cavs(n, 0), seed).env(0)]
+    states = [first_env(backend.reset(Scenario.with_cavs(n, 0), seed))]
     for _ in range(max_steps):
-        states.append(backend.step(CavCommands.idle(n)).env(0))
+        states.append(first_env(backend.step(CavCommands.idle(n))))
         if not states[-1].active.any():
             break
     return backend, states
@@ -57,18 +58,18 @@ def single_lane_backend(n: int, x_m: list[float], speed_mps: list[float], styles
 def test_protocol_and_state_valid():
     backend = make()
     assert isinstance(backend, Backend) and backend.name == "highway"
-    state = backend.reset(Scenario(), 3).env(0)
+    state = backend.reset(Scenario(), 3)
     validate_state(state)
-    assert state.is_cav.sum() == 10 and state.collisions.shape == (0, 2)
-    state = backend.step(CavCommands.idle(25)).env(0)
+    assert state.is_cav.sum() == 10 and state.collisions.shape == (0, 3)
+    state = backend.step(CavCommands.idle(25))
     validate_state(state)
-    assert state.step == 1 and state.time_s == pytest.approx(SIM.step_s)
+    assert state.step.tolist() == [1] and state.time_s == pytest.approx([SIM.step_s])
 
 
 def test_idm_free_road_reaches_desired_speed():
     backend = single_lane_backend(1, [10.0], [5.0])
     for _ in range(40):
-        state = backend.step(CavCommands.idle(1)).env(0)
+        state = first_env(backend.step(CavCommands.idle(1)))
     assert state.speed_mps[0] == pytest.approx(25.0, abs=0.6)
 
 
@@ -85,7 +86,7 @@ def test_follower_keeps_min_gap_behind_stopping_leader(style):
     backend.caches.leaders_dirty[:] = True
     gaps = []
     for _ in range(30):
-        s = backend.step(CavCommands.idle(2)).env(0)
+        s = first_env(backend.step(CavCommands.idle(2)))
         gaps.append(s.x_m[0] - s.x_m[1] - SIM.vehicle_length_m)
     assert min(gaps) >= preset.min_gap_m - 1e-6
     assert s.speed_mps[1] < 0.1 and len(s.collisions) == 0
@@ -110,7 +111,7 @@ def _steady_headway(style: int) -> float:
     backend.state.cav_target_mps[0, 0] = 15.0
     refresh_speed_bounds(backend)
     for _ in range(40):
-        s = backend.step(CavCommands.idle(2)).env(0)
+        s = first_env(backend.step(CavCommands.idle(2)))
     return (s.x_m[0] - s.x_m[1] - SIM.vehicle_length_m) / s.speed_mps[1]
 
 
@@ -143,7 +144,7 @@ def test_same_seed_same_trajectory_different_seed_differs():
 
 def _cav_backend():
     backend = make()
-    state = backend.reset(Scenario.with_cavs(25, 10), 0).env(0)
+    state = first_env(backend.reset(Scenario.with_cavs(25, 10), 0))
     return backend, state
 
 
@@ -152,7 +153,7 @@ def test_cav_lane_change_completes_within_step():
     cav = int(np.flatnonzero(state.is_cav & (state.lane < 3))[0])
     cmd = CavCommands.idle(25)
     cmd.lane_change[0, cav] = 1
-    after = backend.step(cmd).env(0)
+    after = first_env(backend.step(cmd))
     assert after.lane[cav] == state.lane[cav] + 1
     assert after.y_m[cav] == pytest.approx(backend.road.lane_center_y_m(state.lane[cav] + 1))
 
@@ -162,7 +163,7 @@ def test_cav_lane_change_towards_missing_lane_ignored():
     cav = int(np.flatnonzero(state.is_cav & (state.lane == 0))[0])
     cmd = CavCommands.idle(25)
     cmd.lane_change[0, cav] = -1
-    after = backend.step(cmd).env(0)
+    after = first_env(backend.step(cmd))
     assert after.lane[cav] == 0
 
 
@@ -170,12 +171,14 @@ def test_cav_speed_change_and_clip():
     backend, state = _cav_backend()
     cmd = CavCommands.idle(25)
     cmd.speed_change_mps[0, state.is_cav] = 2.0
-    after = backend.step(cmd).env(0)
+    after = first_env(backend.step(cmd))
     assert np.allclose(after.speed_mps[state.is_cav], state.speed_mps[state.is_cav] + 2.0)
     cmd.speed_change_mps[0, state.is_cav] = 50.0
-    after = backend.step(cmd).env(0)  # clipped to the 25 m/s limit, reached within the 5 m/s2 limit
+    after = first_env(
+        backend.step(cmd)
+    )  # clipped to the 25 m/s limit, reached within the 5 m/s2 limit
     assert np.allclose(after.speed_mps[state.is_cav], 17.0)
-    after = backend.step(cmd).env(0)
+    after = first_env(backend.step(cmd))
     assert np.allclose(after.speed_mps[after.is_cav & after.active], 22.0)
 
 
@@ -185,7 +188,7 @@ def test_cav_driving_into_leader_collides():
     cmd = CavCommands.idle(2)
     pairs = []
     for _ in range(3):
-        state = backend.step(cmd).env(0)
+        state = first_env(backend.step(cmd))
         pairs += [tuple(p) for p in state.collisions]
     assert pairs == [(0, 1)]  # reported once, i < j
     assert state.speed_mps[1] == 0.0 and state.active.all()
@@ -196,24 +199,24 @@ def test_heading_follows_lateral_motion():
     cav = int(np.flatnonzero(state.is_cav & (state.lane < 3))[0])
     cmd = CavCommands.idle(25)
     cmd.lane_change[0, cav] = 1
-    moved = backend.step(cmd).env(0)  # heading of the last sub-step: still turning left
+    moved = first_env(backend.step(cmd))  # heading of the last sub-step: still turning left
     expected = np.arctan2(backend.road.lane_width_m / SIM.step_s, moved.speed_mps[cav])
     assert moved.heading_rad[cav] == pytest.approx(min(expected, backend.model.max_heading_rad))
-    straight = backend.step(CavCommands.idle(25)).env(0)
+    straight = first_env(backend.step(CavCommands.idle(25)))
     assert straight.heading_rad[cav] == 0.0
 
 
 def test_render_non_blank_frame_with_highlight():
     backend, state = _cav_backend()
     for _ in range(3):
-        state = backend.step(CavCommands.idle(25)).env(0)
+        state = backend.step(CavCommands.idle(25))  # the viewer draws a batch of one env
     viewer = Viewer(backend.road, backend.sim)
     frame = viewer.draw(state)
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
     assert frame.std() > 5  # not a blank or black frame
     colours = {tuple(c) for c in frame.reshape(-1, 3)[::7]}
     assert len(colours) > 5
-    highlighted = viewer.draw(state, highlight=state.is_cav)
+    highlighted = viewer.draw(state, highlight=state.is_cav[0])
     assert not np.array_equal(frame, highlighted)
     backend.close()
 

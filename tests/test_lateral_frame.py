@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import first_env
 
 from diacc.config import ConfigError, EnvConfig, ObservationConfig
 from diacc.envs.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
@@ -55,17 +56,18 @@ def test_mirrored_traffic_on_a_right_drop_road_looks_like_the_left_drop_road():
     cfg = ObservationConfig()
     builder = ObservationBuilder(RIGHT_DROP, cfg, env.config.sim.episode_steps)
     builder.reset(world_right)
-    actor_right = builder.actor(env.cav_index, env.action_memory, env.last_refined)
+    slots = (env.cav_index[None], env.action_memory[None], env.last_refined[None])  # E = 1
+    actor_right = first_env(builder.actor(*slots))
     for name in ("self_state", "hdv_nodes", "cav_nodes", "lane_stats", "lane_mask", "road"):
         assert np.array_equal(getattr(actor_right, name), getattr(actor_left, name)), name
-    critic_right = builder.critic()
+    critic_right = first_env(builder.critic())
     assert np.array_equal(critic_right.nodes, critic_left.nodes)
     assert np.array_equal(critic_right.lane_stats, critic_left.lane_stats)
     # The literal frame sees the world's lanes: lane 0 stays lane 0.
     world = ObservationBuilder(RIGHT_DROP, ObservationConfig(lateral_frame="world"), 100)
     world.reset(world_right)
-    raw = world.actor(env.cav_index, env.action_memory, env.last_refined)
-    lane = world_right.lane[env.cav_index] / (LEFT_DROP.max_lanes - 1)
+    raw = first_env(world.actor(*slots))
+    lane = world_right.lane[0, env.cav_index] / (LEFT_DROP.max_lanes - 1)
     assert np.allclose(raw.self_state[:, 4], lane)
     assert np.allclose(actor_right.self_state[:, 4], 1 - lane)
 
@@ -75,15 +77,17 @@ def test_actions_cross_the_frame_boundary_swapped_both_ways():
     frame) is the world's left; what PSAR executed comes back in the agents' frame."""
     env = _env(RIGHT_DROP, "drop-left", use_psar=False)
     env.reset_arrays(seed=1)
-    state, slots = env.state_, env.cav_index
-    movable = (state.lane[slots] < RIGHT_DROP.max_lanes - 1) & (state.segment[slots] == 0)
+    state, slots = env.state_, env.cav_index  # a batch of one env, (C,) slots
+    lane = state.lane[0, slots]
+    movable = (lane < RIGHT_DROP.max_lanes - 1) & (state.segment[0, slots] == 0)
     assert movable.any()
     actions = np.where(movable, LANE_RIGHT, REMAIN)
-    decision = decide(state, slots, actions, env.config, env.road)
+    decision = first_env(decide(state, slots[None], actions[None], env.config, env.road))
     assert np.array_equal(decision.commands.lane_change[slots], np.where(movable, +1, 0))
     assert np.array_equal(decision.refined, actions) and np.array_equal(decision.proposed, actions)
-    literal = decide(state, slots, actions, _config("world", use_psar=False), env.road)
-    assert np.all(literal.commands.lane_change[slots][movable & (state.lane[slots] > 0)] == -1)
+    literal_cfg = _config("world", use_psar=False)
+    literal = first_env(decide(state, slots[None], actions[None], literal_cfg, env.road))
+    assert np.all(literal.commands.lane_change[slots][movable & (lane > 0)] == -1)
 
 
 def test_the_psar_mask_is_in_the_agents_frame():
@@ -118,7 +122,7 @@ def test_the_heuristic_drives_the_same_episode_in_either_frame(backend, tmp_path
         driver = EpisodeDriver(build_policy(parse_policy("heuristic")), cfg)
         try:
             recorder = play_episode(driver, seed=4)
-            results[frame] = (driver.state.x_m.copy(), driver.state.lane.copy())
+            results[frame] = (driver.state.x_m[0].copy(), driver.state.lane[0].copy())
         finally:
             driver.close()
         assert recorder.summary().mean_speed_mps > 0

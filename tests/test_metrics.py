@@ -61,7 +61,7 @@ def episode() -> list:
 
 def one(state: TrafficState) -> TrafficState:
     """One env's state as the batch of one a recorder takes."""
-    return TrafficState.stack([state])
+    return TrafficState.concat([state])
 
 
 def psar_result(mask: list[int]) -> PSARResult:

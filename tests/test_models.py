@@ -435,7 +435,7 @@ def test_every_variant_runs_on_builder_observations():
     from helpers import make_state
 
     from diacc.config import ObservationConfig
-    from diacc.envs.observation import ObservationBuilder, stack
+    from diacc.envs.observation import ObservationBuilder, stack, unstack
     from diacc.sim.maps import load_map
 
     road, obs_cfg = load_map("train-25"), ObservationConfig()
@@ -448,10 +448,12 @@ def test_every_variant_runs_on_builder_observations():
         )
         builder = ObservationBuilder(road, obs_cfg, episode_steps=100)
         builder.reset(state)
-        cavs = np.flatnonzero(state.is_cav)[:1]
-        memory = rng.integers(0, N_ACTIONS, (1, 2))
-        actor_obs.append(builder.actor(cavs, memory, np.zeros(n_vehicles, np.int64)))
-        critic_states.append(builder.critic())
+        cavs = np.flatnonzero(state.is_cav[0])[None, :1]  # (1, 1): state is a batch of one
+        memory = rng.integers(0, N_ACTIONS, (1, 1, 2))
+        actor_obs.append(
+            unstack(builder.actor(cavs, memory, np.zeros((1, n_vehicles), np.int64)), 0)
+        )
+        critic_states.append(unstack(builder.critic(), 0))
     obs, state = (
         to_tensors(stack(actor_obs)),
         to_tensors(stack(critic_states)),

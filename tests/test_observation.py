@@ -14,10 +14,10 @@ from diacc.envs.observation import (
     MAX_SEGMENTS,
     ActorObs,
     CriticState,
-    ObservationBuilder,
     ObservationError,
     ObservationSpec,
 )
+from diacc.envs.observation import ObservationBuilder as BatchBuilder
 from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.maps import load_map, parse_map
 from diacc.sim.scenario import Scenario
@@ -27,6 +27,22 @@ CFG = ObservationConfig()
 K, T = CFG.n_neighbours, CFG.history_steps
 # Node feature columns (module docstring): dx, dy, dv, heading, v, is_cav.
 DX, DY, DV, HEAD, V, IS_CAV = range(6)
+
+
+class ObservationBuilder(BatchBuilder):
+    """The builder on E = 1 batches, read as one env: (C,) slot and (V,) vehicle arrays
+    in, env 0 of every output (what the tests below compare)."""
+
+    def actor(self, cav_index, memory, prev_action):
+        arrays = (np.asarray(cav_index)[None], memory[None], prev_action[None])
+        return helpers.first_env(super().actor(*arrays))
+
+    def critic(self):
+        return helpers.first_env(super().critic())
+
+    @property
+    def neighbours(self):
+        return helpers.first_env(super().neighbours)
 
 
 @pytest.fixture(scope="module")
@@ -90,11 +106,11 @@ def reference_neighbours(state: TrafficState, i: int, k: int) -> list[int]:
         j
         for j in range(state.n_vehicles)
         if j != i
-        and state.active[j]
-        and state.active[i]
-        and abs(int(state.lane[j]) - int(state.lane[i])) <= 1
+        and state.active[0][j]
+        and state.active[0][i]
+        and abs(int(state.lane[0][j]) - int(state.lane[0][i])) <= 1
     ]
-    cands.sort(key=lambda j: (abs(state.x_m[j] - state.x_m[i]), j))
+    cands.sort(key=lambda j: (abs(state.x_m[0][j] - state.x_m[0][i]), j))
     return cands[:k]
 
 
@@ -142,7 +158,7 @@ def test_neighbours_match_plain_loop_reference(road, seed):
         got = np.concatenate(
             [obs.hdv_nodes[c, obs.hdv_mask[c], -1, DX], obs.cav_nodes[c, obs.cav_mask[c], -1, DX]]
         )
-        ref = dx_feature(state.x_m[reference_neighbours(state, c, K)], state.x_m[c])
+        ref = dx_feature(state.x_m[0][reference_neighbours(state, c, K)], state.x_m[0][c])
         np.testing.assert_allclose(np.sort(got), np.sort(ref), atol=1e-5)
 
 
@@ -153,24 +169,24 @@ def test_critic_neighbours_consistent_with_actor(road):
     for c in range(10):
         ids = crit.neighbours[c][crit.neighbour_mask[c]]
         assert obs.hdv_mask[c].sum() + obs.cav_mask[c].sum() == len(ids)
-        hdv_ids = [j for j in ids if not state.is_cav[j]]
-        cav_ids = [j for j in ids if state.is_cav[j]]
-        ego = state.x_m[c]
+        hdv_ids = [j for j in ids if not state.is_cav[0][j]]
+        cav_ids = [j for j in ids if state.is_cav[0][j]]
+        ego = state.x_m[0][c]
         np.testing.assert_allclose(
             obs.hdv_nodes[c, obs.hdv_mask[c], -1, DX],
-            dx_feature(state.x_m[hdv_ids], ego),
+            dx_feature(state.x_m[0][hdv_ids], ego),
             atol=1e-5,
         )
         np.testing.assert_allclose(
             obs.cav_nodes[c, obs.cav_mask[c], -1, DX],
-            dx_feature(state.x_m[cav_ids], ego),
+            dx_feature(state.x_m[0][cav_ids], ego),
             atol=1e-5,
         )
     # Every edge joins two active vehicles in same/adjacent lanes.
     i, k = np.nonzero(crit.neighbour_mask)
     j = crit.neighbours[i, k]
-    assert np.all(state.active[i] & state.active[j])
-    assert np.all(np.abs(state.lane[i].astype(int) - state.lane[j]) <= 1)
+    assert np.all(state.active[0][i] & state.active[0][j])
+    assert np.all(np.abs(state.lane[0][i].astype(int) - state.lane[0][j]) <= 1)
     assert np.all(i != j)
 
 
@@ -199,24 +215,24 @@ def test_history_shifts_after_push(road):
     for t in range(1, T + 2):
         b.push(states[t])
         obs = actor()
-        ego_x_now = states[t].x_m[0]
+        ego_x_now = states[t].x_m[0][0]
         # Entry -1 - s holds step max(t - s, 0).
         past = [max(t - s, 0) for s in range(T)][::-1]  # oldest first
         np.testing.assert_allclose(
             obs.ego_hist[0, :, DX],
-            [(states[p].x_m[0] - ego_x_now) / DX_SCALE_M for p in past],
+            [(states[p].x_m[0][0] - ego_x_now) / DX_SCALE_M for p in past],
             atol=1e-5,
         )
         np.testing.assert_allclose(
-            obs.ego_hist[0, :, V], [states[p].speed_mps[0] / 25.0 for p in past], atol=1e-6
+            obs.ego_hist[0, :, V], [states[p].speed_mps[0][0] / 25.0 for p in past], atol=1e-6
         )
         np.testing.assert_allclose(
             obs.hdv_nodes[0, 0, :, DX],
-            [(states[p].x_m[1] - ego_x_now) / DX_SCALE_M for p in past],
+            [(states[p].x_m[0][1] - ego_x_now) / DX_SCALE_M for p in past],
             atol=1e-5,
         )
         np.testing.assert_allclose(
-            obs.hdv_nodes[0, 0, :, DV], [(12.0 - states[t].speed_mps[0]) / 25.0] * T, atol=1e-6
+            obs.hdv_nodes[0, 0, :, DV], [(12.0 - states[t].speed_mps[0][0]) / 25.0] * T, atol=1e-6
         )
     assert obs.ego_hist[0, -1, DX] == 0.0 and obs.ego_hist[0, -1, DV] == 0.0
 
@@ -425,7 +441,7 @@ def test_observations_from_real_backends(road, backend_name):
     backend = make_backend(backend_name, road, SimConfig())
     try:
         state = backend.reset(scenario, seed=3).env(0)
-        cav_index = np.flatnonzero(state.is_cav)
+        cav_index = np.flatnonzero(state.is_cav[0])
         assert cav_index.shape == (10,)
         b = ObservationBuilder(road, CFG, episode_steps=100)
         b.reset(state)
@@ -435,8 +451,8 @@ def test_observations_from_real_backends(road, backend_name):
             obs = b.actor(cav_index, np.zeros((10, 2), np.int64), refined)
             crit = b.critic()
             check_layout(obs, crit, 10)
-            assert np.array_equal(obs.alive, state.active[cav_index])
-            assert crit.node_mask.sum() == state.active.sum()
+            assert np.array_equal(obs.alive, state.active[0][cav_index])
+            assert crit.node_mask.sum() == state.active[0].sum()
             # At t = 0 vehicles start in rows close together: every alive CAV has neighbours.
             if step == 0:
                 assert np.all(obs.hdv_mask.sum(1) + obs.cav_mask.sum(1) == K)
@@ -459,7 +475,7 @@ def test_full_episode_on_real_backends_masks_cavs_that_left(backend_name):
     backend = make_backend(backend_name, road, SimConfig())
     try:
         state = backend.reset(Scenario.with_cavs(40, 16), seed=1).env(0)
-        cav_index = np.flatnonzero(state.is_cav)
+        cav_index = np.flatnonzero(state.is_cav[0])
         b = ObservationBuilder(road, CFG, episode_steps=100)
         b.reset(state)
         saw_dead = False
@@ -472,8 +488,8 @@ def test_full_episode_on_real_backends_masks_cavs_that_left(backend_name):
                 assert np.all(obs.self_state[dead] == 0.0) and not obs.lane_mask[dead].any()
                 # Nobody has a vehicle that left among its neighbours.
                 idx, mask = b.neighbours
-                assert np.all(state.active[idx[mask]])
-            if not state.active.any():
+                assert np.all(state.active[0][idx[mask]])
+            if not state.active[0].any():
                 break
             cmd = CavCommands.idle(40)
             cmd.speed_change_mps[0, cav_index] = 2.0
@@ -522,7 +538,9 @@ def test_chosen_feature_functions_fill_every_field_once(road, compact, step_inpu
     frame = b._require_frame()
     from diacc.envs.observation.actor_features import Slots
 
-    slots = Slots.of(state, np.arange(6), np.zeros((6, 2), np.int64), np.zeros(20, np.int64))
+    slots = Slots.of(  # the batch of one env: (1, C) slots
+        state, np.arange(6)[None], np.zeros((1, 6, 2), np.int64), np.zeros((1, 20), np.int64)
+    )
     for funcs, container, args in (
         (features.actor, ActorObs, (b._ctx, frame, slots)),
         (features.critic, CriticState, (b._ctx, frame)),

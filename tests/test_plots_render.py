@@ -180,8 +180,8 @@ def test_gif_frames_carry_stamp_and_legend(tmp_path):
     for colour in (CAV_COLOR, CRASHED_COLOR):  # legend swatches
         assert (np.abs(strip - colour).sum(-1) < 30).sum() > 50
 
-    class State:
-        time_s, step, collisions = 12.0, 12, np.array([[3, 7]])
+    class State:  # a batch of one env: (1,) times, collision rows (env, i, j)
+        time_s, step, collisions = np.array([12.0]), np.array([12]), np.array([[0, 3, 7]])
 
     line, psar = step_stamp(State(), 100, np.array([0, 3, 3, 1, 0]))
     assert line == "t =  12.0 s   step 12/100   crash: vehicles 3+7"

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import make_state
+from helpers import make_state, one_env
 
 from diacc.config import ConfigError, PSARConfig, SimConfig
 from diacc.envs.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
@@ -20,6 +20,9 @@ from diacc.envs.psar import CANCEL_LC, FORCE_BRAKE, SUPPR_ACCEL, psar
 from diacc.envs.psar.headway_bound import exit_room_m
 from diacc.sim.kinematics import braking_step, safe_end_speed_mps, safe_gap_m
 from diacc.sim.maps import load_map
+
+# The tests below read one env: (C,) arrays in and out of an E = 1 batch.
+psar = one_env(psar)
 
 ROAD = load_map("train-25")
 SIM = SimConfig()
@@ -67,7 +70,7 @@ def test_behind_an_hdv_one_second_plus_the_standstill_gap():
     # Behind an aggressive HDV (5.5 m/s^2) 22.5 m is too little:
     # u^2 / (2 x 5) + u / 2 = 22.5 - 2 - 20 / 2 + 20^2 / (2 x 5.5) gives u < 20.
     aggressive = make_state([100.0, 127.5], [1, 1], 20.0, is_cav=[True, False])
-    aggressive.style[1] = 0
+    aggressive.style[0, 1] = 0
     res = psar(aggressive, np.array([0]), np.array([REMAIN]), HEADWAY, ROAD, SIM)
     assert res.speed_change_mps[0] == pytest.approx(root(0.1, 0.5, 10.5 + 400 / 11) - 20.0)
     assert res.rule.tolist() == [FORCE_BRAKE]
@@ -300,12 +303,14 @@ def test_a_batch_of_states_is_refined_as_each_state_alone():
 
     road = load_map("train-50")
     backend = HighwayBackend(road, SIM, n_envs=3)
+    from diacc.envs.psar import psar as psar_of_batch
+
     states = [backend.reset(Scenario.with_cavs(25, 10), 7 + e, env=e).env(0) for e in range(3)]
-    cav_index = np.stack([np.flatnonzero(s.is_cav) for s in states])  # (E, C)
+    cav_index = np.stack([np.flatnonzero(s.is_cav[0]) for s in states])  # (E, C)
     rng = np.random.default_rng(5)
     for _ in range(8):
         actions = rng.integers(0, 5, cav_index.shape)
-        batch = psar(TrafficState.stack(states), cav_index, actions, HEADWAY, road, SIM)
+        batch = psar_of_batch(TrafficState.concat(states), cav_index, actions, HEADWAY, road, SIM)
         for e, state in enumerate(states):
             single = psar(state, cav_index[e], actions[e], HEADWAY, road, SIM)
             for f in fields(single):

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import make_state
+from helpers import make_state, one_env
 
 from diacc.config import ConfigError, RewardConfig, TrainConfig, override
 from diacc.envs.reward import (
@@ -20,6 +20,9 @@ from diacc.envs.reward import (
     temperature,
 )
 from diacc.sim.maps import load_map
+
+# The tests below read one env: (C,) arrays in and out of an E = 1 batch.
+reward_terms = one_env(reward_terms)
 
 CFG = RewardConfig()
 ROAD = load_map("train-25")  # 25 m/s everywhere
@@ -309,7 +312,7 @@ def test_team_reward_of_a_batch_equals_per_env_calls_and_the_old_total():
             assert batch.softmin_weight.shape == shape and batch.total.shape == lead
             for idx in np.ndindex(*lead):
                 one = team_reward(ego[idx], alive[idx], float(g[idx]), c[idx], d[idx], tau, cfg)
-                assert isinstance(one.total, float) and isinstance(one.ego_softmin, float)
+                assert one.total.shape == one.ego_softmin.shape == ()  # one env: 0-d
                 old = _old_team_reward(
                     ego[idx], alive[idx], np.asarray(g[idx]), c[idx], d[idx], tau, cfg
                 )

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import make_state
+from helpers import make_state, one_env
 
 from diacc.config import PSARConfig, SimConfig
 from diacc.envs.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
@@ -18,6 +18,9 @@ from diacc.sim.backends.base import CavCommands, make_backend
 from diacc.sim.kinematics import braking_step, safe_gap_m
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario
+
+# The tests below read one env: (C,) arrays in and out of an E = 1 batch.
+psar = one_env(psar)
 
 ROAD = load_map("train-25")  # lane 3 ends at 500 m
 SIM = SimConfig()  # CAV safe braking 4 m/s2, actions +-2 m/s per 1 s step

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import make_state
+from helpers import first_env, make_state, one_env
 
 from diacc.config import ConfigError, EventConfig, PSARConfig
 from diacc.envs.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
@@ -29,6 +29,13 @@ from diacc.envs.safety import (
     waiting_events,
 )
 from diacc.sim.maps import load_map
+
+# The tests below read one env: (C,) arrays in and out of an E = 1 batch.
+psar = one_env(psar)
+lane_leaders_followers = one_env(lane_leaders_followers)
+pair_kinematics = one_env(pair_kinematics)
+safety_critical_events = one_env(safety_critical_events)
+waiting_events = one_env(waiting_events)
 
 # Algorithm 1 read literally (fixed thresholds, Force-Brake = action 4): the cases below
 # check the pseudocode line by line; the default options are tested further down.
@@ -355,15 +362,16 @@ def test_psar_matches_scalar_reference_on_random_dense_traffic():
             active=rng.random(n) < 0.9,
             segment=0,
         )
-        cavs = np.flatnonzero(state.is_cav)
+        cavs = np.flatnonzero(state.is_cav[0])
         actions = rng.integers(0, 5, cavs.shape[0])
         res = psar(state, cavs, actions, CFG, ROAD)
         fired += rule_counts(res.rule_mask)
+        one = first_env(state)  # its (V,) rows, for the scalar reference
         for k, (i, a) in enumerate(zip(cavs, actions, strict=True)):
-            if not state.active[i]:
+            if not one.active[i]:
                 assert res.action[k] == a and res.rule[k] == RULE_NONE
                 continue
-            ref_a, ref_b = _reference_psar(state, int(i), int(a), CFG)
+            ref_a, ref_b = _reference_psar(one, int(i), int(a), CFG)
             assert res.action[k] == ref_a
             assert res.decel_lc_mps2[k] == pytest.approx(ref_b)
     assert (fired > 0).all()  # every rule was exercised

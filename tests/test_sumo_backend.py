@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sumolib
-from helpers import make_state
+from helpers import first_env, make_state
 
 from diacc.config import ConfigError, SimConfig
 from diacc.sim.backends.base import Backend, BackendError, CavCommands
@@ -24,7 +24,7 @@ from diacc.sim.backends.sumo.backend import SumoBackend
 from diacc.sim.backends.sumo.net import build_network, lane_ids
 from diacc.sim.maps import available_maps, load_map
 from diacc.sim.scenario import Scenario, draw_population
-from diacc.sim.state import PER_VEHICLE_FIELDS, validate_state
+from diacc.sim.state import PER_VEHICLE_FIELDS, TrafficState, validate_state
 from diacc.sim.viewer import Viewer
 
 SIM = SimConfig()
@@ -95,8 +95,9 @@ def test_episodes_complete_without_collisions(map_name, cav_mode):
         for n in (25, 40):
             scenario = Scenario(n_vehicles=n, cav_penetration=penetration)
             pop = draw_population(scenario, road, seed=5)
-            state = backend.reset(scenario, seed=5).env(0)
-            validate_state(state)
+            batch = backend.reset(scenario, seed=5)
+            validate_state(batch)  # the batch of one
+            state = first_env(batch)
             # Exactly the drawn population, at its slots, at t = 0.
             assert state.time_s == 0.0 and state.active.all()
             np.testing.assert_allclose(state.x_m, pop.x_m, atol=1e-6)
@@ -107,8 +108,9 @@ def test_episodes_complete_without_collisions(map_name, cav_mode):
             seen_heading = 0.0
             for _ in range(2 * SIM.episode_steps):
                 before = state
-                state = backend.step(CavCommands.idle(n)).env(0)
-                validate_state(state)
+                batch = backend.step(CavCommands.idle(n))
+                validate_state(batch)  # the batch of one
+                state = first_env(batch)
                 # Arrivals: exactly the vehicles that left this step, from the route's end.
                 np.testing.assert_array_equal(
                     state.arrivals, np.flatnonzero(state.arrived & ~before.arrived)
@@ -129,7 +131,7 @@ def test_episodes_complete_without_collisions(map_name, cav_mode):
             assert state.arrived.all(), f"{(~state.arrived).sum()} vehicles never arrived"
             assert not state.active.any()
             assert 0.0 < seen_heading < 1.2  # lane changes turn the vehicles, never sideways
-            frame = Viewer(road, SIM).draw(state)
+            frame = Viewer(road, SIM).draw(batch)
             assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
 
 
@@ -139,18 +141,18 @@ def test_a_cav_that_changed_lanes_standing_points_along_its_lane():
     shortened PSAR's gaps to it and left CAVs at a lane end waiting forever (issue 44)."""
     road = load_map("train-25")
     with SumoBackend(road, SIM) as backend:
-        state = backend.reset(Scenario(n_vehicles=1, cav_penetration=1.0), seed=3).env(0)
+        state = first_env(backend.reset(Scenario(n_vehicles=1, cav_penetration=1.0), seed=3))
         stop = CavCommands(np.zeros((1, 1), np.int8), np.array([[-10.0]]))
         for _ in range(5):
-            state = backend.step(stop).env(0)
+            state = first_env(backend.step(stop))
         assert state.speed_mps[0] == 0.0
         side = 1 if state.lane[0] == 0 else -1
-        state = backend.step(CavCommands(np.array([[side]], np.int8), np.zeros((1, 1)))).env(0)
+        state = first_env(backend.step(CavCommands(np.array([[side]], np.int8), np.zeros((1, 1)))))
         for _ in range(3):
             assert state.speed_mps[0] == 0.0
             assert state.y_m[0] == pytest.approx(float(road.lane_center_y_m(state.lane[0])))
             assert state.heading_rad[0] == 0.0
-            state = backend.step(CavCommands.idle(1)).env(0)
+            state = first_env(backend.step(CavCommands.idle(1)))
 
 
 def test_two_backends_concurrently_and_determinism():
@@ -162,8 +164,8 @@ def test_two_backends_concurrently_and_determinism():
 
         def run(seed_a: int, seed_b: int) -> tuple[np.ndarray, np.ndarray]:
             traj_a, traj_b = (
-                [a.reset(scenario, seed_a).env(0).x_m],
-                [b.reset(scenario, seed_b).env(0).x_m],
+                [first_env(a.reset(scenario, seed_a)).x_m],
+                [first_env(b.reset(scenario, seed_b)).x_m],
             )
             for _ in range(30):
                 a.step_async(CavCommands.idle(25))
@@ -196,7 +198,7 @@ def test_wire_round_trip_is_exact():
             got = getattr(batch, name)
             assert got.flags.writeable and got.flags.aligned, name
         copy = batch.env(0)
-        assert (copy.time_s, copy.step) == (original.time_s, original.step)
+        assert (copy.time_s, copy.step) == (original.time_s, original.step)  # (1,) each
         for field in dataclasses.fields(original):
             got, want = getattr(copy, field.name), getattr(original, field.name)
             if isinstance(want, np.ndarray):
@@ -224,10 +226,11 @@ def test_killed_worker_gives_clear_error_and_reset_recovers():
             for _ in range(3):  # the death may be seen when sending or when receiving
                 backend.step(CavCommands.idle(10))
         assert _pid_gone(pid)
-        state = backend.reset(scenario, seed=12).env(0)
+        batch = backend.reset(scenario, seed=12)
+        validate_state(batch)  # the batch of one
         assert backend.worker_pid != pid
-        validate_state(state)
-        assert backend.step(CavCommands.idle(10)).env(0).step == 1
+
+        assert first_env(backend.step(CavCommands.idle(10))).step == 1
 
 
 def test_no_worker_left_after_close_or_interpreter_exit(tmp_path):
@@ -272,7 +275,7 @@ def test_bad_inputs_raise_backend_error():
         overlapping = Scenario(n_vehicles=8, insert_spacing_m=0.5)
         with pytest.raises(BackendError, match=r"SUMO error while resetting.*did not insert"):
             backend.reset(overlapping, seed=0)
-        assert backend.reset(Scenario(n_vehicles=4), seed=0).env(0).active.all()
+        assert first_env(backend.reset(Scenario(n_vehicles=4), seed=0)).active.all()
 
 
 # ---- CAV commands ------------------------------------------------------------
@@ -285,7 +288,7 @@ def cav_backend():
 
 def test_cav_lane_change_completes_within_the_step(cav_backend):
     road = cav_backend.road
-    state = cav_backend.reset(Scenario(n_vehicles=4, cav_penetration=1.0), seed=0).env(0)
+    state = first_env(cav_backend.reset(Scenario(n_vehicles=4, cav_penetration=1.0), seed=0))
     assert state.is_cav.all()
     cmd = CavCommands.idle(4)
     # One CAV per lane: lanes 0 and 1 move left, lane 3 (leftmost) asks to go left: ignored.
@@ -294,27 +297,27 @@ def test_cav_lane_change_completes_within_the_step(cav_backend):
     cmd.lane_change[0, left_of[3]] = 1
     cmd.lane_change[0, left_of[0]] = -1  # no lane to the right: ignored
     before = state.lane.copy()
-    state = cav_backend.step(cmd).env(0)
+    state = first_env(cav_backend.step(cmd))
     expected = before + np.array([1 if i == left_of[1] else 0 for i in range(4)])
     np.testing.assert_array_equal(state.lane, expected)
     np.testing.assert_allclose(state.y_m, road.lane_center_y_m(expected), atol=0.05)
 
 
 def test_cav_speed_command(cav_backend):
-    state = cav_backend.reset(Scenario(n_vehicles=4, cav_penetration=1.0), seed=1).env(0)
+    state = first_env(cav_backend.reset(Scenario(n_vehicles=4, cav_penetration=1.0), seed=1))
     v0 = state.speed_mps.copy()
     cmd = CavCommands.idle(4)
     cmd.speed_change_mps[0, :] = [2.0, -2.0, 0.0, 2.0]
-    state = cav_backend.step(cmd).env(0)
+    state = first_env(cav_backend.step(cmd))
     np.testing.assert_allclose(state.speed_mps, v0 + [2.0, -2.0, 0.0, 2.0], atol=1e-6)
     np.testing.assert_allclose(state.accel_mps2, [2.0, -2.0, 0.0, 2.0], atol=1e-6)
     # Holding: a zero change keeps the speed (no built-in car following).
-    state = cav_backend.step(CavCommands.idle(4)).env(0)
+    state = first_env(cav_backend.step(CavCommands.idle(4)))
     np.testing.assert_allclose(state.speed_mps, v0 + [2.0, -2.0, 0.0, 2.0], atol=1e-6)
 
 
 def test_cav_driving_into_leader_reports_collision(cav_backend):
-    state = cav_backend.reset(Scenario(n_vehicles=8, cav_penetration=1.0), seed=2).env(0)
+    state = first_env(cav_backend.reset(Scenario(n_vehicles=8, cav_penetration=1.0), seed=2))
     lane0 = np.flatnonzero(state.lane == 0)
     rear, front = lane0[np.argsort(state.x_m[lane0])]
     cmd = CavCommands.idle(8)
@@ -322,10 +325,11 @@ def test_cav_driving_into_leader_reports_collision(cav_backend):
     cmd.speed_change_mps[0, front] = -2.0
     pairs: set[tuple[int, int]] = set()
     for _ in range(5):
-        state = cav_backend.step(cmd).env(0)
+        batch = cav_backend.step(cmd)
+        state = first_env(batch)
         pairs |= {tuple(p) for p in state.collisions.tolist()}
     assert (min(rear, front), max(rear, front)) in pairs
-    assert state.collided[rear] or (min(rear, front), max(rear, front)) in pairs
+    assert batch.collided[0, rear] or (min(rear, front), max(rear, front)) in pairs
 
 
 def test_benchmark_runs_and_reports_rates():
@@ -364,16 +368,16 @@ def _episode_digest(backend: SumoBackend, scenario: Scenario, seed: int) -> str:
     """Hash of one episode driven by seeded random commands (lane changes, speed changes)."""
     rng = np.random.default_rng(seed)
     digest = hashlib.sha256()
-    state = backend.reset(scenario, seed).env(0)
+    state = first_env(backend.reset(scenario, seed))
     for _ in range(backend.sim.episode_steps):
         n = state.n_vehicles
         lane_change = rng.integers(-1, 2, n).astype(np.int8) * (rng.random(n) < 0.3)
         commands = CavCommands(lane_change[None], rng.normal(0.0, 2.0, n)[None])
-        state = backend.step(commands).env(0)
-        digest.update(repr((state.time_s, state.step)).encode())
-        for field in dataclasses.fields(state):
+        state = first_env(backend.step(commands))  # one env's rows, hashed as recorded
+        digest.update(repr((float(state.time_s), int(state.step))).encode())
+        for field in dataclasses.fields(TrafficState):
             value = getattr(state, field.name)
-            if isinstance(value, np.ndarray):
+            if field.name not in ("time_s", "step"):
                 digest.update(f"{field.name} {value.dtype} {value.shape}".encode())
                 digest.update(np.ascontiguousarray(value).tobytes())
         if state.arrived.all():

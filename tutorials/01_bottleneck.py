@@ -81,36 +81,34 @@ for seg, row in zip(road.segments, exists, strict=True):
 # MOBIL lane changes, and the backend's command input is ignored: we pass
 # `CavCommands.idle` each step.
 #
-# The backend returns a `TrafficState` of arrays with a leading env axis (a
-# backend may simulate many envs at once; this one holds one), and `.env(0)`
-# is env 0's state, one entry per vehicle. We stack the fields we need into
-# `(T, V)` arrays for plotting.
+# The backend returns a `TrafficState`, always a batch: arrays with a leading
+# env axis, `(E, V)` (a backend may simulate many envs at once; this one holds
+# one, E = 1), so row 0 (`state.x_m[0]`) is our env's one entry per vehicle. We
+# stack the fields we need into `(T, V)` arrays for plotting.
 
 # %%
 scenario = Scenario(n_vehicles=25, cav_penetration=0.0, style_mix="D1")
 backend = make_backend("highway", road)
 viewer = Viewer(road, backend.sim)
-batch = backend.reset(scenario, seed=0)
-state = batch.env(0)
+state = backend.reset(scenario, seed=0)  # a batch of one env
 recorder = EpisodeRecorder(road)
-recorder.record(batch)  # the recorder takes the backend's batch as it is
+recorder.record(state)  # the recorder takes the backend's batch as it is
 idle = CavCommands.idle(state.n_vehicles)
 
 time_s, x_m, speed_mps, active = [], [], [], []
 frame_step = 35  # which step to render below: the queue at the lane drop
 frame = None
 for _ in range(120):
-    time_s.append(state.time_s)
-    x_m.append(state.x_m.copy())
-    speed_mps.append(state.speed_mps.copy())
-    active.append(state.active.copy())
-    if state.step == frame_step:
+    time_s.append(state.time_s[0])
+    x_m.append(state.x_m[0].copy())
+    speed_mps.append(state.speed_mps[0].copy())
+    active.append(state.active[0].copy())
+    if state.step[0] == frame_step:
         frame = viewer.draw(state)  # (H, W, 3) uint8, highway-env's own renderer
     if not state.active.any():
         break
-    batch = backend.step(idle)
-    state = batch.env(0)
-    recorder.record(batch)
+    state = backend.step(idle)
+    recorder.record(state)
 backend.close()
 
 time_s = np.array(time_s)  # (T,)

@@ -105,11 +105,11 @@ def simulate(backend_name: str, max_steps: int = 120) -> list:
     """All states of one pure-HDV episode (until every vehicle has left)."""
     backend = make_backend(backend_name, road)
     try:
-        state = backend.reset(scenario, SEED).env(0)  # env 0 of the backend's batch
+        state = backend.reset(scenario, SEED)  # a batch of one env: (1, V) arrays
         idle = CavCommands.idle(state.n_vehicles)
         states = [state]
         while state.active.any() and len(states) <= max_steps:
-            state = backend.step(idle).env(0)
+            state = backend.step(idle)
             states.append(state)
     finally:
         backend.close()
@@ -136,10 +136,10 @@ def time_headways(states: list) -> dict[str, np.ndarray]:
     """Style name -> measured time headways [s] over all steps of an episode."""
     out = {name: [] for name in STYLE_NAMES}
     for state in states:
-        everyone = np.arange(state.n_vehicles)  # (V,)
-        leader = lane_leaders_followers(state, everyone).front[:, SAME_COL]  # (V,)
+        everyone = np.arange(state.n_vehicles)[None]  # (1, V): every vehicle of env 0
+        leader = lane_leaders_followers(state, everyone).front[..., SAME_COL]  # (1, V)
         kin = pair_kinematics(state, everyone, leader)
-        keep = state.active & kin.valid & (state.speed_mps > 5.0) & ~state.is_cav  # (V,)
+        keep = state.active & kin.valid & (state.speed_mps > 5.0) & ~state.is_cav  # (1, V)
         headway_s = kin.d_long_m[keep] / state.speed_mps[keep]
         for code, name in enumerate(STYLE_NAMES):
             out[name].append(headway_s[state.style[keep] == code])

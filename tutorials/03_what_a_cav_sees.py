@@ -70,7 +70,7 @@ print("agents:", env.possible_agents)
 for _ in range(15):
     out = env.step_arrays(np.full(env.n_cavs, ACCELERATE))
     obs, critic = out.actor_obs, out.critic_state
-state = out.state
+state = out.state  # a batch of one env: row 0 of its (1, V) arrays is our env
 for name, value in vars(obs).items():
     print(f"  {name:<16} {str(value.shape):<18} {value.dtype}")
 
@@ -87,7 +87,10 @@ score = np.where(obs.alive, np.minimum(n_hdv, n_cav) * 10 + n_hdv + n_cav, -1)
 c = int(np.argmax(score))
 ego = int(env.cav_index[c])
 print(f"{env.possible_agents[c]} is vehicle {ego}: {n_hdv[c]} HDV and {n_cav[c]} CAV neighbours")
-print(f"  x = {state.x_m[ego]:.1f} m, lane {state.lane[ego]}, speed {state.speed_mps[ego]:.1f} m/s")
+print(
+    f"  x = {state.x_m[0, ego]:.1f} m, lane {state.lane[0, ego]}, "
+    f"speed {state.speed_mps[0, ego]:.1f} m/s"
+)
 
 # The builder's own neighbour table (V, K) agrees with the two actor graphs.
 nbr, nbr_mask = env.neighbours  # (V, K) each
@@ -119,28 +122,32 @@ ax_lane = fig.add_subplot(2, 3, 6)
 
 # (a) Bird's-eye view in road coordinates: every vehicle near the ego.
 window_m = 70.0
-near = state.active & (np.abs(state.x_m - state.x_m[ego]) <= window_m)  # (V,)
+near = state.active[0] & (np.abs(state.x_m[0] - state.x_m[0][ego]) <= window_m)  # (V,)
 ax_road.axhspan(0.0, env.road.max_lanes * lane_w_m, color="0.9", zorder=0)
 for lane in range(1, env.road.max_lanes):
     ax_road.axhline(lane * lane_w_m, color="white", lw=1, ls="--", zorder=1)
-colours = np.where(state.is_cav, "tab:green", "tab:blue")
+colours = np.where(state.is_cav[0], "tab:green", "tab:blue")
 colours[ego] = "tab:red"
-ax_road.scatter(state.x_m[near], state.y_m[near], c=colours[near], s=160, marker="s", zorder=3)
+ax_road.scatter(
+    state.x_m[0][near], state.y_m[0][near], c=colours[near], s=160, marker="s", zorder=3
+)
 for nodes, mask, colour in (
     (obs.hdv_nodes[c], obs.hdv_mask[c], "tab:blue"),
     (obs.cav_nodes[c], obs.cav_mask[c], "tab:green"),
 ):
     dx_m, dy_m = to_metres(nodes)  # (K, T)
     for k in np.flatnonzero(mask):
-        x1, y1 = state.x_m[ego] + dx_m[k, -1], state.y_m[ego] + dy_m[k, -1]
-        ax_road.plot([state.x_m[ego], x1], [state.y_m[ego], y1], color=colour, lw=1.5, zorder=2)
+        x1, y1 = state.x_m[0][ego] + dx_m[k, -1], state.y_m[0][ego] + dy_m[k, -1]
+        ax_road.plot(
+            [state.x_m[0][ego], x1], [state.y_m[0][ego], y1], color=colour, lw=1.5, zorder=2
+        )
 ax_road.set(
-    xlim=(state.x_m[ego] - window_m, state.x_m[ego] + window_m),
+    xlim=(state.x_m[0][ego] - window_m, state.x_m[0][ego] + window_m),
     ylim=(0, env.road.max_lanes * lane_w_m),
     xlabel="x [m]",
     ylabel="y [m]",
     title=f"Road around the ego (red): edges to its HDV (blue) and CAV (green) neighbours, "
-    f"t = {state.time_s:.0f} s",
+    f"t = {state.time_s[0]:.0f} s",
 )
 
 # (b), (c) The two graphs in the ego frame, with 5-step trajectories.

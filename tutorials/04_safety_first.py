@@ -36,6 +36,7 @@
 # road (last section).
 
 # %%
+import dataclasses
 import os
 from pathlib import Path
 
@@ -64,8 +65,9 @@ print(cfg)
 # %% [markdown]
 # ## Building a traffic state by hand
 #
-# A `TrafficState` is a dataclass of `(V,)` arrays, one entry per vehicle, in
-# the coordinate convention of `diacc.sim.state`: `x_m` is the vehicle centre
+# A `TrafficState` is always a batch of envs: a dataclass of `(E, V)` arrays,
+# one row per env and one entry per vehicle (here one env, E = 1), in the
+# coordinate convention of `diacc.sim.state`: `x_m` is the vehicle centre
 # along the route, lane 0 is the rightmost lane, `y_m` is the lane centre.
 # `validate_state` checks dtypes and shapes, the same check every backend's
 # output passes.
@@ -78,28 +80,34 @@ def scene(vehicles: list[tuple[float, int, float, bool]]) -> TrafficState:
     n = len(vehicles)
     lane = lane.astype(np.int16)
     is_cav = is_cav.astype(bool)
-    state = TrafficState(
-        time_s=0.0,
-        step=0,
-        vehicle_id=np.arange(n, dtype=np.int32),
-        x_m=x_m.astype(np.float64),
-        y_m=np.asarray(road.lane_center_y_m(lane), dtype=np.float64),
-        speed_mps=speed_mps.astype(np.float64),
-        accel_mps2=np.zeros(n),
-        heading_rad=np.zeros(n),
-        lane=lane,
-        segment=road.segment_of(x_m).astype(np.int16),
-        length_m=np.full(n, 5.0),
-        width_m=np.full(n, 1.8),
-        is_cav=is_cav,
-        style=np.where(is_cav, CAV_STYLE, NORMAL).astype(np.int8),
-        active=np.ones(n, dtype=bool),
-        arrived=np.zeros(n, dtype=bool),
-        collisions=np.zeros((0, 2), dtype=np.int32),
-        arrivals=np.zeros(0, dtype=np.int32),
+    state = TrafficState(  # a batch of one env: (1,) times, (1, V) vehicles
+        time_s=np.zeros(1),
+        step=np.zeros(1, dtype=np.int64),
+        vehicle_id=np.arange(n, dtype=np.int32)[None],
+        x_m=x_m.astype(np.float64)[None],
+        y_m=np.asarray(road.lane_center_y_m(lane), dtype=np.float64)[None],
+        speed_mps=speed_mps.astype(np.float64)[None],
+        accel_mps2=np.zeros((1, n)),
+        heading_rad=np.zeros((1, n)),
+        lane=lane[None],
+        segment=road.segment_of(x_m).astype(np.int16)[None],
+        length_m=np.full((1, n), 5.0),
+        width_m=np.full((1, n), 1.8),
+        is_cav=is_cav[None],
+        style=np.where(is_cav, CAV_STYLE, NORMAL).astype(np.int8)[None],
+        active=np.ones((1, n), dtype=bool),
+        arrived=np.zeros((1, n), dtype=bool),
+        collisions=np.zeros((0, 3), dtype=np.int32),  # rows (env, i, j)
+        arrivals=np.zeros((0, 2), dtype=np.int32),  # rows (env, i)
     )
     validate_state(state)
     return state
+
+
+def psar_env0(state: TrafficState, cav_index: np.ndarray, actions: np.ndarray, *args):
+    """PSAR of the (C,) slots of a batch of one env: env 0's (C,) results."""
+    res = psar(state, cav_index[None], actions[None], *args)  # (1, C) in, (1, C) out
+    return type(res)(*(getattr(res, f.name)[0] for f in dataclasses.fields(res)))
 
 
 # %% [markdown]
@@ -156,16 +164,16 @@ cases = [
 
 def explain(state: TrafficState) -> str:
     """d_long and TTC from the ego to its nearest vehicles ahead/behind in each lane."""
-    nb = lane_leaders_followers(state, np.array([0]))  # (1, 3) per side
+    nb = lane_leaders_followers(state, np.array([[0]]))  # (E = 1, 1, 3) per side
     parts = []
-    for side, idx in (("front", nb.front[0]), ("rear", nb.rear[0])):
-        kin = pair_kinematics(state, np.zeros(3, dtype=np.int64), idx)  # (3,) right/same/left
+    for side, idx in (("front", nb.front[0]), ("rear", nb.rear[0])):  # (1, 3)
+        kin = pair_kinematics(state, np.zeros((1, 3), dtype=np.int64), idx)  # right/same/left
         for col, offset in enumerate(LANE_OFFSETS):
-            if kin.valid[col]:
+            if kin.valid[0, col]:
                 lane_name = {-1: "right", 0: "own", +1: "left"}[offset]
                 parts.append(
-                    f"{lane_name}-lane {side}: d_long {kin.d_long_m[col]:+.1f} m, "
-                    f"TTC {kin.ttc_s[col]:.2f} s"
+                    f"{lane_name}-lane {side}: d_long {kin.d_long_m[0, col]:+.1f} m, "
+                    f"TTC {kin.ttc_s[0, col]:.2f} s"
                 )
     return "; ".join(parts)
 
@@ -174,7 +182,7 @@ results = []
 for name, vehicles, proposed, expected in cases:
     state = scene(vehicles)
     cav_index = np.array([0])
-    res = psar(state, cav_index, np.array([proposed]), cfg, road)
+    res = psar_env0(state, cav_index, np.array([proposed]), cfg, road)
     fired = {RULE_NAMES[code] for code, bit in RULE_BITS.items() if res.rule_mask[0] & bit}
     assert fired == expected, f"{name}: expected {expected}, PSAR fired {fired}"
     results.append((name, state, proposed, res, fired))
@@ -217,11 +225,13 @@ for ax, (name, state, proposed, res, fired) in zip(axes, results, strict=True):
     for i in range(state.n_vehicles):
         colour = "tab:red" if i == 0 else "tab:blue"
         ax.add_patch(
-            Rectangle((state.x_m[i] - 2.5, state.y_m[i] - 0.9), 5.0, 1.8, color=colour, zorder=2)
+            Rectangle(
+                (state.x_m[0, i] - 2.5, state.y_m[0, i] - 0.9), 5.0, 1.8, color=colour, zorder=2
+            )
         )
         ax.annotate(
-            f"{state.speed_mps[i]:.0f} m/s",
-            (state.x_m[i], state.y_m[i] + 1.0),
+            f"{state.speed_mps[0, i]:.0f} m/s",
+            (state.x_m[0, i], state.y_m[0, i] + 1.0),
             ha="center",
             fontsize=7,
         )
@@ -229,8 +239,8 @@ for ax, (name, state, proposed, res, fired) in zip(axes, results, strict=True):
     dx = {ACCELERATE: 8.0, DECELERATE: -4.0}.get(proposed, 6.0)
     ax.annotate(
         "",
-        xy=(state.x_m[0] + dx, state.y_m[0] + dy),
-        xytext=(state.x_m[0], state.y_m[0]),
+        xy=(state.x_m[0, 0] + dx, state.y_m[0, 0] + dy),
+        xytext=(state.x_m[0, 0], state.y_m[0, 0]),
         arrowprops={"arrowstyle": "->", "color": "black"},
     )
     ax.set(xlim=(80, 170), ylim=(0, 4 * lane_w_m), yticks=[])
@@ -264,7 +274,9 @@ for ax, proposed in zip(axes, (ACCELERATE, REMAIN), strict=True):
     for d, dv in enumerate(closing_mps):
         for g, gap in enumerate(gaps_m):
             state = scene([EGO, (100.0 + 5.0 + gap, 1, 20.0 - dv, False)])
-            rule_map[d, g] = psar(state, np.array([0]), np.array([proposed]), cfg, road).rule[0]
+            rule_map[d, g] = psar_env0(state, np.array([0]), np.array([proposed]), cfg, road).rule[
+                0
+            ]
     image = ax.imshow(
         rule_map,
         origin="lower",
@@ -323,7 +335,7 @@ physical = PSARConfig()  # horizon "headway"
 sim = SimConfig()
 both = scene([(100.0, 0, 20.0, True), (101.0, 2, 20.0, True)])
 for name, c in (("literal", cfg), ("stopping", stopping), ("default", physical)):
-    res = psar(both, np.array([0, 1]), np.array([LANE_LEFT, LANE_RIGHT]), c, road, sim)
+    res = psar_env0(both, np.array([0, 1]), np.array([LANE_LEFT, LANE_RIGHT]), c, road, sim)
     print(
         f"{name:>8}: CAV in lane 0 goes left, CAV in lane 2 goes right:",
         [ACTION_NAMES[int(a)] for a in res.action],
@@ -334,7 +346,7 @@ for name, c in (("literal", cfg), ("stopping", stopping), ("default", physical))
 gap_m, closing = 9.0, 7.0  # 9 m behind a leader that is 7 m/s slower
 state = scene([EGO, (100.0 + 5.0 + gap_m, 1, 20.0 - closing, False)])
 for name, c in (("literal", cfg), ("stopping", stopping), ("default", physical)):
-    res = psar(state, np.array([0]), np.array([REMAIN]), c, road, sim)
+    res = psar_env0(state, np.array([0]), np.array([REMAIN]), c, road, sim)
     dv = float(res.speed_change_mps[0])
     # Constant deceleration over the 1 s step: the gap shrinks by the mean closing speed.
     gap_after_m = gap_m - (closing + 0.5 * dv)
@@ -348,7 +360,7 @@ for name, c in (("literal", cfg), ("stopping", stopping), ("default", physical))
 # A CAV alone in lane 3, which ends at 500 m, 60 m before the end at 20 m/s:
 alone = scene([(437.5, 3, 20.0, True)])
 for name, c in (("literal", cfg), ("stopping", stopping), ("default", physical)):
-    res = psar(alone, np.array([0]), np.array([REMAIN]), c, road, sim)
+    res = psar_env0(alone, np.array([0]), np.array([REMAIN]), c, road, sim)
     print(f"{name:>8}: lane ends 60 m ahead: {RULE_NAMES[int(res.rule[0])]}")
 
 # %% [markdown]

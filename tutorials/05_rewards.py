@@ -122,7 +122,7 @@ print("wrote", softmin_png)
 # %% [markdown]
 # ## The reward of a real traffic state
 #
-# `reward_terms(state, cav_index, road, cfg)` returns every term per CAV, and
+# `reward_terms(state, cav_index, road, cfg)` returns every term per env and CAV, and
 # `team_reward(ego, alive, global_reward, completion, delay, tau, cfg)` makes the
 # team reward of them at a temperature. We drive the CAVs with random actions
 # (what an untrained actor does) for up to 30 steps, then score the last state
@@ -141,8 +141,8 @@ for _ in range(30):
     out = env.step_arrays(rng.integers(0, 5, size=env.n_cavs))
     if out.terminated or out.truncated:
         break
-state = out.state
-t = reward_terms(state, env.cav_index, env.road, cfg)
+state = out.state  # a batch of one env
+t = reward_terms(state, env.cav_index[None], env.road, cfg).env(0)  # env 0's (C,) terms
 env.close()
 terms = {
     tau: team_reward(t.ego, t.alive, t.global_reward, t.completion, t.delay, tau, cfg)
@@ -151,8 +151,8 @@ terms = {
 
 cavs = np.flatnonzero(t.alive)
 print(f"plain mean of the ego rewards: {t.ego[cavs].mean():+.3f}")
-print(f"t = {state.time_s:.0f} s, {cavs.size} CAVs on the road")
-print("collided pairs (vehicle indices):", state.collisions.tolist())
+print(f"t = {state.time_s[0]:.0f} s, {cavs.size} CAVs on the road")
+print("collided pairs (vehicle indices):", state.collisions[:, 1:].tolist())
 for tau, tt in terms.items():
     print(
         f"tau = {tau:4.2f}: ego (softmin) {tt.ego_softmin:+.3f}, global {t.global_reward:+.3f}, "

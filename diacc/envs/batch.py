@@ -79,8 +79,8 @@ def decide(
 ) -> Decision:
     """PSAR's refinement of the proposed actions and the backend commands they make.
 
-    For one state with (C,) ``cav_index`` and ``actions``, or a batch of states
-    with (E, C) ones (:mod:`diacc.sim.state`); the decision has the same shapes.
+    For a batch of states with (E, C) ``cav_index`` and ``actions``
+    (:mod:`diacc.sim.state`); the decision has the same shapes.
     A lane change the road does not allow is not made, with or without PSAR.
     """
     proposed = np.asarray(actions, dtype=np.int64).reshape(cav_index.shape)

@@ -200,8 +200,8 @@ class BottleneckEnv(ParallelEnv):
             raise self.batch.sims.errors[0]
         self.transition = out
         result = out.env(0)
-        parts = (result.ego, result.alive, result.global_reward, result.completion, result.delay)
-        result.team = self.team_reward(*parts)
+        parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)  # (1, ...)
+        result.team = self.team_reward(*parts).env(0)
         self.team_reward.advance(1)
         self.state_ = result.state
         self._over = result.terminated or result.truncated
@@ -229,7 +229,7 @@ class BottleneckEnv(ParallelEnv):
     @property
     def traffic(self) -> TrafficState:
         """The current state as the batch of one the env steps ((1, V) arrays; :attr:`state_`
-        is the same as one env's (V,) arrays)."""
+        is a copy of it)."""
         return self.batch.state.traffic
 
     @property
@@ -241,7 +241,7 @@ class BottleneckEnv(ParallelEnv):
     def _live_agents(self, state: TrafficState) -> list[str]:
         """PettingZoo names of the CAVs on the road that hold a slot."""
         live = self.slot_vehicle[self.slot_vehicle >= 0]
-        live = np.sort(live[state.active[live]])
+        live = np.sort(live[state.active[0, live]])  # state: a batch of one env
         return [f"cav_{k}" for k in self.cav_ordinal[live]]
 
     def set_training_step(self, step: int) -> None:

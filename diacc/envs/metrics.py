@@ -134,7 +134,7 @@ class EpisodeRecorder:
 
     One recorder serves a batch of E envs (the rows of a :class:`TrafficState`
     batch, each with its own episode: :meth:`start` begins new ones in some rows
-    while the others go on) or a single env (E = 1, fed single states). Every
+    while the others go on) or a single env (E = 1, fed batches of one). Every
     :meth:`record` is a few array operations over all rows, so a batch of envs
     is not recorded one env at a time.
 

@@ -125,43 +125,51 @@ class RewardTerms:
     """The parts of one step's reward that need no temperature, one entry per CAV slot.
 
     Per-CAV arrays hold the *unweighted* sub-terms; ``ego`` is their weighted
-    sum r_e. Entries of CAVs that are not on the road are 0. For a batch every
-    field has a leading env axis (the floats are (E,) arrays; :meth:`env`).
+    sum r_e. Entries of CAVs that are not on the road are 0. Every field has a
+    leading env axis, (E, C) or (E,); :meth:`env` is one env's view (the PettingZoo
+    env's: (C,) arrays and floats).
     :func:`team_reward` makes the team reward R of them.
     """
 
-    speed: np.ndarray  # (C,) -|v - v_max|/v_max + p_ev
-    warning: np.ndarray  # (C,) warning-distance term (<= 0)
-    collision: np.ndarray  # (C,) collision term (<= 0)
-    time_penalty: np.ndarray  # (C,) sigmoid(v - v_th) - 1
-    ego: np.ndarray  # (C,) weighted ego reward r_e
-    alive: np.ndarray  # (C,) bool CAV on the road
-    global_reward: float  # r_g
-    completion: float  # r_done
-    delay: float  # minus the delay rate, before its weight (delay_weight, default 0)
+    speed: np.ndarray  # (E, C) -|v - v_max|/v_max + p_ev
+    warning: np.ndarray  # (E, C) warning-distance term (<= 0)
+    collision: np.ndarray  # (E, C) collision term (<= 0)
+    time_penalty: np.ndarray  # (E, C) sigmoid(v - v_th) - 1
+    ego: np.ndarray  # (E, C) weighted ego reward r_e
+    alive: np.ndarray  # (E, C) bool CAV on the road
+    global_reward: np.ndarray  # (E,) r_g
+    completion: np.ndarray  # (E,) r_done
+    delay: np.ndarray  # (E,) minus the delay rate, before its weight (delay_weight, default 0)
 
     def env(self, e: int) -> RewardTerms:
-        """Env ``e``'s terms out of a batch's."""
+        """Env ``e``'s terms out of a batch's: (C,) arrays and floats (the PettingZoo view)."""
         return RewardTerms(
             *(
-                (float(value[e]) if value.ndim == 1 else value[e])
+                (float(value[e]) if f.name in PER_ENV_TERMS else value[e])
                 for f in fields(self)
                 for value in [getattr(self, f.name)]
             )
         )
 
 
+#: The :class:`RewardTerms` with one value per env, not per CAV slot.
+PER_ENV_TERMS = ("global_reward", "completion", "delay")
+
+
 @dataclass
 class TeamReward:
     """The team reward R of a step at one softmin temperature (:func:`team_reward`).
 
-    For a batch the fields have the terms' leading env axis (the floats are
-    (E,) arrays).
+    The fields have the terms' leading env axis; :meth:`env` is one env's view.
     """
 
-    softmin_weight: np.ndarray  # (C,) w_i, sums to 1 over alive CAVs
-    ego_softmin: float  # sum_i w_i r_e^i
-    total: float  # R
+    softmin_weight: np.ndarray  # (E, C) w_i, sums to 1 over alive CAVs
+    ego_softmin: np.ndarray  # (E,) sum_i w_i r_e^i
+    total: np.ndarray  # (E,) R
+
+    def env(self, e: int) -> TeamReward:
+        """Env ``e``'s team reward: (C,) weights and floats (the PettingZoo view)."""
+        return TeamReward(self.softmin_weight[e], float(self.ego_softmin[e]), float(self.total[e]))
 
 
 def team_reward(
@@ -190,7 +198,7 @@ def team_reward(
         cfg: the weights ``w_ego``, ``w_global`` and ``delay_weight``.
 
     Returns:
-        :class:`TeamReward`; floats for one env, (...,) arrays for many.
+        :class:`TeamReward`, (...,) arrays (0-d for (C,) terms).
     """
     weights = softmin_weights(ego, alive, tau)  # (..., C)
     ego_softmin = np.sum(weights * ego, axis=-1)  # (...,)
@@ -200,8 +208,9 @@ def team_reward(
         + completion
         + cfg.delay_weight * delay
     )
-    scalar = float if weights.ndim == 1 else np.asarray
-    return TeamReward(softmin_weight=weights, ego_softmin=scalar(ego_softmin), total=scalar(total))
+    return TeamReward(
+        softmin_weight=weights, ego_softmin=np.asarray(ego_softmin), total=np.asarray(total)
+    )
 
 
 class AnnealedTeamReward:

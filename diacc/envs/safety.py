@@ -83,7 +83,7 @@ def lane_leaders_followers(
     (their neighbours are still found); callers mask them.
 
     Args:
-        state: Traffic state (or a batch).
+        state: Traffic state (a batch).
         query: (..., Q) vehicle indices.
         check: validate ``query`` (callers that made it themselves skip the cost).
 
@@ -218,7 +218,7 @@ def pair_kinematics(
     """Paper's ``d_long``, ``dv_long`` and TTC for pairs (ego[k], other[k]).
 
     Args:
-        state: Traffic state (or a batch).
+        state: Traffic state (a batch).
         ego: vehicle indices (leading env axes of a batch, then any shape), all valid.
         other: vehicle indices of the same shape; ``-1`` marks "no vehicle".
         check: validate the indices (callers that made them themselves skip the cost;
@@ -318,7 +318,7 @@ def safety_critical_events(state: TrafficState, cfg: EventConfig) -> SafetyEvent
 def check_indices(state: TrafficState, idx: np.ndarray, name: str) -> np.ndarray:
     """``idx`` as int64 vehicle indices of ``state``; :class:`SafetyError` if it is not one.
 
-    One index axis after the state's leading (env) axes: (Q,), or (E, Q) for a batch.
+    One index axis after the state's env axis: (E, Q).
     """
     arr = np.asarray(idx)
     lead = state.x_m.shape[:-1]

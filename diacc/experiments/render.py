@@ -67,16 +67,16 @@ def _legend_entries() -> list[tuple[str, tuple[int, int, int], bool]]:
 def step_stamp(
     state: TrafficState, max_steps: int, psar_rule: np.ndarray | None
 ) -> tuple[str, str]:
-    """(time / step / crash line, PSAR line) under a frame; ``psar_rule`` (V,) None: no PSAR."""
+    """(time / step / crash line, PSAR line) under a frame of ``state``, a batch of one env;
+    ``psar_rule`` (V,), None: no PSAR."""
     from diacc.envs.psar import RULE_NAMES
 
     crash = (
-        "crash: vehicles "
-        + ", ".join(f"{a}+{b}" for a, b in np.asarray(state.collisions).reshape(-1, 2).tolist())
+        "crash: vehicles " + ", ".join(f"{a}+{b}" for a, b in state.collisions[:, 1:].tolist())
         if len(state.collisions)
         else "no crash"
     )
-    line = f"t = {state.time_s:5.1f} s   step {state.step}/{max_steps}   {crash}"
+    line = f"t = {state.time_s[0]:5.1f} s   step {state.step[0]}/{max_steps}   {crash}"
     if psar_rule is None:
         return line, "PSAR: off for this policy"
     counts = np.bincount(np.asarray(psar_rule, np.int64), minlength=len(RULE_NAMES))  # (R,)

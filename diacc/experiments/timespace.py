@@ -49,17 +49,17 @@ def record_trajectories(
     policy, driver = episode_driver(spec, cell, steps, settings)
     try:
         state = driver.reset(seed)
-        frames = [state]
+        frames = [state]  # batches of one env
         while not driver.done:
             frames.append(driver.step())
     finally:
         driver.close()
     trajectories = Trajectories(
-        time_s=np.array([s.time_s for s in frames]),
-        x_m=np.stack([s.x_m for s in frames]),
-        speed_mps=np.stack([s.speed_mps for s in frames]),
-        active=np.stack([s.active for s in frames]),
-        is_cav=frames[0].is_cav.copy(),
+        time_s=np.concatenate([s.time_s for s in frames]),  # (T,)
+        x_m=np.concatenate([s.x_m for s in frames]),  # (T, V)
+        speed_mps=np.concatenate([s.speed_mps for s in frames]),
+        active=np.concatenate([s.active for s in frames]),
+        is_cav=frames[0].is_cav[0].copy(),
     )
     return trajectories, driver.road, policy.describe()["policy"], driver.cfg.sim.style_preset
 

@@ -115,7 +115,9 @@ def safe_end_speed_mps(
 
 def _float_or_array(value: np.ndarray | float) -> np.ndarray | float:
     """A scalar as a Python float, anything else as a float64 array."""
-    return float(value) if np.ndim(value) == 0 else np.asarray(value, dtype=np.float64)
+    if isinstance(value, (float, int)):  # a setting (np.float64 is a float)
+        return float(value)
+    return np.asarray(value, dtype=np.float64)
 
 
 def braking_step(

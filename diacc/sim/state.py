@@ -22,17 +22,16 @@ not entered yet is *pending*: neither active nor arrived, at its entry slot
 
 Batches
 -------
-A batch of E environments of the same scenario is one TrafficState whose
-per-vehicle arrays carry a leading env axis, (E, V), each env its own block.
-Its ``time_s`` and ``step`` are (E,) arrays, ``collisions`` rows are
+A TrafficState is always a batch of E environments of the same scenario
+(E = 1 for one env): every per-vehicle array is (E, V), each env its own
+row; ``time_s`` and ``step`` are (E,) arrays; ``collisions`` rows are
 (env, i, j) and ``arrivals`` rows (env, i). Every backend returns batches
-(E = 1 for one env; :mod:`diacc.sim.backends.base`); they join with
-:meth:`TrafficState.concat`, split with :meth:`TrafficState.envs`. One env's
-state with (V,) arrays, a scalar ``time_s`` and (K, 2) ``collisions``
-(:meth:`TrafficState.env`, :meth:`TrafficState.stack` back) is the view the
-PettingZoo env, the viewer and the tutorials show. Functions that read states
-index vehicles with :func:`take` and broadcast over leading axes, so the same
-code serves both.
+(:mod:`diacc.sim.backends.base`); they join with :meth:`TrafficState.concat`,
+split with :meth:`TrafficState.envs` and :meth:`TrafficState.env` (an E = 1
+batch). Functions that read states index vehicles with :func:`take` and
+broadcast over the env axis. Users who want one env's (V,) arrays index
+row 0 of an E = 1 batch (``state.x_m[0]``), as the PettingZoo env and the
+tutorials show.
 """
 
 from __future__ import annotations
@@ -47,26 +46,26 @@ import numpy as np
 
 @dataclass
 class TrafficState:
-    """Arrays describing every vehicle of one simulation at one instant."""
+    """Arrays describing every vehicle of E simulations at one instant each."""
 
-    time_s: float  # (E,) float64 array in a batch, as is ``step``
-    step: int
-    vehicle_id: np.ndarray  # (V,) int32, == arange(V); every array (E, V) in a batch
-    x_m: np.ndarray  # (V,) float64 centre, along the route
-    y_m: np.ndarray  # (V,) float64 centre, left of the right road edge
-    speed_mps: np.ndarray  # (V,) float64
-    accel_mps2: np.ndarray  # (V,) float64 over the last step (0 at reset)
-    heading_rad: np.ndarray  # (V,) float64
-    lane: np.ndarray  # (V,) int16 absolute lane, 0 = rightmost
-    segment: np.ndarray  # (V,) int16 index into Map.segments
-    length_m: np.ndarray  # (V,) float64
-    width_m: np.ndarray  # (V,) float64
-    is_cav: np.ndarray  # (V,) bool
-    style: np.ndarray  # (V,) int8: 0 aggressive, 1 normal, 2 cautious, -1 CAV
-    active: np.ndarray  # (V,) bool, on the road now
-    arrived: np.ndarray  # (V,) bool, has left at the route end
-    collisions: np.ndarray  # (K, 2) int32 vehicle index pairs that collided this step; (K, 3)
-    arrivals: np.ndarray  # (A,) int32 vehicles that arrived this step; (A, 2) in a batch
+    time_s: np.ndarray  # (E,) float64
+    step: np.ndarray  # (E,) int
+    vehicle_id: np.ndarray  # (E, V) int32, each row == arange(V)
+    x_m: np.ndarray  # (E, V) float64 centre, along the route
+    y_m: np.ndarray  # (E, V) float64 centre, left of the right road edge
+    speed_mps: np.ndarray  # (E, V) float64
+    accel_mps2: np.ndarray  # (E, V) float64 over the last step (0 at reset)
+    heading_rad: np.ndarray  # (E, V) float64
+    lane: np.ndarray  # (E, V) int16 absolute lane, 0 = rightmost
+    segment: np.ndarray  # (E, V) int16 index into Map.segments
+    length_m: np.ndarray  # (E, V) float64
+    width_m: np.ndarray  # (E, V) float64
+    is_cav: np.ndarray  # (E, V) bool
+    style: np.ndarray  # (E, V) int8: 0 aggressive, 1 normal, 2 cautious, -1 CAV
+    active: np.ndarray  # (E, V) bool, on the road now
+    arrived: np.ndarray  # (E, V) bool, has left at the route end
+    collisions: np.ndarray  # (K, 3) int32 rows (env, i, j): i and j collided this step
+    arrivals: np.ndarray  # (A, 2) int32 rows (env, i): i arrived this step
 
     @property
     def n_vehicles(self) -> int:
@@ -78,42 +77,12 @@ class TrafficState:
         return len(self.time_s)
 
     @property
-    def is_batch(self) -> bool:
-        """A batch of envs ((E, V) arrays, (E,) ``time_s``), not one env's state."""
-        return self.vehicle_id.ndim == 2
-
-    @property
     def collided(self) -> np.ndarray:
-        """(..., V) bool: vehicle took part in a collision this step."""
+        """(E, V) bool: vehicle took part in a collision this step."""
         out = np.zeros(self.vehicle_id.shape, dtype=bool)
-        if self.is_batch:  # collisions are rows (env, i, j)
-            out[self.collisions[:, 0], self.collisions[:, 1]] = True
-            out[self.collisions[:, 0], self.collisions[:, 2]] = True
-        else:
-            out[self.collisions.reshape(-1)] = True
+        out[self.collisions[:, 0], self.collisions[:, 1]] = True
+        out[self.collisions[:, 0], self.collisions[:, 2]] = True
         return out
-
-    @classmethod
-    def stack(cls, states: list[TrafficState]) -> TrafficState:
-        """One batch of the E single-env ``states`` (same vehicle count): (E, V) arrays."""
-        collisions = [
-            np.concatenate([np.full((len(s.collisions), 1), e, np.int32), s.collisions], axis=1)
-            for e, s in enumerate(states)
-        ]
-        arrivals = [
-            np.stack([np.full(len(s.arrivals), e, np.int32), s.arrivals], axis=1)
-            for e, s in enumerate(states)
-        ]
-        per_vehicle = {
-            name: np.stack([getattr(s, name) for s in states]) for name in PER_VEHICLE_FIELDS
-        }
-        return cls(
-            time_s=np.array([s.time_s for s in states]),
-            step=np.array([s.step for s in states]),
-            collisions=np.concatenate(collisions).reshape(-1, 3),
-            arrivals=np.concatenate(arrivals).reshape(-1, 2),
-            **per_vehicle,
-        )
 
     @classmethod
     def concat(cls, batches: Sequence[TrafficState]) -> TrafficState:
@@ -157,19 +126,9 @@ class TrafficState:
             **{name: np.tile(getattr(self, name), (k, 1)) for name in PER_VEHICLE_FIELDS},
         )
 
-    def env(self, e: int, copy: bool = True) -> TrafficState:
-        """Env ``e`` of a batch as a single-env state (copies, or views of the batch's rows)."""
-        per_vehicle = {
-            name: getattr(self, name)[e].copy() if copy else getattr(self, name)[e]
-            for name in PER_VEHICLE_FIELDS
-        }
-        return TrafficState(
-            time_s=float(self.time_s[e]),
-            step=int(self.step[e]),
-            collisions=self.collisions[self.collisions[:, 0] == e, 1:].copy(),
-            arrivals=self.arrivals[self.arrivals[:, 0] == e, 1].copy(),
-            **per_vehicle,
-        )
+    def env(self, e: int) -> TrafficState:
+        """Env ``e`` of this batch as an E = 1 batch of its own (copies)."""
+        return self.envs(np.array([e]))
 
     def envs(self, rows: np.ndarray) -> TrafficState:
         """Envs ``rows`` of this batch as a batch of their own (copies; env ``rows[k]`` is k)."""
@@ -206,23 +165,18 @@ class TrafficState:
 
     @property
     def collided_with(self) -> np.ndarray:
-        """(..., V, V) bool, symmetric: vehicles i and j collided with each other this step."""
+        """(E, V, V) bool, symmetric: vehicles i and j collided with each other this step."""
         out = np.zeros(self.vehicle_id.shape + self.vehicle_id.shape[-1:], dtype=bool)
-        pairs = self.collisions  # (K, 2), or (K, 3) rows (env, i, j) in a batch
-        env = (pairs[:, 0],) if self.is_batch else ()
-        i, j = pairs[:, -2], pairs[:, -1]
-        out[(*env, i, j)] = True
-        out[(*env, j, i)] = True
+        env, i, j = self.collisions.T  # rows (env, i, j)
+        out[env, i, j] = True
+        out[env, j, i] = True
         return out
 
     @property
     def arrived_now(self) -> np.ndarray:
-        """(..., V) bool: vehicle arrived at the route end this step (``arrivals``)."""
+        """(E, V) bool: vehicle arrived at the route end this step (``arrivals``)."""
         out = np.zeros(self.vehicle_id.shape, dtype=bool)
-        if self.arrivals.ndim == 2:  # a batch: rows (env, i)
-            out[self.arrivals[:, 0], self.arrivals[:, 1]] = True
-        else:
-            out[self.arrivals] = True
+        out[self.arrivals[:, 0], self.arrivals[:, 1]] = True
         return out
 
     def vehicles(self, lo: int, hi: int) -> TrafficState:
@@ -233,8 +187,8 @@ class TrafficState:
         return TrafficState(
             time_s=self.time_s,
             step=self.step,
-            collisions=np.zeros((0,) + self.collisions.shape[1:], np.int32),
-            arrivals=np.zeros((0,) + self.arrivals.shape[1:], np.int32),
+            collisions=np.zeros((0, 3), np.int32),
+            arrivals=np.zeros((0, 2), np.int32),
             **per_vehicle,
         )
 
@@ -251,7 +205,7 @@ class TrafficState:
 def on_road_window(active: np.ndarray) -> tuple[int, int]:
     """Smallest vehicle index window ``lo:hi`` holding every vehicle on the road.
 
-    ``active`` is (V,) or a batch's (E, V); the window is the union over the
+    ``active`` is a batch's (E, V); the window is the union over the
     envs, ``(0, 0)`` when no vehicle is on the road. Vehicles enter in index
     order and leave roughly so, so in a demand episode (hundreds of vehicles,
     a few dozen on the road) work restricted to the window scales with the
@@ -264,15 +218,12 @@ def on_road_window(active: np.ndarray) -> tuple[int, int]:
 
 
 def take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``values[idx]`` of one state's (V,) values, or per env of a batch's (E, V) ones.
+    """``values[e, idx[e, ...]]`` per env of a batch's (E, V) values: idx is (E, ...).
 
-    For a batch ``idx`` is (E, ...): entry ``[e, ...]`` indexes env ``e``'s row.
     Indices are vehicle indices (>= 0): a batch is read through one flat index,
     a fraction of the cost of indexing by env and vehicle (PSAR, the
     observations and the reward take rows about a hundred times per step).
     """
-    if values.ndim == 1:
-        return values[idx]
     idx = np.asarray(idx)
     base = flat_offsets(values.shape[:1], values.shape[1], idx.ndim - 1)
     return np.ascontiguousarray(values).reshape(-1).take(idx + base)
@@ -335,20 +286,26 @@ FIELD_DTYPES: dict[str, np.dtype] = {
 }
 
 
-#: The fields with one entry per vehicle ((V,), or (E, V) in a batch).
+#: The fields with one entry per vehicle, (E, V).
 PER_VEHICLE_FIELDS = tuple(name for name in FIELD_DTYPES if name not in ("collisions", "arrivals"))
 
 
 def validate_state(state: TrafficState) -> None:
-    """Raise ``AssertionError`` if a state breaks the shared conventions."""
-    n = state.n_vehicles
+    """Raise ``AssertionError`` if a batch breaks the shared conventions."""
+    n_envs, n = state.n_envs, state.n_vehicles
+    for name in ("time_s", "step"):
+        shape = np.shape(getattr(state, name))
+        assert shape == (n_envs,), f"{name} has shape {shape}, expected ({n_envs},)"
     for name, dtype in FIELD_DTYPES.items():
         arr = getattr(state, name)
         assert isinstance(arr, np.ndarray), f"{name} is not an array"
         assert arr.dtype == dtype, f"{name} has dtype {arr.dtype}, expected {dtype}"
-        if name == "collisions":
-            assert arr.ndim == 2 and arr.shape[1] == 2, f"collisions has shape {arr.shape}"
-        elif name != "arrivals":
-            assert arr.shape == (n,), f"{name} has shape {arr.shape}, expected ({n},)"
-    assert np.array_equal(state.vehicle_id, np.arange(n)), "vehicle_id must equal arange(V)"
+        if name in ("collisions", "arrivals"):
+            width = 3 if name == "collisions" else 2
+            assert arr.shape[1:] == (width,), f"{name} has shape {arr.shape}, expected (K, {width})"
+            assert np.all((arr[:, 0] >= 0) & (arr[:, 0] < n_envs)), f"{name} names a missing env"
+        else:
+            expected = (n_envs, n)
+            assert arr.shape == expected, f"{name} has shape {arr.shape}, expected {expected}"
+    assert np.all(state.vehicle_id == np.arange(n)), "vehicle_id must equal arange(V) in every env"
     assert not np.any(state.active & state.arrived), "a vehicle is both active and arrived"

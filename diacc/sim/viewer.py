@@ -89,26 +89,28 @@ class Viewer:
             vehicle.LENGTH = self.sim.vehicle_length_m
             vehicle.WIDTH = self.sim.vehicle_width_m
             self._vehicles.append(vehicle)
-        y_he = to_highway_env_y(self.road_map, state.y_m)
+        y_he = to_highway_env_y(self.road_map, state.y_m[0])
         crashed = np.zeros(n, dtype=bool)
-        crashed[state.collisions.reshape(-1)] = True
+        crashed[state.collisions[:, 1:].reshape(-1)] = True  # rows (0, i, j)
         shown = []
-        for i in np.flatnonzero(state.active):  # render path only, not the simulation
+        for i in np.flatnonzero(state.active[0]):  # render path only, not the simulation
             vehicle = self._vehicles[i]
-            vehicle.position = np.array([state.x_m[i], y_he[i]])
-            vehicle.heading = -float(state.heading_rad[i])  # screen y points down
-            vehicle.speed = float(state.speed_mps[i])
+            vehicle.position = np.array([state.x_m[0][i], y_he[i]])
+            vehicle.heading = -float(state.heading_rad[0][i])  # screen y points down
+            vehicle.speed = float(state.speed_mps[0][i])
             if crashed[i]:
                 vehicle.color = CRASHED_COLOR
-            elif state.is_cav[i]:
+            elif state.is_cav[0][i]:
                 vehicle.color = CAV_COLOR
             else:
-                vehicle.color = STYLE_COLORS[int(state.style[i])]
+                vehicle.color = STYLE_COLORS[int(state.style[0][i])]
             shown.append(vehicle)
         self.road.vehicles = shown
 
     def draw(self, state: TrafficState, highlight: np.ndarray | None = None) -> np.ndarray:
-        """(H, W, 3) uint8 frame centred on the active traffic."""
+        """(H, W, 3) uint8 frame centred on the active traffic of ``state``, a batch of one env."""
+        if state.n_envs != 1:
+            raise ValueError(f"the viewer draws one env, got a batch of {state.n_envs}")
         if highlight is not None:
             highlight = np.asarray(highlight, dtype=bool)
             if highlight.shape != (state.n_vehicles,):
@@ -148,7 +150,7 @@ class Viewer:
             width_m = self.surface.get_width() / self.surface.scaling
             drop_m = drops[0] if drops else 0.5 * road.length_m
             return float(drop_m + 0.1 * width_m)  # the drop at 40 % of the width
-        return float(state.x_m[state.active].mean()) if state.active.any() else 0.0
+        return float(state.x_m[0][state.active[0]].mean()) if state.active[0].any() else 0.0
 
     def _draw_offroad(self) -> None:
         """Paint lanes that do not exist in a segment (the bottleneck) as verge."""
@@ -173,12 +175,12 @@ class Viewer:
 
     def _draw_outlines(self, state: TrafficState, highlight: np.ndarray) -> None:
         half_l, half_w = 0.5 * self.sim.vehicle_length_m + 0.6, 0.5 * self.sim.vehicle_width_m + 0.6
-        y_he = to_highway_env_y(self.road_map, state.y_m)
-        for i in np.flatnonzero(highlight & state.active):
-            h = -float(state.heading_rad[i])
+        y_he = to_highway_env_y(self.road_map, state.y_m[0])
+        for i in np.flatnonzero(highlight & state.active[0]):
+            h = -float(state.heading_rad[0][i])
             c, s = np.cos(h), np.sin(h)
             corners = [
-                (state.x_m[i] + c * dl - s * dw, y_he[i] + s * dl + c * dw)
+                (state.x_m[0][i] + c * dl - s * dw, y_he[i] + s * dl + c * dw)
                 for dl, dw in (
                     (half_l, half_w),
                     (half_l, -half_w),

@@ -104,9 +104,9 @@ class ObservationBuilder:
     one (V, V) distance table per step serves both the actor's and the
     critic's neighbour sets, which keeps the two consistent by construction.
 
-    The stream may be one env's states (V,) or a batch's (E, V): then every
-    array gains the leading env axis, :meth:`reset_rows` restarts single envs
-    and the results are those of E builders (the step of
+    The stream is a batch's states (E, V) (E = 1 for one env): every array has
+    the leading env axis, :meth:`reset_rows` restarts single envs and the
+    results are those of E builders (the step of
     :class:`diacc.envs.batch.EnvBatch`).
     """
 
@@ -159,7 +159,7 @@ class ObservationBuilder:
         self._frame = Frame(state, self._frame.hist)
 
     def push(self, state: TrafficState) -> None:
-        """Append the state of a new step (one env's, or a batch's, :meth:`reset` with one);
+        """Append the state of a new step (a batch, as the one :meth:`reset` had);
         the oldest history entry drops out."""
         if self._frame is None:
             raise ObservationError("push() called before reset(); start the episode first")

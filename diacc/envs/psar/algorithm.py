@@ -45,7 +45,7 @@ def psar(
     meets vehicles of its own env, and the results are those of E calls.
 
     Args:
-        state: Traffic state the actions will be applied to (or a batch).
+        state: Traffic state (a batch) the actions will be applied to.
         cav_index: (..., C) vehicle indices of the CAV slots.
         proposed_action: (..., C) int actions in 0..4.
         cfg: PSAR thresholds and options.

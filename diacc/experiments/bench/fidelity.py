@@ -91,8 +91,7 @@ def human_flow(
     try:
         batch = sim_backend.reset(scenario, seed)  # a batch of one
         recorder.record(batch)
-        state = batch.env(0)  # its (V,) arrays
-        n = state.n_vehicles
+        n = batch.n_vehicles
         passed = np.zeros(n, bool)  # (V,) crossed the reduction end
         cross_t = []  # crossing times
         standing_s = np.zeros(n)  # (V,) current standing spell at a lane end
@@ -101,21 +100,22 @@ def human_flow(
         for _ in range(sim.episode_steps):
             batch = sim_backend.step(CavCommands.idle(n))
             recorder.record(batch)
-            state = batch.env(0)
-            now = state.x_m >= red_end_m
-            new = (now | state.arrived) & ~passed
-            cross_t += [state.time_s] * int(new.sum())
+            now = batch.x_m[0] >= red_end_m
+            new = (now | batch.arrived[0]) & ~passed
+            cross_t += [float(batch.time_s[0])] * int(new.sum())
             passed |= new
-            end = lane_end[state.segment, state.lane]  # (V,)
+            end = lane_end[batch.segment[0], batch.lane[0]]  # (V,)
             at_end = (
-                state.active
-                & (end - state.x_m < LANE_END_ZONE_M)
-                & (state.speed_mps < STANDING_MPS)
+                batch.active[0]
+                & (end - batch.x_m[0] < LANE_END_ZONE_M)
+                & (batch.speed_mps[0] < STANDING_MPS)
             )
             standing_s = np.where(at_end, standing_s + sim.step_s, 0.0)
             longest_s = np.maximum(longest_s, standing_s)
-            near = state.active & (state.x_m > drop_m - 100.0) & (state.x_m < drop_m)
-            upstream.append((state.time_s, state.speed_mps[near].mean() if near.any() else np.nan))
+            near = batch.active[0] & (batch.x_m[0] > drop_m - 100.0) & (batch.x_m[0] < drop_m)
+            upstream.append(
+                (float(batch.time_s[0]), batch.speed_mps[0][near].mean() if near.any() else np.nan)
+            )
     finally:
         sim_backend.close()
     m = recorder.summary()

@@ -23,7 +23,7 @@ from diacc.envs.episode import EpisodeDriver
 from diacc.envs.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.experiments.grid import Cell
 from diacc.experiments.policies import EvalSettings, ScriptedPolicy
-from diacc.sim.state import TrafficState
+from diacc.sim.state import TrafficState, take
 
 #: Vehicles slower than this are queueing, not following; their time gap means nothing.
 MOVING_MPS = 5.0
@@ -38,7 +38,7 @@ PAIRS = ("cav_behind_hdv", "cav_behind_cav", "hdv")
 def time_gaps(
     state: TrafficState, speed_limit_mps: np.ndarray | None = None
 ) -> dict[str, np.ndarray]:
-    """Time gaps (s) of the moving vehicles of one state, by :data:`PAIRS` class.
+    """Time gaps (s) of the moving vehicles of a batch of one env, by :data:`PAIRS` class.
 
     With ``speed_limit_mps`` ((S,) per segment) only vehicles at least
     :data:`CRUISE_MARGIN_MPS` below their segment's limit count: a vehicle
@@ -46,16 +46,16 @@ def time_gaps(
     choice of its car following (CAVs released together keep their release
     spacing while they accelerate to the limit together).
     """
-    everyone = np.arange(state.n_vehicles)
-    leader = lane_leaders_followers(state, everyone).front[:, SAME_COL]  # (V,)
+    everyone = np.arange(state.n_vehicles)[None]  # (1, V): state is a batch of one env
+    leader = lane_leaders_followers(state, everyone).front[..., SAME_COL]  # (1, V)
     kin = pair_kinematics(state, everyone, leader)
-    moving = state.active & kin.valid & (state.speed_mps > MOVING_MPS)  # (V,)
+    moving = state.active & kin.valid & (state.speed_mps > MOVING_MPS)  # (1, V)
     if speed_limit_mps is not None:
         limit_mps = speed_limit_mps[state.segment.astype(np.int64)]
         moving &= state.speed_mps < limit_mps - CRUISE_MARGIN_MPS
     with np.errstate(invalid="ignore", divide="ignore"):
-        gap_s = kin.d_long_m / state.speed_mps  # (V,)
-    lead_cav = state.is_cav[np.maximum(leader, 0)]
+        gap_s = kin.d_long_m / state.speed_mps  # (1, V)
+    lead_cav = take(state.is_cav, np.maximum(leader, 0))
     return {
         "cav_behind_hdv": gap_s[moving & state.is_cav & ~lead_cav],
         "cav_behind_cav": gap_s[moving & state.is_cav & lead_cav],

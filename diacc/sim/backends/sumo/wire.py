@@ -63,10 +63,15 @@ def decode_step_request(message: bytes) -> tuple[np.ndarray, np.ndarray]:
 
 
 def encode_state(state: TrafficState) -> bytes:
-    """One message holding every field of ``state`` (a copy: the state may change after)."""
-    counts = (state.step, state.n_vehicles, len(state.collisions), len(state.arrivals))
-    parts = [STATE_REPLY, _HEADER.pack(state.time_s, *counts)]
-    parts += [np.asarray(getattr(state, name), FIELD_DTYPES[name]).tobytes() for name in _FIELDS]
+    """One message holding every field of ``state``, a batch of one (a copy: the state may
+    change after); event rows go without their env column."""
+    counts = (int(state.step[0]), state.n_vehicles, len(state.collisions), len(state.arrivals))
+    parts = [STATE_REPLY, _HEADER.pack(float(state.time_s[0]), *counts)]
+    events = {"collisions": state.collisions[:, 1:], "arrivals": state.arrivals[:, 1]}
+    parts += [
+        np.asarray(events.get(name, getattr(state, name)), FIELD_DTYPES[name]).tobytes()
+        for name in _FIELDS
+    ]
     return b"".join(parts)
 
 

@@ -21,6 +21,7 @@ are gathered after every substep, since SUMO reports only the last one's.
 from __future__ import annotations
 
 import pickle
+import types
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,7 +35,7 @@ from diacc.sim.kinematics import lane_change_reach_m
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Population
 from diacc.sim.settings import SimConfig
-from diacc.sim.state import TrafficState
+from diacc.sim.state import PER_VEHICLE_FIELDS, TrafficState
 
 #: laneChangeMode of commanded CAVs: 0 = no lane change of SUMO's own (strategic,
 #: cooperative, speed gain, keep right all off) and TraCI changes executed without
@@ -183,25 +184,25 @@ class SumoSim:
                 "the starting slots are too tight for the vehicle types"
             )
         self._subscribe([vid for vid in self.ids if vid in on_road])
-        self.state = TrafficState(
-            time_s=0.0,
-            step=0,
-            vehicle_id=np.arange(n, dtype=np.int32),
-            x_m=pop.x_m.astype(np.float64),  # pending vehicles (demand) wait at their slot
-            y_m=self.road.lane_center_y_m(pop.lane).astype(np.float64),
-            speed_mps=pop.speed_mps.astype(np.float64),
-            accel_mps2=np.zeros(n),
-            heading_rad=np.zeros(n),
-            lane=pop.lane.astype(np.int16),
-            segment=np.zeros(n, np.int16),
-            length_m=np.full(n, length_m),
-            width_m=np.full(n, self.sim.vehicle_width_m),
-            is_cav=pop.is_cav.astype(bool),
-            style=pop.style.astype(np.int8),
-            active=np.zeros(n, bool),  # set by _read_state
-            arrived=np.zeros(n, bool),
-            collisions=np.zeros((0, 2), np.int32),
-            arrivals=np.zeros(0, np.int32),
+        self.state = TrafficState(  # the one simulation as a batch of one: (1, V) arrays
+            time_s=np.zeros(1),
+            step=np.zeros(1, np.int64),
+            vehicle_id=np.arange(n, dtype=np.int32)[None],
+            x_m=pop.x_m.astype(np.float64)[None],  # pending vehicles (demand) wait at their slot
+            y_m=self.road.lane_center_y_m(pop.lane).astype(np.float64)[None],
+            speed_mps=pop.speed_mps.astype(np.float64)[None],
+            accel_mps2=np.zeros((1, n)),
+            heading_rad=np.zeros((1, n)),
+            lane=pop.lane.astype(np.int16)[None],
+            segment=np.zeros((1, n), np.int16),
+            length_m=np.full((1, n), length_m),
+            width_m=np.full((1, n), self.sim.vehicle_width_m),
+            is_cav=pop.is_cav.astype(bool)[None],
+            style=pop.style.astype(np.int8)[None],
+            active=np.zeros((1, n), bool),  # set by _read_state
+            arrived=np.zeros((1, n), bool),
+            collisions=np.zeros((0, 3), np.int32),
+            arrivals=np.zeros((0, 2), np.int32),
         )
         self._read_state()
         self.state.accel_mps2[:] = 0.0
@@ -228,7 +229,8 @@ class SumoSim:
             a, b = self.index.get(collider), self.index.get(victim)
             if a is not None and b is not None:
                 pairs.add((min(a, b), max(a, b)))
-        st.collisions = np.array(sorted(pairs), np.int32).reshape(-1, 2)
+        rows = [(0, a, b) for a, b in sorted(pairs)]  # (env 0, i, j)
+        st.collisions = np.array(rows, np.int32).reshape(-1, 3)
         prev_speed = st.speed_mps.copy()
         st.step += 1
         st.time_s = st.step * self.sim.step_s
@@ -254,7 +256,7 @@ class SumoSim:
         np.minimum/np.maximum instead of np.clip, which costs several
         microseconds per call on arrays this small (same values).
         """
-        st = self.state
+        st = self._rows()
         # NaN: no command, the CAV drives itself with SUMO's own models (base.py).
         free = self.commanded & st.active & np.isnan(speed_change_mps)  # (V,)
         veh = self.ls.vehicle
@@ -289,6 +291,12 @@ class SumoSim:
             veh.changeLane(ids[i], lane, step_s)
 
     # ---- state ---------------------------------------------------------
+    def _rows(self) -> types.SimpleNamespace:
+        """The one simulation's (V,) rows of the state (views) and its vehicle count."""
+        state = self.state
+        rows = {name: getattr(state, name)[0] for name in PER_VEHICLE_FIELDS}
+        return types.SimpleNamespace(**rows, n_vehicles=state.n_vehicles)
+
     def _read_state(self) -> None:
         """Copy every active vehicle's subscribed variables into the state arrays.
 
@@ -297,7 +305,7 @@ class SumoSim:
         active vehicles missing from the results are this step's arrivals,
         without asking SUMO for its arrived list after every substep.
         """
-        st = self.state
+        st = self._rows()  # views: writes go to the state
         results = self.ls.vehicle.getAllSubscriptionResults()  # {id: {var: value}}
         lane_id, pos, lat, speed, angle = self.state_vars
         index, lane_at = self.index, self.lane_at
@@ -315,8 +323,9 @@ class SumoSim:
         idx = data[:, 0].astype(np.int64)
         present = np.zeros(st.n_vehicles, bool)
         present[idx] = True
-        st.arrivals = np.flatnonzero(st.active & ~present).astype(np.int32)
-        st.arrived[st.arrivals] = True
+        arrivals = np.flatnonzero(st.active & ~present).astype(np.int32)  # (A,)
+        self.state.arrivals = np.stack([np.zeros_like(arrivals), arrivals], axis=1)
+        st.arrived[arrivals] = True
         st.active[:] = present  # pending vehicles (demand) become active when they depart
         seg = data[:, 1].astype(np.int16)
         abs_lane = data[:, 2].astype(np.int16)
