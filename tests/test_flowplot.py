@@ -101,3 +101,21 @@ def test_a_table_tells_apart_results_of_one_policy_in_folders_of_one_name(flow_r
     (cell,) = table.cells
     a, b = (table.stats[(cell.key, "throughput", c)].mean for c in table.columns)
     assert b == pytest.approx(a + 100.0)
+
+
+def test_a_damaged_results_file_is_one_line(flow_results, tmp_path):
+    """Results are read through the validating loader: a field that is not a number names
+    the file and the field, and nothing is drawn."""
+    import shutil
+
+    copy = tmp_path / "x" / "q1200"
+    shutil.copytree(flow_results / "highway" / "same-mix" / "q1200", copy)
+    path = copy / "episodes.csv"
+    rows = list(csv.DictReader(path.open()))
+    rows[0]["throughput_vph"] = "lots"
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    with pytest.raises(PlotError, match="'throughput_vph' is not a number"):
+        load_flow([tmp_path / "x"])

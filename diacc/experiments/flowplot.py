@@ -20,12 +20,12 @@ on ``highway``.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from diacc.experiments.evaluate import EvaluationError, load_episodes
 from diacc.experiments.paired import BOOTSTRAP_SEED, CONFIDENCE, RESAMPLES
 from diacc.experiments.plots import PlotError, _pyplot, _save
 
@@ -79,8 +79,10 @@ def load_flow(roots: list[str | Path]) -> list[FlowPoint]:
     if not files:
         raise PlotError(f"no episodes.csv under {', '.join(map(str, roots))}")
     for path in files:
-        with path.open(newline="", encoding="utf-8") as handle:
-            rows = list(csv.DictReader(handle))
+        try:  # the validating loader: meta present, numbers numbers, cells that exist
+            _, rows = load_episodes(path.parent)
+        except EvaluationError as exc:
+            raise PlotError(str(exc)) from None
         series = _series_name(path.parent)
         for row in rows:
             try:
