@@ -264,3 +264,20 @@ def test_runs_saved_with_device_cpu_resume_under_the_auto_default():
     changed = check_resume_config(saved, TrainConfig(device="auto"), Path("run"), True)
     assert changed == (["device"] if torch.cuda.is_available() else [])
     assert check_resume_config(saved, TrainConfig(device="cuda"), Path("run"), True) == ["device"]
+
+
+def test_every_help_text_renders_percent_signs_once():
+    """Descriptions are printed as written (raw formatter) while argument help goes through
+    %-formatting: a ``%%`` in a description reaches the user as ``%%``."""
+    import argparse
+
+    from diacc.cli.parser import build_parser
+
+    parser = build_parser()
+    subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, sub in subparsers.choices.items():
+        assert "%%" not in sub.format_help(), name
+        for action in sub._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for inner_name, inner in action.choices.items():
+                    assert "%%" not in inner.format_help(), f"{name} {inner_name}"

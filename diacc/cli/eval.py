@@ -166,7 +166,7 @@ def add_parsers(sub) -> None:
         "Evaluates --policy and the three references on every cell of the suites\n"
         "(train, zero-shot, geometry, paper-congestion, demand) and backends, on the\n"
         "test seed stream, 330-step episodes, PSAR headway / known; writes\n"
-        "scorecard.md and scorecard.json (changes paired by episode seed, 95 %%\n"
+        "scorecard.md and scorecard.json (changes paired by episode seed, 95 %\n"
         "bootstrap intervals) into --out. Run from the repository root (the geometry\n"
         "maps and the shipped agent live there). Resumable: finished cells are skipped.",
     )
