@@ -8,6 +8,7 @@ import argparse
 from diacc.cli.options import add_command, add_device_arg
 from diacc.config import (
     BACKENDS,
+    HIGHWAY_MERGES,
     HORIZON_MODES,
     STYLE_PRESETS,
     ConfigError,
@@ -113,7 +114,14 @@ def add_parsers(sub) -> None:
         "--style-preset",
         choices=tuple(STYLE_PRESETS),
         default=None,
-        help="style preset of --safety / --headway / --headroom (default: each one's)",
+        help="style preset of --safety / --headway / --headroom / --fidelity (default: each one's)",
+    )
+    p.add_argument(
+        "--highway-merges",
+        choices=HIGHWAY_MERGES,
+        default=None,
+        help="how the highway backend's drivers leave an ending lane, in --fidelity "
+        "(default: late; early matches SUMO's capacity)",
     )
     p.add_argument(
         "--episodes",
@@ -209,7 +217,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
         from diacc.experiments.bench import fidelity
 
         timing = {"demand_s": args.demand_s, "warmup_s": args.warmup_s}
-        preset = {"preset": args.style_preset}
+        preset = {"preset": args.style_preset, "highway_merges": args.highway_merges}
         fidelity.run(
             inflows_vph=tuple(args.inflow or fidelity.INFLOWS_VPH),
             seeds=args.episodes or 1,

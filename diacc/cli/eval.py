@@ -15,6 +15,7 @@ from diacc.config import (
     ACTION_MODES,
     BACKENDS,
     FULL_BRAKE_MODES,
+    HIGHWAY_MERGES,
     HORIZON_MODES,
     STYLE_PRESETS,
     ConfigError,
@@ -45,6 +46,7 @@ def _settings(args: argparse.Namespace):
         style_preset=args.style_preset,
         psar_horizon=args.psar_horizon,
         psar_full_brake=args.psar_full_brake,
+        highway_merges=args.highway_merges,
         stream=args.stream,
     )
 
@@ -96,6 +98,14 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         default=None,
         help="when PSAR's headway car following may brake beyond the planned rate, for every "
         "policy with PSAR (default: the policy's own setting; docs/concepts/psar.md)",
+    )
+    p.add_argument(
+        "--highway-merges",
+        choices=HIGHWAY_MERGES,
+        default=None,
+        help="how the highway backend's human drivers leave an ending lane: late (200 m "
+        "before its end) or early (400 m; passes SUMO's capacity within 10 %%) (default: "
+        "the policy's own setting)",
     )
     p.add_argument(
         "--stream",
@@ -197,9 +207,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
     p.add_argument("--out", required=True, type=Path, help="results directory (required)")
 
-    p = options.add_command(
-        sub, "plot", "training curves, speed distributions or flow (PNG + PDF)"
-    )
+    p = options.add_command(sub, "plot", "training curves, speed distributions or flow (PNG + PDF)")
     plot_sub = p.add_subparsers(dest="plot_kind", required=True, metavar="KIND")
     q = plot_sub.add_parser(
         "curves",

@@ -85,4 +85,11 @@ from diacc.sim.scenario import (  # noqa: F401 - re-exported
     Scenario,
     ScenarioError,
 )
-from diacc.sim.settings import BACKENDS, BATCHED_BACKENDS, CAV_MODES, CavParams, SimConfig  # noqa: F401
+from diacc.sim.settings import (  # noqa: F401
+    BACKENDS,
+    BATCHED_BACKENDS,
+    CAV_MODES,
+    HIGHWAY_MERGES,
+    CavParams,
+    SimConfig,
+)

@@ -34,6 +34,7 @@ import numpy as np
 from diacc.config import (
     BACKENDS,
     FULL_BRAKE_MODES,
+    HIGHWAY_MERGES,
     HORIZON_MODES,
     MAX_EPISODE_STEPS,
     STYLE_NAMES,
@@ -97,6 +98,8 @@ class EvalSettings:
     psar_horizon: str | None = one_of(None, HORIZON_MODES)
     #: PSAR's ``full_brake`` of every policy with PSAR (:class:`~diacc.config.PSARConfig`).
     psar_full_brake: str | None = one_of(None, FULL_BRAKE_MODES)
+    #: How the highway backend's human drivers leave an ending lane (``SimConfig``'s).
+    highway_merges: str | None = one_of(None, HIGHWAY_MERGES)
     #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
     #: ``validation`` to choose on, ``test`` to report.
     stream: str = one_of(DEFAULT_STREAM, SEED_STREAMS)
@@ -110,6 +113,8 @@ class EvalSettings:
             changes["episode_steps"] = self.episode_steps
         if self.style_preset is not None:
             changes["style_preset"] = self.style_preset
+        if self.highway_merges is not None:
+            changes["highway_merges"] = self.highway_merges
         return dataclasses.replace(sim, **changes)
 
     def apply_psar(self, psar: PSARConfig) -> PSARConfig:
@@ -127,6 +132,8 @@ class EvalSettings:
             settings["psar_horizon"] = self.psar_horizon
         if self.psar_full_brake is not None:
             settings["psar_full_brake"] = self.psar_full_brake
+        if self.highway_merges is not None:
+            settings["highway_merges"] = self.highway_merges
         return {"backend": self.backend, "settings": settings}
 
 

@@ -28,6 +28,11 @@ BATCHED_BACKENDS = ("highway",)
 #: How CAVs are driven: by commands (learning and scripted policies) or on their
 #: own as the non-learning ``cooperative`` baseline (CACC car following, lcCooperative 1).
 CAV_MODES = ("commanded", "cooperative")
+#: How the highway backend's human drivers leave an ending lane (``SimConfig.highway_merges``,
+#: :data:`diacc.sim.backends.highway.models.MERGE_MODELS`): ``late`` (forced merging from
+#: 200 m before the end) or ``early`` (from 400 m, with followers yielding sooner), which
+#: passes SUMO's pure-HDV outflow in oversaturation within 10 % (docs/concepts/scenarios.md).
+HIGHWAY_MERGES = ("late", "early")
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,8 @@ class SimConfig:
     idm_delta: float = ranged(4.0, 0, open_low=True)  # IDM acceleration exponent
     style_preset: str = one_of("realistic", tuple(STYLE_PRESETS))  # diacc.sim.drivers
     cav_mode: str = one_of("commanded", CAV_MODES)
+    # highway backend: how human drivers leave an ending lane (SUMO: LC2013's own lookahead)
+    highway_merges: str = one_of("late", HIGHWAY_MERGES)
     cav: CavParams = field(default_factory=CavParams)
 
     def __post_init__(self) -> None:

@@ -65,6 +65,7 @@ class FlowSettings:
     breakdown_mps: float = 10.0
     mix: str = "D1"
     preset: str = "realistic"
+    highway_merges: str = "late"  # SimConfig.highway_merges (the highway backend's merges)
 
 
 def human_flow(
@@ -79,7 +80,11 @@ def human_flow(
         style_mix=settings.mix,
         **TRAFFIC[traffic],
     )
-    sim = SimConfig(episode_steps=int(settings.demand_s), style_preset=settings.preset)
+    sim = SimConfig(
+        episode_steps=int(settings.demand_s),
+        style_preset=settings.preset,
+        highway_merges=settings.highway_merges,
+    )
     road = preset_road(load_map(settings.map_name), sim.style_preset)
     sim_backend = make_backend(backend, road, sim)
     recorder = EpisodeRecorder(road, EventConfig(), scenario.warmup_s)
@@ -140,6 +145,7 @@ def human_flow(
     return {
         "traffic": traffic,
         "preset": settings.preset,
+        "highway_merges": settings.highway_merges,
         "backend": backend,
         "map": settings.map_name,
         "inflow_vph": inflow_vph,
@@ -180,7 +186,8 @@ def run(
     print(
         f"simulator fidelity: pure HDV on {settings.map_name}, demand {settings.demand_s:g} s "
         f"(metrics after {settings.warmup_s:g} s), style preset {settings.preset}, mix "
-        f"{settings.mix}, {seeds} seed(s) per inflow; outflow past the reduction, veh/h"
+        f"{settings.mix}, highway merges {settings.highway_merges}, {seeds} seed(s) per inflow; "
+        "outflow past the reduction, veh/h"
     )
     columns = " | ".join(f"{b} outflow | {b} delay s/veh | {b} capacity drop" for b in backends)
     print(f"| inflow veh/h | {columns} | highway vs sumo |")

@@ -45,6 +45,7 @@ class BenchOptions:
     warmup_s: float | None = ranged(None, 0)
     agent: tuple[str, ...] = ()
     references: str | None = None
+    highway_merges: str | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -63,6 +64,8 @@ class BenchOptions:
             given = []  # --fidelity runs the demand scenario: its flags apply
         if given and not (self.headroom and self.scenario == "demand"):
             raise ConfigError(f"{given[0]} needs --headroom with --scenario demand or --fidelity")
+        if self.highway_merges is not None and not self.fidelity:
+            raise ConfigError("--highway-merges needs --fidelity")
         if (self.agent or self.references) and not self.headroom:
             raise ConfigError(f"{'--agent' if self.agent else '--references'} needs --headroom")
         if self.headroom and self.scenario == "demand" and len(self.inflow or ()) != 1:

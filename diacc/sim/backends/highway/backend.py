@@ -136,7 +136,7 @@ class HighwayBackend:
         self.cooperative = cooperative or CooperativeCavParams()
         self.road = road
         self.sim = sim
-        self.model = model or HighwayModel()
+        self.model = model or HighwayModel.of(sim.highway_merges)
         self.n_envs = n_envs
         self.network = build_road_network(road)
         self.tables = LaneTables.from_map(road)

@@ -51,6 +51,28 @@ class HighwayModel:
     max_heading_rad: float = 0.35  # a car cannot crab sideways: heading is clipped here
     guard_gap_m: float = 0.1  # last-resort HDV-HDV spacing (counted in stats when used)
 
+    @classmethod
+    def of(cls, merges: str) -> HighwayModel:
+        """The model of a ``SimConfig.highway_merges`` name (:data:`MERGE_MODELS`)."""
+        return cls(**MERGE_MODELS[merges])
+
+
+#: ``SimConfig.highway_merges`` -> the :class:`HighwayModel` constants it changes.
+#:
+#: * ``late`` (default; every committed highway result): forced merging from 200 m
+#:   before a lane end, followers yield to a merger within 100 m of its end.
+#: * ``early``: forced merging from 400 m, followers yield to a merger within 200 m of
+#:   its end, and any follower slower than 8 m/s yields (not only polite ones). Merges
+#:   spread upstream, as LC2013's strategic changes do on SUMO, so fewer drivers stand
+#:   at the lane end and merge from rest: pure-HDV outflow in oversaturation rises to
+#:   within 10 % of SUMO's (``diacc bench --fidelity --highway-merges early``; measured
+#:   in benchmarks/studies/demand-human-traffic/results/). Starting merges early alone
+#:   left single drivers standing minutes at the end; the earlier yielding lets them in.
+MERGE_MODELS: dict[str, dict[str, float]] = {
+    "late": {},
+    "early": {"merge_zone_m": 400.0, "yield_zone_m": 200.0, "yield_speed_mps": 8.0},
+}
+
 
 @dataclass(frozen=True)
 class CooperativeCavParams:
