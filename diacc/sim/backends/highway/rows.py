@@ -89,35 +89,43 @@ def field_axes(cls: type) -> tuple[tuple[str, Axes], ...]:
     return tuple(out)
 
 
-def _checked(record: Any, name: str, kind: Axes) -> Any:
-    """Field ``name`` of ``record``; ``ValueError`` if it does not have its declared axes."""
-    value = getattr(record, name)
+@functools.cache
+def _plan(cls: type) -> tuple[tuple[str, Axes, int], ...]:
+    """:func:`field_axes` with each kind's number of array axes (0: not an array), which
+    the window loops below branch on: they run on every step, so they look up little."""
+    return tuple((name, kind, _NDIM.get(kind, 0)) for name, kind in field_axes(cls))
+
+
+def _check(record: Any, name: str, kind: Axes, value: Any) -> None:
+    """``ValueError`` naming the field unless ``value`` has the declared axes ``kind``."""
     is_array = isinstance(value, np.ndarray)
-    ndim = _NDIM.get(kind)
-    if ndim is not None:
-        fits = is_array and value.ndim == ndim
-    elif kind is Axes.NESTED:
-        fits = dataclasses.is_dataclass(value) and not isinstance(value, type)
+    if kind in _NDIM:
+        fits = is_array and value.ndim == _NDIM[kind]
     else:
-        fits = not is_array and not dataclasses.is_dataclass(value)
+        is_record = dataclasses.is_dataclass(value) and not isinstance(value, type)
+        fits = is_record if kind is Axes.NESTED else not (is_array or is_record)
     if not fits:
         held = f"an array of shape {value.shape}" if is_array else f"a {type(value).__name__}"
         raise ValueError(
             f"{type(record).__name__}.{name} is declared {kind.value} but holds {held}"
         )
-    return value
 
 
 def _window(record: Any, lo: int, hi: int) -> Any:
+    """Vehicles ``lo:hi`` of ``record``, cut by each field's declared axes (``ndim`` is the
+    declared kind's, from :func:`_plan`; the array's own only has to agree with it)."""
     parts = {}
-    for name, kind in field_axes(type(record)):
-        value = _checked(record, name, kind)
-        if kind is Axes.VEHICLE:
-            value = value[:, lo:hi]
-        elif kind is Axes.PAIR:
-            value = value[:, lo:hi, lo:hi]
-        elif kind is Axes.NESTED:
-            value = _window(value, lo, hi)
+    for name, kind, ndim in _plan(type(record)):
+        value = getattr(record, name)
+        if ndim and isinstance(value, np.ndarray) and value.ndim == ndim:  # the common case
+            if ndim == 2:
+                value = value[:, lo:hi]
+            elif ndim == 3:
+                value = value[:, lo:hi, lo:hi]
+        else:
+            _check(record, name, kind, value)
+            if kind is Axes.NESTED:
+                value = _window(value, lo, hi)
         parts[name] = value
     return type(record)(**parts)
 
@@ -126,11 +134,15 @@ def _put_window(target: Any, part: Any, lo: int, hi: int) -> None:
     """Vehicle fields are written into ``target``'s arrays; per-env and shared fields
     are taken over whole (a field ``part`` shares with ``target`` is not set again,
     so a frozen record such as :class:`~.models.IdmParams` is written in place)."""
-    for name, kind in field_axes(type(target)):
-        old, new = _checked(target, name, kind), _checked(part, name, kind)
-        if kind is Axes.VEHICLE:
+    for name, kind, ndim in _plan(type(target)):
+        old, new = getattr(target, name), getattr(part, name)
+        if not (ndim and isinstance(old, np.ndarray) and old.ndim == ndim):
+            _check(target, name, kind, old)
+        if new is not old and not (ndim and isinstance(new, np.ndarray) and new.ndim == ndim):
+            _check(part, name, kind, new)
+        if ndim == 2:
             old[:, lo:hi] = new
-        elif kind is Axes.PAIR:
+        elif ndim == 3:
             old[:, lo:hi, lo:hi] = new
         elif kind is Axes.NESTED:
             _put_window(old, new, lo, hi)
