@@ -75,8 +75,8 @@ class IdmParams:
     """Per-vehicle IDM parameters, each (E, V): one row per environment of a batch.
 
     Nested in :class:`~.simstate.HighwayParams`, so its fields declare their axes
-    too (:mod:`.rows`). :meth:`take` builds other shapes ((E, V, 3) and the like)
-    for the computations, which never go back into a record.
+    too (:mod:`.rows`). :meth:`take` builds other shapes (MOBIL's (E, 4, 3, V)) for
+    a computation; those never go into a record.
     """
 
     headway_s: np.ndarray = per_vehicle()
