@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diacc.sim.backends.highway.rows import per_vehicle, shared
 from diacc.sim.state import flat_offsets
 
 
@@ -93,13 +94,18 @@ class CooperativeCavParams:
 
 @dataclass(frozen=True)
 class IdmParams:
-    """Per-vehicle IDM parameters, each (E, V): one row per environment of a batch."""
+    """Per-vehicle IDM parameters, each (E, V): one row per environment of a batch.
 
-    headway_s: np.ndarray
-    min_gap_m: np.ndarray
-    accel_mps2: np.ndarray
-    decel_mps2: np.ndarray
-    delta: float
+    Nested in :class:`~.simstate.HighwayParams`, so its fields declare their axes
+    too (:mod:`.rows`). :meth:`take` builds other shapes (MOBIL's (E, 4, 3, V)) for
+    a computation; those never go into a record.
+    """
+
+    headway_s: np.ndarray = per_vehicle()
+    min_gap_m: np.ndarray = per_vehicle()
+    accel_mps2: np.ndarray = per_vehicle()
+    decel_mps2: np.ndarray = per_vehicle()
+    delta: float = shared()  # IDM acceleration exponent
 
     def take(self, idx: np.ndarray) -> IdmParams:
         """Parameters of the vehicles ``idx`` (E, ...), each indexing its own env's row."""

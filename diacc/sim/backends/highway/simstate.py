@@ -13,116 +13,39 @@ them and when:
   (leaders, lane ends, speed windows). Some are refreshed on events only,
   so they belong to the state of a running batch, too.
 
-All three share the row operations of :class:`EnvRows`: :meth:`~EnvRows.copy`
-(a deep copy, so a batch can be checkpointed and restored exactly),
-:meth:`~EnvRows.env` (one env as an E = 1 record) and
-:meth:`~EnvRows.set_env` (write one env's row of every field, which is how
-``reset`` starts an env: a field cannot be forgotten, since the record's
-constructor needs them all). Arrays are (E, V) unless the field's comment
-says otherwise; E is the batch size, V the vehicles per env.
+All three share the row operations of :class:`~.rows.EnvRows`:
+:meth:`~.rows.EnvRows.copy` (a deep copy, so a batch can be checkpointed and
+restored exactly), :meth:`~.rows.EnvRows.env` (one env as an E = 1 record),
+:meth:`~.rows.EnvRows.set_env` (write one env's row of every field, which is
+how ``reset`` starts an env: a field cannot be forgotten, since the record's
+constructor needs them all) and :meth:`~.rows.EnvRows.window` /
+:meth:`~.rows.EnvRows.put_window` (the vehicles the backend steps). Every
+field declares its axes (``per_vehicle()``: (E, V), ``per_env()``: (E,),
+``per_pair()``: (E, V, V), ``shared()``: one value for the batch,
+``nested()``: a record such as :class:`~.models.IdmParams`), which is what a
+window cuts by (see :mod:`.rows`); E is the batch size, V the vehicles per
+env. The comments give the dtype and meaning.
 """
 
 from __future__ import annotations
 
-import dataclasses
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol, TypeVar
+from typing import Protocol
 
 import numpy as np
 
 from diacc.sim.backends.highway.models import CooperativeCavParams, HighwayModel, IdmParams
 from diacc.sim.backends.highway.road import LaneTables
+from diacc.sim.backends.highway.rows import (
+    EnvRows,
+    nested,
+    per_env,
+    per_pair,
+    per_vehicle,
+    shared,
+)
 from diacc.sim.maps import Map
 from diacc.sim.settings import SimConfig
-
-
-def _map_arrays(value: Any, fn: Callable[[np.ndarray], np.ndarray]) -> Any:
-    """``fn`` applied to every array of ``value``, recursing into dataclasses (e.g.
-    :class:`IdmParams`); other values (scalars) are kept as they are."""
-    if isinstance(value, np.ndarray):
-        return fn(value)
-    if dataclasses.is_dataclass(value):
-        return dataclasses.replace(
-            value,
-            **{f.name: _map_arrays(getattr(value, f.name), fn) for f in dataclasses.fields(value)},
-        )
-    return value
-
-
-def _write_rows(target: Any, source: Any, env: int) -> None:
-    """Write the single env row of ``source`` into row ``env`` of ``target`` (same type)."""
-    if isinstance(target, np.ndarray):
-        target[env] = source[0]
-    elif dataclasses.is_dataclass(target):
-        for f in dataclasses.fields(target):
-            _write_rows(getattr(target, f.name), getattr(source, f.name), env)
-
-
-def _window_view(a: np.ndarray, lo: int, hi: int) -> np.ndarray:
-    """Vehicles ``lo:hi`` of an (E,), (E, V) or (E, V, V) array: a view; (E,) stays whole."""
-    if a.ndim == 1:
-        return a
-    if a.ndim == 2:
-        return a[:, lo:hi]
-    return a[:, lo:hi, lo:hi]
-
-
-def _write_window(target: Any, source: Any, lo: int, hi: int) -> Any:
-    """Write ``source``, a :meth:`EnvRows.window` of ``target``, back into it.
-
-    (E,) arrays and scalars are taken over whole (they are per env, not per
-    vehicle); returns the value ``target`` should hold afterwards.
-    """
-    if isinstance(target, np.ndarray):
-        if target.ndim == 1:
-            return source
-        _window_view(target, lo, hi)[...] = source
-        return target
-    if dataclasses.is_dataclass(target):
-        for f in dataclasses.fields(target):
-            value = _write_window(getattr(target, f.name), getattr(source, f.name), lo, hi)
-            if not isinstance(target, IdmParams):  # frozen; its arrays are written in place
-                setattr(target, f.name, value)
-        return target
-    return source
-
-
-_Rows = TypeVar("_Rows", bound="EnvRows")
-
-
-class EnvRows:
-    """Row operations shared by the batch records (fields are arrays with E first)."""
-
-    __slots__ = ()
-
-    def copy(self: _Rows) -> _Rows:
-        """A deep copy: no array is shared with ``self``."""
-        return _map_arrays(self, np.copy)
-
-    def env(self: _Rows, e: int) -> _Rows:
-        """Env ``e`` as an E = 1 record (copies of its rows)."""
-        return _map_arrays(self, lambda a: a[e : e + 1].copy())
-
-    def set_env(self: _Rows, e: int, row: _Rows) -> None:
-        """Overwrite env ``e`` of every array field with ``row``'s (E = 1) values.
-
-        Scalar fields (not per env) are left alone.
-        """
-        _write_rows(self, row, e)
-
-    def window(self: _Rows, lo: int, hi: int) -> _Rows:
-        """Vehicles ``lo:hi`` of every env as a record of views ((E,) fields shared as they are).
-
-        The highway backend steps only this window of vehicles (the others are
-        settled: arrived, or not due to enter); :meth:`put_window` writes a
-        stepped window back.
-        """
-        return _map_arrays(self, lambda a: _window_view(a, lo, hi))
-
-    def put_window(self: _Rows, lo: int, hi: int, part: _Rows) -> None:
-        """Write ``part``, a stepped :meth:`window` ``lo:hi`` of ``self``, back into ``self``."""
-        _write_window(self, part, lo, hi)
 
 
 @dataclass(slots=True)
@@ -133,30 +56,30 @@ class HighwayState(EnvRows):
     inactive; arrived ones are inactive and frozen where they left.
     """
 
-    x_m: np.ndarray  # (E, V) float64 centre position along the road
-    y_m: np.ndarray  # (E, V) float64 centre position across the road (0: right edge)
-    speed_mps: np.ndarray  # (E, V) float64 longitudinal speed, >= 0
-    lat_speed_mps: np.ndarray  # (E, V) float64 lateral speed of the current lane change (0: none)
-    heading_rad: np.ndarray  # (E, V) float64 atan2(v_lat, v_long) of the last sub-step, clipped
+    x_m: np.ndarray = per_vehicle()  # float64 centre position along the road
+    y_m: np.ndarray = per_vehicle()  # float64 centre position across the road (0: right edge)
+    speed_mps: np.ndarray = per_vehicle()  # float64 longitudinal speed, >= 0
+    lat_speed_mps: np.ndarray = per_vehicle()  # float64 of the current lane change (0: none)
+    heading_rad: np.ndarray = per_vehicle()  # float64 atan2(v_lat, v_long), clipped, last sub-step
     # Set to HighwayModel.lane_change_cooldown_s when a lane change completes; no code
     # counts it down at present, so it only marks "has completed a lane change".
-    cooldown_s: np.ndarray  # (E, V) float64
-    lane_from: np.ndarray  # (E, V) intp lane a manoeuvre starts in (= lane_to when idle)
-    lane_to: np.ndarray  # (E, V) intp destination lane of the manoeuvre
-    active: np.ndarray  # (E, V) bool on the road (entered, neither arrived nor pending)
-    arrived: np.ndarray  # (E, V) bool passed the end of the map
-    crashed: np.ndarray  # (E, V) bool collided; stands still as an obstacle
-    pending: np.ndarray  # (E, V) bool waiting to depart (demand scenarios)
+    cooldown_s: np.ndarray = per_vehicle()  # float64
+    lane_from: np.ndarray = per_vehicle()  # intp lane a manoeuvre starts in (= lane_to when idle)
+    lane_to: np.ndarray = per_vehicle()  # intp destination lane of the manoeuvre
+    active: np.ndarray = per_vehicle()  # bool on the road (entered, neither arrived nor pending)
+    arrived: np.ndarray = per_vehicle()  # bool passed the end of the map
+    crashed: np.ndarray = per_vehicle()  # bool collided; stands still as an obstacle
+    pending: np.ndarray = per_vehicle()  # bool waiting to depart (demand scenarios)
     # Driven by commands this step; CAVs without a command (NaN), just-entered CAVs
     # and all CAVs in cooperative mode drive like HDVs and are False here.
-    is_cav: np.ndarray  # (E, V) bool
-    yield_to: np.ndarray  # (E, V) intp merger this vehicle yields to (-1: none)
-    route_end_m: np.ndarray  # (E, V) float64 x where the vehicle arrives (inf once arrived)
-    cav_target_mps: np.ndarray  # (E, V) float64 commanded speed of the step (own speed if none)
-    cav_accel_mps2: np.ndarray  # (E, V) float64 constant CAV acceleration of the step
-    contact: np.ndarray  # (E, V, V) bool box contacts of the last sub-step
-    time_s: np.ndarray  # (E,) float64 simulated time
-    step_count: np.ndarray  # (E,) int64 decision steps since reset
+    is_cav: np.ndarray = per_vehicle()  # bool
+    yield_to: np.ndarray = per_vehicle()  # intp merger this vehicle yields to (-1: none)
+    route_end_m: np.ndarray = per_vehicle()  # float64 x where it arrives (inf once arrived)
+    cav_target_mps: np.ndarray = per_vehicle()  # float64 commanded speed (own speed if none)
+    cav_accel_mps2: np.ndarray = per_vehicle()  # float64 constant CAV acceleration of the step
+    contact: np.ndarray = per_pair()  # bool box contacts of the last sub-step
+    time_s: np.ndarray = per_env()  # float64 simulated time
+    step_count: np.ndarray = per_env()  # int64 decision steps since reset
 
     @classmethod
     def zeros(cls, n_envs: int, n_vehicles: int) -> HighwayState:
@@ -195,16 +118,16 @@ class HighwayParams(EnvRows):
     the vectorised IDM/MOBIL code treats every vehicle alike.
     """
 
-    idm: IdmParams  # (E, V) float64 each: time headway, minimum gap, accel, decel
-    inv_2_sqrt_ab_s2_per_m: np.ndarray  # (E, V) float64 1 / (2 sqrt(a b)) of the IDM, folded once
-    politeness: np.ndarray  # (E, V) float64 MOBIL politeness factor
-    gain_threshold_mps2: np.ndarray  # (E, V) float64 MOBIL acceleration gain threshold
-    strategic: np.ndarray  # (E, V) bool changes lanes for a lane end (LC2013 lcStrategic >= 0)
-    zipper: np.ndarray  # (E, V) bool lets a merger in when following it (zipper preset)
-    merge_zone_m: np.ndarray  # (E, V) float64 forced merging starts this far before a lane end
-    reported_cav: np.ndarray  # (E, V) bool a CAV in TrafficState.is_cav (whoever drives it)
-    style: np.ndarray  # (E, V) int8 driver style code (TrafficState.style)
-    depart_s: np.ndarray  # (E, V) float64 departure time (0: on the road at reset)
+    idm: IdmParams = nested()  # (E, V) float64 each: time headway, minimum gap, accel, decel
+    inv_2_sqrt_ab_s2_per_m: np.ndarray = per_vehicle()  # float64 1 / (2 sqrt(a b)) of the IDM
+    politeness: np.ndarray = per_vehicle()  # float64 MOBIL politeness factor
+    gain_threshold_mps2: np.ndarray = per_vehicle()  # float64 MOBIL acceleration gain threshold
+    strategic: np.ndarray = per_vehicle()  # bool changes lanes for a lane end (lcStrategic >= 0)
+    zipper: np.ndarray = per_vehicle()  # bool lets a merger in when following it (zipper preset)
+    merge_zone_m: np.ndarray = per_vehicle()  # float64 forced merging starts this far before an end
+    reported_cav: np.ndarray = per_vehicle()  # bool a CAV in TrafficState.is_cav (whoever drives)
+    style: np.ndarray = per_vehicle()  # int8 driver style code (TrafficState.style)
+    depart_s: np.ndarray = per_vehicle()  # float64 departure time (0: on the road at reset)
 
     @classmethod
     def zeros(cls, n_envs: int, n_vehicles: int, idm_delta: float) -> HighwayParams:
@@ -236,23 +159,23 @@ class HighwayCaches(EnvRows):
     """
 
     # dynamics.refresh_road_facts: at decisions and lane-change starts.
-    desired_mps: np.ndarray  # (E, V) float64 speed limit of the vehicle's segment
-    inv_desired_s_per_m: np.ndarray  # (E, V) float64 1 / max(desired_mps, 1e-3)
-    end_x_m: np.ndarray  # (E, V) float64 centre x at which the destination lane ends
+    desired_mps: np.ndarray = per_vehicle()  # float64 speed limit of the vehicle's segment
+    inv_desired_s_per_m: np.ndarray = per_vehicle()  # float64 1 / max(desired_mps, 1e-3)
+    end_x_m: np.ndarray = per_vehicle()  # float64 centre x at which the destination lane ends
     # dynamics.refresh_speed_bounds: at commands, resets, contacts and arrivals.
-    v_lo_mps: np.ndarray  # (E, V) float64 lowest speed a sub-step may reach
-    v_hi_mps: np.ndarray  # (E, V) float64 highest speed a sub-step may reach
-    half_dt_active_s: np.ndarray  # (E, V) float64 dt / 2 on the road, 0 off it
+    v_lo_mps: np.ndarray = per_vehicle()  # float64 lowest speed a sub-step may reach
+    v_hi_mps: np.ndarray = per_vehicle()  # float64 highest speed a sub-step may reach
+    half_dt_active_s: np.ndarray = per_vehicle()  # float64 dt / 2 on the road, 0 off it
     # dynamics.refresh_leaders: in the envs marked in leaders_dirty.
-    leader: np.ndarray  # (E, V) intp nearest active vehicle ahead sharing a lane
-    has_leader: np.ndarray  # (E, V) bool ``leader`` is real
-    guarded: np.ndarray  # (E, V) bool an HDV behind an HDV leader (last-resort guard)
-    screen: np.ndarray  # (E, V) bool leader pair that can start a contact
-    moving: np.ndarray  # (E, V) bool in a lane change, on the road, not wrecked
-    pairs_active: np.ndarray  # (E, V, V) bool pairs that can start a contact
-    leaders_dirty: np.ndarray  # (E,) bool leaders must be searched again before a sub-step
+    leader: np.ndarray = per_vehicle()  # intp nearest active vehicle ahead sharing a lane
+    has_leader: np.ndarray = per_vehicle()  # bool ``leader`` is real
+    guarded: np.ndarray = per_vehicle()  # bool an HDV behind an HDV leader (last-resort guard)
+    screen: np.ndarray = per_vehicle()  # bool leader pair that can start a contact
+    moving: np.ndarray = per_vehicle()  # bool in a lane change, on the road, not wrecked
+    pairs_active: np.ndarray = per_pair()  # bool pairs that can start a contact
+    leaders_dirty: np.ndarray = per_env()  # bool leaders must be searched again before a sub-step
     # Some heading was non-zero after the last sub-step (else zeroing it is skipped).
-    heading_nonzero: bool
+    heading_nonzero: bool = shared()
 
     @classmethod
     def zeros(cls, n_envs: int, n_vehicles: int) -> HighwayCaches:
