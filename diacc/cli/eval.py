@@ -21,6 +21,7 @@ from diacc.config import (
     ConfigError,
 )
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
+from diacc.experiments.policies import AGENT_SLOTS
 from diacc.fileio import OutputPathError, atomic_write, check_output_file
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so
@@ -47,6 +48,7 @@ def _settings(args: argparse.Namespace):
         psar_horizon=args.psar_horizon,
         psar_full_brake=args.psar_full_brake,
         highway_merges=args.highway_merges,
+        agent_slots=args.agent_slots,
         stream=args.stream,
     )
 
@@ -106,6 +108,13 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         help="how the highway backend's human drivers leave an ending lane: late (200 m "
         "before its end) or early (400 m; passes SUMO's capacity within 10 %%) (default: "
         "the policy's own setting)",
+    )
+    p.add_argument(
+        "--agent-slots",
+        choices=AGENT_SLOTS,
+        default="own",
+        help="agent slots in a demand cell: the policy's own cav_slots (CAVs beyond them drive "
+        "themselves) or every CAV one",
     )
     p.add_argument(
         "--stream",

@@ -52,7 +52,10 @@ from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS, Cell
 from diacc.experiments.userpolicy import Controller, is_user_spec
 from diacc.fields import check_fields, one_of, ranged
 from diacc.sim.maps import Map
+from diacc.sim.scenario import Demand
 
+#: ``EvalSettings.agent_slots``: the policy's own agent slots, or one for every CAV.
+AGENT_SLOTS = ("own", "every")
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
 #: ``normal`` human model; ``same-mix:<style>`` by another style (:data:`STYLE_NAMES`).
 BASELINES = ("pure-hdv", "same-mix", "cooperative")
@@ -100,6 +103,10 @@ class EvalSettings:
     psar_full_brake: str | None = one_of(None, FULL_BRAKE_MODES)
     #: How the highway backend's human drivers leave an ending lane (``SimConfig``'s).
     highway_merges: str | None = one_of(None, HIGHWAY_MERGES)
+    #: Agent slots of a demand cell: the policy's ``own`` ``cav_slots`` (a CAV that
+    #: finds them all taken drives itself) or ``every`` CAV a slot
+    #: (:meth:`~diacc.sim.scenario.Demand.with_a_slot_per_cav`). Releases slot every CAV.
+    agent_slots: str = one_of("own", AGENT_SLOTS)
     #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
     #: ``validation`` to choose on, ``test`` to report.
     stream: str = one_of(DEFAULT_STREAM, SEED_STREAMS)
@@ -134,6 +141,8 @@ class EvalSettings:
             settings["psar_full_brake"] = self.psar_full_brake
         if self.highway_merges is not None:
             settings["highway_merges"] = self.highway_merges
+        if self.agent_slots != "own":
+            settings["agent_slots"] = self.agent_slots
         return {"backend": self.backend, "settings": settings}
 
 
@@ -187,6 +196,8 @@ class Policy:
         """
         obs = self.base.obs
         scenario = cell.scenario(base=self.base.scenario)
+        if settings.agent_slots == "every" and isinstance(scenario, Demand):
+            scenario = scenario.with_a_slot_per_cav()
         return dataclasses.replace(
             self.base,
             backend=settings.backend,

@@ -8,6 +8,8 @@
 # $OUT/flow.tgz at the end (a lent machine returns only shallow folders).
 #   BACKEND=highway PARALLEL=16 LIMIT=270 EPISODES=4 EPISODES_3600=15 bash benchmarks/studies/demand-training/flow.sh
 #   (on a lent machine without highway-env: WHEELS=.whl installs it from wheels first)
+#   SLOTS=every: every CAV gets an agent slot (`diacc eval --agent-slots every`); results
+#   then go to $OUT/flow/<backend>-every-cav/ (default SLOTS=own: the policy's 16 slots)
 set -uo pipefail
 if [ -n "${WHEELS:-}" ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
@@ -15,7 +17,8 @@ if [ -n "${WHEELS:-}" ]; then
   export PYTHONPATH=/tmp/site:$PWD
 fi
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1 MPLBACKEND=Agg
-export OUT=${OUT:-/tmp/out} BACKEND=${BACKEND:-highway}
+export OUT=${OUT:-/tmp/out} BACKEND=${BACKEND:-highway} SLOTS=${SLOTS:-own}
+export DEST=$BACKEND$([ "$SLOTS" = every ] && echo -every-cav)
 LIMIT=${LIMIT:-100000}  # seconds for every job; a job still running then is lost
 INFLOWS=${INFLOWS:-3600 1600 2400 3200 4000 4800}
 LABELS=${LABELS:-release-3to1-s3 demand-ft-s1 demand-ft-s2 demand-ft-s3 same-mix heuristic pure-hdv}
@@ -37,9 +40,9 @@ cat > "$GRIDS/job.sh" <<'JOB'
 label=$1 policy=$2 grid=$3 q=$4 n=$5
 python3 -m diacc.cli eval --policy "$policy" --backend "$BACKEND" --grid "$grid" \
   --episodes "$n" --episode-steps 480 --stream test --style-preset realistic \
-  --psar-horizon headway --psar-full-brake known --no-progress \
-  --out "$OUT/flow/$BACKEND/$label/q$q" > "$OUT/flow/log-$BACKEND-$label-$q.txt" 2>&1
-echo "$BACKEND $label $q rc=$? $(date +%s)" >> "$OUT/flow/jobs.txt"
+  --psar-horizon headway --psar-full-brake known --agent-slots "$SLOTS" --no-progress \
+  --out "$OUT/flow/$DEST/$label/q$q" > "$OUT/flow/log-$DEST-$label-$q.txt" 2>&1
+echo "$DEST $label $q rc=$? $(date +%s)" >> "$OUT/flow/jobs.txt"
 JOB
 timeout -k 10 "$LIMIT" xargs -P "${PARALLEL:-2}" -L 1 bash "$GRIDS/job.sh" < "$GRIDS/jobs.txt"
 find "$OUT/flow" -name speeds.csv.gz -delete  # per-sample speeds are not needed here

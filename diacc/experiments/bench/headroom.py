@@ -18,7 +18,7 @@ Two scenario kinds (:mod:`diacc.sim.scenario`):
   reduction is the quantity that cooperation could raise, so the table
   compares throughput as well as delay with pure HDV. The heuristic rows
   give **every** CAV a slot (``cav_slots`` = the episode's CAVs, see
-  :func:`slots_for_every_cav`): with the default 16 slots most CAVs of a
+  :meth:`~diacc.sim.scenario.Demand.with_a_slot_per_cav`): with the default 16 slots most CAVs of a
   100 % CAV stream would drive themselves (IDM-MOBIL / SUMO's models) and
   the row would measure humans, not the heuristic. The column ``unslotted
   CAV-steps`` counts steps at which a CAV on the road lacked a slot; it is
@@ -123,18 +123,6 @@ def demand_scenario(
     )
 
 
-def slots_for_every_cav(scenario: Scenario) -> int:
-    """Agent slots that leave no CAV of a demand episode driving itself.
-
-    A slot per CAV of the whole episode, not per CAV on the road at once: on
-    ``train-50`` at jam spacing (~7.5 m) some 600 vehicles fit on the road,
-    more than the 480 of a 3600 veh/h x 480 s run, so no tighter bound holds
-    for every backend and seed. Slots of CAVs not yet entered or gone are
-    dead (masked) and only cost array width.
-    """
-    return max(1, scenario.n_cavs)
-
-
 class SlotCountingDriver(EpisodeDriver):
     """An :class:`EpisodeDriver` that counts CAV-steps without an agent slot.
 
@@ -178,7 +166,7 @@ def make_driver(
     if demand is not None:
         slots = demand.cav_slots
         if policy_name in COMMANDING or not spec.is_baseline:
-            slots = slots_for_every_cav(cell.scenario(base=demand))
+            slots = cell.scenario(base=demand).with_a_slot_per_cav().cav_slots
         base = dataclasses.replace(demand, cav_slots=slots)
         sim = dataclasses.replace(policy.base.sim, episode_steps=steps)  # EnvConfig checks warm-up
         policy.base = dataclasses.replace(policy.base, scenario=base, sim=sim)
