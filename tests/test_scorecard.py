@@ -14,7 +14,9 @@ from diacc.experiments.scorecard import (
     REFERENCES,
     REPO_ROOT,
     SUITES,
+    ScorecardConfig,
     _playable,
+    _settings,
     suite_cells,
 )
 
@@ -98,3 +100,11 @@ def test_every_shipped_agent_gets_a_scorecard(tmp_path, checkpoint):
     delay = next(e for e in card["entries"] if e["metric"] == "delay")
     assert delay["n_episodes"] == 2 and "same-mix" in delay["vs"]
     assert delay["vs"]["same-mix"]["n_pairs"] == 2
+
+
+def test_the_demand_suite_gives_every_cav_to_the_policy(tmp_path):
+    """A controller is scored on the CAVs it drives: no demand CAV is left to drive itself."""
+    cfg = ScorecardConfig(PolicySpec("heuristic"), tmp_path)
+    for name in SUITES:
+        want = "every" if name == "demand" else "own"
+        assert _settings(cfg, name, "highway").agent_slots == want, name

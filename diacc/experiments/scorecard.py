@@ -22,7 +22,9 @@ with PSAR):
 * ``paper-congestion``: the training cell with the paper's stuck cautious
   drivers;
 * ``demand``: ``train-50`` fed at 3600 veh/h (rho = 0.4, D1; the demand
-  scenario's default 300 s), ``realistic``.
+  scenario's default 300 s), ``realistic``, every CAV driven by the policy
+  (``--agent-slots every`` of ``diacc eval``: a controller is scored on the CAVs
+  it drives, not on CAVs left to drive themselves).
 
 A policy that cannot play a cell (a checkpoint that observes fewer vehicles
 than the cell has) skips it, and the scorecard says so; results directories
@@ -84,6 +86,7 @@ class Suite:
     cells: tuple[dict, ...]  # cell mappings, as a grid file's [[cells]]
     style_preset: str
     about: str
+    agent_slots: str = "own"  # EvalSettings.agent_slots: "every" CAV of a demand cell
 
 
 SUITES = {
@@ -111,7 +114,8 @@ SUITES = {
             "demand",
             ({**TRAINING_CELL, "n_vehicles": 1, "inflow_vph": 3600.0},),
             "realistic",
-            "3600 veh/h entering train-50",
+            "3600 veh/h entering train-50, every CAV driven by the policy",
+            agent_slots="every",
         ),
     )
 }
@@ -220,6 +224,7 @@ def _settings(cfg: ScorecardConfig, suite: str, backend: str) -> EvalSettings:
         style_preset=SUITES[suite].style_preset,
         psar_horizon=PSAR_HORIZON,
         psar_full_brake=PSAR_FULL_BRAKE,
+        agent_slots=SUITES[suite].agent_slots,
         stream=cfg.stream,
     )
 
