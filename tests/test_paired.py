@@ -108,4 +108,22 @@ def test_paired_against_another_column(tmp_path, capsys):
     assert "change against heuristic" in markdown
     argv = ["table", *map(str, dirs), "--rows", "delay", "--paired-against", "cooperative"]
     assert main(argv) == 2
-    assert "--paired-against cooperative: no results directory holds" in capsys.readouterr().err
+    assert "--paired-against cooperative: neither a policy" in capsys.readouterr().err
+
+
+def test_paired_against_a_results_directory(tmp_path):
+    """Two checkpoints share the policy name ``diacc``: pair one with the other by directory."""
+    traffic = [10.0, 14.0, 12.0, 16.0]
+    dirs = [
+        _results(tmp_path / "mix", "same-mix", traffic, [0.1] * 4),
+        _results(tmp_path / "source", "diacc", [0.8 * d for d in traffic], [0.1] * 4),
+        _results(tmp_path / "tuned", "diacc", [0.6 * d for d in traffic], [0.1] * 4),
+    ]
+    table = build_table(dirs, rows=("delay",), paired_against=str(dirs[1]))
+    source, tuned = table.columns[1], table.columns[2]
+    assert table.paired_against == source
+    cell = table.cells[0]
+    change = table.paired(cell, "delay", tuned)
+    assert (change.change, change.low, change.high) == pytest.approx((-25.0, -25.0, -25.0))
+    assert table.paired(cell, "delay", source) is None  # the reference itself
+    assert f"vs {source} -25.0 % [-25.0, -25.0]" in render_table(table, "markdown")

@@ -172,9 +172,10 @@ def add_parsers(sub) -> None:
     p.add_argument(
         "--paired-against",
         default="same-mix",
-        metavar="POLICY",
-        help="the column whose changes are paired by episode seed with a 95 %% interval "
-        "(another policy, e.g. heuristic, adds its change to every entry)",
+        metavar="POLICY|DIR",
+        help="the column whose changes are paired by episode seed with a 95 %% interval: a "
+        "policy (another than same-mix, e.g. heuristic, adds its change to every entry) or "
+        "one of the results directories (to compare checkpoints, which share a policy name)",
     )
     p.add_argument("--out", type=Path, default=None, help="write to a file instead of stdout")
 

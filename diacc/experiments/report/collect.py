@@ -105,18 +105,23 @@ def build_table(
     paired_against: str = PAIRED_REFERENCE,
 ) -> Table:
     """Collect the statistics of several results directories into one table; changes
-    against the ``paired_against`` policy's column carry their interval."""
+    against the ``paired_against`` column carry their interval: the column of a policy
+    name (same-mix, heuristic), or of one of ``result_dirs`` (to pair policies that share
+    a name, e.g. two checkpoints)."""
     _check_options(speed_std, rows)
     if not result_dirs:
         raise EvaluationError("give at least one results directory")
     loaded = [(Path(d), *load_episodes(d)) for d in result_dirs]
     policies = {meta["policy"] for _, meta, _ in loaded}
-    if paired_against not in policies and paired_against != PAIRED_REFERENCE:
+    by_dir = [i for i, (d, _, _) in enumerate(loaded) if _same_dir(d, paired_against)]
+    if paired_against not in policies and paired_against != PAIRED_REFERENCE and not by_dir:
         raise EvaluationError(
-            f"--paired-against {paired_against}: no results directory holds that policy "
-            f"(these hold {', '.join(sorted(policies))})"
+            f"--paired-against {paired_against}: neither a policy of the results directories "
+            f"({', '.join(sorted(policies))}) nor one of the directories"
         )
     table = table_from_results(loaded, speed_std, rows)
+    if by_dir and paired_against not in policies:
+        paired_against = table.columns[by_dir[0]]  # the directory's column label
     if paired_against != PAIRED_REFERENCE:
         notes = [
             interval_rule(paired_against) if n == interval_rule(PAIRED_REFERENCE) else n
@@ -126,6 +131,11 @@ def build_table(
             notes.insert(-2, interval_rule(paired_against))
         table = dataclasses.replace(table, paired_against=paired_against, notes=notes)
     return table
+
+
+def _same_dir(directory: Path, text: str) -> bool:
+    """Whether ``text`` names ``directory`` (as given, or as the same path resolved)."""
+    return Path(text).exists() and Path(text).resolve() == directory.resolve()
 
 
 def expand_rows(text: str) -> tuple[str, ...]:

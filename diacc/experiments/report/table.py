@@ -82,20 +82,34 @@ class Table:
     caption: str = ""
     # (cell key, metric, column) -> per-episode values, for the paired changes
     values: dict[tuple[str, str, str], EpisodeValues] = dataclasses.field(default_factory=dict)
-    paired_against: str = PAIRED_REFERENCE  # policy of the paired changes' reference column
+    # the paired changes' reference: a policy name, or a column label (a results directory's)
+    paired_against: str = PAIRED_REFERENCE
 
     def paired(self, cell: Cell, metric: str, column: str) -> PairedChange | None:
         """Change against the :attr:`paired_against` column (same-mix) of the same backend
         over the episodes both played on the same seed, with its 95 % interval (None where
         there is no such column, this is it or pure HDV, or fewer than 2 episodes pair)."""
-        ref = self.reference(column, self.paired_against)
-        if ref is None or self.policy[column] in (REFERENCE, self.paired_against):
+        ref = self._paired_reference(column)
+        if ref is None:
             return None
         mine = self.values.get((cell.key, metric, column))
         theirs = self.values.get((cell.key, metric, ref))
         if mine is None or theirs is None:
             return None
         return paired_change(mine, theirs, relative=change_unit(metric) == "%")
+
+    def _paired_reference(self, column: str) -> str | None:
+        """The column :meth:`paired` compares ``column`` with: :attr:`paired_against` as a
+        column label (a results directory's), else that policy's column of the same
+        backend; None for pure HDV and for the reference itself."""
+        if self.policy[column] == REFERENCE or column == self.paired_against:
+            return None
+        if self.paired_against in self.columns:
+            ref = self.paired_against
+            return ref if self.backend[ref] == self.backend[column] else None
+        if self.policy[column] == self.paired_against:
+            return None
+        return self.reference(column, self.paired_against)
 
     def reference(self, column: str, policy: str = REFERENCE) -> str | None:
         """The column of ``policy`` (pure HDV, same-mix) of the same backend a column is
