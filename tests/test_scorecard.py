@@ -108,3 +108,51 @@ def test_the_demand_suite_gives_every_cav_to_the_policy(tmp_path):
     for name in SUITES:
         want = "every" if name == "demand" else "own"
         assert _settings(cfg, name, "highway").agent_slots == want, name
+
+
+def test_the_summary_counts_better_same_and_worse_cells():
+    from diacc.experiments.scorecard import summarise, to_markdown
+
+    def entry(cell, metric, change, measurable, mean=1.0):
+        vs = {"change": change, "low": change, "high": change, "n_pairs": 30}
+        vs["measurable"] = measurable
+        return {
+            "suite": "geometry",
+            "backend": "sumo",
+            "cell": cell,
+            "metric": metric,
+            "unit": "%",
+            "mean": mean,
+            "std": 0.0,
+            "n_episodes": 30,
+            "vs": {"same-mix": vs, "heuristic": None, "diacc": None},
+        }
+
+    entries = [
+        entry("a", "delay", -20.0, True),  # lower delay: better
+        entry("b", "delay", +1.0, False),  # interval holds 0: no measurable difference
+        entry("c", "delay", +8.0, True),  # worse
+        entry("a", "throughput", -3.0, True),  # lower throughput: worse
+        entry("a", "collision", 0.0, False, mean=0.0),
+        entry("b", "collision", 0.0, False, mean=3.3),  # one episode of 30 collided
+    ]
+    (row,) = summarise(entries)
+    assert (row["suite"], row["backend"], row["cells"]) == ("geometry", "sumo", 3)
+    assert row["delay_vs_same-mix"] == {"better": 1, "same": 1, "worse": 1}
+    assert row["throughput_vs_same-mix"] == {"better": 0, "same": 0, "worse": 1}
+    assert "delay_vs_heuristic" not in row and row["cells_with_collision"] == 1
+    card = {
+        "policy": "p",
+        "actions": "greedy",
+        "episodes_per_cell": 30,
+        "stream": "test",
+        "episode_steps": 330,
+        "psar_horizon": "headway",
+        "psar_full_brake": "known",
+        "agent": "a.pt",
+        "suites": {},
+        "summary": [row],
+        "entries": [],
+        "notes": [],
+    }
+    assert "| geometry | sumo | 3 | 1 / 1 / 1 | 0 / 0 / 1 | — | 1 |" in to_markdown(card)

@@ -277,6 +277,7 @@ def _collect(cfg: ScorecardConfig, suites: dict[str, list[Cell]], notes: list[st
         },
         "backends": list(cfg.backends),
         "interval": "95 % percentile bootstrap over episodes paired by seed",
+        "summary": summarise(entries),
         "entries": entries,
         "notes": notes,
     }
@@ -300,6 +301,76 @@ def _entry(table: Table, column: str, cell: Cell, metric: str, refs: dict[str, s
         "n_episodes": stat.n_episodes,
         "vs": versus,
     }
+
+
+#: Metrics the summary counts, and whether a lower value is the better one.
+SUMMARY_METRICS = {"delay": True, "throughput": False, "p_sce": True}
+
+
+def summarise(entries: list[dict]) -> list[dict]:
+    """Per (suite, backend): over its cells, how often the policy is measurably better,
+    not measurably different (the interval holds 0) or measurably worse than each
+    reference, per metric of :data:`SUMMARY_METRICS`, and the cells with a collision."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for e in entries:
+        groups.setdefault((e["suite"], e["backend"]), []).append(e)
+    summary = []
+    for (suite, backend), group in groups.items():
+        row = {
+            "suite": suite,
+            "backend": backend,
+            "cells": len({e["cell"] for e in group}),
+            "cells_with_collision": sum(e["mean"] > 0 for e in group if e["metric"] == "collision"),
+        }
+        for metric, lower_is_better in SUMMARY_METRICS.items():
+            for ref in REFERENCES:
+                counts = {"better": 0, "same": 0, "worse": 0}
+                for e in group:
+                    change = e["vs"].get(ref) if e["metric"] == metric else None
+                    if change is None:
+                        continue
+                    if not change["measurable"]:
+                        counts["same"] += 1
+                    elif (change["change"] < 0) == lower_is_better:
+                        counts["better"] += 1
+                    else:
+                        counts["worse"] += 1
+                if sum(counts.values()):
+                    row[f"{metric}_vs_{ref}"] = counts
+        summary.append(row)
+    return summary
+
+
+def _counts(counts: dict | None) -> str:
+    if counts is None:
+        return "—"
+    return f"{counts['better']} / {counts['same']} / {counts['worse']}"
+
+
+def _summary_lines(card: dict) -> list[str]:
+    """The summary table: better / no measurable difference / worse, cells per entry
+    (columns of references the card compares with)."""
+    keys = {key for row in card["summary"] for key in row}
+    refs = [r for r in REFERENCES if any(k.endswith(f"_vs_{r}") for k in keys)]
+    head = [f"{m} vs {r}" for m in SUMMARY_METRICS for r in refs]
+    lines = [
+        "## Summary",
+        "",
+        "Cells where the policy is measurably better / not measurably different / "
+        "measurably worse than each reference (paired intervals; lower delay and p(SCE), "
+        "higher throughput are better).",
+        "",
+        "| suite | backend | cells | " + " | ".join(head) + " | cells with a collision |",
+        "|---|---|---|" + "---|" * len(head) + "---|",
+    ]
+    for row in card["summary"]:
+        counts = [_counts(row.get(f"{m}_vs_{r}")) for m in SUMMARY_METRICS for r in refs]
+        lines.append(
+            f"| {row['suite']} | {row['backend']} | {row['cells']} | "
+            + " | ".join(counts)
+            + f" | {row['cells_with_collision']} |"
+        )
+    return lines
 
 
 def _format(change: dict | None, unit: str) -> str:
@@ -326,6 +397,7 @@ def to_markdown(card: dict) -> str:
             f"**{card['episodes_per_cell']} episodes per cell is a smoke test**: a percentile "
             f"bootstrap over fewer than {FEW_EPISODES} pairs is too narrow to judge by.",
         ]
+    lines += ["", *_summary_lines(card)]
     for suite, about in card["suites"].items():
         lines += ["", f"## {suite}: {about['about']} ({about['style_preset']})", ""]
         lines += ["| backend | cell | metric | value | vs same-mix | vs heuristic | vs DIACC |"]
