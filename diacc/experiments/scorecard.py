@@ -347,7 +347,7 @@ def _counts(counts: dict | None) -> str:
     return f"{counts['better']} / {counts['same']} / {counts['worse']}"
 
 
-def _summary_lines(card: dict) -> list[str]:
+def summary_lines(card: dict) -> list[str]:
     """The summary table: better / no measurable difference / worse, cells per entry
     (columns of references the card compares with)."""
     keys = {key for row in card["summary"] for key in row}
@@ -397,7 +397,7 @@ def to_markdown(card: dict) -> str:
             f"**{card['episodes_per_cell']} episodes per cell is a smoke test**: a percentile "
             f"bootstrap over fewer than {FEW_EPISODES} pairs is too narrow to judge by.",
         ]
-    lines += ["", *_summary_lines(card)]
+    lines += ["", *summary_lines(card)]
     for suite, about in card["suites"].items():
         lines += ["", f"## {suite}: {about['about']} ({about['style_preset']})", ""]
         lines += ["| backend | cell | metric | value | vs same-mix | vs heuristic | vs DIACC |"]
