@@ -29,6 +29,7 @@ import json
 import sys
 from pathlib import Path
 
+from diacc.experiments.flowplot import capacity, load_flow
 from diacc.experiments.report import build_table, to_csv
 from diacc.experiments.scorecard import summary_lines
 
@@ -178,7 +179,15 @@ def demand_claims() -> list[str]:
         tuned = every / "highway" / f"demand-ft-s{seed}/q3600"
         change = _paired_text([source, tuned], 1, str(source), "delay")
         claims.append(change.split(" [")[0].lstrip("-"))  # "26.5 %": "less time than"
-    return claims
+    return claims + capacity_claims()
+
+
+def capacity_claims() -> list[str]:
+    """README's pure-HDV capacity of each backend on the demand road (its largest mean
+    outflow over the inflows of the committed flow results), to the nearest 100 veh/h."""
+    points = load_flow([FLOW / "flow"])
+    names = {"highway": "highway", "sumo": "SUMO"}
+    return [f"~{round(capacity(points, b)[0], -2):,.0f} veh/h on {names[b]}" for b in BACKENDS]
 
 
 def readme_rows(readme: Path, header: str = HEADER) -> list[str]:
