@@ -20,8 +20,8 @@ from diacc.config import (
     STYLE_PRESETS,
     ConfigError,
 )
+from diacc.experiments.evalsettings import AGENT_SLOTS
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
-from diacc.experiments.policies import AGENT_SLOTS
 from diacc.fileio import OutputPathError, atomic_write, check_output_file
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so

@@ -32,30 +32,20 @@ from pathlib import Path
 import numpy as np
 
 from diacc.config import (
-    BACKENDS,
-    FULL_BRAKE_MODES,
-    HIGHWAY_MERGES,
-    HORIZON_MODES,
-    MAX_EPISODE_STEPS,
     STYLE_NAMES,
-    STYLE_PRESETS,
     VARIANTS,
     EnvConfig,
-    PSARConfig,
-    SimConfig,
     TrainConfig,
 )
 from diacc.envs.actions import ACCELERATE, ACTION_NAMES, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.envs.observation import ActorObs
 from diacc.errors import DiaccError
-from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS, Cell
+from diacc.experiments.evalsettings import EvalSettings
+from diacc.experiments.grid import Cell
 from diacc.experiments.userpolicy import Controller, is_user_spec
-from diacc.fields import check_fields, one_of, ranged
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Demand
 
-#: ``EvalSettings.agent_slots``: the policy's own agent slots, or one for every CAV.
-AGENT_SLOTS = ("own", "every")
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
 #: ``normal`` human model; ``same-mix:<style>`` by another style (:data:`STYLE_NAMES`).
 BASELINES = ("pure-hdv", "same-mix", "cooperative")
@@ -80,70 +70,6 @@ LATE_MERGE_LEAVE_M = 150.0
 
 class PolicyError(DiaccError, ValueError):
     """Unknown policy name or unusable checkpoint for evaluation; one line."""
-
-
-@dataclass(frozen=True)
-class EvalSettings:
-    """Evaluation-wide overrides of a policy's own simulation settings (None = keep).
-
-    Checked as every config section is (:func:`diacc.fields.check_fields`: a value
-    out of its choices or range is a one-line :class:`~diacc.config.ConfigError`
-    naming the field), when built, before any episode runs.
-    """
-
-    backend: str = one_of("highway", BACKENDS)
-    episode_steps: int | None = ranged(
-        None, 1, MAX_EPISODE_STEPS, why="an episode's steps are stored and replayed"
-    )
-    style_preset: str | None = one_of(None, tuple(STYLE_PRESETS))
-    #: PSAR horizon of every policy with PSAR (baselines and checkpoints alike), so that a
-    #: comparison's rules and learners are filtered by the same PSAR.
-    psar_horizon: str | None = one_of(None, HORIZON_MODES)
-    #: PSAR's ``full_brake`` of every policy with PSAR (:class:`~diacc.config.PSARConfig`).
-    psar_full_brake: str | None = one_of(None, FULL_BRAKE_MODES)
-    #: How the highway backend's human drivers leave an ending lane (``SimConfig``'s).
-    highway_merges: str | None = one_of(None, HIGHWAY_MERGES)
-    #: Agent slots of a demand cell: the policy's ``own`` ``cav_slots`` (a CAV that
-    #: finds them all taken drives itself) or ``every`` CAV a slot
-    #: (:meth:`~diacc.sim.scenario.Demand.with_a_slot_per_cav`). Releases slot every CAV.
-    agent_slots: str = one_of("own", AGENT_SLOTS)
-    #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
-    #: ``validation`` to choose on, ``test`` to report.
-    stream: str = one_of(DEFAULT_STREAM, SEED_STREAMS)
-
-    def __post_init__(self) -> None:
-        check_fields(self)
-
-    def apply(self, sim: SimConfig) -> SimConfig:
-        changes = {}
-        if self.episode_steps is not None:
-            changes["episode_steps"] = self.episode_steps
-        if self.style_preset is not None:
-            changes["style_preset"] = self.style_preset
-        if self.highway_merges is not None:
-            changes["highway_merges"] = self.highway_merges
-        return dataclasses.replace(sim, **changes)
-
-    def apply_psar(self, psar: PSARConfig) -> PSARConfig:
-        changes = {"horizon": self.psar_horizon, "full_brake": self.psar_full_brake}
-        return dataclasses.replace(psar, **{k: v for k, v in changes.items() if v is not None})
-
-    def describe(self) -> dict:
-        """What an evaluation's ``meta.json`` records of these settings (and checks on reuse)."""
-        settings = {
-            "episode_steps": self.episode_steps,
-            "style_preset": self.style_preset,
-            "stream": self.stream,
-        }
-        if self.psar_horizon is not None:  # absent otherwise: older results stay reusable
-            settings["psar_horizon"] = self.psar_horizon
-        if self.psar_full_brake is not None:
-            settings["psar_full_brake"] = self.psar_full_brake
-        if self.highway_merges is not None:
-            settings["highway_merges"] = self.highway_merges
-        if self.agent_slots != "own":
-            settings["agent_slots"] = self.agent_slots
-        return {"backend": self.backend, "settings": settings}
 
 
 def action_mode(sampled: bool) -> str:

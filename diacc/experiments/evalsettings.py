@@ -1,0 +1,91 @@
+"""What an evaluation overrides of a policy's own settings: :class:`EvalSettings`.
+
+One record for every evaluation command (``diacc eval``, ``scorecard``, the
+benches), so that every policy of a comparison meets the same simulator, PSAR,
+agent slots and seed stream; checked when built, recorded in ``meta.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from diacc.config import (
+    BACKENDS,
+    FULL_BRAKE_MODES,
+    HIGHWAY_MERGES,
+    HORIZON_MODES,
+    MAX_EPISODE_STEPS,
+    STYLE_PRESETS,
+    PSARConfig,
+    SimConfig,
+)
+from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
+from diacc.fields import check_fields, one_of, ranged
+
+#: ``EvalSettings.agent_slots``: the policy's own agent slots, or one for every CAV.
+AGENT_SLOTS = ("own", "every")
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """Evaluation-wide overrides of a policy's own simulation settings (None = keep).
+
+    Checked as every config section is (:func:`diacc.fields.check_fields`: a value
+    out of its choices or range is a one-line :class:`~diacc.config.ConfigError`
+    naming the field), when built, before any episode runs.
+    """
+
+    backend: str = one_of("highway", BACKENDS)
+    episode_steps: int | None = ranged(
+        None, 1, MAX_EPISODE_STEPS, why="an episode's steps are stored and replayed"
+    )
+    style_preset: str | None = one_of(None, tuple(STYLE_PRESETS))
+    #: PSAR horizon of every policy with PSAR (baselines and checkpoints alike), so that a
+    #: comparison's rules and learners are filtered by the same PSAR.
+    psar_horizon: str | None = one_of(None, HORIZON_MODES)
+    #: PSAR's ``full_brake`` of every policy with PSAR (:class:`~diacc.config.PSARConfig`).
+    psar_full_brake: str | None = one_of(None, FULL_BRAKE_MODES)
+    #: How the highway backend's human drivers leave an ending lane (``SimConfig``'s).
+    highway_merges: str | None = one_of(None, HIGHWAY_MERGES)
+    #: Agent slots of a demand cell: the policy's ``own`` ``cav_slots`` (a CAV that
+    #: finds them all taken drives itself) or ``every`` CAV a slot
+    #: (:meth:`~diacc.sim.scenario.Demand.with_a_slot_per_cav`). Releases slot every CAV.
+    agent_slots: str = one_of("own", AGENT_SLOTS)
+    #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
+    #: ``validation`` to choose on, ``test`` to report.
+    stream: str = one_of(DEFAULT_STREAM, SEED_STREAMS)
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+    def apply(self, sim: SimConfig) -> SimConfig:
+        changes = {}
+        if self.episode_steps is not None:
+            changes["episode_steps"] = self.episode_steps
+        if self.style_preset is not None:
+            changes["style_preset"] = self.style_preset
+        if self.highway_merges is not None:
+            changes["highway_merges"] = self.highway_merges
+        return dataclasses.replace(sim, **changes)
+
+    def apply_psar(self, psar: PSARConfig) -> PSARConfig:
+        changes = {"horizon": self.psar_horizon, "full_brake": self.psar_full_brake}
+        return dataclasses.replace(psar, **{k: v for k, v in changes.items() if v is not None})
+
+    def describe(self) -> dict:
+        """What an evaluation's ``meta.json`` records of these settings (and checks on reuse)."""
+        settings = {
+            "episode_steps": self.episode_steps,
+            "style_preset": self.style_preset,
+            "stream": self.stream,
+        }
+        if self.psar_horizon is not None:  # absent otherwise: older results stay reusable
+            settings["psar_horizon"] = self.psar_horizon
+        if self.psar_full_brake is not None:
+            settings["psar_full_brake"] = self.psar_full_brake
+        if self.highway_merges is not None:
+            settings["highway_merges"] = self.highway_merges
+        if self.agent_slots != "own":
+            settings["agent_slots"] = self.agent_slots
+        return {"backend": self.backend, "settings": settings}
