@@ -10,6 +10,7 @@
 #   (on a lent machine without highway-env: WHEELS=.whl installs it from wheels first)
 #   SLOTS=every: every CAV gets an agent slot (`diacc eval --agent-slots every`); results
 #   then go to $OUT/flow/<backend>-every-cav/ (default SLOTS=own: the policy's 16 slots)
+#   RHO=0.1: another CAV share (default 0.4); results then go to $OUT/flow/<backend>[-every-cav]-rho0.1/
 set -uo pipefail
 if [ -n "${WHEELS:-}" ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
@@ -18,7 +19,8 @@ if [ -n "${WHEELS:-}" ]; then
 fi
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1 MPLBACKEND=Agg
 export OUT=${OUT:-/tmp/out} BACKEND=${BACKEND:-highway} SLOTS=${SLOTS:-own}
-export DEST=$BACKEND$([ "$SLOTS" = every ] && echo -every-cav)
+export RHO=${RHO:-0.4}
+export DEST=$BACKEND$([ "$SLOTS" = every ] && echo -every-cav)$([ "$RHO" = 0.4 ] || echo "-rho$RHO")
 LIMIT=${LIMIT:-100000}  # seconds for every job; a job still running then is lost
 INFLOWS=${INFLOWS:-3600 1600 2400 3200 4000 4800}
 LABELS=${LABELS:-release-3to1-s3 demand-ft-s1 demand-ft-s2 demand-ft-s3 same-mix heuristic pure-hdv}
@@ -31,8 +33,8 @@ declare -A POLICY=(
 )
 mkdir -p "$OUT/flow"
 for q in $INFLOWS; do
-  printf '[[cells]]\nmap = "train-50"\ninflow_vph = %s\ndemand_s = 480\nwarmup_s = 120\ncav_penetration = 0.4\nstyle_mix = "D1"\n' \
-    "$q" > "$GRIDS/q$q.toml"
+  printf '[[cells]]\nmap = "train-50"\ninflow_vph = %s\ndemand_s = 480\nwarmup_s = 120\ncav_penetration = %s\nstyle_mix = "D1"\n' \
+    "$q" "$RHO" > "$GRIDS/q$q.toml"
   n=$([ "$q" = 3600 ] && echo "${EPISODES_3600:-15}" || echo "${EPISODES:-4}")
   for label in $LABELS; do echo "$label ${POLICY[$label]:-$label} $GRIDS/q$q.toml $q $n"; done
 done > "$GRIDS/jobs.txt"
