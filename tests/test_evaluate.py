@@ -202,6 +202,30 @@ def test_rerun_skips_finished_cells(hdv_results):
     assert (hdv_results / EPISODES_FILE).read_bytes() == before
 
 
+def test_merged_results_without_cell_files_are_kept_and_not_rerun(hdv_results, tmp_path):
+    """Committed results keep only the merged files: a run over them skips their cells and
+    keeps their rows when it adds a cell (it used to rebuild episodes.csv from cells/ alone)."""
+    import shutil
+
+    out = tmp_path / "merged-only"
+    shutil.copytree(hdv_results, out)
+    shutil.rmtree(out / "cells")
+    (out / SPEEDS_FILE).unlink()
+    before = (out / EPISODES_FILE).read_text()
+    other = Cell("train-50", 12, 0.4, "D1")
+    settings = EvalSettings("highway", episode_steps=40)
+    summary = evaluate(PolicySpec("pure-hdv"), [SMALL, other], 2, out, settings, progress=False)
+    assert summary.cells_run == [other] and summary.cells_skipped == [SMALL]
+    rows = list(csv.DictReader(open(out / EPISODES_FILE)))
+    assert sorted((int(r["n_vehicles"]), int(r["episode"])) for r in rows) == [
+        (10, 0),
+        (10, 1),
+        (12, 0),
+        (12, 1),
+    ]
+    assert (out / EPISODES_FILE).read_text().startswith(before)  # the kept rows, unchanged
+
+
 def test_worker_processes_give_identical_results(hdv_results, tmp_path):
     evaluate(
         PolicySpec("pure-hdv"),

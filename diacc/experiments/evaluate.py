@@ -11,7 +11,9 @@ A results directory holds one policy on one backend::
 
 A cell's files are written (atomically) only once all its K episodes are in,
 so an interrupted run loses at most the cells in flight, and re-running the
-same command skips every finished cell. Episode seeds depend on the cell and
+same command skips every finished cell. Results kept as the merged files only
+(committed results leave ``cells/`` and the speed samples out) count too: their
+cells are skipped and their rows kept when a run adds cells. Episode seeds depend on the cell and
 the episode number only (:meth:`diacc.experiments.grid.Cell.seed`), so every policy meets
 exactly the same traffic draws and results do not depend on ``--workers``.
 
@@ -49,11 +51,13 @@ from diacc.experiments.results_files import (
     SPEEDS_FILE,
     EpisodeResult,
     EvaluationError,
+    cell_id,
     check_cell_files,
     csv_text,
     drop_if_damaged,
     load_episodes,
     merge_cells,
+    merged_only_episodes,
     read_csv,
     write_cell,
 )
@@ -431,7 +435,13 @@ def _evaluate(
 ) -> EvalSummary:
     """:func:`evaluate` once its inputs are checked and ``out_dir`` is locked."""
     with run_log(out_dir / LOG_FILE):
-        done = [drop_if_damaged(out_dir, c.file_key) == list(range(episodes)) for c in cells]
+        merged = merged_only_episodes(out_dir)  # committed results: merged files only
+        every = list(range(episodes))
+        done = [
+            drop_if_damaged(out_dir, c.file_key) == every
+            or merged.get(cell_id({**c.as_row(), "inflow_vph": c.inflow_vph})) == every
+            for c in cells
+        ]
         todo = [c for c, d in zip(cells, done, strict=True) if not d]
         skipped = [c for c, d in zip(cells, done, strict=True) if d]
         pending: dict[str, list[EpisodeResult]] = {c.key: [] for c in todo}

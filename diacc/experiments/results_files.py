@@ -149,17 +149,49 @@ def drop_if_damaged(out_dir: Path, key: str) -> list[int]:
     return episodes
 
 
+def cell_id(values: dict) -> tuple:
+    """Which cell a results row (or a :class:`Cell`'s ``as_row`` plus ``inflow_vph``)
+    belongs to, normalised so that text read back and values written compare equal."""
+    return (
+        values["map"],
+        int(values["n_vehicles"]),
+        float(values["cav_penetration"]),
+        values["style_mix"],
+        float(values.get("inflow_vph") or 0.0),
+    )
+
+
+def merged_only_episodes(out_dir: Path) -> dict[tuple, list[int]]:
+    """Cell id -> episode numbers of the cells that ``episodes.csv`` holds but ``cells/``
+    does not: results kept as the merged files only (committed results leave the
+    per-cell files out), which a new run counts as done and keeps when it merges."""
+    path = out_dir / EPISODES_FILE
+    if not path.exists():
+        return {}
+    in_cells = {
+        cell_id(r) for p in (out_dir / CELLS_DIR).glob("*.episodes.csv") for r in read_csv(p)
+    }
+    found: dict[tuple, list[int]] = {}
+    for row in read_csv(path):
+        key = cell_id(row)
+        if key not in in_cells:
+            found.setdefault(key, []).append(int(row["episode"]))
+    return {key: sorted(episodes) for key, episodes in found.items()}
+
+
 def merge_cells(out_dir: Path) -> None:
-    """Rebuild ``episodes.csv`` and ``speeds.csv.gz`` from every intact finished cell."""
+    """Rebuild ``episodes.csv`` and ``speeds.csv.gz`` from every intact finished cell,
+    keeping the rows of cells that only the merged files held (:func:`merged_only_episodes`)."""
     cells_dir = out_dir / CELLS_DIR
     episode_files = [
         p
         for p in sorted(cells_dir.glob("*.episodes.csv"))
         if drop_if_damaged(out_dir, p.name.removesuffix(".episodes.csv"))
     ]
+    kept = _merged_only_rows(out_dir, EPISODES_FILE)
     if not episode_files:
         return
-    header, rows = None, []
+    header, rows = kept[0], list(kept[1])
     for path in episode_files:
         with open(path, newline="") as fh:
             reader = csv.reader(fh)
@@ -171,13 +203,30 @@ def merge_cells(out_dir: Path) -> None:
                     "re-run it into a fresh results directory"
                 )
             rows += list(reader)
+    speeds_header, speed_rows = _merged_only_rows(out_dir, SPEEDS_FILE)
     atomic_write(out_dir / EPISODES_FILE, csv_text(header, rows).encode())
-    parts = []
+    parts = [csv_text(speeds_header, speed_rows)] if speed_rows else []
     for path in episode_files:
         speeds = path.with_name(path.name.replace(".episodes.csv", ".speeds.csv.gz"))
         body = gzip.decompress(speeds.read_bytes()).decode()
         parts.append(body if not parts else body.split("\n", 1)[1])
     atomic_write(out_dir / SPEEDS_FILE, _gzip("".join(parts).encode()))
+
+
+def _merged_only_rows(out_dir: Path, name: str) -> tuple[list[str] | None, list[list[str]]]:
+    """(header, rows) of a merged file's rows whose cell has no per-cell files."""
+    path = out_dir / name
+    if not path.exists():
+        return None, []
+    keep = merged_only_episodes(out_dir)
+    opener = gzip.open if path.suffix == ".gz" else open
+    with opener(path, "rt", newline="") as fh:
+        reader = csv.reader(fh)
+        header = next(reader, None)
+        if header is None:
+            return None, []
+        rows = [r for r in reader if cell_id(dict(zip(header, r, strict=False))) in keep]
+    return header, rows
 
 
 def load_episodes(out_dir: str | Path) -> tuple[dict, list[dict[str, str]]]:
