@@ -224,6 +224,9 @@ def test_merged_results_without_cell_files_are_kept_and_not_rerun(hdv_results, t
         (12, 1),
     ]
     assert (out / EPISODES_FILE).read_text().startswith(before)  # the kept rows, unchanged
+    after = (out / EPISODES_FILE).read_bytes()
+    again = evaluate(PolicySpec("pure-hdv"), [SMALL, other], 2, out, settings, progress=False)
+    assert again.cells_run == [] and (out / EPISODES_FILE).read_bytes() == after  # and stay
 
 
 def test_worker_processes_give_identical_results(hdv_results, tmp_path):

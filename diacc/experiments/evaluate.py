@@ -12,8 +12,9 @@ A results directory holds one policy on one backend::
 A cell's files are written (atomically) only once all its K episodes are in,
 so an interrupted run loses at most the cells in flight, and re-running the
 same command skips every finished cell. Results kept as the merged files only
-(committed results leave ``cells/`` and the speed samples out) count too: their
-cells are skipped and their rows kept when a run adds cells. Episode seeds depend on the cell and
+(committed results leave ``cells/`` and the speed samples out) count too: a run
+over them keeps their rows in ``cells/merged-only.csv``, skips their cells and
+merges them with the cells it adds. Episode seeds depend on the cell and
 the episode number only (:meth:`diacc.experiments.grid.Cell.seed`), so every policy meets
 exactly the same traffic draws and results do not depend on ``--workers``.
 
@@ -51,6 +52,7 @@ from diacc.experiments.results_files import (
     SPEEDS_FILE,
     EpisodeResult,
     EvaluationError,
+    adopt_merged_only,
     cell_id,
     check_cell_files,
     csv_text,
@@ -435,7 +437,8 @@ def _evaluate(
 ) -> EvalSummary:
     """:func:`evaluate` once its inputs are checked and ``out_dir`` is locked."""
     with run_log(out_dir / LOG_FILE):
-        merged = merged_only_episodes(out_dir)  # committed results: merged files only
+        adopt_merged_only(out_dir)  # committed results: merged files only
+        merged = merged_only_episodes(out_dir)
         every = list(range(episodes))
         done = [
             drop_if_damaged(out_dir, c.file_key) == every

@@ -26,6 +26,8 @@ META_FILE = "meta.json"
 EPISODES_FILE = "episodes.csv"
 SPEEDS_FILE = "speeds.csv.gz"
 CELLS_DIR = "cells"
+#: Rows of results that came as merged files only (:func:`adopt_merged_only`), in CELLS_DIR.
+MERGED_ONLY_FILE = "merged-only.csv"
 LOG_FILE = "eval.log"
 #: Columns of the speed-sample files.
 SPEED_COLUMNS = (
@@ -161,37 +163,54 @@ def cell_id(values: dict) -> tuple:
     )
 
 
+def adopt_merged_only(out_dir: Path) -> None:
+    """Keep the rows of a directory that holds merged results only (committed results
+    leave ``cells/`` and the speed samples out) in ``cells/merged-only.csv``, so that a run
+    over it counts their cells as done and keeps their rows when it merges new cells."""
+    cells_dir = out_dir / CELLS_DIR
+    if cells_dir.exists() or not (out_dir / EPISODES_FILE).exists():
+        return
+    cells_dir.mkdir()
+    atomic_write(cells_dir / MERGED_ONLY_FILE, (out_dir / EPISODES_FILE).read_bytes())
+    log.info("%s holds merged results only: their cells are kept as done", out_dir)
+
+
 def merged_only_episodes(out_dir: Path) -> dict[tuple, list[int]]:
-    """Cell id -> episode numbers of the cells that ``episodes.csv`` holds but ``cells/``
-    does not: results kept as the merged files only (committed results leave the
-    per-cell files out), which a new run counts as done and keeps when it merges."""
-    path = out_dir / EPISODES_FILE
-    if not path.exists():
-        return {}
-    in_cells = {
-        cell_id(r) for p in (out_dir / CELLS_DIR).glob("*.episodes.csv") for r in read_csv(p)
-    }
+    """Cell id -> episode numbers of the cells kept by :func:`adopt_merged_only` that
+    have no per-cell files of their own."""
+    _, rows = _merged_only_rows(out_dir)
     found: dict[tuple, list[int]] = {}
-    for row in read_csv(path):
-        key = cell_id(row)
-        if key not in in_cells:
-            found.setdefault(key, []).append(int(row["episode"]))
+    for row in rows:
+        found.setdefault(cell_id(row), []).append(int(row["episode"]))
     return {key: sorted(episodes) for key, episodes in found.items()}
 
 
+def _merged_only_rows(out_dir: Path) -> tuple[list[str] | None, list[dict[str, str]]]:
+    """(header, rows) of ``cells/merged-only.csv`` whose cell has no per-cell files."""
+    path = out_dir / CELLS_DIR / MERGED_ONLY_FILE
+    if not path.exists():
+        return None, []
+    cell_files = (out_dir / CELLS_DIR).glob("*.episodes.csv")
+    in_cells = {cell_id(row) for p in cell_files for row in read_csv(p)}
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        rows = [r for r in reader if cell_id(r) not in in_cells]
+        return reader.fieldnames, rows
+
+
 def merge_cells(out_dir: Path) -> None:
-    """Rebuild ``episodes.csv`` and ``speeds.csv.gz`` from every intact finished cell,
-    keeping the rows of cells that only the merged files held (:func:`merged_only_episodes`)."""
+    """Rebuild ``episodes.csv`` and ``speeds.csv.gz`` from every intact finished cell and
+    the kept merged-only rows (:func:`adopt_merged_only`; they have no speed samples)."""
     cells_dir = out_dir / CELLS_DIR
     episode_files = [
         p
         for p in sorted(cells_dir.glob("*.episodes.csv"))
         if drop_if_damaged(out_dir, p.name.removesuffix(".episodes.csv"))
     ]
-    kept = _merged_only_rows(out_dir, EPISODES_FILE)
+    header, kept = _merged_only_rows(out_dir)
     if not episode_files:
         return
-    header, rows = kept[0], list(kept[1])
+    rows = [list(r.values()) for r in kept]
     for path in episode_files:
         with open(path, newline="") as fh:
             reader = csv.reader(fh)
@@ -203,30 +222,13 @@ def merge_cells(out_dir: Path) -> None:
                     "re-run it into a fresh results directory"
                 )
             rows += list(reader)
-    speeds_header, speed_rows = _merged_only_rows(out_dir, SPEEDS_FILE)
     atomic_write(out_dir / EPISODES_FILE, csv_text(header, rows).encode())
-    parts = [csv_text(speeds_header, speed_rows)] if speed_rows else []
+    parts = []
     for path in episode_files:
         speeds = path.with_name(path.name.replace(".episodes.csv", ".speeds.csv.gz"))
         body = gzip.decompress(speeds.read_bytes()).decode()
         parts.append(body if not parts else body.split("\n", 1)[1])
     atomic_write(out_dir / SPEEDS_FILE, _gzip("".join(parts).encode()))
-
-
-def _merged_only_rows(out_dir: Path, name: str) -> tuple[list[str] | None, list[list[str]]]:
-    """(header, rows) of a merged file's rows whose cell has no per-cell files."""
-    path = out_dir / name
-    if not path.exists():
-        return None, []
-    keep = merged_only_episodes(out_dir)
-    opener = gzip.open if path.suffix == ".gz" else open
-    with opener(path, "rt", newline="") as fh:
-        reader = csv.reader(fh)
-        header = next(reader, None)
-        if header is None:
-            return None, []
-        rows = [r for r in reader if cell_id(dict(zip(header, r, strict=False))) in keep]
-    return header, rows
 
 
 def load_episodes(out_dir: str | Path) -> tuple[dict, list[dict[str, str]]]:
