@@ -71,3 +71,9 @@ def test_an_unknown_name_is_a_one_line_error(capsys):
     assert main(["bench", "--highway-merges", "early"]) == 2
     err = capsys.readouterr().err.strip()
     assert err == "diacc: error: --highway-merges needs --fidelity"
+
+
+def test_simulate_takes_and_names_the_merge_model(capsys):
+    argv = ["simulate", "--map", "train-50", "--episode-steps", "20", "--highway-merges"]
+    assert main([*argv, "early"]) == 0
+    assert "style preset realistic, early merges" in capsys.readouterr().out

@@ -6,7 +6,14 @@ from __future__ import annotations
 import argparse
 
 from diacc.cli.options import add_command, add_renamed_arg, seed_type
-from diacc.config import BACKENDS, STYLE_PRESETS, ConfigError, EnvConfig, SimConfig
+from diacc.config import (
+    BACKENDS,
+    HIGHWAY_MERGES,
+    STYLE_PRESETS,
+    ConfigError,
+    EnvConfig,
+    SimConfig,
+)
 
 
 def add_parsers(sub) -> None:
@@ -30,6 +37,12 @@ def add_parsers(sub) -> None:
         choices=tuple(STYLE_PRESETS),
         default="realistic",
         help="HDV driving-style parameters (paper: authors' values)",
+    )
+    p.add_argument(
+        "--highway-merges",
+        choices=HIGHWAY_MERGES,
+        default="late",
+        help="how the highway backend's drivers leave an ending lane (early: SUMO's capacity)",
     )
     add_renamed_arg(
         p,
@@ -60,7 +73,11 @@ def cmd_simulate(args: argparse.Namespace) -> None:
         map=args.map,
         use_psar=False,  # CAVs get no commands: they keep their lane and speed
         scenario=scenario,
-        sim=SimConfig(style_preset=args.style_preset, episode_steps=args.episode_steps),
+        sim=SimConfig(
+            style_preset=args.style_preset,
+            episode_steps=args.episode_steps,
+            highway_merges=args.highway_merges,
+        ),
         obs=ObservationConfig(max_vehicles=max(ObservationConfig.max_vehicles, args.vehicles)),
     )
     driver = EpisodeDriver(Policy(), cfg)
@@ -69,10 +86,12 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     finally:
         driver.close()
     road, version = driver.road, driver.backend.version
+    merges = f", {args.highway_merges} merges" if args.backend == "highway" else ""
     print(
         f"diacc simulate: backend {args.backend}{f' ({version})' if version else ''}, "
         f"map {road.name}, N={scenario.n_vehicles} ({scenario.n_cavs} CAVs), mix {args.mix}, "
-        f"style preset {args.style_preset}, seed {args.seed}, at most {args.episode_steps} steps"
+        f"style preset {args.style_preset}{merges}, seed {args.seed}, at most "
+        f"{args.episode_steps} steps"
     )
     kinds = tuple(dict.fromkeys(seg.kind for seg in road.segments))
     print_lines(metric_lines(recorder.summary(), kinds))
