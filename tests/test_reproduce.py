@@ -267,6 +267,11 @@ def test_budget_presets_and_overrides():
     assert BUDGETS["paper"].steps_per_run == 3_000_000 and BUDGETS["paper"].seeds == (1, 2, 3)
     plan = make_plan(resolve_config("paper")[0])
     assert len(plan.runs) == 4 * 2 * 3 + 2 * 3  # + diacc on sumo per map and seed
+    # seed-major: every variant and map of seed 1 comes before any run of seed 2
+    seeds = [r.seed for r in plan.runs[: 4 * 2 * 3]]
+    assert seeds == sorted(seeds) and [r.variant for r in plan.runs[:4]] == list(
+        resolve_config("paper")[0].variants
+    )
     assert set(plan.grid_cells) == {"train", "zero-shot"}  # the paper's cells by default
     assert len(plan.grid_cells["zero-shot"]) == 10 and len(plan.grid_cells["train"]) == 2
     # a checkpoint plays the cells of its map's lane reduction only

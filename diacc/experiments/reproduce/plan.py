@@ -339,12 +339,14 @@ def grid_cells(grid: str, maps: tuple[str, ...], keep_per_map: int | None = None
 def make_plan(config: ReproduceConfig, notes: tuple[str, ...] = ()) -> Plan:
     """Runs, evaluation jobs and cells of a config (see the module docstring)."""
     b = config.budget
+    # Seed-major: an interrupted reproduction has every variant and setting of the
+    # first seed before it starts the second, so a partial one already compares them.
     runs = [
         RunSpec(v, m, s, config.train_backend, setting)
-        for v in config.variants
+        for s in b.seeds
         for m in b.maps
         for setting in config.settings or (Setting(),)
-        for s in b.seeds
+        for v in config.variants
     ]
     pairs = []
     if b.transfer and config.settings:

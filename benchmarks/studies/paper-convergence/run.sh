@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# The paper's experiment at 1 M steps (issue 45): the four variants x 3 seeds on the
+# paper's training setting (its congestion, `paper-congestion`), train-50 first.
+# Resumable: run it again (on any machine, from the committed run state) to go on.
+#   PRESET=realistic bash benchmarks/studies/paper-convergence/run.sh   # the realistic preset
+#   MAPS=train-25,train-50 ...                                          # both reductions
+set -euo pipefail
+cd "$(dirname "$0")/../../.."
+PRESET=${PRESET:-paper-congestion}
+MAPS=${MAPS:-train-50}
+JOBS=${JOBS:-2}
+exec diacc reproduce --budget paper --steps 1000000 --seeds 1,2,3 \
+    --style-preset "$PRESET" --maps "$MAPS" --no-transfer \
+    --jobs "$JOBS" --set torch_threads=1 \
+    --out "benchmarks/studies/paper-convergence/results/$PRESET" "$@"
