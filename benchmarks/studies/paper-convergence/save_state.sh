@@ -1,11 +1,16 @@
 #!/usr/bin/env bash
-# Stage the compact run state of every run (about 2.3 MB each; see
-# docs/guide/reproducing.md "Across machines") and the finished outputs for a commit.
+# Stage what a new machine needs to go on, and the results, for a commit: the compact
+# state of every run (about 2.3 MB each; docs/guide/reproducing.md "Across machines"),
+# the merged evaluation files (episodes.csv + meta.json; per-cell files and speed
+# samples stay here), tables, figures and the manifest.
 set -euo pipefail
 cd "$(dirname "$0")"
 for run in results/*/runs/*/; do
     for f in checkpoint.pt config.json progress.jsonl train.log; do
-        [ -f "$run$f" ] && git add -f "$run$f"
+        if [ -f "$run$f" ]; then git add -f "$run$f"; fi
     done
 done
-git add -f results/*/manifest.json 2>/dev/null || true
+for f in results/*/eval/*/*/episodes.csv results/*/eval/*/*/meta.json \
+    results/*/tables/* results/*/figures/*.png results/*/manifest.json; do
+    if [ -f "$f" ]; then git add -f "$f"; fi
+done
