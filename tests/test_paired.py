@@ -59,6 +59,27 @@ def test_an_interval_that_holds_zero_is_no_measurable_difference_and_is_seeded()
     assert (same.low, same.high, same.measurable) == (0.0, 0.0, False)
 
 
+def test_a_column_pooling_runs_pairs_every_run_and_resamples_the_runs():
+    """Two training runs on the same 30 episode seeds, one 20 % below same-mix, one level:
+    the pooled change is -10 %, and resampling the runs spreads it over [-20, 0] (pairing
+    only one run's episode per seed would report -20 % [-20, -20])."""
+    traffic = np.random.default_rng(3).uniform(5.0, 50.0, 30)
+    ref = _values(range(30), traffic)
+    seeds = np.tile(np.arange(30), 2)  # (60,): run 0's episodes, then run 1's
+    pooled = EpisodeValues(
+        seeds, np.concatenate([0.8 * traffic, traffic]), np.ones(60), np.repeat([0, 1], 30)
+    )
+    change = paired_change(pooled, ref, relative=True)
+    assert change.n_pairs == 30  # episode seeds
+    assert change.change == pytest.approx(-10.0)
+    assert (change.low, change.high) == pytest.approx((-20.0, 0.0))
+    assert not change.measurable
+    one_run = EpisodeValues(seeds[:30], 0.8 * traffic, np.ones(30), np.zeros(30, np.int64))
+    assert paired_change(one_run, ref, relative=True) == paired_change(
+        _values(range(30), 0.8 * traffic), ref, relative=True
+    )
+
+
 def _results(path: Path, policy: str, delays: list[float], p_sce: list[float]) -> Path:
     path.mkdir(parents=True)
     (path / "meta.json").write_text(json.dumps({"policy": policy, "backend": "highway"}))
@@ -127,3 +148,29 @@ def test_paired_against_a_results_directory(tmp_path):
     assert (change.change, change.low, change.high) == pytest.approx((-25.0, -25.0, -25.0))
     assert table.paired(cell, "delay", source) is None  # the reference itself
     assert f"vs {source} -25.0 % [-25.0, -25.0]" in render_table(table, "markdown")
+
+
+def test_reproduce_tables_pool_the_seeds_of_a_variant_in_the_intervals(tmp_path):
+    """`diacc reproduce` pools seeds 1 and 2 of diacc into one column: both runs' episodes
+    pair with same-mix (here -30 % and -10 %: -20 % pooled, between-seed spread in the
+    interval)."""
+    from diacc.experiments.report import table_from_results
+    from diacc.experiments.reproduce.outputs import BASELINE_COLUMNS, _columns, _Results
+    from diacc.experiments.reproduce.plan import make_plan, resolve_config
+
+    plan = make_plan(*resolve_config("tiny", out_dir=tmp_path, seeds=(1, 2), variants=("diacc",)))
+    traffic = [10.0, 14.0, 12.0, 16.0]
+    shares = dict.fromkeys(BASELINE_COLUMNS, 1.0) | {
+        "diacc-train-50-s1": 0.7,
+        "diacc-train-50-s2": 0.9,
+    }
+    for policy, share in shares.items():
+        _results(
+            tmp_path / "eval/highway" / policy, policy, [share * d for d in traffic], [0.1] * 4
+        )
+    columns = _columns(plan, _Results(plan), "highway", plan.grid_cells["train"])
+    columns = [c for c in columns if c[1]["policy"] in ("same-mix", "pure-hdv", "diacc")]
+    table = table_from_results(columns, rows=("delay",))
+    change = table.paired(table.cells[0], "delay", "diacc")
+    assert change.n_pairs == 4 and change.change == pytest.approx(-20.0)
+    assert (change.low, change.high) == pytest.approx((-30.0, -10.0))

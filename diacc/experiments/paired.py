@@ -9,6 +9,16 @@ the comparison. A claim whose interval holds 0 is "no measurable difference"
 (issue 42); how wide the intervals of a given episode count are, and so how many
 episodes README's claims need, is in docs/concepts/baselines.md ("Seed streams").
 
+A column may pool several training runs (``diacc reproduce`` pools a variant's
+seeds into one column): each of its runs played the same episode seeds, so the
+pairs are *episode seeds*, each holding every run's episode of that traffic, and
+the bootstrap resamples both levels: the episode seeds (one resample for both
+sides) and, on a side with several runs, its runs (independently per side, as
+the runs of two policies are). The interval then carries the spread between
+training seeds as well as the traffic's; with 3 runs that part is coarse, so
+the per-seed numbers belong beside it. One run per side is the plain paired
+bootstrap over episodes.
+
 The bootstrap is the percentile interval over :data:`RESAMPLES` resamples,
 drawn by a generator seeded with :data:`BOOTSTRAP_SEED` for every comparison,
 so that the same files give the same table, whatever else is in it. With few
@@ -36,12 +46,34 @@ class EpisodeValues:
     """One metric of one column in one cell: per-episode values keyed by episode seed.
 
     ``weight`` is 1 for per-episode metrics, the speed-sample count for mean
-    speed (pooled over vehicles and steps, as the table's entry).
+    speed (pooled over vehicles and steps, as the table's entry). ``run`` tells
+    apart the training runs a pooled column holds (None: one run).
     """
 
     seed: np.ndarray  # (K,) int64
     value: np.ndarray  # (K,) float64, display units
     weight: np.ndarray  # (K,) float64
+    run: np.ndarray | None = None  # (K,) int64 training-run index
+
+    def finite(self) -> EpisodeValues:
+        """The episodes whose value is defined."""
+        ok = np.isfinite(self.value)  # (K,)
+        run = None if self.run is None else self.run[ok]
+        return EpisodeValues(self.seed[ok], self.value[ok], self.weight[ok], run)
+
+    def sums(self, seeds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted value sums and weight sums per (run, episode seed), for ``seeds``
+        (sorted, all held here): two (R, S) arrays."""
+        keep = np.isin(self.seed, seeds)  # (K,)
+        s = np.searchsorted(seeds, self.seed[keep])  # (K',) episode-seed index
+        run = np.zeros(s.size, np.int64) if self.run is None else self.run[keep]
+        _, r = np.unique(run, return_inverse=True)  # (K',) run index, 0..R-1
+        shape = (int(r.max()) + 1, seeds.size)
+        value_sums, weight_sums = np.zeros(shape), np.zeros(shape)  # (R, S)
+        w = self.weight[keep]
+        np.add.at(value_sums, (r, s), self.value[keep] * w)
+        np.add.at(weight_sums, (r, s), w)
+        return value_sums, weight_sums
 
 
 @dataclass(frozen=True)
@@ -70,25 +102,40 @@ def _change(x: np.ndarray, y: np.ndarray, relative: bool) -> np.ndarray:
 def paired_change(
     column: EpisodeValues, reference: EpisodeValues, relative: bool
 ) -> PairedChange | None:
-    """Paired change with its bootstrap interval; None with fewer than 2 pairs, or where
-    the reference's mean is 0 for a relative change."""
-    _, i, j = np.intersect1d(column.seed, reference.seed, return_indices=True)
-    finite = np.isfinite(column.value[i]) & np.isfinite(reference.value[j])
-    i, j = i[finite], j[finite]
-    n = int(i.size)
+    """Paired change with its bootstrap interval over the episode seeds both sides played
+    (and their runs, module docstring); None with fewer than 2 such seeds, or where the
+    reference's mean is 0 for a relative change. ``n_pairs`` counts episode seeds."""
+    column, reference = column.finite(), reference.finite()
+    seeds = np.intersect1d(column.seed, reference.seed)  # (S,) sorted
+    n = int(seeds.size)
     if n < 2:
         return None
-    x, wx = column.value[i], column.weight[i]  # (P,)
-    y, wy = reference.value[j], reference.weight[j]  # (P,)
-    point = float(_change(np.average(x, weights=wx), np.average(y, weights=wy), relative))
+    sides = [v.sums(seeds) for v in (column, reference)]  # (R, S) value and weight sums
+    point = float(_change(*(vs.sum() / ws.sum() for vs, ws in sides), relative))
     if not math.isfinite(point):
         return None
     rng = np.random.default_rng(BOOTSTRAP_SEED)
-    picks = rng.integers(0, n, size=(RESAMPLES, n))  # (B, P): one resample for both sides
-    mean_x = (x[picks] * wx[picks]).sum(1) / wx[picks].sum(1)  # (B,)
-    mean_y = (y[picks] * wy[picks]).sum(1) / wy[picks].sum(1)  # (B,)
-    changes = _change(mean_x, mean_y, relative)
+    picks = rng.integers(0, n, size=(RESAMPLES, n))  # (B, S): one resample for both sides
+    seed_counts = _counts(picks, n)  # (B, S)
+    means = []
+    for value_sums, weight_sums in sides:
+        runs = value_sums.shape[0]
+        run_counts = np.ones((RESAMPLES, runs))  # (B, R): one run, or resampled runs
+        if runs > 1:
+            run_counts = _counts(rng.integers(0, runs, size=(RESAMPLES, runs)), runs)
+        totals = [
+            np.einsum("br,rs,bs->b", run_counts, a, seed_counts) for a in (value_sums, weight_sums)
+        ]
+        means.append(totals[0] / totals[1])  # (B,)
+    changes = _change(means[0], means[1], relative)
     changes = changes[np.isfinite(changes)]
     tail = (1.0 - CONFIDENCE) / 2.0
     low, high = np.quantile(changes, [tail, 1.0 - tail])
     return PairedChange(point, float(low), float(high), n)
+
+
+def _counts(picks: np.ndarray, n: int) -> np.ndarray:
+    """How often each of ``n`` items is drawn in each resample: (B, n) from (B, k) picks."""
+    counts = np.zeros((picks.shape[0], n))
+    np.add.at(counts, (np.arange(picks.shape[0])[:, None], picks), 1.0)
+    return counts

@@ -69,7 +69,8 @@ def _episode_values(
     rows: list[dict[str, str]], metric: str, column: str, scale: float, speed_std: str
 ) -> EpisodeValues | None:
     """Per-episode values of a metric keyed by seed (None without seeds or the column);
-    speed weighted by its sample count where the table pools samples."""
+    speed weighted by its sample count where the table pools samples; the training run
+    of each episode where rows pool several (``training_run``, set by ``diacc reproduce``)."""
     if "seed" not in rows[0] or column not in rows[0]:
         return None
     weight = np.ones(len(rows))  # (K,)
@@ -79,6 +80,7 @@ def _episode_values(
         seed=np.array([int(r["seed"]) for r in rows], dtype=np.int64),
         value=scale * np.array([_float(r[column]) for r in rows]),
         weight=weight,
+        run=np.array([int(r["training_run"]) for r in rows]) if "training_run" in rows[0] else None,
     )
 
 

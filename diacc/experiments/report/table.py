@@ -52,7 +52,8 @@ def interval_rule(reference: str) -> str:
     """The table note that explains the intervals against ``reference``."""
     return (
         f"[low, high]: 95 % bootstrap interval of the change against {reference}, over the "
-        "episodes both played with the same seed (the same traffic); "
+        "episodes both played with the same seed (the same traffic; a column pooling "
+        "training seeds resamples them too); "
         f"{NO_DIFFERENCE}: the interval holds 0, no measurable difference"
     )
 

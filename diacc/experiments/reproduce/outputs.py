@@ -91,12 +91,13 @@ class _Results:
         only the cells of its map's lane reduction.
         """
         rows, metas = [], []
-        for policy, run in members:
+        for index, (policy, run) in enumerate(members):
             meta, member_rows = self.load(backend, policy)
             keys = {
                 c.key for c in cells if run is None or reduction_of(c.map) == reduction_of(run.map)
             }
-            rows += [r for r in member_rows if row_cell_key(r) in keys]
+            # which run an episode is from: the paired intervals resample runs too
+            rows += [dict(r, training_run=index) for r in member_rows if row_cell_key(r) in keys]
             metas.append(meta)
         meta = dict(metas[0], policy=label)
         if "trained_steps" in meta:
