@@ -17,7 +17,7 @@ from diacc.experiments.report import NO_DIFFERENCE, build_table, render_table
 
 COLUMNS = ["policy", "backend", "style_preset", "map", "n_vehicles", "cav_penetration"]
 COLUMNS += ["style_mix", "stream", "episode", "seed", "mean_speed_mps", "std_speed_mps"]
-COLUMNS += ["n_speed_samples", "p_we", "p_sce", "delay_per_vehicle_s"]
+COLUMNS += ["n_speed_samples", "p_we", "p_sce", "delay_per_vehicle_s", "collision"]
 
 
 def _values(seeds, values) -> EpisodeValues:
@@ -88,7 +88,7 @@ def _results(path: Path, policy: str, delays: list[float], p_sce: list[float]) -
         writer.writerow(COLUMNS)
         for ep, (delay, sce) in enumerate(zip(delays, p_sce, strict=True)):
             row = [policy, "highway", "realistic", "train-50", 25, 0.4, "D1", "test", ep]
-            writer.writerow([*row, 1000 + 2 * ep + 1, 20.0, 1.0, 100, 0.0, sce, delay])
+            writer.writerow([*row, 1000 + 2 * ep + 1, 20.0, 1.0, 100, 0.0, sce, delay, 0])
     return path
 
 
@@ -174,3 +174,30 @@ def test_reproduce_tables_pool_the_seeds_of_a_variant_in_the_intervals(tmp_path)
     change = table.paired(table.cells[0], "delay", "diacc")
     assert change.n_pairs == 4 and change.change == pytest.approx(-20.0)
     assert (change.low, change.high) == pytest.approx((-30.0, -10.0))
+
+
+def test_study_compare_script_pools_seeds_per_setting(tmp_path):
+    """benchmarks/studies/paper-convergence/compare.py on a study's layout: each setting
+    pools its seeds, per-seed changes beside, any learned column as the reference."""
+    import subprocess
+    import sys
+
+    traffic = [10.0, 14.0, 12.0, 16.0]
+    shares = {"pure-hdv": 1.1, "same-mix": 1.0, "cooperative": 1.0, "heuristic": 0.9}
+    shares |= {"diacc-train-50-s1-tau_init2": 0.7, "diacc-train-50-s2-tau_init2": 0.9}
+    shares |= {"diacc-train-50-s1-tau_init10": 0.8, "diacc-train-50-s2-tau_init10": 0.8}
+    for policy, share in shares.items():
+        _results(
+            tmp_path / "eval/highway" / policy, policy, [share * d for d in traffic], [0.1] * 4
+        )
+    script = Path(__file__).parents[1] / "benchmarks/studies/paper-convergence/compare.py"
+    argv = [sys.executable, str(script), str(tmp_path), "--against", "diacc-tau_init10"]
+    out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
+    (row,) = [line for line in out.splitlines() if line.startswith("| diacc-tau_init2 |")]
+    entries = [e.strip() for e in row.strip("|").split("|")]
+    assert entries[1] == "-20.0 [-30.0, -10.0]"  # vs same-mix: seeds at -30 % and -10 %
+    assert entries[3] == "≈ +0.0 [-12.5, +12.5]"  # vs tau_init10 (-20 %): 0.7 or 0.9 of 0.8
+    assert entries[4] == "s1 -30.0 [-30.0, -30.0], s2 -10.0 [-10.0, -10.0]"
+    assert entries[5] == "0 % of 8"
+    bad = subprocess.run([*argv[:3], "--against", "mappo"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--against mappo: not a learned column" in bad.stderr

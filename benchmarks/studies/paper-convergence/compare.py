@@ -1,42 +1,46 @@
-"""The variants' delay against same-mix, each other and the heuristic: pooled and per seed.
+"""Each learned column's delay against same-mix, the heuristic and each other: pooled and
+per seed.
 
-    python benchmarks/studies/paper-convergence/compare.py RESULTS_DIR [METRIC]
+    python benchmarks/studies/paper-convergence/compare.py RESULTS_DIR \
+        [--metric delay] [--against COLUMN ...]
 
-``RESULTS_DIR`` is a ``diacc reproduce`` output (``results/paper-congestion``);
-``METRIC`` a table row key (default ``delay``). For every backend and evaluated
-cell it prints one Markdown table: each learned variant's change of the mean
-against ``same-mix``, ``heuristic`` and ``mappo-iadm``, with the 95 % paired
-bootstrap interval (the reproduction's seeds pooled, seeds and episodes
-resampled: ``diacc/experiments/paired.py``), then the change against same-mix of
-each seed alone, and the share of episodes that end in a collision (where
-it is 100 %, the episodes end early and their delay means nothing). The numbers
-of docs/results/paper-convergence.md come from it.
+``RESULTS_DIR`` is a ``diacc reproduce`` output (``results/paper-congestion``, or
+a study's ``results/paper-congestion-study-tau``). A learned column is a
+variant, or a variant and its study setting (``diacc-tau_init2-tau_final0.05``),
+pooling its seeds. For every backend and evaluated cell it prints one Markdown
+table: each learned column's change of the mean of ``--metric`` (a table row key)
+against ``same-mix``, ``heuristic`` and the ``--against`` columns (default
+``mappo-iadm`` where there is one), with the 95 % paired bootstrap interval
+(seeds pooled, seeds and episodes resampled: ``diacc/experiments/paired.py``),
+then the change against same-mix of each seed alone, and the share of episodes
+that end in a collision (where it is 100 %, the episodes end early and their
+delay means nothing). The numbers of docs/results/paper-convergence.md come from it.
 """
 
 from __future__ import annotations
 
+import argparse
 import re
-import sys
 from pathlib import Path
 
 from diacc.experiments.report import table_from_results
 from diacc.experiments.results_files import load_episodes
 
-RUN = re.compile(r"^(?P<variant>[a-z-]+)-train-\d+-s(?P<seed>\d+)$")
+RUN = re.compile(r"^(?P<variant>[a-z-]+)-train-\d+-s(?P<seed>\d+)(?:-(?P<setting>.+))?$")
 BASELINES = ("pure-hdv", "same-mix", "cooperative", "heuristic")
-AGAINST = ("same-mix", "heuristic", "mappo-iadm")
 
 
 def columns(eval_dir: Path) -> tuple[list, dict[str, list[str]]]:
-    """(loaded columns, variant -> its seeds): baselines, then each variant pooling its
-    seeds (rows tagged with their ``training_run``), then each seed alone."""
+    """(loaded columns, learned column -> its seeds): baselines, then each learned column
+    pooling its seeds (rows tagged with their ``training_run``), then each seed alone."""
     loaded, pooled, seeds = [], {}, {}
     for name in BASELINES:
         loaded.append((Path(name), *load_episodes(eval_dir / name)))
     for run_dir in sorted(p for p in eval_dir.iterdir() if RUN.match(p.name)):
         match = RUN.match(run_dir.name)
         meta, rows = load_episodes(run_dir)
-        variant, seed = match["variant"], match["seed"]
+        variant = "-".join(filter(None, (match["variant"], match["setting"])))
+        seed = match["seed"]
         seeds.setdefault(variant, []).append(seed)
         run = len(seeds[variant]) - 1
         tagged = [dict(r, training_run=run) for r in rows]
@@ -52,25 +56,37 @@ def interval(change) -> str:
     if change is None:
         return "—"
     mark = "" if change.measurable else "≈ "
-    return f"{mark}{change.change:+.1f} [{change.low:+.1f}, {change.high:+.1f}]"
+    low, point, high = (round(x, 1) + 0.0 for x in (change.low, change.change, change.high))
+    return f"{mark}{point:+.1f} [{low:+.1f}, {high:+.1f}]"  # + 0.0: no "-0.0"
 
 
 def main() -> None:
-    out = Path(sys.argv[1])
-    metric = sys.argv[2] if len(sys.argv) > 2 else "delay"
-    for backend_dir in sorted((out / "eval").iterdir()):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("results_dir", type=Path)
+    parser.add_argument("--metric", default="delay")
+    parser.add_argument("--against", action="append", default=None)
+    args = parser.parse_args()
+    metric = args.metric
+    if not (args.results_dir / "eval").is_dir():
+        parser.error(f"{args.results_dir}: no eval/ folder (not a diacc reproduce output)")
+    for backend_dir in sorted((args.results_dir / "eval").iterdir()):
         loaded, seeds = columns(backend_dir)
         table = table_from_results(loaded, rows=(metric, "collision"))
+        others = args.against or [c for c in ("mappo-iadm",) if c in seeds]
+        unknown = [c for c in others if c not in seeds]
+        if unknown:
+            parser.error(f"--against {unknown[0]}: not a learned column of {backend_dir}")
+        against = ["same-mix", "heuristic", *others]
         print(f"## {backend_dir.name}: {metric}, change of the mean in % (pp for shares)\n")
         for cell in sorted(table.cells, key=lambda c: not c.map.startswith("train")):
             print(f"**{cell.key}**\n")
-            heads = [f"vs {a}" for a in AGAINST] + ["vs same-mix, per seed", "collision episodes"]
-            print("| variant | " + " | ".join(heads) + " |")
+            heads = [f"vs {a}" for a in against] + ["vs same-mix, per seed", "collision episodes"]
+            print("| column | " + " | ".join(heads) + " |")
             print("|---" * (len(heads) + 1) + "|")
             for variant, its_seeds in seeds.items():
                 entries = []
-                for against in AGAINST:
-                    table.paired_against = against
+                for other in against:
+                    table.paired_against = other
                     entries.append(interval(table.paired(cell, metric, variant)))
                 table.paired_against = "same-mix"
                 per_seed = [table.paired(cell, metric, f"{variant} s{s}") for s in its_seeds]
