@@ -190,9 +190,22 @@ def test_study_compare_script_pools_seeds_per_setting(tmp_path):
         _results(
             tmp_path / "eval/highway" / policy, policy, [share * d for d in traffic], [0.1] * 4
         )
+    run = tmp_path / "runs/diacc-train-50-s1-tau_init2"
+    run.mkdir(parents=True)
+    records = [(50_000, 30.0), (100_000, 20.0), (150_000, 18.0)]  # the last 100k: 19.0
+    run.joinpath("progress.jsonl").write_text(
+        "".join(
+            json.dumps({"update": k, "global_step": step, "episode/delay_per_vehicle_s": delay})
+            + "\n"
+            for k, (step, delay) in enumerate(records, 1)
+        )
+    )
     script = Path(__file__).parents[1] / "benchmarks/studies/paper-convergence/compare.py"
     argv = [sys.executable, str(script), str(tmp_path), "--against", "diacc-tau_init10"]
-    out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [*argv, "--last-steps", "100000"], capture_output=True, text=True, check=True
+    ).stdout
+    assert "- diacc-tau_init2: s1 19.0\n" in out
     (row,) = [line for line in out.splitlines() if line.startswith("| diacc-tau_init2 |")]
     entries = [e.strip() for e in row.strip("|").split("|")]
     assert entries[1] == "-20.0 [-30.0, -10.0]"  # vs same-mix: seeds at -30 % and -10 %
@@ -201,3 +214,7 @@ def test_study_compare_script_pools_seeds_per_setting(tmp_path):
     assert entries[5] == "0 % of 8"
     bad = subprocess.run([*argv[:3], "--against", "mappo"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--against mappo: not a learned column" in bad.stderr
+    run.joinpath("progress.jsonl").write_text("{not json\n")
+    broken = subprocess.run(argv, capture_output=True, text=True)
+    assert broken.returncode == 1 and broken.stderr.startswith("compare.py: error: ")
+    assert "Traceback" not in broken.stderr

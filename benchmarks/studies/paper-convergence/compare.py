@@ -14,7 +14,9 @@ against ``same-mix``, ``heuristic`` and the ``--against`` columns (default
 (seeds pooled, seeds and episodes resampled: ``diacc/experiments/paired.py``),
 then the change against same-mix of each seed alone, and the share of episodes
 that end in a collision (where it is 100 %, the episodes end early and their
-delay means nothing). The numbers of docs/results/paper-convergence.md come from it.
+delay means nothing). First, each run's training delay per vehicle over its last
+``--last-steps`` env steps (sampled actions, from ``runs/*/progress.jsonl``). The
+numbers of docs/results/paper-convergence.md come from it.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ import argparse
 import re
 from pathlib import Path
 
+from diacc.errors import DiaccError
+from diacc.experiments.plots import read_progress
 from diacc.experiments.report import table_from_results
 from diacc.experiments.results_files import load_episodes
 
@@ -52,6 +56,22 @@ def columns(eval_dir: Path) -> tuple[list, dict[str, list[str]]]:
     return loaded[: len(BASELINES)] + list(pooled.values()) + loaded[len(BASELINES) :], seeds
 
 
+def training_delays(runs_dir: Path, last_steps: int) -> dict[str, list[str]]:
+    """Learned column -> "s<seed> <mean training delay per vehicle over the run's last
+    ``last_steps`` env steps>" per seed (sampled actions, ``progress.jsonl``)."""
+    delays: dict[str, list[str]] = {}
+    for run_dir in sorted(p for p in runs_dir.iterdir() if RUN.match(p.name)):
+        match = RUN.match(run_dir.name)
+        series = read_progress(run_dir).get("episode/delay_per_vehicle_s")
+        if series is None:
+            continue
+        steps, delay = series  # (T,), (T,)
+        last = delay[steps > steps.max() - last_steps]
+        column = "-".join(filter(None, (match["variant"], match["setting"])))
+        delays.setdefault(column, []).append(f"s{match['seed']} {last.mean():.1f}")
+    return delays
+
+
 def interval(change) -> str:
     if change is None:
         return "—"
@@ -65,10 +85,18 @@ def main() -> None:
     parser.add_argument("results_dir", type=Path)
     parser.add_argument("--metric", default="delay")
     parser.add_argument("--against", action="append", default=None)
+    parser.add_argument("--last-steps", type=int, default=50_000)
     args = parser.parse_args()
     metric = args.metric
     if not (args.results_dir / "eval").is_dir():
         parser.error(f"{args.results_dir}: no eval/ folder (not a diacc reproduce output)")
+    if (args.results_dir / "runs").is_dir():
+        print(
+            f"## training: delay per vehicle (s) over each run's last {args.last_steps:,} steps\n"
+        )
+        for column, entries in training_delays(args.results_dir / "runs", args.last_steps).items():
+            print(f"- {column}: {', '.join(entries)}")
+        print()
     for backend_dir in sorted((args.results_dir / "eval").iterdir()):
         loaded, seeds = columns(backend_dir)
         table = table_from_results(loaded, rows=(metric, "collision"))
@@ -102,4 +130,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except DiaccError as error:  # a missing or malformed results file: one line
+        raise SystemExit(f"compare.py: error: {error}") from None
