@@ -205,7 +205,7 @@ def test_study_compare_script_pools_seeds_per_setting(tmp_path):
     out = subprocess.run(
         [*argv, "--last-steps", "100000"], capture_output=True, text=True, check=True
     ).stdout
-    assert "- diacc-tau_init2: s1 19.0\n" in out
+    assert "- diacc-tau_init2: s1 19.0 @ 150k\n" in out
     (row,) = [line for line in out.splitlines() if line.startswith("| diacc-tau_init2 |")]
     entries = [e.strip() for e in row.strip("|").split("|")]
     assert entries[1] == "-20.0 [-30.0, -10.0]"  # vs same-mix: seeds at -30 % and -10 %

@@ -58,7 +58,8 @@ def columns(eval_dir: Path) -> tuple[list, dict[str, list[str]]]:
 
 def training_delays(runs_dir: Path, last_steps: int) -> dict[str, list[str]]:
     """Learned column -> "s<seed> <mean training delay per vehicle over the run's last
-    ``last_steps`` env steps>" per seed (sampled actions, ``progress.jsonl``)."""
+    ``last_steps`` env steps> @ <steps reached>" per seed (sampled actions,
+    ``progress.jsonl``)."""
     delays: dict[str, list[str]] = {}
     for run_dir in sorted(p for p in runs_dir.iterdir() if RUN.match(p.name)):
         match = RUN.match(run_dir.name)
@@ -68,7 +69,8 @@ def training_delays(runs_dir: Path, last_steps: int) -> dict[str, list[str]]:
         steps, delay = series  # (T,), (T,)
         last = delay[steps > steps.max() - last_steps]
         column = "-".join(filter(None, (match["variant"], match["setting"])))
-        delays.setdefault(column, []).append(f"s{match['seed']} {last.mean():.1f}")
+        reached = f"{steps.max() / 1000:,.0f}k"  # a run still training shows how far it is
+        delays.setdefault(column, []).append(f"s{match['seed']} {last.mean():.1f} @ {reached}")
     return delays
 
 
@@ -88,8 +90,8 @@ def main() -> None:
     parser.add_argument("--last-steps", type=int, default=50_000)
     args = parser.parse_args()
     metric = args.metric
-    if not (args.results_dir / "eval").is_dir():
-        parser.error(f"{args.results_dir}: no eval/ folder (not a diacc reproduce output)")
+    if not any((args.results_dir / d).is_dir() for d in ("eval", "runs")):
+        parser.error(f"{args.results_dir}: no runs/ or eval/ (not a diacc reproduce output)")
     if (args.results_dir / "runs").is_dir():
         print(
             f"## training: delay per vehicle (s) over each run's last {args.last_steps:,} steps\n"
@@ -97,7 +99,8 @@ def main() -> None:
         for column, entries in training_delays(args.results_dir / "runs", args.last_steps).items():
             print(f"- {column}: {', '.join(entries)}")
         print()
-    for backend_dir in sorted((args.results_dir / "eval").iterdir()):
+    evaluated = args.results_dir / "eval"  # absent while the runs still train
+    for backend_dir in sorted(evaluated.iterdir()) if evaluated.is_dir() else []:
         loaded, seeds = columns(backend_dir)
         table = table_from_results(loaded, rows=(metric, "collision"))
         others = args.against or [c for c in ("mappo-iadm",) if c in seeds]
