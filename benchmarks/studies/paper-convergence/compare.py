@@ -27,7 +27,7 @@ from pathlib import Path
 
 from diacc.errors import DiaccError
 from diacc.experiments.plots import read_progress
-from diacc.experiments.report import table_from_results
+from diacc.experiments.report import TRAINING_RUN, table_from_results
 from diacc.experiments.results_files import load_episodes
 
 RUN = re.compile(r"^(?P<variant>[a-z-]+)-train-\d+-s(?P<seed>\d+)(?:-(?P<setting>.+))?$")
@@ -36,7 +36,7 @@ BASELINES = ("pure-hdv", "same-mix", "cooperative", "heuristic")
 
 def columns(eval_dir: Path) -> tuple[list, dict[str, list[str]]]:
     """(loaded columns, learned column -> its seeds): baselines, then each learned column
-    pooling its seeds (rows tagged with their ``training_run``), then each seed alone."""
+    pooling its seeds (rows tagged with their ``TRAINING_RUN``), then each seed alone."""
     loaded, pooled, seeds = [], {}, {}
     for name in BASELINES:
         loaded.append((Path(name), *load_episodes(eval_dir / name)))
@@ -47,7 +47,7 @@ def columns(eval_dir: Path) -> tuple[list, dict[str, list[str]]]:
         seed = match["seed"]
         seeds.setdefault(variant, []).append(seed)
         run = len(seeds[variant]) - 1
-        tagged = [dict(r, training_run=run) for r in rows]
+        tagged = [dict(r, **{TRAINING_RUN: run}) for r in rows]
         if variant in pooled:
             pooled[variant][2].extend(tagged)
         else:

@@ -45,7 +45,13 @@ Modules: :mod:`.table` (the table, its metrics and comparison rules), :mod:`.col
 public names are importable from here.
 """
 
-from diacc.experiments.report.collect import SPEED_STD, build_table, expand_rows, table_from_results
+from diacc.experiments.report.collect import (
+    SPEED_STD,
+    TRAINING_RUN,
+    build_table,
+    expand_rows,
+    table_from_results,
+)
 from diacc.experiments.report.formats import (
     FORMATS,
     LATEX_PREAMBLE,
@@ -71,6 +77,7 @@ from diacc.experiments.report.table import (
 )
 
 __all__ = [
+    "TRAINING_RUN",
     "CHANGE_RULE",
     "DEFAULT_ROWS",
     "FLOW_ROWS",

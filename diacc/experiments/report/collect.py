@@ -37,6 +37,11 @@ from diacc.experiments.report.table import (
 SPEED_STD = ("samples", "episodes")
 
 
+#: Row key naming the training run of an episode where a column pools several runs
+#: (its paired intervals resample the runs too: :mod:`diacc.experiments.paired`).
+TRAINING_RUN = "training_run"
+
+
 def _float(text: str | None) -> float:
     return float(text) if text not in (None, "", "nan") else float("nan")
 
@@ -70,7 +75,7 @@ def _episode_values(
 ) -> EpisodeValues | None:
     """Per-episode values of a metric keyed by seed (None without seeds or the column);
     speed weighted by its sample count where the table pools samples; the training run
-    of each episode where rows pool several (``training_run``, set by ``diacc reproduce``)."""
+    of each episode where rows pool several (:data:`TRAINING_RUN`)."""
     if "seed" not in rows[0] or column not in rows[0]:
         return None
     weight = np.ones(len(rows))  # (K,)
@@ -80,7 +85,7 @@ def _episode_values(
         seed=np.array([int(r["seed"]) for r in rows], dtype=np.int64),
         value=scale * np.array([_float(r[column]) for r in rows]),
         weight=weight,
-        run=np.array([int(r["training_run"]) for r in rows]) if "training_run" in rows[0] else None,
+        run=np.array([int(r[TRAINING_RUN]) for r in rows]) if TRAINING_RUN in rows[0] else None,
     )
 
 

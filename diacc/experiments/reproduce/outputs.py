@@ -34,7 +34,7 @@ import numpy as np
 from diacc.experiments.evaluate import EPISODES_FILE, SPEEDS_FILE, csv_text, load_episodes
 from diacc.experiments.grid import CELL_KEYS, Cell
 from diacc.experiments.plots import PlotError
-from diacc.experiments.report import FLOW_ROWS
+from diacc.experiments.report import FLOW_ROWS, TRAINING_RUN
 from diacc.experiments.reproduce.plan import (
     BASELINE_COLUMNS,
     TRANSFER_BACKEND,
@@ -97,7 +97,9 @@ class _Results:
                 c.key for c in cells if run is None or reduction_of(c.map) == reduction_of(run.map)
             }
             # which run an episode is from: the paired intervals resample runs too
-            rows += [dict(r, training_run=index) for r in member_rows if row_cell_key(r) in keys]
+            rows += [
+                dict(r, **{TRAINING_RUN: index}) for r in member_rows if row_cell_key(r) in keys
+            ]
             metas.append(meta)
         meta = dict(metas[0], policy=label)
         if "trained_steps" in meta:
