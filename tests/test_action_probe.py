@@ -27,6 +27,7 @@ def test_shares_are_the_actions_the_policy_picked():
 
 
 def test_an_unknown_run_is_one_line():
-    out = subprocess.run([sys.executable, str(SCRIPT), "/no/such/run"], capture_output=True, text=True)
+    command = [sys.executable, str(SCRIPT), "/no/such/run"]
+    out = subprocess.run(command, capture_output=True, text=True)
     assert out.returncode == 1 and out.stderr.startswith("action_probe.py: error: unknown policy")
     assert "Traceback" not in out.stderr

@@ -14,7 +14,10 @@ import torch
 
 from diacc.cli import main
 from diacc.config import ConfigError, ModelConfig, TrainConfig
+from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.env import BottleneckEnv
+from diacc.envs.episode import EpisodeDriver
+from diacc.experiments.collapse import collapse_warning
 from diacc.experiments.evaluate import (
     EPISODES_FILE,
     SPEEDS_FILE,
@@ -24,7 +27,7 @@ from diacc.experiments.evaluate import (
     read_csv,
 )
 from diacc.experiments.grid import SEED_STREAMS, Cell, GridError, load_grid
-from diacc.experiments.policies import EvalSettings, PolicySpec
+from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy, parse_policy
 from diacc.learn.checkpoint import save_checkpoint
 from diacc.learn.mappo import make_agent
 from diacc.sim.maps import SEGMENT_KINDS
@@ -280,6 +283,70 @@ def test_checkpoint_policy_greedy_and_deterministic(tmp_path):
     assert outs[0] == outs[1]
     (row,) = read_csv(tmp_path / "a" / EPISODES_FILE)
     assert row["policy"] == "diacc" and row["psar"] == "True" and int(row["psar_decisions"]) > 0
+
+
+def test_the_driver_counts_the_policy_actions_for_living_cavs():
+    """``picked`` holds the policy's choice (before PSAR) for every living CAV and step."""
+    policy = build_policy(parse_policy("accelerate"))
+    settings = EvalSettings("highway", episode_steps=15)
+    driver = EpisodeDriver(policy, policy.env_config(SMALL, settings))
+    driver.reset(SMALL.seed(0, "test"))
+    living = 0
+    while not driver.done:
+        living += int(driver._obs.alive.sum())
+        driver.step()
+    driver.close()
+    accelerate = ACTION_NAMES.index("accelerate")
+    assert driver.picked[accelerate] == driver.picked.sum() == living > 0
+
+
+def _collapsed_checkpoint(path: Path, action: str) -> Path:
+    """A real checkpoint whose actor's output bias makes ``action`` the argmax everywhere."""
+    cfg = TrainConfig(variant="diacc", model=TINY_MODEL)
+    torch.manual_seed(0)
+    agent = make_agent(cfg, torch.device("cpu"))
+    with torch.no_grad():
+        agent.actor.head.bias[ACTION_NAMES.index(action)] = 1e4
+    path.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(path / "checkpoint.pt", agent, cfg, 0, 0)
+    return path / "checkpoint.pt"
+
+
+def test_a_collapsed_checkpoint_is_named_in_a_warning(tmp_path, caplog):
+    settings = EvalSettings("highway", episode_steps=80)
+    for name, ckpt in (
+        ("collapsed", _collapsed_checkpoint(tmp_path / "c", "accelerate")),
+        ("untouched", _checkpoint(tmp_path / "u")),
+        ("scripted", None),  # one action by design: no warning
+    ):
+        caplog.clear()
+        spec = PolicySpec(str(ckpt) if ckpt else "accelerate")
+        evaluate(spec, [SMALL], 1, tmp_path / name, settings, progress=False)
+        logged = (tmp_path / name / "eval.log").read_text() if name == "collapsed" else ""
+        warned = [r.getMessage() for r in caplog.records if "collapsed policy" in r.getMessage()]
+        if name == "collapsed":
+            assert (
+                len(warned) == 1
+                and "picked 'accelerate' on 100.0%" in warned[0]
+                and "c/checkpoint.pt" in warned[0]
+            )
+            assert "collapsed policy" in logged
+        else:
+            assert warned == []
+
+
+@pytest.mark.parametrize(
+    ("counts", "warned"),
+    [
+        ([0, 0, 300, 0, 0], True),
+        ([1, 0, 298, 1, 0], True),  # 99.3 %
+        ([2, 0, 296, 2, 0], False),  # 98.7 %
+        ([0, 0, 150, 0, 0], False),  # too few decisions to tell
+        ([60, 60, 60, 60, 60], False),
+    ],
+)
+def test_collapse_warning_thresholds(counts, warned):
+    assert (collapse_warning("diacc", np.array(counts)) is not None) == warned
 
 
 def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_path):

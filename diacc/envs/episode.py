@@ -18,6 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from diacc.config import EnvConfig
+from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.env import BottleneckEnv
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs
@@ -57,17 +58,24 @@ class EpisodeDriver:
         self.policy.begin_episode(self.env.n_cavs, seed)
         self.psar_rule = np.zeros(self.state.n_vehicles, np.int8)  # (V,) 0 for HDVs
         self.psar: PSARResult | None = None
+        # (A,) how often the policy picked each action for a living CAV (before PSAR):
+        # what shows a policy that acts alike whatever it sees (diacc.experiments.collapse)
+        self.picked = np.zeros(len(ACTION_NAMES), np.int64)
         return self.state
 
     def step(self) -> TrafficState:
-        """Advance one decision step; sets :attr:`done`, :attr:`psar_rule` and :attr:`psar`."""
+        """Advance one decision step; sets :attr:`done`, :attr:`psar_rule`, :attr:`psar` and
+        :attr:`picked`."""
         assert self.state is not None and not self.done, "reset() before step()"
         # (C,) slots whose CAV acts first now: all at the start, refilled ones later (demand).
         first_step = (self.steps == 0) | self.env.slot_start
         actions = self.policy.act(self._obs, first_step=first_step)
         alive_before = self._obs.alive.copy()  # (C,)
         acting = self.env.cav_index.copy()  # (C,) before slots are refilled (demand)
-        out = self.env.step_arrays(actions)
+        out = self.env.step_arrays(actions)  # checks the actions
+        self.picked += np.bincount(
+            np.asarray(actions, np.int64)[alive_before], minlength=len(ACTION_NAMES)
+        )
         self._obs = out.actor_obs
         self.psar_rule = np.zeros(out.state.n_vehicles, np.int8)
         self.psar_rule[acting] = np.where(alive_before, out.psar_rule, 0)

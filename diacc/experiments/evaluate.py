@@ -39,8 +39,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.episode import EpisodeDriver, play_episode
 from diacc.envs.psar import RULE_NAMES
+from diacc.experiments.collapse import collapse_warning
 from diacc.experiments.grid import Cell
 from diacc.experiments.policies import CheckpointPolicy, EvalSettings, PolicySpec, build_policy
 from diacc.experiments.results_files import (
@@ -141,7 +145,7 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int, stream: str) ->
         "psar_decisions": metrics.psar_decisions,
         **{f"psar_{name}_rate": metrics.psar_fire_rate[name] for name in RULE_NAMES[1:]},
     }
-    return EpisodeResult(cell, episode, row, speeds)
+    return EpisodeResult(cell, episode, row, speeds, driver.picked.copy())
 
 
 # ----------------------------------------------------------------------------- workers
@@ -457,11 +461,13 @@ def _evaluate(
             desc=f"eval {policy.label} on {settings.backend}",
         )
         tasks = cell_tasks(todo, episodes, workers)
+        picked = np.zeros(len(ACTION_NAMES), np.int64)  # (A,) over this run's episodes
         try:
             for task_result in (engine or run_local)(tasks, spec, settings, workers):
                 for note in task_result.notes:
                     log.warning(note)
                 for result in task_result.results:
+                    picked += result.picked
                     pending[result.cell.key].append(result)
                     if len(pending[result.cell.key]) == episodes:
                         finished = pending.pop(result.cell.key)
@@ -472,4 +478,8 @@ def _evaluate(
         finally:
             bar.close()
             merge_cells(out_dir)
+        if isinstance(policy, CheckpointPolicy):  # scripted policies: one action by design
+            collapsed = collapse_warning(f"checkpoint {policy.path}", picked)
+            if collapsed is not None:
+                log.warning(collapsed)  # on stderr and in eval.log
     return EvalSummary(out_dir, todo, skipped)

@@ -15,6 +15,8 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from diacc.envs.metrics import SpeedSamples
 from diacc.errors import DiaccError
 from diacc.experiments.grid import CELL_KEYS, Cell, make_cell
@@ -50,12 +52,13 @@ class EvaluationError(DiaccError, ValueError):
 
 @dataclass
 class EpisodeResult:
-    """One evaluated episode: its CSV row and its speed samples."""
+    """One evaluated episode: its CSV row, its speed samples and the policy's action counts."""
 
     cell: Cell
     episode: int
     row: dict
     speeds: SpeedSamples
+    picked: np.ndarray  # (A,) actions the policy picked for living CAVs (EpisodeDriver.picked)
 
 
 def csv_text(columns: list[str] | tuple[str, ...], rows: list) -> str:

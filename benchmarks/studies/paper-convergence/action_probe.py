@@ -29,25 +29,10 @@ from diacc.experiments.policies import build_policy, parse_policy
 EPISODES = 4
 
 
-class CountingPolicy:
-    """The checkpoint's policy, counting the actions it picks for living CAVs."""
-
-    def __init__(self, policy) -> None:
-        self.policy = policy
-        self.counts = np.zeros(len(ACTION_NAMES), np.int64)  # (A,)
-
-    def __getattr__(self, name: str):
-        return getattr(self.policy, name)
-
-    def act(self, actor_obs, first_step):
-        actions = self.policy.act(actor_obs, first_step=first_step)  # (C,)
-        self.counts += np.bincount(actions[actor_obs.alive], minlength=len(ACTION_NAMES))
-        return actions
-
-
 def action_shares(run_dir: str) -> np.ndarray:
     """(A,) share of each action over the living CAVs' decisions of the probe's episodes."""
-    policy = CountingPolicy(build_policy(parse_policy(run_dir)))
+    policy = build_policy(parse_policy(run_dir))
+    counts = np.zeros(len(ACTION_NAMES), np.int64)  # (A,)
     cell = Cell(map="train-50", n_vehicles=25, cav_penetration=0.4, style_mix="D1")
     settings = EvalSettings(style_preset="paper-congestion")
     driver = EpisodeDriver(policy, policy.env_config(cell, settings))
@@ -55,8 +40,9 @@ def action_shares(run_dir: str) -> np.ndarray:
         driver.reset(cell.seed(episode, "validation"))
         while not driver.done:
             driver.step()
+        counts += driver.picked  # the policy's actions for living CAVs, before PSAR
     driver.close()
-    return policy.counts / max(policy.counts.sum(), 1)
+    return counts / max(counts.sum(), 1)
 
 
 def main() -> None:
@@ -68,7 +54,8 @@ def main() -> None:
             shares = action_shares(run_dir)
         except DiaccError as error:  # no checkpoint there, or an unusable one: one line
             raise SystemExit(f"action_probe.py: error: {error}") from None
-        text = ", ".join(f"{name} {share:.0%}" for name, share in zip(ACTION_NAMES, shares))
+        pairs = zip(ACTION_NAMES, shares, strict=True)
+        text = ", ".join(f"{name} {share:.0%}" for name, share in pairs)
         print(f"{run_dir.rstrip('/').split('/')[-1]}: {text}")
 
 

@@ -34,14 +34,17 @@ def main() -> None:
     run_dir, episodes = sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else 4
     policy = build_policy(parse_policy(run_dir))
     cell = Cell(map="train-50", n_vehicles=25, cav_penetration=0.4, style_mix="D1")
-    driver = EpisodeDriver(policy, policy.env_config(cell, EvalSettings(style_preset="paper-congestion")))
+    settings = EvalSettings(style_preset="paper-congestion")
+    driver = EpisodeDriver(policy, policy.env_config(cell, settings))
     for episode in range(episodes):
         driver.reset(cell.seed(episode, "validation"))
         while not driver.done:
             state = driver.step()
             for env, i, j in state.collisions:
-                print(f"episode {episode}, step {driver.steps}: {describe(state, env, i)} "
-                      f"with {describe(state, env, j)}")
+                print(
+                    f"episode {episode}, step {driver.steps}: {describe(state, env, i)} "
+                    f"with {describe(state, env, j)}"
+                )
     driver.close()
 
 

@@ -1,0 +1,46 @@
+"""A learned policy that picks one action whatever it sees, and the warning that names it.
+
+A few seeds of a training run end *greedy-collapsed*: the actor's argmax is the
+same action on (almost) every decision, e.g. *right* on every decision of 4 of
+the 18 runs of the paper's w_e study (docs/results/paper-convergence.md): the
+CAVs queue for the lane to their right and the delay doubles. Such a seed's
+rows in ``episodes.csv`` look like any other policy's, and a table that pools
+seeds mixes it in silently; so an evaluation of a checkpoint counts the actions
+its policy picks (:attr:`diacc.envs.episode.EpisodeDriver.picked`, before
+PSAR refines them) and logs one warning when one action holds
+:data:`COLLAPSE_SHARE` of them.
+
+Scripted policies are left out: ``accelerate`` is one action by design, and
+the policies that send no commands answer ``remain`` for every CAV.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from diacc.envs.actions import ACTION_NAMES
+
+#: Share of the decisions one action must hold for a policy to count as collapsed. A
+#: policy that drives well changes lane on 12-24 % of its decisions on the training
+#: cell (docs/results/paper-convergence.md); the collapsed seeds there reach 100 %.
+COLLAPSE_SHARE = 0.99
+#: Fewest decisions the share is read from: a few steps say nothing about a policy.
+MIN_DECISIONS = 200
+
+
+def collapse_warning(label: str, picked: np.ndarray) -> str | None:
+    """The one-line warning for action counts ``picked`` (A,) that are one action's, else None."""
+    picked = np.asarray(picked, np.int64)  # (A,)
+    total = int(picked.sum())
+    if total < MIN_DECISIONS:
+        return None
+    top = int(picked.argmax())
+    share = picked[top] / total
+    if share < COLLAPSE_SHARE:
+        return None
+    return (
+        f"{label} picked {ACTION_NAMES[top]!r} on {share:.1%} of its {total:,} decisions "
+        "in this evaluation: a collapsed policy (one action whatever it sees); its rows "
+        "are that one action's, not a driving skill's; check its other seeds "
+        "(docs/guide/reproducing.md#collapsed-policies)"
+    )
