@@ -10,6 +10,9 @@ its policy picks (:attr:`diacc.envs.episode.EpisodeDriver.picked`, before
 PSAR refines them) and logs one warning when one action holds
 :data:`COLLAPSE_SHARE` of them.
 
+The counts are not stored in ``episodes.csv``: a resumed evaluation pools only
+the episodes it plays, and one that skips every cell says nothing.
+
 Scripted policies are left out: ``accelerate`` is one action by design, and
 the policies that send no commands answer ``remain`` for every CAV.
 """
