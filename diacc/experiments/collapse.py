@@ -1,9 +1,9 @@
 """A learned policy that picks one action whatever it sees, and the warning that names it.
 
 A few seeds of a training run end *greedy-collapsed*: the actor's argmax is the
-same action on (almost) every decision, e.g. *right* on every decision of 4 of
-the 18 runs of the paper's w_e study (docs/results/paper-convergence.md): the
-CAVs queue for the lane to their right and the delay doubles. Such a seed's
+same action on (almost) every decision: 4 of the 18 runs of the paper's w_e
+study (docs/results/paper-convergence.md), three on *right* (the CAVs queue for
+the lane to their right and the delay doubles), one on *accelerate*. Such a seed's
 rows in ``episodes.csv`` look like any other policy's, and a table that pools
 seeds mixes it in silently; so an evaluation of a checkpoint counts the actions
 its policy picks (:attr:`diacc.envs.episode.EpisodeDriver.picked`, before
