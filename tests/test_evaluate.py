@@ -45,10 +45,15 @@ style_mix = "D1"
 TINY_MODEL = ModelConfig(hidden_dim=16, gat_heads=2, cross_heads=2, cross_dim=16, gru_hidden=16)
 
 
-def _checkpoint(path: Path, variant: str = "diacc") -> Path:
+def _checkpoint(path: Path, variant: str = "diacc", favour: str | None = None) -> Path:
+    """A real untrained checkpoint; ``favour``: its actor's output bias makes that action
+    the argmax everywhere (a collapsed policy)."""
     cfg = TrainConfig(variant=variant, model=TINY_MODEL)
     torch.manual_seed(0)
     agent = make_agent(cfg, torch.device("cpu"))
+    if favour is not None:
+        with torch.no_grad():
+            agent.actor.head.bias[ACTION_NAMES.index(favour)] = 1e4
     path.mkdir(parents=True, exist_ok=True)
     save_checkpoint(path / "checkpoint.pt", agent, cfg, 0, 0)
     return path / "checkpoint.pt"
@@ -300,22 +305,10 @@ def test_the_driver_counts_the_policy_actions_for_living_cavs():
     assert driver.picked[accelerate] == driver.picked.sum() == living > 0
 
 
-def _collapsed_checkpoint(path: Path, action: str) -> Path:
-    """A real checkpoint whose actor's output bias makes ``action`` the argmax everywhere."""
-    cfg = TrainConfig(variant="diacc", model=TINY_MODEL)
-    torch.manual_seed(0)
-    agent = make_agent(cfg, torch.device("cpu"))
-    with torch.no_grad():
-        agent.actor.head.bias[ACTION_NAMES.index(action)] = 1e4
-    path.mkdir(parents=True, exist_ok=True)
-    save_checkpoint(path / "checkpoint.pt", agent, cfg, 0, 0)
-    return path / "checkpoint.pt"
-
-
 def test_a_collapsed_checkpoint_is_named_in_a_warning(tmp_path, caplog):
     settings = EvalSettings("highway", episode_steps=80)
     for name, ckpt in (
-        ("collapsed", _collapsed_checkpoint(tmp_path / "c", "accelerate")),
+        ("collapsed", _checkpoint(tmp_path / "c", favour="accelerate")),
         ("untouched", _checkpoint(tmp_path / "u")),
         ("scripted", None),  # one action by design: no warning
     ):
