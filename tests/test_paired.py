@@ -178,7 +178,8 @@ def test_reproduce_tables_pool_the_seeds_of_a_variant_in_the_intervals(tmp_path)
 
 def test_study_compare_script_pools_seeds_per_setting(tmp_path):
     """benchmarks/studies/paper-convergence/compare.py on a study's layout: each setting
-    pools its seeds, per-seed changes beside, any learned column as the reference."""
+    pools its seeds (of one map), per-seed changes beside, any learned column as the
+    reference."""
     import subprocess
     import sys
 
@@ -186,6 +187,7 @@ def test_study_compare_script_pools_seeds_per_setting(tmp_path):
     shares = {"pure-hdv": 1.1, "same-mix": 1.0, "cooperative": 1.0, "heuristic": 0.9}
     shares |= {"diacc-train-50-s1-tau_init2": 0.7, "diacc-train-50-s2-tau_init2": 0.9}
     shares |= {"diacc-train-50-s1-tau_init10": 0.8, "diacc-train-50-s2-tau_init10": 0.8}
+    shares |= {"diacc-train-25-s1-tau_init2": 0.5}  # the other map's run: a column of its own
     for policy, share in shares.items():
         _results(
             tmp_path / "eval/highway" / policy, policy, [share * d for d in traffic], [0.1] * 4
@@ -212,6 +214,8 @@ def test_study_compare_script_pools_seeds_per_setting(tmp_path):
     assert entries[3] == "≈ +0.0 [-12.5, +12.5]"  # vs tau_init10 (-20 %): 0.7 or 0.9 of 0.8
     assert entries[4] == "s1 -30.0 [-30.0, -30.0], s2 -10.0 [-10.0, -10.0]"
     assert entries[5] == "0 % of 8"
+    (other_map,) = [line for line in out.splitlines() if line.startswith("| diacc-tau_init2@")]
+    assert other_map.startswith("| diacc-tau_init2@train-25 | -50.0 [-50.0, -50.0] |")
     bad = subprocess.run([*argv[:3], "--against", "mappo"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--against mappo: not a learned column" in bad.stderr
     run.joinpath("progress.jsonl").write_text("{not json\n")

@@ -30,8 +30,17 @@ from diacc.experiments.plots import read_progress
 from diacc.experiments.report import TRAINING_RUN, table_from_results
 from diacc.experiments.results_files import load_episodes
 
-RUN = re.compile(r"^(?P<variant>[a-z-]+)-train-\d+-s(?P<seed>\d+)(?:-(?P<setting>.+))?$")
+RUN = re.compile(r"^(?P<variant>[a-z-]+)-(?P<map>train-\d+)-s(?P<seed>\d+)(?:-(?P<setting>.+))?$")
 BASELINES = ("pure-hdv", "same-mix", "cooperative", "heuristic")
+#: The study's training map: its runs' columns carry no map name, others' do.
+MAIN_MAP = "train-50"
+
+
+def column_name(match: re.Match) -> str:
+    """A run's learned column: its variant and study setting, and its map where that is
+    not the study's main one (the runs of both reductions are different columns)."""
+    column = "-".join(filter(None, (match["variant"], match["setting"])))
+    return column if match["map"] == MAIN_MAP else f"{column}@{match['map']}"
 
 
 def columns(eval_dir: Path) -> tuple[list, dict[str, list[str]]]:
@@ -43,7 +52,7 @@ def columns(eval_dir: Path) -> tuple[list, dict[str, list[str]]]:
     for run_dir in sorted(p for p in eval_dir.iterdir() if RUN.match(p.name)):
         match = RUN.match(run_dir.name)
         meta, rows = load_episodes(run_dir)
-        variant = "-".join(filter(None, (match["variant"], match["setting"])))
+        variant = column_name(match)
         seed = match["seed"]
         seeds.setdefault(variant, []).append(seed)
         run = len(seeds[variant]) - 1
@@ -68,7 +77,7 @@ def training_delays(runs_dir: Path, last_steps: int) -> dict[str, list[str]]:
             continue
         steps, delay = series  # (T,), (T,)
         last = delay[steps > steps.max() - last_steps]
-        column = "-".join(filter(None, (match["variant"], match["setting"])))
+        column = column_name(match)
         reached = f"{steps.max() / 1000:,.0f}k"  # a run still training shows how far it is
         delays.setdefault(column, []).append(f"s{match['seed']} {last.mean():.1f} @ {reached}")
     return delays
@@ -115,6 +124,8 @@ def main() -> None:
             print("| column | " + " | ".join(heads) + " |")
             print("|---" * (len(heads) + 1) + "|")
             for variant, its_seeds in seeds.items():
+                if (cell.key, "collision", variant) not in table.stats:
+                    continue  # a run of the other map's column, not played here
                 entries = []
                 for other in against:
                     table.paired_against = other
