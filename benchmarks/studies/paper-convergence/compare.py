@@ -83,12 +83,13 @@ def training_delays(runs_dir: Path, last_steps: int) -> dict[str, list[str]]:
     return delays
 
 
-def interval(change) -> str:
+def interval(change, unit: str = "") -> str:
+    """``-12.3 [-15.0, -9.1]``, marked ``≈`` where the interval holds 0; "—" for none."""
     if change is None:
         return "—"
     mark = "" if change.measurable else "≈ "
     low, point, high = (round(x, 1) + 0.0 for x in (change.low, change.change, change.high))
-    return f"{mark}{point:+.1f} [{low:+.1f}, {high:+.1f}]"  # + 0.0: no "-0.0"
+    return f"{mark}{point:+.1f}{unit} [{low:+.1f}, {high:+.1f}]"  # + 0.0: no "-0.0"
 
 
 def main() -> None:

@@ -32,7 +32,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from compare import BASELINES, RUN, column_name  # beside this script
+from compare import BASELINES, RUN, column_name, interval  # beside this script
 
 from diacc.errors import DiaccError
 from diacc.experiments.grid import Cell
@@ -92,14 +92,6 @@ def per_episode(samples: dict[tuple[int, int], np.ndarray], low_mps: float):
         EpisodeValues(seed, medians, np.ones_like(counts), run),
         EpisodeValues(seed, low, counts, run),
     )
-
-
-def interval(change, unit: str) -> str:
-    if change is None:
-        return "—"
-    mark = "" if change.measurable else "≈ "
-    low, point, high = (round(x, 1) + 0.0 for x in (change.low, change.change, change.high))
-    return f"{mark}{point:+.1f}{unit} [{low:+.1f}, {high:+.1f}]"
 
 
 def main() -> None:
