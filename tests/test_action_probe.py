@@ -31,3 +31,18 @@ def test_an_unknown_run_is_one_line():
     out = subprocess.run(command, capture_output=True, text=True)
     assert out.returncode == 1 and out.stderr.startswith("action_probe.py: error: unknown policy")
     assert "Traceback" not in out.stderr
+
+
+CRASH_PROBE = SCRIPT.with_name("crash_probe.py")
+
+
+def test_crash_probe_names_each_colliding_pair_with_its_speeds_before():
+    """Always accelerating without PSAR rear-ends a slower vehicle: the line gives both
+    vehicles' speeds a step before the crash (the crash itself sets them to 0)."""
+    command = [sys.executable, str(CRASH_PROBE), "accelerate-nopsar", "1"]
+    lines = subprocess.run(command, capture_output=True, text=True, check=True).stdout.splitlines()
+    assert lines and all(line.startswith("episode 0, step ") for line in lines)
+    assert all(line.count("m/s a step before") == 2 for line in lines)
+    assert "25.0 m/s a step before" in lines[0]  # the CAV at its top speed
+    bad = subprocess.run([*command[:2], "/no/such/run"], capture_output=True, text=True)
+    assert bad.returncode == 1 and bad.stderr.startswith("crash_probe.py: error: unknown policy")
