@@ -80,15 +80,18 @@ def test_a_column_pooling_runs_pairs_every_run_and_resamples_the_runs():
     )
 
 
-def _results(path: Path, policy: str, delays: list[float], p_sce: list[float]) -> Path:
+def _results(
+    path: Path, policy: str, delays: list[float], p_sce: list[float], maps=("train-50",)
+) -> Path:
     path.mkdir(parents=True)
     (path / "meta.json").write_text(json.dumps({"policy": policy, "backend": "highway"}))
     with open(path / "episodes.csv", "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(COLUMNS)
-        for ep, (delay, sce) in enumerate(zip(delays, p_sce, strict=True)):
-            row = [policy, "highway", "realistic", "train-50", 25, 0.4, "D1", "test", ep]
-            writer.writerow([*row, 1000 + 2 * ep + 1, 20.0, 1.0, 100, 0.0, sce, delay, 0])
+        for map_name in maps:
+            for ep, (delay, sce) in enumerate(zip(delays, p_sce, strict=True)):
+                row = [policy, "highway", "realistic", map_name, 25, 0.4, "D1", "test", ep]
+                writer.writerow([*row, 1000 + 2 * ep + 1, 20.0, 1.0, 100, 0.0, sce, delay, 0])
     return path
 
 
@@ -222,3 +225,29 @@ def test_study_compare_script_pools_seeds_per_setting(tmp_path):
     broken = subprocess.run(argv, capture_output=True, text=True)
     assert broken.returncode == 1 and broken.stderr.startswith("compare.py: error: ")
     assert "Traceback" not in broken.stderr
+
+
+def test_compare_script_pairs_each_map_with_its_own_mappo_iadm(tmp_path):
+    """Without --against, compare.py pairs every column with the mappo-iadm column of each
+    map; a column of the other map, which never played the cell, shows "—"."""
+    import subprocess
+    import sys
+
+    traffic = [10.0, 14.0, 12.0, 16.0]
+    plays = {"diacc-train-25-s1": 0.6, "mappo-iadm-train-25-s1": 0.8}
+    both = ("train-25", "train-50")
+    for name in ("pure-hdv", "same-mix", "cooperative", "heuristic"):
+        _results(tmp_path / "eval/highway" / name, name, traffic, [0.1] * 4, both)
+    for policy, share in plays.items():
+        delays = [share * d for d in traffic]
+        _results(tmp_path / "eval/highway" / policy, policy, delays, [0.1] * 4, ("train-25",))
+    _results(tmp_path / "eval/highway/mappo-iadm-train-50-s1", "mappo-iadm", traffic, [0.1] * 4)
+    script = Path(__file__).parents[1] / "benchmarks/studies/paper-convergence/compare.py"
+    out = subprocess.run(
+        [sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, check=True
+    ).stdout
+    assert "| vs same-mix | vs heuristic | vs mappo-iadm@train-25 | vs mappo-iadm |" in out
+    (row,) = [line for line in out.splitlines() if line.startswith("| diacc@train-25 |")]
+    entries = [e.strip() for e in row.strip("|").split("|")]
+    assert entries[1:3] == ["-40.0 [-40.0, -40.0]"] * 2  # vs same-mix and the heuristic
+    assert entries[3:5] == ["-25.0 [-25.0, -25.0]", "—"]  # 0.6 of 0.8; train-50's never met

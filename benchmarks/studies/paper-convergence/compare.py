@@ -9,12 +9,12 @@ a study's ``results/paper-congestion-study-tau``). A learned column is a
 variant, or a variant and its study setting (``diacc-tau_init2-tau_final0.05``),
 pooling its seeds. For every backend and evaluated cell it prints one Markdown
 table: each learned column's change of the mean of ``--metric`` (a table row key)
-against ``same-mix``, ``heuristic`` and the ``--against`` columns (default
-``mappo-iadm`` where there is one), with the 95 % paired bootstrap interval
-(seeds pooled, seeds and episodes resampled: ``diacc/experiments/paired.py``),
-then the change against same-mix of each seed alone, and the share of episodes
-that end in a collision (where it is 100 %, the episodes end early and their
-delay means nothing). First, each run's training delay per vehicle over its last
+against ``same-mix``, ``heuristic`` and the ``--against`` columns (default: the
+``mappo-iadm`` column of each map, ``—`` on the other map's cells), with the 95 %
+paired bootstrap interval (seeds pooled, seeds and episodes resampled:
+``diacc/experiments/paired.py``), then the change against same-mix of each seed alone,
+and the share of episodes that end in a collision (where it is 100 %, the episodes end
+early and their delay means nothing). First, each run's training delay per vehicle over its last
 ``--last-steps`` env steps (sampled actions, from ``runs/*/progress.jsonl``). The
 numbers of docs/results/paper-convergence.md come from it.
 """
@@ -113,7 +113,7 @@ def main() -> None:
     for backend_dir in sorted(evaluated.iterdir()) if evaluated.is_dir() else []:
         loaded, seeds = columns(backend_dir)
         table = table_from_results(loaded, rows=(metric, "collision"))
-        others = args.against or [c for c in ("mappo-iadm",) if c in seeds]
+        others = args.against or [c for c in seeds if c.split("@")[0] == "mappo-iadm"]
         unknown = [c for c in others if c not in seeds]
         if unknown:
             parser.error(f"--against {unknown[0]}: not a learned column of {backend_dir}")
@@ -129,6 +129,9 @@ def main() -> None:
                     continue  # a run of the other map's column, not played here
                 entries = []
                 for other in against:
+                    if (cell.key, "collision", other) not in table.stats:
+                        entries.append("—")  # the other map's column: it never played here
+                        continue
                     table.paired_against = other
                     entries.append(interval(table.paired(cell, metric, variant)))
                 table.paired_against = "same-mix"
