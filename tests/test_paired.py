@@ -251,3 +251,6 @@ def test_compare_script_pairs_each_map_with_its_own_mappo_iadm(tmp_path):
     entries = [e.strip() for e in row.strip("|").split("|")]
     assert entries[1:3] == ["-40.0 [-40.0, -40.0]"] * 2  # vs same-mix and the heuristic
     assert entries[3:5] == ["-25.0 [-25.0, -25.0]", "—"]  # 0.6 of 0.8; train-50's never met
+    argv = [sys.executable, str(script), str(tmp_path), "--against", "pure-hdv"]
+    out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
+    assert "| vs same-mix | vs heuristic | vs pure-hdv | vs same-mix, per seed |" in out

@@ -10,8 +10,9 @@ variant, or a variant and its study setting (``diacc-tau_init2-tau_final0.05``),
 pooling its seeds. For every backend and evaluated cell it prints one Markdown
 table: each learned column's change of the mean of ``--metric`` (a table row key)
 against ``same-mix``, ``heuristic`` and the ``--against`` columns (default: the
-``mappo-iadm`` column of each map, ``—`` on the other map's cells), with the 95 %
-paired bootstrap interval (seeds pooled, seeds and episodes resampled:
+``mappo-iadm`` column of each map, ``—`` on the other map's cells; a baseline such as
+``pure-hdv`` too), with the 95 % paired bootstrap interval (seeds pooled, seeds and
+episodes resampled:
 ``diacc/experiments/paired.py``), then the change against same-mix of each seed alone,
 and the share of episodes that end in a collision (where it is 100 %, the episodes end
 early and their delay means nothing). First, each run's training delay per vehicle over its last
@@ -114,10 +115,10 @@ def main() -> None:
         loaded, seeds = columns(backend_dir)
         table = table_from_results(loaded, rows=(metric, "collision"))
         others = args.against or [c for c in seeds if c.split("@")[0] == "mappo-iadm"]
-        unknown = [c for c in others if c not in seeds]
+        unknown = [c for c in others if c not in seeds and c not in BASELINES]
         if unknown:
             parser.error(f"--against {unknown[0]}: not a learned column of {backend_dir}")
-        against = ["same-mix", "heuristic", *others]
+        against = list(dict.fromkeys(["same-mix", "heuristic", *others]))
         print(f"## {backend_dir.name}: {metric}, change of the mean in % (pp for shares)\n")
         for cell in sorted(table.cells, key=lambda c: not c.map.startswith("train")):
             print(f"**{cell.key}**\n")
