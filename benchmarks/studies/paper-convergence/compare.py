@@ -4,20 +4,19 @@ per seed.
     python benchmarks/studies/paper-convergence/compare.py RESULTS_DIR \
         [--metric delay] [--against COLUMN ...]
 
-``RESULTS_DIR`` is a ``diacc reproduce`` output (``results/paper-congestion``, or
-a study's ``results/paper-congestion-study-tau``). A learned column is a
-variant, or a variant and its study setting (``diacc-tau_init2-tau_final0.05``),
-pooling its seeds. For every backend and evaluated cell it prints one Markdown
-table: each learned column's change of the mean of ``--metric`` (a table row key)
-against ``same-mix``, ``heuristic`` and the ``--against`` columns (default: the
-``mappo-iadm`` column of each map, ``—`` on the other map's cells; a baseline such as
-``pure-hdv`` too), with the 95 % paired bootstrap interval (seeds pooled, seeds and
-episodes resampled:
+``RESULTS_DIR`` is a ``diacc reproduce`` output (``results/paper-congestion``, or a
+study's ``results/paper-congestion-study-tau``). A learned column is a variant, or a
+variant and its study setting (``diacc-tau_init2-tau_final0.05``), pooling its seeds.
+For every backend and evaluated cell it prints one Markdown table: each learned column's
+change of the mean of ``--metric`` (a table row key) against ``same-mix``, ``heuristic``
+and the ``--against`` columns (default: the ``mappo-iadm`` column of each map, ``—`` on
+the other map's cells; a baseline such as ``pure-hdv`` too), with the 95 % paired
+bootstrap interval (seeds pooled, seeds and episodes resampled:
 ``diacc/experiments/paired.py``), then the change against same-mix of each seed alone,
 and the share of episodes that end in a collision (where it is 100 %, the episodes end
-early and their delay means nothing). First, each run's training delay per vehicle over its last
-``--last-steps`` env steps (sampled actions, from ``runs/*/progress.jsonl``). The
-numbers of docs/results/paper-convergence.md come from it.
+early and their delay means nothing). First, each run's training delay per vehicle over
+its last ``--last-steps`` env steps (sampled actions, from ``runs/*/progress.jsonl``).
+The numbers of docs/results/paper-convergence.md come from it.
 """
 
 from __future__ import annotations
