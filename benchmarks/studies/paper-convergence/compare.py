@@ -116,7 +116,7 @@ def main() -> None:
         others = args.against or [c for c in seeds if c.split("@")[0] == "mappo-iadm"]
         unknown = [c for c in others if c not in seeds and c not in BASELINES]
         if unknown:
-            parser.error(f"--against {unknown[0]}: not a learned column of {backend_dir}")
+            parser.error(f"--against {unknown[0]}: not a learned column or baseline here")
         against = list(dict.fromkeys(["same-mix", "heuristic", *others]))
         print(f"## {backend_dir.name}: {metric}, change of the mean in % (pp for shares)\n")
         for cell in sorted(table.cells, key=lambda c: not c.map.startswith("train")):
