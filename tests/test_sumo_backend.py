@@ -358,8 +358,10 @@ def test_benchmark_runs_and_reports_rates():
 #: Updated 2026-12-04 (issue 44): a vehicle on its lane's centre line points along it
 #: (SUMO kept a standing vehicle's lane-change angle); with heading_rad left out of
 #: the hash both recordings were equal (7d93ea0c... ed6169b5...).
+#: Updated 2026-12-06 (issue 57): the commanded CAV's vType asks HDVs cutting in for the
+#: gap the highway backend asks (``vtypes.cut_in_gap_terms``); cooperative unchanged.
 PINNED_DIGESTS = {
-    "SUMO 1.28.0": "c87bb4e0ce6f9c879283b0627d543a29c69caccc6173c0d132743f07007245d2 "
+    "SUMO 1.28.0": "1333ea6fc2c55f9bdbf92d28f94963e17b1bb8b4abada4ba059610be570e3ddd "
     "30d9f578d444a3d07a17d42105bcec00cc2409e03b1f92dd30a0762f2aefc481",
 }
 

@@ -22,6 +22,7 @@ from diacc.envs.actions import (
 )
 from diacc.envs.psar.result import CANCEL_LC, DECEL_LC, rule_bit
 from diacc.envs.psar.scene import Cavs, Margins, Obstacles
+from diacc.envs.safety import PairKinematics
 from diacc.sim.kinematics import nan_to_num
 from diacc.sim.maps import Map
 from diacc.sim.state import take
@@ -56,9 +57,15 @@ def check_lane_changes(
     """
     cancel_front, b_lc_mps2 = _check_front(cavs, a, is_lc, near, horizon, cfg)
     still_lc = is_lc & ~cancel_front
-    cancel_rear = _check_rear(still_lc, near, b_lc_mps2, horizon, cfg)
+    cancel_rear = _check_rear(still_lc, near.tr_vehicle, near.tr_index, b_lc_mps2, horizon, cfg)
     cancel = cancel_front | cancel_rear
     clash = clashes(cavs, ACTION_LANE_OFFSET[a], still_lc & ~cancel_rear, horizon, cfg)
+    # An HDV behind in the lane beyond the target may move into it in the same instant:
+    # the target lane's rear test applies to it too (one of connected CAVs' own checks).
+    clash |= _check_rear(
+        still_lc & ~cancel_rear, near.far_rear_vehicle, near.far_rear_index, b_lc_mps2,
+        horizon, cfg,
+    )  # fmt: skip
     cancel |= clash & cfg.coordinate_lane_changes
     a = np.where(cancel, REMAIN, a)
     b_lc_mps2 = np.where(cancel, 0.0, b_lc_mps2)
@@ -107,21 +114,22 @@ def _check_front(
 
 def _check_rear(
     still_lc: np.ndarray,
-    near: Obstacles,
+    tr: PairKinematics,
+    tr_index: np.ndarray,
     b_lc_mps2: np.ndarray,
     horizon: Margins,
     cfg: PSARConfig,
 ) -> np.ndarray:
-    """(..., C) Cancel-LC by the target lane's rear vehicle ``k``.
+    """(..., C) Cancel-LC by the target lane's rear vehicle ``k`` (kinematics ``tr``,
+    index ``tr_index``).
 
     The first test ``|d_long| <= d_LC,min`` is evaluated on the rear bumper gap
     ``-d_long``, so that vehicles already overlapping alongside (gap < 0) also cancel;
     for every non-overlapping pair this equals the paper's ``|d_long|``.
     """
-    tr = near.tr_vehicle
     has_rear = still_lc & tr.valid
     rear_gap_m = -tr.d_long_m  # bumper gap to the rear vehicle (< 0: overlapping)
-    rear_margin_m = horizon.rear_margin_m(near.tr_index)
+    rear_margin_m = horizon.rear_margin_m(tr_index)
     return has_rear & (
         (rear_gap_m <= cfg.d_lc_min_m + rear_margin_m)
         | tr.risk(cfg.d_safe_m, cfg.ttc_safe_s)

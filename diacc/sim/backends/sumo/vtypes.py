@@ -51,24 +51,42 @@ def vtypes_xml(sim: SimConfig) -> str:
     cav = sim.cav
     if sim.cav_mode == "commanded":
         # The commanded CAV's own motion ignores its vType (speedMode 0, laneChangeMode 0):
-        # decel and tau only tell the HDVs' LC2013 which gap a CAV needs behind a
-        # vehicle cutting in, so they are the braking and reaction PSAR plans with
-        # (kinematics.safe_gap_m); the lateral-speed terms let a lane change complete
+        # decel, tau and minGap only tell the HDVs' LC2013 which gap a CAV needs behind
+        # a vehicle cutting in; the lateral-speed terms let a lane change complete
         # within the step even from standstill, as on the highway backend.
         model = (
             f'carFollowModel="IDM" delta="{sim.idm_delta}" laneChangeModel="LC2013" '
             'lcMaxSpeedLatStanding="100" lcMaxSpeedLatFactor="100"'
         )
-        decel_mps2, tau_s = cav.safe_decel_mps2, sim.step_s
+        decel_mps2, tau_s, min_gap_m = cav.safe_decel_mps2, *cut_in_gap_terms(sim)
     else:
         model = 'carFollowModel="CACC" laneChangeModel="LC2013" lcCooperative="1"'
-        decel_mps2, tau_s = cav.decel_mps2, cav.time_headway_s
+        decel_mps2, tau_s, min_gap_m = cav.decel_mps2, cav.time_headway_s, cav.min_gap_m
     rows.append(
         f'    <vType id={quoteattr(CAV_TYPE)} {common} {model} tau="{tau_s}" '
-        f'minGap="{cav.min_gap_m}" accel="{cav.accel_mps2}" decel="{decel_mps2}" '
+        f'minGap="{min_gap_m}" accel="{cav.accel_mps2}" decel="{decel_mps2}" '
         f'emergencyDecel="{max(cav.decel_mps2, 9.0)}" color="0,160,255"/>'
     )
     return "<additional>\n" + "\n".join(rows) + "\n</additional>\n"
+
+
+def cut_in_gap_terms(sim: SimConfig) -> tuple[float, float]:
+    """The commanded CAV's ``tau`` and ``minGap``: what LC2013 asks of a gap in front of it.
+
+    LC2013 lets an HDV cut in front of a CAV if the gap is at least
+    ``minGap + v tau + (v^2 - v_l^2) / (2 b)`` at the CAV's *present* speed
+    ``v``. But a commanded CAV may speed up by ``d = speed_change_mps`` over
+    the step before it reacts: the highway backend asks the gap for that
+    target speed (Gipps with one step ``T`` of reaction at ``v + d``,
+    :mod:`diacc.sim.backends.highway.lanes`), which expands to
+    ``min_gap + d T + d^2 / (2 b) + v (T + d / b) + (v^2 - v_l^2) / (2 b)``.
+    So tau = T + d / b and minGap = min_gap + d T + d^2 / (2 b) make SUMO's
+    HDVs leave the same gap. With tau = T alone they cut in front of CAVs that
+    then accelerated and could not stop (issue 57: 1 in about 60 SUMO episodes
+    at 4800 veh/h).
+    """
+    b, d, step_s = sim.cav.safe_decel_mps2, sim.speed_change_mps, sim.step_s
+    return step_s + d / b, sim.cav.min_gap_m + d * step_s + d * d / (2.0 * b)
 
 
 def vtypes_key(sim: SimConfig) -> str:

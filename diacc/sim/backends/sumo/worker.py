@@ -50,6 +50,11 @@ CAV_SPEED_MODE = 0
 #: SUMO's own modes, for a CAV that drives itself (no command this step).
 SUMO_DEFAULT_SPEED_MODE = 31
 SUMO_DEFAULT_LANE_CHANGE_MODE = 1621
+#: laneChangeMode of a CAV in the step it enters (demand): SUMO's own car following,
+#: but no lane change of SUMO's own. A change LC2013 began then (0.8 s long) went on
+#: after the CAV was handed to its commands, unseen by PSAR (the state still showed the
+#: old lane), and put the CAV behind a queue it could not stop for (issue 57).
+ENTERING_LANE_CHANGE_MODE = 0
 #: Lane-change manoeuvre time as a fraction of a decision step: long enough for
 #: a readable heading (SUMO keeps heading 0 for instant changes), short enough
 #: that a change commanded at the start of a step ends within it (base.py).
@@ -163,6 +168,7 @@ class SumoSim:
         self.is_cav = pop.is_cav.copy()
         self.commanded = pop.is_cav & (self.spec.sim.cav_mode == "commanded")  # (V,)
         self.self_driving = np.zeros(n, bool)  # (V,) commanded CAVs now without a command
+        self.entering = np.zeros(n, bool)  # (V,) CAVs that entered in the last step (demand)
         length_m = self.sim.vehicle_length_m
         front_m = pop.x_m + 0.5 * length_m  # (V,) SUMO departPos is the front bumper
         sumo_lane = pop.lane - self.first_lane[0]  # (V,)
@@ -248,7 +254,9 @@ class SumoSim:
             if self.commanded[i] and not self.demand:
                 veh.setSpeedMode(vid, CAV_SPEED_MODE)
                 veh.setLaneChangeMode(vid, CAV_LANE_CHANGE_MODE)
-            self.self_driving[i] = self.commanded[i] and self.demand
+            elif self.commanded[i]:  # keeps its lane until the step after it entered
+                veh.setLaneChangeMode(vid, ENTERING_LANE_CHANGE_MODE)
+            self.self_driving[i] = self.entering[i] = self.commanded[i] and self.demand
 
     def _command(self, lane_change: np.ndarray, speed_change_mps: np.ndarray) -> None:
         """Send each active commanded CAV its step's speed, and its lane change if any.
@@ -263,6 +271,9 @@ class SumoSim:
         for i in np.flatnonzero(free & ~self.self_driving).tolist():
             veh.setSpeedMode(self.ids[i], SUMO_DEFAULT_SPEED_MODE)
             veh.setLaneChangeMode(self.ids[i], SUMO_DEFAULT_LANE_CHANGE_MODE)
+        for i in np.flatnonzero(free & self.entering & st.active).tolist():  # no slot for it
+            veh.setLaneChangeMode(self.ids[i], SUMO_DEFAULT_LANE_CHANGE_MODE)
+        self.entering[:] = False
         for i in np.flatnonzero(~free & self.self_driving & st.active).tolist():
             veh.setSpeedMode(self.ids[i], CAV_SPEED_MODE)
             veh.setLaneChangeMode(self.ids[i], CAV_LANE_CHANGE_MODE)
