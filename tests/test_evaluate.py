@@ -362,12 +362,21 @@ def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_p
         run(PolicySpec("heuristic"), old, psar_horizon="stopping", stream="legacy")
     with pytest.raises(EvaluationError, match="other 'settings'"):  # it ran on legacy seeds
         run(PolicySpec("heuristic"), old, psar_horizon="stopping", psar_full_brake="bound")
+    with pytest.raises(EvaluationError, match="other 'settings'"):  # it ended at collisions
+        run(
+            PolicySpec("heuristic"),
+            old,
+            psar_horizon="stopping",
+            psar_full_brake="bound",
+            stream="legacy",
+        )
     run(
         PolicySpec("heuristic"),
         old,
         psar_horizon="stopping",
         psar_full_brake="bound",
         stream="legacy",
+        on_collision="end",
     )
     settings = json.loads((old / "meta.json").read_text())["settings"]
     assert (settings["psar_horizon"], settings["psar_full_brake"]) == ("stopping", "bound")
@@ -376,7 +385,7 @@ def test_results_of_the_old_default_horizon_get_no_episodes_of_the_new_one(tmp_p
     old_ckpt.mkdir()
     meta = {**meta, "policy": "diacc", "checkpoint": str(ckpt.resolve())}
     (old_ckpt / "meta.json").write_text(json.dumps(meta))
-    run(PolicySpec(str(ckpt)), old_ckpt, stream="legacy")
+    run(PolicySpec(str(ckpt)), old_ckpt, stream="legacy", on_collision="end")
     settings = json.loads((old_ckpt / "meta.json").read_text())["settings"]
     assert (settings["psar_horizon"], settings["psar_full_brake"]) == ("headway", "known")
 

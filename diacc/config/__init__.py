@@ -90,6 +90,7 @@ from diacc.sim.settings import (  # noqa: F401
     BATCHED_BACKENDS,
     CAV_MODES,
     HIGHWAY_MERGES,
+    ON_COLLISION,
     CavParams,
     SimConfig,
 )

@@ -12,7 +12,8 @@ in one :meth:`EnvBatch.step`:
 4. observations (:class:`~diacc.envs.observation.ObservationBuilder` over the
    batch), the reward terms that need no temperature
    (:func:`~diacc.envs.reward.reward_terms`), the safety events the metrics
-   count, and each episode's end: a collision or every vehicle gone
+   count, and each episode's end: a collision (unless ``SimConfig.on_collision``
+   removes the vehicles that collided and goes on) or every vehicle gone
    (terminated), or ``episode_steps`` (truncated).
 
 Everything that plays diacc is a thin adapter over it: the PettingZoo
@@ -185,6 +186,7 @@ class EpisodeState:
     unserved_cavs: np.ndarray  # (E,) int64 CAVs on the road without a slot
     action_memory: np.ndarray  # (E, C, 2) int64 proposed and refined action of the last step
     last_refined: np.ndarray  # (E, V) int64 refined action each vehicle executed last
+    wrecked: np.ndarray  # (E, V) bool collided this episode (``on_collision = "remove"``)
 
     @classmethod
     def start(cls, traffic: TrafficState, n_slots: int) -> EpisodeState:
@@ -201,6 +203,7 @@ class EpisodeState:
             unserved_cavs=np.zeros(n_envs, np.int64),
             action_memory=np.zeros((n_envs, n_slots, 2), np.int64),
             last_refined=np.zeros((n_envs, n_vehicles), np.int64),
+            wrecked=np.zeros((n_envs, n_vehicles), bool),
         )
 
 
@@ -250,6 +253,7 @@ class EnvBatch:
             st.last_vehicle[rows] = -1
             st.action_memory[rows] = 0
             st.last_refined[rows] = 0
+            st.wrecked[rows] = False
             self.builder.reset_rows(rows, st.traffic)
         self._fill_slots(rows)
 
@@ -270,7 +274,11 @@ class EnvBatch:
         terms = reward_terms(traffic, st.cav_index, self.road, cfg.reward)
         collided = np.zeros(self.n_envs, bool)
         collided[traffic.collisions[:, 0]] = True
-        terminated = collided | traffic.arrived.all(axis=-1)
+        if traffic.collisions.shape[0]:
+            st.wrecked |= traffic.collided
+        if cfg.sim.on_collision == "remove":  # the wrecks leave the road; the others go on
+            collided[:] = False
+        terminated = collided | (traffic.arrived | st.wrecked).all(axis=-1)
         return Transition(
             actor_obs=actor,
             critic_state=critic,

@@ -193,7 +193,7 @@ class VectorEnv:
             final_actors[row] = unstack(out.actor_obs, row, copy=True)
             episodes[row] = {
                 "length": int(batch.state.steps[row]),
-                "collision": float((out.state.collisions[:, 0] == row).any()),
+                "collision": float(batch.state.wrecked[row].any()),  # anywhere in it
                 **recorder.summary(row).as_dict(),
             }
         actor, critic = out.actor_obs, out.critic_state

@@ -16,6 +16,7 @@ from diacc.config import (
     HIGHWAY_MERGES,
     HORIZON_MODES,
     MAX_EPISODE_STEPS,
+    ON_COLLISION,
     STYLE_PRESETS,
     PSARConfig,
     SimConfig,
@@ -52,6 +53,11 @@ class EvalSettings:
     #: finds them all taken drives itself) or ``every`` CAV a slot
     #: (:meth:`~diacc.sim.scenario.Demand.with_a_slot_per_cav`). Releases slot every CAV.
     agent_slots: str = one_of("own", AGENT_SLOTS)
+    #: What a collision does (:data:`~diacc.config.ON_COLLISION`): evaluation ``remove``\ s
+    #: the vehicles that collided and runs on to ``episode_steps``, so that a crash never
+    #: shortens the episode its delay and throughput average over; ``end`` is training's
+    #: rule (and every result recorded before 2026-12-06).
+    on_collision: str = one_of("remove", ON_COLLISION)
     #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
     #: ``validation`` to choose on, ``test`` to report.
     stream: str = one_of(DEFAULT_STREAM, SEED_STREAMS)
@@ -67,7 +73,7 @@ class EvalSettings:
             changes["style_preset"] = self.style_preset
         if self.highway_merges is not None:
             changes["highway_merges"] = self.highway_merges
-        return dataclasses.replace(sim, **changes)
+        return dataclasses.replace(sim, on_collision=self.on_collision, **changes)
 
     def apply_psar(self, psar: PSARConfig) -> PSARConfig:
         changes = {"horizon": self.psar_horizon, "full_brake": self.psar_full_brake}
@@ -88,4 +94,5 @@ class EvalSettings:
             settings["highway_merges"] = self.highway_merges
         if self.agent_slots != "own":
             settings["agent_slots"] = self.agent_slots
+        settings["on_collision"] = self.on_collision
         return {"backend": self.backend, "settings": settings}

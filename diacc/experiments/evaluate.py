@@ -123,7 +123,7 @@ def run_episode(driver: EpisodeDriver, cell: Cell, episode: int, stream: str) ->
         "n_cavs": driver.cfg.scenario.n_cavs,
         "psar": driver.cfg.psar_enabled,
         "steps": driver.steps,
-        "collision": int(len(driver.state.collisions) > 0),
+        "collision": int(driver.env.batch.state.wrecked.any()),  # anywhere, warm-up too
         "mean_speed_mps": metrics.mean_speed_mps,
         "std_speed_mps": metrics.std_speed_mps,
         "n_speed_samples": int(speeds.speed_mps.shape[0]),
@@ -329,11 +329,12 @@ def evaluation_meta(policy, cells: list[Cell], settings: EvalSettings) -> tuple[
     """
     meta = {**policy.describe(), **settings.describe()}
     env = policy.env_config(cells[0], settings)  # every cell shares PSAR and simulation
+    before = {"on_collision": "end"}  # every episode ended at a collision before it was named
     if not env.psar_enabled:
-        return meta, None
+        return meta, before
     in_effect = {"psar_horizon": env.psar.horizon, "psar_full_brake": env.psar.full_brake}
     meta["settings"] = {**meta["settings"], **in_effect}
-    return meta, _psar_before_recorded(policy)
+    return meta, {**before, **_psar_before_recorded(policy)}
 
 
 def meta_conflict(old: dict, meta: dict, before: dict | None) -> str | None:

@@ -33,6 +33,12 @@ CAV_MODES = ("commanded", "cooperative")
 #: 200 m before the end) or ``early`` (from 400 m, with followers yielding sooner), which
 #: passes SUMO's pure-HDV outflow in oversaturation within 10 % (docs/concepts/scenarios.md).
 HIGHWAY_MERGES = ("late", "early")
+#: What a collision does (``SimConfig.on_collision``): ``end`` the episode for every
+#: vehicle (the paper's training episodes), or ``remove`` the vehicles that collided at
+#: the end of the step (as SUMO's ``--collision.action remove``; they never arrive) and
+#: run on to the horizon, so that an episode's delay and throughput are never those of
+#: a shorter episode (evaluation's rule; docs/concepts/baselines.md, "Collisions").
+ON_COLLISION = ("end", "remove")
 
 
 @dataclass(frozen=True)
@@ -82,6 +88,7 @@ class SimConfig:
     cav_mode: str = one_of("commanded", CAV_MODES)
     # highway backend: how human drivers leave an ending lane (SUMO: LC2013's own lookahead)
     highway_merges: str = one_of("late", HIGHWAY_MERGES)
+    on_collision: str = one_of("end", ON_COLLISION)
     cav: CavParams = field(default_factory=CavParams)
 
     def __post_init__(self) -> None:

@@ -49,7 +49,9 @@ Modelling choices (documented here because both backends must agree on them):
 * **Collisions** are oriented-rectangle overlaps between active vehicles at
   any sub-step. A pair is reported in the step its contact begins. Collided
   vehicles stop where they are and stay on the road as obstacles (as in
-  highway-env); the environment ends the episode anyway.
+  highway-env) for the rest of the step; then the environment ends the episode
+  or, with ``SimConfig.on_collision = "remove"``, they leave the road
+  (inactive, never arrived) and the episode goes on.
 * **Arrival**: a vehicle whose centre passes ``Map.length_m`` becomes
   inactive and is listed in ``arrivals`` of that step.
 * **Departure** (``demand`` scenarios): a pending vehicle enters at its
@@ -76,7 +78,7 @@ from diacc.sim.backends.highway.simstate import HighwayCaches, HighwayParams, Hi
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario, draw_population
 from diacc.sim.settings import SimConfig
-from diacc.sim.state import TrafficState
+from diacc.sim.state import TrafficState, take_last
 
 __all__ = ["CooperativeCavParams", "HighwayBackend"]
 
@@ -214,11 +216,29 @@ class HighwayBackend:
             else np.zeros((0, 3), np.int32)
         )  # (K, 3) env, i, j
         contacts[:, 1:] += lo
+        if self.sim.on_collision == "remove" and contacts.shape[0]:
+            self._remove(contacts)
         arrivals = np.argwhere(new_arrivals).astype(np.int32).reshape(-1, 2)  # (A, 2) env, i
         return traffic_state(self, None, accel, contacts, arrivals)
 
     def close(self) -> None:
         """Nothing to release: the simulation is arrays in this process."""
+
+    def _remove(self, contacts: np.ndarray) -> None:
+        """Take the vehicles of ``contacts`` (K, 3) rows (env, i, j) off the road: inactive,
+        not arrived, standing (``crashed``) where they collided (``on_collision = "remove"``)."""
+        state = self.state
+        hit = np.zeros(state.active.shape, bool)  # (E, V)
+        hit[contacts[:, 0], contacts[:, 1]] = True
+        hit[contacts[:, 0], contacts[:, 2]] = True
+        state.active &= ~hit
+        state.crashed |= hit
+        state.speed_mps = np.where(hit, 0.0, state.speed_mps)
+        state.lat_speed_mps = np.where(hit, 0.0, state.lat_speed_mps)
+        yields_to_hit = (state.yield_to >= 0) & take_last(hit, np.maximum(state.yield_to, 0))
+        state.yield_to = np.where(yields_to_hit, -1, state.yield_to)
+        self.caches.leaders_dirty |= hit.any(axis=1)
+        refresh_speed_bounds(self)
 
     def _step_vehicles(self, lane_cmd: np.ndarray, dv_cmd: np.ndarray) -> np.ndarray:
         """The sub-steps of a decision step for the vehicles of :attr:`state` (all of them,
@@ -258,8 +278,10 @@ class HighwayBackend:
         if not self.windowed or n < self.window_min_vehicles:
             return 0, n
         step_end_s = state.time_s[:, None] + self.sim.step_s + 1e-9  # (E, 1)
-        settled = (state.arrived & (state.heading_rad == 0.0) & (state.yield_to < 0)) | (
-            state.pending & (self.params.depart_s > step_end_s)
+        settled = (
+            (state.arrived & (state.heading_rad == 0.0) & (state.yield_to < 0))
+            | (state.pending & (self.params.depart_s > step_end_s))
+            | (state.crashed & ~state.active & ~state.pending)  # removed after a collision
         )  # (E, V)
         live = ~settled.all(axis=0)  # (V,)
         if not live.any():

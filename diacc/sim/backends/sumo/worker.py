@@ -169,6 +169,7 @@ class SumoSim:
         self.commanded = pop.is_cav & (self.spec.sim.cav_mode == "commanded")  # (V,)
         self.self_driving = np.zeros(n, bool)  # (V,) commanded CAVs now without a command
         self.entering = np.zeros(n, bool)  # (V,) CAVs that entered in the last step (demand)
+        self.removed = np.zeros(n, bool)  # (V,) taken off the road after a collision
         length_m = self.sim.vehicle_length_m
         front_m = pop.x_m + 0.5 * length_m  # (V,) SUMO departPos is the front bumper
         sumo_lane = pop.lane - self.first_lane[0]  # (V,)
@@ -237,12 +238,23 @@ class SumoSim:
                 pairs.add((min(a, b), max(a, b)))
         rows = [(0, a, b) for a, b in sorted(pairs)]  # (env 0, i, j)
         st.collisions = np.array(rows, np.int32).reshape(-1, 3)
+        if self.sim.on_collision == "remove":
+            self._remove(sorted({i for pair in pairs for i in pair}))
         prev_speed = st.speed_mps.copy()
         st.step += 1
         st.time_s = st.step * self.sim.step_s
         self._read_state()
         st.accel_mps2 = np.where(st.active, (st.speed_mps - prev_speed) / self.sim.step_s, 0.0)
         return st
+
+    def _remove(self, crashed: list[int]) -> None:
+        """Take the vehicles that collided this step off the road (``on_collision =
+        "remove"``): gone, never arrived (:meth:`_read_state` tells them apart)."""
+        for i in crashed:
+            if not self.removed[i]:
+                self.ls.vehicle.unsubscribe(self.ids[i])  # else the next step fails on it
+                self.ls.vehicle.remove(self.ids[i])
+                self.removed[i] = True
 
     def _subscribe(self, vids) -> None:
         """Subscribe vehicles that just entered. A release's CAVs are handed to the
@@ -312,12 +324,17 @@ class SumoSim:
         """Copy every active vehicle's subscribed variables into the state arrays.
 
         Vehicles leave the road only at the route end (no teleports, collisions
-        only warn), and a vehicle's subscription ends when it leaves: so the
-        active vehicles missing from the results are this step's arrivals,
+        only warn) or when :meth:`_remove` takes them off, and a vehicle's
+        subscription ends when it leaves: so the active vehicles missing from the
+        results, and not removed, are this step's arrivals,
         without asking SUMO for its arrived list after every substep.
         """
         st = self._rows()  # views: writes go to the state
-        results = self.ls.vehicle.getAllSubscriptionResults()  # {id: {var: value}}
+        results = {  # {id: {var: value}}; a removed vehicle's last results may linger
+            vid: r
+            for vid, r in self.ls.vehicle.getAllSubscriptionResults().items()
+            if not self.removed[self.index[vid]]
+        }
         lane_id, pos, lat, speed, angle = self.state_vars
         index, lane_at = self.index, self.lane_at
         try:
@@ -334,7 +351,7 @@ class SumoSim:
         idx = data[:, 0].astype(np.int64)
         present = np.zeros(st.n_vehicles, bool)
         present[idx] = True
-        arrivals = np.flatnonzero(st.active & ~present).astype(np.int32)  # (A,)
+        arrivals = np.flatnonzero(st.active & ~present & ~self.removed).astype(np.int32)  # (A,)
         self.state.arrivals = np.stack([np.zeros_like(arrivals), arrivals], axis=1)
         st.arrived[arrivals] = True
         st.active[:] = present  # pending vehicles (demand) become active when they depart
