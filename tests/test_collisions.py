@@ -1,0 +1,140 @@
+"""Collisions: what removes their causes on the demand road, and metrics they cannot flatter
+(issue 57; docs/concepts/baselines.md, "Collisions")."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from helpers import make_state
+
+import diacc.sim.backends.sumo.worker as sumo_worker
+from diacc.config import PSARConfig, SimConfig
+from diacc.envs.actions import LANE_RIGHT, REMAIN
+from diacc.envs.episode import EpisodeDriver, play_episode
+from diacc.envs.psar import CANCEL_LC, psar
+from diacc.experiments.evalsettings import EvalSettings
+from diacc.experiments.grid import Cell
+from diacc.experiments.policies import build_policy, parse_policy
+from diacc.sim.backends.sumo.backend import SumoBackend
+from diacc.sim.backends.sumo.vtypes import cut_in_gap_terms
+from diacc.sim.kinematics import safe_gap_m
+from diacc.sim.maps import load_map
+from diacc.sim.scenario import Scenario, draw_population
+
+ROAD = load_map("train-25")
+RELEASE = Cell(map="train-50", n_vehicles=25, cav_penetration=0.4, style_mix="D1")
+
+
+# ------------------------------------------------------------------ PSAR: the lane beyond
+def _right_from_lane_2(hdv_x_m: float, hdv_lane: int, hdv_speed_mps: float, **cfg):
+    """PSAR for a standing CAV in lane 2 asking to move right, one HDV elsewhere."""
+    state = make_state([100.0, hdv_x_m], [2, hdv_lane], [0.0, hdv_speed_mps], is_cav=[True, False])
+    res = psar(state, np.array([[0]]), np.array([[LANE_RIGHT]]), PSARConfig(**cfg), ROAD)
+    return res.action[0, 0], res.rule[0, 0]  # env 0's only CAV
+
+
+def test_an_hdv_closing_in_two_lanes_over_cancels_the_change():
+    """SUMO, 4800 veh/h: a standing CAV moved right while an HDV at 17 m/s moved left
+    into the same lane 16 m behind it; they collided. The HDV behind in the lane beyond
+    the target is now checked like the target lane's own rear vehicle."""
+    assert _right_from_lane_2(79.0, 0, 16.8) == (REMAIN, CANCEL_LC)
+    # The literal pseudocode (no coordination) does not look there
+    assert _right_from_lane_2(79.0, 0, 16.8, coordinate_lane_changes=False)[0] == LANE_RIGHT
+    # nor does the check when that HDV is far enough back or not closing in
+    assert _right_from_lane_2(-400.0, 0, 16.8)[0] == LANE_RIGHT
+    assert _right_from_lane_2(60.0, 0, 0.0)[0] == LANE_RIGHT
+    # and an HDV in the lane on the other side is no one's rear vehicle here
+    assert _right_from_lane_2(79.0, 3, 16.8)[0] == LANE_RIGHT
+
+
+# ------------------------------------------------------------------ SUMO: the HDVs' gap
+@pytest.mark.parametrize("speed_mps", [0.0, 5.0, 13.9, 25.0, 33.0])
+def test_sumo_hdvs_leave_a_commanded_cav_the_highway_backends_gap(speed_mps):
+    """LC2013's gap in front of a CAV, ``minGap + v tau + v^2 / (2 b)`` at its present
+    speed, equals the highway backend's: the CAV holds its commanded target (up to one
+    ``speed_change_mps`` more) for a step, then brakes at ``safe_decel_mps2``."""
+    sim = SimConfig()
+    tau_s, min_gap_m = cut_in_gap_terms(sim)
+    b = sim.cav.safe_decel_mps2
+    sumo_m = min_gap_m + speed_mps * tau_s + speed_mps**2 / (2 * b)
+    target_mps = speed_mps + sim.speed_change_mps
+    highway_m = sim.cav.min_gap_m + safe_gap_m(target_mps, 0.0, sim.step_s, b)
+    assert sumo_m == pytest.approx(float(highway_m))
+
+
+def _entering_cavs_off_their_lane_centre(monkeypatch, mode: int) -> int:
+    """CAVs of a SUMO demand episode seen, at the end of the step they entered, off their
+    lane's centre line (a lane change of SUMO's own under way), with ``mode`` as the
+    laneChangeMode of that step. No CAV has a command (each drives itself)."""
+    monkeypatch.setattr(sumo_worker, "ENTERING_LANE_CHANGE_MODE", mode)
+    road = load_map("train-50")
+    scenario = Scenario(
+        kind="demand", inflow_vph=4800, demand_s=60, warmup_s=0, cav_penetration=0.4
+    )
+    pop = draw_population(scenario, road, 7)
+    backend = SumoBackend(road, SimConfig(episode_steps=60))
+    sim = sumo_worker.SumoSim(backend._spec)
+    try:
+        state = sim.reset(7, pop)
+        seen = state.active[0].copy()
+        off_centre = 0
+        for _ in range(60):
+            state = sim.step(np.zeros(pop.n_vehicles, np.int16), np.full(pop.n_vehicles, np.nan))
+            new = state.active[0] & ~seen & pop.is_cav
+            drift = state.y_m[0] - road.lane_center_y_m(state.lane[0])
+            off_centre += int(np.count_nonzero(new & (np.abs(drift) > 1e-6)))
+            seen |= state.active[0]
+    finally:
+        sim.close()
+    return off_centre
+
+
+def test_a_cav_entering_on_sumo_keeps_its_lane_until_its_first_command(monkeypatch):
+    """A change LC2013 began in the CAV's entry step went on after PSAR took over, unseen
+    (the state showed the old lane): the CAV ran into the queue of the new lane."""
+    assert (
+        _entering_cavs_off_their_lane_centre(monkeypatch, sumo_worker.SUMO_DEFAULT_LANE_CHANGE_MODE)
+        > 0
+    )
+    assert _entering_cavs_off_their_lane_centre(monkeypatch, 0) == 0
+
+
+# ------------------------------------------------------------------ metrics
+def _episode(backend: str, on_collision: str, steps: int = 60):
+    """One release episode of CAVs that only accelerate, without PSAR (they collide)."""
+    policy = build_policy(parse_policy("accelerate-nopsar"))
+    settings = EvalSettings(backend, episode_steps=steps, on_collision=on_collision)
+    driver = EpisodeDriver(policy, policy.env_config(RELEASE, settings))
+    try:
+        recorder = play_episode(driver, RELEASE.seed(0, "validation"))
+        return driver.steps, recorder.summary(), driver.state, driver.env.batch.state.wrecked[0]
+    finally:
+        driver.close()
+
+
+@pytest.mark.parametrize("backend", ["highway", "sumo"])
+def test_a_crash_runs_on_to_the_horizon_and_cannot_shorten_the_delay(backend):
+    """``remove`` (evaluation's rule): the wrecks leave the road, never arrived, and the
+    episode runs to its horizon; its delay is at least that of the episode cut at the
+    crash, which the cut one understated."""
+    cut_steps, cut, _, _ = _episode(backend, "end")
+    steps, full, state, wrecked = _episode(backend, "remove")
+    assert cut_steps < 60 and cut.n_collisions >= 1
+    assert steps == 60 and full.n_collisions >= cut.n_collisions
+    assert wrecked.any() and not (state.active[0] & wrecked).any()
+    assert not (state.arrived[0] & wrecked).any()
+    assert full.delay_per_vehicle_s > cut.delay_per_vehicle_s
+
+
+def test_evaluation_removes_wrecks_by_default_and_records_it():
+    """Every evaluation names its rule in meta.json; training keeps ``end``."""
+    settings = EvalSettings("highway")
+    assert settings.on_collision == "remove"
+    assert settings.describe()["settings"]["on_collision"] == "remove"
+    assert settings.apply(SimConfig()).on_collision == "remove"
+    assert SimConfig().on_collision == "end"
+    assert (
+        dataclasses.replace(settings, on_collision="end").apply(SimConfig()).on_collision == "end"
+    )
