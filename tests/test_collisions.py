@@ -138,3 +138,27 @@ def test_evaluation_removes_wrecks_by_default_and_records_it():
     assert (
         dataclasses.replace(settings, on_collision="end").apply(SimConfig()).on_collision == "end"
     )
+
+
+def test_the_flow_figure_counts_the_crashed_episodes_it_marks():
+    """The committed demand results before the fix: 4 of 10 SUMO heuristic episodes at
+    4800 veh/h ended in a collision; the figure's point says so."""
+    from diacc.experiments.flowplot import load_flow
+
+    root = "benchmarks/studies/demand-training/results/flow-every-cav/sumo/heuristic"
+    (point,) = [p for p in load_flow([root]) if p.inflow_vph == 4800]
+    assert (point.crashed, point.episodes) == (4, 10)
+    (calm,) = [p for p in load_flow([root]) if p.inflow_vph == 3600]
+    assert calm.crashed == 0
+
+
+def test_a_table_shows_the_collision_row_wherever_an_episode_crashed():
+    from diacc.experiments.report.collect import build_table
+
+    root = "benchmarks/studies/demand-training/results/flow-every-cav/sumo"
+    crashed = build_table([f"{root}/heuristic/q3600", f"{root}/heuristic/q4800"], rows=("delay",))
+    assert crashed.rows == ("delay", "collision")
+    calm = build_table(
+        [f"{root}/heuristic/q3600", f"{root}/release-3to1-s3/q3600"], rows=("delay",)
+    )
+    assert calm.rows == ("delay",)

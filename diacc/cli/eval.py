@@ -17,6 +17,7 @@ from diacc.config import (
     FULL_BRAKE_MODES,
     HIGHWAY_MERGES,
     HORIZON_MODES,
+    ON_COLLISION,
     STYLE_PRESETS,
     ConfigError,
 )
@@ -49,6 +50,7 @@ def _settings(args: argparse.Namespace):
         psar_full_brake=args.psar_full_brake,
         highway_merges=args.highway_merges,
         agent_slots=args.agent_slots,
+        on_collision=args.on_collision,
         stream=args.stream,
     )
 
@@ -115,6 +117,15 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         default="own",
         help="agent slots in a demand cell: the policy's own cav_slots (CAVs beyond them drive "
         "themselves) or every CAV one",
+    )
+    p.add_argument(
+        "--on-collision",
+        choices=ON_COLLISION,
+        default="remove",
+        help="what a collision does: remove the vehicles that collided and run on to the "
+        "episode's end (default: a crash cannot shorten the episode that delay and "
+        "throughput average over) or end the episode (training's rule, and every result "
+        "recorded before 2026-12-06; docs/concepts/baselines.md)",
     )
     p.add_argument(
         "--stream",

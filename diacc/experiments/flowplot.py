@@ -11,7 +11,10 @@ the warm-up) of every policy against the inflow, with a 95 % bootstrap
 interval over episodes, the line outflow = inflow (every vehicle served), and,
 where pure-HDV results are among them, the pure-HDV capacity (its largest mean
 outflow) and its drop at the highest inflow. A second row shows the delay per
-vehicle. ``diacc plot flow DIR ... --out FILE``.
+vehicle. A point with episodes that had a collision is drawn as a red-edged
+cross labelled "k/n crashed" (their delay and outflow are counted to the
+horizon under evaluation's ``on_collision = "remove"``; results made before it
+ended at the crash). ``diacc plot flow DIR ... --out FILE``.
 
 Series are named by the directory above each ``q<inflow>`` folder (or the
 results directory's own name): ``flow/highway/same-mix/q3600`` is ``same-mix``
@@ -47,6 +50,7 @@ class FlowPoint:
     delay_s: float
     delay_low: float
     delay_high: float
+    crashed: int = 0  # episodes with a collision (marked in the figure)
 
 
 def mean_interval(values: np.ndarray) -> tuple[float, float, float]:
@@ -99,11 +103,18 @@ def load_flow(roots: list[str | Path]) -> list[FlowPoint]:
         try:
             outflow = np.array([float(r["throughput_vph"]) for r in rows])
             delay = np.array([float(r["delay_per_vehicle_s"]) for r in rows])
+            crashed = sum(int(float(r.get("collision") or 0) > 0) for r in rows)
         except (KeyError, ValueError) as exc:
             raise PlotError(f"{series} at {inflow:g} veh/h: unusable flow field ({exc})") from None
         points.append(
             FlowPoint(
-                backend, series, inflow, len(rows), *mean_interval(outflow), *mean_interval(delay)
+                backend,
+                series,
+                inflow,
+                len(rows),
+                *mean_interval(outflow),
+                *mean_interval(delay),
+                crashed=crashed,
             )
         )
     return points
@@ -148,7 +159,19 @@ def plot_flow(roots: list[str | Path], out: str | Path) -> tuple[list[Path], lis
                         for p, y_i in zip(line, y, strict=True)
                     ]
                 ).T
-                ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label=series)
+                drawn = ax.errorbar(x, y, yerr=err, marker="o", capsize=3, label=series)
+                for p, y_i in zip(line, y, strict=True):  # a crash is never left unmarked
+                    if p.crashed:
+                        colour = drawn.lines[0].get_color()
+                        ax.plot(p.inflow_vph, y_i, marker="X", ms=11, color=colour, mec="red")
+                        ax.annotate(
+                            f"{p.crashed}/{p.episodes} crashed",
+                            (p.inflow_vph, y_i),
+                            textcoords="offset points",
+                            xytext=(4, -10),
+                            fontsize=7,
+                            color="red",
+                        )
         inflows = sorted({p.inflow_vph for p in mine})
         (served,) = top.plot(
             inflows, inflows, color="grey", lw=0.8, ls=":", label="outflow = inflow"

@@ -114,7 +114,8 @@ def build_table(
     """Collect the statistics of several results directories into one table; changes
     against the ``paired_against`` column carry their interval: the column of a policy
     name (same-mix, heuristic), or of one of ``result_dirs`` (to pair policies that share
-    a name, e.g. two checkpoints)."""
+    a name, e.g. two checkpoints). Where any episode had a collision, the collision row
+    is shown even if ``rows`` leaves it out."""
     _check_options(speed_std, rows)
     if not result_dirs:
         raise EvaluationError("give at least one results directory")
@@ -126,6 +127,10 @@ def build_table(
             f"--paired-against {paired_against}: neither a policy of the results directories "
             f"({', '.join(sorted(policies))}) nor one of the directories"
         )
+    if "collision" not in rows and any(
+        float(row.get("collision") or 0) > 0 for _, _, episodes in loaded for row in episodes
+    ):
+        rows = (*rows, "collision")  # a crash is never left out of a table
     table = table_from_results(loaded, speed_std, rows)
     if by_dir and paired_against not in policies:
         paired_against = table.columns[by_dir[0]]  # the directory's column label
