@@ -49,23 +49,20 @@ def check_lane_changes(
     near: Obstacles,
     horizon: Margins,
     cfg: PSARConfig,
+    step_s: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Lines 2-16 on the lane changes ``is_lc`` of actions ``a`` (..., C).
+    """Lines 2-16 on the lane changes ``is_lc`` of actions ``a`` (..., C), each decided for
+    one decision step of ``step_s``.
 
     Returns (..., C) each: the actions (cancelled changes -> ``remain``), Decel-LC's
     braking ``b_lc`` (m/s^2, 0 where none or cancelled) and the rule mask.
     """
     cancel_front, b_lc_mps2 = _check_front(cavs, a, is_lc, near, horizon, cfg)
     still_lc = is_lc & ~cancel_front
-    cancel_rear = _check_rear(still_lc, near.tr_vehicle, near.tr_index, b_lc_mps2, horizon, cfg)
+    cancel_rear = _check_rear(still_lc, near, b_lc_mps2, horizon, cfg)
     cancel = cancel_front | cancel_rear
     clash = clashes(cavs, ACTION_LANE_OFFSET[a], still_lc & ~cancel_rear, horizon, cfg)
-    # An HDV behind in the lane beyond the target may move into it in the same instant:
-    # the target lane's rear test applies to it too (one of connected CAVs' own checks).
-    clash |= _check_rear(
-        still_lc & ~cancel_rear, near.far_rear_vehicle, near.far_rear_index, b_lc_mps2,
-        horizon, cfg,
-    )  # fmt: skip
+    clash |= _closes_in_from_beyond(still_lc & ~cancel_rear, near.far_rear_vehicle, cfg, step_s)
     cancel |= clash & cfg.coordinate_lane_changes
     a = np.where(cancel, REMAIN, a)
     b_lc_mps2 = np.where(cancel, 0.0, b_lc_mps2)
@@ -114,22 +111,21 @@ def _check_front(
 
 def _check_rear(
     still_lc: np.ndarray,
-    tr: PairKinematics,
-    tr_index: np.ndarray,
+    near: Obstacles,
     b_lc_mps2: np.ndarray,
     horizon: Margins,
     cfg: PSARConfig,
 ) -> np.ndarray:
-    """(..., C) Cancel-LC by the target lane's rear vehicle ``k`` (kinematics ``tr``,
-    index ``tr_index``).
+    """(..., C) Cancel-LC by the target lane's rear vehicle ``k``.
 
     The first test ``|d_long| <= d_LC,min`` is evaluated on the rear bumper gap
     ``-d_long``, so that vehicles already overlapping alongside (gap < 0) also cancel;
     for every non-overlapping pair this equals the paper's ``|d_long|``.
     """
+    tr = near.tr_vehicle
     has_rear = still_lc & tr.valid
     rear_gap_m = -tr.d_long_m  # bumper gap to the rear vehicle (< 0: overlapping)
-    rear_margin_m = horizon.rear_margin_m(tr_index)
+    rear_margin_m = horizon.rear_margin_m(near.tr_index)
     return has_rear & (
         (rear_gap_m <= cfg.d_lc_min_m + rear_margin_m)
         | tr.risk(cfg.d_safe_m, cfg.ttc_safe_s)
@@ -138,6 +134,22 @@ def _check_rear(
             & (b_lc_mps2 != 0.0)
         )
     )
+
+
+def _closes_in_from_beyond(
+    still_lc: np.ndarray, far: PairKinematics, cfg: PSARConfig, step_s: float
+) -> np.ndarray:
+    """(..., C) changes cancelled by the HDV behind in the lane beyond the target (``far``,
+    :func:`~diacc.envs.psar.scene.far_lane_rear_hdv`): one that would close the gap to the
+    CAV within the step, were both to enter the target lane in the same instant.
+
+    Only a change begun in the same step goes unseen: one the human starts later meets
+    the CAV in the target lane and respects it. So the test is the step's closing
+    distance, not the target lane's rear test (the human's whole stopping gap), which
+    held CAVs back so often that SUMO's delay rose by half (docs/concepts/psar.md).
+    """
+    closing_mps = np.maximum(-nan_to_num(far.dv_long_mps), 0.0)  # the HDV behind is faster
+    return still_lc & far.valid & (-far.d_long_m <= cfg.d_lc_min_m + closing_mps * step_s)
 
 
 def clashes(
