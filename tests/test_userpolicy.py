@@ -101,3 +101,45 @@ def test_bad_controllers_are_one_line_errors(user_module, tmp_path, capsys, spec
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and err.startswith("diacc: error:") and err.count("\n") == 1
+
+
+def test_the_example_runs_to_the_end_of_the_road(tmp_path):
+    """CAVs leave the road within 330 steps: the controller must stop seeing them (issue 61)."""
+    grid = tmp_path / "cell.toml"
+    grid.write_text(
+        '[[cells]]\nmap = "train-50"\nn_vehicles = 12\ncav_penetration = 0.5\nstyle_mix = "D1"\n'
+    )
+    argv = ["eval", "--policy", EXAMPLE, "--grid", str(grid), "--episodes", "1"]
+    assert main([*argv, "--episode-steps", "330", "--no-progress", "--out", str(tmp_path)]) == 0
+    rows = read_csv(tmp_path / EPISODES_FILE)
+    assert float(rows[0]["arrived_fraction"]) > 0  # some CAVs did leave the road
+
+
+class _Spy:
+    """Records how many agents it was shown at each step."""
+
+    def __init__(self) -> None:
+        self.shown: list[int] = []
+
+    def act(self, observations):
+        self.shown.append(len(observations))
+        return {agent: ACCELERATE for agent in observations}
+
+
+def test_a_controller_sees_every_cav_of_a_demand_cell():
+    """With a slot per CAV, every CAV on the road is handed to the controller, every step."""
+    cell = Cell("train-50", 0, 0.5, "D1", inflow_vph=1800, demand_s=30)
+    policy = build_policy(PolicySpec(EXAMPLE))
+    spy = _Spy()
+    policy.controller._act = spy.act  # a controller that counts what it is shown
+    settings = EvalSettings(episode_steps=40, agent_slots="every")
+    driver = EpisodeDriver(policy, policy.env_config(cell, settings))
+    on_road = []
+    try:
+        driver.reset(cell.seed(0, "test"))
+        while not driver.done:
+            on_road.append(int(driver._obs.alive.sum()))
+            driver.step()
+    finally:
+        driver.close()
+    assert spy.shown == on_road and max(on_road) > 1
