@@ -22,6 +22,7 @@ from diacc.config import (
 )
 from diacc.experiments.evalsettings import AGENT_SLOTS
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
+from diacc.experiments.userpolicy import DEFAULT_TIMEOUT_S
 from diacc.fileio import OutputPathError, atomic_write, check_output_file
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so
@@ -50,6 +51,7 @@ def _settings(args: argparse.Namespace):
         highway_merges=args.highway_merges,
         agent_slots=args.agent_slots,
         stream=args.stream,
+        controller_timeout_s=args.controller_timeout,
     )
 
 
@@ -115,6 +117,14 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         default="own",
         help="agent slots in a demand cell: the policy's own cav_slots (CAVs beyond them drive "
         "themselves) or every CAV one",
+    )
+    p.add_argument(
+        "--controller-timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        metavar="SECONDS",
+        help="longest one act() or reset() call of your own controller may run before the "
+        "command stops with an error naming cell and step (0: no limit)",
     )
     p.add_argument(
         "--stream",

@@ -21,6 +21,7 @@ from diacc.config import (
     SimConfig,
 )
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
+from diacc.experiments.userpolicy import DEFAULT_TIMEOUT_S
 from diacc.fields import check_fields, one_of, ranged
 
 #: ``EvalSettings.agent_slots``: the policy's own agent slots, or one for every CAV.
@@ -55,6 +56,9 @@ class EvalSettings:
     #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
     #: ``validation`` to choose on, ``test`` to report.
     stream: str = one_of(DEFAULT_STREAM, SEED_STREAMS)
+    #: Longest a user's controller may take in one ``act`` or ``reset`` call (s; 0: no
+    #: limit); changes no result, so ``meta.json`` does not record it.
+    controller_timeout_s: float = ranged(DEFAULT_TIMEOUT_S, 0)
 
     def __post_init__(self) -> None:
         check_fields(self)

@@ -307,6 +307,13 @@ class UserPolicy(Policy):
         self.controller = Controller(spec)
         self._env = None
 
+    def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
+        """As every policy's; also tells the controller the cell its errors name and its
+        time limit (every command asks for a cell's environment before playing it)."""
+        self.controller.cell = cell.key
+        self.controller.timeout_s = settings.controller_timeout_s
+        return super().env_config(cell, settings)
+
     def use_env(self, env) -> None:
         """The environment of the episodes to come (its agents and observation space)."""
         self._env = env
