@@ -376,6 +376,8 @@ class CheckpointPolicy(Policy):
         from diacc.learn.models.inputs import to_tensors
 
         n_cavs = actor_obs.alive.shape[0]
+        if n_cavs == 0:  # a cell without CAVs (rho = 0): the networks take no empty batch
+            return np.zeros(0, np.int64)
         start = torch.as_tensor(np.broadcast_to(first_step, (n_cavs,)).copy())  # (C,) bool
         with torch.no_grad():
             obs = to_tensors(actor_obs)

@@ -158,7 +158,7 @@ class Controller:
             self._call(reset, seed, what="reset(seed)", where=f"before the episode of seed {seed}")
 
     def _call(self, fn: Callable, argument: Any, what: str, where: str) -> Any:
-        """``fn(argument)`` within the time limit; the user's fault as a :class:`ControllerFault`."""
+        """``fn(argument)`` within the time limit; a user's fault as a :class:`ControllerFault`."""
         where = f"{where} in cell {self.cell}"
         try:
             with _time_limit(self.timeout_s):
