@@ -6,6 +6,9 @@ of the issue are tested where their features are (test_userpolicy, test_demand).
 
 from __future__ import annotations
 
+import csv
+import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -28,3 +31,102 @@ def test_a_checkpoint_plays_cells_without_cavs(tmp_path, slots):
     argv += ["--episode-steps", "3", "--agent-slots", slots, "--no-progress"]
     assert main([*argv, "--out", str(tmp_path)]) == 0
     assert {r["n_cavs"] for r in read_csv(Path(tmp_path) / EPISODES_FILE)} == {"0"}
+
+
+# ------------------------------------------------------------- 4: results files, fully checked
+def _rewrite(path: Path, change) -> None:
+    """Rewrite ``path``'s CSV rows through ``change(rows) -> (columns, rows)``."""
+    rows = read_csv(path)
+    columns, rows = change(rows)
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, columns, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _set(column: str, text: str):
+    """A change of :func:`_rewrite`: ``column`` of the first row becomes ``text``."""
+
+    def change(rows):
+        rows[0][column] = text
+        return list(rows[0]), rows
+
+    return change
+
+
+def _without(column: str):
+    return lambda rows: ([c for c in rows[0] if c != column], rows)
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory) -> Path:
+    """pure-hdv, 2 episodes of 3 steps of one cell."""
+    out = tmp_path_factory.mktemp("results") / "pure-hdv"
+    argv = ["eval", "--policy", "pure-hdv", "--grid", "train", "--episodes", "2"]
+    assert main([*argv, "--episode-steps", "3", "--no-progress", "--out", str(out)]) == 0
+    return out
+
+
+ROW_DAMAGE = [
+    (_without("mean_speed_mps"), "has no 'mean_speed_mps' column"),
+    (_set("seed", "nan"), "field 'seed' is not a whole number ('nan')"),
+    (_set("n_vehicles", "eight"), "field 'n_vehicles' is not a number ('eight')"),
+]
+META_DAMAGE = [
+    ({}, "meta.json names no 'policy'"),
+    ({"policy": 3, "backend": "highway"}, "'policy' is 3, not text"),
+]
+
+
+def _damaged_copy(results: Path, to: Path, meta: dict | None = None, change=None) -> Path:
+    """``results`` as committed (merged files only), with its meta or rows damaged."""
+    shutil.copytree(results, to, ignore=shutil.ignore_patterns("cells", "speeds.csv.gz"))
+    if meta is not None:
+        (to / "meta.json").write_text(json.dumps(meta))
+    if change is not None:
+        _rewrite(to / EPISODES_FILE, change)
+    return to
+
+
+def _one_line(capsys, argv: list[str], message: str) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    "meta, change, message",
+    [(m, None, t) for m, t in META_DAMAGE] + [(None, c, t) for c, t in ROW_DAMAGE],
+)
+def test_a_damaged_results_directory_in_a_table_is_one_line(
+    results, tmp_path, capsys, meta, change, message
+):
+    copy = _damaged_copy(results, tmp_path / "copy", meta, change)
+    _one_line(capsys, ["table", str(results), str(copy)], message)
+
+
+@pytest.mark.parametrize("change, message", ROW_DAMAGE)
+def test_damaged_committed_results_under_a_new_eval_are_one_line(
+    results, tmp_path, capsys, change, message
+):
+    """eval keeps committed rows as done cells: it reads them as a table does, first."""
+    copy = _damaged_copy(results, tmp_path / "copy", change=change)
+    argv = ["eval", "--policy", "pure-hdv", "--grid", "train", "--episodes", "3"]
+    _one_line(capsys, [*argv, "--episode-steps", "3", "--no-progress", "--out", str(copy)], message)
+    assert not (copy / "cells").exists()
+
+
+def test_plot_flow_of_a_bottleneck_that_passed_nothing(tmp_path):
+    """Pure-HDV outflow 0 (3 steps: nobody reaches the end): no capacity, no drop to divide."""
+    grid = tmp_path / "grid.toml"
+    grid.write_text(
+        '[[cells]]\nmap = "train-50"\ncav_penetration = 0.4\nstyle_mix = "D1"\n'
+        "inflow_vph = 1200\ndemand_s = 20\n"
+    )
+    out = tmp_path / "flow" / "pure-hdv" / "q1200"
+    argv = ["eval", "--policy", "pure-hdv", "--grid", str(grid), "--episodes", "1"]
+    assert main([*argv, "--episode-steps", "3", "--no-progress", "--out", str(out)]) == 0
+    assert float(read_csv(out / EPISODES_FILE)[0]["throughput_vph"]) == 0.0
+    figure = tmp_path / "figure"
+    assert main(["plot", "flow", str(tmp_path / "flow"), "--out", str(figure)]) == 0
+    assert figure.with_suffix(".png").exists()

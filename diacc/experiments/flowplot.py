@@ -111,8 +111,8 @@ def load_flow(roots: list[str | Path]) -> list[FlowPoint]:
 
 def capacity(points: list[FlowPoint], backend: str) -> tuple[float, float] | None:
     """(capacity, drop) of pure HDV on ``backend``: its largest mean outflow, and the
-    relative fall from it to the outflow at its highest inflow (0: no drop); None
-    without pure-HDV points."""
+    relative fall from it to the outflow at its highest inflow (0: no drop, also where
+    nothing passed at all: no capacity to fall from); None without pure-HDV points."""
     own = sorted(
         (p for p in points if p.backend == backend and p.series == CAPACITY_SERIES),
         key=lambda p: p.inflow_vph,
@@ -120,7 +120,7 @@ def capacity(points: list[FlowPoint], backend: str) -> tuple[float, float] | Non
     if not own:
         return None
     top = max(p.outflow_vph for p in own)
-    return top, (top - own[-1].outflow_vph) / top
+    return top, (top - own[-1].outflow_vph) / top if top > 0 else 0.0
 
 
 def plot_flow(roots: list[str | Path], out: str | Path) -> tuple[list[Path], list[FlowPoint]]:
