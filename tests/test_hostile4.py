@@ -13,8 +13,11 @@ from pathlib import Path
 
 import pytest
 
+import diacc
 from diacc.cli import main
 from diacc.experiments.evaluate import EPISODES_FILE, read_csv
+from diacc.experiments.policies import PolicyError
+from diacc.experiments.scorecard import REPO_ROOT
 
 CHECKPOINT = "checkpoints/diacc-train50-paper-congestion-s1.pt"
 
@@ -130,3 +133,63 @@ def test_plot_flow_of_a_bottleneck_that_passed_nothing(tmp_path):
     figure = tmp_path / "figure"
     assert main(["plot", "flow", str(tmp_path / "flow"), "--out", str(figure)]) == 0
     assert figure.with_suffix(".png").exists()
+
+
+# ------------------------------------------------------------- 7: checked before any work
+SCORECARD = ["scorecard", "--policy", "same-mix", "--suites", "train", "--backends", "highway"]
+
+
+def test_a_scorecard_agent_that_is_no_checkpoint_is_refused_first(tmp_path, capsys):
+    agent = str(REPO_ROOT / "configs" / "small-learner.toml")
+    argv = [*SCORECARD, "--episodes", "2", "--agent", agent, "--out", str(tmp_path / "card")]
+    _one_line(capsys, argv, "small-learner.toml")
+    assert not (tmp_path / "card").exists()  # no candidate results written
+
+
+def test_a_scorecard_file_that_is_a_folder_is_refused_first(tmp_path, capsys):
+    (tmp_path / "scorecard.json").mkdir()
+    _one_line(capsys, [*SCORECARD, "--episodes", "2", "--out", str(tmp_path)], "is a folder")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scorecard.json"]
+
+
+def test_train_into_a_tb_that_cannot_be_a_folder_is_refused_first(tmp_path, capsys):
+    """TensorBoard found it in its writer thread (a read-only tb/ too, for other users
+    than root); now it is one line before the first update, and nothing else is written."""
+    (tmp_path / "tb").write_text("")
+    argv = ["train", "--steps", "40", "--envs", "2", "--set", "rollout_steps=20"]
+    argv += ["--set", "env.sim.episode_steps=20", "--no-progress", "--out", str(tmp_path)]
+    _one_line(capsys, argv, "cannot write into")  # the config table goes to stdout
+    assert not (tmp_path / "checkpoint.pt").exists() and not (tmp_path / "config.json").exists()
+
+
+def test_a_map_segment_shorter_than_a_metre_is_refused(tmp_path, capsys):
+    road = tmp_path / "road.toml"
+    segment = '[[segments]]\nkind = "multilane"\nlanes = 3\nspeed_limit_mps = 25.0\n'
+    road.write_text(
+        f'name = "r"\nlane_width_m = 3.2\n{segment}length_m = 300\n{segment}length_m = 1e-300\n'
+    )
+    _one_line(capsys, ["simulate", "--map", str(road)], "length_m' must be a finite number >= 1")
+
+
+def test_a_grid_demand_of_zero_seconds_is_refused(tmp_path, capsys):
+    """0 stood for the default: the cell ran 300 s and was recorded as 0."""
+    grid = tmp_path / "grid.toml"
+    grid.write_text(
+        '[[cells]]\nmap = "train-50"\ncav_penetration = 0.4\nstyle_mix = "D1"\n'
+        "inflow_vph = 1200\ndemand_s = 0\n"
+    )
+    argv = ["eval", "--policy", "same-mix", "--grid", str(grid), "--episodes", "1"]
+    _one_line(capsys, [*argv, "--out", str(tmp_path / "out")], "demand_s must be > 0 s, got 0")
+
+
+@pytest.mark.parametrize("command", ["eval", "simulate"])
+def test_highway_merges_on_sumo_are_refused(tmp_path, capsys, command):
+    argv = ["eval", "--policy", "same-mix", "--grid", "train", "--episodes", "1"]
+    argv = [*argv, "--out", str(tmp_path)] if command == "eval" else ["simulate"]
+    argv += ["--backend", "sumo", "--highway-merges", "early"]
+    _one_line(capsys, argv, "--highway-merges early applies to the highway backend, not sumo")
+
+
+def test_load_policy_takes_sampled_as_a_bool():
+    with pytest.raises(PolicyError, match="sampled must be True or False, got 'yes'"):
+        diacc.load_policy(CHECKPOINT, sampled="yes")

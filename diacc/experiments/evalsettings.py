@@ -23,6 +23,7 @@ from diacc.config import (
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
 from diacc.experiments.userpolicy import DEFAULT_TIMEOUT_S
 from diacc.fields import check_fields, one_of, ranged
+from diacc.sim.settings import check_merges_backend
 
 #: ``EvalSettings.agent_slots``: the policy's own agent slots, or one for every CAV.
 AGENT_SLOTS = ("own", "every")
@@ -62,6 +63,7 @@ class EvalSettings:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_merges_backend(self.backend, self.highway_merges)
 
     def apply(self, sim: SimConfig) -> SimConfig:
         changes = {}
