@@ -28,6 +28,7 @@ import numpy as np
 from diacc.experiments.evaluate import EvaluationError, load_episodes
 from diacc.experiments.paired import BOOTSTRAP_SEED, CONFIDENCE, RESAMPLES
 from diacc.experiments.plots import PlotError, _pyplot, _save
+from diacc.experiments.sametraffic import check_same_traffic
 
 #: The series whose largest outflow is the capacity the figure marks.
 CAPACITY_SERIES = "pure-hdv"
@@ -78,12 +79,14 @@ def load_flow(roots: list[str | Path]) -> list[FlowPoint]:
     ]
     if not files:
         raise PlotError(f"no episodes.csv under {', '.join(map(str, roots))}")
+    columns = []  # (series, meta, demand rows) of each file: one traffic per point
     for path in files:
         try:  # the validating loader: meta present, numbers numbers, cells that exist
-            _, rows = load_episodes(path.parent)
+            meta, rows = load_episodes(path.parent)
         except EvaluationError as exc:
             raise PlotError(str(exc)) from None
         series = _series_name(path.parent)
+        columns.append((series, meta, [r for r in rows if float(r.get("inflow_vph") or 0) > 0]))
         for row in rows:
             try:
                 inflow = float(row.get("inflow_vph") or 0.0)
@@ -94,6 +97,7 @@ def load_flow(roots: list[str | Path]) -> list[FlowPoint]:
                 groups.setdefault((row["backend"], series, inflow), []).append(row)
     if not groups:
         raise PlotError(f"no demand cell (inflow_vph > 0) in {len(files)} episodes.csv file(s)")
+    check_same_traffic(columns, lambda row: f"{row['backend']} at {row['inflow_vph']} veh/h")
     points = []
     for (backend, series, inflow), rows in sorted(groups.items()):
         try:
