@@ -76,25 +76,28 @@ ROW_DAMAGE = [
     (_set("n_vehicles", "eight"), "field 'n_vehicles' is not a number ('eight')"),
 ]
 META_DAMAGE = [
-    ({}, "meta.json names no 'policy'"),
-    ({"policy": 3, "backend": "highway"}, "'policy' is 3, not text"),
+    (lambda meta: {}, "meta.json names no 'policy'"),
+    (lambda meta: {**meta, "policy": 3}, "'policy' is 3, not text"),
 ]
 
 
-def _damaged_copy(results: Path, to: Path, meta: dict | None = None, change=None) -> Path:
-    """``results`` as committed (merged files only), with its meta or rows damaged."""
+def _damaged_copy(results: Path, to: Path, meta=None, change=None) -> Path:
+    """``results`` as committed (merged files only), its meta changed by ``meta(meta)`` and
+    its rows by ``change`` (:func:`_rewrite`)."""
     shutil.copytree(results, to, ignore=shutil.ignore_patterns("cells", "speeds.csv.gz"))
     if meta is not None:
-        (to / "meta.json").write_text(json.dumps(meta))
+        path = to / "meta.json"
+        path.write_text(json.dumps(meta(json.loads(path.read_text()))))
     if change is not None:
         _rewrite(to / EPISODES_FILE, change)
     return to
 
 
 def _one_line(capsys, argv: list[str], message: str) -> None:
+    """``argv`` fails with exit status 2 and one line on stderr that says ``message``."""
     assert main(argv) == 2
     err = capsys.readouterr().err
-    assert message in err and err.count("\n") == 1
+    assert message in err and err.count("\n") == 1, err
 
 
 @pytest.mark.parametrize(

@@ -6,12 +6,10 @@ duplicates a row); the table and the figure refuse it with one line naming it.
 
 from __future__ import annotations
 
-import json
-import shutil
 from pathlib import Path
 
 import pytest
-from test_hostile4 import _rewrite, _set
+from test_hostile4 import _damaged_copy, _one_line, _set
 
 from diacc.cli import main
 from diacc.experiments.evaluate import EPISODES_FILE, read_csv
@@ -39,28 +37,12 @@ def _settings(**changes):
 
 
 def _everywhere(column: str, text: str):
-    """A change of :func:`_rewrite`: ``column`` of every row becomes ``text``."""
+    """A change of :func:`test_hostile4._rewrite`: ``column`` of every row becomes ``text``."""
     return lambda rows: (list(rows[0]), [{**r, column: text} for r in rows])
 
 
 def _duplicated(rows):
     return list(rows[0]), [*rows, rows[0]]
-
-
-def _copy(results: Path, to: Path, meta=None, rows=None) -> Path:
-    shutil.copytree(results, to, ignore=shutil.ignore_patterns("cells", "speeds.csv.gz"))
-    if meta is not None:
-        path = to / "meta.json"
-        path.write_text(json.dumps(meta(json.loads(path.read_text()))))
-    if rows is not None:
-        _rewrite(to / EPISODES_FILE, rows)
-    return to
-
-
-def _refused(capsys, argv: list[str], message: str) -> None:
-    assert main(argv) == 2
-    err = capsys.readouterr().err
-    assert message in err and err.count("\n") == 1, err
 
 
 LATE = _settings(highway_merges="late")  # a merge model absent from meta.json matches any
@@ -77,16 +59,16 @@ LATE = _settings(highway_merges="late")  # a merge model absent from meta.json m
         (None, None, _duplicated, "holds episode 0 of train-25_N25_rho0.40_D1 twice"),
     ],
 )
-def test_a_table_of_different_traffic_is_refused(
+def test_a_table_of_different_traffic_is_one_line(
     results, tmp_path, capsys, base_meta, meta, rows, message
 ):
-    base = _copy(results, tmp_path / "base", base_meta)
-    other = _copy(results, tmp_path / "other", meta, rows)
-    _refused(capsys, ["table", str(base), str(other)], message)
+    base = _damaged_copy(results, tmp_path / "base", base_meta)
+    other = _damaged_copy(results, tmp_path / "other", meta, rows)
+    _one_line(capsys, ["table", str(base), str(other)], message)
 
 
 def test_a_table_of_the_same_traffic_pairs(results, tmp_path, capsys):
-    same = _copy(results, tmp_path / "same")
+    same = _damaged_copy(results, tmp_path / "same")
     assert main(["table", str(results), str(same)]) == 0
     assert "pure-hdv" in capsys.readouterr().out
 
@@ -104,7 +86,7 @@ def test_plot_flow_pools_one_traffic_per_point(tmp_path, capsys, rows, message):
     )
     first = _eval(tmp_path / "flow" / "a" / "pure-hdv" / "q1200", str(grid))
     second = tmp_path / "flow" / "b" / "pure-hdv" / "q1200"
-    _copy(first, second, rows=rows)
+    _damaged_copy(first, second, change=rows)
     assert {r["map"] for r in read_csv(second / EPISODES_FILE)} <= {"train-50", "test-50"}
     argv = ["plot", "flow", str(tmp_path / "flow"), "--out", str(tmp_path / "figure")]
-    _refused(capsys, argv, message)
+    _one_line(capsys, argv, message)
