@@ -88,6 +88,27 @@ def _flat(config: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def _flat_defaults(config: Any, default: Any, prefix: str = "") -> dict[str, Any]:
+    """The default of every key :func:`_flat` gives ``config``: ``default``'s value where
+    ``default`` has the field, else that of the section's own type.
+
+    A section may be of another type than its default (``--set env.scenario.kind=demand``
+    makes the default release a :class:`~diacc.sim.scenario.Demand`): its keys of the
+    default's type compare with the default (``kind``), its own keys (``inflow_vph``) with
+    its type's defaults, so that every key has a default to compare with.
+    """
+    out: dict[str, Any] = {}
+    own = type(config)()
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        base = getattr(default, f.name) if hasattr(default, f.name) else getattr(own, f.name)
+        if dataclasses.is_dataclass(value):
+            out.update(_flat_defaults(value, base, f"{prefix}{f.name}."))
+        else:
+            out[prefix + f.name] = base
+    return out
+
+
 def config_table(config: Any, title: str):
     """A rich table of a config: every top-level field, and nested fields that differ
     from their defaults (the full tree is in the run's ``config.json``)."""
@@ -101,7 +122,7 @@ def config_table(config: Any, title: str):
     table.add_column("key")
     table.add_column("value")
     table.add_column("default if changed", style="dim")
-    default = _flat(type(config)())
+    default = _flat_defaults(config, type(config)())
     if "run_dir" in default:  # its default follows the config's variant, backend, map, seed
         from diacc.config import default_run_dir
 

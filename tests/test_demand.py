@@ -358,3 +358,19 @@ def test_flows_count_the_window_after_the_warm_up():
     # vehicles 0 and 1; vehicle 2 entered at t = 20, the window's last state.
     assert m.total_delay_s == pytest.approx((10 - 50 / 25) + (10 - 20 / 25))
     assert math.isnan(m.mean_travel_time_s)  # nobody entered after the warm-up and arrived
+
+
+def test_diacc_train_on_demand_through_the_cli(tmp_path, capsys):
+    """A few steps of demand training as users start it (issue 61: the config table
+    printer had no default for the demand keys and ended in a KeyError)."""
+    from diacc.cli import main
+
+    run = tmp_path / "run"
+    argv = ["train", "--steps", "40", "--envs", "2", "--out", str(run), "--no-progress"]
+    for setting in ("rollout_steps=20", "env.sim.episode_steps=20"):
+        argv += ["--set", setting]
+    argv += ["--set", "env.scenario.kind=demand", "--set", "env.scenario.inflow_vph=1800"]
+    assert main(argv) == 0
+    table = capsys.readouterr().out
+    assert "env.scenario.inflow_vph" in table and "'demand'" in table  # the changed keys
+    assert (run / "checkpoint.pt").exists()

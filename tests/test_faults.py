@@ -422,7 +422,7 @@ def test_case9_simulate_into_a_closed_pipe_is_quiet():
 
 
 # ----------------------------------------------------------------------------- bad input
-LENGTH = "field 'segments[0].length_m' must be a finite positive number, got"
+LENGTH = "field 'segments[0].length_m' must be a finite number >= 1 m, got"
 BAD_INPUT = [
     # case 3: non-finite config values
     (["train", "--set", "value_coef=nan"], "'value_coef' must be a finite number, got nan"),

@@ -87,6 +87,8 @@ def _run(args: argparse.Namespace) -> int:
         if os.environ.get("DIACC_DEBUG"):
             raise
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        # A fault of the user's own code (their controller) shows their frames first.
+        sys.stderr.write(getattr(exc, "user_traceback", ""))
         print(f"diacc: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:  # TrainingInterrupted says which signal and what was saved

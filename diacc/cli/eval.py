@@ -23,6 +23,7 @@ from diacc.config import (
 )
 from diacc.experiments.evalsettings import AGENT_SLOTS
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
+from diacc.experiments.userpolicy import DEFAULT_TIMEOUT_S
 from diacc.fileio import OutputPathError, atomic_write, check_output_file
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so
@@ -52,6 +53,7 @@ def _settings(args: argparse.Namespace):
         agent_slots=args.agent_slots,
         on_collision=args.on_collision,
         stream=args.stream,
+        controller_timeout_s=args.controller_timeout,
     )
 
 
@@ -126,6 +128,14 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         "episode's end (default: a crash cannot shorten the episode that delay and "
         "throughput average over) or end the episode (training's rule, and every result "
         "recorded before 2026-12-06; docs/concepts/baselines.md)",
+    )
+    p.add_argument(
+        "--controller-timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        metavar="SECONDS",
+        help="longest one act() or reset() call of your own controller may run before the "
+        "command stops with an error naming cell and step (0: no limit)",
     )
     p.add_argument(
         "--stream",

@@ -41,8 +41,9 @@ def add_parsers(sub) -> None:
     p.add_argument(
         "--highway-merges",
         choices=HIGHWAY_MERGES,
-        default="late",
-        help="how the highway backend's drivers leave an ending lane (early: SUMO's capacity)",
+        default=None,
+        help="how the highway backend's drivers leave an ending lane (early: SUMO's capacity) "
+        "(default: late)",
     )
     add_renamed_arg(
         p,
@@ -62,9 +63,12 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     from diacc.envs.episode import EpisodeDriver, play_episode
     from diacc.experiments.policies import Policy
     from diacc.sim.scenario import Scenario
+    from diacc.sim.settings import check_merges_backend
 
     if args.episode_steps < 1:
         raise ConfigError(f"--episode-steps must be >= 1, got {args.episode_steps}")
+    check_merges_backend(args.backend, args.highway_merges)
+    merge_model = args.highway_merges or SimConfig.highway_merges
     scenario = Scenario(
         n_vehicles=args.vehicles, cav_penetration=args.penetration, style_mix=args.mix
     )
@@ -76,7 +80,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
         sim=SimConfig(
             style_preset=args.style_preset,
             episode_steps=args.episode_steps,
-            highway_merges=args.highway_merges,
+            highway_merges=merge_model,
         ),
         obs=ObservationConfig(max_vehicles=max(ObservationConfig.max_vehicles, args.vehicles)),
     )
@@ -86,7 +90,7 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     finally:
         driver.close()
     road, version = driver.road, driver.backend.version
-    merges = f", {args.highway_merges} merges" if args.backend == "highway" else ""
+    merges = f", {merge_model} merges" if args.backend == "highway" else ""
     print(
         f"diacc simulate: backend {args.backend}{f' ({version})' if version else ''}, "
         f"map {road.name}, N={scenario.n_vehicles} ({scenario.n_cavs} CAVs), mix {args.mix}, "

@@ -42,7 +42,7 @@ drive themselves meanwhile (no command, :mod:`diacc.sim.backends.base`) and are
 counted in :attr:`BottleneckEnv.unserved_cavs`.
 PettingZoo names agents by CAV, not slot: ``possible_agents`` are
 ``cav_0 .. cav_{K-1}`` for the K CAVs of the episode in order of entry, and
-``agents`` are those on the road and in a slot now.
+``agents`` are those on the road and in a slot now, after a step of either API.
 
 Two APIs share the same code path: the PettingZoo dict API (``reset`` /
 ``step``) for users and API tests, and the array API (:meth:`reset_arrays` /
@@ -205,6 +205,9 @@ class BottleneckEnv(ParallelEnv):
         self.team_reward.advance(1)
         self.state_ = result.state
         self._over = result.terminated or result.truncated
+        # Both APIs keep ``agents`` current: a policy on the array API that reads
+        # PettingZoo dicts (agent_observations) must see the CAVs on the road now.
+        self.agents = [] if self._over else self._live_agents(result.state)
         return result
 
     # The episode's slots and memories: env 0 of the batch's EpisodeState (module
@@ -291,10 +294,10 @@ class BottleneckEnv(ParallelEnv):
         batch = np.zeros(self.n_cavs, np.int64)
         for agent, action in actions.items():
             batch[index[agent]] = action
+        acting = list(self.agents)  # step_arrays moves agents on to the next step's
         out = self.step_arrays(batch)
         if self._recorder is not None:
             self._recorder.record(self.transition.state, psar=self.transition.psar)
-        acting = list(self.agents)
         ended = out.terminated or out.truncated
         # CAVs that took a slot in this step join (PettingZoo lets agents appear).
         index.update(self.agent_slots())
@@ -312,7 +315,6 @@ class BottleneckEnv(ParallelEnv):
                 "collisions": out.state.collisions.copy(),
                 "arrivals": out.state.arrivals.copy(),
             }
-        self.agents = [] if ended else self._live_agents(out.state)
         if not self.agents and acting and self._recorder is not None:
             summary = self._recorder.summary()
             metrics = {key: getattr(summary, key) for key in INFO_METRICS}

@@ -46,6 +46,8 @@ class TrainedPolicy:
 
         from diacc.experiments.policies import PolicyError, build_policy, parse_policy
 
+        if not isinstance(sampled, bool):  # "yes" or "no" would both sample
+            raise PolicyError(f"sampled must be True or False, got {sampled!r}")
         spec = parse_policy(str(path), sampled=sampled)
         if spec.is_baseline or spec.is_scripted:
             raise PolicyError(f"{path!s} is a baseline, not a checkpoint; load_policy needs a .pt")

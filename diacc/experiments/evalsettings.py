@@ -22,7 +22,9 @@ from diacc.config import (
     SimConfig,
 )
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
+from diacc.experiments.userpolicy import DEFAULT_TIMEOUT_S
 from diacc.fields import check_fields, one_of, ranged
+from diacc.sim.settings import check_merges_backend
 
 #: ``EvalSettings.agent_slots``: the policy's own agent slots, or one for every CAV.
 AGENT_SLOTS = ("own", "every")
@@ -61,9 +63,13 @@ class EvalSettings:
     #: Seed stream of the episodes (:data:`~diacc.experiments.grid.SEED_STREAMS`):
     #: ``validation`` to choose on, ``test`` to report.
     stream: str = one_of(DEFAULT_STREAM, SEED_STREAMS)
+    #: Longest a user's controller may take in one ``act`` or ``reset`` call (s; 0: no
+    #: limit); changes no result, so ``meta.json`` does not record it.
+    controller_timeout_s: float = ranged(DEFAULT_TIMEOUT_S, 0)
 
     def __post_init__(self) -> None:
         check_fields(self)
+        check_merges_backend(self.backend, self.highway_merges)
 
     def apply(self, sim: SimConfig) -> SimConfig:
         changes = {}

@@ -31,6 +31,7 @@ import numpy as np
 from diacc.experiments.evaluate import EvaluationError, load_episodes
 from diacc.experiments.paired import BOOTSTRAP_SEED, CONFIDENCE, RESAMPLES
 from diacc.experiments.plots import PlotError, _pyplot, _save
+from diacc.experiments.sametraffic import check_same_traffic
 
 #: The series whose largest outflow is the capacity the figure marks.
 CAPACITY_SERIES = "pure-hdv"
@@ -82,12 +83,14 @@ def load_flow(roots: list[str | Path]) -> list[FlowPoint]:
     ]
     if not files:
         raise PlotError(f"no episodes.csv under {', '.join(map(str, roots))}")
+    columns = []  # (series, meta, demand rows) of each file: one traffic per point
     for path in files:
         try:  # the validating loader: meta present, numbers numbers, cells that exist
-            _, rows = load_episodes(path.parent)
+            meta, rows = load_episodes(path.parent)
         except EvaluationError as exc:
             raise PlotError(str(exc)) from None
         series = _series_name(path.parent)
+        columns.append((series, meta, [r for r in rows if float(r.get("inflow_vph") or 0) > 0]))
         for row in rows:
             try:
                 inflow = float(row.get("inflow_vph") or 0.0)
@@ -98,6 +101,7 @@ def load_flow(roots: list[str | Path]) -> list[FlowPoint]:
                 groups.setdefault((row["backend"], series, inflow), []).append(row)
     if not groups:
         raise PlotError(f"no demand cell (inflow_vph > 0) in {len(files)} episodes.csv file(s)")
+    check_same_traffic(columns, lambda row: f"{row['backend']} at {row['inflow_vph']} veh/h")
     points = []
     for (backend, series, inflow), rows in sorted(groups.items()):
         try:
@@ -122,8 +126,8 @@ def load_flow(roots: list[str | Path]) -> list[FlowPoint]:
 
 def capacity(points: list[FlowPoint], backend: str) -> tuple[float, float] | None:
     """(capacity, drop) of pure HDV on ``backend``: its largest mean outflow, and the
-    relative fall from it to the outflow at its highest inflow (0: no drop); None
-    without pure-HDV points."""
+    relative fall from it to the outflow at its highest inflow (0: no drop, also where
+    nothing passed at all: no capacity to fall from); None without pure-HDV points."""
     own = sorted(
         (p for p in points if p.backend == backend and p.series == CAPACITY_SERIES),
         key=lambda p: p.inflow_vph,
@@ -131,7 +135,7 @@ def capacity(points: list[FlowPoint], backend: str) -> tuple[float, float] | Non
     if not own:
         return None
     top = max(p.outflow_vph for p in own)
-    return top, (top - own[-1].outflow_vph) / top
+    return top, (top - own[-1].outflow_vph) / top if top > 0 else 0.0
 
 
 def plot_flow(roots: list[str | Path], out: str | Path) -> tuple[list[Path], list[FlowPoint]]:

@@ -219,6 +219,11 @@ def make_cell(values: dict, source: str = "<grid>") -> Cell:
             raise GridError(f"{source}: {key} must be a number >= 0, got {value!r}")
         if value and not inflow:
             raise GridError(f"{source}: {key} needs inflow_vph (a demand cell)")
+        if key == "demand_s" and key in values and not value:  # 0 stands for the default
+            raise GridError(
+                f"{source}: demand_s must be > 0 s, got {value!r}; leave it out for the "
+                f"default ({Demand().demand_s:g} s)"
+            )
         timing[key] = float(value)
     if inflow and "n_vehicles" not in values:
         values = {**values, "n_vehicles": 1}  # set from the inflow below

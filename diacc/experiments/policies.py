@@ -307,6 +307,13 @@ class UserPolicy(Policy):
         self.controller = Controller(spec)
         self._env = None
 
+    def env_config(self, cell: Cell, settings: EvalSettings) -> EnvConfig:
+        """As every policy's; also tells the controller the cell its errors name and its
+        time limit (every command asks for a cell's environment before playing it)."""
+        self.controller.cell = cell.key
+        self.controller.timeout_s = settings.controller_timeout_s
+        return super().env_config(cell, settings)
+
     def use_env(self, env) -> None:
         """The environment of the episodes to come (its agents and observation space)."""
         self._env = env
@@ -369,6 +376,8 @@ class CheckpointPolicy(Policy):
         from diacc.learn.models.inputs import to_tensors
 
         n_cavs = actor_obs.alive.shape[0]
+        if n_cavs == 0:  # a cell without CAVs (rho = 0): the networks take no empty batch
+            return np.zeros(0, np.int64)
         start = torch.as_tensor(np.broadcast_to(first_step, (n_cavs,)).copy())  # (C,) bool
         with torch.no_grad():
             obs = to_tensors(actor_obs)

@@ -173,6 +173,9 @@ def adopt_merged_only(out_dir: Path) -> None:
     cells_dir = out_dir / CELLS_DIR
     if cells_dir.exists() or not (out_dir / EPISODES_FILE).exists():
         return
+    rows = read_csv(out_dir / EPISODES_FILE)
+    if rows:  # kept rows are read back as cells: checked as any reader checks them
+        check_episode_rows(out_dir / EPISODES_FILE, rows)
     cells_dir.mkdir()
     atomic_write(cells_dir / MERGED_ONLY_FILE, (out_dir / EPISODES_FILE).read_bytes())
     log.info("%s holds merged results only: their cells are kept as done", out_dir)
@@ -248,6 +251,21 @@ def load_episodes(out_dir: str | Path) -> tuple[dict, list[dict[str, str]]]:
     rows = read_csv(path)
     if not rows:
         raise EvaluationError(f"results directory {out_dir} has an empty {EPISODES_FILE}")
+    check_episode_rows(path, rows)
+    meta = read_json_object(out_dir / META_FILE, EvaluationError)
+    return check_meta(out_dir / META_FILE, meta), rows
+
+
+def check_episode_rows(path: Path, rows: list[dict[str, str]]) -> None:
+    """One-line :class:`EvaluationError` unless ``rows`` (of ``path``) are what the readers
+    index: the :data:`REQUIRED_COLUMNS`, numbers where numbers belong, whole ones in the
+    :data:`_WHOLE_COLUMNS`, and cells that exist."""
+    missing = [c for c in REQUIRED_COLUMNS if c not in rows[0]]
+    if missing:
+        raise EvaluationError(
+            f"{path} has no {missing[0]!r} column; the file is damaged: run `diacc eval` again "
+            "into a fresh --out"
+        )
     _check_numbers(path, rows)
     checked = set()
     for line, row in enumerate(rows, start=2):
@@ -255,7 +273,33 @@ def load_episodes(out_dir: str | Path) -> tuple[dict, list[dict[str, str]]]:
         if tuple(values.items()) not in checked:  # a map loaded and placed once per cell
             make_cell(values, f"{path}:{line}")
             checked.add(tuple(values.items()))
-    return read_json_object(out_dir / META_FILE, EvaluationError), rows
+
+
+#: What the readers take from ``meta.json``: its required fields, and the types of these
+#: and of the optional ones they use (captions, budgets, settings).
+_META_REQUIRED = ("policy", "backend")
+_META_TYPES = {
+    "policy": (str, "text"),
+    "backend": (str, "text"),
+    "settings": (dict, "a table"),
+    "checkpoint": (str, "text"),
+    "update": (int, "a whole number"),
+    "trained_steps": (int, "a whole number"),
+    "total_steps": (int, "a whole number"),
+}
+
+
+def check_meta(path: Path, meta: dict) -> dict:
+    """``meta`` (read from ``path``) if it names policy and backend as text and its other
+    known fields have their types; else a one-line :class:`EvaluationError`."""
+    for key in _META_REQUIRED:
+        if key not in meta:
+            raise EvaluationError(f"{path} names no {key!r}; the file is damaged")
+    for key, (kind, word) in _META_TYPES.items():
+        value = meta.get(key)
+        if key in meta and (not isinstance(value, kind) or isinstance(value, bool)):
+            raise EvaluationError(f"{path}: {key!r} is {value!r}, not {word}; the file is damaged")
+    return meta
 
 
 #: Columns of episodes.csv that hold text; every other one holds a number (or is empty).
@@ -271,19 +315,51 @@ _TEXT_COLUMNS = {
 }
 
 
+#: Columns every reader of ``episodes.csv`` indexes without asking: the cell, the policy,
+#: and the speed entry, pooled from each episode's mean, std and sample count.
+REQUIRED_COLUMNS = (
+    *CELL_KEYS,
+    "policy",
+    "backend",
+    "episode",
+    "mean_speed_mps",
+    "std_speed_mps",
+    "n_speed_samples",
+)
+#: Columns of whole numbers (counts, episode numbers, seeds), read back with ``int``.
+_WHOLE_COLUMNS = {
+    "n_vehicles",
+    "episode",
+    "seed",
+    "n_cavs",
+    "steps",
+    "collision",
+    "n_speed_samples",
+    "n_collisions",
+    "n_hdv_collisions",
+    "n_vehicles_seen",
+    "psar_decisions",
+}
+
+
 def _check_numbers(path: Path, rows: list[dict[str, str]]) -> None:
-    """One-line :class:`EvaluationError` naming the first field that is not a number."""
+    """One-line :class:`EvaluationError` naming the first field that is not a number (or,
+    in :data:`_WHOLE_COLUMNS`, not a whole one: a seed of nan pairs with nothing)."""
     for line, row in enumerate(rows, start=2):
         for column, text in row.items():
             if column in _TEXT_COLUMNS or not text:
                 continue
             try:
-                float(text)
+                number = float(text)
             except (TypeError, ValueError):
+                number = None
+            whole = column not in _WHOLE_COLUMNS or (number is not None and number.is_integer())
+            if number is None or not whole:
+                what = "a number" if number is None else "a whole number"
                 raise EvaluationError(
-                    f"{path}:{line}: field {column!r} is not a number ({text!r}); the file is "
+                    f"{path}:{line}: field {column!r} is not {what} ({text!r}); the file is "
                     "damaged: run `diacc eval` again into a fresh --out"
-                ) from None
+                )
 
 
 def _cell_values(row: dict[str, str | None], source: str) -> dict:

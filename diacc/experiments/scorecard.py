@@ -43,9 +43,9 @@ from diacc.errors import DiaccError
 from diacc.experiments.evaluate import EvaluationError, evaluate, load_episodes
 from diacc.experiments.grid import PAPER_ZERO_SHOT_ROWS, Cell, make_cell
 from diacc.experiments.paired import PairedChange
-from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy
+from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy, parse_policy
 from diacc.experiments.report import Table, change_unit, table_from_results
-from diacc.fileio import atomic_write
+from diacc.fileio import atomic_write, check_output_file
 from diacc.sim.maps import MAPS_DIR
 
 #: The repository root (maps/, benchmarks/, checkpoints/ live there).
@@ -161,6 +161,18 @@ def check_config(cfg: ScorecardConfig) -> None:
         )
     if cfg.episodes < 2:
         raise ScorecardError(f"--episodes must be >= 2 (intervals need pairs), got {cfg.episodes}")
+    _check_agent(cfg.agent)
+    for name in (SCORECARD_JSON, SCORECARD_MD):  # written last, after hours of episodes
+        check_output_file(cfg.out_dir / name)
+
+
+def _check_agent(agent: str) -> None:
+    """One line unless ``--agent`` is a checkpoint that loads (before any episode: the
+    candidate's results would be written before the agent's turn came)."""
+    spec = parse_policy(agent)
+    if spec.is_baseline or spec.is_scripted or spec.is_python:
+        raise ScorecardError(f"--agent {agent} is not a checkpoint; give a checkpoint.pt")
+    build_policy(spec)
 
 
 def _specs(cfg: ScorecardConfig) -> dict[str, PolicySpec]:

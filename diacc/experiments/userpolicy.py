@@ -15,6 +15,13 @@ Like the scripted ``heuristic``, it runs under PSAR (``--psar-*`` apply), so
 its requests are checked against the same safety filter as every CAV
 policy's. The module is imported from the current directory or
 ``PYTHONPATH`` in every worker process (the spec string is what travels).
+
+Its answers follow the rules of ``env.step`` (:func:`diacc.envs.api_checks.check_action`:
+whole numbers 0..4, a 0-d integer array too, never ``True``). A bug of the user's
+inside ``act`` or ``reset`` is the user's traceback (from their own frame on) and
+one line of ours naming the controller, the cell and the step
+(:class:`ControllerFault`); a call that does not return within ``timeout_s``
+(``--controller-timeout``, :data:`DEFAULT_TIMEOUT_S`) is stopped the same way.
 """
 
 from __future__ import annotations
@@ -22,19 +29,67 @@ from __future__ import annotations
 import importlib
 import os
 import re
+import signal
 import sys
-from collections.abc import Callable, Mapping
+import threading
+import traceback
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
 
-from diacc.envs.actions import ACTION_NAMES
+from diacc.envs.api_checks import EnvCallError, check_action
 from diacc.envs.observation import ActorObs
 from diacc.errors import DiaccError
 
 
 class ControllerError(DiaccError, ValueError):
     """A user's controller cannot be loaded, or answers something that is not actions."""
+
+
+class ControllerFault(ControllerError):
+    """The user's ``act`` or ``reset`` raised or did not return in time.
+
+    The message is our one line (controller, cell, step); ``user_traceback`` is the
+    user's exception from their own frame on, text, so that it survives the trip from
+    a worker process, where the chained ``__cause__`` is lost. The CLI prints it above
+    the line.
+    """
+
+    def __init__(self, message: str, user_traceback: str = "") -> None:
+        super().__init__(message)
+        self.user_traceback = user_traceback
+
+
+class _Expired(BaseException):
+    """The time limit of a controller call ran out (a BaseException, so that a user's
+    ``except Exception`` inside the call cannot swallow it)."""
+
+
+#: Longest a controller's ``act`` or ``reset`` may run by default (s): far beyond any
+#: sane decision, short of a forgotten evaluation (``--controller-timeout``, 0: none).
+DEFAULT_TIMEOUT_S = 60.0
+
+
+@contextmanager
+def _time_limit(seconds: float) -> Iterator[None]:
+    """Raise :class:`_Expired` in the block after ``seconds`` (SIGALRM: only in a main
+    thread, which runs every evaluation but a Ray task's; elsewhere, and with 0, no limit)."""
+    if seconds <= 0 or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def expire(signum, frame) -> None:
+        raise _Expired
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
 
 
 #: ``package.module:factory``: what ``--policy`` takes for a user's controller.
@@ -82,10 +137,16 @@ def load_controller(spec: str) -> Any:
 
 
 class Controller:
-    """A loaded controller, turned into the evaluator's arrays (the module docstring)."""
+    """A loaded controller, turned into the evaluator's arrays (the module docstring).
 
-    def __init__(self, spec: str) -> None:
+    ``cell`` names the cell of the episodes to come in its errors (set by the policy);
+    ``timeout_s`` limits each ``act`` and ``reset`` call (0: no limit).
+    """
+
+    def __init__(self, spec: str, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
         self.spec = spec
+        self.timeout_s = timeout_s
+        self.cell = "?"
         self.controller = load_controller(spec)
         act = getattr(self.controller, "act", None)
         self._act: Callable[[Mapping[str, Any]], Any] = act if callable(act) else self.controller
@@ -94,28 +155,45 @@ class Controller:
         """Call the controller's ``reset(seed)``, if it has one."""
         reset = getattr(self.controller, "reset", None)
         if callable(reset):
-            reset(seed)
+            self._call(reset, seed, what="reset(seed)", where=f"before the episode of seed {seed}")
+
+    def _call(self, fn: Callable, argument: Any, what: str, where: str) -> Any:
+        """``fn(argument)`` within the time limit; a user's fault as a :class:`ControllerFault`."""
+        where = f"{where} in cell {self.cell}"
+        try:
+            with _time_limit(self.timeout_s):
+                return fn(argument)
+        except _Expired:
+            raise ControllerFault(
+                f"controller {self.spec}: {what} did not return within {self.timeout_s:g} s "
+                f"{where} (--controller-timeout)"
+            ) from None
+        except Exception as exc:
+            trace = traceback.format_exception(type(exc), exc, exc.__traceback__.tb_next)
+            raise ControllerFault(
+                f"controller {self.spec}: {what} raised {type(exc).__name__}: "
+                f"{(str(exc).splitlines() or [''])[0]} {where}",
+                "".join(trace),
+            ) from exc
 
     def actions(self, env, actor_obs: ActorObs) -> np.ndarray:
         """(C,) int64 actions of every agent slot of ``env`` (a
         :class:`~diacc.envs.env.BottleneckEnv` whose current step ``actor_obs`` is)."""
-        actions = self._act(env.agent_observations(actor_obs))
+        where = f"at step {env.steps}"
+        actions = self._call(self._act, env.agent_observations(actor_obs), "act()", where)
+        fault = f"controller {self.spec} {where} in cell {self.cell}:"
         if not isinstance(actions, Mapping):
             raise ControllerError(
-                f"{self.spec} returned {type(actions).__name__}; a controller returns a dict "
-                "of agent -> action"
+                f"{fault} returned {type(actions).__name__}; a controller returns a dict of "
+                "agent -> action"
             )
         slots = env.agent_slots()
         batch = np.zeros(actor_obs.alive.shape[0], np.int64)  # (C,) remain unless told
         for agent, action in actions.items():
             if agent not in slots:
-                raise ControllerError(
-                    f"{self.spec} returned an action for {agent!r}, which is not on the road"
-                )
-            if not isinstance(action, (int, np.integer)) or not 0 <= action < len(ACTION_NAMES):
-                raise ControllerError(
-                    f"{self.spec} returned action {action!r} for {agent}; actions are "
-                    f"0..{len(ACTION_NAMES) - 1} ({', '.join(ACTION_NAMES)})"
-                )
-            batch[slots[agent]] = int(action)
+                raise ControllerError(f"{fault} returned an action for {agent!r}, not on the road")
+            try:
+                batch[slots[agent]] = check_action(agent, action)  # env.step's rules
+            except EnvCallError as exc:
+                raise ControllerError(f"{fault} {exc}") from None
         return batch

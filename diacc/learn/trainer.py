@@ -41,7 +41,7 @@ from diacc.console import TrainProgress
 from diacc.envs.observation import check_road
 from diacc.envs.vector import make_vector_env
 from diacc.errors import DiaccError
-from diacc.fileio import atomic_write
+from diacc.fileio import atomic_write, check_output_dir
 from diacc.learn.agent import Agent, make_agent
 from diacc.learn.checkpoint import (
     CheckpointError,
@@ -214,6 +214,8 @@ def train(
     run_dir = Path(cfg.run_dir)
     with locked_dir(run_dir, "train"):
         claim_run_dir(run_dir, resume, overwrite)
+        # TensorBoard's writer thread would find an unwritable tb/ only after the first update.
+        check_output_dir(run_dir / "tb")
         return _start(
             cfg, run_dir, device, resume, progress, stop_after_updates, allow_config_change
         )

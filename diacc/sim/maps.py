@@ -41,6 +41,9 @@ MAX_LANE_JUMP = 2
 MAX_LANES = 16
 
 _TOP_KEYS = {"name", "description", "lane_width_m", "drop_side", "segments"}
+#: Shortest segment (m): shorter ones hold no vehicle, and the simulators divide by
+#: their length (highway-env warned of division by zero at 1e-300 m).
+MIN_SEGMENT_M = 1.0
 _SEGMENT_KEYS = {"kind", "length_m", "lanes", "speed_limit_mps"}
 
 
@@ -296,8 +299,9 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
         if not isinstance(seg["kind"], str) or seg["kind"] not in SEGMENT_KINDS:
             raise fail(f"{where}.kind", f"must be one of {SEGMENT_KINDS}, got {seg['kind']!r}")
         length = seg["length_m"]
-        if not _is_number(length) or not 0 < length < math.inf:
-            raise fail(f"{where}.length_m", f"must be a finite positive number, got {length!r}")
+        if not _is_number(length) or not MIN_SEGMENT_M <= length < math.inf:
+            shortest = f"must be a finite number >= {MIN_SEGMENT_M:g} m, got {length!r}"
+            raise fail(f"{where}.length_m", shortest)
         lanes = seg["lanes"]
         if not isinstance(lanes, int) or isinstance(lanes, bool) or not 1 <= lanes <= MAX_LANES:
             raise fail(f"{where}.lanes", f"must be an integer in [1, {MAX_LANES}], got {lanes!r}")

@@ -41,6 +41,16 @@ HIGHWAY_MERGES = ("late", "early")
 ON_COLLISION = ("end", "remove")
 
 
+def check_merges_backend(backend: str, highway_merges: str | None) -> None:
+    """One-line :class:`ConfigError` if a merge model is asked of another backend than
+    highway: SUMO's drivers merge by LC2013, so the option would be dropped unseen."""
+    if highway_merges is not None and backend != "highway":
+        raise ConfigError(
+            f"--highway-merges {highway_merges} applies to the highway backend, not {backend} "
+            "(SUMO's drivers merge by LC2013)"
+        )
+
+
 @dataclass(frozen=True)
 class CavParams:
     """Physical limits of a CAV (SUMO vType of the authors) and its planned braking.

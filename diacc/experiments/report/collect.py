@@ -19,6 +19,7 @@ import numpy as np
 from diacc.experiments.evaluate import EvaluationError, load_episodes
 from diacc.experiments.grid import Cell
 from diacc.experiments.paired import EpisodeValues
+from diacc.experiments.sametraffic import check_same_traffic
 from diacc.experiments.report.table import (
     CHANGE_RULE,
     DEFAULT_ROWS,
@@ -193,6 +194,7 @@ def table_from_results(
     if len(set(labels)) < len(labels):
         names = _distinct_names([d for d, _, _ in loaded])
         labels = [f"{lab} [{n}]" for lab, n in zip(labels, names, strict=True)]
+    check_same_traffic([(lab, m, r) for lab, (_, m, r) in zip(labels, loaded, strict=True)])
     stats: dict[tuple[str, str, str], Stat] = {}
     values: dict[tuple[str, str, str], EpisodeValues] = {}
     cells: dict[str, Cell] = {}
