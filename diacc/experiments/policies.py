@@ -43,9 +43,9 @@ from diacc.errors import DiaccError
 from diacc.experiments.evalsettings import EvalSettings
 from diacc.experiments.grid import Cell
 from diacc.experiments.userpolicy import Controller, is_user_spec
+from diacc.shipped import shipped_checkpoint, shipped_checkpoints
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Demand
-from diacc.shipped import shipped_checkpoint, shipped_checkpoints
 
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
 #: ``normal`` human model; ``same-mix:<style>`` by another style (:data:`STYLE_NAMES`).

@@ -46,6 +46,7 @@ from diacc.experiments.paired import PairedChange
 from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy
 from diacc.experiments.report import Table, change_unit, table_from_results
 from diacc.fileio import atomic_write
+
 #: The shipped agent every scorecard compares with.
 DEFAULT_AGENT = "checkpoints/diacc-train50-realistic-headway-threat-s1.pt"
 #: References, by their results directory's name: same-mix, the heuristic, the agent.

@@ -11,9 +11,9 @@ with ``"right"`` it keeps lanes 1..3. Keeping one absolute numbering lets the
 observation builder compare lanes across segments without knowing the
 backend.
 
-Files are TOML (see ``maps/*.toml``, shipped as package data: :data:`MAPS_DIR`). Every rule is checked on load and a
-broken file raises :class:`MapError` with a one-line message naming the file
-and the field.
+Files are TOML (see ``maps/*.toml``, shipped as package data: :data:`MAPS_DIR`).
+Every rule is checked on load and a broken file raises :class:`MapError` with a
+one-line message naming the file and the field.
 """
 
 from __future__ import annotations
