@@ -34,9 +34,8 @@ def test_package_data_is_a_link_to_the_top_level_folder(kind):
 
 def test_every_shipped_file_is_package_data():
     # A file the patterns miss would be in a clone and not in a wheel.
-    patterns = read_toml(REPO / "pyproject.toml", ValueError)["tool"]["setuptools"]["package-data"][
-        "diacc"
-    ]
+    setuptools = read_toml(REPO / "pyproject.toml", ValueError)["tool"]["setuptools"]
+    patterns = setuptools["package-data"]["diacc"]
     for kind, suffix in (("maps", ".toml"), ("checkpoints", ".pt")):
         files = [f"data/{kind}/{p.name}" for p in (REPO / kind).iterdir() if p.suffix == suffix]
         assert files and all(any(fnmatch(f, pat) for pat in patterns) for f in files), kind
