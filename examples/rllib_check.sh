@@ -2,7 +2,7 @@
 # The separate check of examples/rllib_ppo.py (RLlib pins gymnasium 1.2.2, so CI's
 # environment cannot hold it): install this clone with its rllib extra, under
 # examples/rllib-constraints.txt, into a fresh virtual environment, and run the example at
-# its tiny budget there. About 3 min on 2 cores. Usage: bash examples/rllib_check.sh
+# its tiny budget there. About 4 min on 2 cores. Usage: bash examples/rllib_check.sh
 set -euo pipefail
 clone="$(cd "$(dirname "$0")/.." && pwd)"
 tmp="$(mktemp -d)"
