@@ -17,13 +17,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from diacc.shipped import data_dir
+
 __version__ = "0.1.0"
 __all__ = ["CHECKPOINTS_DIR", "__version__", "env", "load_policy", "parallel_env"]
 
-#: The shipped trained agents (``checkpoints/`` of the clone diacc is installed from with
-#: ``pip install -e``, as ``maps/``): ``diacc.load_policy(diacc.CHECKPOINTS_DIR / name)``
-#: works from any working directory.
-CHECKPOINTS_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
+#: The shipped trained agents, package data in every installation (:mod:`diacc.shipped`;
+#: in a clone a link to ``checkpoints/``): ``diacc.load_policy(diacc.CHECKPOINTS_DIR / name)``,
+#: or ``diacc.load_policy(name)``, works from any working directory.
+CHECKPOINTS_DIR = data_dir("checkpoints")
 
 if TYPE_CHECKING:  # pragma: no cover
     from diacc.envs.env import BottleneckEnv
@@ -62,10 +64,16 @@ def parallel_env(
 
 def load_policy(path: str | Path, sampled: bool = False) -> TrainedPolicy:
     """A trained agent that acts on PettingZoo observations, keeping each agent's
-    recurrent state (:class:`diacc.experiments.agent.TrainedPolicy`); greedy, or ``sampled``."""
-    from diacc.experiments.agent import TrainedPolicy
+    recurrent state (:class:`diacc.experiments.agent.TrainedPolicy`); greedy, or ``sampled``.
 
-    return TrainedPolicy(path, sampled=sampled)
+    ``path``: a checkpoint file, or the name of a shipped one (a file of
+    :data:`CHECKPOINTS_DIR`, ``.pt`` optional) when no such file is in the working directory.
+    """
+    from diacc.experiments.agent import TrainedPolicy
+    from diacc.shipped import shipped_checkpoint
+
+    shipped = None if Path(path).exists() else shipped_checkpoint(str(path))
+    return TrainedPolicy(shipped or path, sampled=sampled)
 
 
 def env(render_mode: str | None = None, observation_format: str = "dict", **config: Any):

@@ -7,6 +7,7 @@ option, tutorial or documented object breaks this test rather than the site.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -37,10 +38,27 @@ def test_docs_build_strict(tmp_path):
     cli = (site / "cli" / "index.html").read_text()
     assert "diacc plot timespace" in cli and "--view" in cli  # generated from the parsers
     for tutorial in sorted((REPO / "tutorials").glob("[0-9][0-9]_*.py")):
-        assert (site / "tutorials" / tutorial.stem / "index.html").is_file()
+        page = (site / "tutorials" / tutorial.stem / "index.html").read_text()
+        assert f'href="../{tutorial.stem}.ipynb"' in page  # the notebook to download
+        _check_notebook(site / "tutorials" / f"{tutorial.stem}.ipynb", tutorial)
     api = (site / "api" / "index.html").read_text()
     assert "load_policy" in api and "TrainedPolicy" in api
     assert not (site / "hooks.py").exists()
     assert (site / "history" / "learning-evidence" / "index.html").is_file()  # the dated record
     pages = [p.read_text() for p in site.rglob("*.html")]
     assert not any("facts.md" in page for page in pages)  # not in the repository
+
+
+def _check_notebook(notebook: Path, script: Path) -> None:
+    """A notebook Jupyter opens (nbformat 4, no jupytext) with the script's code, in order."""
+    data = json.loads(notebook.read_text())
+    assert data["nbformat"] == 4 and data["metadata"]["kernelspec"]["name"] == "python3"
+    kinds = {cell["cell_type"] for cell in data["cells"]}
+    assert kinds == {"markdown", "code"}, notebook
+    code = ["".join(c["source"]) for c in data["cells"] if c["cell_type"] == "code"]
+    text = script.read_text()
+    position = 0
+    for body in code:  # every code cell is a verbatim piece of the script, in order
+        position = text.index(body, position) + len(body)
+    compile("\n".join(code), str(notebook), "exec")
+    assert "# %%" not in "".join(code)

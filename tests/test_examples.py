@@ -74,3 +74,23 @@ def test_example_runs(name: str, tmp_path: Path) -> None:
     )
     assert proc.returncode == 0, f"{name} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
     assert expected in proc.stdout
+
+
+def test_rllib_constraints_fit_diacc_and_its_extra():
+    # examples/rllib_check.sh installs diacc[rllib] under these pins: each must satisfy what
+    # pyproject.toml asks of the package (gymnasium, torch) and of the rllib extra (ray).
+    from packaging.requirements import Requirement
+
+    from diacc.tomlfile import read_toml
+
+    project = read_toml(EXAMPLES.parent / "pyproject.toml", ValueError)["project"]
+    wanted = [*project["dependencies"], *project["optional-dependencies"]["rllib"]]
+    ranges = {Requirement(r).name: Requirement(r).specifier for r in wanted}
+    lines = (EXAMPLES / "rllib-constraints.txt").read_text().splitlines()
+    pins = [Requirement(line) for line in lines if line and not line.startswith("#")]
+    assert {p.name for p in pins} == {"ray", "gymnasium", "torch"}
+    for pin in pins:
+        (version,) = (s.version for s in pin.specifier)  # one exact pin each
+        assert version in ranges[pin.name], f"{pin} is outside pyproject's {ranges[pin.name]}"
+    readme = (EXAMPLES / "README.md").read_text()
+    assert "rllib_check.sh" in readme and "rllib-constraints.txt" in readme

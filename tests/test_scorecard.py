@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -12,7 +13,6 @@ from diacc.experiments.policies import EvalSettings, PolicySpec
 from diacc.experiments.scorecard import (
     DEFAULT_AGENT,
     REFERENCES,
-    REPO_ROOT,
     SUITES,
     ScorecardConfig,
     _playable,
@@ -20,6 +20,8 @@ from diacc.experiments.scorecard import (
     suite_cells,
 )
 
+#: The repository root: the geometry maps and the shipped agent are read from there.
+REPO_ROOT = Path(__file__).resolve().parent.parent
 TINY = ["--suites", "train", "--backends", "highway", "--episodes", "2", "--episode-steps", "10"]
 
 

@@ -42,8 +42,8 @@ import diacc
 
 OUT = Path(os.environ.get("DIACC_TUTORIAL_OUT", "tutorial_out")) / "08_trained_agent_in_python"
 OUT.mkdir(parents=True, exist_ok=True)
-REPO = Path(diacc.__file__).resolve().parent.parent
-CHECKPOINT = REPO / "checkpoints" / "diacc-train50-paper-congestion-s1.pt"
+# A shipped agent, from the installed package (a clone's or a wheel's): any directory works.
+CHECKPOINT = diacc.CHECKPOINTS_DIR / "diacc-train50-paper-congestion-s1.pt"
 
 # %% [markdown]
 # ## Load the agent and its environment

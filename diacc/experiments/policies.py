@@ -43,6 +43,7 @@ from diacc.errors import DiaccError
 from diacc.experiments.evalsettings import EvalSettings
 from diacc.experiments.grid import Cell
 from diacc.experiments.userpolicy import Controller, is_user_spec
+from diacc.shipped import shipped_checkpoint, shipped_checkpoints
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Demand
 
@@ -417,6 +418,8 @@ def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -
             build_policy(spec)  # one-line error for a bad module or factory, here
         return spec
     path = Path(name)
+    if not path.exists():  # a shipped agent by name, from any working directory
+        path = shipped_checkpoint(name) or path
     if path.is_dir():
         if not (path / "checkpoint.pt").exists():
             raise PolicyError(f"run directory {path} has no checkpoint.pt")
@@ -424,8 +427,9 @@ def parse_policy(name: str, variant: str | None = None, sampled: bool = False) -
     if path.suffix != ".pt" and not path.exists():
         raise PolicyError(
             f"unknown policy {name!r}; use {', '.join(BASELINES + SCRIPTED)} (scripted ones also "
-            f"as <name>-nopsar, {SAME_MIX}:<style>), the path of a checkpoint.pt or a Python "
-            "controller as package.module:factory"
+            f"as <name>-nopsar, {SAME_MIX}:<style>), the path of a checkpoint.pt, a shipped "
+            f"checkpoint ({', '.join(shipped_checkpoints())}) or a Python controller as "
+            "package.module:factory"
         )
     if not path.exists():
         raise PolicyError(f"checkpoint {path} does not exist")

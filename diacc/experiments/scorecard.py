@@ -46,10 +46,7 @@ from diacc.experiments.paired import PairedChange
 from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy, parse_policy
 from diacc.experiments.report import Table, change_unit, table_from_results
 from diacc.fileio import atomic_write, check_output_file
-from diacc.sim.maps import MAPS_DIR
 
-#: The repository root (maps/, benchmarks/, checkpoints/ live there).
-REPO_ROOT = MAPS_DIR.parent
 #: The shipped agent every scorecard compares with.
 DEFAULT_AGENT = "checkpoints/diacc-train50-realistic-headway-threat-s1.pt"
 #: References, by their results directory's name: same-mix, the heuristic, the agent.
@@ -142,8 +139,8 @@ def suite_cells(suite: Suite) -> list[Cell]:
     for values in suite.cells:
         if values["map"].endswith(".toml") and not Path(values["map"]).exists():
             raise ScorecardError(
-                f"suite {suite.name} needs {values['map']}: run the scorecard from the "
-                f"repository root ({REPO_ROOT})"
+                f"suite {suite.name} needs {values['map']}: run the scorecard from the root "
+                "of a diacc clone (its benchmarks/ folder is not installed)"
             )
     return [make_cell(dict(values), f"suite {suite.name}") for values in suite.cells]
 

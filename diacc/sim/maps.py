@@ -11,9 +11,9 @@ with ``"right"`` it keeps lanes 1..3. Keeping one absolute numbering lets the
 observation builder compare lanes across segments without knowing the
 backend.
 
-Files are TOML (see ``maps/*.toml``). Every rule is checked on load and a
-broken file raises :class:`MapError` with a one-line message naming the file
-and the field.
+Files are TOML (see ``maps/*.toml``, shipped as package data: :data:`MAPS_DIR`).
+Every rule is checked on load and a broken file raises :class:`MapError` with a
+one-line message naming the file and the field.
 """
 
 from __future__ import annotations
@@ -27,10 +27,12 @@ from pathlib import Path
 import numpy as np
 
 from diacc.errors import DiaccError
+from diacc.shipped import data_dir, require_dir
 from diacc.tomlfile import read_toml
 
-#: Folder with the shipped map descriptions (``maps/`` at the repository root).
-MAPS_DIR = Path(__file__).resolve().parents[2] / "maps"
+#: Folder with the shipped map descriptions: package data (:mod:`diacc.shipped`), in a
+#: clone a link to ``maps/`` at the repository root.
+MAPS_DIR = data_dir("maps")
 
 SEGMENT_KINDS = ("multilane", "reduction25", "reduction50")
 DROP_SIDES = ("left", "right")
@@ -235,15 +237,15 @@ def _safe_name(text: str) -> str:
 
 
 def available_maps() -> list[str]:
-    """Names of the maps shipped in ``maps/``."""
-    return sorted(p.stem for p in MAPS_DIR.glob("*.toml"))
+    """Names of the shipped maps (:data:`MAPS_DIR`)."""
+    return sorted(p.stem for p in require_dir("maps").glob("*.toml"))
 
 
 def load_map(name_or_path: str | Path) -> Map:
     """Load a shipped map by name (``"train-25"``) or any TOML file by path."""
     path = Path(name_or_path)
     if path.suffix != ".toml":
-        path = MAPS_DIR / f"{name_or_path}.toml"
+        path = require_dir("maps") / f"{name_or_path}.toml"
         if not path.exists():
             raise MapError(
                 f"unknown map {str(name_or_path)!r}; shipped maps: {', '.join(available_maps())}"
