@@ -17,7 +17,8 @@ import diacc
 from diacc.cli import main
 from diacc.experiments.evaluate import EPISODES_FILE, read_csv
 from diacc.experiments.policies import PolicyError
-from diacc.experiments.scorecard import REPO_ROOT
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
 
 CHECKPOINT = "checkpoints/diacc-train50-paper-congestion-s1.pt"
 
