@@ -7,13 +7,10 @@ import dataclasses
 
 import numpy as np
 import pytest
-from helpers import make_state
 
 import diacc.sim.backends.sumo.worker as sumo_worker
-from diacc.config import PSARConfig, SimConfig
-from diacc.envs.actions import LANE_RIGHT, REMAIN
+from diacc.config import SimConfig
 from diacc.envs.episode import EpisodeDriver, play_episode
-from diacc.envs.psar import CANCEL_LC, psar
 from diacc.experiments.evalsettings import EvalSettings
 from diacc.experiments.grid import Cell
 from diacc.experiments.policies import build_policy, parse_policy
@@ -23,30 +20,7 @@ from diacc.sim.kinematics import safe_gap_m
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario, draw_population
 
-ROAD = load_map("train-25")
 RELEASE = Cell(map="train-50", n_vehicles=25, cav_penetration=0.4, style_mix="D1")
-
-
-# ------------------------------------------------------------------ PSAR: the lane beyond
-def _right_from_lane_2(hdv_x_m: float, hdv_lane: int, hdv_speed_mps: float, **cfg):
-    """PSAR for a standing CAV in lane 2 asking to move right, one HDV elsewhere."""
-    state = make_state([100.0, hdv_x_m], [2, hdv_lane], [0.0, hdv_speed_mps], is_cav=[True, False])
-    res = psar(state, np.array([[0]]), np.array([[LANE_RIGHT]]), PSARConfig(**cfg), ROAD)
-    return res.action[0, 0], res.rule[0, 0]  # env 0's only CAV
-
-
-def test_an_hdv_closing_in_two_lanes_over_cancels_the_change():
-    """SUMO, 4800 veh/h: a standing CAV moved right while an HDV at 17 m/s moved left
-    into the same lane 16 m behind it; they collided. The HDV behind in the lane beyond
-    the target is now checked like the target lane's own rear vehicle."""
-    assert _right_from_lane_2(79.0, 0, 16.8) == (REMAIN, CANCEL_LC)
-    # The literal pseudocode (no coordination) does not look there
-    assert _right_from_lane_2(79.0, 0, 16.8, coordinate_lane_changes=False)[0] == LANE_RIGHT
-    # nor does the check when that HDV is far enough back or not closing in
-    assert _right_from_lane_2(-400.0, 0, 16.8)[0] == LANE_RIGHT
-    assert _right_from_lane_2(60.0, 0, 0.0)[0] == LANE_RIGHT
-    # and an HDV in the lane on the other side is no one's rear vehicle here
-    assert _right_from_lane_2(79.0, 3, 16.8)[0] == LANE_RIGHT
 
 
 # ------------------------------------------------------------------ SUMO: the HDVs' gap

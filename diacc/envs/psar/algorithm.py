@@ -64,9 +64,7 @@ def psar(
     a, invalid_lc, is_lc = refuse_impossible(cavs, proposed, road, sim)
     asked_lane = np.where(is_lc, cavs.lane + ACTION_LANE_OFFSET[a], -1)  # (..., C) -1: none
     near = find_obstacles(cavs, ACTION_LANE_OFFSET[a], road, cfg.queue_gap_m)
-    a, b_lc_mps2, mask = check_lane_changes(
-        cavs, a, is_lc, near, horizon, cfg, sim.step_s
-    )  # lines 2-16
+    a, b_lc_mps2, mask = check_lane_changes(cavs, a, is_lc, near, horizon, cfg)  # lines 2-16
     a, speed_change, mask, b_lc_mps2 = horizon.car_following(
         a, b_lc_mps2, mask, near, asked_lane
     )  # lines 17-27

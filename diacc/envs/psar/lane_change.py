@@ -22,7 +22,6 @@ from diacc.envs.actions import (
 )
 from diacc.envs.psar.result import CANCEL_LC, DECEL_LC, rule_bit
 from diacc.envs.psar.scene import Cavs, Margins, Obstacles
-from diacc.envs.safety import PairKinematics
 from diacc.sim.kinematics import nan_to_num
 from diacc.sim.maps import Map
 from diacc.sim.state import take
@@ -49,10 +48,8 @@ def check_lane_changes(
     near: Obstacles,
     horizon: Margins,
     cfg: PSARConfig,
-    step_s: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Lines 2-16 on the lane changes ``is_lc`` of actions ``a`` (..., C), each decided for
-    one decision step of ``step_s``.
+    """Lines 2-16 on the lane changes ``is_lc`` of actions ``a`` (..., C).
 
     Returns (..., C) each: the actions (cancelled changes -> ``remain``), Decel-LC's
     braking ``b_lc`` (m/s^2, 0 where none or cancelled) and the rule mask.
@@ -62,7 +59,6 @@ def check_lane_changes(
     cancel_rear = _check_rear(still_lc, near, b_lc_mps2, horizon, cfg)
     cancel = cancel_front | cancel_rear
     clash = clashes(cavs, ACTION_LANE_OFFSET[a], still_lc & ~cancel_rear, horizon, cfg)
-    clash |= _closes_in_from_beyond(still_lc & ~cancel_rear, near.far_rear_vehicle, cfg, step_s)
     cancel |= clash & cfg.coordinate_lane_changes
     a = np.where(cancel, REMAIN, a)
     b_lc_mps2 = np.where(cancel, 0.0, b_lc_mps2)
@@ -134,22 +130,6 @@ def _check_rear(
             & (b_lc_mps2 != 0.0)
         )
     )
-
-
-def _closes_in_from_beyond(
-    still_lc: np.ndarray, far: PairKinematics, cfg: PSARConfig, step_s: float
-) -> np.ndarray:
-    """(..., C) changes cancelled by the HDV behind in the lane beyond the target (``far``,
-    :func:`~diacc.envs.psar.scene.far_lane_rear_hdv`): one that would close the gap to the
-    CAV within the step, were both to enter the target lane in the same instant.
-
-    Only a change begun in the same step goes unseen: one the human starts later meets
-    the CAV in the target lane and respects it. So the test is the step's closing
-    distance, not the target lane's rear test (the human's whole stopping gap), which
-    held CAVs back so often that SUMO's delay rose by half (docs/concepts/psar.md).
-    """
-    closing_mps = np.maximum(-nan_to_num(far.dv_long_mps), 0.0)  # the HDV behind is faster
-    return still_lc & far.valid & (-far.d_long_m <= cfg.d_lc_min_m + closing_mps * step_s)
 
 
 def clashes(

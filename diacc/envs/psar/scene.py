@@ -73,8 +73,6 @@ class Obstacles:
     merging_index: np.ndarray  # (..., C) (:func:`cut_in_front`)
     target_wall: PairKinematics  # (..., C) the end of the target lane (with its queue)
     own_wall: PairKinematics  # (..., C) the end of the own lane (with its queue)
-    far_rear_vehicle: PairKinematics  # (..., C) the nearest HDV behind, in the lane beyond
-    far_rear_index: np.ndarray  # (..., C) the target lane (:func:`far_lane_rear_hdv`)
 
 
 def find_obstacles(cavs: Cavs, offset: np.ndarray, road: Map, queue_gap_m: float) -> Obstacles:
@@ -90,11 +88,9 @@ def find_obstacles(cavs: Cavs, offset: np.ndarray, road: Map, queue_gap_m: float
         ],
     )  # (..., C, 3): target-lane front j, target-lane rear k, same-lane front j
     cut_in = cut_in_front(state, cav_index, road)  # (..., C)
-    far_rear = far_lane_rear_hdv(state, cav_index, offset)  # (..., C)
-    # One call per kind of obstacle (the formulas are elementwise): the three neighbours,
-    # the vehicle cutting in and the HDV behind in the lane beyond the target as columns,
-    # the target and own lanes' ends side by side.
-    others = np.concatenate([pairs, cut_in[..., None], far_rear[..., None]], -1)  # (..., C, 5)
+    # One call per kind of obstacle (the formulas are elementwise): the three neighbours
+    # and the vehicle cutting in as columns, the target and own lanes' ends side by side.
+    others = np.concatenate([pairs, cut_in[..., None]], -1)  # (..., C, 4)
     # checked slots, found neighbours; the ego column broadcasts against the four others
     kin = pair_kinematics(state, cav_index[..., None], others, check=False)
     n_cav = cav_index.shape[-1]
@@ -116,31 +112,7 @@ def find_obstacles(cavs: Cavs, offset: np.ndarray, road: Map, queue_gap_m: float
         merging_index=cut_in,
         target_wall=walls.column(slice(None, n_cav)),
         own_wall=walls.column(slice(n_cav, None)),
-        far_rear_vehicle=kin.column(4),
-        far_rear_index=far_rear,
     )
-
-
-def far_lane_rear_hdv(state: TrafficState, cav_index: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """(..., C) the nearest HDV behind each CAV in the lane beyond the one its lane change
-    ``offset`` (..., C) goes to (``lane + 2 offset``), -1 if none or no change.
-
-    Such an HDV may change into the same lane in the same instant, and its intent is
-    unknown: on SUMO a standing CAV moving right and an HDV at 17 m/s moving left into
-    the lane between them collided (issue 57). The lane-change checks treat it as a
-    rear vehicle of the target lane (:func:`diacc.envs.psar.lane_change.clashes`).
-    """
-    far_lane = take(state.lane, cav_index).astype(np.int64) + 2 * offset  # (..., C)
-    dx_m = state.x_m[..., None, :] - take(state.x_m, cav_index)[..., None]  # (..., C, V)
-    candidate = (
-        (state.active & ~state.is_cav)[..., None, :]
-        & (state.lane[..., None, :] == far_lane[..., None])
-        & (dx_m < 0.0)
-        & (offset != 0)[..., None]
-    )  # (..., C, V)
-    dist_m = np.where(candidate, -dx_m, np.inf)
-    nearest = np.argmin(dist_m, axis=-1)  # (..., C)
-    return np.where(np.isfinite(np.min(dist_m, axis=-1)), nearest, -1)
 
 
 def cut_in_front(state: TrafficState, cav_index: np.ndarray, road: Map) -> np.ndarray:
