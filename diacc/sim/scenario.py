@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -73,8 +74,95 @@ class ScenarioError(ConfigError):
     :class:`~diacc.fields.FieldError`); the message is one line."""
 
 
+class _ScenarioType(type):
+    """``isinstance(x, Scenario)``: x is a :class:`Release` or a :class:`Demand`."""
+
+    def __instancecheck__(cls, obj: object) -> bool:
+        return isinstance(obj, _Traffic)
+
+
+class Scenario(metaclass=_ScenarioType):
+    """What traffic to simulate: ``Release | Demand``. ``Scenario(kind=..., **settings)``
+    builds the one ``kind`` names (default ``"release"``), refusing what it would
+    otherwise overwrite or ignore (one-line :class:`ScenarioError`)."""
+
+    if TYPE_CHECKING:
+        # The checker's view of ``Release | Demand``: what code reading a scenario may
+        # ask of either kind (the demand settings are read after ``kind == "demand"``).
+        # Nothing here exists at run time.
+        __dataclass_fields__: ClassVar[dict[str, Any]]  # both kinds are dataclasses
+        kind: str
+        cav_penetration: float
+        style_mix: str | tuple[float, float, float]
+        insert_start_m: float
+        insert_spacing_m: float
+        insert_speed_mps: float
+        warmup_s: float
+        cav_slot_style: str
+        inflow_vph: float
+        demand_s: float
+        cav_slots: int
+
+        @property
+        def n_vehicles(self) -> int: ...
+        @property
+        def n_slots(self) -> int: ...
+        @property
+        def n_cav_slots(self) -> int: ...
+        @property
+        def n_cavs(self) -> int: ...
+        @property
+        def mix(self) -> tuple[float, float, float]: ...
+        def replace(self, **changes: Any) -> Release | Demand: ...
+        def with_a_slot_per_cav(self) -> Demand: ...
+
+    def __new__(  # type: ignore[misc]
+        cls, kind: str = "release", n_vehicles: int | None = None, **settings
+    ) -> Release | Demand:
+        if kind not in SCENARIO_KINDS:
+            names = ", ".join(SCENARIO_KINDS)
+            raise FieldError("kind", f"must be one of {names}, got {kind!r}")
+        if kind == "release":
+            for name in _DEMAND_ONLY:
+                value = settings.pop(name, _DEMAND_DEFAULTS[name])
+                if value != _DEMAND_DEFAULTS[name]:
+                    raise ScenarioError(
+                        f"{name} {value!r} is a demand setting; a release (kind 'release') "
+                        f"ignores it: set kind 'demand' or leave {name} at "
+                        f"{_DEMAND_DEFAULTS[name]!r}"
+                    )
+            count: dict[str, Any] = {} if n_vehicles is None else {"n_vehicles": n_vehicles}
+            return Release(**settings, **count)
+        demand = Demand(**settings)
+        if n_vehicles is not None and n_vehicles != demand.n_vehicles:
+            raise ScenarioError(
+                f"n_vehicles {n_vehicles!r} contradicts the demand: inflow_vph "
+                f"{demand.inflow_vph:g} x demand_s {demand.demand_s:g} s makes "
+                f"{demand.n_vehicles} vehicles; a demand scenario derives its count, "
+                "leave n_vehicles out"
+            )
+        return demand
+
+    @staticmethod
+    def with_cavs(n_vehicles: int, n_cavs: int, **kwargs) -> Release:
+        """A release with an exact CAV count (checked against ``n_vehicles``)."""
+        if n_cavs > n_vehicles:
+            raise ScenarioError(f"{n_cavs} CAVs requested but only {n_vehicles} vehicles")
+        if n_cavs < 0:
+            raise ScenarioError(f"n_cavs must be >= 0, got {n_cavs}")
+        return Release(n_vehicles=n_vehicles, cav_penetration=n_cavs / n_vehicles, **kwargs)
+
+
+# The checker sees both kinds as Scenarios; at run time ``isinstance`` says so
+# (``_ScenarioType``) and the kinds derive from nothing.
+if TYPE_CHECKING:
+    _Kind = Scenario
+else:
+    _Kind = object
+
+
 @dataclass(frozen=True)
-class _Traffic:
+class _Traffic(_Kind):
     """The settings both kinds share (the seed is given to ``Backend.reset``)."""
 
     cav_penetration: float = ranged(0.4, 0, 1)  # paper training cell: 10 of 25 CAVs,
@@ -194,55 +282,6 @@ class Demand(_Traffic):
         """Agent slots C: at most ``cav_slots`` CAVs at once, a slot reused when its CAV
         leaves (:class:`diacc.envs.env.BottleneckEnv`)."""
         return min(self.cav_slots, self.n_cavs)
-
-
-class _ScenarioType(type):
-    """``isinstance(x, Scenario)``: x is a :class:`Release` or a :class:`Demand`."""
-
-    def __instancecheck__(cls, obj: object) -> bool:
-        return isinstance(obj, _Traffic)
-
-
-class Scenario(metaclass=_ScenarioType):
-    """What traffic to simulate: ``Release | Demand``. ``Scenario(kind=..., **settings)``
-    builds the one ``kind`` names (default ``"release"``), refusing what it would
-    otherwise overwrite or ignore (one-line :class:`ScenarioError`)."""
-
-    def __new__(  # type: ignore[misc]
-        cls, kind: str = "release", n_vehicles: int | None = None, **settings
-    ) -> Release | Demand:
-        if kind not in SCENARIO_KINDS:
-            names = ", ".join(SCENARIO_KINDS)
-            raise FieldError("kind", f"must be one of {names}, got {kind!r}")
-        if kind == "release":
-            for name in _DEMAND_ONLY:
-                value = settings.pop(name, _DEMAND_DEFAULTS[name])
-                if value != _DEMAND_DEFAULTS[name]:
-                    raise ScenarioError(
-                        f"{name} {value!r} is a demand setting; a release (kind 'release') "
-                        f"ignores it: set kind 'demand' or leave {name} at "
-                        f"{_DEMAND_DEFAULTS[name]!r}"
-                    )
-            count = {} if n_vehicles is None else {"n_vehicles": n_vehicles}
-            return Release(**settings, **count)
-        demand = Demand(**settings)
-        if n_vehicles is not None and n_vehicles != demand.n_vehicles:
-            raise ScenarioError(
-                f"n_vehicles {n_vehicles!r} contradicts the demand: inflow_vph "
-                f"{demand.inflow_vph:g} x demand_s {demand.demand_s:g} s makes "
-                f"{demand.n_vehicles} vehicles; a demand scenario derives its count, "
-                "leave n_vehicles out"
-            )
-        return demand
-
-    @staticmethod
-    def with_cavs(n_vehicles: int, n_cavs: int, **kwargs) -> Release:
-        """A release with an exact CAV count (checked against ``n_vehicles``)."""
-        if n_cavs > n_vehicles:
-            raise ScenarioError(f"{n_cavs} CAVs requested but only {n_vehicles} vehicles")
-        if n_cavs < 0:
-            raise ScenarioError(f"n_cavs must be >= 0, got {n_cavs}")
-        return Release(n_vehicles=n_vehicles, cav_penetration=n_cavs / n_vehicles, **kwargs)
 
 
 #: A release's vehicle count when none is given (the paper's training cell).
