@@ -278,7 +278,8 @@ def reward_terms(
 
     Args:
         state: state *after* the step.
-        cav_index: (C,) vehicle indices of the CAV slots.
+        cav_index: (..., C) vehicle indices of the CAV slots, ``...`` the state's leading
+            (env) axes.
         road: the map (speed limits per segment).
         cfg: reward weights and thresholds (checked when it was built, e.g.
             ``collision_distance_m < warning_distance_m``; not on every call).
@@ -293,7 +294,10 @@ def reward_terms(
         or cav_index.shape[:-1] != lead
         or (cav_index.size and not np.issubdtype(cav_index.dtype, np.integer))
     ):
-        raise RewardError(f"cav_index must be a 1-D integer array, got shape {cav_index.shape}")
+        raise RewardError(
+            f"cav_index must be an integer array of shape (..., C) after the state's "
+            f"leading axes {lead}, got shape {cav_index.shape}"
+        )
     if np.any((cav_index < 0) | (cav_index >= state.n_vehicles)):
         raise RewardError(f"cav_index holds indices outside [0, {state.n_vehicles})")
     limits_mps = road.speed_limits_mps()  # (S,)

@@ -184,10 +184,11 @@ class ObservationBuilder:
         """Observations of the CAV slots ``cav_index`` for the current state.
 
         Args:
-            cav_index: (C,) vehicle indices of the CAV slots, fixed for the episode.
-            action_memory: (C, 2) int64 proposed and PSAR-refined action of the
+            cav_index: (..., C) vehicle indices of the CAV slots, fixed for the episode;
+                ``...`` is the state's leading (env) axes.
+            action_memory: (..., C, 2) int64 proposed and PSAR-refined action of the
                 previous step per slot; copied into the observation.
-            last_refined_action: (V,) int64 refined action each vehicle executed at
+            last_refined_action: (..., V) int64 refined action each vehicle executed at
                 the previous step (only CAV entries are read).
         """
         return self._actor(self._require_frame(), cav_index, action_memory, last_refined_action)
@@ -256,7 +257,10 @@ class ObservationBuilder:
             or cav_index.shape[:-1] != lead
             or not np.issubdtype(cav_index.dtype, np.integer)
         ):
-            raise ObservationError(f"cav_index must be a 1-D integer array, got {cav_index!r}")
+            raise ObservationError(
+                f"cav_index must be an integer array of shape (..., C) after the state's "
+                f"leading axes {lead}, got {cav_index!r}"
+            )
         if cav_index.size and (cav_index.min() < 0 or cav_index.max() >= n_veh):
             raise ObservationError(f"cav_index {cav_index.tolist()} out of range [0, {n_veh})")
         action_memory = np.asarray(action_memory)

@@ -43,9 +43,10 @@ Modelling choices (documented here because both backends must agree on them):
   "cooperative" baseline; SUMO uses CACC with ``lcCooperative = 1``): CAVs
   ignore the commands and are driven by the same vectorised IDM / MOBIL /
   forced-merge code as HDVs, with a CACC-like parameter set
-  (:class:`CooperativeCavParams`: short time headway 0.6 s, minimum gap 1 m,
-  the CAV accel/decel limits, MOBIL politeness 1 i.e. fully cooperative lane
-  changes). They are still reported as CAVs in the TrafficState.
+  (:class:`CooperativeCavParams`: its ``time_headway_s`` and ``min_gap_m``, the
+  CAV vType's as SUMO's CACC is given them; the CAV accel/decel limits; MOBIL
+  ``politeness`` that weighs the followers' gain as the own, i.e. fully cooperative
+  lane changes). They are still reported as CAVs in the TrafficState.
 * **Collisions** are oriented-rectangle overlaps between active vehicles at
   any sub-step. A pair is reported in the step its contact begins. Collided
   vehicles stop where they are and stay on the road as obstacles (as in
