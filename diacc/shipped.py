@@ -23,7 +23,7 @@ from diacc.errors import DiaccError
 CHECKPOINT_SUFFIX = ".pt"
 
 
-class ShippedDataError(DiaccError, FileNotFoundError):
+class ShippedDataError(DiaccError, RuntimeError):
     """The installation lacks its shipped maps or checkpoints; the message is one line."""
 
 
