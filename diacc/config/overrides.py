@@ -94,7 +94,7 @@ def _unset_as(obj: Any, name: str, current: Any) -> Any:
 def _rederive_psar(tree: dict[str, Any]) -> bool:
     """Whether an override tree leaves ``env.use_psar`` to the variant: it sets neither
     that field nor a whole ``env`` section (an EnvConfig, which says its own)."""
-    env = next((v for k, v in tree.items() if k.replace("-", "_") == "env"), {})
+    env: object = next((v for k, v in tree.items() if k.replace("-", "_") == "env"), {})
     return isinstance(env, dict) and all(k.replace("-", "_") != "use_psar" for k in env)
 
 

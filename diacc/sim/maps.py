@@ -287,7 +287,7 @@ def parse_map(data: dict, source: str = "<map>") -> Map:
     if not isinstance(raw_segments, list) or not raw_segments:
         raise fail("segments", "must be a non-empty list of [[segments]] tables")
 
-    segments = []
+    segments: list[Segment] = []
     for i, seg in enumerate(raw_segments):
         where = f"segments[{i}]"
         if not isinstance(seg, dict):

@@ -214,7 +214,7 @@ class _Traffic(_Kind):
     @property
     def n_cav_slots(self) -> int:
         """Vehicles drawn into CAV slots (CAVs, or HDVs of ``cav_slot_style``)."""
-        return int(round(self.cav_penetration * self.n_vehicles))  # type: ignore[attr-defined]
+        return int(round(self.cav_penetration * self.n_vehicles))
 
     @property
     def n_cavs(self) -> int:

@@ -120,7 +120,7 @@ class Table:
             for c in self.columns
             if self.policy[c] == policy and self.backend[c] == self.backend[column]
         ]
-        return (same or [None])[0]
+        return same[0] if same else None
 
     def change(self, cell: Cell, metric: str, column: str, policy: str = REFERENCE) -> float | None:
         """Change of the mean against the ``policy`` column (None if undefined; pure HDV is

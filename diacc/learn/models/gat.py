@@ -241,7 +241,7 @@ class StarPool(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, q, x, valid, u_q, u_k, slope):  # type: ignore[override]
+    def forward(ctx, q, x, valid, u_q, u_k, slope):
         n, k, f = x.shape
         # (H, F) @ (F, M*K): CPU kernels run this orientation faster than (M*K, F) @ (F, H)
         # (docs/benchmarks, "Training throughput III").
@@ -255,7 +255,7 @@ class StarPool(torch.autograd.Function):
         return alpha @ x, alpha  # (M, H, F), (M, H, K)
 
     @staticmethod
-    def backward(ctx, g_pooled, _g_alpha):  # type: ignore[override]
+    def backward(ctx, g_pooled, _g_alpha):
         q, x, u_q, u_k, positive, alpha = ctx.saved_tensors
         dtypes = q.dtype, x.dtype, u_q.dtype, u_k.dtype
         # Under autocast (bf16) the saved tensors mix dtypes: work in alpha's, whose
@@ -288,5 +288,5 @@ class GlobalGraphAttention(GraphAttention):
     Same parameters, names and maths as the base class.
     """
 
-    def forward(self, *args, **kwargs):  # type: ignore[override]
+    def forward(self, *args, **kwargs):
         return self.forward_graph(*args, **kwargs)
