@@ -17,7 +17,7 @@ from diacc.config import ConfigError, ModelConfig, TrainConfig
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.env import BottleneckEnv
 from diacc.envs.episode import EpisodeDriver
-from diacc.experiments.collapse import collapse_warning
+from diacc.learn.collapse import collapse_warning
 from diacc.experiments.evaluate import (
     EPISODES_FILE,
     SPEEDS_FILE,

@@ -339,3 +339,39 @@ def test_proximal_policy_of_an_unlagged_rollout_is_the_behaviour_policy(rollout_
     weights = lagged.behaviour_weights[alive]
     torch.testing.assert_close(weights, torch.ones_like(weights), rtol=0, atol=1e-4)
     assert batch.prox_logprobs is None
+
+
+def test_training_checks_for_a_collapsed_greedy_policy_at_every_checkpoint(tmp_path, monkeypatch):
+    """Issue 58: the rollout counts the actor's argmax on every living CAV's decision,
+    ``progress.jsonl`` records the top action's share, and the run log says at each
+    checkpoint whether the greedy policy collapsed (an untouched actor, then one made to
+    prefer one action everywhere)."""
+    import json
+
+    from diacc.learn import ppo
+
+    cfg = tiny_config(tmp_path / "ok", checkpoint_every=1)
+    train(cfg, progress=False)
+    log = (tmp_path / "ok" / "run" / "train.log").read_text()
+    # under 200 decisions per check: a share, never a verdict
+    assert log.count("collapse check, updates ") == 2 and "collapsed policy" not in log
+    rows = [json.loads(line) for line in (tmp_path / "ok" / "run" / "progress.jsonl").open()]
+    assert all(0.2 <= row["greedy_top_share"] <= 1.0 for row in rows)
+
+    real = ppo.collect_rollout
+
+    def biased(agent, *args, **kwargs):  # the actor's last layer prefers 'right' (2)
+        with torch.no_grad():
+            last = [m for m in agent.actor.modules() if isinstance(m, torch.nn.Linear)][-1]
+            last.bias[2] = 1e3
+        agent.sync_rollout()
+        return real(agent, *args, **{**kwargs, "sync": False})
+
+    from diacc.learn import trainer
+
+    monkeypatch.setattr(trainer, "collect_rollout", biased)
+    cfg = tiny_config(tmp_path / "bad", checkpoint_every=2)
+    train(cfg, progress=False)
+    log = (tmp_path / "bad" / "run" / "train.log").read_text()
+    assert "the actor's greedy policy picked 'right' on 100.0%" in log
+    assert "in updates 1-2 of training: a collapsed policy" in log

@@ -41,10 +41,14 @@ def test_train_log_records_start_checkpoints_and_end(tmp_path):
     assert messages == [
         f"start: {cfg.variant} in {run}, updates 1-1 of 2 (40 env steps each), config {digest}",
         "checkpoint: update 1, env step 40",
-        messages[2],  # end, with its wall time
+        messages[2],  # the collapse check of the updates since the last checkpoint
+        messages[3],  # end, with its wall time
         f"start: {cfg.variant} in {run}, updates 2-2 of 2 (40 env steps each), config {digest}",
         "checkpoint: update 2, env step 80",
-        messages[5],
+        messages[6],
+        messages[7],
     ]
-    assert re.fullmatch(r"end: after update 1 of 2, env step 40, [0-9.]+ s", messages[2])
-    assert re.fullmatch(r"end: after update 2 of 2, env step 80, [0-9.]+ s", messages[5])
+    assert messages[2].startswith("collapse check, updates 1-1: greedy ")
+    assert messages[6].startswith("collapse check, updates 2-2: greedy ")  # resumed: from 2
+    assert re.fullmatch(r"end: after update 1 of 2, env step 40, [0-9.]+ s", messages[3])
+    assert re.fullmatch(r"end: after update 2 of 2, env step 80, [0-9.]+ s", messages[7])

@@ -59,7 +59,7 @@ class EpisodeDriver:
         self.psar_rule = np.zeros(self.state.n_vehicles, np.int8)  # (V,) 0 for HDVs
         self.psar: PSARResult | None = None
         # (A,) how often the policy picked each action for a living CAV (before PSAR):
-        # what shows a policy that acts alike whatever it sees (diacc.experiments.collapse)
+        # what shows a policy that acts alike whatever it sees (diacc.learn.collapse)
         self.picked = np.zeros(len(ACTION_NAMES), np.int64)
         return self.state
 

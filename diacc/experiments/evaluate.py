@@ -44,7 +44,6 @@ import numpy as np
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.episode import EpisodeDriver, play_episode
 from diacc.envs.psar import RULE_NAMES
-from diacc.experiments.collapse import collapse_warning
 from diacc.experiments.grid import Cell
 from diacc.experiments.policies import CheckpointPolicy, EvalSettings, PolicySpec, build_policy
 from diacc.experiments.results_files import (
@@ -69,6 +68,7 @@ from diacc.experiments.results_files import (
 )
 from diacc.experiments.workpool import map_resilient
 from diacc.fileio import atomic_write, check_output_dir, refuse_symlink
+from diacc.learn.collapse import collapse_warning
 from diacc.runlog import locked_dir, log, run_log
 from diacc.sim.backends.base import BackendError
 from diacc.sim.maps import SEGMENT_KINDS

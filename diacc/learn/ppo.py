@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -41,6 +41,7 @@ import torch.nn.functional as F
 
 from diacc.config import TrainConfig
 from diacc.envs.action_mask import masked_logits
+from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.observation import stack, unstack
 from diacc.envs.psar import RULE_NAMES, rule_counts
 from diacc.errors import DiaccError
@@ -67,6 +68,9 @@ class RolloutStats:
     seconds: float
     tau: float = float("nan")  # softmin temperature of the team rewards
     cpu_seconds: float = 0.0  # CPU time of the collecting thread (comparable under load)
+    #: (A,) the actor's argmax on the decisions of living CAVs: what a greedy evaluation
+    #: would pick (:mod:`diacc.learn.collapse`); actions are sampled, these are not
+    greedy: np.ndarray = field(default_factory=lambda: np.zeros(len(ACTION_NAMES), np.int64))
 
 
 def collect_rollout(
@@ -123,6 +127,8 @@ def collect_rollout(
             logits = masked_logits(logits, obs_t["action_mask"])  # (E*C, 5)
             dist = torch.distributions.Categorical(logits=logits)
             action = dist.sample()  # (E*C,)
+            greedy = logits.argmax(dim=-1).view(E, C).cpu().numpy()  # (E, C)
+        stats.greedy += np.bincount(greedy[actor_obs.alive], minlength=len(ACTION_NAMES))
         roll.actions[t] = action.view(E, C).cpu().numpy()
         roll.logprobs[t] = dist.log_prob(action).view(E, C).cpu().numpy()
 

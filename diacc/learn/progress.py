@@ -24,6 +24,7 @@ import numpy as np
 from diacc.envs.psar import RULE_NAMES
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_write, open_append
+from diacc.learn.collapse import top_action_share
 
 if TYPE_CHECKING:
     from torch.utils.tensorboard import SummaryWriter
@@ -162,6 +163,7 @@ def progress_record(stats: UpdateStats, update_s: float) -> dict:
     terms = {key: float(np.mean(values)) for key, values in rollout.reward_terms.items()}
     record["global_reward"] = terms.pop("global")
     record.update({f"reward/{key}": value for key, value in terms.items()})
+    record["greedy_top_share"] = top_action_share(rollout.greedy)[1]  # 1: collapsed
     for name, count in zip(RULE_NAMES[1:], rollout.psar_counts, strict=True):
         record[f"psar/{name}"] = float(count / max(rollout.decisions, 1))
     if rollout.episodes:

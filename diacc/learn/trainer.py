@@ -38,6 +38,7 @@ from torch.utils.tensorboard import SummaryWriter
 
 from diacc.config import TrainConfig, flatten_config, validate
 from diacc.console import TrainProgress
+from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.observation import check_road
 from diacc.envs.vector import make_vector_env
 from diacc.errors import DiaccError
@@ -52,6 +53,7 @@ from diacc.learn.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
+from diacc.learn.collapse import COLLAPSE_SHARE, collapse_warning, top_action_share
 from diacc.learn.ppo import NonFiniteError, collect_rollout, learn
 from diacc.learn.progress import UpdateStats, progress_record, write_record
 from diacc.learn.progress import check_agrees as check_progress
@@ -145,6 +147,26 @@ class StoppedAtOnce(KeyboardInterrupt):
 
     def __str__(self) -> str:
         return f"stopped at once by a second {signal.Signals(self.signum).name}"
+
+
+def _check_collapse(greedy: np.ndarray, first: int, last: int) -> None:
+    """Log the collapse check of updates ``first``-``last`` (their greedy action counts,
+    :mod:`diacc.learn.collapse`): a warning for a collapsed policy, else one info line."""
+    where = f"in updates {first}-{last} of training"
+    warning = collapse_warning("the actor's greedy policy", greedy, where)
+    if warning is not None:
+        log.warning("%s", warning)
+        return
+    top, share = top_action_share(greedy)
+    log.info(
+        "collapse check, updates %d-%d: greedy %r on %.1f%% of %d decisions (collapsed: >= %.0f%%)",
+        first,
+        last,
+        ACTION_NAMES[top],
+        100.0 * share,
+        int(greedy.sum()),
+        100.0 * COLLAPSE_SHARE,
+    )
 
 
 class _StopOnSignal:
@@ -318,6 +340,7 @@ def _train_loop(
             # The next update's rollout when overlap collected it beside the learner
             # (lagged: one update behind), else None.
             collected, lagged = None, False
+            greedy = np.zeros(len(ACTION_NAMES), np.int64)  # (A,) since the last checkpoint
             for update in range(first_update, last_update):
                 t0 = time.perf_counter()
                 if cfg.lr_decay:
@@ -377,6 +400,7 @@ def _train_loop(
                 stats = UpdateStats(update + 1, global_step, lr, losses, roll, returns, rollout)
                 record = progress_record(stats, update_s=time.perf_counter() - t0)
                 record["rollout_cpu_s"] = rollout.cpu_seconds
+                greedy += rollout.greedy
                 write_record(record, writer, run_dir / "progress.jsonl")
                 bar.update(steps_per_update, record["team_reward"], rollout.episodes)
                 if (
@@ -385,8 +409,9 @@ def _train_loop(
                     or stop.signum is not None
                 ):
                     save_checkpoint(ckpt_path, agent, cfg, update + 1, global_step)
-                    saved_update = update + 1
                     log.info("checkpoint: update %d, env step %d", update + 1, global_step)
+                    _check_collapse(greedy, (saved_update or 0) + 1, update + 1)
+                    saved_update, greedy[:] = update + 1, 0
                 if stop.signum is not None and update + 1 < last_update:
                     log.warning("stopped after update %d; checkpoint saved", update + 1)
                     raise TrainingInterrupted(stop.signum, update + 1, ckpt_path)

@@ -19,7 +19,6 @@ import numpy as np
 from diacc.experiments.evaluate import EvaluationError, load_episodes
 from diacc.experiments.grid import Cell
 from diacc.experiments.paired import EpisodeValues
-from diacc.experiments.sametraffic import check_same_traffic
 from diacc.experiments.report.table import (
     CHANGE_RULE,
     DEFAULT_ROWS,
@@ -33,6 +32,7 @@ from diacc.experiments.report.table import (
     Table,
     interval_rule,
 )
+from diacc.experiments.sametraffic import check_same_traffic
 
 #: What a speed entry's std spreads over: all speed samples (as the paper), or episode means.
 SPEED_STD = ("samples", "episodes")

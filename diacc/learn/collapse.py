@@ -8,7 +8,12 @@ rows in ``episodes.csv`` look like any other policy's, and a table that pools
 seeds mixes it in silently; so an evaluation of a checkpoint counts the actions
 its policy picks (:attr:`diacc.envs.episode.EpisodeDriver.picked`, before
 PSAR refines them) and logs one warning when one action holds
-:data:`COLLAPSE_SHARE` of them.
+:data:`COLLAPSE_SHARE` of them. Training runs the same check on every update:
+the rollout counts the actor's argmax on every decision of a living CAV
+(:attr:`diacc.learn.ppo.RolloutStats.greedy`, what a greedy evaluation of the
+networks would pick), ``progress.jsonl`` records the top action's share
+(``greedy_top_share``), and the run log warns at each checkpoint of a collapsed
+policy (or says the check passed).
 
 The counts are not stored in ``episodes.csv``: a resumed evaluation pools only
 the episodes it plays, and one that skips every cell says nothing.
@@ -31,7 +36,17 @@ COLLAPSE_SHARE = 0.99
 MIN_DECISIONS = 200
 
 
-def collapse_warning(label: str, picked: np.ndarray) -> str | None:
+def top_action_share(picked: np.ndarray) -> tuple[int, float]:
+    """The action picked most often in counts ``picked`` (A,) and its share (nan: none)."""
+    picked = np.asarray(picked, np.int64)
+    total = int(picked.sum())
+    top = int(picked.argmax())
+    return top, (picked[top] / total if total else float("nan"))
+
+
+def collapse_warning(
+    label: str, picked: np.ndarray, where: str = "in this evaluation"
+) -> str | None:
     """The one-line warning for action counts ``picked`` (A,) that are one action's, else None."""
     picked = np.asarray(picked, np.int64)  # (A,)
     total = int(picked.sum())
@@ -43,7 +58,7 @@ def collapse_warning(label: str, picked: np.ndarray) -> str | None:
         return None
     return (
         f"{label} picked {ACTION_NAMES[top]!r} on {share:.1%} of its {total:,} decisions "
-        "in this evaluation: a collapsed policy (one action whatever it sees); its rows "
+        f"{where}: a collapsed policy (one action whatever it sees); its rows "
         "are that one action's, not a driving skill's; check its other seeds "
         "(docs/guide/reproducing.md#collapsed-policies)"
     )
