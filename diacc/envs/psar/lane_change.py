@@ -2,10 +2,10 @@
 
 In order: a change the road does not allow becomes ``remain`` before
 Algorithm 1 (:func:`refuse_impossible`); the target lane's front obstacle
-cancels or slows the change (Cancel-LC, Decel-LC); its rear vehicle cancels
-it; and two connected CAVs do not change into each other's way
-(:func:`clashes`). The distances are Algorithm 1's plus the horizon's
-margins (:mod:`diacc.envs.psar.horizons`).
+cancels or slows the change (Cancel-LC, Decel-LC); its rear vehicle, or a
+vehicle behind already moving across into it, cancels it; and two connected
+CAVs do not change into each other's way (:func:`clashes`). The distances are
+Algorithm 1's plus the horizon's margins (:mod:`diacc.envs.psar.horizons`).
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from diacc.envs.actions import (
 )
 from diacc.envs.psar.result import CANCEL_LC, DECEL_LC, rule_bit
 from diacc.envs.psar.scene import Cavs, Margins, Obstacles
+from diacc.envs.safety import PairKinematics
 from diacc.sim.kinematics import nan_to_num
 from diacc.sim.maps import Map
 from diacc.sim.state import take
@@ -56,7 +57,12 @@ def check_lane_changes(
     """
     cancel_front, b_lc_mps2 = _check_front(cavs, a, is_lc, near, horizon, cfg)
     still_lc = is_lc & ~cancel_front
-    cancel_rear = _check_rear(still_lc, near, b_lc_mps2, horizon, cfg)
+    cancel_rear = _check_rear(still_lc, near.tr_vehicle, near.tr_index, b_lc_mps2, horizon, cfg)
+    # A vehicle behind whose change into the target lane is under way is one of its rear
+    # vehicles already, though its centre is not there yet (scene.joining_behind).
+    cancel_rear |= _check_rear(
+        still_lc, near.joining_rear, near.joining_rear_index, b_lc_mps2, horizon, cfg
+    )
     cancel = cancel_front | cancel_rear
     clash = clashes(cavs, ACTION_LANE_OFFSET[a], still_lc & ~cancel_rear, horizon, cfg)
     cancel |= clash & cfg.coordinate_lane_changes
@@ -107,21 +113,22 @@ def _check_front(
 
 def _check_rear(
     still_lc: np.ndarray,
-    near: Obstacles,
+    tr: PairKinematics,
+    tr_index: np.ndarray,
     b_lc_mps2: np.ndarray,
     horizon: Margins,
     cfg: PSARConfig,
 ) -> np.ndarray:
-    """(..., C) Cancel-LC by the target lane's rear vehicle ``k``.
+    """(..., C) Cancel-LC by a rear vehicle ``k`` of the target lane (kinematics ``tr``,
+    vehicle ``tr_index``).
 
     The first test ``|d_long| <= d_LC,min`` is evaluated on the rear bumper gap
     ``-d_long``, so that vehicles already overlapping alongside (gap < 0) also cancel;
     for every non-overlapping pair this equals the paper's ``|d_long|``.
     """
-    tr = near.tr_vehicle
     has_rear = still_lc & tr.valid
     rear_gap_m = -tr.d_long_m  # bumper gap to the rear vehicle (< 0: overlapping)
-    rear_margin_m = horizon.rear_margin_m(near.tr_index)
+    rear_margin_m = horizon.rear_margin_m(tr_index)
     return has_rear & (
         (rear_gap_m <= cfg.d_lc_min_m + rear_margin_m)
         | tr.risk(cfg.d_safe_m, cfg.ttc_safe_s)

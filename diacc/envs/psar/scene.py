@@ -73,6 +73,8 @@ class Obstacles:
     merging_index: np.ndarray  # (..., C) (:func:`cut_in_front`)
     target_wall: PairKinematics  # (..., C) the end of the target lane (with its queue)
     own_wall: PairKinematics  # (..., C) the end of the own lane (with its queue)
+    joining_rear: PairKinematics  # (..., C) a vehicle behind moving across into the
+    joining_rear_index: np.ndarray  # (..., C) target lane (:func:`joining_behind`)
 
 
 def find_obstacles(cavs: Cavs, offset: np.ndarray, road: Map, queue_gap_m: float) -> Obstacles:
@@ -88,9 +90,11 @@ def find_obstacles(cavs: Cavs, offset: np.ndarray, road: Map, queue_gap_m: float
         ],
     )  # (..., C, 3): target-lane front j, target-lane rear k, same-lane front j
     cut_in = cut_in_front(state, cav_index, road)  # (..., C)
-    # One call per kind of obstacle (the formulas are elementwise): the three neighbours
-    # and the vehicle cutting in as columns, the target and own lanes' ends side by side.
-    others = np.concatenate([pairs, cut_in[..., None]], -1)  # (..., C, 4)
+    joining = joining_behind(state, cav_index, offset, road)  # (..., C)
+    # One call per kind of obstacle (the formulas are elementwise): the three neighbours,
+    # the vehicle cutting in and the one joining the target lane behind as columns, the
+    # target and own lanes' ends side by side.
+    others = np.concatenate([pairs, cut_in[..., None], joining[..., None]], -1)  # (..., C, 5)
     # checked slots, found neighbours; the ego column broadcasts against the four others
     kin = pair_kinematics(state, cav_index[..., None], others, check=False)
     n_cav = cav_index.shape[-1]
@@ -112,7 +116,44 @@ def find_obstacles(cavs: Cavs, offset: np.ndarray, road: Map, queue_gap_m: float
         merging_index=cut_in,
         target_wall=walls.column(slice(None, n_cav)),
         own_wall=walls.column(slice(n_cav, None)),
+        joining_rear=kin.column(4),
+        joining_rear_index=joining,
     )
+
+
+def _drifting_toward(state: TrafficState, lane: np.ndarray, road: Map) -> np.ndarray:
+    """(..., C, V) each vehicle moving across into ``lane`` (..., C) from a neighbouring
+    lane: off its centre line towards it by more than :data:`CUT_IN_DRIFT_M`."""
+    drift_m = state.y_m - road.lane_center_y_m(state.lane)  # (..., V) + = to the left
+    side = state.lane[..., None, :] - lane[..., None]  # (..., C, V)
+    return ((side == 1) & (drift_m[..., None, :] < -CUT_IN_DRIFT_M)) | (
+        (side == -1) & (drift_m[..., None, :] > CUT_IN_DRIFT_M)
+    )
+
+
+def joining_behind(
+    state: TrafficState, cav_index: np.ndarray, offset: np.ndarray, road: Map
+) -> np.ndarray:
+    """(..., C) the nearest vehicle behind each CAV that is moving across into the lane its
+    lane change ``offset`` (..., C) goes to, -1 if none or no change.
+
+    The target lane's rear vehicle is found by the lane each vehicle's centre is in;
+    one whose change into that lane is under way still counts in its old lane. On
+    SUMO a standing CAV moved right into such a human's path: the human, 12 m back at
+    18 m/s and half-way over from the lane beyond, hit it (issue 57). The lane-change
+    checks give it the target lane's rear test (:mod:`diacc.envs.psar.lane_change`).
+    """
+    target = take(state.lane, cav_index).astype(np.int64) + offset  # (..., C)
+    dx_m = state.x_m[..., None, :] - take(state.x_m, cav_index)[..., None]  # (..., C, V)
+    candidate = (
+        _drifting_toward(state, target, road)
+        & (dx_m < 0.0)
+        & state.active[..., None, :]
+        & (offset != 0)[..., None]
+    )
+    dist_m = np.where(candidate, -dx_m, np.inf)
+    nearest = np.argmin(dist_m, axis=-1)  # (..., C)
+    return np.where(np.isfinite(np.min(dist_m, axis=-1)), nearest, -1)
 
 
 def cut_in_front(state: TrafficState, cav_index: np.ndarray, road: Map) -> np.ndarray:
@@ -122,11 +163,7 @@ def cut_in_front(state: TrafficState, cav_index: np.ndarray, road: Map) -> np.nd
     Every vehicle is a candidate, not only the nearest one of each neighbouring
     lane: a merging HDV is often a queue's head with others alongside the CAV.
     """
-    drift_m = state.y_m - road.lane_center_y_m(state.lane)  # (..., V) + = to the left
-    side = state.lane[..., None, :] - take(state.lane, cav_index)[..., None]  # (..., C, V)
-    toward = ((side == 1) & (drift_m[..., None, :] < -CUT_IN_DRIFT_M)) | (
-        (side == -1) & (drift_m[..., None, :] > CUT_IN_DRIFT_M)
-    )
+    toward = _drifting_toward(state, take(state.lane, cav_index).astype(np.int64), road)
     dx_m = state.x_m[..., None, :] - take(state.x_m, cav_index)[..., None]  # (..., C, V)
     candidate = toward & (dx_m >= 0) & state.active[..., None, :]
     dx_m = np.where(candidate, dx_m, np.inf)
