@@ -167,3 +167,50 @@ def test_a_human_already_moving_into_the_target_lane_behind_cancels_the_change()
     assert _right_from_lane_2(83.3, 18.0, drift_m=-0.8)[0] == LANE_RIGHT
     # nor when it is far enough back to brake for the CAV
     assert _right_from_lane_2(-200.0, 18.0, drift_m=0.8)[0] == LANE_RIGHT
+
+
+# ------------------------------------------------------------------ the demand road
+def _demand_collisions(backend: str, inflow_vph: float, episode: int, steps: int) -> int:
+    """Collisions of the heuristic's `test` episode on the demand road of issue 57
+    (train-50, 480 s, 120 s warm-up, rho 0.4, D1, every CAV an agent, PSAR headway/known)."""
+    cell = Cell(
+        map="train-50",
+        n_vehicles=25,
+        cav_penetration=0.4,
+        style_mix="D1",
+        inflow_vph=inflow_vph,
+        demand_s=480,
+        warmup_s=120,
+    )
+    settings = EvalSettings(
+        backend,
+        episode_steps=steps,
+        style_preset="realistic",
+        psar_horizon="headway",
+        psar_full_brake="known",
+        agent_slots="every",
+    )
+    policy = build_policy(parse_policy("heuristic"))
+    driver = EpisodeDriver(policy, policy.env_config(cell, settings))
+    try:
+        return play_episode(driver, cell.seed(episode, "test")).summary().n_collisions
+    finally:
+        driver.close()
+
+
+@pytest.mark.parametrize(
+    ("inflow_vph", "episode", "steps"),
+    [(4800, 7, 180), (3600, 2, 176)],  # a CAV's entry; a human joining from the lane beyond
+)
+def test_the_heuristic_no_longer_crashes_where_it_did_on_sumo(inflow_vph, episode, steps):
+    """Two of the collisions issue 57 found, each replayed to just past its step (178,
+    174): entering CAVs keep their lane, and PSAR sees a human joining the target lane."""
+    assert _demand_collisions("sumo", inflow_vph, episode, steps) == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["highway", "sumo"])
+def test_no_collision_with_psar_far_above_capacity(backend):
+    """4800 veh/h, three full `test` episodes (benchmarks/studies/safety/demand-collisions
+    measures 10 per inflow from 1600 to 4800)."""
+    assert [_demand_collisions(backend, 4800, e, 480) for e in range(3)] == [0, 0, 0]
