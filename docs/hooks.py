@@ -2,8 +2,11 @@
 
 * ``cli.md``: every ``diacc`` command's ``--help``, from :func:`diacc.cli.build_parser`;
 * ``tutorials/NN_name.md``: each jupytext tutorial script, its ``# %% [markdown]``
-  cells as prose and its code cells as Python blocks (not executed here:
-  ``tests/test_tutorials.py`` runs them);
+  cells as prose and its code cells as Python blocks, each followed by what it
+  printed and the figures it saved. Those outputs are not computed here: they are
+  cached in ``docs/tutorials-output/NN_name/`` by ``python docs/tutorial_outputs.py``,
+  and ``tests/test_tutorials.py`` checks that the tutorials still print them. A
+  missing or stale cache is a warning (so ``mkdocs build --strict`` fails);
 * ``tutorials/NN_name.ipynb``: the same cells as a notebook to download, which
   Jupyter opens without jupytext (outputs empty: run it to see them).
 """
@@ -13,13 +16,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
+import sys
 from pathlib import Path
 
+from mkdocs.plugins import get_plugin_logger
 from mkdocs.structure.files import File
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import tutorial_outputs  # noqa: E402  (docs/tutorial_outputs.py)
 
 REPO = Path(__file__).resolve().parent.parent
 TUTORIALS = REPO / "tutorials"
+log = get_plugin_logger("diacc-docs")
 
 
 def _subcommands(parser: argparse.ArgumentParser, prefix: str):
@@ -55,20 +63,28 @@ def cli_markdown() -> str:
 def tutorial_cells(path: Path) -> list[tuple[str, str]]:
     """(``"markdown"`` or ``"code"``, text) of each cell of a jupytext percent script,
     the prose without its ``# `` prefixes; empty cells and the jupytext header left out."""
-    text = path.read_text()
-    text = re.sub(r"\A# ---\n(?:#.*\n)*?# ---\n", "", text)  # the jupytext header
-    parts = re.split(r"^# %%(.*)$", text, flags=re.M)
-    cells = []
-    for marker, body in zip(parts[1::2], parts[2::2], strict=True):
-        body = body.strip("\n")
-        if not body.strip():
-            continue
-        if "[markdown]" in marker:
-            prose = [re.sub(r"^# ?", "", line) for line in body.splitlines()]
-            cells.append(("markdown", "\n".join(prose)))
-        else:
-            cells.append(("code", body))
-    return cells
+    return [(kind, body) for kind, body, _ in tutorial_outputs.tutorial_cells(path)]
+
+
+def cached_outputs(path: Path) -> list[dict | None]:
+    """Per code cell of the script, its cached outputs (``None`` where there are
+    none or they are stale: each case logged as a warning)."""
+    sources = tutorial_outputs.code_cells(path)
+    cached = tutorial_outputs.load(path.stem)
+    fix = f"run `{tutorial_outputs.REGENERATE}`"
+    if cached is None:
+        log.warning(f"tutorial {path.name} has no cached outputs: {fix}")
+        return [None] * len(sources)
+    if len(cached) != len(sources):
+        log.warning(f"cached outputs of {path.name} are for another set of cells: {fix}")
+        return [None] * len(sources)
+    outputs: list[dict | None] = []
+    for i, (source, cell) in enumerate(zip(sources, cached, strict=True)):
+        fresh = cell["code"] == tutorial_outputs.code_hash(source)
+        if not fresh:
+            log.warning(f"{path.name}, code cell {i + 1}: its cached outputs are stale: {fix}")
+        outputs.append(cell if fresh else None)
+    return outputs
 
 
 def tutorial_markdown(path: Path) -> str:
@@ -76,12 +92,24 @@ def tutorial_markdown(path: Path) -> str:
     out = [
         f"*Source: `tutorials/{path.name}` (run it with `python tutorials/{path.name}`; "
         "the test suite runs it too). As a notebook for Jupyter: "
-        f"[{path.stem}.ipynb]({path.stem}.ipynb).*",
+        f"[{path.stem}.ipynb]({path.stem}.ipynb). Under each piece of code: what it "
+        "printed and the figures it saved, when the tutorial last ran with the "
+        "small budgets of the test suite.*",
         "",
     ]
+    outputs = iter(cached_outputs(path))
     for kind, body in tutorial_cells(path):
-        out += [body] if kind == "markdown" else ["```python", body, "```"]
-        out.append("")
+        if kind == "markdown":
+            out += [body, ""]
+            continue
+        out += ["```python", body, "```", ""]
+        cell = next(outputs)
+        if cell is None:
+            continue
+        if cell["stdout"]:
+            out += ["```text", *cell["stdout"], "```", ""]
+        for figure in cell["figures"]:
+            out += [f"![{figure}](../{tutorial_outputs.CACHE.name}/{path.stem}/{figure})", ""]
     return "\n".join(out)
 
 

@@ -7,8 +7,10 @@ option, tutorial or documented object breaks this test rather than the site.
 
 from __future__ import annotations
 
+import html
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -40,6 +42,7 @@ def test_docs_build_strict(tmp_path):
     for tutorial in sorted((REPO / "tutorials").glob("[0-9][0-9]_*.py")):
         page = (site / "tutorials" / tutorial.stem / "index.html").read_text()
         assert f'href="../{tutorial.stem}.ipynb"' in page  # the notebook to download
+        _check_tutorial_outputs(page, site / "tutorials" / tutorial.stem, tutorial.stem)
         _check_notebook(site / "tutorials" / f"{tutorial.stem}.ipynb", tutorial)
     api = (site / "api" / "index.html").read_text()
     assert "load_policy" in api and "TrainedPolicy" in api
@@ -47,6 +50,19 @@ def test_docs_build_strict(tmp_path):
     assert (site / "history" / "learning-evidence" / "index.html").is_file()  # the dated record
     pages = [p.read_text() for p in site.rglob("*.html")]
     assert not any("facts.md" in page for page in pages)  # not in the repository
+
+
+def _check_tutorial_outputs(page: str, page_dir: Path, stem: str) -> None:
+    """The page shows the tutorial's cached outputs (docs/tutorials-output/): what it
+    printed, and every figure it saved as an image that exists in the site."""
+    cells = json.loads((REPO / "docs" / "tutorials-output" / stem / "outputs.json").read_text())
+    printed = [line for cell in cells for line in cell["stdout"] if line.strip()]
+    assert printed and printed[0] in html.unescape(page), stem
+    figures = [figure for cell in cells for figure in cell["figures"]]
+    images = re.findall(r'<img alt="[^"]*" src="([^"]+)"', page)
+    assert [Path(src).name for src in images] == figures, stem
+    for src in images:
+        assert (page_dir / src).resolve().is_file(), f"{stem}: {src} is not in the site"
 
 
 def _check_notebook(notebook: Path, script: Path) -> None:

@@ -5,12 +5,15 @@ that libsumo, torch threads and matplotlib state never leak between them),
 with ``DIACC_TUTORIAL_OUT`` pointing at a temporary folder that all tutorials
 share: tutorial 7 reuses the checkpoint of tutorial 6 there. A separate test
 runs tutorial 7 in an empty folder, where it must train its own tiny agent.
+
+They run cell by cell (``docs/tutorial_outputs.py``, as Jupyter would run the
+notebook), so that the same run checks the outputs cached for the docs site in
+``docs/tutorials-output/``: each cell must print what its page shows and write
+the figures shown there (``python docs/tutorial_outputs.py`` rewrites them).
 """
 
 from __future__ import annotations
 
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -19,7 +22,10 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
-TUTORIALS_DIR = Path(__file__).resolve().parent.parent / "tutorials"
+REPO = Path(__file__).resolve().parent.parent
+TUTORIALS_DIR = REPO / "tutorials"
+sys.path.insert(0, str(REPO / "docs"))
+import tutorial_outputs  # noqa: E402  (docs/tutorial_outputs.py: no diacc import)
 
 #: Tutorial file -> files (relative to DIACC_TUTORIAL_OUT) it must produce.
 EXPECTED: dict[str, tuple[str, ...]] = {
@@ -60,18 +66,12 @@ def test_every_tutorial_is_listed() -> None:
         assert name in readme, f"{name} missing from tutorials/README.md"
 
 
-def run_tutorial(name: str, out_dir: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "DIACC_TUTORIAL_OUT": str(out_dir), "MPLBACKEND": "Agg"}
-    proc = subprocess.run(
-        [sys.executable, str(TUTORIALS_DIR / name)],
-        cwd=out_dir,  # a tutorial that ignored DIACC_TUTORIAL_OUT would still stay out of the repo
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert proc.returncode == 0, f"{name} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
-    return proc
+def run_tutorial(name: str, out_dir: Path) -> tutorial_outputs.TutorialRun:
+    """Run it in its own process, cwd and DIACC_TUTORIAL_OUT = out_dir, MPLBACKEND=Agg."""
+    try:
+        return tutorial_outputs.run_cells(name, out_dir, timeout=600)
+    except RuntimeError as error:
+        pytest.fail(str(error))
 
 
 def check_outputs(name: str, out_dir: Path) -> None:
@@ -97,6 +97,12 @@ def shared_out(tmp_path_factory) -> Path:
 def test_tutorial_runs(name: str, shared_out: Path) -> None:
     proc = run_tutorial(name, shared_out)
     check_outputs(name, shared_out)
+    stale = tutorial_outputs.differences(proc)
+    assert not stale, (
+        f"the outputs of tutorials/{name} cached for the docs site are out of date; "
+        f"regenerate them with `{tutorial_outputs.REGENERATE}` and commit "
+        f"docs/tutorials-output/:\n  " + "\n  ".join(stale)
+    )
     if name == "06_train.py":
         table = (shared_out / "06_train/table.md").read_text()
         for column in ("pure-hdv", "[untrained]", "[trained]"):
