@@ -143,6 +143,8 @@ def joining_behind(
     18 m/s and half-way over from the lane beyond, hit it (issue 57). The lane-change
     checks give it the target lane's rear test (:mod:`diacc.envs.psar.lane_change`).
     """
+    if not np.any(offset):  # no lane change asked: skip the (..., C, V) search
+        return np.full(cav_index.shape, -1, np.int64)
     target = take(state.lane, cav_index).astype(np.int64) + offset  # (..., C)
     dx_m = state.x_m[..., None, :] - take(state.x_m, cav_index)[..., None]  # (..., C, V)
     candidate = (
