@@ -11,9 +11,11 @@ from helpers import make_state
 
 import diacc.sim.backends.sumo.worker as sumo_worker
 from diacc.config import PSARConfig, SimConfig
-from diacc.envs.actions import LANE_RIGHT, REMAIN
+from diacc.envs.actions import ACCELERATE, LANE_RIGHT, REMAIN
+from diacc.envs.env import BottleneckEnv, EnvConfig
 from diacc.envs.episode import EpisodeDriver, play_episode
 from diacc.envs.psar import CANCEL_LC, psar
+from diacc.envs.vector import make_vector_env
 from diacc.experiments.evalsettings import EvalSettings
 from diacc.experiments.grid import Cell
 from diacc.experiments.policies import build_policy, parse_policy
@@ -214,3 +216,60 @@ def test_no_collision_with_psar_far_above_capacity(backend):
     """4800 veh/h, three full `test` episodes (benchmarks/studies/safety/demand-collisions
     measures 10 per inflow from 1600 to 4800)."""
     assert [_demand_collisions(backend, 4800, e, 480) for e in range(3)] == [0, 0, 0]
+
+
+# ------------------------------------------------------------------ training with "remove"
+def _first_crash(on_collision: str):
+    """Every CAV accelerating without PSAR on the training cell until the first crash."""
+    config = EnvConfig(
+        map="train-50",
+        use_psar=False,
+        scenario=Scenario(n_vehicles=25, cav_penetration=0.4),
+        sim=SimConfig(on_collision=on_collision),
+    )
+    envs = make_vector_env(config, 1, 3, "sync")
+    try:
+        envs.reset(first_episode=0)
+        for step in range(60):
+            out = envs.step(np.full((1, envs.n_cavs), ACCELERATE))
+            if (out.terms.collision < 0).any():
+                return step, out
+    finally:
+        envs.close()
+    raise AssertionError("no CAV crashed in 60 accelerating steps")
+
+
+def test_a_crash_costs_the_team_the_same_whether_the_wreck_stays_or_is_removed():
+    """Under ``remove`` (per-CAV termination, a training option) the wreck is off the road
+    when the reward is scored; its collision term must still count, exactly as under
+    ``end``, where the wreck stays (before the fix it was masked out: crashing was free)."""
+    end_step, end = _first_crash("end")
+    step, removed = _first_crash("remove")
+    assert step == end_step and end.terminated[0] and not removed.terminated[0]
+    np.testing.assert_array_equal(removed.terms.collision, end.terms.collision)
+    np.testing.assert_array_equal(removed.alive, end.alive)
+    np.testing.assert_allclose(removed.team.total, end.team.total)
+    crashed = removed.terms.collision[0] < 0
+    assert crashed.any() and not removed.actor_obs.alive[0][crashed].any()
+
+
+def test_a_removed_wreck_ends_its_agent_in_the_pettingzoo_env_at_once():
+    config = EnvConfig(
+        map="train-50",
+        use_psar=False,
+        scenario=Scenario(n_vehicles=25, cav_penetration=0.4),
+        sim=SimConfig(on_collision="remove"),
+    )
+    env = BottleneckEnv(config)
+    try:
+        env.reset(seed=3)
+        for _ in range(60):
+            acting = list(env.agents)
+            _, _, terms, truncs, infos = env.step({a: ACCELERATE for a in acting})
+            if any(terms.values()):
+                break
+        ended = [a for a in acting if terms[a]]
+        assert ended and all(len(infos[a]["collisions"]) for a in ended)
+        assert not set(ended) & set(env.agents) and env.agents, "the others drive on"
+    finally:
+        env.close()

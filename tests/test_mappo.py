@@ -201,6 +201,18 @@ def test_resume_matches_uninterrupted_run(tmp_path):
     assert last[0]["policy_loss"] == pytest.approx(last[1]["policy_loss"], rel=1e-5, abs=1e-7)
 
 
+def test_stop_at_step_ends_at_the_update_reaching_it_on_the_full_schedule(tmp_path):
+    """``--stop-at``: equal steps of one schedule (tau and lr follow ``total_steps``)."""
+    cfg = tiny_config(tmp_path)  # 2 updates of 40 steps
+    train(cfg, progress=False, stop_at_step=40)
+    assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["global_step"] == 40
+    train(cfg, resume=True, progress=False, stop_at_step=40)  # already there: nothing to do
+    assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["global_step"] == 40
+    train(cfg, resume=True, progress=False, stop_at_step=41)
+    payload = load_checkpoint(tmp_path / "run" / "checkpoint.pt")
+    assert payload["global_step"] == 80 and payload["config"]["total_steps"] == 80
+
+
 def test_training_on_two_maps_resumes_exactly_and_differs_from_one(tmp_path):
     """extra_maps: env 1 drives a second road (lanes dropping on the right); a
     split run resumes to the same weights, and the second map changes training."""

@@ -109,3 +109,14 @@ def csv_list(text: str, kind=str) -> list:
     if not values:
         raise ConfigError(f"expected a comma-separated list, got {text!r}")
     return values
+
+
+def positive_int(text: str) -> int:
+    """argparse type: a whole number >= 1 (argparse prints the one-line error)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from diacc.cli.options import add_command, add_device_arg, add_out_arg
+from diacc.cli.options import add_command, add_device_arg, add_out_arg, positive_int
 from diacc.config import (
     BACKENDS,
     STYLE_PRESETS,
@@ -103,6 +103,14 @@ def add_parsers(sub) -> None:
         help="start from this checkpoint's networks, with a fresh optimiser and schedules "
         "(fine-tuning, e.g. a highway-trained agent on --backend sumo)",
     )
+    p.add_argument(
+        "--stop-at",
+        type=positive_int,
+        default=None,
+        metavar="STEPS",
+        help="stop with a checkpoint once this many env steps of the --steps schedule are "
+        "done (tau and lr follow --steps); --resume goes on",
+    )
     p.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
     p.add_argument(
         "--overwrite",
@@ -148,6 +156,7 @@ def cmd_train(args: argparse.Namespace) -> None:
         progress=not args.no_progress,
         allow_config_change=args.allow_config_change,
         overwrite=args.overwrite,
+        stop_at_step=args.stop_at,
     )
     print(f"run directory: {run_dir}  (checkpoint: {run_dir / 'checkpoint.pt'})")
 

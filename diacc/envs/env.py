@@ -307,7 +307,7 @@ class BottleneckEnv(ParallelEnv):
             i = index[agent]
             observations[agent] = self._agent_obs(out.actor_obs, i)
             rewards[agent] = out.reward
-            terms[agent] = out.terminated or not out.alive[i]
+            terms[agent] = out.terminated or not out.actor_obs.alive[i]
             truncs[agent] = out.truncated
             infos[agent] = {
                 "refined_action": int(out.refined_action[i]),

@@ -136,7 +136,7 @@ class RewardTerms:
     collision: np.ndarray  # (E, C) collision term (<= 0)
     time_penalty: np.ndarray  # (E, C) sigmoid(v - v_th) - 1
     ego: np.ndarray  # (E, C) weighted ego reward r_e
-    alive: np.ndarray  # (E, C) bool CAV on the road
+    alive: np.ndarray  # (E, C) bool CAV scored: on the road, or taken off by a crash in the step
     global_reward: np.ndarray  # (E,) r_g
     completion: np.ndarray  # (E,) r_done
     delay: np.ndarray  # (E,) minus the delay rate, before its weight (delay_weight, default 0)
@@ -304,7 +304,10 @@ def reward_terms(
     if np.any(state.segment >= limits_mps.shape[0]):
         raise RewardError(f"segment index outside the map's {limits_mps.shape[0]} segments")
 
-    alive = take(state.active, cav_index)  # (..., C)
+    # Scored: on the road after the step, or taken off it by a collision in the step
+    # (SimConfig.on_collision = "remove"), whose penalty must count as when the
+    # episode ends at the crash ("end"), where the wreck stays on the road.
+    alive = take(state.active, cav_index) | take(state.collided, cav_index)  # (..., C)
     speed_mps = take(state.speed_mps, cav_index)  # (..., C)
     v_max_mps = limits_mps[take(state.segment, cav_index)]  # (..., C)
 

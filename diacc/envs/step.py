@@ -33,7 +33,7 @@ class Transition:
     actor_obs: ActorObs  # (E, C, ...) observations of the state reached (or of a new episode)
     critic_state: CriticState  # (E, ...)
     terms: RewardTerms  # (E, C) and (E,): the reward's parts that need no temperature, and
-    # ``terms.alive`` (E, C): CAV on the road after the step (the reward's mask)
+    # ``terms.alive`` (E, C): CAV scored (on the road, or removed by a crash in the step)
     refined_action: np.ndarray  # (E, C) int64 action executed
     psar_rule: np.ndarray  # (E, C) int8 last PSAR rule that took effect (0 none)
     psar_rule_mask: np.ndarray  # (E, C) int8 bitmask of the rules that took effect
@@ -66,7 +66,8 @@ class Transition:
 
     @property
     def alive(self) -> np.ndarray:
-        """(E, C) bool CAV on the road after the step (the reward's mask)."""
+        """(E, C) bool CAV scored by the reward: on the road after the step, or taken
+        off it by a collision in the step (``on_collision = "remove"``)."""
         return self.terms.alive
 
     @property

@@ -220,11 +220,15 @@ def train(
     stop_after_updates: int | None = None,
     allow_config_change: bool = False,
     overwrite: bool = False,
+    stop_at_step: int | None = None,
 ) -> Path:
     """Train ``cfg.variant``; returns the run directory (config, checkpoints, logs).
 
     ``stop_after_updates`` ends the run early (as if interrupted) after that
-    many updates, with a checkpoint; ``resume=True`` continues from it, with
+    many updates, with a checkpoint, and so does ``stop_at_step`` at the first
+    update boundary at or past that env step of the schedule (a long run in
+    pieces, or a study that compares runs at equal steps of one schedule: tau
+    and lr follow ``total_steps``); ``resume=True`` continues from it, with
     the same config but for the step budget (unless ``allow_config_change``),
     and cuts ``progress.jsonl`` and TensorBoard back to the checkpoint.
     Nothing is written before the config (and checkpoint) passed their checks.
@@ -239,7 +243,14 @@ def train(
         # TensorBoard's writer thread would find an unwritable tb/ only after the first update.
         check_output_dir(run_dir / "tb")
         return _start(
-            cfg, run_dir, device, resume, progress, stop_after_updates, allow_config_change
+            cfg,
+            run_dir,
+            device,
+            resume,
+            progress,
+            stop_after_updates,
+            allow_config_change,
+            stop_at_step,
         )
 
 
@@ -251,6 +262,7 @@ def _start(
     progress: bool,
     stop_after_updates: int | None,
     allow_config_change: bool,
+    stop_at_step: int | None = None,
 ) -> Path:
     """:func:`train` once the inputs are checked and ``run_dir`` is locked and claimed."""
     ckpt_path = run_dir / "checkpoint.pt"
@@ -293,6 +305,9 @@ def _start(
             if stop_after_updates is None
             else min(n_updates, first_update + stop_after_updates)
         )
+        if stop_at_step is not None:
+            at_step = -(-stop_at_step // steps_per_update)  # the update that reaches it
+            last_update = max(first_update, min(last_update, at_step))
         return _train_loop(
             agent, cfg, run_dir, device, first_update, last_update, n_updates, global_step, progress
         )

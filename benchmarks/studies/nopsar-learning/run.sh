@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Issue 58: what stops the no-PSAR learner from learning to brake. One change at a time
+# against the baseline of the paper-convergence study (realistic drivers, 1 M-step
+# schedule, 20 envs, its committed runs), compared at equal steps of that schedule.
+#   ARM=remove SEED=1 STOP=300000 bash benchmarks/studies/nopsar-learning/run.sh
+# Resumable: the same command goes on from the committed checkpoint (--resume).
+set -euo pipefail
+cd "$(dirname "$0")/../../.."
+ARM=${ARM:?name the arm: remove | ...}
+SEED=${SEED:-1}
+STOP=${STOP:-1000000}
+VARIANT=${VARIANT:-diacc-nopsar}
+case "$ARM" in
+    remove) SETS=(--set env.sim.on_collision=remove) ;;
+    remove-penalty) SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=20) ;;
+    *) echo "unknown arm: $ARM" >&2; exit 2 ;;
+esac
+OUT="benchmarks/studies/nopsar-learning/results/$ARM/runs/$VARIANT-s$SEED"
+RESUME=()
+if [ -f "$OUT/checkpoint.pt" ]; then RESUME=(--resume); fi
+export OMP_NUM_THREADS=1
+exec diacc train --variant "$VARIANT" --map train-50 --steps 1000000 --envs 20 --seed "$SEED" \
+    --style-preset realistic --set torch_threads=1 "${SETS[@]}" --stop-at "$STOP" \
+    --out "$OUT" --no-progress "${RESUME[@]}"
