@@ -10,7 +10,7 @@ import pytest
 from helpers import make_state
 
 import diacc.sim.backends.sumo.worker as sumo_worker
-from diacc.config import PSARConfig, SimConfig
+from diacc.config import PSARConfig, RewardConfig, SimConfig
 from diacc.envs.actions import ACCELERATE, LANE_RIGHT, REMAIN
 from diacc.envs.env import BottleneckEnv, EnvConfig
 from diacc.envs.episode import EpisodeDriver, play_episode
@@ -219,13 +219,14 @@ def test_no_collision_with_psar_far_above_capacity(backend):
 
 
 # ------------------------------------------------------------------ training with "remove"
-def _first_crash(on_collision: str):
+def _first_crash(on_collision: str, reward: RewardConfig | None = None):
     """Every CAV accelerating without PSAR on the training cell until the first crash."""
     config = EnvConfig(
         map="train-50",
         use_psar=False,
         scenario=Scenario(n_vehicles=25, cav_penetration=0.4),
         sim=SimConfig(on_collision=on_collision),
+        reward=reward or RewardConfig(),
     )
     envs = make_vector_env(config, 1, 3, "sync")
     try:
@@ -273,3 +274,15 @@ def test_a_removed_wreck_ends_its_agent_in_the_pettingzoo_env_at_once():
         assert not set(ended) & set(env.agents) and env.agents, "the others drive on"
     finally:
         env.close()
+
+
+def test_the_crash_penalty_charges_each_crashing_cav_outside_the_softmin():
+    """``env.reward.crash_penalty``: r_done loses the penalty once per CAV that crashed."""
+    _, plain = _first_crash("remove")
+    _, charged = _first_crash("remove", RewardConfig(crash_penalty=50.0))
+    n_crashed = int((plain.terms.collision[0] < 0).sum())
+    assert n_crashed >= 1
+    np.testing.assert_allclose(
+        charged.terms.completion - plain.terms.completion, [-50.0 * n_crashed]
+    )
+    np.testing.assert_allclose(charged.team.total - plain.team.total, [-50.0 * n_crashed])

@@ -17,7 +17,6 @@ from diacc.config import ConfigError, ModelConfig, TrainConfig
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.env import BottleneckEnv
 from diacc.envs.episode import EpisodeDriver
-from diacc.learn.collapse import collapse_warning
 from diacc.experiments.evaluate import (
     EPISODES_FILE,
     SPEEDS_FILE,
@@ -29,6 +28,7 @@ from diacc.experiments.evaluate import (
 from diacc.experiments.grid import SEED_STREAMS, Cell, GridError, load_grid
 from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy, parse_policy
 from diacc.learn.checkpoint import save_checkpoint
+from diacc.learn.collapse import collapse_warning
 from diacc.learn.mappo import make_agent
 from diacc.sim.maps import SEGMENT_KINDS
 

@@ -150,10 +150,10 @@ class RewardConfig:
     the default w_g = 0.4), so ``--study w_e`` (:data:`diacc.experiments.sweepaxes.STUDIES`)
     moves both together; ``--sweep env.reward.w_ego=...`` alone keeps w_g.
 
-    The last four fields are options that default to the paper's reading
-    (:mod:`diacc.envs.reward`, docs/concepts/learning-options.md): ``closeness``,
-    ``warning_ttc_s`` (used by ``closeness="bumper"``), ``exit_bonus_scale``
-    and ``delay_weight``.
+    ``crash_penalty`` and the last four fields are options that default to the
+    paper's reading (:mod:`diacc.envs.reward`, docs/concepts/learning-options.md):
+    ``closeness``, ``warning_ttc_s`` (used by ``closeness="bumper"``),
+    ``exit_bonus_scale`` and ``delay_weight``.
     """
 
     w_ego: float = ranged(0.6, 0)
@@ -169,6 +169,8 @@ class RewardConfig:
     time_penalty_speed_mps: float = 5.0  # v_th
     global_offset: float = 1.0  # p_gv
     exit_bonus: float = 20.0  # r_done per CAV leaving the route
+    # r_done per CAV crashing: minus this (0, the paper: its crash costs the collision term only)
+    crash_penalty: float = ranged(0.0, 0)
     tau_init: float = ranged(2.0, 0, open_low=True)
     tau_final: float = ranged(0.05, 0, open_low=True)
     tau_anneal_fraction: float = ranged(0.5, 0, 1, open_low=True)  # of the training steps

@@ -24,7 +24,14 @@
 * ``r_g = -|mean v_CAV - v_max| / v_max + p_gv`` over active CAVs.
 * ``r_done = exit_bonus`` for *each* CAV that arrived this step, not
   normalised by the number of CAVs (authors' "CAV exit bonus 20"); an episode
-  in which all C CAVs leave thus earns ``C * exit_bonus`` in total.
+  in which all C CAVs leave thus earns ``C * exit_bonus`` in total. With
+  ``crash_penalty > 0`` (an option; the paper's is 0) each CAV that collided
+  this step adds ``-crash_penalty``: the trips that ended in the step, scored
+  outside the softmin. Why: with per-CAV termination
+  (``SimConfig.on_collision = "remove"``) a crash otherwise costs the team one
+  step's collision term and the CAV's exit bonus, about what following a
+  slower car costs over 20-30 steps, so crashing is no worse than braking
+  (docs/results/nopsar-learning.md).
 * With no CAV on the road the ego and global terms are 0 (nothing to score).
 
 Options (:class:`~diacc.config.RewardConfig`; the defaults are the paper read
@@ -362,6 +369,8 @@ def reward_terms(
     completion = cfg.exit_bonus * n_cav_arrivals
     if cfg.exit_bonus_scale == "fleet":
         completion = completion / max(cav_index.shape[-1], 1)
+    if cfg.crash_penalty:
+        completion = completion - cfg.crash_penalty * (state.is_cav & state.collided).sum(axis=-1)
     delay = -_delay_rate(state, limits_mps)  # (...,) computed for the logs whatever the weight
     scalar = float if not lead else np.asarray
     return RewardTerms(

@@ -12,7 +12,7 @@ STOP=${STOP:-1000000}
 VARIANT=${VARIANT:-diacc-nopsar}
 case "$ARM" in
     remove) SETS=(--set env.sim.on_collision=remove) ;;
-    remove-penalty) SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=20) ;;
+    remove-penalty50) SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50) ;;
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
 esac
 OUT="benchmarks/studies/nopsar-learning/results/$ARM/runs/$VARIANT-s$SEED"

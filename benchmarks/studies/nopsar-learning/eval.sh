@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Evaluate every run of an arm on the training cell: greedy, 330-step episodes, wrecks
+# removed (evaluation's rule), both simulators. validation chooses; test reports.
+#   ARM=remove STREAM=validation bash benchmarks/studies/nopsar-learning/eval.sh
+# Re-running skips finished cells (diacc eval resumes).
+set -euo pipefail
+cd "$(dirname "$0")/../../.."
+ARM=${ARM:?name the arm}
+STREAM=${STREAM:-validation}
+EPISODES=${EPISODES:-10}
+BACKENDS=${BACKENDS:-highway sumo}
+HERE=benchmarks/studies/nopsar-learning
+export OMP_NUM_THREADS=1
+for run in "$HERE/results/$ARM/runs"/*/; do
+    name=$(basename "$run")
+    for backend in $BACKENDS; do
+        diacc eval --policy "$run" --backend "$backend" --stream "$STREAM" \
+            --grid "$HERE/training-cell.toml" --episodes "$EPISODES" --episode-steps 330 \
+            --style-preset realistic --out "$HERE/results/$ARM/eval/$STREAM-$backend/$name" \
+            --no-progress
+    done
+done
