@@ -1,7 +1,8 @@
 """A trained agent for Python users: acts on PettingZoo observations, keeps its memory.
 
 The evaluator drives checkpoints through the batched :class:`ActorObs`
-(:class:`diacc.experiments.policies.CheckpointPolicy`). Someone holding a
+(:class:`diacc.experiments.policies.CheckpointPolicy`); both act through
+:func:`diacc.learn.acting.decide`, as training does. Someone holding a
 ``diacc.parallel_env`` has a dict of per-agent observations instead, and
 agents that leave the road mid-episode. :func:`load_policy` gives them::
 
@@ -86,6 +87,7 @@ class TrainedPolicy:
         """One action per agent in ``observations`` (PettingZoo's dict of agent -> obs)."""
         import torch
 
+        from diacc.learn.acting import decide
         from diacc.learn.models.inputs import to_tensors
 
         agents = list(observations)
@@ -102,12 +104,6 @@ class TrainedPolicy:
         zero = torch.zeros(self._hidden_size)
         start = torch.tensor([a not in self._hidden for a in agents])  # (C,)
         hidden = torch.stack([self._hidden.get(a, zero) for a in agents])  # (C, H)
-        with torch.no_grad():
-            logits, hidden = self.actor(to_tensors(batch), hidden, start)  # (C, 5), (C, H)
-            if self.sampled:
-                probs = torch.softmax(logits, -1)
-                action = torch.multinomial(probs, 1, generator=self._generator)[:, 0]
-            else:
-                action = logits.argmax(-1)
-        self._hidden.update(zip(agents, hidden, strict=True))
-        return {a: int(x) for a, x in zip(agents, action.tolist(), strict=True)}
+        step = decide(self.actor, to_tensors(batch), hidden, start, self.sampled, self._generator)
+        self._hidden.update(zip(agents, step.hidden, strict=True))  # (C, H)
+        return {a: int(x) for a, x in zip(agents, step.action.tolist(), strict=True)}

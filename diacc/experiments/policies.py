@@ -373,23 +373,18 @@ class CheckpointPolicy(Policy):
     def act(self, actor_obs: ActorObs, first_step: bool | np.ndarray) -> np.ndarray:
         import torch
 
-        from diacc.envs.action_mask import masked_logits
+        from diacc.learn.acting import decide
         from diacc.learn.models.inputs import to_tensors
 
         n_cavs = actor_obs.alive.shape[0]
         if n_cavs == 0:  # a cell without CAVs (rho = 0): the networks take no empty batch
             return np.zeros(0, np.int64)
         start = torch.as_tensor(np.broadcast_to(first_step, (n_cavs,)).copy())  # (C,) bool
-        with torch.no_grad():
-            obs = to_tensors(actor_obs)
-            logits, self._hidden = self.actor(obs, self._hidden, start)
-            logits = masked_logits(logits, obs["action_mask"])  # as in training
-            if self.sampled:
-                probs = torch.softmax(logits, -1)  # (C, 5)
-                action = torch.multinomial(probs, 1, generator=self._generator)[:, 0]
-            else:
-                action = logits.argmax(-1)
-        return action.cpu().numpy().astype(np.int64)  # (C,)
+        step = decide(
+            self.actor, to_tensors(actor_obs), self._hidden, start, self.sampled, self._generator
+        )
+        self._hidden = step.hidden  # (C, H)
+        return step.action.cpu().numpy().astype(np.int64)  # (C,)
 
     def describe(self) -> dict:
         return {

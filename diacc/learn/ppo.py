@@ -45,6 +45,7 @@ from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.observation import stack, unstack
 from diacc.envs.psar import RULE_NAMES, rule_counts
 from diacc.errors import DiaccError
+from diacc.learn.acting import decide
 from diacc.learn.agent import ROLLOUT_DEVICE, Agent
 from diacc.learn.buffer import Batch, Rollout, compute_gae, flatten_agents, make_batch
 from diacc.learn.models.agent_value import AGENT_KEY, agent_features
@@ -119,18 +120,14 @@ def collect_rollout(
         roll.episode_start[t], roll.alive[t] = start, actor_obs.alive
         roll.agent_start[t] = start[:, None] | slot_start
         roll.actor_hidden[t] = h_actor.view(E, C, H_a).cpu().numpy()
-        with torch.no_grad():
-            agent_start_t = torch.as_tensor(roll.agent_start[t].reshape(-1), device=device)
-            obs_t = to_tensors(flatten_agents(actor_obs), device)
-            logits, h_actor = actor(obs_t, h_actor, agent_start_t)
-            # All True unless env.psar_actions = "masked" (then a no-op: same numbers).
-            logits = masked_logits(logits, obs_t["action_mask"])  # (E*C, 5)
-            dist = torch.distributions.Categorical(logits=logits)
-            action = dist.sample()  # (E*C,)
-            greedy = logits.argmax(dim=-1).view(E, C).cpu().numpy()  # (E, C)
+        agent_start_t = torch.as_tensor(roll.agent_start[t].reshape(-1), device=device)
+        obs_t = to_tensors(flatten_agents(actor_obs), device)
+        step = decide(actor, obs_t, h_actor, agent_start_t, sampled=True)  # global RNG
+        h_actor, dist = step.hidden, step.policy  # (E*C, H), (E*C, 5)
+        greedy = step.greedy.view(E, C).cpu().numpy()  # (E, C)
         stats.greedy += np.bincount(greedy[actor_obs.alive], minlength=len(ACTION_NAMES))
-        roll.actions[t] = action.view(E, C).cpu().numpy()
-        roll.logprobs[t] = dist.log_prob(action).view(E, C).cpu().numpy()
+        roll.actions[t] = step.action.view(E, C).cpu().numpy()
+        roll.logprobs[t] = dist.log_prob(step.action).view(E, C).cpu().numpy()
 
         out = envs.step(roll.actions[t])
         if cfg.env.psar_actions == "executed":  # learn from what PSAR executed
