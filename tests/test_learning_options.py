@@ -112,3 +112,42 @@ def test_per_agent_gae_is_the_team_gae_of_each_slot():
     # Hand check of the last step of env 0 (no episode end): delta = r + gamma V' - V.
     delta = roll.rewards[-1, 0] + 0.9 * next_value[0] - roll.values[-1, 0]
     np.testing.assert_allclose(adv[-1, 0], delta)
+
+
+def test_own_credit_gives_each_cav_its_reward_and_ends_its_returns_at_its_crash(tmp_path):
+    """``credit = "own"``: a crashing CAV's own reward carries the crash penalty, its returns
+    end there (its GAE does not reach past it) and the others' rewards do not carry it."""
+    from diacc.learn.ppo import rollout_gae
+
+    cfg = override(
+        tiny_config(tmp_path),
+        {
+            "variant": "diacc-nopsar",
+            "critic_values": "per_agent",
+            "credit": "own",
+            "env.sim.on_collision": "remove",
+            "env.reward.crash_penalty": 50.0,
+            "env.map": "train-50",
+            "env.sim.episode_steps": 20,
+        },
+    )
+    _, roll, _ = rollout_batch(cfg)
+    crashed = roll.agent_rewards < -40.0  # (S, E, C) a crash step of that CAV
+    assert crashed.any(), "no CAV crashed in the tiny rollout: pick another seed"
+    assert roll.agent_ended[crashed].all()
+    # The team reward charged the crash to the env; the own rewards of the others do not.
+    t, e, c = np.argwhere(crashed)[0]
+    others = np.delete(roll.agent_rewards[t, e], np.flatnonzero(crashed[t, e]))
+    assert (others > -40.0).all()
+    adv, ret = rollout_gae(roll, np.zeros(roll.values.shape[1:]), cfg)
+    # Terminated: its return at the crash step is its own reward, no bootstrap.
+    np.testing.assert_allclose(ret[t, e, c], roll.agent_rewards[t, e, c])
+
+
+def test_own_credit_needs_per_agent_values(tmp_path):
+    import pytest
+
+    from diacc.config import ConfigError, validate
+
+    with pytest.raises(ConfigError, match="per_agent"):
+        validate(override(tiny_config(tmp_path), {"credit": "own"}))

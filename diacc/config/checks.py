@@ -73,6 +73,11 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"env.psar_actions {cfg.env.psar_actions!r} needs PSAR, which variant "
             f"{cfg.variant!r} does not use"
         )
+    if cfg.credit == "own" and cfg.critic_values != "per_agent":
+        raise ConfigError(
+            "credit 'own' gives each CAV its own reward, which needs a value per CAV: "
+            "set critic_values=per_agent"
+        )
     if cfg.init_from and not Path(cfg.init_from).is_file():
         raise ConfigError(f"init_from: checkpoint {cfg.init_from} does not exist")
     if cfg.rollout_steps % cfg.chunk_len:

@@ -141,6 +141,10 @@ class TrainConfig:
     # "team": one value per env, all CAVs share the advantage (paper); "per_agent":
     # a value per CAV slot from its own features beside the global state (docs)
     critic_values: str = one_of("team", ("team", "per_agent"))
+    # "team": every CAV learns from the team reward R (paper); "own": each CAV from its own
+    # reward (diacc.envs.reward.own_reward) and its own trip's end (a crash or an arrival
+    # ends that CAV's returns); needs critic_values="per_agent" (validate)
+    credit: str = one_of("team", ("team", "own"))
     # maps trained on beside env.map: the envs are split into one near-equal share per
     # listed map (diacc.envs.vector.maps_of_envs), so one policy learns several road
     # layouts (--set extra_maps=train-25,right-50.toml); a map listed again gets another

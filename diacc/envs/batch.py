@@ -316,7 +316,9 @@ class EnvBatch:
         st, traffic = self.state, self.state.traffic
         occupant = st.slot_vehicle[rows]  # (R, C)
         active = traffic.active[rows]  # (R, V)
-        present = active | traffic.arrived_now[rows]  # an arriving CAV keeps its slot this step
+        # An arriving CAV keeps its slot this step, and so does a wreck taken off the road
+        # (on_collision = "remove"): the reward scores the slot's trip end.
+        present = active | traffic.arrived_now[rows] | traffic.collided[rows]
         stays = (occupant >= 0) & take_last(present, np.maximum(occupant, 0))
         occupant = np.where(stays, occupant, -1)
         held = np.zeros(active.shape, bool)  # (R, V) CAVs that keep a slot

@@ -146,6 +146,7 @@ class RewardTerms:
     alive: np.ndarray  # (E, C) bool CAV scored: on the road, or taken off by a crash in the step
     global_reward: np.ndarray  # (E,) r_g
     completion: np.ndarray  # (E,) r_done
+    trip_end: np.ndarray  # (E, C) each slot's share of r_done: its CAV arrived or crashed
     delay: np.ndarray  # (E,) minus the delay rate, before its weight (delay_weight, default 0)
 
     def env(self, e: int) -> RewardTerms:
@@ -218,6 +219,21 @@ def team_reward(
     return TeamReward(
         softmin_weight=weights, ego_softmin=np.asarray(ego_softmin), total=np.asarray(total)
     )
+
+
+def own_reward(terms: RewardTerms, cfg: RewardConfig) -> np.ndarray:
+    """Each CAV's own reward ``w_e r_e^i + w_g r_g + r_done^i + w_d delay`` (E, C).
+
+    Training's ``credit = "own"`` (:class:`~diacc.config.TrainConfig`): the
+    team reward's terms without the softmin, each CAV credited with its own ego
+    reward and its own trip's end (``trip_end``: its exit bonus, minus
+    ``crash_penalty`` if it crashed); the global and delay terms stay shared.
+    Why: with one team reward for ten CAVs a crash is charged to every CAV's
+    actions alike (docs/results/nopsar-learning.md). 0 for slots not scored.
+    """
+    shared = cfg.w_global * terms.global_reward + cfg.delay_weight * terms.delay  # (E,)
+    total = cfg.w_ego * terms.ego + np.asarray(shared)[..., None] + terms.trip_end  # (E, C)
+    return np.where(terms.alive, total, 0.0)
 
 
 class AnnealedTeamReward:
@@ -369,8 +385,13 @@ def reward_terms(
     completion = cfg.exit_bonus * n_cav_arrivals
     if cfg.exit_bonus_scale == "fleet":
         completion = completion / max(cav_index.shape[-1], 1)
+    # Each slot's part of r_done (the own-credit reward of training: own_reward).
+    trip_end = cfg.exit_bonus * take(state.arrived_now, cav_index)  # (..., C)
+    if cfg.exit_bonus_scale == "fleet":
+        trip_end = trip_end / max(cav_index.shape[-1], 1)
     if cfg.crash_penalty:
         completion = completion - cfg.crash_penalty * (state.is_cav & state.collided).sum(axis=-1)
+        trip_end = trip_end - cfg.crash_penalty * take(state.collided, cav_index)
     delay = -_delay_rate(state, limits_mps)  # (...,) computed for the logs whatever the weight
     scalar = float if not lead else np.asarray
     return RewardTerms(
@@ -382,6 +403,7 @@ def reward_terms(
         alive=alive,
         global_reward=scalar(global_reward),
         completion=scalar(completion),
+        trip_end=np.where(alive, trip_end, 0.0),
         delay=scalar(delay),
     )
 

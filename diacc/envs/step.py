@@ -245,6 +245,7 @@ def cut_steps(
             alive=np.zeros((n, n_cavs), bool),
             global_reward=per_env,
             completion=per_env,
+            trip_end=per_cav,
             delay=per_env,
         ),
         refined_action=np.zeros((n, n_cavs), np.int64),

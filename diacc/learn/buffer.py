@@ -61,7 +61,11 @@ class Rollout:
     alive: np.ndarray  # (S, E, C) bool: CAV on the road when acting
     values: np.ndarray  # (S, E) de-normalised V(s_t), for GAE; (S, E, C) per agent
     values_normalised: np.ndarray  # (S, E) the critic's raw output: the value-clip centre
-    rewards: np.ndarray  # (S, E)
+    rewards: np.ndarray  # (S, E) the team reward R
+    # credit = "own": each CAV's reward, and its trip's end at t (arrived, crashed, slot
+    # refilled, or no CAV in the slot): no future value for that CAV
+    agent_rewards: np.ndarray  # (S, E, C)
+    agent_ended: np.ndarray  # (S, E, C) bool
     terminated: np.ndarray  # (S, E) bool
     truncated: np.ndarray  # (S, E) bool
     final_values: np.ndarray  # (S, E), or (S, E, C) per agent
@@ -90,6 +94,8 @@ class Rollout:
             values=np.zeros(v, np.float64),
             values_normalised=np.zeros(v, f),
             rewards=np.zeros((steps, envs), np.float64),
+            agent_rewards=np.zeros((steps, envs, cavs), np.float64),
+            agent_ended=np.zeros((steps, envs, cavs), bool),
             terminated=np.zeros((steps, envs), bool),
             truncated=np.zeros((steps, envs), bool),
             final_values=np.zeros(v, np.float64),

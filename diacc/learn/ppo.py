@@ -44,6 +44,7 @@ from diacc.envs.action_mask import masked_logits
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.observation import stack, unstack
 from diacc.envs.psar import RULE_NAMES, rule_counts
+from diacc.envs.reward import own_reward
 from diacc.errors import DiaccError
 from diacc.learn.acting import decide
 from diacc.learn.agent import ROLLOUT_DEVICE, Agent
@@ -140,6 +141,11 @@ def collect_rollout(
             out.terminated,
             out.truncated,
         )
+        if cfg.credit == "own":
+            roll.agent_rewards[t] = own_reward(out.terms, cfg.env.reward)
+            # the same CAV on the road before and after the step: its trip goes on
+            goes_on = roll.alive[t] & out.actor_obs.alive & ~out.slot_start  # (E, C)
+            roll.agent_ended[t] = ~goes_on
         episode_return += team.total
         for e in np.flatnonzero(out.truncated):  # bootstrap from where the episode was cut
             final_actor = out.final_actor_obs[e]
@@ -229,18 +235,23 @@ def rollout_gae(roll: Rollout, next_value: np.ndarray, cfg: TrainConfig):
     """Advantages and returns (S, E) of a rollout (see :func:`compute_gae`).
 
     With per-agent values (S, E, C) the team reward and episode flags are
-    broadcast over the CAV slots: GAE per agent on the shared reward.
+    broadcast over the CAV slots: GAE per agent on the shared reward; with
+    ``credit = "own"`` each CAV's own reward instead, and its trip's end
+    (arrival, crash) terminates its returns as the episode's end does.
     """
     shape = roll.values.shape
 
     def per_value(array: np.ndarray) -> np.ndarray:  # (S, E) -> shape of the values
         return np.broadcast_to(array.reshape(array.shape + (1,) * (len(shape) - 2)), shape)
 
+    rewards, terminated = per_value(roll.rewards), per_value(roll.terminated)
+    if cfg.credit == "own":
+        rewards, terminated = roll.agent_rewards, terminated | roll.agent_ended
     return compute_gae(
-        per_value(roll.rewards),
+        rewards,
         roll.values,
         next_value,
-        per_value(roll.terminated),
+        terminated,
         per_value(roll.truncated),
         roll.final_values,
         cfg.gamma,
