@@ -33,6 +33,7 @@ from diacc.experiments.plots import step_axis
 
 COLUMNS = {
     "collision_rate": "episode/collision",
+    "collided_vehicles": "episode/n_collisions",
     "mean_speed_mps": "episode/mean_speed_mps",
     "mean_cav_speed_mps": "episode/mean_cav_speed_mps",
     "p_sce": "episode/p_sce",
@@ -42,6 +43,7 @@ COLUMNS = {
 #: Panels of the figure: (column, y label).
 PANELS = (
     ("collision_rate", "training episodes with a collision"),
+    ("collided_vehicles", "vehicles in a collision per episode"),
     ("mean_cav_speed_mps", "mean CAV speed in training [m/s]"),
     ("arrived_fraction", "vehicles that arrived [share]"),
     ("delay_per_vehicle_s", "delay per vehicle in training [s]"),
@@ -152,6 +154,7 @@ def write_seed_summary(runs: dict[str, list[dict]], path: Path, window: int) -> 
 #: Columns of the per-configuration summary.
 PANEL_COLUMNS = (
     "collision_rate",
+    "collided_vehicles",
     "mean_cav_speed_mps",
     "mean_speed_mps",
     "arrived_fraction",

@@ -2,6 +2,9 @@
 # Evaluate every run of an arm on the training cell: greedy, 330-step episodes, wrecks
 # removed (evaluation's rule), both simulators. validation chooses; test reports.
 #   ARM=remove STREAM=validation bash benchmarks/studies/nopsar-learning/eval.sh
+# The baseline (the paper-convergence study's 1 M-step `end` runs, trained longer):
+#   ARM=end-1M RUNS=benchmarks/studies/paper-convergence/results/realistic/runs \
+#       PATTERN='diacc-nopsar-*' bash benchmarks/studies/nopsar-learning/eval.sh
 # Re-running skips finished cells (diacc eval resumes).
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
@@ -10,8 +13,10 @@ STREAM=${STREAM:-validation}
 EPISODES=${EPISODES:-10}
 BACKENDS=${BACKENDS:-highway sumo}
 HERE=benchmarks/studies/nopsar-learning
+RUNS=${RUNS:-$HERE/results/$ARM/runs}
+PATTERN=${PATTERN:-*}
 export OMP_NUM_THREADS=1
-for run in "$HERE/results/$ARM/runs"/*/; do
+for run in "$RUNS"/$PATTERN/; do
     name=$(basename "$run")
     for backend in $BACKENDS; do
         diacc eval --policy "$run" --backend "$backend" --stream "$STREAM" \
