@@ -11,14 +11,13 @@ from dataclasses import fields
 import numpy as np
 import pytest
 
-from diacc.config import EnvConfig, preset_road
+from diacc.config import EnvConfig, resolve_road
 from diacc.envs.observation import ObservationBuilder, unstack
 from diacc.envs.psar import psar
 from diacc.envs.reward import reward_terms, team_reward
 from diacc.envs.safety import safety_critical_events
 from diacc.sim.backends.base import CavCommands
 from diacc.sim.backends.highway.backend import HighwayBackend
-from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario
 from diacc.sim.state import TrafficState
 
@@ -37,7 +36,7 @@ def assert_fields_equal(batch, singles) -> None:
 def episode():
     """States of N_ENVS envs over 12 random steps, their builders and CAV slots."""
     config = EnvConfig()
-    road = preset_road(load_map(config.map), config.sim.style_preset)
+    road = resolve_road(config)
     batch = HighwayBackend(road, config.sim, n_envs=N_ENVS)
     scenario = Scenario.with_cavs(N_VEHICLES, N_CAVS)
     states = [batch.reset(scenario, 100 + e, env=e).env(0) for e in range(N_ENVS)]

@@ -9,8 +9,8 @@ import signal
 import numpy as np
 import pytest
 
-from diacc.config import SimConfig
-from diacc.envs.env import EnvConfig
+from diacc.config import SimConfig, resolve_road
+from diacc.envs.env import BottleneckEnv, EnvConfig
 from diacc.envs.observation import concat
 from diacc.envs.vector import (
     BatchedVectorEnv,
@@ -21,6 +21,7 @@ from diacc.envs.vector import (
     maps_of_envs,
 )
 from diacc.envs.vector_process import ProcessVectorEnv
+from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario
 
 CONFIG = EnvConfig(scenario=Scenario(n_vehicles=10, cav_penetration=0.3))
@@ -162,6 +163,26 @@ def test_envs_on_several_maps_match_per_env_envs_and_single_map_runs():
         for env in (grouped, alone, *singles.values()):
             env.close()
     assert ended >= n_envs  # automatic resets compared too
+
+
+@pytest.mark.parametrize("vector", [SyncVectorEnv, BatchedVectorEnv])
+def test_every_layer_drives_the_road_resolve_road_gives(vector):
+    """The map is resolved in one place (issue 59): the env, each map's batch and its
+    episode metrics drive ``resolve_road`` of their config, the preset's limits included."""
+    cfg = dataclasses.replace(
+        CONFIG, map="train-50", sim=SimConfig(style_preset="paper-congestion")
+    )
+    road, other = resolve_road(cfg), resolve_road(dataclasses.replace(cfg, map="train-25"))
+    assert road != load_map("train-50")  # the preset lowers the reduction's speed limit
+    env = BottleneckEnv(cfg)
+    envs = vector(cfg, 3, run_seed=0, env_maps=["train-50", "train-50", "train-25"])
+    try:
+        assert env.road == env.batch.road == road
+        assert [batch.road for batch, _ in envs.groups] == [road, other]
+        assert [recorder.road for recorder in envs.recorders] == [road, other]
+    finally:
+        env.close()
+        envs.close()
 
 
 def test_auto_mode_batches_highway_only():

@@ -15,6 +15,7 @@ from diacc.config import (
     SimConfig,
     TrainConfig,
     build_train_config,
+    resolve_road,
     validate,
 )
 
@@ -128,7 +129,6 @@ def add_parsers(sub) -> None:
 def cmd_train(args: argparse.Namespace) -> None:
     from diacc.console import print_config
     from diacc.learn.mappo import check_config, train
-    from diacc.sim.maps import load_map
 
     cfg = build_train_config(
         args.config,
@@ -144,7 +144,7 @@ def cmd_train(args: argparse.Namespace) -> None:
         init_from=args.init_from,
         sets=args.set,
     )
-    load_map(cfg.env.map)  # fail fast on a bad map name
+    resolve_road(cfg.env)  # fail fast on a bad map name
     validate(cfg)  # before the config is printed (train() checks it again)
     if args.resume and args.overwrite:
         raise ConfigError("--resume continues the run that --overwrite would replace: choose one")

@@ -40,6 +40,7 @@ from diacc.config.env import (  # noqa: F401 - re-exported
     ObservationConfig,
     PSARConfig,
     RewardConfig,
+    resolve_road,
 )
 from diacc.config.overrides import build_train_config, override, parse_sets  # noqa: F401
 from diacc.config.stored import CONFIG_SCHEMA, flatten_config, stored_config  # noqa: F401

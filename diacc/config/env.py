@@ -1,6 +1,7 @@
 """The environment's settings: :class:`EnvConfig` and its sections (observation,
 PSAR, reward, event thresholds), with the simulator's (:class:`SimConfig`) and the
-traffic's (:class:`~diacc.sim.scenario.Scenario`) nested in it."""
+traffic's (:class:`~diacc.sim.scenario.Scenario`) nested in it, and the road it
+describes (:func:`resolve_road`)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ from diacc.fields import (
     one_of,
     ranged,
 )
+from diacc.sim.drivers import preset_road
+from diacc.sim.maps import Map, load_map
 from diacc.sim.scenario import Scenario
 from diacc.sim.settings import BACKENDS, SimConfig
 
@@ -232,3 +235,14 @@ class EnvConfig:
     def psar_enabled(self) -> bool:
         """Whether PSAR filters the CAVs' actions (``use_psar``, on when left unset)."""
         return self.use_psar is not False
+
+
+def resolve_road(config: EnvConfig) -> Map:
+    """The road ``config`` drives on: its map (a shipped name or a ``.toml`` path) with
+    its style preset's speed limits (:func:`~diacc.sim.drivers.preset_road`).
+
+    The one place a map name becomes a road, so that backends, observations, reward
+    and the trainer's checks all see the same limits; a layer that holds a road
+    (a backend's ``road``) passes it on rather than resolving the name again.
+    """
+    return preset_road(load_map(config.map), config.sim.style_preset)

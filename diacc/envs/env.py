@@ -60,7 +60,7 @@ import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from diacc.config import EnvConfig, preset_road
+from diacc.config import EnvConfig, resolve_road
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.api_checks import EnvCallError, check_action_array, check_actions, check_seed
 from diacc.envs.batch import EnvBatch, Simulators, decide
@@ -71,7 +71,7 @@ from diacc.envs.spaces import agent_observation, check_format, observation_space
 from diacc.envs.step import Transition
 from diacc.errors import DiaccError
 from diacc.sim.backends.base import Backend, make_backend
-from diacc.sim.maps import Map, load_map
+from diacc.sim.maps import Map
 from diacc.sim.state import TrafficState
 
 __all__ = [
@@ -137,17 +137,17 @@ class BottleneckEnv(ParallelEnv):
         total_steps: int | None = None,
     ) -> None:
         """``backend``: the simulator to run on (e.g. one env of a batch), by default a new
-        one of ``config.backend`` on ``config.map``. ``render_mode``: ``None``,
-        ``"rgb_array"`` (:meth:`render` returns a frame) or ``"human"`` (a window,
-        refreshed every step; refused without a display). ``observation_format``:
-        ``"dict"`` or ``"flat"`` (:mod:`diacc.envs.spaces`). ``total_steps``: length of the
-        reward's temperature schedule in env steps (:attr:`team_reward`)."""
+        one of ``config.backend`` on ``config``'s road (:func:`~diacc.config.resolve_road`).
+        ``render_mode``: ``None``, ``"rgb_array"`` (:meth:`render` returns a frame) or
+        ``"human"`` (a window, refreshed every step; refused without a display).
+        ``observation_format``: ``"dict"`` or ``"flat"`` (:mod:`diacc.envs.spaces`).
+        ``total_steps``: length of the reward's temperature schedule in env steps
+        (:attr:`team_reward`)."""
         self.config = config or EnvConfig()
         self.render_mode = check_render_mode(render_mode)
         self.observation_format = check_format(observation_format)
         if backend is None:
-            road = preset_road(load_map(self.config.map), self.config.sim.style_preset)
-            backend = make_backend(self.config.backend, road, self.config.sim)
+            backend = make_backend(self.config.backend, resolve_road(self.config), self.config.sim)
         self.backend: Backend = backend
         self.road: Map = backend.road
         #: The step function this env adapts: a batch of one (:mod:`diacc.envs.batch`).

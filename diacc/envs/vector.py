@@ -41,7 +41,7 @@ from dataclasses import fields, replace
 
 import numpy as np
 
-from diacc.config import EnvConfig, preset_road
+from diacc.config import EnvConfig, resolve_road
 from diacc.envs.batch import EnvBatch, Simulators
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, concat, unstack
@@ -49,7 +49,6 @@ from diacc.envs.reward import AnnealedTeamReward
 from diacc.envs.step import Transition, concat_steps, kept_rows, score
 from diacc.envs.vector_process import ProcessVectorEnv
 from diacc.sim.backends.base import backend_class, make_backend
-from diacc.sim.maps import load_map
 
 
 def maps_of_envs(maps: tuple[str, ...], n_envs: int) -> list[str]:
@@ -112,7 +111,7 @@ class VectorEnv:
         for road_map in dict.fromkeys(maps):  # in order of first appearance
             members = np.flatnonzero([m == road_map for m in maps])
             cfg = replace(config, map=road_map)
-            road = preset_road(load_map(road_map), cfg.sim.style_preset)
+            road = resolve_road(cfg)
             if self.batched:
                 cls = backend_class(cfg.backend)
                 if cls.vector_mode != "batched":

@@ -29,14 +29,14 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from diacc.config import TrainConfig, flatten_config, validate
+from diacc.config import TrainConfig, flatten_config, resolve_road, validate
 from diacc.console import TrainProgress
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.observation import check_road
@@ -60,7 +60,6 @@ from diacc.learn.progress import check_agrees as check_progress
 from diacc.learn.progress import keep_until as keep_progress_until
 from diacc.learn.progress import read_rows as progress_rows
 from diacc.runlog import claim_run_dir, config_digest, locked_dir, log, run_log
-from diacc.sim.maps import load_map
 from diacc.sim.scenario import draw_population
 from diacc.threads import set_torch_threads
 
@@ -204,11 +203,12 @@ def check_config(cfg: TrainConfig) -> None:
     """One-line errors for a config :func:`train` cannot run, before anything is printed or written.
 
     The first vehicles' placement checks that the scenario fits the map (it used
-    to fail in the first reset, after config.json and tb/ existed).
+    to fail in the first reset, after config.json and tb/ existed), on the road the
+    environments will drive (:func:`~diacc.config.resolve_road`).
     """
     validate(cfg)
     for road_map in (cfg.env.map, *cfg.extra_maps):
-        road = load_map(road_map)
+        road = resolve_road(replace(cfg.env, map=road_map))
         check_road(road)  # the observation's road and lane tables hold it
         draw_population(cfg.env.scenario, road, cfg.seed)
 

@@ -106,8 +106,9 @@ def preset_road(road: Map, style_preset: str) -> Map:
     """The road a preset drives on: ``road`` with its reduction segments' speed
     limit replaced where :data:`PRESET_REDUCTION_SPEED_MPS` names one.
 
-    Applied wherever a run loads its map (environment, evaluator, ``simulate``),
-    so backends, observations and the reward all see the same limits.
+    Applied where an environment's map becomes its road
+    (:func:`diacc.config.resolve_road`), so backends, observations and the reward
+    all see the same limits.
     """
     limit = PRESET_REDUCTION_SPEED_MPS.get(style_preset)
     if limit is None:

@@ -28,11 +28,10 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from diacc.config import EnvConfig, SimConfig, preset_road
+from diacc.config import EnvConfig, SimConfig, resolve_road
 from diacc.envs.vector import make_vector_env
 from diacc.sim.backends.base import CavCommands
 from diacc.sim.backends.highway.backend import HighwayBackend
-from diacc.sim.maps import load_map
 
 #: Actions of the timed steps: mostly keep lane with speed changes, as PSAR-filtered
 #: policies do (the same distribution as :data:`diacc.experiments.bench.highway.ACTION_PROBS`).
@@ -59,7 +58,7 @@ def time_vector(config: EnvConfig, n_envs: int, mode: str, steps: int, seed: int
 def time_simulator(config: EnvConfig, n_envs: int, batched: bool, steps: int, seed: int) -> float:
     """Env-steps/s of the ``highway`` simulator alone: E backends, or one batch of E."""
     sim: SimConfig = config.sim
-    road = preset_road(load_map(config.map), sim.style_preset)
+    road = resolve_road(config)
     backends = (
         [HighwayBackend(road, sim, n_envs=n_envs)]
         if batched
