@@ -5,6 +5,8 @@
 # The baseline (the paper-convergence study's 1 M-step `end` runs, trained longer):
 #   ARM=end-1M RUNS=benchmarks/studies/paper-convergence/results/realistic/runs \
 #       PATTERN='diacc-nopsar-*' bash benchmarks/studies/nopsar-learning/eval.sh
+# The references on the same episodes (same-mix, the heuristic under PSAR, pure HDV):
+#   ARM=reference bash benchmarks/studies/nopsar-learning/eval.sh
 # Re-running skips finished cells (diacc eval resumes).
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
@@ -16,7 +18,8 @@ HERE=benchmarks/studies/nopsar-learning
 RUNS=${RUNS:-$HERE/results/$ARM/runs}
 PATTERN=${PATTERN:-*}
 export OMP_NUM_THREADS=1
-for run in "$RUNS"/$PATTERN/; do
+if [ "$ARM" = reference ]; then POLICIES=(same-mix heuristic pure-hdv); else POLICIES=("$RUNS"/$PATTERN/); fi
+for run in "${POLICIES[@]}"; do
     name=$(basename "$run")
     for backend in $BACKENDS; do
         diacc eval --policy "$run" --backend "$backend" --stream "$STREAM" \

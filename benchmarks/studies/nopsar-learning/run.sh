@@ -13,6 +13,8 @@ VARIANT=${VARIANT:-diacc-nopsar}
 case "$ARM" in
     remove) SETS=(--set env.sim.on_collision=remove) ;;
     remove-penalty50) SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50) ;;
+    remove-penalty50-ent01) SETS=(--set env.sim.on_collision=remove
+        --set env.reward.crash_penalty=50 --set entropy_coef=0.01) ;;
     own-penalty50) SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
         --set critic_values=per_agent --set credit=own) ;;
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
