@@ -35,7 +35,6 @@ if TYPE_CHECKING:  # pragma: no cover
 def parallel_env(
     render_mode: str | None = None,
     observation_format: str = "dict",
-    total_steps: int | None = None,
     **config: Any,
 ) -> BottleneckEnv:
     """The bottleneck environment as a PettingZoo ``ParallelEnv``.
@@ -43,9 +42,10 @@ def parallel_env(
     ``render_mode``: ``None``, ``"rgb_array"`` or ``"human"``;
     ``observation_format``: ``"dict"`` (graph structure as named arrays) or
     ``"flat"`` (one float32 vector, for SB3/SuperSuit; :func:`diacc.envs.spaces.unflatten`
-    restores the dict). ``total_steps``: your training budget in env steps, the
-    length of the reward's temperature schedule (default: ``diacc train``'s,
-    :class:`diacc.envs.reward.AnnealedTeamReward`). ``config`` holds fields of
+    restores the dict). Every agent's reward is the team reward at the softmin
+    temperature ``env.tau`` (``tau_init``); to train on the reward ``diacc train``
+    trains on, anneal it over your budget: ``AnnealTemperature(env, total_steps)``
+    (:class:`diacc.envs.env.AnnealTemperature`). ``config`` holds fields of
     :class:`diacc.config.EnvConfig` (``backend``, ``map``, ``use_psar``, ...); nested
     sections take a dict or their dataclass, e.g.
     ``scenario={"n_vehicles": 12, "cav_penetration": 0.25}``. Unknown keys raise
@@ -58,7 +58,6 @@ def parallel_env(
         override(EnvConfig(), config),
         render_mode=render_mode,
         observation_format=observation_format,
-        total_steps=total_steps,
     )
 
 

@@ -18,23 +18,22 @@ from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
 from ray.tune.registry import register_env
 
 import diacc
+from diacc.envs.env import AnnealTemperature
 
 #: Env steps sampled per training iteration (``train_batch_size``).
 BATCH_STEPS = 64
 
 
 def make_env(config: dict) -> ParallelPettingZooEnv:
-    # total_steps: the budget in env steps, so that the team reward's temperature anneals
-    # over this run as over a `diacc train` run (each env counts its own steps).
-    return ParallelPettingZooEnv(
-        diacc.parallel_env(
-            observation_format="flat",
-            total_steps=config["total_steps"],
-            map="train-50",
-            scenario={"n_vehicles": 8, "cav_penetration": 0.25},
-            sim={"episode_steps": 20},
-        )
+    env = diacc.parallel_env(
+        observation_format="flat",
+        map="train-50",
+        scenario={"n_vehicles": 8, "cav_penetration": 0.25},
+        sim={"episode_steps": 20},
     )
+    # The budget in env steps, so that the team reward's temperature anneals over this
+    # run as over a `diacc train` run (each env anneals by the steps it takes).
+    return ParallelPettingZooEnv(AnnealTemperature(env, total_steps=config["total_steps"]))
 
 
 def main() -> None:

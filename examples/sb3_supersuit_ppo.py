@@ -20,6 +20,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.utils import set_random_seed
 
 import diacc
+from diacc.envs.env import AnnealTemperature
 
 
 def main() -> None:
@@ -32,15 +33,15 @@ def main() -> None:
     set_random_seed(args.seed)
 
     n_cavs = 2  # 8 vehicles, a quarter of them CAVs
-    # total_steps: the budget in env steps (each env step is one agent step per CAV), so
-    # that the team reward's temperature anneals over this run as over a `diacc train` run.
     env = diacc.parallel_env(
         observation_format="flat",
-        total_steps=max(1, args.steps // n_cavs),
         map="train-50",
         scenario={"n_vehicles": 8, "cav_penetration": 0.25},
         sim={"episode_steps": 20},
     )
+    # The budget in env steps (each env step is one agent step per CAV), so that the team
+    # reward's temperature anneals over this run as over a `diacc train` run.
+    env = AnnealTemperature(env, total_steps=max(1, args.steps // n_cavs))
     env = ss.black_death_v3(env)
     vec_env = ss.pettingzoo_env_to_vec_env_v1(env)  # one entry per CAV
     vec_env = ss.concat_vec_envs_v1(vec_env, 1, num_cpus=0, base_class="stable_baselines3")

@@ -24,6 +24,7 @@ from torchrl.modules import MultiAgentMLP, ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 import diacc
+from diacc.envs.env import AnnealTemperature
 
 GROUP = "cav"  # the wrapper groups agents by the name before "_": cav_0, cav_1 -> "cav"
 
@@ -37,15 +38,15 @@ def main() -> None:
     args = parser.parse_args()
     torch.manual_seed(args.seed)
 
-    # total_steps: the budget in env steps, so that the team reward's temperature anneals
-    # over this run as over a `diacc train` run (the env counts its own steps).
     zoo_env = diacc.parallel_env(
         observation_format="flat",
-        total_steps=args.frames * args.iterations,
         map="train-50",
         scenario={"n_vehicles": 8, "cav_penetration": 0.25},
         sim={"episode_steps": 20},
     )
+    # The budget in env steps, so that the team reward's temperature anneals over this
+    # run as over a `diacc train` run.
+    zoo_env = AnnealTemperature(zoo_env, total_steps=args.frames * args.iterations)
     env = PettingZooWrapper(zoo_env, use_mask=True, categorical_actions=True, seed=args.seed)
     n_agents = len(env.group_map[GROUP])
     obs_key, action_key = (GROUP, "observation"), env.action_key

@@ -7,9 +7,10 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 from diacc.envs.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
-from diacc.envs.env import BottleneckEnv, EnvConfig
-from diacc.envs.reward import team_reward, temperature
+from diacc.envs.env import AnnealTemperature, BottleneckEnv, EnvConfig
+from diacc.envs.reward import RewardError, team_reward, temperature
 from diacc.sim.scenario import Scenario
+from diacc.sim.settings import SimConfig
 
 BACKENDS = ["highway", "sumo"]
 
@@ -91,7 +92,7 @@ def test_batched_api_shapes_and_reward(backend):
         assert (
             out.reward == team_reward(*parts, env.config.reward.tau_init, env.config.reward).total
         )
-        assert env.team_reward.step == 1
+        assert env.tau == env.config.reward.tau_init  # the env counts nothing
         np.testing.assert_array_equal(out.actor_obs.action_memory[:, 0], 0)
     finally:
         env.close()
@@ -103,7 +104,6 @@ def test_same_seed_same_episode():
     actions = rng.integers(0, 5, (20, env.n_cavs))
     runs = []
     for _ in range(2):
-        env.set_training_step(0)  # the same temperatures too
         env.reset_arrays(seed=11)
         rewards = []
         for a in actions:
@@ -117,16 +117,21 @@ def test_same_seed_same_episode():
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
 
 
-def test_env_rewards_follow_the_training_schedule():
-    """Each step's reward (array and PettingZoo API alike) is the team reward at the
-    schedule's temperature: the env counts its own steps (tau_init -> tau_final over half
-    of ``total_steps``) until a trainer sets the step, which then stays the trainer's."""
-    cfg = EnvConfig(scenario=Scenario(n_vehicles=8, cav_penetration=0.5))
-    arrays, zoo = BottleneckEnv(cfg, total_steps=8), BottleneckEnv(cfg, total_steps=8)
+def test_anneal_temperature_sets_the_schedules_tau_before_each_step():
+    """Through :class:`AnnealTemperature` each step's reward (array and PettingZoo API
+    alike) is the team reward at the schedule's temperature at the env steps taken through
+    it (tau_init -> tau_final over half of ``total_steps``); the bare env stays at its tau."""
+    cfg = EnvConfig(
+        scenario=Scenario(n_vehicles=8, cav_penetration=0.5), sim=SimConfig(episode_steps=5)
+    )
+    arrays = AnnealTemperature(BottleneckEnv(cfg), total_steps=8)
+    zoo = AnnealTemperature(BottleneckEnv(cfg), total_steps=8)
+    bare = BottleneckEnv(cfg)
     actions = np.random.default_rng(1).integers(0, 5, (6, arrays.n_cavs))
     try:
         arrays.reset_arrays(seed=4)
         zoo.reset(seed=4)
+        bare.reset_arrays(seed=4)
         taus = []
         for t, a in enumerate(actions):
             agents = list(zoo.agents)
@@ -136,16 +141,17 @@ def test_env_rewards_follow_the_training_schedule():
             parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
             assert out.reward == team_reward(*parts, taus[-1], cfg.reward).total
             assert set(rewards.values()) == {out.reward}
+            assert (arrays.steps, zoo.steps) == (t + 1, t + 1)
+            alone = bare.step_arrays(a)
+            assert alone.reward == team_reward(*parts, cfg.reward.tau_init, cfg.reward).total
             if out.terminated or out.truncated:
                 break
-        assert taus[:5] == pytest.approx([2.0, 1.5125, 1.025, 0.5375, 0.05])
-        arrays.set_training_step(0)
-        arrays.reset_arrays(seed=4)
-        arrays.step_arrays(actions[0])
-        second = arrays.step_arrays(actions[1])
-        assert arrays.team_reward.step == 0 and arrays.team_reward.tau == cfg.reward.tau_init
-        parts = (second.ego, second.alive, second.global_reward, second.completion, second.delay)
-        assert second.reward == team_reward(*parts, cfg.reward.tau_init, cfg.reward).total
+        assert taus == pytest.approx([2.0, 1.5125, 1.025, 0.5375, 0.05])
+        assert zoo.step({}) == ({}, {}, {}, {}, {})  # after the end: simulates nothing,
+        assert zoo.steps == 5  # counts nothing
     finally:
-        arrays.close()
-        zoo.close()
+        for env in (arrays, zoo, bare):
+            env.close()
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(RewardError, match="total_steps"):
+            AnnealTemperature(bare, bad)

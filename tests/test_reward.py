@@ -10,8 +10,6 @@ from helpers import make_state, one_env
 
 from diacc.config import ConfigError, RewardConfig, TrainConfig, override
 from diacc.envs.reward import (
-    DEFAULT_TOTAL_STEPS,
-    AnnealedTeamReward,
     RewardError,
     RewardTerms,
     reward_terms,
@@ -89,42 +87,25 @@ def test_temperature_schedule_endpoints_and_midpoint():
         temperature(0, 0, CFG)
 
 
-def test_annealed_team_reward_counts_env_steps_until_a_trainer_sets_them():
-    reward = AnnealedTeamReward(CFG, 1000)
-    assert AnnealedTeamReward(CFG).total_steps == DEFAULT_TOTAL_STEPS == TrainConfig().total_steps
-    reward.advance(250)
-    assert reward.tau == temperature(250, 1000, CFG)
-    reward.set_training_step(500)
-    reward.advance(100)  # the trainer's step from now on
-    assert (reward.step, reward.tau) == (500, pytest.approx(0.05))
-    for bad in (0, -3, 2.5, True):
-        with pytest.raises(RewardError, match="total_steps"):
-            AnnealedTeamReward(CFG, bad)
-    for bad in (-1, 1.5, None):
-        with pytest.raises(RewardError, match="training step"):
-            reward.set_training_step(bad)
-
-
-def test_vector_envs_emit_the_team_reward_of_their_schedule():
-    """``Transition.team`` is :func:`team_reward` of the step's terms at the schedule's tau:
-    counting E env steps per step, until the trainer sets the step (then constant)."""
+def test_vector_envs_emit_the_team_reward_at_the_temperature_they_are_given():
+    """``Transition.team`` is :func:`team_reward` of the step's terms at the envs' ``tau``
+    (``tau_init`` until set): the envs count no steps, the trainer sets it."""
     from diacc.config import EnvConfig
     from diacc.envs.vector import make_vector_env
 
-    envs = make_vector_env(EnvConfig(), 3, 7, "batched", total_steps=12)
+    envs = make_vector_env(EnvConfig(), 3, 7, "batched")
     rng = np.random.default_rng(0)
     try:
         envs.reset(first_episode=0)
-        for t in range(4):
-            tau = temperature(3 * t, 12, CFG)
-            assert envs.team_reward.tau == tau
+        for tau in (None, None, 0.3, 0.05, 0.05):
+            if tau is None:
+                tau = CFG.tau_init  # not set
+            else:
+                envs.tau = tau
             out = envs.step(rng.integers(0, 5, (3, envs.n_cavs)))
             parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
             np.testing.assert_array_equal(out.team.total, team_reward(*parts, tau, CFG).total)
-        envs.set_training_step(3)
-        for _ in range(2):
-            out = envs.step(rng.integers(0, 5, (3, envs.n_cavs)))
-            assert envs.team_reward.tau == temperature(3, 12, CFG)
+            assert envs.tau == tau
     finally:
         envs.close()
 

@@ -26,10 +26,10 @@
 #   The team is then judged by its worst-off member, which pushes CAVs to help
 #   the one stuck behind a merge instead of racing ahead;
 # * `tau` is annealed linearly from 2 to 0.05 over the first half of training.
-#   The schedule lives with the reward (`AnnealedTeamReward`): every
-#   environment emits R at the temperature of the training step it is at
-#   (its own step count, or the trainer's, `env.set_training_step`), so the
-#   PettingZoo `rewards` are the R that `diacc train` trains on.
+#   Every environment emits R at the temperature it is given (`env.tau`);
+#   whoever trains sets it from the schedule: `diacc train` before each
+#   rollout, a PettingZoo user with `AnnealTemperature(env, total_steps)`,
+#   so the PettingZoo `rewards` are the R that `diacc train` trains on.
 #
 # We plot the weights against `tau`, the schedule over training, and the
 # reward terms of a real traffic state.

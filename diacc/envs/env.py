@@ -17,10 +17,11 @@ order of their vehicle indices. Each step:
 
 **Reward and temperature.** Each step emits the team reward R
 (``Transition.reward``, every agent's PettingZoo reward) at the softmin
-temperature of the training schedule, the same R diacc's trainer trains on:
-:attr:`BottleneckEnv.team_reward` (:class:`~diacc.envs.reward.AnnealedTeamReward`)
-anneals tau over ``total_steps`` env steps, counting this env's steps unless a
-trainer sets its progress (:meth:`BottleneckEnv.set_training_step`).
+temperature the env is given, :attr:`BottleneckEnv.tau` (``tau_init`` until
+set). The env counts no training progress: the schedule belongs to whoever
+trains. :class:`AnnealTemperature` is the schedule for a trainer of another
+library: it wraps the env and sets tau before each step from the env steps
+taken through it, so that R is the one diacc's trainer trains on.
 The step (:class:`~diacc.envs.step.Transition`, env 0's view of the batch's) also
 carries the terms R is made of.
 
@@ -59,6 +60,7 @@ from dataclasses import fields
 import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
+from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from diacc.config import EnvConfig, resolve_road
 from diacc.envs.actions import ACTION_NAMES
@@ -66,7 +68,7 @@ from diacc.envs.api_checks import EnvCallError, check_action_array, check_action
 from diacc.envs.batch import EnvBatch, Simulators, decide
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, unstack
-from diacc.envs.reward import AnnealedTeamReward
+from diacc.envs.reward import RewardError, team_reward, temperature
 from diacc.envs.spaces import agent_observation, check_format, observation_space, state_space
 from diacc.envs.step import Transition
 from diacc.errors import DiaccError
@@ -76,6 +78,7 @@ from diacc.sim.state import TrafficState
 
 __all__ = [
     "ACTION_NAMES",
+    "AnnealTemperature",
     "BottleneckEnv",
     "EnvCallError",
     "EnvConfig",
@@ -116,9 +119,8 @@ class RenderModeError(DiaccError, ValueError):
 class BottleneckEnv(ParallelEnv):
     """CAVs crossing a highway bottleneck among HDVs (see module docstring).
 
-    Every agent's reward is the team reward at the temperature of
-    :attr:`team_reward`'s schedule (module docstring): ``total_steps`` is the
-    schedule's length in env steps (default: ``TrainConfig``'s budget).
+    Every agent's reward is the team reward at temperature :attr:`tau` (module
+    docstring; :class:`AnnealTemperature` anneals it over a training run).
     """
 
     metadata = {
@@ -134,15 +136,12 @@ class BottleneckEnv(ParallelEnv):
         render_mode: str | None = None,
         backend: Backend | None = None,
         observation_format: str = "dict",
-        total_steps: int | None = None,
     ) -> None:
         """``backend``: the simulator to run on (e.g. one env of a batch), by default a new
         one of ``config.backend`` on ``config``'s road (:func:`~diacc.config.resolve_road`).
         ``render_mode``: ``None``, ``"rgb_array"`` (:meth:`render` returns a frame) or
         ``"human"`` (a window, refreshed every step; refused without a display).
-        ``observation_format``: ``"dict"`` or ``"flat"`` (:mod:`diacc.envs.spaces`).
-        ``total_steps``: length of the reward's temperature schedule in env steps
-        (:attr:`team_reward`)."""
+        ``observation_format``: ``"dict"`` or ``"flat"`` (:mod:`diacc.envs.spaces`)."""
         self.config = config or EnvConfig()
         self.render_mode = check_render_mode(render_mode)
         self.observation_format = check_format(observation_format)
@@ -155,8 +154,8 @@ class BottleneckEnv(ParallelEnv):
         self.n_cavs = self.config.scenario.n_slots  # C agent slots
         self.possible_agents = [f"cav_{k}" for k in range(self.config.scenario.n_cavs)]
         self.agents: list[str] = []
-        #: The team reward of each step and its temperature schedule (module docstring).
-        self.team_reward = AnnealedTeamReward(self.config.reward, total_steps)
+        #: Softmin temperature of the team reward of the next steps (module docstring).
+        self.tau: float = self.config.reward.tau_init
         self.state_: TrafficState | None = None
         #: The last step as the batch of one it is (:class:`~diacc.envs.step.Transition`):
         #: what evaluation records, without unbatching and rebatching it.
@@ -201,8 +200,7 @@ class BottleneckEnv(ParallelEnv):
         self.transition = out
         result = out.env(0)
         parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)  # (1, ...)
-        result.team = self.team_reward(*parts).env(0)
-        self.team_reward.advance(1)
+        result.team = team_reward(*parts, self.tau, self.config.reward).env(0)
         self.state_ = result.state
         self._over = result.terminated or result.truncated
         # Both APIs keep ``agents`` current: a policy on the array API that reads
@@ -246,11 +244,6 @@ class BottleneckEnv(ParallelEnv):
         live = self.slot_vehicle[self.slot_vehicle >= 0]
         live = np.sort(live[state.active[0, live]])  # state: a batch of one env
         return [f"cav_{k}" for k in self.cav_ordinal[live]]
-
-    def set_training_step(self, step: int) -> None:
-        """Training progress in env steps, for the reward's temperature; from now on
-        the env no longer counts its own steps (:class:`~diacc.envs.reward.AnnealedTeamReward`)."""
-        self.team_reward.set_training_step(step)
 
     # ------------------------------------------------------------------ PettingZoo API
     def observation_space(self, agent: str) -> gymnasium.spaces.Space:
@@ -369,6 +362,51 @@ class BottleneckEnv(ParallelEnv):
     # ------------------------------------------------------------------ helpers
     def _agent_obs(self, actor_obs: ActorObs, i: int) -> dict[str, np.ndarray] | np.ndarray:
         return agent_observation(actor_obs, i, self._dict_space, self.observation_format)
+
+
+class AnnealTemperature(BaseParallelWrapper):
+    """A :class:`BottleneckEnv` whose team reward anneals over a training run of its own.
+
+    The env emits R at the temperature it is given; the schedule belongs to
+    whoever trains. A trainer of another library (TorchRL, SB3, RLlib: the
+    examples) knows its budget but not the env, so it wraps the env in this,
+    under its own wrappers::
+
+        env = AnnealTemperature(diacc.parallel_env(...), total_steps=budget)
+
+    Before each step through it (PettingZoo's ``step`` or ``step_arrays``) the
+    env's :attr:`~BottleneckEnv.tau` is :func:`~diacc.envs.reward.temperature`
+    at :attr:`steps`, the env steps taken through it so far, of a run of
+    ``total_steps`` env steps: the schedule of ``diacc train`` for a run on this
+    env alone (``TrainConfig().total_steps`` is ``diacc train``'s default budget).
+    A call that simulates nothing (``step({})`` after the episode's end) or
+    raises does not count.
+    """
+
+    env: BottleneckEnv
+
+    def __init__(self, env: BottleneckEnv, total_steps: int) -> None:
+        if isinstance(total_steps, bool) or not isinstance(total_steps, (int, np.integer)):
+            raise RewardError(f"total_steps must be a whole number, got {total_steps!r}")
+        if total_steps <= 0:
+            raise RewardError(f"total_steps must be positive, got {total_steps}")
+        super().__init__(env)
+        self.total_steps = int(total_steps)
+        self.steps = 0  # env steps taken: the schedule's t
+
+    def step(self, actions):
+        return self._annealed(self.env.step, actions)
+
+    def step_arrays(self, actions: np.ndarray) -> Transition:
+        return self._annealed(self.env.step_arrays, actions)
+
+    def _annealed(self, step, actions):
+        self.env.tau = temperature(self.steps, self.total_steps, self.env.config.reward)
+        before = self.env.transition
+        out = step(actions)
+        if self.env.transition is not before:  # the env simulated a step
+            self.steps += 1
+        return out
 
 
 def check_render_mode(render_mode: str | None) -> str | None:

@@ -49,13 +49,15 @@ literally, docs/concepts/learning-options.md):
 **Two steps, one place.** :func:`reward_terms` scores a state: every part
 that needs no temperature (the ego rewards ``r_e``, which CAVs are on the
 road, ``r_g``, ``r_done`` and the delay term). :func:`team_reward` aggregates
-them into ``R`` at a softmin temperature, which anneals over training
-(:func:`temperature`, paper eq. tau_annealing). :class:`AnnealedTeamReward`
-joins the two: the schedule and the training progress it is read at. Every
-environment owns one and emits ``R`` with each step (the vector envs of
+them into ``R`` at a softmin temperature. Every environment emits ``R`` with
+each step at the temperature it is *given* (its ``tau``; the vector envs of
 training, :mod:`diacc.envs.vector`, and the PettingZoo env,
-:class:`~diacc.envs.env.BottleneckEnv`, so also the TorchRL / SB3 / RLlib
-examples): whoever trains on a diacc env trains on the same reward.
+:class:`~diacc.envs.env.BottleneckEnv`) and counts nothing: the temperature
+anneals over training (:func:`temperature`, paper eq. tau_annealing), and
+only whoever trains knows how far training has got. ``diacc train`` sets it
+before each rollout (:func:`diacc.learn.ppo.collect_rollout`); users of other
+libraries wrap the PettingZoo env in :class:`~diacc.envs.env.AnnealTemperature`,
+which sets it before each step. Either way they train on the same reward.
 
 :func:`reward_terms` also scores a batch of E states ((E, V) arrays,
 :mod:`diacc.sim.state`) in one call, and :func:`team_reward` takes any leading
@@ -69,7 +71,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from diacc.config import RewardConfig, TrainConfig
+from diacc.config import RewardConfig
 from diacc.envs.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.errors import DiaccError
 from diacc.sim.kinematics import nan_to_num
@@ -81,15 +83,13 @@ class RewardError(DiaccError, ValueError):
     """Bad input to the reward (temperature <= 0, bad thresholds...); one line."""
 
 
-#: The training budget (env steps) a schedule assumes unless given one: ``TrainConfig``'s.
-DEFAULT_TOTAL_STEPS: int = next(f.default for f in fields(TrainConfig) if f.name == "total_steps")
-
-
 def temperature(step: int, total_steps: int, cfg: RewardConfig) -> float:
     """Softmin temperature at a training step (paper eq. tau_annealing).
 
     Linear from ``tau_init`` to ``tau_final`` over the first
     ``tau_anneal_fraction * total_steps`` environment steps, then constant.
+    ``total_steps`` is the run's budget, so that tau reaches ``tau_final`` at
+    the same share of every run. Whoever trains applies it (module docstring).
     ``cfg``'s ranges (``tau_anneal_fraction`` in (0, 1], temperatures > 0) were
     checked when it was built (:class:`~diacc.config.RewardConfig`), so not here.
     """
@@ -234,61 +234,6 @@ def own_reward(terms: RewardTerms, cfg: RewardConfig) -> np.ndarray:
     shared = cfg.w_global * terms.global_reward + cfg.delay_weight * terms.delay  # (E,)
     total = cfg.w_ego * terms.ego + np.asarray(shared)[..., None] + terms.trip_end  # (E, C)
     return np.where(terms.alive, total, 0.0)
-
-
-class AnnealedTeamReward:
-    """The team reward R of a step at the temperature of the training schedule.
-
-    One per environment (module docstring): the env calls it on each step's
-    terms and emits R. The temperature is :func:`temperature` at ``step``,
-    the training progress in environment steps, of a run of ``total_steps``
-    (the schedule's length; :data:`DEFAULT_TOTAL_STEPS` unless given: pass
-    your run's budget so that tau reaches ``tau_final`` where ours does).
-
-    Who counts the progress: until :meth:`set_training_step` is called, the
-    env counts its own steps (:meth:`advance`, one per env per step), which
-    is the schedule of a training run on this env alone. A trainer that knows
-    better calls :meth:`set_training_step` once per rollout with its global
-    step (diacc's does: its envs step in parallel and tau stays constant
-    within an update); from then on the env no longer counts.
-    """
-
-    def __init__(self, cfg: RewardConfig, total_steps: int | None = None) -> None:
-        total_steps = DEFAULT_TOTAL_STEPS if total_steps is None else total_steps
-        if isinstance(total_steps, bool) or not isinstance(total_steps, (int, np.integer)):
-            raise RewardError(f"total_steps must be a whole number, got {total_steps!r}")
-        if total_steps <= 0:
-            raise RewardError(f"total_steps must be positive, got {total_steps}")
-        self.cfg, self.total_steps = cfg, int(total_steps)
-        self.step = 0  # training progress in env steps: the schedule's t
-        self.set_by_trainer = False  # set_training_step was called: the env stops counting
-
-    @property
-    def tau(self) -> float:
-        """The softmin temperature of the next step."""
-        return temperature(self.step, self.total_steps, self.cfg)
-
-    def set_training_step(self, step: int) -> None:
-        """Training progress is ``step`` env steps (the trainer's, from now on)."""
-        if isinstance(step, bool) or not isinstance(step, (int, np.integer)) or step < 0:
-            raise RewardError(f"training step must be a whole number >= 0, got {step!r}")
-        self.step, self.set_by_trainer = int(step), True
-
-    def advance(self, env_steps: int) -> None:
-        """``env_steps`` more steps were taken (ignored once a trainer sets the step)."""
-        if not self.set_by_trainer:
-            self.step += env_steps
-
-    def __call__(
-        self,
-        ego: np.ndarray,
-        alive: np.ndarray,
-        global_reward: float | np.ndarray,
-        completion: float | np.ndarray,
-        delay: float | np.ndarray,
-    ) -> TeamReward:
-        """:func:`team_reward` of the terms at :attr:`tau`."""
-        return team_reward(ego, alive, global_reward, completion, delay, self.tau, self.cfg)
 
 
 def reward_terms(

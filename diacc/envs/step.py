@@ -19,9 +19,10 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
+from diacc.config import RewardConfig
 from diacc.envs.observation import ActorObs, CriticState, concat, unstack
 from diacc.envs.psar import PSARResult
-from diacc.envs.reward import AnnealedTeamReward, RewardTerms, TeamReward
+from diacc.envs.reward import RewardTerms, TeamReward, team_reward
 from diacc.sim.state import TrafficState
 
 
@@ -151,13 +152,14 @@ def _alive_means(values: np.ndarray, alive: np.ndarray) -> np.ndarray:
     return out
 
 
-def score(out: Transition, reward: AnnealedTeamReward) -> Transition:
-    """``out`` with its team reward at ``reward``'s temperature; counts the E env steps.
+def score(out: Transition, tau: float, cfg: RewardConfig) -> Transition:
+    """``out`` with its team reward at softmin temperature ``tau`` (the envs' own).
 
     A crashed env's terms are 0 and no CAV is on the road, so its R is 0.
     """
-    out.team = reward(out.ego, out.alive, out.global_reward, out.completion, out.delay)
-    reward.advance(len(out.terminated))
+    out.team = team_reward(
+        out.ego, out.alive, out.global_reward, out.completion, out.delay, tau, cfg
+    )
     return out
 
 

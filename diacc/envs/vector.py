@@ -6,9 +6,10 @@ needs around it (:class:`VectorEnv`): automatic reset with per-episode seeds
 derived from the run seed, the final observations of each finished episode
 (to bootstrap truncated episodes), episode metrics, and recovery from a
 crashed simulator. A step reports the team reward R (``Transition.team``) at
-the annealed temperature of the envs' :class:`~diacc.envs.reward.AnnealedTeamReward`
-(the trainer sets its training step before each rollout:
-:meth:`VectorEnv.set_training_step`), beside the terms R is made of.
+the softmin temperature the envs are given (``tau``; the trainer sets it
+before each rollout from the schedule, :func:`~diacc.envs.reward.temperature`),
+beside the terms R is made of. What a learner uses of them is
+:class:`TrainingEnvs`.
 
 * :class:`SyncVectorEnv`: every env on its own simulator, stepped one after
   another in this process (any backend).
@@ -38,6 +39,7 @@ every map, so the trainer sees E environments as before.
 from __future__ import annotations
 
 from dataclasses import fields, replace
+from typing import Protocol
 
 import numpy as np
 
@@ -45,10 +47,29 @@ from diacc.config import EnvConfig, resolve_road
 from diacc.envs.batch import EnvBatch, Simulators
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState, concat, unstack
-from diacc.envs.reward import AnnealedTeamReward
 from diacc.envs.step import Transition, concat_steps, kept_rows, score
 from diacc.envs.vector_process import ProcessVectorEnv
 from diacc.sim.backends.base import backend_class, make_backend
+
+
+class TrainingEnvs(Protocol):
+    """What a learner uses of the E environments it trains on (every vector env here).
+
+    A protocol, so that the learner (:mod:`diacc.learn.ppo`) depends on these
+    members alone, not on how the envs are stepped (in-process, batched, workers).
+    """
+
+    n_envs: int  # E
+    n_cavs: int  # C agent slots per env
+    #: Softmin temperature of the team reward of the next steps: the learner sets it
+    #: from its schedule (:func:`~diacc.envs.reward.temperature`); the envs count nothing.
+    tau: float
+
+    def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]: ...
+
+    def step(self, actions: np.ndarray) -> Transition: ...  # actions (E, C)
+
+    def close(self) -> None: ...
 
 
 def maps_of_envs(maps: tuple[str, ...], n_envs: int) -> list[str]:
@@ -99,10 +120,9 @@ class VectorEnv:
         run_seed: int,
         env_indices: list[int] | None = None,
         env_maps: list[str] | None = None,
-        total_steps: int | None = None,
     ) -> None:
         self.config, self.run_seed = config, run_seed
-        self.team_reward = AnnealedTeamReward(config.reward, total_steps)
+        self.tau = config.reward.tau_init  # the team reward's temperature (TrainingEnvs)
         self.env_index = list(range(n_envs)) if env_indices is None else list(env_indices)
         maps = [config.map if env_maps is None else env_maps[e] for e in self.env_index]
         self.n_envs, self.n_cavs = len(self.env_index), config.scenario.n_slots
@@ -157,13 +177,8 @@ class VectorEnv:
         self.recorders[g].start(rows)
         self.recorders[g].record(batch.state.traffic, rows=restarted)
 
-    def set_training_step(self, step: int) -> None:
-        """Training progress in env steps, for the reward's temperature (the trainer's
-        one call, before each rollout: :class:`~diacc.envs.reward.AnnealedTeamReward`)."""
-        self.team_reward.set_training_step(step)
-
     def step(self, actions: np.ndarray) -> Transition:  # actions (E, C)
-        return score(self.step_terms(actions), self.team_reward)
+        return score(self.step_terms(actions), self.tau, self.config.reward)
 
     def step_terms(self, actions: np.ndarray) -> Transition:
         """:meth:`step` without the team reward (a worker's part: its parent scores)."""
@@ -245,16 +260,13 @@ def make_vector_env(
     run_seed: int,
     mode: str = "auto",
     extra_maps: tuple[str, ...] = (),
-    total_steps: int | None = None,
-):
+) -> TrainingEnvs:
     """``mode``: ``sync``, ``batched``, ``process`` or ``auto`` (the backend's ``vector_mode``).
 
     ``auto`` steps a single environment on its own (``sync``): a batch of one
     gives the same results but pays the batching (``diacc bench --env-batch``;
     figures in docs/benchmarks, "env stepping per core"). ``extra_maps``: maps
     beside ``config.map`` that the environments are split over (:func:`maps_of_envs`).
-    ``total_steps``: the length of the reward's temperature schedule (:class:`VectorEnv`),
-    the run's budget.
     """
     env_maps = maps_of_envs((config.map, *extra_maps), n_envs) if extra_maps else None
     if mode == "auto":
@@ -262,13 +274,9 @@ def make_vector_env(
         if mode == "batched" and n_envs == 1:
             mode = "sync"
     if mode == "sync":
-        return SyncVectorEnv(config, n_envs, run_seed, env_maps=env_maps, total_steps=total_steps)
+        return SyncVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
     if mode == "batched":
-        return BatchedVectorEnv(
-            config, n_envs, run_seed, env_maps=env_maps, total_steps=total_steps
-        )
+        return BatchedVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
     if mode == "process":
-        return ProcessVectorEnv(
-            SyncVectorEnv, config, n_envs, run_seed, env_maps=env_maps, total_steps=total_steps
-        )
+        return ProcessVectorEnv(SyncVectorEnv, config, n_envs, run_seed, env_maps=env_maps)
     raise ValueError(f"unknown vector mode {mode!r}; choose sync, batched, process or auto")

@@ -18,7 +18,6 @@ import numpy as np
 
 from diacc.config import EnvConfig
 from diacc.envs.observation import ActorObs, CriticState, concat, unstack
-from diacc.envs.reward import AnnealedTeamReward
 from diacc.envs.step import Transition, concat_steps, cut_steps, score
 from diacc.runlog import join_parent_log, log
 from diacc.threads import worker_environment
@@ -64,7 +63,8 @@ class ProcessVectorEnv:
     ``group_class``: what each worker steps its group with (``SyncVectorEnv``).
     W defaults to one worker per CPU core (at most E): more workers than cores
     only add switching, fewer leave cores idle. The team reward is made here,
-    in the parent, which holds the temperature schedule (:meth:`set_training_step`).
+    in the parent, at the temperature it is given (``tau``, as
+    :class:`~diacc.envs.vector.VectorEnv`'s).
     """
 
     def __init__(
@@ -75,11 +75,10 @@ class ProcessVectorEnv:
         run_seed: int,
         n_workers: int | None = None,
         env_maps: list[str] | None = None,
-        total_steps: int | None = None,
     ) -> None:
         self.group_class = group_class
         self.config, self.run_seed, self.env_maps = config, run_seed, env_maps
-        self.team_reward = AnnealedTeamReward(config.reward, total_steps)
+        self.tau = config.reward.tau_init  # the team reward's temperature (TrainingEnvs)
         self.n_envs, self.n_cavs = n_envs, config.scenario.n_slots
         n_workers = min(n_envs, n_workers or os.cpu_count() or 1)
         self.groups = [g.tolist() for g in np.array_split(np.arange(n_envs), n_workers)]
@@ -187,12 +186,7 @@ class ProcessVectorEnv:
             parts.append(reply if reply is not None else self._restart(w))
         out = concat_steps(parts)
         self._last_critic = [unstack(out.critic_state, e, copy=True) for e in range(self.n_envs)]
-        return score(out, self.team_reward)
-
-    def set_training_step(self, step: int) -> None:
-        """Training progress in env steps, for the reward's temperature (as
-        :meth:`diacc.envs.vector.VectorEnv.set_training_step`)."""
-        self.team_reward.set_training_step(step)
+        return score(out, self.tau, self.config.reward)
 
     def close(self) -> None:
         for p, w in zip(self.pipes, self.workers, strict=True):

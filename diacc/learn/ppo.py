@@ -7,8 +7,9 @@ One update of :func:`diacc.learn.trainer.train` is, in this order:
    environments act as one batch of E * C agents, each with its own GRU
    hidden state; a slot that a new CAV takes (``demand`` scenarios) starts
    from a zero hidden state, as at an episode start. Each step's reward is
-   the team reward R the environments emit (paper eq. reward_all, softmin at
-   the annealed temperature: :mod:`diacc.envs.reward`).
+   the team reward R the environments emit (paper eq. reward_all), at the
+   softmin temperature of the schedule that this function sets in them
+   (:func:`~diacc.envs.reward.temperature`, :mod:`diacc.envs.reward`).
 2. :func:`rollout_values`: the centralised critic's values, after the
    rollout, one pass per chunk (one value per environment, because R is
    shared by all CAVs; ``critic_values="per_agent"`` values each CAV slot,
@@ -44,7 +45,8 @@ from diacc.envs.action_mask import masked_logits
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.observation import stack, unstack
 from diacc.envs.psar import RULE_NAMES, rule_counts
-from diacc.envs.reward import own_reward
+from diacc.envs.reward import own_reward, temperature
+from diacc.envs.vector import TrainingEnvs
 from diacc.errors import DiaccError
 from diacc.learn.acting import decide
 from diacc.learn.agent import ROLLOUT_DEVICE, Agent
@@ -77,7 +79,7 @@ class RolloutStats:
 
 def collect_rollout(
     agent: Agent,
-    envs,
+    envs: TrainingEnvs,
     cfg: TrainConfig,
     update: int,
     global_step: int,
@@ -89,10 +91,10 @@ def collect_rollout(
     The actor runs on the agent's rollout networks (:data:`ROLLOUT_DEVICE`),
     refreshed from the learner first unless ``sync`` is False (overlap: the
     learner is being updated meanwhile). The team reward of each step is the
-    one the envs emit (``Transition.team``), at the temperature of training
-    step ``global_step`` (the env steps before this update; set in the envs
-    here, :meth:`~diacc.envs.vector.VectorEnv.set_training_step`, so tau is
-    the same for the whole rollout); each ended episode's ``return`` sums them
+    one the envs emit (``Transition.team``), at the schedule's temperature at
+    training step ``global_step`` (the env steps before this update, of
+    ``cfg.total_steps``): set in the envs here, so tau is the same for the
+    whole rollout (the envs count nothing); each ended episode's ``return`` sums them
     (an episode never spans two rollouts: every rollout starts from a reset).
 
     The critic does not run during the steps: values change nothing the envs
@@ -108,14 +110,14 @@ def collect_rollout(
     E, C, H_a = cfg.n_envs, envs.n_cavs, actor.hidden_size
     per_agent = cfg.critic_values == "per_agent"
     roll = Rollout.allocate(cfg.rollout_steps, E, C, H_a, agent.critic.hidden_size, per_agent)
-    envs.set_training_step(global_step)
+    envs.tau = temperature(global_step, cfg.total_steps, cfg.env.reward)
     actor_obs, critic_state = envs.reset(first_episode=update * EPISODES_PER_UPDATE)
     h_actor = torch.zeros(E * C, H_a, device=device)  # (E*C, H)
     start = np.ones(E, bool)
     slot_start = np.zeros((E, C), bool)  # (E, C) new CAV in the slot since the last action
     episode_return = np.zeros(E)  # (E,) team rewards of each env's current episode so far
     stats = RolloutStats([], np.zeros(len(RULE_NAMES) - 1, np.int64), 0, 0, {}, 0.0)
-    stats.tau = envs.team_reward.tau
+    stats.tau = envs.tau
     for t in range(cfg.rollout_steps):
         roll.actor_obs[t], roll.critic_state[t] = actor_obs, critic_state
         roll.episode_start[t], roll.alive[t] = start, actor_obs.alive

@@ -2,8 +2,8 @@
 
 :func:`train` checks the config, claims and locks the run directory, builds
 the agent (or restores it from the checkpoint with ``--resume``) and runs the
-updates: lr decay, the temperature schedule's training step
-(:meth:`~diacc.envs.vector.VectorEnv.set_training_step`), one rollout and one
+updates: lr decay, the reward's softmin temperature at the run's global step
+(:func:`~diacc.learn.ppo.collect_rollout` sets it in the envs), one rollout and one
 :func:`~diacc.learn.ppo.learn` per update, a ``progress.jsonl`` row and
 TensorBoard scalars per update (:mod:`diacc.learn.progress`), checkpoints,
 and a stop at the next update boundary on SIGINT/SIGTERM/SIGHUP.
@@ -40,7 +40,7 @@ from diacc.config import TrainConfig, flatten_config, resolve_road, validate
 from diacc.console import TrainProgress
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.observation import check_road
-from diacc.envs.vector import make_vector_env
+from diacc.envs.vector import TrainingEnvs, make_vector_env
 from diacc.errors import DiaccError
 from diacc.fileio import atomic_write, check_output_dir
 from diacc.learn.agent import Agent, make_agent
@@ -327,9 +327,7 @@ def _train_loop(
     ckpt_path = run_dir / "checkpoint.pt"
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     saved_update = first_update if first_update else None
-    envs = make_vector_env(
-        cfg.env, cfg.n_envs, cfg.seed, cfg.vector, cfg.extra_maps, cfg.total_steps
-    )
+    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed, cfg.vector, cfg.extra_maps)
     # purge_step: TensorBoard drops the events a resumed run logged after its checkpoint.
     # It reads event files in name order, and names start with the creation second:
     # a resumed file must not share its second with the interrupted run's last file.
@@ -458,7 +456,7 @@ def _update_generator(cfg: TrainConfig, update: int, device: torch.device):
 def _learn_beside_rollout(
     learn_roll: Callable[[], tuple[np.ndarray, dict[str, float]]],
     agent: Agent,
-    envs,
+    envs: TrainingEnvs,
     cfg: TrainConfig,
     update: int,
     next_step: int,

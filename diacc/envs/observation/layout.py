@@ -76,6 +76,7 @@ shape, dtype and field name (what the networks read: :data:`ACTOR_KEYS`,
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import TypeVar
 
 import numpy as np
 
@@ -159,7 +160,11 @@ def stack(items: list) -> ActorObs | CriticState:
     return cls(**{f.name: np.stack([getattr(i, f.name) for i in items]) for f in fields(cls)})
 
 
-def unstack(batch: ActorObs | CriticState, e: int, copy: bool = False) -> ActorObs | CriticState:
+#: Either observation container: what :func:`unstack` takes, it returns.
+Container = TypeVar("Container", ActorObs, CriticState)
+
+
+def unstack(batch: Container, e: int, copy: bool = False) -> Container:
     """Entry ``e`` of a container whose fields have a leading (env) axis (views, or copies)."""
     return type(batch)(
         **{
