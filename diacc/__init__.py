@@ -51,9 +51,14 @@ def parallel_env(
     ``scenario={"n_vehicles": 12, "cav_penetration": 0.25}``. Unknown keys raise
     :class:`diacc.config.ConfigError`.
     """
-    from diacc.config import override
+    from diacc.config import ConfigError, override
     from diacc.envs.env import BottleneckEnv, EnvConfig
 
+    if "total_steps" in config:  # the argument of the schedule this env once ran itself
+        raise ConfigError(
+            "parallel_env takes no total_steps: anneal the temperature with "
+            "AnnealTemperature(diacc.parallel_env(...), total_steps) (diacc.envs.env)"
+        )
     return BottleneckEnv(
         override(EnvConfig(), config),
         render_mode=render_mode,

@@ -155,3 +155,11 @@ def test_anneal_temperature_sets_the_schedules_tau_before_each_step():
     for bad in (0, -3, 2.5, True):
         with pytest.raises(RewardError, match="total_steps"):
             AnnealTemperature(bare, bad)
+
+
+def test_parallel_env_names_the_wrapper_when_given_a_schedule_length():
+    import diacc
+    from diacc.config import ConfigError
+
+    with pytest.raises(ConfigError, match="AnnealTemperature"):
+        diacc.parallel_env(total_steps=100)
