@@ -91,17 +91,25 @@ def main() -> None:
             for r in rows:
                 writer.writerow([label, r["step"], *(f"{r[k]:.4f}" for k in COLUMNS)])
     fig, axes = plt.subplots(1, len(PANELS), figsize=(5 * len(PANELS), 3.6))
+    # Seeds of one configuration (labels NAME/sSEED) share a colour and one legend entry.
+    groups = list(dict.fromkeys(label.rsplit("/s", 1)[0] for label in runs))
+    colours = {g: f"C{i % 10}" for i, g in enumerate(groups)}
+    named: set[str] = set()
     for label, rows in runs.items():
         steps = [r["step"] for r in rows]
+        group = label.rsplit("/s", 1)[0]
+        legend = None if group in named else (group if group != label else label)
+        named.add(group)
         for ax, (column, _) in zip(axes, PANELS, strict=True):
-            ax.plot(steps, smooth([r[column] for r in rows], args.smooth), label=label)
+            values = smooth([r[column] for r in rows], args.smooth)
+            ax.plot(steps, values, label=legend, color=colours[group], lw=1.2)
     for ax, (column, ylabel) in zip(axes, PANELS, strict=True):
         step_axis(ax)
         ax.set_ylabel(ylabel)
         if column in SHARES:
             ax.set_ylim(-0.02, 1.02)
-        ax.legend()
         ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
     suffix = f" (moving average over {args.smooth} updates)" if args.smooth > 1 else ""
     fig.suptitle(args.title + suffix, fontsize=10)
     fig.tight_layout()

@@ -7,7 +7,8 @@
 #       PATTERN='diacc-nopsar-*' bash benchmarks/studies/nopsar-learning/eval.sh
 # The references on the same episodes (same-mix, the heuristic under PSAR, pure HDV):
 #   ARM=reference bash benchmarks/studies/nopsar-learning/eval.sh
-# Re-running skips finished cells (diacc eval resumes).
+# Re-running skips finished cells (diacc eval resumes); AT=600k names a later checkpoint's
+# folder (eval/validation-highway-600k/...), so it does not skip the earlier one's.
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
 ARM=${ARM:?name the arm}
@@ -24,7 +25,7 @@ for run in "${POLICIES[@]}"; do
     for backend in $BACKENDS; do
         diacc eval --policy "$run" --backend "$backend" --stream "$STREAM" \
             --grid "$HERE/training-cell.toml" --episodes "$EPISODES" --episode-steps 330 \
-            --style-preset realistic --out "$HERE/results/$ARM/eval/$STREAM-$backend/$name" \
+            --style-preset realistic --out "$HERE/results/$ARM/eval/$STREAM-$backend${AT:+-$AT}/$name" \
             --no-progress
     done
 done
