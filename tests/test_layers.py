@@ -100,6 +100,7 @@ SHARED = {
     "diacc.runlog": None,
     "diacc.threads": None,
     "diacc.fields": None,  # checked settings: every config section, the simulator's too
+    "diacc.records": None,  # batched records: row operations by declared axes (issue 59)
     "diacc.config": "diacc.sim",  # the config tree nests the simulator's sections
     "diacc.config.env": "diacc.sim",
     "diacc.config.train": "diacc.sim",

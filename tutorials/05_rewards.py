@@ -142,7 +142,7 @@ for _ in range(30):
     if out.terminated or out.truncated:
         break
 state = out.state  # a batch of one env
-t = reward_terms(state, env.cav_index[None], env.road, cfg).env(0)  # env 0's (C,) terms
+t = reward_terms(state, env.cav_index[None], env.road, cfg).unbatched(0)  # env 0's (C,) terms
 env.close()
 terms = {
     tau: team_reward(t.ego, t.alive, t.global_reward, t.completion, t.delay, tau, cfg)

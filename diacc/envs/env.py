@@ -200,7 +200,7 @@ class BottleneckEnv(ParallelEnv):
         self.transition = out
         result = out.env(0)
         parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)  # (1, ...)
-        result.team = team_reward(*parts, self.tau, self.config.reward).env(0)
+        result.team = team_reward(*parts, self.tau, self.config.reward).unbatched(0)
         self.state_ = result.state
         self._over = result.terminated or result.truncated
         # Both APIs keep ``agents`` current: a policy on the array API that reads

@@ -67,13 +67,14 @@ an (E,) array; entry ``e`` is env ``e``'s reward.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
 from diacc.config import RewardConfig
 from diacc.envs.safety import SAME_COL, lane_leaders_followers, pair_kinematics
 from diacc.errors import DiaccError
+from diacc.records import Batched, per_env
 from diacc.sim.kinematics import nan_to_num
 from diacc.sim.maps import Map
 from diacc.sim.state import TrafficState, take, take_rows
@@ -128,56 +129,35 @@ def softmin_weights(ego_reward: np.ndarray, alive: np.ndarray, tau: float) -> np
 
 
 @dataclass
-class RewardTerms:
+class RewardTerms(Batched):
     """The parts of one step's reward that need no temperature, one entry per CAV slot.
 
     Per-CAV arrays hold the *unweighted* sub-terms; ``ego`` is their weighted
-    sum r_e. Entries of CAVs that are not on the road are 0. Every field has a
-    leading env axis, (E, C) or (E,); :meth:`env` is one env's view (the PettingZoo
-    env's: (C,) arrays and floats).
-    :func:`team_reward` makes the team reward R of them.
+    sum r_e. Entries of CAVs that are not on the road are 0. A batch of E envs
+    (:class:`~diacc.records.Batched`: ``unbatched(e)`` is the PettingZoo env's view,
+    (C,) arrays and floats). :func:`team_reward` makes the team reward R of them.
     """
 
-    speed: np.ndarray  # (E, C) -|v - v_max|/v_max + p_ev
-    warning: np.ndarray  # (E, C) warning-distance term (<= 0)
-    collision: np.ndarray  # (E, C) collision term (<= 0)
-    time_penalty: np.ndarray  # (E, C) sigmoid(v - v_th) - 1
-    ego: np.ndarray  # (E, C) weighted ego reward r_e
-    alive: np.ndarray  # (E, C) bool CAV scored: on the road, or taken off by a crash in the step
-    global_reward: np.ndarray  # (E,) r_g
-    completion: np.ndarray  # (E,) r_done
-    trip_end: np.ndarray  # (E, C) each slot's share of r_done: its CAV arrived or crashed
-    delay: np.ndarray  # (E,) minus the delay rate, before its weight (delay_weight, default 0)
-
-    def env(self, e: int) -> RewardTerms:
-        """Env ``e``'s terms out of a batch's: (C,) arrays and floats (the PettingZoo view)."""
-        return RewardTerms(
-            *(
-                (float(value[e]) if f.name in PER_ENV_TERMS else value[e])
-                for f in fields(self)
-                for value in [getattr(self, f.name)]
-            )
-        )
-
-
-#: The :class:`RewardTerms` with one value per env, not per CAV slot.
-PER_ENV_TERMS = ("global_reward", "completion", "delay")
+    speed: np.ndarray = per_env("E, C")  # -|v - v_max|/v_max + p_ev
+    warning: np.ndarray = per_env("E, C")  # warning-distance term (<= 0)
+    collision: np.ndarray = per_env("E, C")  # collision term (<= 0)
+    time_penalty: np.ndarray = per_env("E, C")  # sigmoid(v - v_th) - 1
+    ego: np.ndarray = per_env("E, C")  # weighted ego reward r_e
+    alive: np.ndarray = per_env("E, C")  # bool: on the road, or taken off by a crash in the step
+    global_reward: np.ndarray = per_env("E")  # r_g
+    completion: np.ndarray = per_env("E")  # r_done
+    trip_end: np.ndarray = per_env("E, C")  # each slot's share of r_done: arrived or crashed
+    delay: np.ndarray = per_env("E")  # minus the delay rate, before its weight delay_weight
 
 
 @dataclass
-class TeamReward:
-    """The team reward R of a step at one softmin temperature (:func:`team_reward`).
+class TeamReward(Batched):
+    """The team reward R of a step at one softmin temperature (:func:`team_reward`); a
+    batch as the terms are."""
 
-    The fields have the terms' leading env axis; :meth:`env` is one env's view.
-    """
-
-    softmin_weight: np.ndarray  # (E, C) w_i, sums to 1 over alive CAVs
-    ego_softmin: np.ndarray  # (E,) sum_i w_i r_e^i
-    total: np.ndarray  # (E,) R
-
-    def env(self, e: int) -> TeamReward:
-        """Env ``e``'s team reward: (C,) weights and floats (the PettingZoo view)."""
-        return TeamReward(self.softmin_weight[e], float(self.ego_softmin[e]), float(self.total[e]))
+    softmin_weight: np.ndarray = per_env("E, C")  # w_i, sums to 1 over alive CAVs
+    ego_softmin: np.ndarray = per_env("E")  # sum_i w_i r_e^i
+    total: np.ndarray = per_env("E")  # R
 
 
 def team_reward(

@@ -23,6 +23,7 @@ from diacc.config import RewardConfig
 from diacc.envs.observation import ActorObs, CriticState, concat, unstack
 from diacc.envs.psar import PSARResult
 from diacc.envs.reward import RewardTerms, TeamReward, team_reward
+from diacc.records import where_rows
 from diacc.sim.state import TrafficState
 
 
@@ -104,7 +105,7 @@ class Transition:
         return Transition(
             actor_obs=unstack(self.actor_obs, e),
             critic_state=unstack(self.critic_state, e),
-            terms=self.terms.env(e),
+            terms=self.terms.unbatched(e),
             refined_action=self.refined_action[e],
             psar_rule=self.psar_rule[e],
             psar_rule_mask=self.psar_rule_mask[e],
@@ -168,18 +169,12 @@ def kept_rows(out: Transition, kept: np.ndarray) -> Transition:
     (their simulator crashed: nothing of the step happened); ``out`` itself if all are kept."""
     if kept.all():
         return out
-
-    def of_kept(values: np.ndarray) -> np.ndarray:
-        mask = kept.reshape((-1,) + (1,) * (values.ndim - 1))
-        return np.where(mask, values, np.zeros((), values.dtype))
-
-    terms = RewardTerms(*(of_kept(getattr(out.terms, f.name)) for f in fields(RewardTerms)))
     return replace(
         out,
-        terms=terms,
-        refined_action=of_kept(out.refined_action),
-        psar_rule=of_kept(out.psar_rule),
-        psar_rule_mask=of_kept(out.psar_rule_mask),
+        terms=out.terms.where_rows(kept),
+        refined_action=where_rows(out.refined_action, kept),
+        psar_rule=where_rows(out.psar_rule, kept),
+        psar_rule_mask=where_rows(out.psar_rule_mask, kept),
     )
 
 
@@ -192,7 +187,7 @@ def concat_steps(parts: list[Transition]) -> Transition:
     return Transition(
         actor_obs=concat([p.actor_obs for p in parts]),
         critic_state=concat([p.critic_state for p in parts]),
-        terms=concat([p.terms for p in parts]),
+        terms=RewardTerms.concat([p.terms for p in parts]),
         **{name: np.concatenate([getattr(p, name) for p in parts]) for name in _ARRAY_FIELDS},
         final_critic_state=[c for p in parts for c in p.final_critic_state],
         final_actor_obs=[a for p in parts for a in p.final_actor_obs],

@@ -1,0 +1,56 @@
+"""Batched records (issue 59): concat, env selection, row masks and the unbatched
+view, derived once from the axes each field declares."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from diacc.records import Batched, env_events, per_env
+
+
+@dataclass
+class Step(Batched):
+    reward: np.ndarray = per_env("E")
+    speed: np.ndarray = per_env("E, C")
+    hits: np.ndarray = env_events("env, i, j")
+
+
+def batch(n_envs: int, first: int = 0) -> Step:
+    envs = np.arange(first, first + n_envs)
+    return Step(
+        reward=envs.astype(float),
+        speed=np.repeat(envs[:, None], 2, axis=1).astype(float),
+        hits=np.array([[e - first, e, e + 1] for e in envs], np.int32),
+    )
+
+
+def test_concat_renumbers_events_and_selection_keeps_the_batch_axis():
+    joined = Step.concat([batch(2), batch(3, first=2)])
+    assert joined.n_rows == 5 and joined.hits[:, 0].tolist() == [0, 1, 2, 3, 4]
+    picked = joined.rows(np.array([3, 1]))
+    assert picked.reward.tolist() == [3.0, 1.0] and picked.speed.shape == (2, 2)
+    assert picked.hits.tolist() == [[0, 3, 4], [1, 1, 2]]  # renumbered, env-major
+    one = joined.env(4)
+    assert one.speed.shape == (1, 2) and one.hits.tolist() == [[0, 4, 5]]
+    assert joined.rows(joined.reward > 2.5).reward.tolist() == [3.0, 4.0]
+
+
+def test_where_rows_zeroes_envs_not_kept_and_unbatched_drops_the_env_axis():
+    kept = batch(3).where_rows(np.array([True, False, True]))
+    assert kept.reward.tolist() == [0.0, 0.0, 2.0] and kept.speed[1].tolist() == [0.0, 0.0]
+    assert kept.hits[:, 0].tolist() == [0, 2]
+    view = batch(3).unbatched(1)
+    assert view.reward == 1.0 and isinstance(view.reward, float)
+    assert view.speed.shape == (2,) and view.hits.tolist() == [[1, 2]]
+
+
+def test_a_field_without_axes_is_an_error_naming_it():
+    @dataclass
+    class Bare(Batched):
+        x: np.ndarray
+
+    with pytest.raises(TypeError, match=r"Bare\.x declares no axes"):
+        Bare(np.zeros(1)).env(0)
