@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from diacc.config import EnvConfig, resolve_road
-from diacc.envs.observation import ObservationBuilder, unstack
+from diacc.envs.observation import ObservationBuilder
 from diacc.envs.psar import psar
 from diacc.envs.reward import reward_terms, team_reward
 from diacc.envs.safety import safety_critical_events
@@ -105,8 +105,8 @@ def test_observations_of_a_batch(episode):
     def assert_rows_equal(actor, critic, rows, singles) -> None:
         for k, (e, b) in enumerate(zip(rows, singles, strict=True)):
             for got, single in (
-                (unstack(actor, k), unstack(b.actor(*(a[e : e + 1] for a in args)), 0)),
-                (unstack(critic, k), unstack(b.critic(), 0)),
+                (actor.unbatched(k), b.actor(*(a[e : e + 1] for a in args)).unbatched(0)),
+                (critic.unbatched(k), b.critic().unbatched(0)),
             ):
                 for f in fields(single):
                     a, c = getattr(single, f.name), getattr(got, f.name)

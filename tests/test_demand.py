@@ -14,7 +14,6 @@ from diacc.config import ConfigError, EnvConfig, SimConfig, TrainConfig, overrid
 from diacc.envs.actions import LANE_RIGHT
 from diacc.envs.env import BottleneckEnv
 from diacc.envs.episode import EpisodeDriver, play_episode
-from diacc.envs.observation import unstack
 from diacc.envs.vector import make_vector_env
 from diacc.experiments.policies import ScriptedPolicy
 from diacc.learn.mappo import make_agent, seed_everything, train
@@ -167,7 +166,7 @@ def test_refilled_slot_acts_from_a_fresh_recurrent_state(tmp_path, short_map):
     assert refill.any()
     t, e, c = (int(i) for i in np.argwhere(refill)[0])
     assert roll.actor_hidden[t, e, c].any()  # the previous occupant's state is there...
-    obs = to_tensors(unstack(roll.actor_obs[t], e))
+    obs = to_tensors(roll.actor_obs[t].unbatched(e))
     actor = agent.rollout_actor
     with torch.no_grad():
         start = torch.as_tensor(roll.agent_start[t, e])

@@ -18,7 +18,7 @@ import diacc.learn.models.gat as gat
 from diacc.config import EnvConfig, EventConfig, ObservationConfig, SimConfig
 from diacc.envs.actions import LANE_RIGHT
 from diacc.envs.env import BottleneckEnv
-from diacc.envs.observation import ObservationBuilder, ObservationError, unstack
+from diacc.envs.observation import ObservationBuilder, ObservationError
 from diacc.sim.scenario import Scenario
 from diacc.sim.state import TrafficState, on_road_window
 
@@ -69,7 +69,7 @@ def test_demand_critic_rows_hold_the_vehicles_on_the_road_first(short_map):
     on_road = []
     for t, (state, critic) in enumerate(steps):
         (reference.reset if t == 0 else reference.push)(state)
-        full = unstack(reference.critic(), 0)  # state: a batch of one env
+        full = reference.critic().unbatched(0)  # state: a batch of one env
         vehicles = np.flatnonzero(state.active[0])  # (n,) on the road, in index order
         n = len(vehicles)
         on_road.append(n)

@@ -435,7 +435,7 @@ def test_every_variant_runs_on_builder_observations():
     from helpers import make_state
 
     from diacc.config import ObservationConfig
-    from diacc.envs.observation import ObservationBuilder, stack, unstack
+    from diacc.envs.observation import ObservationBuilder, stack
     from diacc.sim.maps import load_map
 
     road, obs_cfg = load_map("train-25"), ObservationConfig()
@@ -451,9 +451,9 @@ def test_every_variant_runs_on_builder_observations():
         cavs = np.flatnonzero(state.is_cav[0])[None, :1]  # (1, 1): state is a batch of one
         memory = rng.integers(0, N_ACTIONS, (1, 1, 2))
         actor_obs.append(
-            unstack(builder.actor(cavs, memory, np.zeros((1, n_vehicles), np.int64)), 0)
+            builder.actor(cavs, memory, np.zeros((1, n_vehicles), np.int64)).unbatched(0)
         )
-        critic_states.append(unstack(builder.critic(), 0))
+        critic_states.append(builder.critic().unbatched(0))
     obs, state = (
         to_tensors(stack(actor_obs)),
         to_tensors(stack(critic_states)),

@@ -11,7 +11,7 @@ import pytest
 
 from diacc.config import SimConfig, resolve_road
 from diacc.envs.env import BottleneckEnv, EnvConfig
-from diacc.envs.observation import concat
+from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.vector import (
     BatchedVectorEnv,
     SyncVectorEnv,
@@ -97,7 +97,10 @@ def test_batched_simulator_matches_envs_stepped_alone(map_name, n_vehicles, use_
     sync, batched = SyncVectorEnv(config, n_envs, run_seed=7), BatchedVectorEnv(config, n_envs, 7)
     try:
         first = [env.reset(first_episode=0) for env in alone]
-        first = tuple(concat([pair[i] for pair in first]) for i in range(2))
+        first = tuple(
+            kind.concat([pair[i] for pair in first])
+            for i, kind in enumerate((ActorObs, CriticState))
+        )
         assert_same(first, batched.reset(first_episode=0), "reset")
         assert_same(first, sync.reset(first_episode=0), "reset")
         rng = np.random.default_rng(1)

@@ -67,7 +67,7 @@ from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.api_checks import EnvCallError, check_action_array, check_actions, check_seed
 from diacc.envs.batch import EnvBatch, Simulators, decide
 from diacc.envs.metrics import EpisodeRecorder
-from diacc.envs.observation import ActorObs, CriticState, unstack
+from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.reward import RewardError, team_reward, temperature
 from diacc.envs.spaces import agent_observation, check_format, observation_space, state_space
 from diacc.envs.step import Transition
@@ -186,7 +186,7 @@ class BottleneckEnv(ParallelEnv):
         self.agents = self._live_agents(self.state_)
         self._recorder = None  # the dict API's reset() starts one; the batched API needs none
         actor, critic = self.batch.observe()
-        return unstack(actor, 0), unstack(critic, 0)
+        return actor.unbatched(0), critic.unbatched(0)
 
     def step_arrays(self, actions: np.ndarray) -> Transition:
         """Advance one decision step with proposed actions (C,) for every CAV slot; the
@@ -319,7 +319,7 @@ class BottleneckEnv(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """Flattened critic state (PettingZoo convention for a centralised critic)."""
-        critic = unstack(self.batch.builder.critic(), 0)
+        critic = self.batch.builder.critic().unbatched(0)
         return np.concatenate(
             [np.asarray(getattr(critic, f.name), np.float32).ravel() for f in fields(critic)]
         )

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from diacc.config import RewardConfig
-from diacc.envs.observation import ActorObs, CriticState, concat, unstack
+from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.psar import PSARResult
 from diacc.envs.reward import RewardTerms, TeamReward, team_reward
 from diacc.records import where_rows
@@ -103,8 +103,8 @@ class Transition:
         if self.psar is not None:
             psar = PSARResult(*(getattr(self.psar, f.name)[e] for f in fields(PSARResult)))
         return Transition(
-            actor_obs=unstack(self.actor_obs, e),
-            critic_state=unstack(self.critic_state, e),
+            actor_obs=self.actor_obs.unbatched(e),
+            critic_state=self.critic_state.unbatched(e),
             terms=self.terms.unbatched(e),
             refined_action=self.refined_action[e],
             psar_rule=self.psar_rule[e],
@@ -185,8 +185,8 @@ def concat_steps(parts: list[Transition]) -> Transition:
     offsets = np.cumsum([0] + [len(p.terminated) for p in parts])
     terms = [p.reward_terms for p in parts if p.reward_terms]
     return Transition(
-        actor_obs=concat([p.actor_obs for p in parts]),
-        critic_state=concat([p.critic_state for p in parts]),
+        actor_obs=ActorObs.concat([p.actor_obs for p in parts]),
+        critic_state=CriticState.concat([p.critic_state for p in parts]),
         terms=RewardTerms.concat([p.terms for p in parts]),
         **{name: np.concatenate([getattr(p, name) for p in parts]) for name in _ARRAY_FIELDS},
         final_critic_state=[c for p in parts for c in p.final_critic_state],

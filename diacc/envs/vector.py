@@ -46,7 +46,7 @@ import numpy as np
 from diacc.config import EnvConfig, resolve_road
 from diacc.envs.batch import EnvBatch, Simulators
 from diacc.envs.metrics import EpisodeRecorder
-from diacc.envs.observation import ActorObs, CriticState, concat, unstack
+from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.step import Transition, concat_steps, kept_rows, score
 from diacc.envs.vector_process import ProcessVectorEnv
 from diacc.sim.backends.base import backend_class, make_backend
@@ -163,7 +163,7 @@ class VectorEnv:
             self._start(g, batch, members, rows)
             pairs.append(batch.observe())
         self._critic = [critic for _, critic in pairs]
-        return concat([a for a, _ in pairs]), concat([c for _, c in pairs])
+        return ActorObs.concat([a for a, _ in pairs]), CriticState.concat([c for _, c in pairs])
 
     def _start(self, g: int, batch: EnvBatch, members: np.ndarray, rows: np.ndarray) -> None:
         """New episodes in rows ``rows`` of batch ``g`` (positions ``members[rows]``)."""
@@ -201,10 +201,10 @@ class VectorEnv:
         recorder = self.recorders[g]
         recorder.record(out.state, psar=out.psar, critical=out.critical, rows=~crashed)
         for row in np.flatnonzero(crashed).tolist():
-            finals[row] = unstack(before, row)
+            finals[row] = before.unbatched(row)
         for row in np.flatnonzero(ended & ~crashed).tolist():
-            finals[row] = unstack(out.critic_state, row, copy=True)
-            final_actors[row] = unstack(out.actor_obs, row, copy=True)
+            finals[row] = out.critic_state.unbatched(row, copy=True)
+            final_actors[row] = out.actor_obs.unbatched(row, copy=True)
             episodes[row] = {
                 "length": int(batch.state.steps[row]),
                 "collision": float(batch.state.wrecked[row].any()),  # anywhere in it

@@ -17,7 +17,7 @@ import signal
 import numpy as np
 
 from diacc.config import EnvConfig
-from diacc.envs.observation import ActorObs, CriticState, concat, unstack
+from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.step import Transition, concat_steps, cut_steps, score
 from diacc.runlog import join_parent_log, log
 from diacc.threads import worker_environment
@@ -161,8 +161,9 @@ class ProcessVectorEnv:
                 self._replace(w)
                 reply = self._call(w, ("reset", first_episode))
             pairs.append(reply)
-        actor, critic = concat([a for a, _ in pairs]), concat([c for _, c in pairs])
-        self._last_critic = [unstack(critic, e, copy=True) for e in range(self.n_envs)]
+        actor = ActorObs.concat([a for a, _ in pairs])
+        critic = CriticState.concat([c for _, c in pairs])
+        self._last_critic = [critic.unbatched(e, copy=True) for e in range(self.n_envs)]
         return actor, critic
 
     def _send(self, w: int, message: tuple) -> bool:
@@ -185,7 +186,7 @@ class ProcessVectorEnv:
             reply = self._receive(w) if ok else None
             parts.append(reply if reply is not None else self._restart(w))
         out = concat_steps(parts)
-        self._last_critic = [unstack(out.critic_state, e, copy=True) for e in range(self.n_envs)]
+        self._last_critic = [out.critic_state.unbatched(e, copy=True) for e in range(self.n_envs)]
         return score(out, self.tau, self.config.reward)
 
     def close(self) -> None:

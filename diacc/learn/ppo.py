@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from diacc.config import TrainConfig
 from diacc.envs.action_mask import masked_logits
 from diacc.envs.actions import ACTION_NAMES
-from diacc.envs.observation import stack, unstack
+from diacc.envs.observation import stack
 from diacc.envs.psar import RULE_NAMES, rule_counts
 from diacc.envs.reward import own_reward, temperature
 from diacc.envs.vector import TrainingEnvs
@@ -152,7 +152,7 @@ def collect_rollout(
         for e in np.flatnonzero(out.truncated):  # bootstrap from where the episode was cut
             final_actor = out.final_actor_obs[e]
             if final_actor is None:  # a simulator crash: the CAVs' last features are gone
-                final_actor = unstack(actor_obs, e)
+                final_actor = actor_obs.unbatched(e)
             roll.cut_states.append((t, int(e), out.final_critic_state[e], final_actor))
         stats.episodes += [
             {"return": float(episode_return[e]), **ep} for e, ep in out.episodes.items()

@@ -35,9 +35,7 @@ from diacc.envs.observation.layout import (
     ObservationError,
     ObservationSpec,
     check_road,
-    concat,
     stack,
-    unstack,
 )
 
 __all__ = [
@@ -65,8 +63,6 @@ __all__ = [
     "ObservationError",
     "ObservationSpec",
     "check_road",
-    "concat",
     "features_for",
     "stack",
-    "unstack",
 ]

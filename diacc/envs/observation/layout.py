@@ -76,12 +76,12 @@ shape, dtype and field name (what the networks read: :data:`ACTOR_KEYS`,
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import TypeVar
 
 import numpy as np
 
 from diacc.config import ObservationConfig
 from diacc.errors import DiaccError
+from diacc.records import Batched, per_env
 from diacc.sim.maps import Map
 
 NODE_FEATURES = 6
@@ -115,36 +115,38 @@ def clip_f32(a: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class ActorObs:
-    """Per-CAV observations; leading axis C (or any batch axes before it)."""
+class ActorObs(Batched):
+    """Per-CAV observations of E envs (a :class:`~diacc.records.Batched` record; an env's
+    own, ``unbatched(e)``, drops E: what the PettingZoo env hands out)."""
 
-    self_state: np.ndarray  # (C, SELF_FEATURES) float32
-    ego_hist: np.ndarray  # (C, T, NODE_FEATURES) float32
-    hdv_nodes: np.ndarray  # (C, K, T, NODE_FEATURES) float32
-    hdv_mask: np.ndarray  # (C, K) bool
-    cav_nodes: np.ndarray  # (C, K, T, NODE_FEATURES) float32
-    cav_mask: np.ndarray  # (C, K) bool
-    cav_prev_action: np.ndarray  # (C, K) int64
-    lane_stats: np.ndarray  # (C, LANE_SLOTS, LANE_FEATURES) float32
-    lane_mask: np.ndarray  # (C, 3) bool
-    road: np.ndarray  # (C, ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS) float32
-    action_memory: np.ndarray  # (C, 2) int64
-    action_mask: np.ndarray  # (C, N_ACTIONS) bool legal actions (diacc.envs.action_mask); all True
-    alive: np.ndarray  # (C,) bool
+    self_state: np.ndarray = per_env("E, C, SELF_FEATURES")  # float32
+    ego_hist: np.ndarray = per_env("E, C, T, NODE_FEATURES")  # float32
+    hdv_nodes: np.ndarray = per_env("E, C, K, T, NODE_FEATURES")  # float32
+    hdv_mask: np.ndarray = per_env("E, C, K")  # bool
+    cav_nodes: np.ndarray = per_env("E, C, K, T, NODE_FEATURES")  # float32
+    cav_mask: np.ndarray = per_env("E, C, K")  # bool
+    cav_prev_action: np.ndarray = per_env("E, C, K")  # int64
+    lane_stats: np.ndarray = per_env("E, C, LANE_SLOTS, LANE_FEATURES")  # float32
+    lane_mask: np.ndarray = per_env("E, C, LANE_SLOTS")  # bool
+    road: np.ndarray = per_env("E, C, ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS")  # float32
+    action_memory: np.ndarray = per_env("E, C, 2")  # int64
+    action_mask: np.ndarray = per_env("E, C, N_ACTIONS")  # bool legal (diacc.envs.action_mask)
+    alive: np.ndarray = per_env("E, C")  # bool
 
 
 @dataclass
-class CriticState:
-    """Global state of one environment (or a batch of them on leading axes)."""
+class CriticState(Batched):
+    """Global state of E envs (a :class:`~diacc.records.Batched` record, as
+    :class:`ActorObs`)."""
 
-    nodes: np.ndarray  # (N, CRITIC_NODE_FEATURES) float32
-    node_mask: np.ndarray  # (N,) bool
-    neighbours: np.ndarray  # (N, K) int64
-    neighbour_mask: np.ndarray  # (N, K) bool
-    lane_stats: np.ndarray  # (MAX_LANES, LANE_FEATURES) float32
-    lane_mask: np.ndarray  # (MAX_LANES,) bool
-    road: np.ndarray  # (ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS,) float32
-    traffic: np.ndarray  # (TRAFFIC_FEATURES,) float32
+    nodes: np.ndarray = per_env("E, N, CRITIC_NODE_FEATURES")  # float32
+    node_mask: np.ndarray = per_env("E, N")  # bool
+    neighbours: np.ndarray = per_env("E, N, K")  # int64
+    neighbour_mask: np.ndarray = per_env("E, N, K")  # bool
+    lane_stats: np.ndarray = per_env("E, MAX_LANES, LANE_FEATURES")  # float32
+    lane_mask: np.ndarray = per_env("E, MAX_LANES")  # bool
+    road: np.ndarray = per_env("E, ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS")  # float32
+    traffic: np.ndarray = per_env("E, TRAFFIC_FEATURES")  # float32
 
 
 #: ActorObs fields the actor networks read (``alive`` only masks the losses,
@@ -158,28 +160,6 @@ def stack(items: list) -> ActorObs | CriticState:
     """Stack containers of the same type along a new leading axis."""
     cls = type(items[0])
     return cls(**{f.name: np.stack([getattr(i, f.name) for i in items]) for f in fields(cls)})
-
-
-#: Either observation container: what :func:`unstack` takes, it returns.
-Container = TypeVar("Container", ActorObs, CriticState)
-
-
-def unstack(batch: Container, e: int, copy: bool = False) -> Container:
-    """Entry ``e`` of a container whose fields have a leading (env) axis (views, or copies)."""
-    return type(batch)(
-        **{
-            f.name: getattr(batch, f.name)[e].copy() if copy else getattr(batch, f.name)[e]
-            for f in fields(batch)
-        }
-    )
-
-
-def concat(items: list):
-    """Containers of the same type joined along their leading (env) axis."""
-    if len(items) == 1:
-        return items[0]
-    cls = type(items[0])
-    return cls(**{f.name: np.concatenate([getattr(i, f.name) for i in items]) for f in fields(cls)})
 
 
 # --------------------------------------------------------------------------
