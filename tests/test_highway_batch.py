@@ -53,7 +53,7 @@ def test_batch_equals_separate_backends(map_name, cav_mode):
         states = batch.step(commands)
         for e in range(n_envs):
             single = alone[e].step(commands.env(e))
-            assert_same_state(states.envs(np.array([e])), single, f"step {t} env {e}")
+            assert_same_state(states.env(e), single, f"step {t} env {e}")
             collisions += len(single.collisions) > 0
             if len(single.collisions) or not single.active.any() or single.step[0] >= EPISODE_STEPS:
                 ends += 1

@@ -184,14 +184,14 @@ def test_a_batch_recorder_equals_one_recorder_per_env_with_episodes_out_of_step(
     alone = [EpisodeRecorder(ROAD, cfg.events, warmup_s=3.0) for _ in range(3)]
     together.record(batch.state.traffic)
     for e in range(3):
-        alone[e].record(batch.state.traffic.envs(np.array([e])))
+        alone[e].record(batch.state.traffic.env(e))
     finished = []
     for t in range(30):
         out = batch.step(rng.integers(0, 5, (3, batch.n_cavs)))
         together.record(out.state, psar=out.psar, critical=out.critical)
         for e in range(3):
             alone[e].record(
-                out.state.envs(np.array([e])),
+                out.state.env(e),
                 psar=PSARResult(*(v[e : e + 1] for v in vars(out.psar).values())),
             )
         if t == 12:  # env 1 starts its next episode; the others go on
@@ -200,7 +200,7 @@ def test_a_batch_recorder_equals_one_recorder_per_env_with_episodes_out_of_step(
             together.start(np.array([1]))
             together.record(batch.state.traffic, rows=np.array([False, True, False]))
             alone[1] = EpisodeRecorder(ROAD, cfg.events, warmup_s=3.0)
-            alone[1].record(batch.state.traffic.envs(np.array([1])))
+            alone[1].record(batch.state.traffic.env(1))
     finished += [(together.summary(e), alone[e].summary()) for e in range(3)]
     for mine, theirs in finished:
         assert repr(mine.as_dict()) == repr(theirs.as_dict())

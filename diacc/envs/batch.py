@@ -306,7 +306,7 @@ class EnvBatch:
             actor, critic = self.builder.observe_rows(
                 rows, st.cav_index[rows], st.action_memory[rows], st.last_refined[rows]
             )
-            traffic = st.traffic.envs(rows)
+            traffic = st.traffic.rows(rows)
         cav_index = st.cav_index if rows is None else st.cav_index[rows]
         return with_action_mask(actor, traffic, cav_index, self.config, self.road), critic
 

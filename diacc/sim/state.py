@@ -27,9 +27,10 @@ A TrafficState is always a batch of E environments of the same scenario
 row; ``time_s`` and ``step`` are (E,) arrays; ``collisions`` rows are
 (env, i, j) and ``arrivals`` rows (env, i). Every backend returns batches
 (:mod:`diacc.sim.backends.base`); they join with :meth:`TrafficState.concat`,
-split with :meth:`TrafficState.envs` and :meth:`TrafficState.env` (an E = 1
-batch). Functions that read states index vehicles with :func:`take` and
-broadcast over the env axis. Users who want one env's (V,) arrays index
+split with :meth:`TrafficState.rows` and :meth:`TrafficState.env` (an E = 1
+batch), the operations of every batched record (:class:`~diacc.records.Batched`).
+Functions that read states index vehicles with :func:`take` and broadcast over
+the env axis. Users who want one env's (V,) arrays index
 row 0 of an E = 1 batch (``state.x_m[0]``), as the PettingZoo env and the
 tutorials show.
 """
@@ -43,29 +44,32 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from diacc.records import Batched, env_events, per_env
+
 
 @dataclass
-class TrafficState:
-    """Arrays describing every vehicle of E simulations at one instant each."""
+class TrafficState(Batched):
+    """Arrays describing every vehicle of E simulations at one instant each (a
+    :class:`~diacc.records.Batched` record: joined, selected and cut by env as declared)."""
 
-    time_s: np.ndarray  # (E,) float64
-    step: np.ndarray  # (E,) int
-    vehicle_id: np.ndarray  # (E, V) int32, each row == arange(V)
-    x_m: np.ndarray  # (E, V) float64 centre, along the route
-    y_m: np.ndarray  # (E, V) float64 centre, left of the right road edge
-    speed_mps: np.ndarray  # (E, V) float64
-    accel_mps2: np.ndarray  # (E, V) float64 over the last step (0 at reset)
-    heading_rad: np.ndarray  # (E, V) float64
-    lane: np.ndarray  # (E, V) int16 absolute lane, 0 = rightmost
-    segment: np.ndarray  # (E, V) int16 index into Map.segments
-    length_m: np.ndarray  # (E, V) float64
-    width_m: np.ndarray  # (E, V) float64
-    is_cav: np.ndarray  # (E, V) bool
-    style: np.ndarray  # (E, V) int8: 0 aggressive, 1 normal, 2 cautious, -1 CAV
-    active: np.ndarray  # (E, V) bool, on the road now
-    arrived: np.ndarray  # (E, V) bool, has left at the route end
-    collisions: np.ndarray  # (K, 3) int32 rows (env, i, j): i and j collided this step
-    arrivals: np.ndarray  # (A, 2) int32 rows (env, i): i arrived this step
+    time_s: np.ndarray = per_env("E")  # float64
+    step: np.ndarray = per_env("E")  # int
+    vehicle_id: np.ndarray = per_env("E, V")  # int32, each row == arange(V)
+    x_m: np.ndarray = per_env("E, V")  # float64 centre, along the route
+    y_m: np.ndarray = per_env("E, V")  # float64 centre, left of the right road edge
+    speed_mps: np.ndarray = per_env("E, V")  # float64
+    accel_mps2: np.ndarray = per_env("E, V")  # float64 over the last step (0 at reset)
+    heading_rad: np.ndarray = per_env("E, V")  # float64
+    lane: np.ndarray = per_env("E, V")  # int16 absolute lane, 0 = rightmost
+    segment: np.ndarray = per_env("E, V")  # int16 index into Map.segments
+    length_m: np.ndarray = per_env("E, V")  # float64
+    width_m: np.ndarray = per_env("E, V")  # float64
+    is_cav: np.ndarray = per_env("E, V")  # bool
+    style: np.ndarray = per_env("E, V")  # int8: 0 aggressive, 1 normal, 2 cautious, -1 CAV
+    active: np.ndarray = per_env("E, V")  # bool, on the road now
+    arrived: np.ndarray = per_env("E, V")  # bool, has left at the route end
+    collisions: np.ndarray = env_events("env, i, j")  # (K, 3) int32: i and j collided this step
+    arrivals: np.ndarray = env_events("env, i")  # (A, 2) int32: i arrived this step
 
     @property
     def n_vehicles(self) -> int:
@@ -84,30 +88,6 @@ class TrafficState:
         out[self.collisions[:, 0], self.collisions[:, 2]] = True
         return out
 
-    @classmethod
-    def concat(cls, batches: Sequence[TrafficState]) -> TrafficState:
-        """One batch of the ``batches`` (same vehicle count) one after another: env ``e`` of
-        the k-th is env ``e + (envs before it)`` of the result (copies; what backends
-        return, a batch each, become one batch)."""
-        offsets = np.cumsum([0] + [b.n_envs for b in batches[:-1]])
-
-        def renumbered(name: str) -> np.ndarray:
-            rows = [getattr(b, name).copy() for b in batches]
-            for out, offset in zip(rows, offsets, strict=True):
-                out[:, 0] += offset
-            return np.concatenate(rows)
-
-        return cls(
-            time_s=np.concatenate([b.time_s for b in batches]),
-            step=np.concatenate([b.step for b in batches]),
-            collisions=renumbered("collisions"),
-            arrivals=renumbered("arrivals"),
-            **{
-                name: np.concatenate([getattr(b, name) for b in batches])
-                for name in PER_VEHICLE_FIELDS
-            },
-        )
-
     def tile(self, k: int) -> TrafficState:
         """``k`` copies of this batch one after another: env ``e`` of copy ``j`` is env
         ``j E + e`` (one call over every candidate of a batch; :mod:`diacc.envs.action_mask`)."""
@@ -124,28 +104,6 @@ class TrafficState:
             collisions=events(self.collisions),
             arrivals=events(self.arrivals),
             **{name: np.tile(getattr(self, name), (k, 1)) for name in PER_VEHICLE_FIELDS},
-        )
-
-    def env(self, e: int) -> TrafficState:
-        """Env ``e`` of this batch as an E = 1 batch of its own (copies)."""
-        return self.envs(np.array([e]))
-
-    def envs(self, rows: np.ndarray) -> TrafficState:
-        """Envs ``rows`` of this batch as a batch of their own (copies; env ``rows[k]`` is k)."""
-        renumber = np.full(self.x_m.shape[0], -1, np.int32)
-        renumber[rows] = np.arange(len(rows), dtype=np.int32)
-
-        def kept(events: np.ndarray) -> np.ndarray:
-            out = events[renumber[events[:, 0]] >= 0]
-            out[:, 0] = renumber[out[:, 0]]
-            return out[np.argsort(out[:, 0], kind="stable")]
-
-        return TrafficState(
-            time_s=self.time_s[rows],
-            step=self.step[rows],
-            collisions=kept(self.collisions),
-            arrivals=kept(self.arrivals),
-            **{name: getattr(self, name)[rows] for name in PER_VEHICLE_FIELDS},
         )
 
     def set_env(self, e: int, state: TrafficState) -> None:

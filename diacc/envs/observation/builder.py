@@ -207,7 +207,7 @@ class ObservationBuilder:
         """:meth:`actor` and :meth:`critic` of envs ``rows`` of a batch alone (e.g. those
         that just started new episodes); the arguments hold those rows only."""
         frame = self._current()
-        sub = Frame(frame.state.envs(rows), frame.hist.rows(rows))
+        sub = Frame(frame.state.rows(rows), frame.hist.rows(rows))
         sub.searched(self.cfg.n_neighbours)
         return self._actor(sub, cav_index, action_memory, last_refined_action), self._critic(sub)
 
