@@ -1,16 +1,3 @@
 #!/usr/bin/env bash
-# Stage what a new machine needs to go on, and the results, for a commit: the compact
-# state of every run (about 2.3 MB each; docs/guide/reproducing.md "Across machines"),
-# the merged evaluation files (episodes.csv + meta.json; per-cell files and speed
-# samples stay here), tables, figures and the manifest.
-set -euo pipefail
-cd "$(dirname "$0")"
-for run in results/*/runs/*/; do
-    for f in checkpoint.pt config.json progress.jsonl train.log; do
-        if [ -f "$run$f" ]; then git add -f "$run$f"; fi
-    done
-done
-for f in results/*/eval/*/*/episodes.csv results/*/eval/*/*/meta.json \
-    results/*/tables/* results/*/figures/*.png results/*/manifest.json; do
-    if [ -f "$f" ]; then git add -f "$f"; fi
-done
+# Stage this study's run state and results for a commit (benchmarks/studies/save_state.sh).
+exec bash "$(dirname "$0")/../save_state.sh" "$(dirname "$0")"
