@@ -255,7 +255,9 @@ def reward_terms(
     # Scored: on the road after the step, or taken off it by a collision in the step
     # (SimConfig.on_collision = "remove"), whose penalty must count as when the
     # episode ends at the crash ("end"), where the wreck stays on the road.
-    alive = take(state.active, cav_index) | take(state.collided, cav_index)  # (..., C)
+    collided = state.collided  # (..., V) in a collision this step (built from the events)
+    crashed = take(collided, cav_index)  # (..., C)
+    alive = take(state.active, cav_index) | crashed  # (..., C)
     speed_mps = take(state.speed_mps, cav_index)  # (..., C)
     v_max_mps = limits_mps[take(state.segment, cav_index)]  # (..., C)
 
@@ -315,8 +317,8 @@ def reward_terms(
     if cfg.exit_bonus_scale == "fleet":
         trip_end = trip_end / max(cav_index.shape[-1], 1)
     if cfg.crash_penalty:
-        completion = completion - cfg.crash_penalty * (state.is_cav & state.collided).sum(axis=-1)
-        trip_end = trip_end - cfg.crash_penalty * take(state.collided, cav_index)
+        completion = completion - cfg.crash_penalty * (state.is_cav & collided).sum(axis=-1)
+        trip_end = trip_end - cfg.crash_penalty * crashed
     delay = -_delay_rate(state, limits_mps)  # (...,) computed for the logs whatever the weight
     scalar = float if not lead else np.asarray
     return RewardTerms(
