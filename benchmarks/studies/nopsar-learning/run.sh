@@ -19,6 +19,9 @@ case "$ARM" in
         --set critic_values=per_agent --set credit=own) ;;
     own-penalty50-ent01) SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
         --set critic_values=per_agent --set credit=own --set entropy_coef=0.01) ;;
+    own-penalty50-ent01-bumper) SETS=(--set env.sim.on_collision=remove
+        --set env.reward.crash_penalty=50 --set critic_values=per_agent --set credit=own
+        --set entropy_coef=0.01 --set env.reward.closeness=bumper) ;;
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
 esac
 OUT="benchmarks/studies/nopsar-learning/results/$ARM/runs/$VARIANT-s$SEED"
