@@ -119,7 +119,7 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
         type=options.slots_type(*AGENT_SLOTS),
         default=EVERY_CAV,
         metavar="{every,own,N}",
-        help="agent slots in a demand cell: every CAV one (default: no CAV drives itself), "
+        help="agent slots in a demand cell: every CAV one (none drives itself), "
         "the policy's own cav_slots (a checkpoint's from training), or a cap N on the CAVs "
         "it drives at once; with a cap, CAVs beyond it drive themselves",
     )
