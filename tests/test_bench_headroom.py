@@ -83,7 +83,7 @@ def test_headroom_demand_tiny(tmp_path, capsys):
     policy.base = dataclasses.replace(policy.base, scenario=one_slot, sim=sim)
     cell = Cell(str(road), demand.n_vehicles, 1.0, "D1", demand.inflow_vph)
     driver = headroom.SlotCountingDriver(
-        policy, policy.env_config(cell, EvalSettings("highway", 30, "zipper"))
+        policy, policy.env_config(cell, EvalSettings("highway", 30, "zipper", agent_slots="own"))
     )
     try:
         run_episode(driver, cell, 0, "legacy")

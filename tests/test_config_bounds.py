@@ -80,7 +80,9 @@ def test_demand_duration_is_bounded_by_the_vehicles_it_makes(tmp_path, capsys, m
 def test_scenario_bounds_hold_for_python_callers():
     with pytest.raises(ConfigError, match=r"'n_vehicles' must be in \[1, 2000\], got 2001"):
         Scenario(n_vehicles=MAX_VEHICLES + 1)
-    with pytest.raises(ConfigError, match=r"'cav_slots' must be in \[1, 2000\]"):
+    with pytest.raises(
+        ConfigError, match=r"'cav_slots' must be 'every' or an integer in \[1, 2000\]"
+    ):
         Scenario(kind="demand", cav_slots=10**9)
     assert Scenario(n_vehicles=MAX_VEHICLES).n_vehicles == MAX_VEHICLES
 

@@ -67,8 +67,8 @@ def test_release_refuses_demand_settings_it_would_ignore(
     key, value = setting.removeprefix("env.scenario.").split("=")
     with pytest.raises(ScenarioError, match="is a demand setting"):
         Scenario(**{key: float(value) if key != "cav_slots" else int(value)})
-    # their defaults, as every stored release config holds them, are fine
-    assert Scenario(inflow_vph=2400.0, demand_s=300.0, cav_slots=16).kind == "release"
+    # their defaults are fine (a stored release config's old 16 slots: test_config_schema)
+    assert Scenario(inflow_vph=2400.0, demand_s=300.0, cav_slots="every").kind == "release"
 
 
 def test_derived_count_follows_later_changes():
@@ -163,7 +163,7 @@ def test_scenario_ranges_go_through_the_field_checks():
     through the config, name the dotted key."""
     with pytest.raises(ConfigError, match=r"config key 'cav_penetration' must be in \[0, 1\]"):
         Scenario(cav_penetration=1.5)
-    with pytest.raises(ConfigError, match="config key 'env.scenario.cav_slots' must be in"):
+    with pytest.raises(ConfigError, match="config key 'env.scenario.cav_slots' must be 'every' or"):
         override(TrainConfig(), {"env.scenario.kind": "demand", "env.scenario.cav_slots": 0})
     with pytest.raises(ConfigError, match="'n_vehicles' must be an integer, got 2.5"):
         Scenario(n_vehicles=2.5)

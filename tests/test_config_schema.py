@@ -9,7 +9,7 @@ import pytest
 import torch
 from test_mappo import tiny_config
 
-from diacc.config import CONFIG_SCHEMA, ConfigError, TrainConfig, stored_config
+from diacc.config import CONFIG_SCHEMA, ConfigError, TrainConfig, override, stored_config
 from diacc.learn.checkpoint import CheckpointError, config_from_checkpoint, load_checkpoint
 
 
@@ -43,6 +43,20 @@ def test_a_config_without_a_version_is_version_1():
     assert config_from_checkpoint({"config": stored}).env.psar.full_brake == "bound"
     payload = {"config": stored, "config_schema": CONFIG_SCHEMA}
     assert config_from_checkpoint(payload).env.psar.full_brake == "known"
+
+
+def test_version_2_agent_slots_mean_what_they_did():
+    """Before version 3 ``cav_slots`` was 16 by default, a cap, and every release stored it;
+    now it is ``"every"``: a stored demand keeps its cap, a release loads."""
+    release = asdict(TrainConfig())
+    release["env"] = {**release["env"], "scenario": {**release["env"]["scenario"], "cav_slots": 16}}
+    assert stored_config(release, 2) == TrainConfig()
+    with pytest.raises(ConfigError, match="cav_slots 16 is a demand setting"):
+        stored_config(release, CONFIG_SCHEMA)  # today a release has no such setting
+    demand = asdict(override(TrainConfig(), {"env.scenario.kind": "demand"}))
+    del demand["env"]["scenario"]["cav_slots"]
+    assert stored_config(demand, 2).env.scenario.n_slots == 16
+    assert stored_config(demand, CONFIG_SCHEMA).env.scenario.cav_slots == "every"
 
 
 @pytest.mark.parametrize(

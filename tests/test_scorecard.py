@@ -19,6 +19,7 @@ from diacc.experiments.scorecard import (
     _settings,
     suite_cells,
 )
+from diacc.sim.scenario import Scenario
 
 #: The repository root: the geometry maps and the shipped agent are read from there.
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -107,9 +108,11 @@ def test_every_shipped_agent_gets_a_scorecard(tmp_path, checkpoint):
 def test_the_demand_suite_gives_every_cav_to_the_policy(tmp_path):
     """A controller is scored on the CAVs it drives: no demand CAV is left to drive itself."""
     cfg = ScorecardConfig(PolicySpec("heuristic"), tmp_path)
-    for name in SUITES:
-        want = "every" if name == "demand" else "own"
-        assert _settings(cfg, name, "highway").agent_slots == want, name
+    settings = _settings(cfg, "demand", "highway")
+    (cell,) = SUITES["demand"].cells
+    own = Scenario(kind="demand", inflow_vph=cell["inflow_vph"], cav_slots=16)  # a cap of 16
+    demand = settings.apply_slots(own)
+    assert demand.n_slots == demand.n_cavs > own.n_slots == 16
 
 
 def test_the_summary_counts_better_same_and_worse_cells():

@@ -141,9 +141,9 @@ def test_bf16_update_stays_close_to_fp32(tiny_batch):
     cfg, agent, batch = tiny_batch
     every_env = torch.arange(batch.critic_h0.shape[0])
     with torch.no_grad():
-        fp32 = ppo.evaluate_batch(agent, batch, every_env, 4)
+        fp32 = ppo.evaluate_batch(agent, batch, every_env)
         with torch.autocast("cpu", torch.bfloat16):
-            bf16 = ppo.evaluate_batch(agent, batch, every_env, 4)
+            bf16 = ppo.evaluate_batch(agent, batch, every_env)
     assert bf16[0].dtype == bf16[2].dtype == torch.float32  # losses are taken in fp32
     assert (bf16[0] - fp32[0]).abs().max() < 0.05  # log-probs
     assert (bf16[2] - fp32[2]).abs().max() < 0.05  # normalised values
@@ -151,7 +151,7 @@ def test_bf16_update_stays_close_to_fp32(tiny_batch):
     for flag in (False, True):
         a = copy.deepcopy(agent)
         torch.manual_seed(0)
-        stats = ppo.ppo_update(a, batch, override(cfg, {"update_bf16": flag}), 4)
+        stats = ppo.ppo_update(a, batch, override(cfg, {"update_bf16": flag}))
         assert all(np.isfinite(v) for v in stats.values())
         results[flag] = torch.cat([p.detach().ravel() for p in a.actor.parameters()])
     start = torch.cat([p.detach().ravel() for p in agent.actor.parameters()])
@@ -194,7 +194,7 @@ def test_compiled_update_matches_eager(tiny_batch):
             a.actor_sequence = torch.compile(a.actor.forward_sequence)
             a.critic_sequence = torch.compile(a.critic.forward_sequence)
         torch.manual_seed(0)
-        ppo.ppo_update(a, batch, c, 4)
+        ppo.ppo_update(a, batch, c)
         results.append(torch.cat([p.detach().ravel() for p in a.actor.parameters()]))
     torch.testing.assert_close(results[0], results[1], rtol=1e-3, atol=1e-5)
 

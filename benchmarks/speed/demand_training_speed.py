@@ -51,6 +51,7 @@ def config(args: argparse.Namespace, mode: str, run_dir: str):
         demand_s=args.demand_s,
         warmup_s=args.warmup_s,
         cav_penetration=0.4,
+        cav_slots=16,  # the measured setting (the default until "every")
     )
     # Full: the critic pads to every vehicle of the episode; windowed: to those on the road.
     max_vehicles = scenario.n_vehicles if mode == "full" else args.max_on_road

@@ -62,11 +62,13 @@ if what == "update":
     vec.close()
     adv, ret = learner.rollout_gae(roll, next_value, cfg)
     batch = buffer.make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
-    import resource
+    import inspect, resource
+    # the slot count: an argument until the update skipped empty slots' sequences
+    n_cavs = (vec.n_cavs,) if "n_cavs" in inspect.signature(learner.ppo_update).parameters else ()
     seconds, faults, system = [], [], []
     for _ in range(repeats + 1):
         r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.thread_time()
-        learner.ppo_update(agent, batch, cfg, vec.n_cavs)
+        learner.ppo_update(agent, batch, cfg, *n_cavs)
         r1 = resource.getrusage(resource.RUSAGE_SELF)
         seconds.append(time.thread_time() - t0)
         faults.append(r1.ru_minflt - r0.ru_minflt)
@@ -82,7 +84,7 @@ else:
     if what == "demand":
         from diacc.sim.scenario import Scenario
         scenario = Scenario(kind="demand", inflow_vph=3600, demand_s=480, warmup_s=120,
-                            cav_penetration=0.4)
+                            cav_penetration=0.4, cav_slots=16)  # the default until "every"
         options.update({"env.scenario": scenario, "env.obs.max_vehicles": 320,
                         "minibatches": 24, "env.sim.episode_steps": 600})
         n, rollout_steps = demand_envs, 600

@@ -60,6 +60,7 @@ SETTINGS: dict[str, tuple[dict, str, int, int]] = {
             "scenario.inflow_vph": 3600.0,
             "scenario.demand_s": 120.0,
             "scenario.warmup_s": 20.0,
+            "scenario.cav_slots": 16,  # the default until "every"; both trees take it
             "sim.style_preset": "zipper",
             "obs.max_vehicles": 160,
         },

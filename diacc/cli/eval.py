@@ -25,6 +25,7 @@ from diacc.experiments.evalsettings import AGENT_SLOTS
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
 from diacc.experiments.userpolicy import DEFAULT_TIMEOUT_S
 from diacc.fileio import OutputPathError, atomic_write, check_output_file
+from diacc.sim.scenario import EVERY_CAV
 
 #: How ``diacc table`` marks entries (the rule of :mod:`diacc.experiments.report`, kept here so
 #: that ``--help`` does not import the evaluation stack).
@@ -115,10 +116,12 @@ def _policy_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--agent-slots",
-        choices=AGENT_SLOTS,
-        default="own",
-        help="agent slots in a demand cell: the policy's own cav_slots (CAVs beyond them drive "
-        "themselves) or every CAV one",
+        type=options.slots_type(*AGENT_SLOTS),
+        default=EVERY_CAV,
+        metavar="{every,own,N}",
+        help="agent slots in a demand cell: every CAV one (none drives itself), "
+        "the policy's own cav_slots (a checkpoint's from training), or a cap N on the CAVs "
+        "it drives at once; with a cap, CAVs beyond it drive themselves",
     )
     p.add_argument(
         "--on-collision",

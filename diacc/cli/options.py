@@ -120,3 +120,21 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
+
+
+def slots_type(*names: str):
+    """argparse type of ``--agent-slots``: one of ``names`` or a cap N >= 1 (the CAVs a
+    policy drives at once); the config that takes it checks the cap's upper bound."""
+
+    def parse(text: str) -> int | str:
+        if text in names:
+            return text
+        try:
+            return positive_int(text)
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(
+                f"must be {' or '.join(names)} or a whole number >= 1, got {text!r}"
+            ) from None
+
+    parse.__name__ = "agent slots"  # argparse names the type in its error
+    return parse

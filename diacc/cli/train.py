@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from diacc.cli import options
 from diacc.cli.options import add_command, add_device_arg, add_out_arg, positive_int
 from diacc.config import (
     BACKENDS,
@@ -18,6 +19,7 @@ from diacc.config import (
     resolve_road,
     validate,
 )
+from diacc.sim.scenario import EVERY_CAV
 
 
 def add_parsers(sub) -> None:
@@ -98,6 +100,15 @@ def add_parsers(sub) -> None:
         help="override any config field, e.g. --set env.reward.w_ego=0.8 (repeatable)",
     )
     p.add_argument(
+        "--agent-slots",
+        type=options.slots_type(EVERY_CAV),
+        default=None,
+        metavar="{every,N}",
+        help="agent slots of a demand scenario, env.scenario.cav_slots: every CAV of the "
+        "episode one (default: every CAV an agent) or a cap N on the CAVs the policy drives "
+        "at once (CAVs beyond it drive themselves)",
+    )
+    p.add_argument(
         "--init-from",
         metavar="CHECKPOINT",
         default=None,
@@ -142,6 +153,7 @@ def cmd_train(args: argparse.Namespace) -> None:
         run_dir=args.run_dir,
         style_preset=args.style_preset,
         init_from=args.init_from,
+        agent_slots=args.agent_slots,
         sets=args.set,
     )
     resolve_road(cfg.env)  # fail fast on a bad map name

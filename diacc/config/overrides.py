@@ -17,7 +17,7 @@ from typing import Any
 
 from diacc.config.train import TrainConfig, default_run_dir
 from diacc.fields import ConfigError, FieldError
-from diacc.sim.scenario import SCENARIO_SETTINGS, Scenario, ScenarioError
+from diacc.sim.scenario import SCENARIO_SETTINGS, Scenario, ScenarioError, cav_slots_value
 
 
 def override(config: Any, values: dict[str, Any]) -> Any:
@@ -63,6 +63,8 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
             )
         elif dataclasses.is_dataclass(current):  # a whole section, built (so checked)
             changes[head] = value
+        elif scenario and head == "cav_slots":  # "every" or a cap: Demand checks it
+            changes[head] = cav_slots_value(value)
         else:
             changes[head] = _coerce(_unset_as(obj, head, current), value, full_key)
     if isinstance(obj, TrainConfig) and "variant" in changes and _rederive_psar(tree):
@@ -136,6 +138,7 @@ def build_train_config(
     run_dir: str | Path | None = None,
     style_preset: str | None = None,
     init_from: str | Path | None = None,
+    agent_slots: int | str | None = None,
     sets: Iterable[str] | Mapping[str, Any] = (),
 ) -> TrainConfig:
     """The training config of user input: defaults < TOML ``file`` < named options < ``sets``.
@@ -146,10 +149,10 @@ def build_train_config(
     (or the default) value; ``steps`` is ``total_steps`` (environment steps,
     decisions x environments), ``envs`` is ``n_envs``, ``style_preset`` is
     ``env.sim.style_preset``, ``init_from`` the checkpoint a fine-tuning run starts
-    from. ``sets`` are ``KEY=VALUE`` texts (``--set``) or a
-    mapping of dotted keys to values. All layers are applied in one
-    :func:`override`, so a value one layer asks for and the variant contradicts
-    (``env.use_psar``) is refused, whichever layer named the variant. Without a
+    from, ``agent_slots`` ``env.scenario.cav_slots`` (``"every"`` or a cap). ``sets``
+    are ``KEY=VALUE`` texts (``--set``) or a mapping of dotted keys to values. All
+    layers are applied in one :func:`override`, so a value one layer asks for and the
+    variant contradicts (``env.use_psar``) is refused, whichever layer named the variant. Without a
     ``run_dir`` anywhere the run goes to ``runs/<variant>-<backend>-<map>-s<seed>``
     of the resolved config. Not validated here (:func:`validate` runs before a
     run writes anything); bad keys and values raise a one-line :class:`ConfigError`.
@@ -172,6 +175,7 @@ def build_train_config(
         "run_dir": None if run_dir is None else str(run_dir),
         "env.sim.style_preset": style_preset,
         "init_from": None if init_from is None else str(init_from),
+        "env.scenario.cav_slots": agent_slots,
     }
     values.update({k: v for k, v in named.items() if v is not None})
     values.update(sets if isinstance(sets, Mapping) else parse_sets(sets))

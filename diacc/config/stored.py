@@ -16,7 +16,7 @@ from diacc.fields import ConfigError
 #: and add the step that rewrites a stored config of the version before into the new
 #: one to :data:`_MIGRATIONS`, so that loading never switches how a trained policy
 #: was run (docs/concepts/conventions.md, "Configuration").
-CONFIG_SCHEMA = 2
+CONFIG_SCHEMA = 3
 
 #: Sections a TrainConfig held at its top level before it nested an EnvConfig.
 _ENV_SECTIONS_BEFORE_NESTING = ("backend", "map", "sim", "scenario", "obs", "psar", "reward")
@@ -42,9 +42,26 @@ def _schema_1_to_2(flat: dict[str, Any]) -> dict[str, Any]:
     return {**_SCHEMA_1_DEFAULTS, **flat}
 
 
+#: ``env.scenario.cav_slots`` before version 3, when it was a cap for every scenario.
+_SCHEMA_2_CAV_SLOTS = 16
+
+
+def _schema_2_to_3(flat: dict[str, Any]) -> dict[str, Any]:
+    """Version 2 -> 3: ``env.scenario.cav_slots`` became ``"every"`` by default. A demand
+    stored without it was capped at 16 slots and keeps the cap; a release stored with the
+    old default 16 (configs of when both kinds were one class) drops the demand setting
+    it never used."""
+    kind = flat.get("env.scenario.kind", "release")
+    if kind == "demand":
+        return {"env.scenario.cav_slots": _SCHEMA_2_CAV_SLOTS, **flat}
+    if flat.get("env.scenario.cav_slots") == _SCHEMA_2_CAV_SLOTS:
+        return {key: value for key, value in flat.items() if key != "env.scenario.cav_slots"}
+    return flat
+
+
 #: version -> the step that rewrites a stored config of that version (flat: dotted keys)
 #: into the next.
-_MIGRATIONS = {1: _schema_1_to_2}
+_MIGRATIONS = {1: _schema_1_to_2, 2: _schema_2_to_3}
 
 
 def stored_config(stored: dict[str, Any], schema: Any = 1) -> TrainConfig:

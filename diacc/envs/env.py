@@ -38,9 +38,11 @@ arrival) and is free from the next step on. A refilled slot is flagged in
 ``Transition.slot_start``: the policy starts that slot's recurrent state
 afresh. An empty slot points at a vehicle that is not on the road, so every
 consumer of ``cav_index`` sees it dead (``alive`` False) without knowing
-about slots. CAVs that find no free slot (more than ``cav_slots`` at once)
-drive themselves meanwhile (no command, :mod:`diacc.sim.backends.base`) and are
-counted in :attr:`BottleneckEnv.unserved_cavs`.
+about slots. With ``cav_slots = "every"`` (the default) there is a slot for
+every CAV of the episode, so none ever waits for one; under a cap, CAVs that
+find no free slot (more than ``cav_slots`` at once) drive themselves meanwhile
+(no command, :mod:`diacc.sim.backends.base`) and are counted in
+:attr:`BottleneckEnv.unserved_cavs`.
 PettingZoo names agents by CAV, not slot: ``possible_agents`` are
 ``cav_0 .. cav_{K-1}`` for the K CAVs of the episode in order of entry, and
 ``agents`` are those on the road and in a slot now, after a step of either API.

@@ -23,11 +23,13 @@ from diacc.config import (
 )
 from diacc.experiments.grid import DEFAULT_STREAM, SEED_STREAMS
 from diacc.experiments.userpolicy import DEFAULT_TIMEOUT_S
-from diacc.fields import check_fields, one_of, ranged
+from diacc.fields import MAX_VEHICLES, FieldError, check_fields, one_of, ranged
+from diacc.sim.scenario import EVERY_CAV, Demand, Scenario
 from diacc.sim.settings import check_merges_backend
 
-#: ``EvalSettings.agent_slots``: the policy's own agent slots, or one for every CAV.
-AGENT_SLOTS = ("own", "every")
+#: ``EvalSettings.agent_slots`` besides a cap (an int): one slot for every CAV, or the
+#: policy's own ``cav_slots`` (a checkpoint's from its training).
+AGENT_SLOTS = (EVERY_CAV, "own")
 
 
 @dataclass(frozen=True)
@@ -51,10 +53,11 @@ class EvalSettings:
     psar_full_brake: str | None = one_of(None, FULL_BRAKE_MODES)
     #: How the highway backend's human drivers leave an ending lane (``SimConfig``'s).
     highway_merges: str | None = one_of(None, HIGHWAY_MERGES)
-    #: Agent slots of a demand cell: the policy's ``own`` ``cav_slots`` (a CAV that
-    #: finds them all taken drives itself) or ``every`` CAV a slot
-    #: (:meth:`~diacc.sim.scenario.Demand.with_a_slot_per_cav`). Releases slot every CAV.
-    agent_slots: str = one_of("own", AGENT_SLOTS)
+    #: Agent slots of a demand cell: ``every`` CAV a slot (the default; no CAV drives
+    #: itself, :meth:`~diacc.sim.scenario.Demand.with_a_slot_per_cav`), a cap N on the
+    #: CAVs driven at once, or the policy's ``own`` ``cav_slots``; with a cap a CAV that
+    #: finds every slot taken drives itself. Releases slot every CAV.
+    agent_slots: int | str = EVERY_CAV
     #: What a collision does (:data:`~diacc.config.ON_COLLISION`): evaluation ``remove``\ s
     #: the vehicles that collided and runs on to ``episode_steps``, so that a crash never
     #: shortens the episode its delay and throughput average over; ``end`` is training's
@@ -70,6 +73,21 @@ class EvalSettings:
     def __post_init__(self) -> None:
         check_fields(self)
         check_merges_backend(self.backend, self.highway_merges)
+        slots = self.agent_slots
+        if slots not in AGENT_SLOTS and (
+            isinstance(slots, bool) or not isinstance(slots, int) or not 1 <= slots <= MAX_VEHICLES
+        ):
+            raise FieldError(
+                "agent_slots",
+                f"must be one of {', '.join(AGENT_SLOTS)} or an integer in [1, {MAX_VEHICLES}], "
+                f"got {slots!r}",
+            )
+
+    def apply_slots(self, scenario: Scenario) -> Scenario:
+        """A demand ``scenario`` with these agent slots (a release is left as it is)."""
+        if not isinstance(scenario, Demand) or self.agent_slots == "own":
+            return scenario
+        return dataclasses.replace(scenario, cav_slots=self.agent_slots)
 
     def apply(self, sim: SimConfig) -> SimConfig:
         changes = {}

@@ -320,14 +320,18 @@ def _psar_before_recorded(policy) -> dict:
 def evaluation_meta(policy, cells: list[Cell], settings: EvalSettings) -> tuple[dict, dict | None]:
     """What ``meta.json`` records of an evaluation, and how to read an older one.
 
-    Returns ``(meta, before)``: the policy, backend and settings, the settings
-    with the PSAR horizon and ``full_brake`` in effect (asked for or not, so
-    that no run adds episodes of another PSAR to a results directory: the
-    defaults changed, the directory may be older); ``before`` holds the
-    values a ``meta.json`` that does not name them ran with (None: the
-    policy runs without PSAR).
+    The agent slots are recorded where they matter, for demand cells, and there unless
+    ``own`` (a ``meta.json`` without them ran with the policy's own). Returns ``(meta,
+    before)``: the policy, backend and settings, the settings with the PSAR horizon and
+    ``full_brake`` in effect (asked for or not, so that no run adds episodes of another
+    PSAR to a results directory: the defaults changed, the directory may be older);
+    ``before`` holds the values a ``meta.json`` that does not name them ran with (None:
+    the policy runs without PSAR).
     """
     meta = {**policy.describe(), **settings.describe()}
+    if not any(cell.scenario(base=policy.base.scenario).kind == "demand" for cell in cells):
+        # a release slots every CAV whatever the setting: older results stay reusable
+        meta["settings"].pop("agent_slots", None)
     env = policy.env_config(cells[0], settings)  # every cell shares PSAR and simulation
     before = {"on_collision": "end"}  # every episode ended at a collision before it was named
     if not env.psar_enabled:

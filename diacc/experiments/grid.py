@@ -142,7 +142,8 @@ class Cell:
             # The cell fixes the traffic, for every policy alike (a demand-trained
             # checkpoint's own timing would give it other vehicles than the references
             # it is compared with). N follows from it; the agent slots are the
-            # policy's own (how many CAVs it drives at once).
+            # policy's own until the evaluation sets them (EvalSettings.agent_slots,
+            # every CAV by default).
             timing = Demand()
             size = {
                 "kind": "demand",

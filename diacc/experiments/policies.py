@@ -45,7 +45,6 @@ from diacc.experiments.grid import Cell
 from diacc.experiments.userpolicy import Controller, is_user_spec
 from diacc.shipped import shipped_checkpoint, shipped_checkpoints
 from diacc.sim.maps import Map
-from diacc.sim.scenario import Demand
 
 #: Names of the non-learning baselines. ``same-mix`` drives the CAV slots by the
 #: ``normal`` human model; ``same-mix:<style>`` by another style (:data:`STYLE_NAMES`).
@@ -122,9 +121,7 @@ class Policy:
         refuses larger cells).
         """
         obs = self.base.obs
-        scenario = cell.scenario(base=self.base.scenario)
-        if settings.agent_slots == "every" and isinstance(scenario, Demand):
-            scenario = scenario.with_a_slot_per_cav()
+        scenario = settings.apply_slots(cell.scenario(base=self.base.scenario))
         return dataclasses.replace(
             self.base,
             backend=settings.backend,

@@ -46,6 +46,7 @@ from diacc.experiments.paired import PairedChange
 from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy, parse_policy
 from diacc.experiments.report import Table, change_unit, table_from_results
 from diacc.fileio import atomic_write, check_output_file
+from diacc.sim.scenario import EVERY_CAV
 
 #: The shipped agent every scorecard compares with.
 DEFAULT_AGENT = "checkpoints/diacc-train50-realistic-headway-threat-s1.pt"
@@ -83,7 +84,7 @@ class Suite:
     cells: tuple[dict, ...]  # cell mappings, as a grid file's [[cells]]
     style_preset: str
     about: str
-    agent_slots: str = "own"  # EvalSettings.agent_slots: "every" CAV of a demand cell
+    agent_slots: int | str = EVERY_CAV  # EvalSettings.agent_slots of its demand cells
 
 
 SUITES = {
@@ -112,7 +113,6 @@ SUITES = {
             ({**TRAINING_CELL, "n_vehicles": 1, "inflow_vph": 3600.0},),
             "realistic",
             "3600 veh/h entering train-50, every CAV driven by the policy",
-            agent_slots="every",
         ),
     )
 }

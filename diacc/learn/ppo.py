@@ -271,13 +271,13 @@ def critic_inputs(critic_state, actor_obs, per_agent: bool, device) -> dict[str,
 
 
 # ----------------------------------------------------------------------------- replay
-def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: int):
+def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor):
     """Replay critic sequences ``envs_idx`` and their CAVs' actor sequences.
 
     Returns (new log-probs (L, b_a), entropy (L, b_a), normalised values (L, b_c),
     actor sequence indices b_a).
     """
-    dist, agents_idx = actor_distribution(agent, batch, envs_idx, n_cavs)
+    dist, agents_idx = actor_distribution(agent, batch, envs_idx)
     values, _ = agent.replay_critic(
         {k: v[:, envs_idx] for k, v in batch.critic_state.items()},
         batch.critic_h0[envs_idx],
@@ -287,12 +287,13 @@ def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: i
     return dist.log_prob(batch.actions[:, agents_idx]), dist.entropy(), values.float(), agents_idx
 
 
-def actor_distribution(agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: int):
+def actor_distribution(agent: Agent, batch: Batch, envs_idx: torch.Tensor):
     """The learner actor's action distribution (L, b_a, 5) on the CAVs of critic
-    sequences ``envs_idx``, and their actor sequence indices b_a."""
-    agents_idx = (
-        envs_idx[:, None] * n_cavs + torch.arange(n_cavs, device=envs_idx.device)
-    ).reshape(-1)
+    sequences ``envs_idx``, and their actor sequence indices b_a (the live ones,
+    :class:`~diacc.learn.buffer.Batch`)."""
+    agents_idx = torch.isin(batch.actor_owner, envs_idx).nonzero()[:, 0]  # (b_a,)
+    if agents_idx.numel() == 0:  # no CAV on the road in these sequences: one masked row
+        agents_idx = agents_idx.new_zeros(1)
     logits, _ = agent.replay_actor(
         {k: v[:, agents_idx] for k, v in batch.actor_obs.items()},
         batch.actor_h0[agents_idx],
@@ -309,7 +310,7 @@ MAX_BEHAVIOUR_WEIGHT = 2.0
 
 
 @torch.no_grad()
-def add_proximal_policy(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> None:
+def add_proximal_policy(agent: Agent, batch: Batch, cfg: TrainConfig) -> None:
     """Make a lagged rollout's batch (overlap) train like a fresh one.
 
     A rollout collected beside the previous update acts with the parameters from
@@ -323,11 +324,11 @@ def add_proximal_policy(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: in
     the rollout, minibatch by minibatch.
     """
     autocast = torch.autocast(batch.returns.device.type, torch.bfloat16, enabled=cfg.update_bf16)
-    prox = torch.empty_like(batch.logprobs)  # (L, B_a)
+    prox = torch.zeros_like(batch.logprobs)  # (L, B_a)
     n_sequences = batch.critic_h0.shape[0]
     with autocast:
         for envs_idx in torch.arange(n_sequences, device=prox.device).chunk(cfg.minibatches):
-            dist, agents_idx = actor_distribution(agent, batch, envs_idx, n_cavs)
+            dist, agents_idx = actor_distribution(agent, batch, envs_idx)
             prox[:, agents_idx] = dist.log_prob(batch.actions[:, agents_idx])
     batch.prox_logprobs = prox
     batch.behaviour_weights = (prox - batch.logprobs).exp().clamp(max=MAX_BEHAVIOUR_WEIGHT)
@@ -338,7 +339,6 @@ def ppo_update(
     agent: Agent,
     batch: Batch,
     cfg: TrainConfig,
-    n_cavs: int,
     generator: torch.Generator | None = None,
 ) -> dict[str, float]:
     """``epochs`` passes of clipped PPO over the batch; returns mean diagnostics.
@@ -369,7 +369,7 @@ def ppo_update(
             )
         ):
             with autocast():
-                logprob, entropy, value, agents_idx = evaluate_batch(agent, batch, envs_idx, n_cavs)
+                logprob, entropy, value, agents_idx = evaluate_batch(agent, batch, envs_idx)
             mask = batch.alive[:, agents_idx]  # (L, b_a): dead CAVs add nothing
             n_alive = mask.sum().clamp(min=1.0)
             centre = batch.logprobs if batch.prox_logprobs is None else batch.prox_logprobs
@@ -441,7 +441,6 @@ def learn(
     next_value: np.ndarray | None,
     cfg: TrainConfig,
     device: torch.device,
-    n_cavs: int,
     generator: torch.Generator | None = None,
     lagged: bool = False,
 ) -> tuple[np.ndarray, dict[str, float]]:
@@ -463,7 +462,7 @@ def learn(
             raise NonFiniteError(f"non-finite {name} in the rollout")
     batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
     if lagged:
-        add_proximal_policy(agent, batch, cfg, n_cavs)
-    losses = ppo_update(agent, batch, cfg, n_cavs, generator)
+        add_proximal_policy(agent, batch, cfg)
+    losses = ppo_update(agent, batch, cfg, generator)
     seconds = {"learner_s": time.perf_counter() - t0, "learner_cpu_s": time.thread_time() - cpu0}
     return returns, {**losses, **seconds}

@@ -347,6 +347,15 @@ def _train_loop(
         steps_per_update,
         config_digest(cfg),
     )
+    scenario = cfg.env.scenario
+    if scenario.n_slots < scenario.n_cavs:  # a cap: say so, the CAVs beyond it are not agents
+        log.warning(
+            "agent slots capped at %d of the episode's %d CAVs (env.scenario.cav_slots %s): "
+            "a CAV that finds every slot taken drives itself; 'every' gives each CAV its own",
+            scenario.n_slots,
+            scenario.n_cavs,
+            scenario.cav_slots,
+        )
     started_s = time.perf_counter()
     try:
         with _StopOnSignal() as stop:
@@ -386,7 +395,6 @@ def _train_loop(
                     next_value,
                     cfg,
                     device,
-                    envs.n_cavs,
                     _update_generator(cfg, update, device),
                     lagged,
                 )

@@ -67,6 +67,17 @@ STYLE_MIXES: dict[str, tuple[float, float, float]] = {
 #: How vehicles enter (module docstring).
 SCENARIO_KINDS = ("release", "demand")
 _INFLOW_WHY = "more than 4 lanes carry"
+#: ``Demand.cav_slots`` (the default) that gives every CAV of the episode an agent slot.
+EVERY_CAV = "every"
+
+
+def cav_slots_value(value: int | str) -> int | str:
+    """``Demand.cav_slots`` from user input: ``"every"``, or a cap given as an int or as
+    its text (``--set env.scenario.cav_slots=16``, ``--agent-slots 16``); anything else
+    is passed on for :class:`Demand` to refuse in one line."""
+    if isinstance(value, str) and value.strip().isdigit():
+        return int(value)
+    return value
 
 
 class ScenarioError(ConfigError):
@@ -101,7 +112,7 @@ class Scenario(metaclass=_ScenarioType):
         cav_slot_style: str
         inflow_vph: float
         demand_s: float
-        cav_slots: int
+        cav_slots: int | str
 
         @property
         def n_vehicles(self) -> int: ...
@@ -242,22 +253,25 @@ class Demand(_Traffic):
     # vehicles per hour entering the route
     inflow_vph: float = ranged(2400.0, 0, MAX_INFLOW_VPH, open_low=True, why=_INFLOW_WHY)
     demand_s: float = ranged(300.0, 0, open_low=True)  # vehicles enter during [0, demand_s)
-    # agent slots, the most CAVs driven by the policy at once
-    cav_slots: int = ranged(16, 1, MAX_VEHICLES, why="no scenario holds more vehicles")
+    # agent slots: "every" CAV of the episode its own (none drives itself), or a cap on
+    # the CAVs the policy drives at once (a CAV that finds every slot taken drives itself)
+    cav_slots: int | str = EVERY_CAV
     kind: str = dataclasses.field(default="demand", init=False)
 
     def with_a_slot_per_cav(self) -> Demand:
-        """This demand with an agent slot for every CAV of the episode: none drives itself.
-
-        A slot per CAV of the whole episode, not per CAV on the road at once: on
-        ``train-50`` at jam spacing (~7.5 m) some 600 vehicles fit on the road, more
-        than the 480 of a 3600 veh/h x 480 s run, so no tighter bound holds for every
-        backend and seed. Slots of CAVs not yet entered or gone are dead (masked) and
-        only cost array width.
-        """
-        return dataclasses.replace(self, cav_slots=max(1, self.n_cavs))
+        """This demand with an agent slot for every CAV of the episode: none drives itself."""
+        return dataclasses.replace(self, cav_slots=EVERY_CAV)
 
     def __post_init__(self) -> None:
+        slots = self.cav_slots
+        if slots != EVERY_CAV and (
+            isinstance(slots, bool) or not isinstance(slots, int) or not 1 <= slots <= MAX_VEHICLES
+        ):
+            raise FieldError(
+                "cav_slots",
+                f"must be {EVERY_CAV!r} or an integer in [1, {MAX_VEHICLES}], got {slots!r} "
+                "(no scenario holds more vehicles)",
+            )
         super().__post_init__()
         if self.warmup_s >= self.demand_s:
             raise ScenarioError(
@@ -279,9 +293,22 @@ class Demand(_Traffic):
 
     @property
     def n_slots(self) -> int:
-        """Agent slots C: at most ``cav_slots`` CAVs at once, a slot reused when its CAV
-        leaves (:class:`diacc.envs.env.BottleneckEnv`)."""
-        return min(self.cav_slots, self.n_cavs)
+        """Agent slots C: with ``cav_slots = "every"`` one per CAV of the episode, so
+        that none ever waits for a slot (each CAV holds at most one, and there are as
+        many slots as CAVs); with a cap, at most ``cav_slots`` CAVs at once, a slot
+        reused when its CAV leaves (:class:`diacc.envs.env.BottleneckEnv`).
+
+        A slot per CAV of the whole episode, not per CAV on the road at once: on
+        ``train-50`` at jam spacing (~7.5 m) some 600 vehicles fit on the road, more
+        than the 480 of a 3600 veh/h x 480 s run, so no tighter bound holds for every
+        backend and seed. The slots of CAVs not yet entered or gone are dead: masked in
+        every loss, and the PPO update skips their sequences
+        (:func:`diacc.learn.buffer.make_batch`), so they cost rollout memory only
+        (docs/concepts/scenarios.md, "Agent slots").
+        """
+        if self.cav_slots == EVERY_CAV:
+            return self.n_cavs
+        return min(int(self.cav_slots), self.n_cavs)
 
 
 #: A release's vehicle count when none is given (the paper's training cell).

@@ -22,7 +22,7 @@ run() {  # seed device deadline_s
     --config configs/small-learner.toml --set env.psar.horizon=headway \
     --set env.psar.full_brake=known --set torch_threads=1 --set entropy_coef=0.001 \
     --set env.scenario.kind=demand --set env.scenario.inflow_vph=3600 \
-    --set env.scenario.demand_s=480 --set env.scenario.warmup_s=120 \
+    --set env.scenario.demand_s=480 --set env.scenario.warmup_s=120 --set env.scenario.cav_slots=16 \
     --set env.obs.max_vehicles=320 --set env.sim.episode_steps=600 --set rollout_steps=600 \
     --set minibatches=24 --set vector=process --set checkpoint_every=1 \
     --init-from "$SOURCE" --no-progress --out "/tmp/runs/demand-ft-s$1" \

@@ -120,6 +120,7 @@ def demand_scenario(
         warmup_s=warmup_s,
         cav_penetration=RHO,
         style_mix=MIX,
+        cav_slots=16,  # the references that command no CAV keep the table's 16 (make_driver)
     )
 
 
