@@ -117,6 +117,10 @@ class TrainConfig:
     torch_threads: int = ranged(0, 0, 1024, why="more threads than cores only contend")
     update_bf16: bool = False  # bf16 autocast in the PPO update (changes numerics: option)
     update_compile: bool = False  # torch.compile the networks' sequence replay in the update
+    # eager (whole minibatches, checks per step), static (padded minibatches of one size,
+    # no host sync until the update's end: diacc.learn.static_update) or auto (static on
+    # cuda, eager on the CPU); the same loss either way
+    update_path: str = one_of("auto", ("auto", "eager", "static"))
     # collect the next rollout while the learner trains (second thread): one-update policy lag
     overlap: bool = False
     lr: float = ranged(5e-4, 0, open_low=True)
