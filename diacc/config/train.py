@@ -104,8 +104,9 @@ class TrainConfig:
     variant: str = one_of("diacc", VARIANTS)
     total_steps: int = ranged(3_000_000, 1)  # environment steps (decisions x envs)
     n_envs: int = ranged(20, 1, MAX_ENVS, why="each env adds a simulator and rollout rows")
-    # sync (in process), batched (one highway simulator for all envs), process (worker
-    # processes), auto (by backend: batched for highway, process for sumo)
+    # sync (in process), batched (one highway simulator for all envs), process (one worker
+    # process per core), auto (by backend: batched for highway, process for sumo; process
+    # when the learner is on cuda: diacc.envs.vector.auto_vector_mode)
     vector: str = one_of("auto", ("auto", "sync", "batched", "process"))
     rollout_steps: int = ranged(
         100, 1, MAX_EPISODE_STEPS, why="the rollout holds this many steps of every env"
