@@ -296,3 +296,26 @@ def test_training_bench_names_an_unknown_row(capsys):
     with pytest.raises(SystemExit):
         training.main(["--rows", "small learner,nope"])
     assert "--rows: no such row(s): nope" in capsys.readouterr().err
+
+
+def test_training_bench_puts_the_learner_devices_side_by_side(capsys, monkeypatch):
+    """``--only device``: the CPU path first, then the eager and static updates and the
+    env workers on the device (here the CPU too), each with its update time and rate."""
+    from diacc.experiments.bench import training
+
+    monkeypatch.setattr(training, "SMALL_LEARNER", {**training.SMALL_LEARNER, **TINY_NETS})
+    cuda = [label for label, _, _ in training.configurations("cuda", False, only="device")]
+    assert cuda[0] == "small learner, cpu" and len(cuda) == 4
+    assert [label for label, _, _ in training.configurations("cuda", False)][:4] == cuda
+    assert "small learner, cpu" not in [r[0] for r in training.configurations("cpu", False)]
+    rows = training.run("cpu", (3,), updates=2, rollout_steps=20, only="device")
+    paths = [(r["options"].get("update_path"), r["options"]["vector"]) for r in rows]
+    assert paths == [
+        (None, "batched"),
+        ("eager", "batched"),
+        ("static", "batched"),
+        ("static", "process"),
+    ]
+    assert all(r["learner_s"] > 0 and r["steps_per_s"] > 0 for r in rows)
+    out = capsys.readouterr().out
+    assert "small learner, cpu, static update over small learner, cpu: x" in out
