@@ -7,6 +7,7 @@ import multiprocessing as mp
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -305,9 +306,9 @@ def test_training_bench_puts_the_learner_devices_side_by_side(capsys, monkeypatc
 
     monkeypatch.setattr(training, "SMALL_LEARNER", {**training.SMALL_LEARNER, **TINY_NETS})
     cuda = [label for label, _, _ in training.configurations("cuda", False, only="device")]
-    assert cuda[0] == "small learner, cpu" and len(cuda) == 4
+    assert cuda[0] == training.CPU_PATH == "small learner on cpu" and len(cuda) == 4
     assert [label for label, _, _ in training.configurations("cuda", False)][:4] == cuda
-    assert "small learner, cpu" not in [r[0] for r in training.configurations("cpu", False)]
+    assert training.CPU_PATH not in [r[0] for r in training.configurations("cpu", False)]
     rows = training.run("cpu", (3,), updates=2, rollout_steps=20, only="device")
     paths = [(r["options"].get("update_path"), r["options"]["vector"]) for r in rows]
     assert paths == [
@@ -318,4 +319,8 @@ def test_training_bench_puts_the_learner_devices_side_by_side(capsys, monkeypatc
     ]
     assert all(r["learner_s"] > 0 and r["steps_per_s"] > 0 for r in rows)
     out = capsys.readouterr().out
-    assert "small learner, cpu, static update over small learner, cpu: x" in out
+    assert "small learner on cpu: static update over small learner on cpu: x" in out
+    # benchmarks/speed/gpu_host.sh names the compiled row by its label
+    script = (Path(__file__).parents[1] / "benchmarks/speed/gpu_host.sh").read_text()
+    label = script.split('--rows "')[1].split('"')[0]
+    assert training.select_rows(training.configurations("cuda", True, only="device"), (label,))

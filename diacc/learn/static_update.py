@@ -128,6 +128,8 @@ def run_epochs(
     records = torch.empty(len(idx), len(RECORD_NAMES), device=idx.device)
     with static_shapes():
         for step in range(len(idx)):
+            if agent.static_loss is not None:  # CUDA graphs: a new step, earlier outputs read
+                torch.compiler.cudagraph_mark_step_begin()
             parts = loss_fn(agent, batch, returns_n, idx[step], cfg, n_cavs, valid[step])
             agent.optimizer.zero_grad()
             parts.loss.backward()

@@ -200,6 +200,10 @@ LEARNER_ROWS = (
 GROUPS = ("learners", "vector", "threads", "device", "demand", "all")
 
 
+#: The first device row: the default learner as it runs on the CPU today.
+CPU_PATH = "small learner on cpu"
+
+
 def device_rows(device: str, with_compile: bool = True) -> list[tuple[str, dict, bool]]:
     """The learner's device side by side, on the default (small) learner: the CPU path
     of today (eager update, envs in this process), then on ``device`` the eager update,
@@ -211,11 +215,15 @@ def device_rows(device: str, with_compile: bool = True) -> list[tuple[str, dict,
     on = {**SMALL_LEARNER, "device": device}
     here = {"vector": "batched"}  # the envs in this process (highway's default)
     rows = [
-        ("small learner, cpu", {**SMALL_LEARNER, "device": "cpu", **here}, False),
-        (f"small learner, {device}, eager update", {**on, **here, "update_path": "eager"}, False),
-        (f"small learner, {device}, static update", {**on, **here, "update_path": "static"}, False),
+        (CPU_PATH, {**SMALL_LEARNER, "device": "cpu", **here}, False),
+        (f"small learner on {device}: eager update", {**on, **here, "update_path": "eager"}, False),
         (
-            f"small learner, {device}, static update, {cores} env workers",
+            f"small learner on {device}: static update",
+            {**on, **here, "update_path": "static"},
+            False,
+        ),
+        (
+            f"small learner on {device}: static update + {cores} env workers",
             {**on, "update_path": "static", "vector": "process"},
             False,
         ),
@@ -223,7 +231,7 @@ def device_rows(device: str, with_compile: bool = True) -> list[tuple[str, dict,
     if with_compile and device.startswith("cuda") and compile_available(device):
         compiled = {**on, "update_path": "static", "update_compile": True, "vector": "process"}
         rows.append(
-            (f"small learner, {device}, compiled static update, env workers", compiled, False)
+            (f"small learner on {device}: compiled static update + env workers", compiled, False)
         )
     return rows
 
@@ -405,14 +413,13 @@ def _print(rows, variant, backend, device, updates, rollout_steps, loads) -> Non
                 f"{n_envs} envs: env-steps/s of the default vector env over per-env envs: "
                 f"{train} (train), {rollout} (rollout only)"
             )
-        cpu_path = "small learner, cpu"
         for label in [r["label"] for r in rows if r["envs"] == n_envs]:
-            if label.startswith("small learner, ") and label != cpu_path:
-                speed = _ratio(rows, n_envs, "steps_per_s", label, cpu_path)
-                learner_s = _ratio(rows, n_envs, "learner_s", label, cpu_path)
+            if label.startswith("small learner on ") and label != CPU_PATH:
+                speed = _ratio(rows, n_envs, "steps_per_s", label, CPU_PATH)
+                learner_s = _ratio(rows, n_envs, "learner_s", label, CPU_PATH)
                 if speed:
                     print(
-                        f"{n_envs} envs: {label} over {cpu_path}: {speed} env-steps/s, "
+                        f"{n_envs} envs: {label} over {CPU_PATH}: {speed} env-steps/s, "
                         f"{learner_s} learner speed"
                     )
         for learner in ("paper learner", "small learner"):
