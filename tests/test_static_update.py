@@ -10,7 +10,7 @@ import torch
 from test_mappo import rollout_batch, tiny_config
 
 from diacc.config import override
-from diacc.learn import ppo, static_update
+from diacc.learn import checkpoint, mappo, ppo, static_update
 from diacc.learn.agent import make_agent, update_path
 from diacc.learn.loss import NonFiniteError, minibatch_loss
 
@@ -169,3 +169,16 @@ def test_compiled_static_loss_matches_eager(padded_case):
         static_update.static_ppo_update(a, copy.deepcopy(batch), cfg, 4)
         results.append(_params(a))
     torch.testing.assert_close(results[1], results[0], rtol=1e-4, atol=1e-6)
+
+
+def test_a_static_training_run_ends_where_the_eager_one_does(tmp_path):
+    """Through the trainer (rollouts, checkpoints, progress rows): the same seed with
+    either path gives the same weights to float tolerance."""
+    weights = {}
+    for path in ("eager", "static"):
+        cfg = tiny_config(tmp_path / path, update_path=path, minibatches=3)
+        mappo.train(cfg, progress=False)
+        payload = checkpoint.load_checkpoint(tmp_path / path / "run" / "checkpoint.pt")
+        weights[path] = torch.cat([t.ravel() for t in payload["actor"].values()])
+        assert payload["config"]["update_path"] == path
+    torch.testing.assert_close(weights["static"], weights["eager"], rtol=1e-4, atol=1e-5)
