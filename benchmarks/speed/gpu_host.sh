@@ -41,8 +41,9 @@ mkdir -p "$OUT"
 } > "$OUT/host.txt" 2>&1
 cat "$OUT/host.txt"
 echo "== one update"
+NO_COMPILE=$([ "$DEVICE" = cuda ] || echo --no-compile)  # inductor on a CPU takes minutes
 timeout 170 python3 benchmarks/speed/gpu_update.py --device "$DEVICE" --envs "$ENVS" \
-  --rollout-steps "$STEPS" --repeats 5 2>&1 | tee "$OUT/update.txt"
+  --rollout-steps "$STEPS" --repeats 5 $NO_COMPILE 2>&1 | tee "$OUT/update.txt"
 echo "== end to end (bench --training --only device, no compile)"
 timeout 130 python3 -m diacc.experiments.bench.training --device "$DEVICE" --only device \
   --envs "$ENVS" --rollout-steps "$STEPS" --updates 3 --no-compile 2>&1 | tee "$OUT/training.txt"
