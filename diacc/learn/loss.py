@@ -10,7 +10,7 @@ check minibatches, never in the objective.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 import torch.nn.functional as F
@@ -20,8 +20,14 @@ from diacc.envs.action_mask import masked_logits
 from diacc.errors import DiaccError
 from diacc.learn.buffer import Batch
 
-if TYPE_CHECKING:  # agent.py imports this module (to compile minibatch_loss)
-    from diacc.learn.agent import Agent
+
+class Replays(Protocol):
+    """What the loss uses of an :class:`~diacc.learn.agent.Agent`: its sequence replays
+    (a protocol: agent.py imports this module, to compile :func:`minibatch_loss`)."""
+
+    def replay_actor(self, *args) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+    def replay_critic(self, *args) -> tuple[torch.Tensor, torch.Tensor]: ...
 
 
 class NonFiniteError(DiaccError, RuntimeError):
@@ -38,7 +44,7 @@ def first_nonfinite(net: torch.nn.Module, part: str, grad: bool = False) -> str 
 
 
 def evaluate_batch(
-    agent: Agent,
+    agent: Replays,
     batch: Batch,
     envs_idx: torch.Tensor,
     n_cavs: int,
@@ -63,7 +69,7 @@ def evaluate_batch(
 
 
 def actor_distribution(
-    agent: Agent, batch: Batch, envs_idx: torch.Tensor, n_cavs: int, static: bool = False
+    agent: Replays, batch: Batch, envs_idx: torch.Tensor, n_cavs: int, static: bool = False
 ):
     """The learner actor's action distribution (L, b_a, 5) on the CAVs of critic
     sequences ``envs_idx``, and their actor sequence indices b_a (``static``: as
@@ -103,7 +109,7 @@ class LossParts:
 
 
 def minibatch_loss(
-    agent: Agent,
+    agent: Replays,
     batch: Batch,
     returns_n: torch.Tensor,
     envs_idx: torch.Tensor,
