@@ -117,7 +117,9 @@ class TrainConfig:
     # intra-op threads of the trainer; 0 = diacc.threads rule
     torch_threads: int = ranged(0, 0, 1024, why="more threads than cores only contend")
     update_bf16: bool = False  # bf16 autocast in the PPO update (changes numerics: option)
-    update_compile: bool = False  # torch.compile the networks' sequence replay in the update
+    # torch.compile the networks' sequence replay in the update (on the static path its
+    # whole minibatch loss, as CUDA graphs on cuda)
+    update_compile: bool = False
     # eager (whole minibatches, checks per step), static (padded minibatches of one size,
     # no host sync until the update's end: diacc.learn.static_update) or auto (static on
     # cuda, eager on the CPU); the same loss either way
