@@ -38,7 +38,7 @@ def test_per_agent_values_and_masked_actions_replay_exactly(tmp_path):
     assert taken.all() and not mask.all()
     with torch.no_grad():
         every_env = torch.arange(batch.critic_h0.shape[0])
-        logprob, entropy, values, agents = evaluate_batch(agent, batch, every_env)
+        logprob, entropy, values, agents = evaluate_batch(agent, batch, every_env, C)
     alive = batch.alive[:, agents].bool()  # a replay need not encode CAVs off the road
     ratio = (logprob - batch.logprobs[:, agents]).exp()[alive]
     assert torch.allclose(ratio, torch.ones_like(ratio), atol=1e-5)
@@ -55,7 +55,7 @@ def test_executed_mode_trains_on_what_psar_executed(tmp_path):
         executed = roll.actor_obs[t + 1].action_memory[..., 1]  # (E, C) refined at t
         assert (roll.actions[t][carried] == executed[carried]).all()
     with torch.no_grad():
-        logprob, _, _, agents = evaluate_batch(agent, batch, torch.arange(2 * cfg.n_envs))
+        logprob, _, _, agents = evaluate_batch(agent, batch, torch.arange(2 * cfg.n_envs), 4)
     alive = batch.alive[:, agents].bool()  # a replay need not encode CAVs off the road
     assert torch.allclose(logprob[alive], batch.logprobs[:, agents][alive], atol=1e-5)
 

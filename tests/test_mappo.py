@@ -74,7 +74,7 @@ def test_chunked_replay_reproduces_rollout_logprobs(rollout_and_batch):
     cfg, agent, _, batch = rollout_and_batch
     with torch.no_grad():
         every_env = torch.arange(batch.critic_h0.shape[0])
-        logprob, _, _, agents = evaluate_batch(agent, batch, every_env)
+        logprob, _, _, agents = evaluate_batch(agent, batch, every_env, 4)
     # On the road; a replay need not encode CAVs off it (recurrent.needed_rows).
     alive = batch.alive[:, agents].bool()
     ratio = (logprob - batch.logprobs[:, agents]).exp()[alive]
@@ -97,7 +97,7 @@ def test_value_clipping_keeps_every_value_gradient_in_the_first_pass(rollout_and
         return values, hidden
 
     a.critic.forward_sequence = recording
-    ppo_update(a, batch, cfg)
+    ppo_update(a, batch, cfg, 4)
     assert len(grads) == 1
     assert (grads[0] != 0).float().mean().item() > 0.99
 
@@ -115,7 +115,7 @@ def test_dead_steps_contribute_nothing(rollout_and_batch):
     for b in (batch, garbage):
         a = copy.deepcopy(agent)
         torch.manual_seed(0)
-        ppo_update(a, b, cfg)
+        ppo_update(a, b, cfg, 4)
         results.append(torch.cat([p.detach().ravel() for p in a.actor.parameters()]))
     assert torch.equal(results[0], results[1])
 
@@ -341,7 +341,7 @@ def test_proximal_policy_of_an_unlagged_rollout_is_the_behaviour_policy(rollout_
 
     cfg, agent, roll, batch = rollout_and_batch
     lagged = copy.copy(batch)
-    add_proximal_policy(agent, lagged, cfg)
+    add_proximal_policy(agent, lagged, cfg, roll.actions.shape[2])
     alive = batch.alive.bool()
     torch.testing.assert_close(
         lagged.prox_logprobs[alive], batch.logprobs[alive], rtol=0, atol=1e-5

@@ -7,6 +7,7 @@ import multiprocessing as mp
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -141,9 +142,9 @@ def test_bf16_update_stays_close_to_fp32(tiny_batch):
     cfg, agent, batch = tiny_batch
     every_env = torch.arange(batch.critic_h0.shape[0])
     with torch.no_grad():
-        fp32 = ppo.evaluate_batch(agent, batch, every_env)
+        fp32 = ppo.evaluate_batch(agent, batch, every_env, 4)
         with torch.autocast("cpu", torch.bfloat16):
-            bf16 = ppo.evaluate_batch(agent, batch, every_env)
+            bf16 = ppo.evaluate_batch(agent, batch, every_env, 4)
     assert bf16[0].dtype == bf16[2].dtype == torch.float32  # losses are taken in fp32
     assert (bf16[0] - fp32[0]).abs().max() < 0.05  # log-probs
     assert (bf16[2] - fp32[2]).abs().max() < 0.05  # normalised values
@@ -151,7 +152,7 @@ def test_bf16_update_stays_close_to_fp32(tiny_batch):
     for flag in (False, True):
         a = copy.deepcopy(agent)
         torch.manual_seed(0)
-        stats = ppo.ppo_update(a, batch, override(cfg, {"update_bf16": flag}))
+        stats = ppo.ppo_update(a, batch, override(cfg, {"update_bf16": flag}), 4)
         assert all(np.isfinite(v) for v in stats.values())
         results[flag] = torch.cat([p.detach().ravel() for p in a.actor.parameters()])
     start = torch.cat([p.detach().ravel() for p in agent.actor.parameters()])
@@ -194,7 +195,7 @@ def test_compiled_update_matches_eager(tiny_batch):
             a.actor_sequence = torch.compile(a.actor.forward_sequence)
             a.critic_sequence = torch.compile(a.critic.forward_sequence)
         torch.manual_seed(0)
-        ppo.ppo_update(a, batch, c)
+        ppo.ppo_update(a, batch, c, 4)
         results.append(torch.cat([p.detach().ravel() for p in a.actor.parameters()]))
     torch.testing.assert_close(results[0], results[1], rtol=1e-3, atol=1e-5)
 
@@ -296,3 +297,30 @@ def test_training_bench_names_an_unknown_row(capsys):
     with pytest.raises(SystemExit):
         training.main(["--rows", "small learner,nope"])
     assert "--rows: no such row(s): nope" in capsys.readouterr().err
+
+
+def test_training_bench_puts_the_learner_devices_side_by_side(capsys, monkeypatch):
+    """``--only device``: the CPU path first, then the eager and static updates and the
+    env workers on the device (here the CPU too), each with its update time and rate."""
+    from diacc.experiments.bench import training
+
+    monkeypatch.setattr(training, "SMALL_LEARNER", {**training.SMALL_LEARNER, **TINY_NETS})
+    cuda = [label for label, _, _ in training.configurations("cuda", False, only="device")]
+    assert cuda[0] == training.CPU_PATH == "small learner on cpu" and len(cuda) == 4
+    assert [label for label, _, _ in training.configurations("cuda", False)][:4] == cuda
+    assert training.CPU_PATH not in [r[0] for r in training.configurations("cpu", False)]
+    rows = training.run("cpu", (3,), updates=2, rollout_steps=20, only="device")
+    paths = [(r["options"].get("update_path"), r["options"]["vector"]) for r in rows]
+    assert paths == [
+        (None, "batched"),
+        ("eager", "batched"),
+        ("static", "batched"),
+        ("static", "process"),
+    ]
+    assert all(r["learner_s"] > 0 and r["steps_per_s"] > 0 for r in rows)
+    out = capsys.readouterr().out
+    assert "small learner on cpu: static update over small learner on cpu: x" in out
+    # benchmarks/speed/gpu_host.sh names the compiled row by its label
+    script = (Path(__file__).parents[1] / "benchmarks/speed/gpu_host.sh").read_text()
+    label = script.split('--rows "')[1].split('"')[0]
+    assert training.select_rows(training.configurations("cuda", True, only="device"), (label,))

@@ -15,6 +15,7 @@ from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.vector import (
     BatchedVectorEnv,
     SyncVectorEnv,
+    auto_vector_mode,
     concat_steps,
     episode_seed,
     make_vector_env,
@@ -309,3 +310,32 @@ def test_step_identity_finds_a_tree_identical_to_itself_and_settings_apart():
     assert "IDENTICAL" in out.stdout
     digests = dict(line.split()[:2] for line in out.stdout.splitlines()[:2])
     assert digests["nopsar"] != digests["masked"]
+
+
+def test_auto_mode_spreads_envs_over_workers_when_the_learner_is_on_a_gpu(monkeypatch):
+    monkeypatch.setattr(os, "cpu_count", lambda: 16)
+    assert auto_vector_mode("highway", 16) == "batched"
+    assert auto_vector_mode("highway", 1) == "sync"
+    assert auto_vector_mode("sumo", 4) == "process"
+    assert auto_vector_mode("highway", 16, "cuda") == "process"
+    assert auto_vector_mode("highway", 1, "cuda") == "sync"  # nothing to spread
+    monkeypatch.setattr(os, "cpu_count", lambda: 1)
+    assert auto_vector_mode("highway", 16, "cuda") == "batched"  # no second core
+
+
+def test_process_workers_batch_their_highway_groups(monkeypatch):
+    """4 envs on 2 workers: each steps its 2 envs as one batch, with the results of 4
+    envs stepped one by one in this process."""
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    sync = SyncVectorEnv(CONFIG, 4, run_seed=5)
+    procs = make_vector_env(CONFIG, 4, 5, "auto", learner_device="cuda")
+    assert isinstance(procs, ProcessVectorEnv) and procs.group_class is BatchedVectorEnv
+    assert procs.groups == [[0, 1], [2, 3]]
+    in_process, in_workers = [], []
+    try:
+        a, b = _run(sync, outs=in_process), _run(procs, outs=in_workers)
+    finally:
+        sync.close()
+        procs.close()
+    np.testing.assert_array_equal(a, b)
+    assert_same(in_process, in_workers, "steps")

@@ -104,8 +104,9 @@ class TrainConfig:
     variant: str = one_of("diacc", VARIANTS)
     total_steps: int = ranged(3_000_000, 1)  # environment steps (decisions x envs)
     n_envs: int = ranged(20, 1, MAX_ENVS, why="each env adds a simulator and rollout rows")
-    # sync (in process), batched (one highway simulator for all envs), process (worker
-    # processes), auto (by backend: batched for highway, process for sumo)
+    # sync (in process), batched (one highway simulator for all envs), process (one worker
+    # process per core), auto (by backend: batched for highway, process for sumo; process
+    # when the learner is on cuda: diacc.envs.vector.auto_vector_mode)
     vector: str = one_of("auto", ("auto", "sync", "batched", "process"))
     rollout_steps: int = ranged(
         100, 1, MAX_EPISODE_STEPS, why="the rollout holds this many steps of every env"
@@ -116,7 +117,13 @@ class TrainConfig:
     # intra-op threads of the trainer; 0 = diacc.threads rule
     torch_threads: int = ranged(0, 0, 1024, why="more threads than cores only contend")
     update_bf16: bool = False  # bf16 autocast in the PPO update (changes numerics: option)
-    update_compile: bool = False  # torch.compile the networks' sequence replay in the update
+    # torch.compile the networks' sequence replay in the update (on the static path its
+    # whole minibatch loss, as CUDA graphs on cuda)
+    update_compile: bool = False
+    # eager (whole minibatches, checks per step), static (padded minibatches of one size,
+    # no host sync until the update's end: diacc.learn.static_update) or auto (static on
+    # cuda, eager on the CPU); the same loss either way
+    update_path: str = one_of("auto", ("auto", "eager", "static"))
     # collect the next rollout while the learner trains (second thread): one-update policy lag
     overlap: bool = False
     lr: float = ranged(5e-4, 0, open_low=True)

@@ -20,7 +20,9 @@ beside the terms R is made of. What a learner uses of them is
   would cost more than they save here.
 * :class:`~diacc.envs.vector_process.ProcessVectorEnv` splits the environments into one group per
   worker process (``spawn`` start method; each SUMO environment still runs
-  libsumo in a worker of its own), so groups step in parallel. A worker that
+  libsumo in a worker of its own), so groups step in parallel; ``highway``
+  groups of more than one env are batched. ``vector = "auto"`` takes it when
+  the learner is on a GPU (:func:`auto_vector_mode`). A worker that
   dies is restarted and logged when it is found dead: stepping (the episodes
   of its group are cut: ``truncated`` with zero reward terms, bootstrapped
   from the last state before the crash, and counted in ``restarts``) or
@@ -38,6 +40,7 @@ every map, so the trainer sees E environments as before.
 
 from __future__ import annotations
 
+import os
 from dataclasses import fields, replace
 from typing import Protocol
 
@@ -260,23 +263,45 @@ def make_vector_env(
     run_seed: int,
     mode: str = "auto",
     extra_maps: tuple[str, ...] = (),
+    learner_device: str = "cpu",
 ) -> TrainingEnvs:
-    """``mode``: ``sync``, ``batched``, ``process`` or ``auto`` (the backend's ``vector_mode``).
+    """``mode``: ``sync``, ``batched``, ``process`` or ``auto`` (:func:`auto_vector_mode`).
 
-    ``auto`` steps a single environment on its own (``sync``): a batch of one
-    gives the same results but pays the batching (``diacc bench --env-batch``;
-    figures in docs/benchmarks, "env stepping per core"). ``extra_maps``: maps
-    beside ``config.map`` that the environments are split over (:func:`maps_of_envs`).
+    ``process`` starts one worker per CPU core (at most one per env); on
+    ``highway`` each worker steps its group as one batch when some group holds
+    more than one env (the same results, :class:`BatchedVectorEnv`).
+    ``extra_maps``: maps beside ``config.map`` that the environments are split
+    over (:func:`maps_of_envs`). ``learner_device``: where the PPO update runs
+    (``cpu``, ``cuda``), which ``auto`` depends on.
     """
     env_maps = maps_of_envs((config.map, *extra_maps), n_envs) if extra_maps else None
     if mode == "auto":
-        mode = backend_class(config.backend).vector_mode
-        if mode == "batched" and n_envs == 1:
-            mode = "sync"
+        mode = auto_vector_mode(config.backend, n_envs, learner_device)
     if mode == "sync":
         return SyncVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
     if mode == "batched":
         return BatchedVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
     if mode == "process":
-        return ProcessVectorEnv(SyncVectorEnv, config, n_envs, run_seed, env_maps=env_maps)
+        workers = min(n_envs, os.cpu_count() or 1)
+        batches = backend_class(config.backend).vector_mode == "batched" and n_envs > workers
+        group = BatchedVectorEnv if batches else SyncVectorEnv
+        return ProcessVectorEnv(group, config, n_envs, run_seed, workers, env_maps=env_maps)
     raise ValueError(f"unknown vector mode {mode!r}; choose sync, batched, process or auto")
+
+
+def auto_vector_mode(backend: str, n_envs: int, learner_device: str = "cpu") -> str:
+    """What ``vector = "auto"`` means: the backend's ``vector_mode``, except in two cases.
+
+    A single environment steps on its own (``sync``): a batch of one gives the
+    same results but pays the batching (``diacc bench --env-batch``; figures in
+    docs/benchmarks, "env stepping per core"). With the learner on a GPU
+    (``learner_device`` ``cuda``) the CPU cores have nothing to do but step the
+    envs and act, so the envs are spread over one worker process per core
+    (``process``), as soon as there are two envs and two cores.
+    """
+    if learner_device == "cuda" and n_envs > 1 and (os.cpu_count() or 1) > 1:
+        return "process"
+    mode = backend_class(backend).vector_mode
+    if mode == "batched" and n_envs == 1:
+        return "sync"
+    return mode

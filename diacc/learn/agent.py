@@ -17,6 +17,7 @@ import torch
 
 from diacc.config import TrainConfig
 from diacc.envs.observation import ObservationSpec
+from diacc.learn.loss import minibatch_loss
 from diacc.learn.models.agent_value import AgentValueCritic
 from diacc.learn.models.registry import build_networks
 from diacc.learn.valuenorm import ValueNorm
@@ -32,7 +33,8 @@ class Agent:
     :meth:`sync_rollout` refreshes. The update replays sequences through
     :meth:`replay_actor` / :meth:`replay_critic`: the learner's
     ``forward_sequence``, or its compiled form (``*_sequence``) with
-    ``update_compile``.
+    ``update_compile``; the static update (:mod:`diacc.learn.static_update`)
+    compiles its whole minibatch loss instead (``static_loss``).
     """
 
     actor: torch.nn.Module
@@ -44,6 +46,8 @@ class Agent:
     rollout_value_norm: ValueNorm | None = None
     actor_sequence: Callable | None = None
     critic_sequence: Callable | None = None
+    #: the static update's compiled minibatch loss (``update_compile`` on that path)
+    static_loss: Callable | None = None
 
     def __post_init__(self) -> None:
         self.rollout_actor = self.actor if self.rollout_actor is None else self.rollout_actor
@@ -96,7 +100,21 @@ def make_agent(cfg: TrainConfig, device: torch.device) -> Agent:
     # checkpoint restores the flag it was saved with, so old runs resume as they ran.
     fused = device.type in ("cpu", "cuda")
     optimizer = torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps, fused=fused)
-    if cfg.update_compile:
+    if cfg.update_compile and update_path(cfg, device) == "static":
+        # CUDA: the forward and backward graphs become CUDA graphs, replayed per step.
+        mode = "reduce-overhead" if device.type == "cuda" else None
+        extras["static_loss"] = torch.compile(minibatch_loss, mode=mode, dynamic=False)
+    elif cfg.update_compile:
         extras["actor_sequence"] = torch.compile(actor.forward_sequence)
         extras["critic_sequence"] = torch.compile(critic.forward_sequence)
     return Agent(actor, critic, value_norm, optimizer, **extras)
+
+
+def update_path(cfg: TrainConfig, device: torch.device) -> str:
+    """The PPO update ``cfg.update_path`` means on ``device``: ``auto`` is ``static``
+    (:mod:`diacc.learn.static_update`) on CUDA, where launches and host syncs cost
+    more than the maths, and ``eager`` elsewhere, where skipping the rows of CAVs
+    off the road (:func:`~diacc.learn.models.recurrent.needed_rows`) saves work."""
+    if cfg.update_path != "auto":
+        return cfg.update_path
+    return "static" if device.type == "cuda" else "eager"

@@ -129,20 +129,13 @@ def chunk_time_major(arrays: np.ndarray, chunk_len: int) -> np.ndarray:
 class Batch:
     """A rollout cut into sequences of L = ``chunk_len`` steps, time-major.
 
-    Critic tensors are (L, B_c, ...) with B_c = chunks * E, ordered (chunk, env).
-    Actor tensors are (L, B_a, ...) over the *live* actor sequences alone: of the
-    chunks * E * C (chunk, env, slot) sequences, those whose slot holds a CAV on the
-    road at some step of the chunk, in that order; ``actor_owner`` says which
-    critic sequence each belongs to. A sequence with no CAV on the road adds nothing
-    to any loss (every term is masked by ``alive``), so dropping it changes no
-    gradient; it would cost the update its replay. With a slot for every CAV of a
-    demand episode (``cav_slots = "every"``) most slots are empty at any time (CAVs
-    not yet entered, or gone): there the update replays the CAVs, not the slots.
+    Actor tensors are (L, B_a, ...) with B_a = chunks * E * C, ordered
+    (chunk, env, cav); critic tensors are (L, B_c, ...) with B_c = chunks * E.
+    So the agents of critic sequence j are actor sequences j*C .. j*C + C-1.
     """
 
     actor_obs: dict[str, torch.Tensor]
     critic_state: dict[str, torch.Tensor]
-    actor_owner: torch.Tensor  # (B_a,) int64 critic sequence of each live actor sequence
     actor_h0: torch.Tensor  # (B_a, H) hidden state at each chunk start
     critic_h0: torch.Tensor  # (B_c, H)
     actor_start: torch.Tensor  # (L, B_a) bool
@@ -165,16 +158,8 @@ def make_batch(
     S, E, C = roll.actions.shape
     L = chunk_len
 
-    def every_slot(array: np.ndarray) -> np.ndarray:  # (S, E, C, ...) -> (L, chunks*E*C, ...)
-        return chunk_time_major(array.reshape(S, E * C, *array.shape[3:]), L)
-
-    live = np.asarray(every_slot(roll.alive).any(axis=0))  # (chunks*E*C,) a CAV on the road
-    if not live.any():  # no CAV on the road at all: one (masked) sequence keeps shapes whole
-        live[0] = True
-    live_idx = np.flatnonzero(live)  # (B_a,)
-
     def per_agent(array: np.ndarray) -> np.ndarray:  # (S, E, C, ...) -> (L, B_a, ...)
-        return every_slot(array)[:, live_idx]
+        return chunk_time_major(array.reshape(S, E * C, *array.shape[3:]), L)
 
     def tensor(array: np.ndarray, dtype=torch.float32) -> torch.Tensor:
         return torch.as_tensor(array, dtype=dtype, device=device)
@@ -197,8 +182,7 @@ def make_batch(
         critic_state=to_tensors(
             {name: chunk_time_major(array, L) for name, array in critic_arrays.items()}, device
         ),
-        actor_owner=tensor(live_idx // C, torch.long),
-        actor_h0=tensor(roll.actor_hidden[::L].reshape(-1, roll.actor_hidden.shape[-1])[live_idx]),
+        actor_h0=tensor(roll.actor_hidden[::L].reshape(-1, roll.actor_hidden.shape[-1])),
         critic_h0=tensor(roll.critic_hidden[::L].reshape(-1, roll.critic_hidden.shape[-1])),
         actor_start=tensor(per_agent(starts), torch.bool),
         critic_start=tensor(chunk_time_major(roll.episode_start, L), torch.bool),

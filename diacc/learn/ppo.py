@@ -21,8 +21,11 @@ One update of :func:`diacc.learn.trainer.train` is, in this order:
 5. :func:`add_proximal_policy` (a rollout collected one update behind,
    ``overlap``): decoupled PPO's proximal policy.
 6. :func:`ppo_update`: ``epochs`` passes of clipped PPO with a clipped,
-   Huber value loss. CAVs that have left (or were never on the road) add
-   nothing to any actor loss (death masking).
+   Huber value loss (:func:`~diacc.learn.loss.minibatch_loss`). CAVs that have
+   left (or were never on the road) add nothing to any actor loss (death
+   masking). On CUDA (``update_path``) the same loss runs in
+   :func:`~diacc.learn.static_update.static_ppo_update`: one minibatch shape,
+   no host sync until the end.
 
 :func:`learn` is steps 2-6. Actions meet PSAR as ``env.psar_actions`` says:
 the proposed action's log-prob (paper), the executed one's, or sampling among
@@ -32,27 +35,32 @@ the actions PSAR would execute unchanged (``ActorObs.action_mask``,
 
 from __future__ import annotations
 
-import functools
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from diacc.config import TrainConfig
-from diacc.envs.action_mask import masked_logits
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.observation import stack
 from diacc.envs.psar import RULE_NAMES, rule_counts
 from diacc.envs.reward import own_reward, temperature
 from diacc.envs.vector import TrainingEnvs
-from diacc.errors import DiaccError
 from diacc.learn.acting import decide
-from diacc.learn.agent import ROLLOUT_DEVICE, Agent
+from diacc.learn.agent import ROLLOUT_DEVICE, Agent, update_path
 from diacc.learn.buffer import Batch, Rollout, compute_gae, flatten_agents, make_batch
+from diacc.learn.loss import (
+    LOSS_NAMES,
+    NonFiniteError,
+    actor_distribution,
+    first_nonfinite,
+    minibatch_loss,
+)
+from diacc.learn.loss import evaluate_batch as evaluate_batch  # where callers found it
 from diacc.learn.models.agent_value import AGENT_KEY, agent_features
 from diacc.learn.models.inputs import to_tensors
+from diacc.learn.static_update import static_ppo_update
 from diacc.learn.valuenorm import ValueNorm
 
 #: Episode-counter stride per update: update u uses episode seeds u*stride, u*stride+1, ...
@@ -271,38 +279,6 @@ def critic_inputs(critic_state, actor_obs, per_agent: bool, device) -> dict[str,
 
 
 # ----------------------------------------------------------------------------- replay
-def evaluate_batch(agent: Agent, batch: Batch, envs_idx: torch.Tensor):
-    """Replay critic sequences ``envs_idx`` and their CAVs' actor sequences.
-
-    Returns (new log-probs (L, b_a), entropy (L, b_a), normalised values (L, b_c),
-    actor sequence indices b_a).
-    """
-    dist, agents_idx = actor_distribution(agent, batch, envs_idx)
-    values, _ = agent.replay_critic(
-        {k: v[:, envs_idx] for k, v in batch.critic_state.items()},
-        batch.critic_h0[envs_idx],
-        batch.critic_start[:, envs_idx],
-    )
-    # float(): under bf16 autocast the networks return bf16; losses are taken in fp32.
-    return dist.log_prob(batch.actions[:, agents_idx]), dist.entropy(), values.float(), agents_idx
-
-
-def actor_distribution(agent: Agent, batch: Batch, envs_idx: torch.Tensor):
-    """The learner actor's action distribution (L, b_a, 5) on the CAVs of critic
-    sequences ``envs_idx``, and their actor sequence indices b_a (the live ones,
-    :class:`~diacc.learn.buffer.Batch`)."""
-    agents_idx = torch.isin(batch.actor_owner, envs_idx).nonzero()[:, 0]  # (b_a,)
-    if agents_idx.numel() == 0:  # no CAV on the road in these sequences: one masked row
-        agents_idx = agents_idx.new_zeros(1)
-    logits, _ = agent.replay_actor(
-        {k: v[:, agents_idx] for k, v in batch.actor_obs.items()},
-        batch.actor_h0[agents_idx],
-        batch.actor_start[:, agents_idx],
-    )
-    logits = masked_logits(logits.float(), batch.actor_obs["action_mask"][:, agents_idx])
-    return torch.distributions.Categorical(logits=logits), agents_idx
-
-
 #: Cap of the importance weight pi_prox / pi_behaviour of a lagged rollout: one
 #: update apart the two policies barely differ (approx. KL < 0.01), so the cap only
 #: guards against an action the behaviour policy took with a tiny probability.
@@ -310,7 +286,7 @@ MAX_BEHAVIOUR_WEIGHT = 2.0
 
 
 @torch.no_grad()
-def add_proximal_policy(agent: Agent, batch: Batch, cfg: TrainConfig) -> None:
+def add_proximal_policy(agent: Agent, batch: Batch, cfg: TrainConfig, n_cavs: int) -> None:
     """Make a lagged rollout's batch (overlap) train like a fresh one.
 
     A rollout collected beside the previous update acts with the parameters from
@@ -324,11 +300,11 @@ def add_proximal_policy(agent: Agent, batch: Batch, cfg: TrainConfig) -> None:
     the rollout, minibatch by minibatch.
     """
     autocast = torch.autocast(batch.returns.device.type, torch.bfloat16, enabled=cfg.update_bf16)
-    prox = torch.zeros_like(batch.logprobs)  # (L, B_a)
+    prox = torch.empty_like(batch.logprobs)  # (L, B_a)
     n_sequences = batch.critic_h0.shape[0]
     with autocast:
         for envs_idx in torch.arange(n_sequences, device=prox.device).chunk(cfg.minibatches):
-            dist, agents_idx = actor_distribution(agent, batch, envs_idx)
+            dist, agents_idx = actor_distribution(agent, batch, envs_idx, n_cavs)
             prox[:, agents_idx] = dist.log_prob(batch.actions[:, agents_idx])
     batch.prox_logprobs = prox
     batch.behaviour_weights = (prox - batch.logprobs).exp().clamp(max=MAX_BEHAVIOUR_WEIGHT)
@@ -339,6 +315,7 @@ def ppo_update(
     agent: Agent,
     batch: Batch,
     cfg: TrainConfig,
+    n_cavs: int,
     generator: torch.Generator | None = None,
 ) -> dict[str, float]:
     """``epochs`` passes of clipped PPO over the batch; returns mean diagnostics.
@@ -349,17 +326,12 @@ def ppo_update(
     an update running beside a rollout needs its own, or the two threads'
     draws would interleave differently from run to run.
     """
-    autocast = functools.partial(
-        torch.autocast, batch.returns.device.type, torch.bfloat16, enabled=cfg.update_bf16
-    )
     agent.value_norm.update(batch.returns)
+    # Clip around what the critic predicted during the rollout (MAPPO,
+    # ``old_values_normalised``): re-normalising the de-normalised values with the
+    # statistics just updated would move the centre.
     returns_n = agent.value_norm.normalize(batch.returns)
-    # Clip around what the critic predicted during the rollout (MAPPO): re-normalising
-    # the de-normalised values with the statistics just updated would move the centre.
-    old_values_n = batch.old_values_normalised
-    stats: dict[str, list[float]] = {
-        k: [] for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac")
-    }
+    stats: dict[str, list[float]] = {k: [] for k in LOSS_NAMES}
     n_sequences = batch.critic_h0.shape[0]
     for epoch in range(cfg.epochs):
         # Minibatches of whole (chunk, env) sequences keep each env's CAVs with its critic.
@@ -368,71 +340,31 @@ def ppo_update(
                 cfg.minibatches
             )
         ):
-            with autocast():
-                logprob, entropy, value, agents_idx = evaluate_batch(agent, batch, envs_idx)
-            mask = batch.alive[:, agents_idx]  # (L, b_a): dead CAVs add nothing
-            n_alive = mask.sum().clamp(min=1.0)
-            centre = batch.logprobs if batch.prox_logprobs is None else batch.prox_logprobs
-            log_ratio = logprob - centre[:, agents_idx]
-            ratio = log_ratio.exp()
-            adv = batch.advantages[:, agents_idx]
-            surrogate = torch.min(ratio * adv, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * adv)
-            if batch.behaviour_weights is not None:  # a lagged rollout (add_proximal_policy)
-                surrogate = surrogate * batch.behaviour_weights[:, agents_idx]
-            policy_loss = -(surrogate * mask).sum() / n_alive
-            entropy_mean = (entropy * mask).sum() / n_alive
-            old_v, target = old_values_n[:, envs_idx], returns_n[:, envs_idx]
-            v_clipped = old_v + (value - old_v).clamp(-cfg.clip, cfg.clip)
-            value_loss = torch.max(
-                F.huber_loss(value, target, delta=cfg.huber_delta, reduction="none"),
-                F.huber_loss(v_clipped, target, delta=cfg.huber_delta, reduction="none"),
-            ).mean()
-            loss = policy_loss - cfg.entropy_coef * entropy_mean + cfg.value_coef * value_loss
+            parts = minibatch_loss(agent, batch, returns_n, envs_idx, cfg, n_cavs)
             where = f"epoch {epoch + 1}, minibatch {minibatch + 1}"
             for name, value in (
-                ("policy_loss", policy_loss),
-                ("value_loss", value_loss),
-                ("entropy", entropy_mean),
-                ("loss", loss),
+                ("policy_loss", parts.policy_loss),
+                ("value_loss", parts.value_loss),
+                ("entropy", parts.entropy),
+                ("loss", parts.loss),
             ):
                 if not torch.isfinite(value):
                     raise NonFiniteError(f"non-finite {name} ({value.item()}) in {where}")
             agent.optimizer.zero_grad()
-            loss.backward()
+            parts.loss.backward()
             for part, net in (("actor", agent.actor), ("critic", agent.critic)):
                 norm = torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.max_grad_norm)
                 if not torch.isfinite(norm):
-                    bad = _first_nonfinite(net, part, grad=True)
+                    bad = first_nonfinite(net, part, grad=True)
                     raise NonFiniteError(f"non-finite gradient of {bad} in {where}")
             agent.optimizer.step()
-            with torch.no_grad():
-                stats["policy_loss"].append(policy_loss.item())
-                stats["value_loss"].append(value_loss.item())
-                stats["entropy"].append(entropy_mean.item())
-                stats["approx_kl"].append(
-                    ((((ratio - 1) - log_ratio) * mask).sum() / n_alive).item()
-                )
-                stats["clipfrac"].append(
-                    ((((ratio - 1).abs() > cfg.clip).float() * mask).sum() / n_alive).item()
-                )
+            for name, value in zip(LOSS_NAMES, parts.stacked().tolist(), strict=True):
+                stats[name].append(value)
     for part, net in (("actor", agent.actor), ("critic", agent.critic)):
-        bad = _first_nonfinite(net, part)
+        bad = first_nonfinite(net, part)
         if bad is not None:
             raise NonFiniteError(f"non-finite parameter {bad} after the optimiser step")
     return {k: float(np.mean(v)) for k, v in stats.items()}
-
-
-class NonFiniteError(DiaccError, RuntimeError):
-    """A loss, gradient or parameter became NaN/inf; the update must not be kept."""
-
-
-def _first_nonfinite(net: torch.nn.Module, part: str, grad: bool = False) -> str | None:
-    """First parameter (or gradient) holding NaN/inf, by name (``critic.head.weight``)."""
-    for name, param in net.named_parameters():
-        tensor = param.grad if grad else param
-        if tensor is not None and not torch.isfinite(tensor).all():
-            return f"{part}.{name}"
-    return None if not grad else f"{part} (norm)"
 
 
 def learn(
@@ -441,6 +373,7 @@ def learn(
     next_value: np.ndarray | None,
     cfg: TrainConfig,
     device: torch.device,
+    n_cavs: int,
     generator: torch.Generator | None = None,
     lagged: bool = False,
 ) -> tuple[np.ndarray, dict[str, float]]:
@@ -462,7 +395,10 @@ def learn(
             raise NonFiniteError(f"non-finite {name} in the rollout")
     batch = make_batch(roll, advantages, returns, cfg.chunk_len, device)
     if lagged:
-        add_proximal_policy(agent, batch, cfg)
-    losses = ppo_update(agent, batch, cfg, generator)
+        add_proximal_policy(agent, batch, cfg, n_cavs)
+    if update_path(cfg, device) == "static":
+        losses = static_ppo_update(agent, batch, cfg, n_cavs, generator)
+    else:
+        losses = ppo_update(agent, batch, cfg, n_cavs, generator)
     seconds = {"learner_s": time.perf_counter() - t0, "learner_cpu_s": time.thread_time() - cpu0}
     return returns, {**losses, **seconds}

@@ -327,7 +327,9 @@ def _train_loop(
     ckpt_path = run_dir / "checkpoint.pt"
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     saved_update = first_update if first_update else None
-    envs = make_vector_env(cfg.env, cfg.n_envs, cfg.seed, cfg.vector, cfg.extra_maps)
+    envs = make_vector_env(
+        cfg.env, cfg.n_envs, cfg.seed, cfg.vector, cfg.extra_maps, learner_device=device.type
+    )
     # purge_step: TensorBoard drops the events a resumed run logged after its checkpoint.
     # It reads event files in name order, and names start with the creation second:
     # a resumed file must not share its second with the interrupted run's last file.
@@ -395,6 +397,7 @@ def _train_loop(
                     next_value,
                     cfg,
                     device,
+                    envs.n_cavs,
                     _update_generator(cfg, update, device),
                     lagged,
                 )

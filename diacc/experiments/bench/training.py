@@ -16,6 +16,11 @@ wall time of the paper's 3 M-step run from the measured rate. Rows:
   ``per-env envs``, the environments stepped one after another
   (``vector = "sync"``), next to ``thread policy``, where ``highway`` runs
   all envs on one batched simulator (:class:`diacc.envs.vector.BatchedVectorEnv`);
+* **device** (``--only device``; first in every run whose ``--device`` is not
+  the CPU): the learner on the CPU, then on ``--device`` with the eager
+  update, the static update (``update_path``), the static update with the
+  envs in one worker process per core, and compiled (:func:`device_rows`),
+  each row with its learner seconds per update and env-steps/s;
 * **threads** (paper learner too): torch's default intra-op threads (one per core) against
   :func:`diacc.threads.default_threads`, alone and **with a competing
   CPU-bound process** (a busy loop for their duration).
@@ -190,8 +195,47 @@ LEARNER_ROWS = (
     ("small learner + 3 epochs", {**SMALL_LEARNER, "epochs": 3}),
     ("small learner + 3 epochs + overlap", {**SMALL_LEARNER, "epochs": 3, "overlap": True}),
 )
-#: Row groups of ``--only`` (``demand`` is never in ``all``: it takes minutes an update).
-GROUPS = ("learners", "vector", "threads", "demand", "all")
+#: Row groups of ``--only`` (``demand`` is never in ``all``: it takes minutes an update;
+#: ``device`` is, first, when the learner is not on the CPU).
+GROUPS = ("learners", "vector", "threads", "device", "demand", "all")
+
+
+#: The first device row: the default learner as it runs on the CPU today.
+CPU_PATH = "small learner on cpu"
+
+
+def device_rows(device: str, with_compile: bool = True) -> list[tuple[str, dict, bool]]:
+    """The learner's device side by side, on the default (small) learner: the CPU path
+    of today (eager update, envs in this process), then on ``device`` the eager update,
+    the static update (:mod:`diacc.learn.static_update`), the static update with the
+    envs in one worker process per core (what ``vector = "auto"`` picks on cuda), and
+    with its loss compiled (CUDA graphs on cuda; only where a compiler or CUDA is
+    present, and not on the CPU, where compiling takes minutes)."""
+    cores = os.cpu_count() or 1
+    on = {**SMALL_LEARNER, "device": device}
+    here = {"vector": "batched"}  # the envs in this process (highway's default)
+    rows = [
+        (CPU_PATH, {**SMALL_LEARNER, "device": "cpu", **here}, False),
+        (f"small learner on {device}: eager update", {**on, **here, "update_path": "eager"}, False),
+        (
+            f"small learner on {device}: static update",
+            {**on, **here, "update_path": "static"},
+            False,
+        ),
+        (
+            f"small learner on {device}: static update + {cores} env workers",
+            {**on, "update_path": "static", "vector": "process"},
+            False,
+        ),
+    ]
+    if with_compile and device.startswith("cuda") and compile_available(device):
+        compiled = {**on, "update_path": "static", "update_compile": True, "vector": "process"}
+        rows.append(
+            (f"small learner on {device}: compiled static update + env workers", compiled, False)
+        )
+    return rows
+
+
 #: The ``demand`` row: the default learner on 3600 veh/h into train-50 (480 s of demand,
 #: 120 s warm-up, 600-step episodes), critic rows for 320 vehicles on the road, 24
 #: minibatches (benchmarks/demand_training_speed.py's setting); 4 envs x 600 steps.
@@ -226,6 +270,8 @@ def configurations(
         return vector_rows
     if only == "demand":
         return [DEMAND_ROW]
+    if only == "device":
+        return device_rows(device, with_compile)
     rows = [(label, options, False) for label, options in LEARNER_ROWS]
     if with_compile and compile_available(device):
         rows.append(
@@ -253,7 +299,8 @@ def configurations(
     ]
     if only == "threads":
         return thread_rows
-    return rows + [vector_rows[0]] + thread_rows
+    first = device_rows(device, with_compile) if device != "cpu" else []
+    return first + rows + [vector_rows[0]] + thread_rows
 
 
 def select_rows(
@@ -366,6 +413,15 @@ def _print(rows, variant, backend, device, updates, rollout_steps, loads) -> Non
                 f"{n_envs} envs: env-steps/s of the default vector env over per-env envs: "
                 f"{train} (train), {rollout} (rollout only)"
             )
+        for label in [r["label"] for r in rows if r["envs"] == n_envs]:
+            if label.startswith("small learner on ") and label != CPU_PATH:
+                speed = _ratio(rows, n_envs, "steps_per_s", label, CPU_PATH)
+                learner_s = _ratio(rows, n_envs, "learner_s", label, CPU_PATH)
+                if speed:
+                    print(
+                        f"{n_envs} envs: {label} over {CPU_PATH}: {speed} env-steps/s, "
+                        f"{learner_s} learner speed"
+                    )
         for learner in ("paper learner", "small learner"):
             for label, _ in LEARNER_ROWS:
                 if label.startswith(learner + " +"):

@@ -38,6 +38,7 @@ from diacc.learn.models.gat import GlobalGraphAttention
 from diacc.learn.models.inputs import TensorDict
 from diacc.learn.models.layers import VALUE_GAIN, embed_present, mlp
 from diacc.learn.models.recurrent import Encoder, RecurrentNet
+from diacc.learn.models.shapes import shapes_from_data
 
 
 def trim_padded_nodes(state: TensorDict) -> TensorDict:
@@ -49,11 +50,12 @@ def trim_padded_nodes(state: TensorDict) -> TensorDict:
     masks them. Their cost is not nothing (the GAT's attention matrix is
     N x N), so they are cut off here; the outputs are the same. Edges into a
     cut slot point at a padded vehicle, which the GAT ignores anyway; they are
-    masked so that no index leaves the shorter node axis. Not under
-    ``torch.compile``, where the data-dependent N' would break the graph.
+    masked so that no index leaves the shorter node axis. Not with static shapes
+    (``torch.compile``, :func:`~diacc.learn.models.shapes.static_shapes`), where the
+    data-dependent N' would break the graph or wait for the device.
     """
     node_mask = state["node_mask"]  # (M, N)
-    if torch.compiler.is_compiling() or node_mask.shape[-1] == 0:
+    if not shapes_from_data() or node_mask.shape[-1] == 0:
         return state
     slots = torch.arange(1, node_mask.shape[-1] + 1, device=node_mask.device)  # (N,)
     n_used = max(int((node_mask * slots).max()), 1)

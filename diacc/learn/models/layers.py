@@ -7,6 +7,8 @@ import math
 import torch
 from torch import Tensor, nn
 
+from diacc.learn.models.shapes import shapes_from_data
+
 #: Orthogonal-init gains of MAPPO: hidden layers, policy logits, value output.
 HIDDEN_GAIN = math.sqrt(2.0)
 POLICY_GAIN = 0.01
@@ -61,10 +63,11 @@ def embed_present(embed: torch.nn.Module, nodes: Tensor, mask: Tensor) -> Tensor
     Padding is common (each CAV's K neighbours are split over an HDV and a CAV
     set of K slots each; the critic pads to ``max_vehicles``), so skipping it
     saves a large share of the embedding cost. Padded rows are exactly zero.
-    Under ``torch.compile`` the boolean indexing (a data-dependent shape) would
-    break the graph, so there :func:`embed_all` computes the same values.
+    Under ``torch.compile`` or :func:`~diacc.learn.models.shapes.static_shapes` the
+    boolean indexing (a data-dependent shape) would break the graph or wait for the
+    device, so there :func:`embed_all` computes the same values.
     """
-    if torch.compiler.is_compiling():
+    if not shapes_from_data():
         return embed_all(embed, nodes, mask)
     present = embed(nodes[mask])  # (P, E)
     out = present.new_zeros(*mask.shape, present.shape[-1])  # (M, K, E)

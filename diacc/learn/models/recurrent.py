@@ -14,6 +14,7 @@ from torch import Tensor, nn
 
 from diacc.learn.models.inputs import TensorDict, merge_leading, require
 from diacc.learn.models.layers import orthogonal_init
+from diacc.learn.models.shapes import shapes_from_data
 
 
 class Encoder(nn.Module):
@@ -129,11 +130,12 @@ def needed_rows(inputs: TensorDict, episode_starts: Tensor) -> Tensor | None:
     start, resets it): rows outside both are skipped, which is exact. Demand
     chunks hold many empty slots; a release chunk is nearly all alive, and then
     (above :data:`SPARSE_ROWS_SHARE`) every row is encoded. None also for inputs
-    without ``alive`` (critics) and under ``torch.compile``.
+    without ``alive`` (critics) and with static shapes (``torch.compile``,
+    :func:`~diacc.learn.models.shapes.static_shapes`).
     """
     alive = inputs.get("alive")
-    # Under torch.compile the data-dependent row count would break the graph.
-    if alive is None or alive.dtype != torch.bool or torch.compiler.is_compiling():
+    # With static shapes the data-dependent row count would break the graph.
+    if alive is None or alive.dtype != torch.bool or not shapes_from_data():
         return None
     needed, carried = alive.clone(), ~episode_starts.bool()  # (T, B) each
     for t in range(alive.shape[0] - 2, -1, -1):  # carried backwards until a reset
