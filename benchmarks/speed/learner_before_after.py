@@ -62,13 +62,11 @@ if what == "update":
     vec.close()
     adv, ret = learner.rollout_gae(roll, next_value, cfg)
     batch = buffer.make_batch(roll, adv, ret, cfg.chunk_len, torch.device("cpu"))
-    import inspect, resource
-    # the slot count: an argument until the update skipped empty slots' sequences
-    n_cavs = (vec.n_cavs,) if "n_cavs" in inspect.signature(learner.ppo_update).parameters else ()
+    import resource
     seconds, faults, system = [], [], []
     for _ in range(repeats + 1):
         r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.thread_time()
-        learner.ppo_update(agent, batch, cfg, *n_cavs)
+        learner.ppo_update(agent, batch, cfg, vec.n_cavs)
         r1 = resource.getrusage(resource.RUSAGE_SELF)
         seconds.append(time.thread_time() - t0)
         faults.append(r1.ru_minflt - r0.ru_minflt)

@@ -48,7 +48,7 @@ vec = make_vector_env(cfg.env, cfg.n_envs, cfg.seed, cfg.vector)
 roll, _, stats = ppo.collect_rollout(agent, vec, cfg, 0, 0, values=False)
 vec.close()
 t0 = time.thread_time()
-ppo.learn(agent, roll, None, cfg, torch.device("cpu"))
+ppo.learn(agent, roll, None, cfg, torch.device("cpu"), vec.n_cavs)
 cpu_s = time.thread_time() - t0
 peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({"cpu_s": cpu_s, "samples": stats.decisions, "peak_mib": peak_mib}))

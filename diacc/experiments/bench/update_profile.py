@@ -162,6 +162,7 @@ def profile(
     envs = make_vector_env(cfg.env, n_envs, cfg.seed, cfg.vector)
     try:
         roll, next_value, _ = ppo.collect_rollout(agent, envs, cfg, 0, global_step=0)
+        n_cavs = envs.n_cavs
     finally:
         envs.close()
     advantages, returns = ppo.rollout_gae(roll, next_value, cfg)
@@ -178,13 +179,13 @@ def profile(
     laps: list[float] = []
     start = time.thread_time()
     with epoch_clock(agent, laps):
-        ppo.ppo_update(agent, batch, cfg)
+        ppo.ppo_update(agent, batch, cfg, n_cavs)
     total = time.thread_time() - start
     timer.detach()
     ops = ""
     if op_table:
         with torch.profiler.profile() as prof:
-            ppo.ppo_update(agent, batch, cfg)
+            ppo.ppo_update(agent, batch, cfg, n_cavs)
         ops = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=op_table)
     return {
         "total_s": total,
