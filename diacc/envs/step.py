@@ -15,7 +15,7 @@ env's view, :meth:`Transition.env`). The layers fill what they know:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -99,9 +99,6 @@ class Transition:
         def row(value):
             return None if value is None else value[e]
 
-        psar = None
-        if self.psar is not None:
-            psar = PSARResult(*(getattr(self.psar, f.name)[e] for f in fields(PSARResult)))
         return Transition(
             actor_obs=self.actor_obs.unbatched(e),
             critic_state=self.critic_state.unbatched(e),
@@ -114,7 +111,7 @@ class Transition:
             truncated=bool(self.truncated[e]),
             crashed=bool(self.crashed[e]),
             state=None if self.state is None else self.state.env(e),
-            psar=psar,
+            psar=None if self.psar is None else self.psar.unbatched(e),
             critical=row(self.critical),
             reward_terms={k: float(v[0]) for k, v in self.logged_terms(np.array([e])).items()},
         )
