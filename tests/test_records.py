@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from diacc.records import Batched, env_events, per_env
+from diacc.records import Batched, env_events, per_env, per_env_items, per_env_record
 
 
 @dataclass
@@ -54,3 +54,36 @@ def test_a_field_without_axes_is_an_error_naming_it():
 
     with pytest.raises(TypeError, match=r"Bare\.x declares no axes"):
         Bare(np.zeros(1)).env(0)
+
+
+@dataclass
+class Outer(Batched):
+    step: Step = per_env_record()
+    kept: Step = per_env_record(keeps_batch=True)
+    extra: Step | None = per_env_record()
+    notes: list = per_env_items()
+
+
+def outer(n_envs: int, first: int = 0) -> Outer:
+    notes = [None if e % 2 else f"env {e}" for e in range(first, first + n_envs)]
+    return Outer(batch(n_envs, first), batch(n_envs, first), None, notes)
+
+
+def test_records_and_lists_are_cut_by_env_like_arrays():
+    joined = Outer.concat([outer(2), outer(3, first=2)])
+    assert joined.n_rows == 5 and joined.step.hits[:, 0].tolist() == [0, 1, 2, 3, 4]
+    assert joined.extra is None and joined.notes == ["env 0", None, "env 2", None, "env 4"]
+    picked = joined.rows(np.array([4, 2]))
+    assert picked.step.reward.tolist() == [4.0, 2.0] and picked.notes == ["env 4", "env 2"]
+    assert picked.kept.hits.tolist() == [[0, 4, 5], [1, 2, 3]]
+    masked = joined.where_rows(np.array([True, True, False, True, True]))
+    assert masked.step.reward.tolist() == [0.0, 1.0, 0.0, 3.0, 4.0] and masked.notes[2] is None
+    view = joined.unbatched(2)
+    assert view.step.reward == 2.0 and view.step.speed.shape == (2,) and view.notes == "env 2"
+    assert view.kept.speed.shape == (1, 2) and view.kept.hits.tolist() == [[0, 2, 3]]
+
+
+def test_concat_refuses_a_record_field_none_in_some_records_only():
+    with_extra = Outer(batch(1), batch(1), batch(1), [None])
+    with pytest.raises(ValueError, match=r"Outer.concat: extra is None in some"):
+        Outer.concat([outer(1), with_extra])
