@@ -86,7 +86,8 @@ def test_batched_api_shapes_and_reward(backend):
         assert critic.nodes.shape == (40, actor.ego_hist.shape[-1])
         out = env.step_arrays(np.zeros(env.n_cavs, np.int64))
         assert np.isfinite(out.reward) and out.alive.shape == (10,) and out.ego.shape == (10,)
-        assert set(out.reward_terms) >= {"global", "completion", "individual", "delay"}
+        logged = env.transition.reward_terms  # of the batch of one the env stepped
+        assert set(logged) >= {"global", "completion", "individual", "delay"}
         # The first step of training: R at tau_init, from the terms the step carries.
         parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
         assert (

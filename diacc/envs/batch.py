@@ -290,6 +290,7 @@ class EnvBatch:
             terminated=terminated,
             truncated=~terminated & (st.steps >= cfg.sim.episode_steps),
             crashed=crashed,
+            team=None,  # the vector envs and the PettingZoo env score it (diacc.envs.step)
             state=traffic,
             psar=decision.psar,
             critical=safety_critical_events(traffic, cfg.events).any,
