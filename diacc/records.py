@@ -19,7 +19,8 @@ used to be written per type:
 
 :meth:`Batched.concat` joins batches (env indices follow on), :meth:`Batched.rows`
 selects envs as a batch of their own, :meth:`Batched.env` is one env as a batch of
-one, :meth:`Batched.where_rows` zeroes the envs not kept (a crashed simulator's),
+one, :meth:`Batched.set_rows` overwrites envs in place (new episodes' rows),
+:meth:`Batched.where_rows` zeroes the envs not kept (a crashed simulator's),
 and :meth:`Batched.unbatched` is one env without its env axis: the PettingZoo
 edge's view, the one place the batch axis goes ((E,) fields become Python
 scalars; a record declared ``keeps_batch`` stays a batch of one there, as the
@@ -194,6 +195,28 @@ class Batched:
     def env(self: Record, e: int) -> Record:
         """Env ``e`` as a batch of one (copies)."""
         return self.rows(np.array([e]))
+
+    def set_rows(self: Record, index: np.ndarray, part: Record) -> None:
+        """Make envs ``index`` (int indices) of this batch those of ``part``, a batch of
+        ``len(index)`` envs, in place (copies): env k of ``part`` becomes env ``index[k]``;
+        their event rows replace the envs' own (e.g. new episodes' first states)."""
+        index = np.asarray(index)
+        for name, kind in _plan(type(self)):
+            value, new = getattr(self, name), getattr(part, name)
+            if value is None:
+                continue
+            if kind == _EVENTS:
+                own = new.copy()
+                own[:, 0] = index[own[:, 0]]
+                value = np.concatenate([value[~np.isin(value[:, 0], index)], own])
+                setattr(self, name, value[np.argsort(value[:, 0], kind="stable")])
+            elif kind == _ITEMS:
+                for k, e in enumerate(index.tolist()):
+                    value[e] = new[k]
+            elif kind in (_RECORD, _BATCH_OF_ONE):
+                value.set_rows(index, new)
+            else:
+                value[index] = new
 
     def where_rows(self: Record, kept: np.ndarray) -> Record:
         """This batch with every field of the envs not ``kept`` (E,) bool set to 0 (None in

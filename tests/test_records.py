@@ -87,3 +87,11 @@ def test_concat_refuses_a_record_field_none_in_some_records_only():
     with_extra = Outer(batch(1), batch(1), batch(1), [None])
     with pytest.raises(ValueError, match=r"Outer.concat: extra is None in some"):
         Outer.concat([outer(1), with_extra])
+
+
+def test_set_rows_writes_envs_in_place_and_replaces_their_events():
+    target, part = outer(4), outer(2, first=10)
+    target.set_rows(np.array([3, 1]), part)
+    assert target.step.reward.tolist() == [0.0, 11.0, 2.0, 10.0]
+    assert target.step.hits.tolist() == [[0, 0, 1], [1, 11, 12], [2, 2, 3], [3, 10, 11]]
+    assert target.notes == ["env 0", None, "env 2", "env 10"] and target.extra is None

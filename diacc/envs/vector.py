@@ -38,7 +38,7 @@ every map, so the trainer sees E environments as before.
 
 from __future__ import annotations
 
-from dataclasses import fields, replace
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
@@ -215,9 +215,8 @@ class VectorEnv:
         if len(restart):
             self._start(g, batch, members, restart)
             new_actor, new_critic = batch.observe(restart)
-            for container, new in ((actor, new_actor), (critic, new_critic)):
-                for f in fields(container):
-                    getattr(container, f.name)[restart] = getattr(new, f.name)
+            actor.set_rows(restart, new_actor)
+            critic.set_rows(restart, new_critic)
         self._critic[g] = critic
         kept = ~crashed
         # nothing of a crashed simulator's step happened: no reward nor PSAR outcome there
