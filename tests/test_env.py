@@ -99,6 +99,23 @@ def test_batched_api_shapes_and_reward(backend):
         env.close()
 
 
+def test_the_step_is_a_batch_of_one_unbatched_at_the_pettingzoo_edge():
+    env = BottleneckEnv(EnvConfig())
+    try:
+        env.reset_arrays(seed=3)
+        out = env.step_arrays(np.zeros(env.n_cavs, np.int64))
+        batch = env.transition  # the batch of one the env stepped, scored
+        assert batch.terminated.shape == (1,) and batch.reward.shape == (1,)
+        assert isinstance(out.terminated, bool) and out.reward == batch.reward[0]
+        np.testing.assert_array_equal(out.actor_obs.self_state, batch.actor_obs.self_state[0])
+        assert out.state.x_m.shape == (1, env.batch.state.traffic.n_vehicles)  # kept a batch
+        unscored = env.batch.step(np.zeros((1, env.n_cavs), np.int64))
+        with pytest.raises(ValueError, match="no team reward yet"):
+            _ = unscored.reward
+    finally:
+        env.close()
+
+
 def test_same_seed_same_episode():
     env = BottleneckEnv(EnvConfig())
     rng = np.random.default_rng(0)
