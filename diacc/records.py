@@ -16,6 +16,8 @@ used to be written per type:
 * :func:`per_env_items`: a list of one Python object per env (None for none):
   what does not fit an array, such as the last observations of the episodes
   that ended in a step.
+* :func:`shared`: one value for the whole batch (a model constant), which
+  every row operation keeps as it is.
 
 :meth:`Batched.concat` joins batches (env indices follow on), :meth:`Batched.rows`
 selects envs as a batch of their own, :meth:`Batched.env` is one env as a batch of
@@ -58,6 +60,8 @@ def env_events(columns: str) -> Any:
 RECORD = "record"
 #: The declared axes of a list field (:func:`per_env_items`).
 ITEMS = "items"
+#: The declared axes of a field of the whole batch (:func:`shared`).
+SHARED = "shared"
 
 
 def per_env_record(keeps_batch: bool = False) -> Any:
@@ -74,8 +78,19 @@ def per_env_items() -> Any:
     return dataclasses.field(metadata={_AXES_KEY: ITEMS})
 
 
+def shared() -> Any:
+    """A required field holding one value for the whole batch (not per env)."""
+    return dataclasses.field(metadata={_AXES_KEY: SHARED})
+
+
+def declared_axes(cls: type) -> tuple[tuple[str, str | None], ...]:
+    """``(name, axes)`` of each field of ``cls``: the axes given to :func:`per_env`, or
+    :data:`EVENTS`, :data:`RECORD`, :data:`ITEMS`, :data:`SHARED` (None: declared nowhere)."""
+    return tuple((f.name, f.metadata.get(_AXES_KEY)) for f in dataclasses.fields(cls))
+
+
 # Field kinds of a plan, each a way to cut a field by env.
-_ARRAY, _SCALAR, _EVENTS, _RECORD, _BATCH_OF_ONE, _ITEMS = range(6)
+_ARRAY, _SCALAR, _EVENTS, _RECORD, _BATCH_OF_ONE, _ITEMS, _SHARED = range(7)
 _Plan = tuple[tuple[str, int], ...]
 #: Record class -> its :func:`_plan` (read on every step, so built once per class).
 _PLANS: dict[type, _Plan] = {}
@@ -88,6 +103,8 @@ def _kind(f: dataclasses.Field) -> int:
         return _EVENTS
     if axes == ITEMS:
         return _ITEMS
+    if axes == SHARED:
+        return _SHARED
     if axes == RECORD:
         return _BATCH_OF_ONE if f.metadata["keeps_batch"] else _RECORD
     return _SCALAR if axes.replace(" ", "") == "E" else _ARRAY
@@ -102,7 +119,7 @@ def _plan(cls: type) -> _Plan:
         if _AXES_KEY not in f.metadata:
             raise TypeError(
                 f"{cls.__name__}.{f.name} declares no axes: declare it with per_env(), "
-                "env_events(), per_env_record() or per_env_items() (diacc.records)"
+                "env_events(), per_env_record(), per_env_items() or shared() (diacc.records)"
             )
         plan.append((f.name, _kind(f)))
     _PLANS[cls] = tuple(plan)
@@ -123,7 +140,8 @@ class Batched:
 
     Per-env fields are cut on their leading axis, whatever their other axes;
     event rows are kept, dropped and renumbered by their env column; records
-    are cut by their own declarations, and a record field that is None stays None.
+    are cut by their own declarations, and a record field that is None stays None;
+    a shared field is kept (the first record's, when joining).
     """
 
     __slots__ = ()
@@ -141,7 +159,9 @@ class Batched:
                 values = [v.copy() for v in values]
                 for v, offset in zip(values, offsets, strict=True):
                     v[:, 0] += offset
-            if kind == _ITEMS:
+            if kind == _SHARED:
+                parts[name] = values[0]
+            elif kind == _ITEMS:
                 parts[name] = [item for v in values for item in v]
             elif values[0] is None:
                 _check_all_none(cls, name, values)
@@ -160,7 +180,7 @@ class Batched:
             value = getattr(self, name)
             if kind in (_RECORD, _BATCH_OF_ONE) and value is not None:
                 return value.n_rows
-            if kind != _EVENTS and value is not None:
+            if kind not in (_EVENTS, _SHARED) and value is not None:
                 return len(value)
         raise ValueError(f"{type(self).__name__} holds no per-env field to count its envs by")
 
@@ -174,7 +194,7 @@ class Batched:
         parts: dict[str, Any] = {}
         for name, kind in _plan(type(self)):
             value = getattr(self, name)
-            if value is None:
+            if value is None or kind == _SHARED:
                 pass
             elif kind == _EVENTS:
                 if renumber is None:
@@ -203,7 +223,7 @@ class Batched:
         index = np.asarray(index)
         for name, kind in _plan(type(self)):
             value, new = getattr(self, name), getattr(part, name)
-            if value is None:
+            if value is None or kind == _SHARED:
                 continue
             if kind == _EVENTS:
                 own = new.copy()
@@ -225,7 +245,7 @@ class Batched:
         parts: dict[str, Any] = {}
         for name, kind in _plan(type(self)):
             value = getattr(self, name)
-            if value is None:
+            if value is None or kind == _SHARED:
                 pass
             elif kind == _EVENTS:
                 value = value[kept[value[:, 0]]]
@@ -248,7 +268,7 @@ class Batched:
         parts: dict[str, Any] = {}
         for name, kind in _plan(type(self)):
             value = getattr(self, name)
-            if value is None:
+            if value is None or kind == _SHARED:
                 pass
             elif kind == _EVENTS:
                 value = value[value[:, 0] == e, 1:]

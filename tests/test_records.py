@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from diacc.records import Batched, env_events, per_env, per_env_items, per_env_record
+from diacc.records import Batched, env_events, per_env, per_env_items, per_env_record, shared
 
 
 @dataclass
@@ -95,3 +95,16 @@ def test_set_rows_writes_envs_in_place_and_replaces_their_events():
     assert target.step.reward.tolist() == [0.0, 11.0, 2.0, 10.0]
     assert target.step.hits.tolist() == [[0, 0, 1], [1, 11, 12], [2, 2, 3], [3, 10, 11]]
     assert target.notes == ["env 0", None, "env 2", "env 10"] and target.extra is None
+
+
+def test_a_shared_field_is_kept_by_every_row_operation():
+    @dataclass
+    class Model(Batched):
+        gain: np.ndarray = per_env("E, V")
+        exponent: float = shared()
+
+    model = Model(np.arange(6.0).reshape(3, 2), 4.0)
+    assert model.n_rows == 3 and Model.concat([model, model]).exponent == 4.0
+    assert model.env(2).exponent == 4.0 and model.where_rows(np.ones(3, bool)).exponent == 4.0
+    model.set_rows(np.array([0]), Model(np.full((1, 2), 9.0), 1.0))
+    assert model.gain[0].tolist() == [9.0, 9.0] and model.exponent == 4.0
