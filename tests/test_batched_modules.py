@@ -121,7 +121,7 @@ def test_observations_of_a_batch(episode):
     fresh = ObservationBuilder(road, config.obs, config.sim.episode_steps)
     fresh.reset(history[0][0])
     state = TrafficState.concat(history[-1])
-    state.set_env(1, history[0][0])
+    state.set_rows(np.array([1]), history[0][0])
     batched.reset_rows(np.array([1]), state)
     actor, critic = batched.actor(cav_index, memory, last), batched.critic()
     assert_rows_equal(actor, critic, range(N_ENVS), [builders[0], fresh, builders[2]])

@@ -86,7 +86,8 @@ def test_batched_api_shapes_and_reward(backend):
         assert critic.nodes.shape == (40, actor.ego_hist.shape[-1])
         out = env.step_arrays(np.zeros(env.n_cavs, np.int64))
         assert np.isfinite(out.reward) and out.alive.shape == (10,) and out.ego.shape == (10,)
-        assert set(out.reward_terms) >= {"global", "completion", "individual", "delay"}
+        logged = env.transition.reward_terms  # of the batch of one the env stepped
+        assert set(logged) >= {"global", "completion", "individual", "delay"}
         # The first step of training: R at tau_init, from the terms the step carries.
         parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)
         assert (
@@ -94,6 +95,23 @@ def test_batched_api_shapes_and_reward(backend):
         )
         assert env.tau == env.config.reward.tau_init  # the env counts nothing
         np.testing.assert_array_equal(out.actor_obs.action_memory[:, 0], 0)
+    finally:
+        env.close()
+
+
+def test_the_step_is_a_batch_of_one_unbatched_at_the_pettingzoo_edge():
+    env = BottleneckEnv(EnvConfig())
+    try:
+        env.reset_arrays(seed=3)
+        out = env.step_arrays(np.zeros(env.n_cavs, np.int64))
+        batch = env.transition  # the batch of one the env stepped, scored
+        assert batch.terminated.shape == (1,) and batch.reward.shape == (1,)
+        assert isinstance(out.terminated, bool) and out.reward == batch.reward[0]
+        np.testing.assert_array_equal(out.actor_obs.self_state, batch.actor_obs.self_state[0])
+        assert out.state.x_m.shape == (1, env.batch.state.traffic.n_vehicles)  # kept a batch
+        unscored = env.batch.step(np.zeros((1, env.n_cavs), np.int64))
+        with pytest.raises(ValueError, match="no team reward yet"):
+            _ = unscored.reward
     finally:
         env.close()
 

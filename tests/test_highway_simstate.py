@@ -99,7 +99,7 @@ def test_env_rows_read_and_write_one_env():
     assert row.x_m.shape == (1, N_VEHICLES) and row.contact.shape == (1, N_VEHICLES, N_VEHICLES)
     assert row.time_s.shape == (1,)
     before = batch.state.copy()
-    batch.state.set_env(0, row)
+    batch.state.set_rows(np.array([0]), row)
     for name, value in arrays(batch.state).items():
         assert np.array_equal(value[0], value[1]), name
         assert np.array_equal(value[1], arrays(before)[name][1]), name

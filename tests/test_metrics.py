@@ -190,10 +190,7 @@ def test_a_batch_recorder_equals_one_recorder_per_env_with_episodes_out_of_step(
         out = batch.step(rng.integers(0, 5, (3, batch.n_cavs)))
         together.record(out.state, psar=out.psar, critical=out.critical)
         for e in range(3):
-            alone[e].record(
-                out.state.env(e),
-                psar=PSARResult(*(v[e : e + 1] for v in vars(out.psar).values())),
-            )
+            alone[e].record(out.state.env(e), psar=out.psar.env(e))
         if t == 12:  # env 1 starts its next episode; the others go on
             finished.append((together.summary(1), alone[1].summary()))
             batch.reset(np.array([1]), [21])

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from diacc.records import Batched, env_events, per_env
+from diacc.records import Batched, env_events, per_env, per_env_items, per_env_record, shared
 
 
 @dataclass
@@ -54,3 +54,57 @@ def test_a_field_without_axes_is_an_error_naming_it():
 
     with pytest.raises(TypeError, match=r"Bare\.x declares no axes"):
         Bare(np.zeros(1)).env(0)
+
+
+@dataclass
+class Outer(Batched):
+    step: Step = per_env_record()
+    kept: Step = per_env_record(keeps_batch=True)
+    extra: Step | None = per_env_record()
+    notes: list = per_env_items()
+
+
+def outer(n_envs: int, first: int = 0) -> Outer:
+    notes = [None if e % 2 else f"env {e}" for e in range(first, first + n_envs)]
+    return Outer(batch(n_envs, first), batch(n_envs, first), None, notes)
+
+
+def test_records_and_lists_are_cut_by_env_like_arrays():
+    joined = Outer.concat([outer(2), outer(3, first=2)])
+    assert joined.n_rows == 5 and joined.step.hits[:, 0].tolist() == [0, 1, 2, 3, 4]
+    assert joined.extra is None and joined.notes == ["env 0", None, "env 2", None, "env 4"]
+    picked = joined.rows(np.array([4, 2]))
+    assert picked.step.reward.tolist() == [4.0, 2.0] and picked.notes == ["env 4", "env 2"]
+    assert picked.kept.hits.tolist() == [[0, 4, 5], [1, 2, 3]]
+    masked = joined.where_rows(np.array([True, True, False, True, True]))
+    assert masked.step.reward.tolist() == [0.0, 1.0, 0.0, 3.0, 4.0] and masked.notes[2] is None
+    view = joined.unbatched(2)
+    assert view.step.reward == 2.0 and view.step.speed.shape == (2,) and view.notes == "env 2"
+    assert view.kept.speed.shape == (1, 2) and view.kept.hits.tolist() == [[0, 2, 3]]
+
+
+def test_concat_refuses_a_record_field_none_in_some_records_only():
+    with_extra = Outer(batch(1), batch(1), batch(1), [None])
+    with pytest.raises(ValueError, match=r"Outer.concat: extra is None in some"):
+        Outer.concat([outer(1), with_extra])
+
+
+def test_set_rows_writes_envs_in_place_and_replaces_their_events():
+    target, part = outer(4), outer(2, first=10)
+    target.set_rows(np.array([3, 1]), part)
+    assert target.step.reward.tolist() == [0.0, 11.0, 2.0, 10.0]
+    assert target.step.hits.tolist() == [[0, 0, 1], [1, 11, 12], [2, 2, 3], [3, 10, 11]]
+    assert target.notes == ["env 0", None, "env 2", "env 10"] and target.extra is None
+
+
+def test_a_shared_field_is_kept_by_every_row_operation():
+    @dataclass
+    class Model(Batched):
+        gain: np.ndarray = per_env("E, V")
+        exponent: float = shared()
+
+    model = Model(np.arange(6.0).reshape(3, 2), 4.0)
+    assert model.n_rows == 3 and Model.concat([model, model]).exponent == 4.0
+    assert model.env(2).exponent == 4.0 and model.where_rows(np.ones(3, bool)).exponent == 4.0
+    model.set_rows(np.array([0]), Model(np.full((1, 2), 9.0), 1.0))
+    assert model.gain[0].tolist() == [9.0, 9.0] and model.exponent == 4.0

@@ -12,11 +12,11 @@ import pytest
 from diacc.config import SimConfig, resolve_road
 from diacc.envs.env import BottleneckEnv, EnvConfig
 from diacc.envs.observation import ActorObs, CriticState
+from diacc.envs.step import VectorStep
 from diacc.envs.vector import (
     BatchedVectorEnv,
     SyncVectorEnv,
     auto_vector_mode,
-    concat_steps,
     episode_seed,
     make_vector_env,
     maps_of_envs,
@@ -108,7 +108,8 @@ def test_batched_simulator_matches_envs_stepped_alone(map_name, n_vehicles, use_
         ended = collided = 0
         for t in range(steps):
             actions = rng.integers(0, 5, (n_envs, batched.n_cavs))
-            a = concat_steps([env.step(actions[e : e + 1]) for e, env in enumerate(alone)])
+            a = VectorStep.concat([env.step(actions[e : e + 1]) for e, env in enumerate(alone)])
+            a = dataclasses.replace(a, team=None)
             # The team rewards: tests/test_reward.py (here each env alone counts its own steps).
             for vector in (batched, sync):
                 assert_same(a, dataclasses.replace(vector.step(actions), team=None), f"step {t}")

@@ -48,7 +48,7 @@ def psar_action_mask(
     cav_index = np.asarray(cav_index)
     n_actions = len(ACTION_NAMES)
     # One PSAR call for every candidate: the batch tiled candidate-major to (5 E, V).
-    tiled = state.tile(n_actions)  # (5 E, V)
+    tiled = TrafficState.concat([state] * n_actions)  # (5 E, V): env e of copy j is j E + e
     slots = np.tile(cav_index, (n_actions, 1))  # (5 E, C)
     candidate = np.repeat(np.arange(n_actions), state.n_envs)[:, None]  # (5 E, 1)
     proposed = np.broadcast_to(candidate, slots.shape)  # (5 E, C)

@@ -246,7 +246,7 @@ class EnvBatch:
                         f"env {e}'s new episode has {first.n_vehicles} vehicles, the batch "
                         f"holds {st.traffic.n_vehicles}"
                     )
-                st.traffic.set_env(int(e), first)
+            st.traffic.set_rows(rows, TrafficState.concat(firsts))
             st.steps[rows] = 0
             st.cav_ordinal[rows] = np.cumsum(st.traffic.is_cav[rows], axis=-1) - 1
             st.slot_vehicle[rows] = -1
@@ -290,6 +290,7 @@ class EnvBatch:
             terminated=terminated,
             truncated=~terminated & (st.steps >= cfg.sim.episode_steps),
             crashed=crashed,
+            team=None,  # the vector envs and the PettingZoo env score it (diacc.envs.step)
             state=traffic,
             psar=decision.psar,
             critical=safety_critical_events(traffic, cfg.events).any,

@@ -70,9 +70,9 @@ from diacc.envs.api_checks import EnvCallError, check_action_array, check_action
 from diacc.envs.batch import EnvBatch, Simulators, decide
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState
-from diacc.envs.reward import RewardError, team_reward, temperature
+from diacc.envs.reward import RewardError, temperature
 from diacc.envs.spaces import agent_observation, check_format, observation_space, state_space
-from diacc.envs.step import Transition
+from diacc.envs.step import Transition, score
 from diacc.errors import DiaccError
 from diacc.sim.backends.base import Backend, make_backend
 from diacc.sim.maps import Map
@@ -199,10 +199,8 @@ class BottleneckEnv(ParallelEnv):
         out = self.batch.step(check_action_array(actions, self.n_cavs)[None])
         if out.crashed[0]:
             raise self.batch.sims.errors[0]
-        self.transition = out
-        result = out.env(0)
-        parts = (out.ego, out.alive, out.global_reward, out.completion, out.delay)  # (1, ...)
-        result.team = team_reward(*parts, self.tau, self.config.reward).unbatched(0)
+        self.transition = score(out, self.tau, self.config.reward)
+        result = self.transition.unbatched(0)  # the PettingZoo edge: the env axis goes here
         self.state_ = result.state
         self._over = result.terminated or result.truncated
         # Both APIs keep ``agents`` current: a policy on the array API that reads

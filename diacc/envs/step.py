@@ -1,21 +1,26 @@
-"""What a step returns (:class:`Transition`), in every layer, and how steps of groups join.
+"""What a step returns, in every layer: the batch's step (:class:`Transition`) and the
+vector env's (:class:`VectorStep`), both :class:`~diacc.records.Batched` records.
 
-One type for the step of E envs (:meth:`diacc.envs.batch.EnvBatch.step`), the
-step of a vector env after its automatic resets (:mod:`diacc.envs.vector`, in
-this process or in worker processes: :mod:`diacc.envs.vector_process`) and the
-PettingZoo env's step (:meth:`diacc.envs.env.BottleneckEnv.step_arrays`, one
-env's view, :meth:`Transition.env`). The layers fill what they know:
+- :class:`Transition`: the step of E envs (:meth:`diacc.envs.batch.EnvBatch.step`):
+  the observations of the state reached, the reward's terms, the state, PSAR's
+  full result and the safety events. The PettingZoo env steps a batch of one and
+  hands out its one-env view (:meth:`~diacc.records.Batched.unbatched`, in
+  :meth:`diacc.envs.env.BottleneckEnv.step_arrays`): the one place the env axis goes.
+- :class:`VectorStep`: the step of a vector env after its automatic resets
+  (:mod:`diacc.envs.vector`, in this process or in worker processes:
+  :mod:`diacc.envs.vector_process`): no state (its ended envs' rows already hold
+  their next episode's first observations), but the last observations and the
+  metrics of the episodes that ended. Groups of envs join with ``concat``.
 
-- the batch's step: the state reached, PSAR's full result and the safety events;
-- a vector step: the episodes that ended and their last observations, the
-  logged reward parts and the restarts, and no state (its ended envs' rows
-  already hold their next episode's first observations);
-- a scored step (:func:`score`, ``step_arrays``): the team reward ``team``.
+Both carry the team reward ``team`` once scored (:func:`score`): the PettingZoo
+env and the vector envs score at their temperature; a worker's step is scored by
+its parent.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, replace
+from typing import TypeVar
 
 import numpy as np
 
@@ -23,42 +28,29 @@ from diacc.config import RewardConfig
 from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.psar import PSARResult
 from diacc.envs.reward import RewardTerms, TeamReward, team_reward
-from diacc.records import where_rows
+from diacc.records import Batched, per_env, per_env_items, per_env_record
 from diacc.sim.state import TrafficState
 
 
 @dataclass
-class Transition:
-    """One step of E envs (C = agent slots); in one env's view (:meth:`env`) the env
-    axis is gone ((C,) arrays, bools and floats)."""
+class Step(Batched):
+    """What every step of E envs reports (C = agent slots): :class:`Transition` and
+    :class:`VectorStep` add their layer's parts."""
 
-    actor_obs: ActorObs  # (E, C, ...) observations of the state reached (or of a new episode)
-    critic_state: CriticState  # (E, ...)
-    terms: RewardTerms  # (E, C) and (E,): the reward's parts that need no temperature, and
+    actor_obs: ActorObs = per_env_record()  # (E, C, ...) of the state reached (or a new episode)
+    critic_state: CriticState = per_env_record()  # (E, ...)
+    terms: RewardTerms = per_env_record()  # the reward's parts that need no temperature, and
     # ``terms.alive`` (E, C): CAV scored (on the road, or removed by a crash in the step)
-    refined_action: np.ndarray  # (E, C) int64 action executed
-    psar_rule: np.ndarray  # (E, C) int8 last PSAR rule that took effect (0 none)
-    psar_rule_mask: np.ndarray  # (E, C) int8 bitmask of the rules that took effect
-    slot_start: np.ndarray  # (E, C) bool a new CAV took the slot; its next action starts afresh
-    terminated: np.ndarray  # (E,) bool a collision, or every vehicle gone
-    truncated: np.ndarray  # (E,) bool episode_steps reached (or the simulator crashed: vector)
-    crashed: np.ndarray  # (E,) bool the simulator failed: nothing of the row is valid (a
-    # vector env restarted it and reports no reward for it)
-    # ---- the batch's step (None in a vector step)
-    state: TrafficState | None = None  # (E, V) the state reached
-    psar: PSARResult | None = None  # full PSAR result, (E, C) fields (None when PSAR is off)
-    critical: np.ndarray | None = None  # (E, V) bool safety-critical events (p(SCE))
-    # ---- a vector step
-    final_critic_state: list[CriticState | None] = field(default_factory=list)  # (E,)
-    final_actor_obs: list[ActorObs | None] = field(default_factory=list)  # (E,) (None after
-    # a simulator crash)
-    episodes: dict[int, dict] = field(default_factory=dict)  # env -> metrics of the episode
-    # that ended there this step
-    reward_terms: dict = field(default_factory=dict)  # logged parts of the reward: (E',) over
-    # the envs whose step happened (vector), floats (one env's view)
-    restarts: int = 0  # simulators restarted after a crash
-    # ---- a scored step
-    team: TeamReward | None = None  # R (E,) and its softmin parts (:func:`score`)
+    refined_action: np.ndarray = per_env("E, C")  # int64 action executed
+    psar_rule: np.ndarray = per_env("E, C")  # int8 last PSAR rule that took effect (0 none)
+    psar_rule_mask: np.ndarray = per_env("E, C")  # int8 bitmask of the rules that took effect
+    slot_start: np.ndarray = per_env("E, C")  # bool a new CAV took the slot: acts afresh
+    terminated: np.ndarray = per_env("E")  # bool a collision, or every vehicle gone
+    truncated: np.ndarray = per_env("E")  # bool episode_steps reached (or a crash: vector)
+    crashed: np.ndarray = per_env("E")  # bool the simulator failed: nothing of the row is
+    # valid (a vector env restarted it and reports no reward for it)
+    team: TeamReward | None = per_env_record()  # R (E,) and its softmin parts; None until
+    # :func:`score`
 
     # What team_reward aggregates, at any temperature:
     @property
@@ -88,36 +80,18 @@ class Transition:
         return self.terms.delay
 
     @property
-    def reward(self):
-        """(E,) the team reward R (``team.total``; a float in one env's view; NaN before
-        the step is scored)."""
-        return float("nan") if self.team is None else self.team.total
+    def reward(self) -> np.ndarray:
+        """(E,) the team reward R (``team.total``; in one env's view a float, as every
+        (E,) field there). An error before the step is scored (:func:`score`)."""
+        if self.team is None:
+            raise ValueError("this step has no team reward yet: score() it")
+        return self.team.total
 
-    def env(self, e: int) -> Transition:
-        """Env ``e``'s view of a batch's step (the PettingZoo env's)."""
-
-        def row(value):
-            return None if value is None else value[e]
-
-        psar = None
-        if self.psar is not None:
-            psar = PSARResult(*(getattr(self.psar, f.name)[e] for f in fields(PSARResult)))
-        return Transition(
-            actor_obs=self.actor_obs.unbatched(e),
-            critic_state=self.critic_state.unbatched(e),
-            terms=self.terms.unbatched(e),
-            refined_action=self.refined_action[e],
-            psar_rule=self.psar_rule[e],
-            psar_rule_mask=self.psar_rule_mask[e],
-            slot_start=self.slot_start[e],
-            terminated=bool(self.terminated[e]),
-            truncated=bool(self.truncated[e]),
-            crashed=bool(self.crashed[e]),
-            state=None if self.state is None else self.state.env(e),
-            psar=psar,
-            critical=row(self.critical),
-            reward_terms={k: float(v[0]) for k, v in self.logged_terms(np.array([e])).items()},
-        )
+    @property
+    def reward_terms(self) -> dict[str, np.ndarray]:
+        """Logged parts of the reward, (E',) each over the envs whose step happened (not
+        crashed; {} for none)."""
+        return self.logged_terms(np.flatnonzero(~self.crashed))
 
     def logged_terms(self, rows: np.ndarray) -> dict[str, np.ndarray]:
         """Envs ``rows``' reward parts for the logs, (R,) each ({} for no rows; the
@@ -133,6 +107,40 @@ class Transition:
             "warning": _alive_means(terms.warning[rows], alive),
             "delay": terms.delay[rows].astype(np.float64),
         }
+
+
+@dataclass
+class Transition(Step):
+    """The batch's step: what :meth:`~diacc.envs.batch.EnvBatch.step` returns, and (one
+    env's view, :meth:`~diacc.records.Batched.unbatched`) the PettingZoo env's."""
+
+    state: TrafficState = per_env_record(keeps_batch=True)  # (E, V) the state reached (a
+    # batch of one in one env's view: users index its row 0)
+    psar: PSARResult | None = per_env_record()  # (E, C) fields (None when PSAR is off)
+    critical: np.ndarray = per_env("E, V")  # bool safety-critical events (p(SCE))
+
+
+@dataclass
+class VectorStep(Step):
+    """A vector env's step, after its automatic resets: the rows of ended episodes hold
+    their next episode's first observations; their last ones are kept aside."""
+
+    final_critic_state: list[CriticState | None] = per_env_items()  # one env's view of the
+    # critic state an episode ended in (or a crashed simulator last reached), else None
+    final_actor_obs: list[ActorObs | None] = per_env_items()  # one env's view of the
+    # observations an episode ended in (None after a simulator crash), else None
+    episode_metrics: list[dict | None] = per_env_items()  # metrics of the episode that
+    # ended in the env this step, else None
+
+    @property
+    def episodes(self) -> dict[int, dict]:
+        """Env -> metrics of the episode that ended there this step."""
+        return {e: m for e, m in enumerate(self.episode_metrics) if m is not None}
+
+    @property
+    def restarts(self) -> int:
+        """Simulators restarted after a crash in this step."""
+        return int(np.count_nonzero(self.crashed))
 
 
 def _alive_means(values: np.ndarray, alive: np.ndarray) -> np.ndarray:
@@ -153,71 +161,27 @@ def _alive_means(values: np.ndarray, alive: np.ndarray) -> np.ndarray:
     return out
 
 
-def score(out: Transition, tau: float, cfg: RewardConfig) -> Transition:
+Scored = TypeVar("Scored", bound=Step)
+
+
+def score(out: Scored, tau: float, cfg: RewardConfig) -> Scored:
     """``out`` with its team reward at softmin temperature ``tau`` (the envs' own).
 
     A crashed env's terms are 0 and no CAV is on the road, so its R is 0.
     """
-    out.team = team_reward(
-        out.ego, out.alive, out.global_reward, out.completion, out.delay, tau, cfg
-    )
-    return out
+    team = team_reward(out.ego, out.alive, out.global_reward, out.completion, out.delay, tau, cfg)
+    return replace(out, team=team)
 
 
-def kept_rows(out: Transition, kept: np.ndarray) -> Transition:
-    """``out`` with the reward terms and PSAR outcome of the envs not ``kept`` (E,) set to 0
-    (their simulator crashed: nothing of the step happened); ``out`` itself if all are kept."""
-    if kept.all():
-        return out
-    return replace(
-        out,
-        terms=out.terms.where_rows(kept),
-        refined_action=where_rows(out.refined_action, kept),
-        psar_rule=where_rows(out.psar_rule, kept),
-        psar_rule_mask=where_rows(out.psar_rule_mask, kept),
-    )
-
-
-def concat_steps(parts: list[Transition]) -> Transition:
-    """Vector steps of groups of envs as one, in group order (env indices follow on)."""
-    if len(parts) == 1:
-        return parts[0]
-    offsets = np.cumsum([0] + [len(p.terminated) for p in parts])
-    terms = [p.reward_terms for p in parts if p.reward_terms]
-    return Transition(
-        actor_obs=ActorObs.concat([p.actor_obs for p in parts]),
-        critic_state=CriticState.concat([p.critic_state for p in parts]),
-        terms=RewardTerms.concat([p.terms for p in parts]),
-        **{name: np.concatenate([getattr(p, name) for p in parts]) for name in _ARRAY_FIELDS},
-        final_critic_state=[c for p in parts for c in p.final_critic_state],
-        final_actor_obs=[a for p in parts for a in p.final_actor_obs],
-        episodes={
-            int(o) + e: m
-            for p, o in zip(parts, offsets, strict=False)
-            for e, m in p.episodes.items()
-        },
-        reward_terms={
-            key: np.concatenate([t[key] for t in terms]) for key in (terms[0] if terms else {})
-        },
-        restarts=sum(p.restarts for p in parts),
-    )
-
-
-#: Transition's fields that are plain (E, ...) arrays in a vector step.
-_ARRAY_FIELDS = (
-    "refined_action",
-    "psar_rule",
-    "psar_rule_mask",
-    "slot_start",
-    "terminated",
-    "truncated",
-    "crashed",
-)
+def joined(parts: list[VectorStep]) -> VectorStep:
+    """Vector steps of groups of envs as one, in group order (env indices follow on; one
+    group's step as it is)."""
+    return parts[0] if len(parts) == 1 else VectorStep.concat(parts)
 
 
 def cut_steps(
     actor: ActorObs, critic: CriticState, finals: list[CriticState | None], n_cavs: int
-) -> Transition:
+) -> VectorStep:
     """The vector step reported for envs whose simulator crashed: episode cut, no reward,
     fresh start.
 
@@ -229,8 +193,8 @@ def cut_steps(
     teach the critic that a crash is worth 0).
     """
     n = len(finals)
-    per_cav, per_env = np.zeros((n, n_cavs)), np.zeros(n)
-    return Transition(
+    per_cav, one_per_env = np.zeros((n, n_cavs)), np.zeros(n)
+    return VectorStep(
         actor_obs=actor,
         critic_state=critic,
         terms=RewardTerms(
@@ -240,10 +204,10 @@ def cut_steps(
             time_penalty=per_cav,
             ego=per_cav,
             alive=np.zeros((n, n_cavs), bool),
-            global_reward=per_env,
-            completion=per_env,
+            global_reward=one_per_env,
+            completion=one_per_env,
             trip_end=per_cav,
-            delay=per_env,
+            delay=one_per_env,
         ),
         refined_action=np.zeros((n, n_cavs), np.int64),
         psar_rule=np.zeros((n, n_cavs), np.int8),
@@ -252,7 +216,8 @@ def cut_steps(
         terminated=np.zeros(n, bool),
         truncated=np.ones(n, bool),
         crashed=np.ones(n, bool),
+        team=None,
         final_critic_state=list(finals),
         final_actor_obs=[None] * n,
-        restarts=n,
+        episode_metrics=[None] * n,
     )

@@ -5,7 +5,7 @@ Every flavour adapts the one step function of :mod:`diacc.envs.batch`
 needs around it (:class:`VectorEnv`): automatic reset with per-episode seeds
 derived from the run seed, the final observations of each finished episode
 (to bootstrap truncated episodes), episode metrics, and recovery from a
-crashed simulator. A step reports the team reward R (``Transition.team``) at
+crashed simulator. A step reports the team reward R (``VectorStep.team``) at
 the softmin temperature the envs are given (``tau``; the trainer sets it
 before each rollout from the schedule, :func:`~diacc.envs.reward.temperature`),
 beside the terms R is made of. What a learner uses of them is
@@ -41,7 +41,7 @@ every map, so the trainer sees E environments as before.
 from __future__ import annotations
 
 import os
-from dataclasses import fields, replace
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
@@ -50,7 +50,7 @@ from diacc.config import EnvConfig, resolve_road
 from diacc.envs.batch import EnvBatch, Simulators
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.envs.observation import ActorObs, CriticState
-from diacc.envs.step import Transition, concat_steps, kept_rows, score
+from diacc.envs.step import VectorStep, joined, score
 from diacc.envs.vector_process import ProcessVectorEnv
 from diacc.sim.backends.base import backend_class, make_backend
 
@@ -70,7 +70,7 @@ class TrainingEnvs(Protocol):
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]: ...
 
-    def step(self, actions: np.ndarray) -> Transition: ...  # actions (E, C)
+    def step(self, actions: np.ndarray) -> VectorStep: ...  # actions (E, C)
 
     def close(self) -> None: ...
 
@@ -102,7 +102,7 @@ def episode_seed(run_seed: int, env_index: int, episode: int) -> int:
 class VectorEnv:
     """E environments: one :class:`~diacc.envs.batch.EnvBatch` per map, with automatic
     reset, per-episode seeds (:func:`episode_seed`), episode metrics and recovery from
-    a crashed simulator (the episode is cut: :func:`cut_steps`).
+    a crashed simulator (the episode is cut: :func:`~diacc.envs.step.cut_steps`).
 
     :attr:`batched`: each map's envs are rows of one batched simulator (``highway``);
     otherwise every env has its own simulator, stepped one after another. Either
@@ -180,27 +180,27 @@ class VectorEnv:
         self.recorders[g].start(rows)
         self.recorders[g].record(batch.state.traffic, rows=restarted)
 
-    def step(self, actions: np.ndarray) -> Transition:  # actions (E, C)
+    def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
         return score(self.step_terms(actions), self.tau, self.config.reward)
 
-    def step_terms(self, actions: np.ndarray) -> Transition:
+    def step_terms(self, actions: np.ndarray) -> VectorStep:
         """:meth:`step` without the team reward (a worker's part: its parent scores)."""
         parts, start = [], 0
         for g, (batch, members) in enumerate(self.groups):
             parts.append(self._step_group(g, batch, members, actions[start : start + len(members)]))
             start += len(members)
-        return concat_steps(parts)
+        return joined(parts)
 
     def _step_group(
         self, g: int, batch: EnvBatch, members: np.ndarray, actions: np.ndarray
-    ) -> Transition:
+    ) -> VectorStep:
         """One step of one batch: record every env's state, end and restart episodes."""
         before = self._critic[g]  # the states a crashed simulator last reached
         out = batch.step(actions)
         ended, crashed = out.terminated | out.truncated, out.crashed
         finals: list[CriticState | None] = [None] * len(members)
         final_actors: list[ActorObs | None] = [None] * len(members)
-        episodes = {}
+        episodes: list[dict | None] = [None] * len(members)
         recorder = self.recorders[g]
         recorder.record(out.state, psar=out.psar, critical=out.critical, rows=~crashed)
         for row in np.flatnonzero(crashed).tolist():
@@ -218,26 +218,27 @@ class VectorEnv:
         if len(restart):
             self._start(g, batch, members, restart)
             new_actor, new_critic = batch.observe(restart)
-            for container, new in ((actor, new_actor), (critic, new_critic)):
-                for f in fields(container):
-                    getattr(container, f.name)[restart] = getattr(new, f.name)
+            actor.set_rows(restart, new_actor)
+            critic.set_rows(restart, new_critic)
         self._critic[g] = critic
         kept = ~crashed
-        return replace(
-            kept_rows(out, kept),  # no reward nor PSAR outcome where the simulator crashed
+        # nothing of a crashed simulator's step happened: no reward nor PSAR outcome there
+        done = out if kept.all() else out.where_rows(kept)
+        return VectorStep(
             actor_obs=actor,
             critic_state=critic,
+            terms=done.terms,
+            refined_action=done.refined_action,
+            psar_rule=done.psar_rule,
+            psar_rule_mask=done.psar_rule_mask,
+            slot_start=batch.state.slot_start & kept[:, None],
             terminated=out.terminated & kept,
             truncated=out.truncated | crashed,
-            slot_start=batch.state.slot_start & kept[:, None],
-            state=None,
-            psar=None,
-            critical=None,
+            crashed=crashed,
+            team=None,
             final_critic_state=finals,
             final_actor_obs=final_actors,
-            episodes=episodes,
-            reward_terms=out.logged_terms(np.flatnonzero(kept)),  # of the envs whose step happened
-            restarts=int(crashed.sum()),
+            episode_metrics=episodes,
         )
 
     def close(self) -> None:

@@ -18,7 +18,7 @@ import numpy as np
 
 from diacc.config import EnvConfig
 from diacc.envs.observation import ActorObs, CriticState
-from diacc.envs.step import Transition, concat_steps, cut_steps, score
+from diacc.envs.step import VectorStep, cut_steps, joined, score
 from diacc.runlog import join_parent_log, log
 from diacc.threads import worker_environment
 
@@ -140,7 +140,7 @@ class ProcessVectorEnv:
                     ) from None
                 self._replace(w)
 
-    def _restart(self, w: int) -> Transition:
+    def _restart(self, w: int) -> VectorStep:
         """Replace a dead worker; every episode of its group is cut."""
         self._replace(w)
         finals = [self._last_critic[e] for e in self.groups[w]]
@@ -179,13 +179,13 @@ class ProcessVectorEnv:
         except (EOFError, ConnectionError, OSError):
             return None
 
-    def step(self, actions: np.ndarray) -> Transition:  # actions (E, C)
+    def step(self, actions: np.ndarray) -> VectorStep:  # actions (E, C)
         sent = [self._send(w, ("step", actions[group])) for w, group in enumerate(self.groups)]
-        parts: list[Transition] = []
+        parts: list[VectorStep] = []
         for w, ok in enumerate(sent):
             reply = self._receive(w) if ok else None
             parts.append(reply if reply is not None else self._restart(w))
-        out = concat_steps(parts)
+        out = joined(parts)
         self._last_critic = [out.critic_state.unbatched(e, copy=True) for e in range(self.n_envs)]
         return score(out, self.tau, self.config.reward)
 

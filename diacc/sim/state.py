@@ -88,39 +88,6 @@ class TrafficState(Batched):
         out[self.collisions[:, 0], self.collisions[:, 2]] = True
         return out
 
-    def tile(self, k: int) -> TrafficState:
-        """``k`` copies of this batch one after another: env ``e`` of copy ``j`` is env
-        ``j E + e`` (one call over every candidate of a batch; :mod:`diacc.envs.action_mask`)."""
-        n_envs = self.n_envs
-
-        def events(rows: np.ndarray) -> np.ndarray:  # (k R, ...) env-major, as concat()
-            out = np.tile(rows, (k, 1))
-            out[:, 0] += np.repeat(np.arange(k, dtype=np.int32) * n_envs, len(rows))
-            return out
-
-        return TrafficState(
-            time_s=np.tile(self.time_s, k),
-            step=np.tile(self.step, k),
-            collisions=events(self.collisions),
-            arrivals=events(self.arrivals),
-            **{name: np.tile(getattr(self, name), (k, 1)) for name in PER_VEHICLE_FIELDS},
-        )
-
-    def set_env(self, e: int, state: TrafficState) -> None:
-        """Make env ``e`` of this batch the batch of one ``state`` (in place, copies)."""
-        for name in PER_VEHICLE_FIELDS:
-            getattr(self, name)[e] = getattr(state, name)[0]
-        self.time_s[e], self.step[e] = state.time_s[0], state.step[0]
-
-        def replaced(rows: np.ndarray, own: np.ndarray) -> np.ndarray:  # env-major, as concat()
-            own = own.copy()
-            own[:, 0] = e
-            rows = np.concatenate([rows[rows[:, 0] != e], own])
-            return rows[np.argsort(rows[:, 0], kind="stable")]
-
-        self.collisions = replaced(self.collisions, state.collisions)
-        self.arrivals = replaced(self.arrivals, state.arrivals)
-
     @property
     def collided_with(self) -> np.ndarray:
         """(E, V, V) bool, symmetric: vehicles i and j collided with each other this step."""

@@ -6,29 +6,27 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from diacc.records import Batched, per_env
 from diacc.sim.state import TrafficState, on_road_window, take_last
 
 
 @dataclass
-class History:
-    """The last T states' per-vehicle fields, oldest first: arrays (..., T, V)."""
+class History(Batched):
+    """The last T states' per-vehicle fields of E envs, oldest first (a
+    :class:`~diacc.records.Batched` record: ``rows`` selects envs)."""
 
-    x_m: np.ndarray
-    y_m: np.ndarray
-    speed_mps: np.ndarray
-    heading_rad: np.ndarray
-    active: np.ndarray
+    x_m: np.ndarray = per_env("E, T, V")
+    y_m: np.ndarray = per_env("E, T, V")
+    speed_mps: np.ndarray = per_env("E, T, V")
+    heading_rad: np.ndarray = per_env("E, T, V")
+    active: np.ndarray = per_env("E, T, V")
 
     @classmethod
     def filled(cls, state: TrafficState, steps: int) -> History:
-        """T copies of ``state`` (any leading env axes)."""
+        """T copies of ``state``."""
         return cls(
             *(np.repeat(getattr(state, f.name)[..., None, :], steps, axis=-2) for f in fields(cls))
         )
-
-    def rows(self, rows: np.ndarray) -> History:
-        """Envs ``rows`` of a batch history (copies)."""
-        return History(*(getattr(self, f.name)[rows] for f in fields(History)))
 
     def fill_rows(self, rows: np.ndarray, state: TrafficState) -> None:
         """Envs ``rows`` of a batch history start afresh: T copies of their ``state`` rows."""

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from diacc.envs.actions import action_speed_change_mps
+from diacc.records import Batched, per_env
 
 #: Rule codes of :attr:`PSARResult.rule`.
 RULE_NONE, CANCEL_LC, DECEL_LC, FORCE_BRAKE, SUPPR_ACCEL = 0, 1, 2, 3, 4
@@ -18,8 +19,9 @@ RULE_BIT_VALUES = np.array([RULE_BITS[c] for c in range(1, len(RULE_NAMES))], dt
 
 
 @dataclass
-class PSARResult:
-    """Refined actions and what PSAR did, one entry per CAV slot.
+class PSARResult(Batched):
+    """Refined actions and what PSAR did, one entry per CAV slot of each env (a
+    :class:`~diacc.records.Batched` record).
 
     ``rule`` is the *last* refinement that took effect (the one that decided
     the final action); ``rule_mask`` has one bit per refinement that took
@@ -34,13 +36,13 @@ class PSARResult:
     folded into one number per CAV.
     """
 
-    action: np.ndarray  # (C,) int64 refined action
-    speed_change_mps: np.ndarray  # (C,) float64 commanded change of target speed over the step
-    rule: np.ndarray  # (C,) int8 last rule code (RULE_*)
-    rule_mask: np.ndarray  # (C,) int8 bitmask of the rules that took effect
-    decel_lc_mps2: np.ndarray  # (C,) float64 Decel-LC braking b_lc >= 0 (0 = none)
-    invalid_lc: np.ndarray  # (C,) bool proposed lane change that cannot be made here
-    active: np.ndarray  # (C,) bool CAV on the road (inactive: action passed through)
+    action: np.ndarray = per_env("E, C")  # int64 refined action
+    speed_change_mps: np.ndarray = per_env("E, C")  # float64 commanded change of target speed
+    rule: np.ndarray = per_env("E, C")  # int8 last rule code (RULE_*)
+    rule_mask: np.ndarray = per_env("E, C")  # int8 bitmask of the rules that took effect
+    decel_lc_mps2: np.ndarray = per_env("E, C")  # float64 Decel-LC braking b_lc >= 0 (0 = none)
+    invalid_lc: np.ndarray = per_env("E, C")  # bool proposed lane change impossible here
+    active: np.ndarray = per_env("E, C")  # bool CAV on the road (inactive: passed through)
 
 
 def rule_bit(took_effect: np.ndarray, code: int) -> np.ndarray:

@@ -43,6 +43,7 @@ from typing import Literal, Protocol, runtime_checkable
 import numpy as np
 
 from diacc.errors import DiaccError
+from diacc.records import Batched, per_env
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario
 from diacc.sim.settings import BACKENDS, SimConfig
@@ -54,21 +55,18 @@ class BackendError(DiaccError, RuntimeError):
 
 
 @dataclass
-class CavCommands:
-    """Commands of E envs for one step, indexed by env and vehicle (HDV entries ignored)."""
+class CavCommands(Batched):
+    """Commands of E envs for one step, indexed by env and vehicle (HDV entries ignored;
+    a :class:`~diacc.records.Batched` record: ``env(e)`` is env ``e``'s batch of one)."""
 
-    lane_change: np.ndarray  # (E, V) int8 in {-1, 0, +1}, +1 = one lane to the left
-    speed_change_mps: np.ndarray  # (E, V) float64
+    lane_change: np.ndarray = per_env("E, V")  # int8 in {-1, 0, +1}, +1 = one lane to the left
+    speed_change_mps: np.ndarray = per_env("E, V")  # float64
 
     @classmethod
     def idle(cls, n_vehicles: int, n_envs: int = 1) -> CavCommands:
         """Commands that keep every CAV in its lane at its speed."""
         shape = (n_envs, n_vehicles)
         return cls(np.zeros(shape, np.int8), np.zeros(shape, np.float64))
-
-    def env(self, e: int) -> CavCommands:
-        """Env ``e``'s commands as a batch of one (views)."""
-        return CavCommands(self.lane_change[e : e + 1], self.speed_change_mps[e : e + 1])
 
 
 @runtime_checkable

@@ -169,8 +169,8 @@ class HighwayBackend:
         elif n != self.state.x_m.shape[1]:
             raise BackendError(f"env {env} has {n} vehicles, the batch {self.state.x_m.shape[1]}")
         params, state = initial_records(self, pop)
-        self.params.set_env(env, params)
-        self.state.set_env(env, state)
+        self.params.set_rows(np.array([env]), params)
+        self.state.set_rows(np.array([env]), state)
         for counts in self.stats.values():
             counts[env] = 0
         self._ready[env] = True

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diacc.records import Batched
 from diacc.sim.backends.highway.rows import per_vehicle, shared
 from diacc.sim.state import flat_offsets
 
@@ -93,12 +94,12 @@ class CooperativeCavParams:
 
 
 @dataclass(frozen=True)
-class IdmParams:
+class IdmParams(Batched):
     """Per-vehicle IDM parameters, each (E, V): one row per environment of a batch.
 
-    Nested in :class:`~.simstate.HighwayParams`, so its fields declare their axes
-    too (:mod:`.rows`). :meth:`take` builds other shapes (MOBIL's (E, 4, 3, V)) for
-    a computation; those never go into a record.
+    Nested in :class:`~.simstate.HighwayParams`, so it is a batched record whose
+    fields declare their axes too (:mod:`.rows`). :meth:`take` builds other shapes
+    (MOBIL's (E, 4, 3, V)) for a computation; those never go into a record.
     """
 
     headway_s: np.ndarray = per_vehicle()

@@ -1,19 +1,19 @@
-"""Axes declared by each field of the highway backend's batch records, and the row
-and window operations of those records.
+"""Axes declared by each field of the highway backend's batch records, and the
+vehicle-window operations of those records.
 
-Every field of a record (:mod:`.simstate`'s three, and :class:`~.models.IdmParams`
-nested in one of them) says what its value is indexed by: :func:`per_env` (E,),
-:func:`per_vehicle` (E, V), :func:`per_pair` (E, V, V), :func:`shared` (one value
-for the whole batch, not an array) or :func:`nested` (a record whose fields say
-their own). The backend steps only a window ``lo:hi`` of the vehicles
-(:meth:`EnvRows.window`, :meth:`EnvRows.put_window`), and a field is cut by
-what it declares, not by its number of dimensions, which cannot tell: an (E, 3)
-per-env field would be cut as if per vehicle, an (E, V, 2) one as if pairwise.
-A field that declares nothing, or whose value does not have exactly its
-declared axes, is an error naming it, not a guess.
-
-:meth:`EnvRows.copy`, :meth:`EnvRows.env` and :meth:`EnvRows.set_env` touch only
-the leading env axis, which every array has, so they work on arrays alike.
+The records (:mod:`.simstate`'s three, and :class:`~.models.IdmParams` nested in
+one of them) are :class:`~diacc.records.Batched` records like every batch above
+the simulator, so they get the env-axis operations from there (``env(e)``, ``rows``,
+``set_rows``, ``concat``). Every field says what its value is indexed by:
+:func:`per_env` (E,), :func:`per_vehicle` (E, V), :func:`per_pair` (E, V, V),
+:func:`shared` (one value for the whole batch, not an array) or :func:`nested` (a
+record whose fields say their own), declarations of :mod:`diacc.records`. The
+backend steps only a window ``lo:hi`` of the vehicles (:meth:`EnvRows.window`,
+:meth:`EnvRows.put_window`), and a field is cut by what it declares, not by its
+number of dimensions, which cannot tell: an (E, 3) per-env field would be cut as
+if per vehicle, an (E, V, 2) one as if pairwise. A field that declares nothing,
+or whose value does not have exactly its declared axes, is an error naming it,
+not a guess.
 """
 
 from __future__ import annotations
@@ -26,6 +26,9 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from diacc import records
+from diacc.records import Batched
+
 
 class Axes(enum.Enum):
     """What a record field is indexed by (E: env of the batch, V: vehicle)."""
@@ -37,38 +40,35 @@ class Axes(enum.Enum):
     NESTED = "a record of declared fields"
 
 
-_AXES_KEY = "diacc.axes"
 #: Number of dimensions of the array kinds.
 _NDIM = {Axes.ENV: 1, Axes.VEHICLE: 2, Axes.PAIR: 3}
-
-
-def _declared(kind: Axes) -> Any:
-    return dataclasses.field(metadata={_AXES_KEY: kind})
+#: What each of :mod:`diacc.records`' declarations used here means (axes without spaces).
+_KINDS = {
+    "E": Axes.ENV,
+    "E,V": Axes.VEHICLE,
+    "E,V,V": Axes.PAIR,
+    records.SHARED: Axes.SHARED,
+    records.RECORD: Axes.NESTED,
+}
 
 
 def per_env() -> Any:
     """A required field holding an (E,) array: one value per env."""
-    return _declared(Axes.ENV)
+    return records.per_env("E")
 
 
 def per_vehicle() -> Any:
     """A required field holding an (E, V) array: one value per vehicle of each env."""
-    return _declared(Axes.VEHICLE)
+    return records.per_env("E, V")
 
 
 def per_pair() -> Any:
     """A required field holding an (E, V, V) array: one value per vehicle pair of each env."""
-    return _declared(Axes.PAIR)
+    return records.per_env("E, V, V")
 
 
-def shared() -> Any:
-    """A required field holding one value (not an array) for the whole batch."""
-    return _declared(Axes.SHARED)
-
-
-def nested() -> Any:
-    """A required field holding a record whose own fields declare their axes."""
-    return _declared(Axes.NESTED)
+shared = records.shared
+nested = records.per_env_record
 
 
 @functools.cache
@@ -78,14 +78,14 @@ def field_axes(cls: type) -> tuple[tuple[str, Axes], ...]:
     Raises ``TypeError`` naming the first field that declares no axes.
     """
     out = []
-    for f in dataclasses.fields(cls):
-        kind = f.metadata.get(_AXES_KEY)
-        if not isinstance(kind, Axes):
+    for name, axes in records.declared_axes(cls):
+        kind = None if axes is None else _KINDS.get(axes.replace(" ", ""))
+        if kind is None:
             raise TypeError(
-                f"{cls.__name__}.{f.name} declares no axes: declare it with per_env(), "
+                f"{cls.__name__}.{name} declares no axes: declare it with per_env(), "
                 "per_vehicle(), per_pair(), shared() or nested() (diacc.sim.backends.highway.rows)"
             )
-        out.append((f.name, kind))
+        out.append((name, kind))
     return tuple(out)
 
 
@@ -163,37 +163,18 @@ def _map_arrays(value: Any, fn: Callable[[np.ndarray], np.ndarray]) -> Any:
     return value
 
 
-def _write_rows(target: Any, source: Any, env: int) -> None:
-    """Write the single env row of ``source`` into row ``env`` of ``target`` (same type)."""
-    if isinstance(target, np.ndarray):
-        target[env] = source[0]
-    elif dataclasses.is_dataclass(target):
-        for f in dataclasses.fields(target):
-            _write_rows(getattr(target, f.name), getattr(source, f.name), env)
-
-
 _Rows = TypeVar("_Rows", bound="EnvRows")
 
 
-class EnvRows:
-    """Row operations shared by the batch records (fields are arrays with E first)."""
+class EnvRows(Batched):
+    """The vehicle-window operations of the batch records (and a deep copy); the env-axis
+    ones are :class:`~diacc.records.Batched`'s."""
 
     __slots__ = ()
 
     def copy(self: _Rows) -> _Rows:
         """A deep copy: no array is shared with ``self``."""
         return _map_arrays(self, np.copy)
-
-    def env(self: _Rows, e: int) -> _Rows:
-        """Env ``e`` as an E = 1 record (copies of its rows)."""
-        return _map_arrays(self, lambda a: a[e : e + 1].copy())
-
-    def set_env(self: _Rows, e: int, row: _Rows) -> None:
-        """Overwrite env ``e`` of every array field with ``row``'s (E = 1) values.
-
-        Scalar fields (not per env) are left alone.
-        """
-        _write_rows(self, row, e)
 
     def window(self: _Rows, lo: int, hi: int) -> _Rows:
         """Vehicles ``lo:hi`` of every env as a record of views, cut by each field's axes

@@ -13,12 +13,12 @@ them and when:
   (leaders, lane ends, speed windows). Some are refreshed on events only,
   so they belong to the state of a running batch, too.
 
-All three share the row operations of :class:`~.rows.EnvRows`:
-:meth:`~.rows.EnvRows.copy` (a deep copy, so a batch can be checkpointed and
-restored exactly), :meth:`~.rows.EnvRows.env` (one env as an E = 1 record),
-:meth:`~.rows.EnvRows.set_env` (write one env's row of every field, which is
-how ``reset`` starts an env: a field cannot be forgotten, since the record's
-constructor needs them all) and :meth:`~.rows.EnvRows.window` /
+All three are :class:`~.rows.EnvRows`, batched records
+(:class:`~diacc.records.Batched`): :meth:`~.rows.EnvRows.copy` (a deep copy, so a
+batch can be checkpointed and restored exactly), ``env(e)`` (one env as an E = 1
+record), ``set_rows`` (write envs' rows of every field, which is how ``reset``
+starts an env: a field cannot be forgotten, since the record's constructor needs
+them all) and :meth:`~.rows.EnvRows.window` /
 :meth:`~.rows.EnvRows.put_window` (the vehicles the backend steps). Every
 field declares its axes (``per_vehicle()``: (E, V), ``per_env()``: (E,),
 ``per_pair()``: (E, V, V), ``shared()``: one value for the batch,
