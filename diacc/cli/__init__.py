@@ -1,13 +1,13 @@
 """Command line: ``diacc train | eval | sweep | reproduce | table | plot | render | scorecard |
-simulate | bench | convert-checkpoint``.
+simulate | bench | convert-checkpoint | maps``.
 
 This module runs a command (:func:`main`, also ``python -m diacc.cli``): it parses the
 command line (:mod:`.parser`, one module per command: :mod:`.train`, :mod:`.bench`,
 :mod:`.simulate`, :mod:`.convert`; :mod:`.eval` has ``eval``, ``table``, ``plot``,
 ``render``, ``scorecard``; :mod:`.scale` ``sweep``; :mod:`.reproduce` ``reproduce``;
-:mod:`.options` the options they share), calls the command's handler and turns its
-failures into exit codes. The command line sits above every other layer and nothing in
-``diacc`` imports it.
+:mod:`.maps` ``maps generate``; :mod:`.options` the options they share), calls the
+command's handler and turns its failures into exit codes. The command line sits above
+every other layer and nothing in ``diacc`` imports it.
 
 Every command turns known failures (bad map, backend, config key, checkpoint,
 crashed simulator: a :class:`~diacc.errors.DiaccError`) into a one-line

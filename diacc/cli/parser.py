@@ -1,10 +1,10 @@
 """The ``diacc`` parser: its help format and one subparser per command.
 
 Each command module (:mod:`.train`, :mod:`.bench`, :mod:`.simulate`, :mod:`.convert`,
-:mod:`.eval`, :mod:`.scale`, :mod:`.reproduce`) adds its subcommands (``add_parsers``) and
-names their handlers (``COMMANDS``); :data:`COMMAND_MODULES` is their order in
-``diacc --help``. Handlers import the modules they run when called, so that ``--help``
-stays quick.
+:mod:`.eval`, :mod:`.scale`, :mod:`.reproduce`, :mod:`.maps`) adds its subcommands
+(``add_parsers``) and names their handlers (``COMMANDS``); :data:`COMMAND_MODULES` is
+their order in ``diacc --help``. Handlers import the modules they run when called, so
+that ``--help`` stays quick.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 
 from diacc import __version__
-from diacc.cli import bench, convert, reproduce, scale, simulate, train
+from diacc.cli import bench, convert, maps, reproduce, scale, simulate, train
 from diacc.cli import eval as evaluate
 
 DESCRIPTION = """\
@@ -46,7 +46,7 @@ class Parser(argparse.ArgumentParser):
 
 
 #: Command modules, in the order ``diacc --help`` lists their commands.
-COMMAND_MODULES = (train, bench, simulate, convert, evaluate, scale, reproduce)
+COMMAND_MODULES = (train, bench, simulate, convert, evaluate, scale, reproduce, maps)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -242,13 +242,21 @@ def available_maps() -> list[str]:
 
 
 def load_map(name_or_path: str | Path) -> Map:
-    """Load a shipped map by name (``"train-25"``) or any TOML file by path."""
+    """Load a shipped map by name (``"train-25"``), a generated one by name
+    (``"gen-test-7"``, :mod:`diacc.sim.mapgen`) or any TOML file by path."""
+    # Imported here: mapgen builds on this module (parse_map, MapError).
+    from diacc.sim import mapgen
+
     path = Path(name_or_path)
     if path.suffix != ".toml":
-        path = require_dir("maps") / f"{name_or_path}.toml"
+        name = str(name_or_path)
+        if mapgen.is_generated_name(name):
+            return mapgen.generate_map(*mapgen.parse_generated_name(name))
+        path = require_dir("maps") / f"{name}.toml"
         if not path.exists():
             raise MapError(
-                f"unknown map {str(name_or_path)!r}; shipped maps: {', '.join(available_maps())}"
+                f"unknown map {name!r}; shipped maps: {', '.join(available_maps())}; "
+                f"generated maps: {mapgen.NAME_PREFIX}<{'|'.join(mapgen.MAP_STREAMS)}>-<index>"
             )
     if not path.exists():
         raise MapError(f"{path}: map file not found")
