@@ -317,7 +317,11 @@ def add_parsers(sub) -> None:
 def _episode_args(p: argparse.ArgumentParser) -> None:
     """The traffic of one episode (``render``, ``plot timespace``); its length is
     ``--episode-steps`` (:func:`_policy_args`), formerly ``--steps``: still accepted."""
-    p.add_argument("--map", default="train-25", help="shipped map name or .toml path")
+    p.add_argument(
+        "--map",
+        default="train-25",
+        help="shipped map name, generated one (gen-test-7) or .toml path",
+    )
     p.add_argument("--vehicles", type=int, default=25, help="vehicles inserted at t = 0 (N)")
     p.add_argument("--penetration", type=float, default=0.4, help="CAV share rho")
     p.add_argument("--mix", default="D1", help="HDV style mix: D1, D2 or D3")

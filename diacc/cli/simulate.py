@@ -26,7 +26,11 @@ def add_parsers(sub) -> None:
         "run a trained policy or the cooperative baseline, use 'diacc eval'.",
     )
     p.add_argument("--backend", choices=BACKENDS, default="highway", help="simulator")
-    p.add_argument("--map", default="train-25", help="shipped map name or .toml path")
+    p.add_argument(
+        "--map",
+        default="train-25",
+        help="shipped map name, generated one (gen-test-7) or .toml path",
+    )
     p.add_argument("--vehicles", type=int, default=25, help="vehicles inserted at t = 0 (N)")
     p.add_argument(
         "--penetration", type=float, default=0.0, help="CAV share rho (CAVs keep lane and speed)"

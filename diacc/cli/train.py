@@ -48,7 +48,9 @@ def add_parsers(sub) -> None:
         help=f"simulator to train on (default: {EnvConfig.backend})",
     )
     p.add_argument(
-        "--map", default=None, help=f"shipped map name or .toml path (default: {EnvConfig.map})"
+        "--map",
+        default=None,
+        help=f"shipped map, generated one (gen-test-7) or .toml path (default: {EnvConfig.map})",
     )
     p.add_argument(
         "--steps",
