@@ -13,6 +13,8 @@ from helpers import first_env
 
 from diacc.cli import main
 from diacc.config import EnvConfig, resolve_road
+from diacc.envs.env import BottleneckEnv
+from diacc.envs.observation.layout import check_road
 from diacc.sim.backends.base import CavCommands
 from diacc.sim.backends.highway.backend import HighwayBackend
 from diacc.sim.backends.sumo.backend import SumoBackend
@@ -23,6 +25,7 @@ from diacc.sim.mapgen import (
     STREAM_SEEDS,
     generate_map,
     generated_name,
+    generated_names,
     generator_seed,
     map_data,
     map_toml,
@@ -89,6 +92,7 @@ def test_a_sample_is_valid_and_covers_the_distribution():
         text = map_toml(generator_seed(stream, index))
         assert parse_map(tomllib.loads(text), source="text") == road
         assert map_tag(road.name) == road.name
+        check_road(road)  # the observation layout holds it (lanes and segments)
         lanes = road.max_lanes
         reductions = [s for s in road.segments if s.kind != "multilane"]
         assert road.segments[0].kind == road.segments[-1].kind == "multilane"
@@ -176,8 +180,22 @@ def test_sumo_builds_and_steps_generated_maps(name, tmp_path):
 
 
 def test_an_environment_takes_a_generated_map_name():
-    road = resolve_road(EnvConfig(map="gen-validation-3"))
-    assert road == generate_map("validation", 3)
+    assert generated_names("test", 3, start=5) == ["gen-test-5", "gen-test-6", "gen-test-7"]
+    assert resolve_road(EnvConfig(map="gen-validation-3")) == generate_map("validation", 3)
+    # Five segments, five lanes, dropping on the right: the agents' side of the env runs.
+    config = EnvConfig(
+        map="gen-validation-1", scenario=Scenario(n_vehicles=12, cav_penetration=0.25)
+    )
+    env = BottleneckEnv(config)
+    try:
+        env.reset_arrays(seed=3)
+        for _ in range(20):
+            out = env.step_arrays(np.zeros(env.n_cavs, np.int64))
+            assert np.isfinite(out.reward)
+            if out.terminated or out.truncated:
+                break
+    finally:
+        env.close()
 
 
 @pytest.mark.parametrize(
@@ -192,6 +210,8 @@ def test_an_environment_takes_a_generated_map_name():
         (lambda: generated_name("test", 1.5), "map index must be an integer"),
         (lambda: seed_stream(3 * STREAM_SEEDS), r"generator seed must be .* \[0, 2999999\]"),
         (lambda: seed_stream(True), "generator seed must be an integer"),
+        (lambda: generated_names("test", 0), "a count of generated maps must be"),
+        (lambda: generated_names("test", 2, start=999_999), "map index must be an integer"),
     ],
 )
 def test_bad_names_seeds_and_streams_are_one_line_errors(call, message):

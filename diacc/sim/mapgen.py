@@ -99,6 +99,15 @@ def generated_name(stream: str, index: int) -> str:
     return f"{NAME_PREFIX}{stream}-{index}"
 
 
+def generated_names(stream: str, count: int, start: int = 0) -> list[str]:
+    """Names of maps ``start .. start + count - 1`` of a stream: what a suite of generated
+    maps (the test stream's) or a training run across maps (the train stream's) lists."""
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise MapError(f"a count of generated maps must be an integer >= 1, got {count!r}")
+    generated_name(stream, start + count - 1)  # the last index is in the stream
+    return [generated_name(stream, index) for index in range(start, start + count)]
+
+
 def is_generated_name(name: str) -> bool:
     """Whether ``name`` claims to be a generated map (it may still be malformed)."""
     return name.startswith(NAME_PREFIX)
