@@ -23,10 +23,11 @@ used to be written per type:
 selects envs as a batch of their own, :meth:`Batched.env` is one env as a batch of
 one, :meth:`Batched.set_rows` overwrites envs in place (new episodes' rows),
 :meth:`Batched.where_rows` zeroes the envs not kept (a crashed simulator's),
-and :meth:`Batched.unbatched` is one env without its env axis: the PettingZoo
-edge's view, the one place the batch axis goes ((E,) fields become Python
-scalars; a record declared ``keeps_batch`` stays a batch of one there, as the
-traffic state does for users who index its row 0).
+:meth:`Batched.copy` is a deep copy, and :meth:`Batched.unbatched` is one env
+without its env axis: the PettingZoo edge's view, the one place the batch axis
+goes ((E,) fields become Python scalars; a record declared ``keeps_batch``
+stays a batch of one there, as the traffic state does for users who index its
+row 0).
 """
 
 from __future__ import annotations
@@ -255,6 +256,19 @@ class Batched:
                 value = value.where_rows(kept)
             else:
                 value = where_rows(value, kept)
+            parts[name] = value
+        return type(self)(**parts)
+
+    def copy(self: Record) -> Record:
+        """A deep copy: no array is shared with this batch (records copied as their own
+        declarations say, lists copied; other values, such as shared numbers, kept)."""
+        parts: dict[str, Any] = {}
+        for name, kind in _plan(type(self)):
+            value = getattr(self, name)
+            if isinstance(value, (np.ndarray, Batched)):
+                value = value.copy()
+            elif kind == _ITEMS:
+                value = list(value)
             parts[name] = value
         return type(self)(**parts)
 
