@@ -23,7 +23,9 @@ used to be written per type:
 selects envs as a batch of their own, :meth:`Batched.env` is one env as a batch of
 one, :meth:`Batched.set_rows` overwrites envs in place (new episodes' rows),
 :meth:`Batched.where_rows` zeroes the envs not kept (a crashed simulator's),
-:meth:`Batched.copy` is a deep copy, and :meth:`Batched.unbatched` is one env
+:meth:`Batched.copy` is a deep copy, :meth:`Batched.stack` puts batches of the same
+envs (a rollout's steps) along a new leading axis, :meth:`Batched.arrays` names the
+per-env arrays (what the learner turns into tensors), and :meth:`Batched.unbatched` is one env
 without its env axis: the PettingZoo edge's view, the one place the batch axis
 goes ((E,) fields become Python scalars; a record declared ``keeps_batch``
 stays a batch of one there, as the traffic state does for users who index its
@@ -172,6 +174,25 @@ class Batched:
             else:
                 parts[name] = np.concatenate(values)
         return cls(**parts)
+
+    @classmethod
+    def stack(cls: type[Record], records: Sequence[Record]) -> Record:
+        """The ``records`` (batches of the same envs: a rollout's steps) along a new leading
+        axis, S: a batch whose arrays are (S, E, ...), its rows the records (a record of
+        per-env arrays only, such as the observations; new arrays)."""
+        plan = _plan(cls)
+        if any(kind not in (_ARRAY, _SCALAR) for _, kind in plan):
+            raise TypeError(f"{cls.__name__}.stack: only a record of per-env arrays stacks")
+        return cls(**{name: np.stack([getattr(r, name) for r in records]) for name, _ in plan})
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Field name -> array of each per-env array field (what the learner converts to
+        tensors, :func:`diacc.learn.models.inputs.to_tensors`)."""
+        return {
+            name: getattr(self, name)
+            for name, kind in _plan(type(self))
+            if kind in (_ARRAY, _SCALAR)
+        }
 
     @property
     def n_rows(self) -> int:
