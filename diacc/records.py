@@ -23,10 +23,13 @@ used to be written per type:
 selects envs as a batch of their own, :meth:`Batched.env` is one env as a batch of
 one, :meth:`Batched.set_rows` overwrites envs in place (new episodes' rows),
 :meth:`Batched.where_rows` zeroes the envs not kept (a crashed simulator's),
-and :meth:`Batched.unbatched` is one env without its env axis: the PettingZoo
-edge's view, the one place the batch axis goes ((E,) fields become Python
-scalars; a record declared ``keeps_batch`` stays a batch of one there, as the
-traffic state does for users who index its row 0).
+:meth:`Batched.copy` is a deep copy, :meth:`Batched.stack` puts batches of the same
+envs (a rollout's steps) along a new leading axis, :meth:`Batched.arrays` names the
+per-env arrays (what the learner turns into tensors), and :meth:`Batched.unbatched` is one env
+without its env axis: the PettingZoo edge's view, the one place the batch axis
+goes ((E,) fields become Python scalars; a record declared ``keeps_batch``
+stays a batch of one there, as the traffic state does for users who index its
+row 0).
 """
 
 from __future__ import annotations
@@ -172,6 +175,25 @@ class Batched:
                 parts[name] = np.concatenate(values)
         return cls(**parts)
 
+    @classmethod
+    def stack(cls: type[Record], records: Sequence[Record]) -> Record:
+        """The ``records`` (batches of the same envs: a rollout's steps) along a new leading
+        axis, S: a batch whose arrays are (S, E, ...), its rows the records (a record of
+        per-env arrays only, such as the observations; new arrays)."""
+        plan = _plan(cls)
+        if any(kind not in (_ARRAY, _SCALAR) for _, kind in plan):
+            raise TypeError(f"{cls.__name__}.stack: only a record of per-env arrays stacks")
+        return cls(**{name: np.stack([getattr(r, name) for r in records]) for name, _ in plan})
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Field name -> array of each per-env array field (what the learner converts to
+        tensors, :func:`diacc.learn.models.inputs.to_tensors`)."""
+        return {
+            name: getattr(self, name)
+            for name, kind in _plan(type(self))
+            if kind in (_ARRAY, _SCALAR)
+        }
+
     @property
     def n_rows(self) -> int:
         """E, the envs of the batch (the length of its first per-env array or list, or
@@ -255,6 +277,19 @@ class Batched:
                 value = value.where_rows(kept)
             else:
                 value = where_rows(value, kept)
+            parts[name] = value
+        return type(self)(**parts)
+
+    def copy(self: Record) -> Record:
+        """A deep copy: no array is shared with this batch (records copied as their own
+        declarations say, lists copied; other values, such as shared numbers, kept)."""
+        parts: dict[str, Any] = {}
+        for name, kind in _plan(type(self)):
+            value = getattr(self, name)
+            if isinstance(value, (np.ndarray, Batched)):
+                value = value.copy()
+            elif kind == _ITEMS:
+                value = list(value)
             parts[name] = value
         return type(self)(**parts)
 

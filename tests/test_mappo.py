@@ -306,7 +306,7 @@ def test_bad_checkpoints_give_one_line_errors(tmp_path):
 def test_values_after_the_rollout_equal_values_stepped_with_the_envs(tmp_path, critic_values):
     """rollout_values (one pass per chunk, after the loop) gives the values, hidden states,
     truncation bootstraps and V(s_S) of the critic stepped along with the envs."""
-    from diacc.envs.observation import stack
+    from diacc.envs.observation import ActorObs, CriticState
     from diacc.learn.ppo import critic_inputs
 
     cfg = tiny_config(tmp_path, critic_values=critic_values)
@@ -325,7 +325,12 @@ def test_values_after_the_rollout_equal_values_stepped_with_the_envs(tmp_path, c
             for cut_t, e, final_state, final_actor in roll.cut_states:
                 if cut_t == t:
                     v, _ = critic(
-                        critic_inputs(stack([final_state]), stack([final_actor]), per_agent, "cpu"),
+                        critic_inputs(
+                            CriticState.stack([final_state]),
+                            ActorObs.stack([final_actor]),
+                            per_agent,
+                            "cpu",
+                        ),
                         hidden[e : e + 1],
                         torch.zeros(1, dtype=torch.bool),
                     )

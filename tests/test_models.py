@@ -435,7 +435,7 @@ def test_every_variant_runs_on_builder_observations():
     from helpers import make_state
 
     from diacc.config import ObservationConfig
-    from diacc.envs.observation import ObservationBuilder, stack
+    from diacc.envs.observation import ActorObs, CriticState, ObservationBuilder
     from diacc.sim.maps import load_map
 
     road, obs_cfg = load_map("train-25"), ObservationConfig()
@@ -455,8 +455,8 @@ def test_every_variant_runs_on_builder_observations():
         )
         critic_states.append(builder.critic().unbatched(0))
     obs, state = (
-        to_tensors(stack(actor_obs)),
-        to_tensors(stack(critic_states)),
+        to_tensors(ActorObs.stack(actor_obs)),
+        to_tensors(CriticState.stack(critic_states)),
     )  # (2, 1, ...), (2, ...)
     obs = {k: v[:, 0] for k, v in obs.items()}  # one CAV slot per env -> (2, ...)
     assert not obs["hdv_mask"][1].any() and not obs["cav_mask"][1].any()

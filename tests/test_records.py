@@ -108,3 +108,32 @@ def test_a_shared_field_is_kept_by_every_row_operation():
     assert model.env(2).exponent == 4.0 and model.where_rows(np.ones(3, bool)).exponent == 4.0
     model.set_rows(np.array([0]), Model(np.full((1, 2), 9.0), 1.0))
     assert model.gain[0].tolist() == [9.0, 9.0] and model.exponent == 4.0
+
+
+def test_copy_shares_no_array_and_keeps_what_is_not_one():
+    original = outer(3)
+    copied = original.copy()
+    copied.step.speed[0] = -1.0
+    copied.kept.hits[0, 1] = -1
+    copied.notes[0] = "changed"
+    assert original.step.speed[0].tolist() == [0.0, 0.0] and original.kept.hits[0, 1] == 0
+    assert original.notes[0] == "env 0" and copied.extra is None
+    assert copied.step.reward.tolist() == original.step.reward.tolist()
+
+
+def test_stack_adds_a_leading_axis_and_arrays_name_the_per_env_ones():
+    @dataclass
+    class Obs(Batched):
+        speed: np.ndarray = per_env("E, C")
+        alive: np.ndarray = per_env("E")
+
+    steps = [Obs(np.full((2, 3), float(t)), np.ones(2, bool)) for t in range(4)]
+    stacked = Obs.stack(steps)
+    assert stacked.speed.shape == (4, 2, 3) and stacked.speed[:, 0, 0].tolist() == [0, 1, 2, 3]
+    assert list(stacked.arrays()) == ["speed", "alive"] and stacked.arrays()["alive"].shape == (
+        4,
+        2,
+    )
+    assert list(batch(2).arrays()) == ["reward", "speed"]  # event rows are not per-env arrays
+    with pytest.raises(TypeError, match=r"Step\.stack: only a record of per-env arrays"):
+        Step.stack([batch(2), batch(2)])

@@ -52,6 +52,7 @@ from diacc.envs.psar import PSARResult, psar
 from diacc.envs.reward import reward_terms
 from diacc.envs.safety import safety_critical_events
 from diacc.envs.step import Transition
+from diacc.records import Batched, per_env, per_env_record
 from diacc.sim.backends.base import Backend, BackendError, CavCommands
 from diacc.sim.maps import Map
 from diacc.sim.scenario import Scenario
@@ -169,24 +170,25 @@ class Simulators:
 
 # ----------------------------------------------------------------------------- the state
 @dataclass
-class EpisodeState:
-    """diacc's state of E episodes besides the observation history, one row per env.
+class EpisodeState(Batched):
+    """diacc's state of E episodes besides the observation history, one row per env (a
+    :class:`~diacc.records.Batched` record: new episodes' rows are set as declared).
 
     The history of the last T states that the observations read is the
     batch's :class:`~diacc.envs.observation.ObservationBuilder`'s.
     """
 
-    traffic: TrafficState  # (E, V) the simulators' latest state, in the world's frame
-    steps: np.ndarray  # (E,) int64 decision steps of the episode so far
-    cav_ordinal: np.ndarray  # (E, V) int64 k of the k-th CAV (PettingZoo agent cav_k)
-    slot_vehicle: np.ndarray  # (E, C) int64 each slot's occupant, -1 none
-    last_vehicle: np.ndarray  # (E, C) int64 each slot's latest occupant, -1 never used
-    cav_index: np.ndarray  # (E, C) int64 vehicle each slot points at (empty: one off the road)
-    slot_start: np.ndarray  # (E, C) bool a new CAV took the slot at the last step or reset
-    unserved_cavs: np.ndarray  # (E,) int64 CAVs on the road without a slot
-    action_memory: np.ndarray  # (E, C, 2) int64 proposed and refined action of the last step
-    last_refined: np.ndarray  # (E, V) int64 refined action each vehicle executed last
-    wrecked: np.ndarray  # (E, V) bool collided this episode (``on_collision = "remove"``)
+    traffic: TrafficState = per_env_record()  # (E, V) the simulators' latest, world's frame
+    steps: np.ndarray = per_env("E")  # int64 decision steps of the episode so far
+    cav_ordinal: np.ndarray = per_env("E, V")  # int64 k of the k-th CAV (PettingZoo cav_k)
+    slot_vehicle: np.ndarray = per_env("E, C")  # int64 each slot's occupant, -1 none
+    last_vehicle: np.ndarray = per_env("E, C")  # int64 each slot's latest occupant, -1 never
+    cav_index: np.ndarray = per_env("E, C")  # int64 vehicle each slot points at (empty: off road)
+    slot_start: np.ndarray = per_env("E, C")  # bool a new CAV took the slot at the last step
+    unserved_cavs: np.ndarray = per_env("E")  # int64 CAVs on the road without a slot
+    action_memory: np.ndarray = per_env("E, C, 2")  # int64 proposed, refined action last step
+    last_refined: np.ndarray = per_env("E, V")  # int64 refined action each vehicle executed last
+    wrecked: np.ndarray = per_env("E, V")  # bool collided this episode (on_collision "remove")
 
     @classmethod
     def start(cls, traffic: TrafficState, n_slots: int) -> EpisodeState:
@@ -246,14 +248,7 @@ class EnvBatch:
                         f"env {e}'s new episode has {first.n_vehicles} vehicles, the batch "
                         f"holds {st.traffic.n_vehicles}"
                     )
-            st.traffic.set_rows(rows, TrafficState.concat(firsts))
-            st.steps[rows] = 0
-            st.cav_ordinal[rows] = np.cumsum(st.traffic.is_cav[rows], axis=-1) - 1
-            st.slot_vehicle[rows] = -1
-            st.last_vehicle[rows] = -1
-            st.action_memory[rows] = 0
-            st.last_refined[rows] = 0
-            st.wrecked[rows] = False
+            st.set_rows(rows, EpisodeState.start(TrafficState.concat(firsts), self.n_cavs))
             self.builder.reset_rows(rows, st.traffic)
         self._fill_slots(rows)
 
@@ -298,18 +293,15 @@ class EnvBatch:
 
     def observe(self, rows: np.ndarray | None = None) -> tuple[ActorObs, CriticState]:
         """Observations of the current states: every env's, or those of envs ``rows``."""
-        st = self.state
+        st = self.state if rows is None else self.state.rows(rows)
         if rows is None:
             actor = self.builder.actor(st.cav_index, st.action_memory, st.last_refined)
             critic = self.builder.critic()
-            traffic = st.traffic
         else:
             actor, critic = self.builder.observe_rows(
-                rows, st.cav_index[rows], st.action_memory[rows], st.last_refined[rows]
+                rows, st.cav_index, st.action_memory, st.last_refined
             )
-            traffic = st.traffic.rows(rows)
-        cav_index = st.cav_index if rows is None else st.cav_index[rows]
-        return with_action_mask(actor, traffic, cav_index, self.config, self.road), critic
+        return with_action_mask(actor, st.traffic, st.cav_index, self.config, self.road), critic
 
     def _fill_slots(self, rows: np.ndarray) -> None:
         """In envs ``rows``: free the slots of CAVs gone before this step, give CAVs on the

@@ -10,12 +10,12 @@ recurrent update replays (:class:`Batch`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from diacc.envs.observation import stack
+from diacc.envs.observation import ActorObs, CriticState
 from diacc.learn.models.agent_value import AGENT_KEY, agent_features
 from diacc.learn.models.inputs import to_tensors
 
@@ -107,17 +107,6 @@ class Rollout:
         )
 
 
-def flatten_agents(container, n_axes: int = 2):
-    """Merge the first ``n_axes`` axes of every field: (E, C, ...) -> (E*C, ...)."""
-    cls = type(container)
-    return cls(
-        **{
-            f.name: (lambda a: a.reshape(-1, *a.shape[n_axes:]))(getattr(container, f.name))
-            for f in fields(cls)
-        }
-    )
-
-
 def chunk_time_major(arrays: np.ndarray, chunk_len: int) -> np.ndarray:
     """(S, B, ...) -> (L, S/L * B, ...): sequences of L steps, one per (chunk, b)."""
     steps, batch = arrays.shape[:2]
@@ -164,8 +153,8 @@ def make_batch(
     def tensor(array: np.ndarray, dtype=torch.float32) -> torch.Tensor:
         return torch.as_tensor(array, dtype=dtype, device=device)
 
-    actor, critic = stack(roll.actor_obs), stack(roll.critic_state)
-    critic_arrays = {f.name: getattr(critic, f.name) for f in fields(critic)}
+    actor, critic = ActorObs.stack(roll.actor_obs), CriticState.stack(roll.critic_state)
+    critic_arrays = critic.arrays()
     if advantages.ndim == 3:  # per-agent values: each CAV its own advantage
         adv = advantages.copy()  # (S, E, C)
         critic_arrays[AGENT_KEY] = agent_features(actor.self_state, actor.alive)  # (S, E, C, F)
@@ -176,9 +165,7 @@ def make_batch(
         adv = (adv - alive_adv.mean()) / (alive_adv.std() + 1e-8)
     starts = roll.agent_start  # (S, E, C): episode starts and refilled slots
     return Batch(
-        actor_obs=to_tensors(
-            {f.name: per_agent(getattr(actor, f.name)) for f in fields(actor)}, device
-        ),
+        actor_obs=to_tensors({name: per_agent(a) for name, a in actor.arrays().items()}, device),
         critic_state=to_tensors(
             {name: chunk_time_major(array, L) for name, array in critic_arrays.items()}, device
         ),

@@ -43,13 +43,13 @@ import torch
 
 from diacc.config import TrainConfig
 from diacc.envs.actions import ACTION_NAMES
-from diacc.envs.observation import stack
+from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.psar import RULE_NAMES, rule_counts
 from diacc.envs.reward import own_reward, temperature
 from diacc.envs.vector import TrainingEnvs
 from diacc.learn.acting import decide
 from diacc.learn.agent import ROLLOUT_DEVICE, Agent, update_path
-from diacc.learn.buffer import Batch, Rollout, compute_gae, flatten_agents, make_batch
+from diacc.learn.buffer import Batch, Rollout, compute_gae, make_batch
 from diacc.learn.loss import (
     LOSS_NAMES,
     NonFiniteError,
@@ -59,7 +59,7 @@ from diacc.learn.loss import (
 )
 from diacc.learn.loss import evaluate_batch as evaluate_batch  # where callers found it
 from diacc.learn.models.agent_value import AGENT_KEY, agent_features
-from diacc.learn.models.inputs import to_tensors
+from diacc.learn.models.inputs import merge_leading, to_tensors
 from diacc.learn.static_update import static_ppo_update
 from diacc.learn.valuenorm import ValueNorm
 
@@ -132,7 +132,7 @@ def collect_rollout(
         roll.agent_start[t] = start[:, None] | slot_start
         roll.actor_hidden[t] = h_actor.view(E, C, H_a).cpu().numpy()
         agent_start_t = torch.as_tensor(roll.agent_start[t].reshape(-1), device=device)
-        obs_t = to_tensors(flatten_agents(actor_obs), device)
+        obs_t = merge_leading(to_tensors(actor_obs, device), 2)  # (E*C, ...)
         step = decide(actor, obs_t, h_actor, agent_start_t, sampled=True)  # global RNG
         h_actor, dist = step.hidden, step.policy  # (E*C, H), (E*C, 5)
         greedy = step.greedy.view(E, C).cpu().numpy()  # (E, C)
@@ -212,7 +212,10 @@ def rollout_values(critic, value_norm: ValueNorm, roll: Rollout, cfg: TrainConfi
     for t0 in range(0, S, L):
         steps = slice(t0, t0 + L)
         inputs = critic_inputs(
-            stack(roll.critic_state[steps]), stack(roll.actor_obs[steps]), per_agent, device
+            CriticState.stack(roll.critic_state[steps]),
+            ActorObs.stack(roll.actor_obs[steps]),
+            per_agent,
+            device,
         )  # (L, E, ...)
         roll.critic_hidden[t0] = hidden.cpu().numpy()
         value, states = critic.forward_sequence(
@@ -227,7 +230,7 @@ def rollout_values(critic, value_norm: ValueNorm, roll: Rollout, cfg: TrainConfi
     if roll.cut_states:  # V of each truncated episode's last state, from the state after t
         ts, es, finals, actors = zip(*roll.cut_states, strict=True)
         v_final, _ = critic(
-            critic_inputs(stack(list(finals)), stack(list(actors)), per_agent, device),
+            critic_inputs(CriticState.stack(finals), ActorObs.stack(actors), per_agent, device),
             after_t[list(ts), list(es)],
             torch.zeros(len(ts), dtype=torch.bool, device=device),
         )

@@ -40,7 +40,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -115,15 +115,6 @@ class TrafficState(Batched):
             collisions=np.zeros((0, 3), np.int32),
             arrivals=np.zeros((0, 2), np.int32),
             **per_vehicle,
-        )
-
-    def copy(self) -> TrafficState:
-        return TrafficState(
-            **{
-                f.name: (v.copy() if isinstance(v, np.ndarray) else v)
-                for f in fields(self)
-                for v in [getattr(self, f.name)]
-            }
         )
 
 

@@ -35,7 +35,6 @@ from diacc.envs.observation.layout import (
     ObservationError,
     ObservationSpec,
     check_road,
-    stack,
 )
 
 __all__ = [
@@ -64,5 +63,4 @@ __all__ = [
     "ObservationSpec",
     "check_road",
     "features_for",
-    "stack",
 ]

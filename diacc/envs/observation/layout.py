@@ -156,12 +156,6 @@ ACTOR_KEYS = tuple(f.name for f in fields(ActorObs) if f.name not in ("alive", "
 CRITIC_KEYS = tuple(f.name for f in fields(CriticState))
 
 
-def stack(items: list) -> ActorObs | CriticState:
-    """Stack containers of the same type along a new leading axis."""
-    cls = type(items[0])
-    return cls(**{f.name: np.stack([getattr(i, f.name) for i in items]) for f in fields(cls)})
-
-
 # --------------------------------------------------------------------------
 # Sizes without building anything
 # --------------------------------------------------------------------------

@@ -35,10 +35,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.config import BACKENDS, EventConfig, SimConfig, preset_road
+from diacc.config import BACKENDS, EnvConfig, SimConfig, resolve_road
 from diacc.envs.metrics import EpisodeRecorder
 from diacc.sim.backends.base import CavCommands, make_backend
-from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario
 
 BIN_S = 30.0
@@ -85,9 +84,10 @@ def human_flow(
         style_preset=settings.preset,
         highway_merges=settings.highway_merges,
     )
-    road = preset_road(load_map(settings.map_name), sim.style_preset)
+    config = EnvConfig(backend=backend, map=settings.map_name, scenario=scenario, sim=sim)
+    road = resolve_road(config)
     sim_backend = make_backend(backend, road, sim)
-    recorder = EpisodeRecorder(road, EventConfig(), scenario.warmup_s)
+    recorder = EpisodeRecorder(road, config.events, scenario.warmup_s)
     reduction = next(i for i, s in enumerate(road.segments) if s.kind.startswith("reduction"))
     red_end_m = road.segment_ends_m[reduction]
     drop_m = road.segment_starts_m[reduction]

@@ -39,12 +39,18 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.config import STYLE_PRESETS, ConfigError, PSARConfig, preset_road
+from diacc.config import (
+    STYLE_PRESETS,
+    ConfigError,
+    EnvConfig,
+    PSARConfig,
+    SimConfig,
+    resolve_road,
+)
 from diacc.envs.episode import EpisodeDriver
 from diacc.experiments.evaluate import run_episode
 from diacc.experiments.grid import Cell
 from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy, parse_policy
-from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario
 from diacc.sim.state import TrafficState
 
@@ -104,8 +110,9 @@ def pick_references(names: str | None) -> tuple[tuple[str, str, float | None], .
 
 
 def free_flow_travel_s(map_name: str, style_preset: str) -> float:
-    """Time (s) to drive the whole route at each segment's speed limit."""
-    road = preset_road(load_map(map_name), style_preset)
+    """Time (s) to drive the whole route at each segment's speed limit (the road the rows'
+    env configs resolve: its map with the preset's limits)."""
+    road = resolve_road(EnvConfig(map=map_name, sim=SimConfig(style_preset=style_preset)))
     return float(sum(s.length_m / s.speed_limit_mps for s in road.segments))
 
 

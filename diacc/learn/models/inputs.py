@@ -8,7 +8,6 @@ names. Floats become float32, booleans stay bool (masks), integers become int64
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import fields, is_dataclass
 
 import numpy as np
 import torch
@@ -16,6 +15,7 @@ from torch import Tensor
 
 from diacc.envs.observation import ActorObs, CriticState
 from diacc.learn.models.errors import ModelError
+from diacc.records import Batched
 
 TensorDict = dict[str, Tensor]
 
@@ -29,8 +29,8 @@ def to_tensors(
     Unmasked neighbour indices of a critic state are checked to lie inside the
     node axis here, once per conversion, instead of inside every forward pass.
     """
-    if is_dataclass(container):
-        arrays = {f.name: getattr(container, f.name) for f in fields(container)}
+    if isinstance(container, Batched):
+        arrays = container.arrays()
     elif isinstance(container, Mapping):
         arrays = dict(container)
     else:

@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
-from collections.abc import Callable
 from typing import Any, TypeVar
 
 import numpy as np
@@ -150,31 +149,14 @@ def _put_window(target: Any, part: Any, lo: int, hi: int) -> None:
             setattr(target, name, new)
 
 
-def _map_arrays(value: Any, fn: Callable[[np.ndarray], np.ndarray]) -> Any:
-    """``fn`` applied to every array of ``value``, recursing into dataclasses (e.g.
-    :class:`~.models.IdmParams`); other values (scalars) are kept as they are."""
-    if isinstance(value, np.ndarray):
-        return fn(value)
-    if dataclasses.is_dataclass(value):
-        return dataclasses.replace(
-            value,
-            **{f.name: _map_arrays(getattr(value, f.name), fn) for f in dataclasses.fields(value)},
-        )
-    return value
-
-
 _Rows = TypeVar("_Rows", bound="EnvRows")
 
 
 class EnvRows(Batched):
-    """The vehicle-window operations of the batch records (and a deep copy); the env-axis
-    ones are :class:`~diacc.records.Batched`'s."""
+    """The vehicle-window operations of the batch records; the env-axis ones (and the deep
+    copy) are :class:`~diacc.records.Batched`'s."""
 
     __slots__ = ()
-
-    def copy(self: _Rows) -> _Rows:
-        """A deep copy: no array is shared with ``self``."""
-        return _map_arrays(self, np.copy)
 
     def window(self: _Rows, lo: int, hi: int) -> _Rows:
         """Vehicles ``lo:hi`` of every env as a record of views, cut by each field's axes
