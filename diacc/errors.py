@@ -12,3 +12,8 @@ from __future__ import annotations
 
 class DiaccError(Exception):
     """A user mistake or a failure outside diacc (dead simulator, missing Ray); one line."""
+
+
+class MapError(DiaccError, ValueError):
+    """A map file or map name is invalid; the message is one line. Here rather than in
+    :mod:`diacc.sim.maps` because :mod:`diacc.sim.mapgen`, which maps builds on, raises it."""

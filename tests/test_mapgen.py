@@ -23,7 +23,6 @@ from diacc.sim.mapgen import (
     DISTRIBUTION,
     MAP_STREAMS,
     STREAM_SEEDS,
-    generate_map,
     generated_name,
     generated_names,
     generator_seed,
@@ -32,7 +31,7 @@ from diacc.sim.mapgen import (
     parse_generated_name,
     seed_stream,
 )
-from diacc.sim.maps import MapError, load_map, map_tag, parse_map
+from diacc.sim.maps import MapError, generate_map, load_map, map_tag, parse_map
 from diacc.sim.scenario import Scenario, draw_population
 from diacc.sim.settings import SimConfig
 from diacc.sim.state import validate_state

@@ -66,6 +66,15 @@ def test_the_agent_skips_the_cells_it_cannot_observe():
     assert len(suite_cells(SUITES["geometry"])) == 5 and len(suite_cells(SUITES["demand"])) == 1
 
 
+def test_the_generated_suite_is_the_test_streams_maps_and_the_agent_plays_them():
+    """Maps no training or choice may see (the generator's test seeds), every one
+    playable by the shipped agent (its road table and vehicle count hold them)."""
+    cells = suite_cells(SUITES["generated"])
+    assert [c.map for c in cells] == [f"gen-test-{i}" for i in range(20)]
+    assert {c.n_vehicles for c in cells} == {25}
+    assert _playable(PolicySpec(DEFAULT_AGENT), cells, EvalSettings()) == cells
+
+
 @pytest.mark.parametrize(
     "extra, message",
     [

@@ -227,7 +227,8 @@ def add_parsers(sub) -> None:
     p.add_argument(
         "--suites",
         default="all",
-        help="comma-separated suites of train, zero-shot, geometry, paper-congestion, demand; "
+        help="comma-separated suites of train, zero-shot, geometry, generated, paper-congestion, "
+        "demand; "
         "or all",
     )
     p.add_argument("--backends", default="highway,sumo", help="comma-separated backends")

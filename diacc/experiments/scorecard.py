@@ -46,6 +46,7 @@ from diacc.experiments.paired import PairedChange
 from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy, parse_policy
 from diacc.experiments.report import Table, change_unit, table_from_results
 from diacc.fileio import atomic_write, check_output_file
+from diacc.sim.mapgen import generated_names
 from diacc.sim.scenario import EVERY_CAV
 
 #: The shipped agent every scorecard compares with.
@@ -70,6 +71,9 @@ GEOMETRY_MAPS = (
     "benchmarks/maps/three-lane-right.toml",
     "benchmarks/maps/five-lane-fast.toml",
 )
+#: Maps of the ``generated`` suite: the first of the generator's ``test`` stream, which
+#: no training or choice may use (diacc.sim.mapgen).
+GENERATED_MAPS = 20
 
 
 class ScorecardError(DiaccError, ValueError):
@@ -106,6 +110,12 @@ SUITES = {
             tuple({**TRAINING_CELL, "map": m} for m in GEOMETRY_MAPS),
             "realistic",
             "the training traffic on maps never trained on",
+        ),
+        Suite(
+            "generated",
+            tuple({**TRAINING_CELL, "map": m} for m in generated_names("test", GENERATED_MAPS)),
+            "realistic",
+            f"the training traffic on {GENERATED_MAPS} generated maps (test generator seeds)",
         ),
         Suite("paper-congestion", (TRAINING_CELL,), "paper-congestion", "stuck cautious drivers"),
         Suite(

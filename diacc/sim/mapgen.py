@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from diacc.sim.maps import Map, MapError, parse_map
+from diacc.errors import MapError
 
 #: Generator seed streams, in the order their seed ranges follow one another.
 MAP_STREAMS = ("train", "validation", "test")
@@ -188,12 +188,6 @@ def _describe(seed: int, lanes: int, segments: list[dict]) -> str:
         x_m += seg["length_m"]
     limit = segments[0]["speed_limit_mps"]
     return f"Generated (seed {seed}), {x_m} m, {limit:g} m/s: " + ", ".join(parts)
-
-
-def generate_map(stream: str, index: int) -> Map:
-    """Map ``index`` of a generator stream, validated like any map file."""
-    seed = generator_seed(stream, index)
-    return parse_map(map_data(seed), source=generated_name(stream, index))
 
 
 def map_toml(seed: int) -> str:

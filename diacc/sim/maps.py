@@ -26,8 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from diacc.errors import DiaccError
+from diacc.errors import MapError
 from diacc.shipped import data_dir, require_dir
+from diacc.sim import mapgen
 from diacc.tomlfile import read_toml
 
 #: Folder with the shipped map descriptions: package data (:mod:`diacc.shipped`), in a
@@ -47,10 +48,6 @@ _TOP_KEYS = {"name", "description", "lane_width_m", "drop_side", "segments"}
 #: their length (highway-env warned of division by zero at 1e-300 m).
 MIN_SEGMENT_M = 1.0
 _SEGMENT_KEYS = {"kind", "length_m", "lanes", "speed_limit_mps"}
-
-
-class MapError(DiaccError, ValueError):
-    """A map file or map name is invalid; the message is one line."""
 
 
 @dataclass(frozen=True)
@@ -241,17 +238,21 @@ def available_maps() -> list[str]:
     return sorted(p.stem for p in require_dir("maps").glob("*.toml"))
 
 
+def generate_map(stream: str, index: int) -> Map:
+    """Map ``index`` of a generator stream (:mod:`diacc.sim.mapgen`), validated like
+    any map file."""
+    seed = mapgen.generator_seed(stream, index)
+    return parse_map(mapgen.map_data(seed), source=mapgen.generated_name(stream, index))
+
+
 def load_map(name_or_path: str | Path) -> Map:
     """Load a shipped map by name (``"train-25"``), a generated one by name
     (``"gen-test-7"``, :mod:`diacc.sim.mapgen`) or any TOML file by path."""
-    # Imported here: mapgen builds on this module (parse_map, MapError).
-    from diacc.sim import mapgen
-
     path = Path(name_or_path)
     if path.suffix != ".toml":
         name = str(name_or_path)
         if mapgen.is_generated_name(name):
-            return mapgen.generate_map(*mapgen.parse_generated_name(name))
+            return generate_map(*mapgen.parse_generated_name(name))
         path = require_dir("maps") / f"{name}.toml"
         if not path.exists():
             raise MapError(
