@@ -42,7 +42,7 @@ def test_crash_probe_names_each_colliding_pair_with_its_speeds_before():
     command = [sys.executable, str(CRASH_PROBE), "accelerate-nopsar", "1"]
     lines = subprocess.run(command, capture_output=True, text=True, check=True).stdout.splitlines()
     assert lines and all(line.startswith("episode 0, step ") for line in lines)
-    assert all(line.count("m/s a step before") == 2 for line in lines)
-    assert "25.0 m/s a step before" in lines[0]  # the CAV at its top speed
+    assert all(line.count("a step before: lane ") == 2 for line in lines)
+    assert " m, 25.0 m/s; segment" in lines[0]  # the CAV at its top speed
     bad = subprocess.run([*command[:2], "/no/such/run"], capture_output=True, text=True)
     assert bad.returncode == 1 and bad.stderr.startswith("crash_probe.py: error: unknown policy")
