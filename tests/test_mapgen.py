@@ -137,6 +137,20 @@ def test_a_sample_is_valid_and_covers_the_distribution():
     assert shortest_m <= min(lengths) < 1300 < max(lengths) <= longest_m  # around the shipped
 
 
+def _drive_into_the_reduction(backend, road, scenario, steps=40):
+    """Step idle commands: no collision, every vehicle on a lane that exists, and the
+    leaders past the first segment (into the reduction)."""
+    state = first_env(backend.reset(scenario, seed=1))
+    for _ in range(steps):
+        batch = backend.step(CavCommands.idle(scenario.n_vehicles))
+        validate_state(batch)
+        state = first_env(batch)
+        assert state.collisions.shape == (0, 2)
+        act = state.active
+        assert road.lane_exists()[state.segment[act], state.lane[act]].all()
+    assert state.x_m[state.active].max() > road.segments[0].length_m
+
+
 @pytest.mark.parametrize(
     "name", ["gen-train-5", "gen-validation-1", "gen-test-8", "gen-test-9"]
 )  # 2 lanes twice to 1 (left), 5 lanes right twice, 3 -> 1 twice right, 4 -> 2 left
@@ -144,15 +158,7 @@ def test_highway_builds_and_steps_generated_maps(name):
     road = load_map(name)
     backend = HighwayBackend(road, SimConfig())
     n = 25  # human drivers only: CAVs without commands would keep an ending lane
-    state = first_env(backend.reset(Scenario.with_cavs(n, 0), seed=1))
-    for _ in range(40):
-        batch = backend.step(CavCommands.idle(n))
-        validate_state(batch)
-        state = first_env(batch)
-        assert state.collisions.shape == (0, 2)
-        act = state.active
-        assert road.lane_exists()[state.segment[act], state.lane[act]].all()
-    assert state.x_m[state.active].max() > road.segments[0].length_m  # reached the reduction
+    _drive_into_the_reduction(backend, road, Scenario.with_cavs(n, 0))
 
 
 @pytest.mark.parametrize("name", ["gen-validation-1", "gen-test-8"])
@@ -167,15 +173,7 @@ def test_sumo_builds_and_steps_generated_maps(name, tmp_path):
     n = 25
     sim = dataclasses.replace(SimConfig(), cav_mode="cooperative")
     with SumoBackend(road, sim) as backend:
-        state = first_env(backend.reset(Scenario(n_vehicles=n, cav_penetration=0.2), seed=1))
-        for _ in range(40):
-            batch = backend.step(CavCommands.idle(n))
-            validate_state(batch)
-            state = first_env(batch)
-            assert state.collisions.shape == (0, 2)
-            act = state.active
-            assert road.lane_exists()[state.segment[act], state.lane[act]].all()
-        assert state.x_m[state.active].max() > road.segments[0].length_m
+        _drive_into_the_reduction(backend, road, Scenario(n_vehicles=n, cav_penetration=0.2))
 
 
 def test_an_environment_takes_a_generated_map_name():

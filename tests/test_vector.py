@@ -46,9 +46,9 @@ def test_episode_seeds_are_distinct_and_reproducible():
     assert episode_seed(1, 2, 3) == episode_seed(1, 2, 3) != episode_seed(2, 2, 3)
 
 
-def test_process_workers_match_in_process_envs():
-    sync = SyncVectorEnv(CONFIG, 2, run_seed=5)
-    procs = ProcessVectorEnv(SyncVectorEnv, CONFIG, 2, run_seed=5)
+def _assert_same_run(sync, procs):
+    """Run both vector envs alike (closing them) and assert identical steps; returns
+    the in-process run's array."""
     in_process, in_workers = [], []
     try:
         a, b = _run(sync, outs=in_process), _run(procs, outs=in_workers)
@@ -56,7 +56,14 @@ def test_process_workers_match_in_process_envs():
         sync.close()
         procs.close()
     np.testing.assert_array_equal(a, b)
-    assert_same(in_process, in_workers, "steps")  # reward terms and episodes included
+    assert_same(in_process, in_workers, "steps")
+    return a
+
+
+def test_process_workers_match_in_process_envs():
+    sync = SyncVectorEnv(CONFIG, 2, run_seed=5)
+    procs = ProcessVectorEnv(SyncVectorEnv, CONFIG, 2, run_seed=5)
+    a = _assert_same_run(sync, procs)  # reward terms and episodes included
     assert not np.array_equal(a[:, 0], a[:, 1]), "the two envs must get different seeds"
 
 
@@ -332,11 +339,4 @@ def test_process_workers_batch_their_highway_groups(monkeypatch):
     procs = make_vector_env(CONFIG, 4, 5, "auto", learner_device="cuda")
     assert isinstance(procs, ProcessVectorEnv) and procs.group_class is BatchedVectorEnv
     assert procs.groups == [[0, 1], [2, 3]]
-    in_process, in_workers = [], []
-    try:
-        a, b = _run(sync, outs=in_process), _run(procs, outs=in_workers)
-    finally:
-        sync.close()
-        procs.close()
-    np.testing.assert_array_equal(a, b)
-    assert_same(in_process, in_workers, "steps")
+    _assert_same_run(sync, procs)
