@@ -24,11 +24,17 @@ def add_parsers(sub) -> None:
         "bench",
         "speed benchmarks, measured side by side in one run",
         "Choose at least one of --backend, --models, --training, --env-batch, --safety, "
-        "--headway, --headroom, --fidelity.",
+        "--headway, --headroom, --fidelity, --agent-slots.",
     )
     p.add_argument("--backend", choices=BACKENDS, help="backend vs its reference simulator loop")
     p.add_argument("--models", action="store_true", help="network sizes and forward/update times")
     p.add_argument("--training", action="store_true", help="end-to-end training env-steps/s")
+    p.add_argument(
+        "--agent-slots",
+        action="store_true",
+        help="a cap of 16 agent slots vs every CAV an agent: rollout and update seconds, "
+        "decisions, buffer bytes per slot and per critic row (demand 3600 veh/h, highway)",
+    )
     p.add_argument(
         "--env-batch",
         action="store_true",
@@ -148,7 +154,7 @@ def add_parsers(sub) -> None:
         help="steps to time of --backend / --env-batch (default: highway 200, sumo 500, "
         "--env-batch 60 vector steps)",
     )
-    add_device_arg(p, "torch device of --models and --training's PPO update")
+    add_device_arg(p, "torch device of --models and the PPO update of --training and --agent-slots")
     # --steps, the former name of both --timing-steps and --headway / --headroom's
     # --episode-steps: hidden, still accepted (cmd_bench gives it the meaning it had)
     p.add_argument("--steps", dest="legacy_steps", type=int, default=None, help=argparse.SUPPRESS)
@@ -268,6 +274,11 @@ def cmd_bench(args: argparse.Namespace) -> None:
 
         training.run(device=bench_device(args.device))
         ran = True
+    if args.agent_slots:
+        from diacc.experiments.bench import slots
+
+        slots.run(device=bench_device(args.device))
+        ran = True
     if args.env_batch:
         from diacc.experiments.bench import envbatch
 
@@ -276,7 +287,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
     if not ran:
         raise ConfigError(
             "choose what to benchmark: --backend highway|sumo, --models, --training, "
-            "--env-batch, --safety, --headway or --headroom"
+            "--env-batch, --agent-slots, --safety, --headway or --headroom"
         )
 
 
