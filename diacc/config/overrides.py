@@ -102,6 +102,15 @@ def _rederive_psar(tree: dict[str, Any]) -> bool:
 
 def _coerce(current: Any, value: Any, key: str) -> Any:
     kind = type(current)
+    if kind is tuple and current and not isinstance(current[0], str):
+        # of numbers (a range, mix.n_vehicles): "15,40" (--set) or a list, each item
+        # parsed as the default's are
+        items = value.split(",") if isinstance(value, str) else value
+        if not isinstance(items, list | tuple):
+            raise ConfigError(f"config key {key!r} expects a list of numbers, got {value!r}")
+        return tuple(
+            _coerce(current[0], v.strip() if isinstance(v, str) else v, key) for v in items
+        )
     if kind is tuple:  # of strings: "a,b" (--set) or a TOML / JSON list
         items = value.split(",") if isinstance(value, str) else value
         if not isinstance(items, list | tuple) or not all(isinstance(v, str) for v in items):

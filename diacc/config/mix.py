@@ -1,0 +1,141 @@
+"""The training mix (``[mix]``, :class:`MixConfig`): a distribution of roads and traffic a
+run samples its episodes from, instead of the one cell ``env.map`` + ``env.scenario`` +
+``env.sim.style_preset`` (docs/concepts/training-mix.md).
+
+Here the settings and what follows from them without drawing anything: the maps
+(:meth:`MixConfig.map_names`), the scenario of any point of the distribution
+(:func:`cell_scenario`) and its corners (:func:`corner_scenarios`), which bound the
+agent slots every env is padded to (:func:`train_slots`) and the vehicles a cell can
+hold (checked by :func:`diacc.config.checks.validate`). The draws themselves are
+:mod:`diacc.envs.mix`'s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from diacc.fields import MAX_ENVS, MAX_INFLOW_VPH, MAX_VEHICLES, ConfigError, check_fields, ranged
+from diacc.sim.drivers import STYLE_PRESETS
+from diacc.sim.mapgen import STREAM_SEEDS, generated_names
+from diacc.sim.scenario import EVERY_CAV, SCENARIO_KINDS, STYLE_MIXES, Scenario
+
+if TYPE_CHECKING:
+    from diacc.config.train import TrainConfig
+
+#: Range fields: (low, high), both inclusive, drawn uniformly (N as an integer).
+RANGES = ("n_vehicles", "cav_penetration", "inflow_vph")
+#: Choice fields: each drawn uniformly among the names listed.
+CHOICES = {"style_mix": tuple(STYLE_MIXES), "style_preset": tuple(STYLE_PRESETS)}
+
+
+@dataclass(frozen=True)
+class MixConfig:
+    """A distribution of training cells (map, traffic, driver preset); off when it names
+    no map (the default: the run trains on ``env.map`` and ``extra_maps`` as before).
+
+    The environments are split into ``blocks`` contiguous blocks; every
+    ``redraw_every`` updates each block draws its cell anew from the distribution
+    (:func:`diacc.envs.mix.draw_cells`). A cell's scenario is ``env.scenario`` with the
+    drawn kind, CAV share, style mix and N (a release) or inflow (a demand, which gives
+    every CAV of its ``demand_s`` seconds an agent slot); its other settings (insertion,
+    warm-up) are ``env.scenario``'s. The agent slots of every env are padded to the most
+    any cell can have (:func:`train_slots`). Every dimension defaults to the paper's
+    training cell (``Scenario()``'s, realistic drivers), so a mix varies what it lists;
+    ``configs/suite-train.toml`` lists them all.
+    """
+
+    # shipped names, .toml paths or generated names (gen-train-3)
+    maps: tuple[str, ...] = ()
+    # and the first this many maps of the generated training stream (gen-train-0, ...)
+    generated_maps: int = ranged(0, 0, STREAM_SEEDS, why="the training stream's maps")
+    n_vehicles: tuple[int, ...] = ranged((25, 25), 1, MAX_VEHICLES)  # a release's N
+    cav_penetration: tuple[float, ...] = ranged((0.4, 0.4), 0, 1)
+    style_mix: tuple[str, ...] = ("D1",)
+    style_preset: tuple[str, ...] = ("realistic",)
+    kind: tuple[str, ...] = ("release",)
+    inflow_vph: tuple[float, ...] = ranged(
+        (2400.0, 2400.0), 0, MAX_INFLOW_VPH, open_low=True, why="more than 4 lanes carry"
+    )  # a demand's
+    # a demand's duration: inflow_vph's high end x demand_s makes its most vehicles, which
+    # env.obs.max_vehicles bounds (validate)
+    demand_s: float = ranged(30.0, 0, open_low=True)
+    blocks: int = ranged(4, 1, MAX_ENVS, why="each block is a simulator")  # <= n_envs
+    redraw_every: int = ranged(1, 1)  # updates between draws
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+        if any(isinstance(n, bool) or not isinstance(n, int) for n in self.n_vehicles):
+            raise ConfigError(f"mix.n_vehicles must be integers, got {list(self.n_vehicles)}")
+        for name in RANGES:
+            value = getattr(self, name)
+            if len(value) != 2 or value[0] > value[1]:
+                raise ConfigError(
+                    f"mix.{name} must be a range [low, high] with low <= high, got {list(value)}"
+                )
+        for name, known in (*CHOICES.items(), ("kind", SCENARIO_KINDS)):
+            value = getattr(self, name)
+            if not value:
+                raise ConfigError(f"mix.{name} is empty; list one or more of {', '.join(known)}")
+            unknown = [v for v in value if v not in known]
+            if unknown:
+                raise ConfigError(f"mix.{name}: unknown {unknown[0]!r}; known: {', '.join(known)}")
+
+    @property
+    def on(self) -> bool:
+        """Whether the run trains on the mix (it names a map)."""
+        return bool(self.maps) or self.generated_maps > 0
+
+    def map_names(self) -> tuple[str, ...]:
+        """Every map a block may draw: ``maps``, then the generated ones."""
+        generated = generated_names("train", self.generated_maps) if self.generated_maps else []
+        return (*self.maps, *generated)
+
+
+def cell_scenario(
+    base: Scenario,
+    kind: str,
+    cav_penetration: float,
+    style_mix: str,
+    n_vehicles: int,
+    inflow_vph: float,
+    demand_s: float,
+) -> Scenario:
+    """``base`` (``env.scenario``) with a cell's draws: a release of ``n_vehicles``, or a
+    demand of ``inflow_vph`` over ``demand_s`` with an agent slot for every CAV."""
+    shared = {"cav_penetration": cav_penetration, "style_mix": style_mix}
+    if kind == "release":
+        return base.replace(kind="release", n_vehicles=n_vehicles, **shared)
+    return base.replace(
+        kind="demand", inflow_vph=inflow_vph, demand_s=demand_s, cav_slots=EVERY_CAV, **shared
+    )
+
+
+def corner_scenarios(mix: MixConfig, base: Scenario) -> list[Scenario]:
+    """The scenarios at the low and high ends of every kind the mix draws: the fewest
+    and the most vehicles and CAVs any of its cells has (counts grow with N, inflow and
+    the CAV share)."""
+    corners = []
+    for kind in dict.fromkeys(mix.kind):
+        for end in (0, 1):
+            corners.append(
+                cell_scenario(
+                    base,
+                    kind,
+                    mix.cav_penetration[end],
+                    mix.style_mix[0],
+                    mix.n_vehicles[end],
+                    mix.inflow_vph[end],
+                    mix.demand_s,
+                )
+            )
+    return corners
+
+
+def train_slots(cfg: TrainConfig) -> int:
+    """Agent slots C of every env of a run: ``env.scenario``'s, or with a mix the most
+    any of its cells has (the envs of a cell with fewer are padded with slots that never
+    hold a CAV)."""
+    if not cfg.mix.on:
+        return cfg.env.scenario.n_slots
+    return max(s.n_slots for s in corner_scenarios(cfg.mix, cfg.env.scenario))
