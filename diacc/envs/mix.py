@@ -18,6 +18,7 @@ import numpy as np
 
 from diacc.config import EnvConfig
 from diacc.config.mix import MixConfig, cell_scenario
+from diacc.sim.maps import map_tag
 from diacc.sim.scenario import Scenario
 
 #: First entropy word of the mix's draws (no other seeded stream uses it).
@@ -46,11 +47,13 @@ class Cell:
 
     @property
     def label(self) -> str:
-        """One short line: ``train-50 release N23 cav0.41 D2 realistic``."""
+        """One short line: ``train-50 release N23 cav0.41 D2 realistic`` (a map file by its
+        :func:`~diacc.sim.maps.map_tag`)."""
         s = self.scenario
         size = f"N{s.n_vehicles}" if s.kind == "release" else f"{s.inflow_vph:.0f}vph"
         mix = s.style_mix if isinstance(s.style_mix, str) else "custom"
-        return f"{self.map} {s.kind} {size} cav{s.cav_penetration:.2f} {mix} {self.style_preset}"
+        share = f"cav{s.cav_penetration:.2f}"
+        return f"{map_tag(self.map)} {s.kind} {size} {share} {mix} {self.style_preset}"
 
 
 def redraw_index(mix: MixConfig, update: int) -> int:
