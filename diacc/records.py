@@ -305,7 +305,7 @@ class Batched:
         by their own declarations; events, shared values and other items are kept.
         """
         parts: dict[str, Any] = {}
-        for f in dataclasses.fields(self):
+        for f in dataclasses.fields(type(self)):  # type: ignore[arg-type]
             value, kind = getattr(self, f.name), _kind(f)
             if value is None or kind in (_EVENTS, _SHARED):
                 pass

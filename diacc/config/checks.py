@@ -1,6 +1,6 @@
 """The relations between a training config's fields that only a run needs
-(:func:`validate`, called before a run writes anything), and the memory estimate it
-bounds (:func:`rollout_bytes`)."""
+(:func:`validate`, called before a run writes anything), the memory estimate it
+bounds (:func:`rollout_bytes`) and the agent slots of a run's envs (:func:`train_slots`)."""
 
 from __future__ import annotations
 
@@ -8,12 +8,21 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from diacc.config.mix import corner_scenarios, train_slots
+from diacc.config.mix import corner_scenarios
 from diacc.config.train import TrainConfig
 from diacc.errors import MapError
 from diacc.fields import MAX_ROLLOUT_BYTES, ConfigError
 from diacc.sim.maps import load_map
 from diacc.sim.settings import BATCHED_BACKENDS
+
+
+def train_slots(cfg: TrainConfig) -> int:
+    """Agent slots C of every env of a run: ``env.scenario``'s, or with a mix the most
+    any of its cells has (the envs of a cell with fewer are padded with slots that never
+    hold a CAV)."""
+    if not cfg.mix.on:
+        return cfg.env.scenario.n_slots
+    return max(s.n_slots for s in corner_scenarios(cfg.mix, cfg.env.scenario))
 
 
 def rollout_bytes(cfg: TrainConfig) -> int:

@@ -5,23 +5,19 @@ run samples its episodes from, instead of the one cell ``env.map`` + ``env.scena
 Here the settings and what follows from them without drawing anything: the maps
 (:meth:`MixConfig.map_names`), the scenario of any point of the distribution
 (:func:`cell_scenario`) and its corners (:func:`corner_scenarios`), which bound the
-agent slots every env is padded to (:func:`train_slots`) and the vehicles a cell can
-hold (checked by :func:`diacc.config.checks.validate`). The draws themselves are
+agent slots every env is padded to (:func:`diacc.config.checks.train_slots`) and the
+vehicles a cell can hold (checked by :func:`diacc.config.checks.validate`). The draws themselves are
 :mod:`diacc.envs.mix`'s.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from diacc.fields import MAX_ENVS, MAX_INFLOW_VPH, MAX_VEHICLES, ConfigError, check_fields, ranged
 from diacc.sim.drivers import STYLE_PRESETS
 from diacc.sim.mapgen import STREAM_SEEDS, generated_names
 from diacc.sim.scenario import EVERY_CAV, SCENARIO_KINDS, STYLE_MIXES, Scenario
-
-if TYPE_CHECKING:
-    from diacc.config.train import TrainConfig
 
 #: Range fields: (low, high), both inclusive, drawn uniformly (N as an integer).
 RANGES = ("n_vehicles", "cav_penetration", "inflow_vph")
@@ -40,9 +36,9 @@ class MixConfig:
     drawn kind, CAV share, style mix and N (a release) or inflow (a demand, which gives
     every CAV of its ``demand_s`` seconds an agent slot); its other settings (insertion,
     warm-up) are ``env.scenario``'s. The agent slots of every env are padded to the most
-    any cell can have (:func:`train_slots`). Every dimension defaults to the paper's
-    training cell (``Scenario()``'s, realistic drivers), so a mix varies what it lists;
-    ``configs/suite-train.toml`` lists them all.
+    any cell can have (:func:`~diacc.config.checks.train_slots`). Every dimension
+    defaults to the paper's training cell (``Scenario()``'s, realistic drivers), so a
+    mix varies what it lists; ``configs/suite-train.toml`` lists them all.
     """
 
     # shipped names, .toml paths or generated names (gen-train-3)
@@ -130,12 +126,3 @@ def corner_scenarios(mix: MixConfig, base: Scenario) -> list[Scenario]:
                 )
             )
     return corners
-
-
-def train_slots(cfg: TrainConfig) -> int:
-    """Agent slots C of every env of a run: ``env.scenario``'s, or with a mix the most
-    any of its cells has (the envs of a cell with fewer are padded with slots that never
-    hold a CAV)."""
-    if not cfg.mix.on:
-        return cfg.env.scenario.n_slots
-    return max(s.n_slots for s in corner_scenarios(cfg.mix, cfg.env.scenario))

@@ -74,8 +74,8 @@ def draw_cells(mix: MixConfig, base: Scenario, run_seed: int, redraw: int) -> li
         style_mix = mix.style_mix[rng.integers(len(mix.style_mix))]
         preset = mix.style_preset[rng.integers(len(mix.style_preset))]
         n_vehicles = int(rng.integers(mix.n_vehicles[0], mix.n_vehicles[1] + 1))
-        share = float(rng.uniform(*mix.cav_penetration))
-        inflow = float(rng.uniform(*mix.inflow_vph))
+        share = float(rng.uniform(mix.cav_penetration[0], mix.cav_penetration[1]))
+        inflow = float(rng.uniform(mix.inflow_vph[0], mix.inflow_vph[1]))
         scenario = cell_scenario(base, kind, share, style_mix, n_vehicles, inflow, mix.demand_s)
         cells.append(Cell(road_map, scenario, preset))
     return cells

@@ -36,8 +36,8 @@ import numpy as np
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from diacc.config import TrainConfig, flatten_config, resolve_road, validate
-from diacc.config.mix import corner_scenarios, train_slots
+from diacc.config import TrainConfig, flatten_config, resolve_road, train_slots, validate
+from diacc.config.mix import corner_scenarios
 from diacc.console import TrainProgress
 from diacc.envs.actions import ACTION_NAMES
 from diacc.envs.mix import Cell, cells_of_envs, describe, draw_cells, redraw_index
