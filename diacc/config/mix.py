@@ -1,6 +1,6 @@
 """The training mix (``[mix]``, :class:`MixConfig`): a distribution of roads and traffic a
 run samples its episodes from, instead of the one cell ``env.map`` + ``env.scenario`` +
-``env.sim.style_preset`` (docs/concepts/training-mix.md).
+``env.sim.style_preset`` (docs/concepts/maps.md, "Training on a mix of roads and traffic").
 
 Here the settings and what follows from them without drawing anything: the maps
 (:meth:`MixConfig.map_names`), the scenario of any point of the distribution
