@@ -272,3 +272,37 @@ def test_sumo_run_with_a_two_map_mix(tmp_path):
     cfg = override(TrainConfig(), _sumo_mix(tmp_path))
     train(cfg, progress=False)
     assert (tmp_path / "run" / "train.log").read_text().count("mix draw") == 2
+
+
+def test_worker_processes_take_new_cells(tmp_path):
+    """``vector = "process"``: each worker rebuilds its envs' batches on a new draw, and
+    the joined steps are padded as the in-process ones."""
+    cfg = override(TrainConfig(), tiny_mix(tmp_path))
+    first = cells_of_envs(draw_cells(cfg.mix, cfg.env.scenario, cfg.seed, 0), 4)
+    envs = make_vector_env(cfg.env, 4, cfg.seed, "process", env_cells=first, n_slots=6)
+    try:
+        for redraw in (0, 1):
+            cells = cells_of_envs(draw_cells(cfg.mix, cfg.env.scenario, cfg.seed, redraw), 4)
+            envs.set_cells(cells)
+            actor, _ = envs.reset(redraw)
+            assert actor.alive.shape == (4, 6)
+            out = envs.step(np.zeros((4, 6), np.int64))
+            assert out.actor_obs.alive.shape == (4, 6) and not out.crashed.any()
+            for e, cell in enumerate(cells):
+                if cell.scenario.kind == "release":  # every CAV on the road at the start
+                    assert actor.alive[e].sum() == cell.scenario.n_slots
+                assert not actor.alive[e, cell.scenario.n_slots :].any()
+    finally:
+        envs.close()
+
+
+def test_overlap_collects_the_next_updates_cells(tmp_path):
+    """With ``overlap`` the next rollout is collected during an update: on its own draw."""
+    cfg = override(TrainConfig(), {**tiny_mix(tmp_path), "overlap": True, "mix.redraw_every": 2})
+    train(cfg, progress=False)
+    log = (tmp_path / "run" / "train.log").read_text()
+    assert [line.split(": mix draw ")[1][0] for line in log.splitlines() if "mix draw" in line] == [
+        "0",
+        "1",
+    ]
+    assert "update 3: mix draw 1" in log
