@@ -99,8 +99,14 @@ def test_mix_from_a_toml_file_and_set_is_one_checked_section(tmp_path):
     ("sets", "message"),
     [
         (["mix.maps=train-50,nowhere"], "mix.maps: "),
-        (["mix.maps=train-50", "mix.style_mix="], "mix.style_mix is empty"),
-        (["mix.maps=train-50", "mix.kind="], "mix.kind is empty"),
+        (
+            ["mix.maps=train-50", "mix.style_preset=paper", "env.sim.style_preset=zipper"],
+            "mix.style_preset and env.sim.style_preset",
+        ),
+        (
+            ["mix.maps=train-50", "mix.n_vehicles=15,30", "env.scenario.n_vehicles=30"],
+            "mix.n_vehicles and env.scenario.n_vehicles",
+        ),
         (["mix.maps=train-50", "mix.n_vehicles=30,20"], "low <= high"),
         (["mix.maps=train-50", "mix.cav_penetration=0.2"], "a range"),
         (["mix.maps=train-50", "mix.n_vehicles=20,45"], "exceeds env.obs.max_vehicles 40"),
@@ -139,7 +145,7 @@ def test_draws_are_seeded_by_run_redraw_and_block():
         inflow_vph=(2400.0, 4800.0),
         style_mix=("D1", "D2", "D3"),
         blocks=4,
-    )
+    ).following(Scenario(), "realistic")  # the preset left out: the run's own
     base = Scenario()
     first = draw_cells(mix, base, run_seed=3, redraw=7)
     assert first == draw_cells(mix, base, run_seed=3, redraw=7)
@@ -306,3 +312,20 @@ def test_overlap_collects_the_next_updates_cells(tmp_path):
         "1",
     ]
     assert "update 3: mix draw 1" in log
+
+
+def test_dimensions_a_mix_leaves_out_are_the_runs_own():
+    """Nothing the user set is dropped: a mix that lists only maps trains the run's own
+    N, CAV share, style mix and driver preset on them."""
+    cfg = build_train_config(
+        sets=[
+            "mix.maps=train-50,train-25",
+            "env.scenario.n_vehicles=30",
+            "env.scenario.cav_penetration=0.5",
+            "env.sim.style_preset=paper-congestion",
+        ]
+    )
+    assert cfg.mix.n_vehicles == (30, 30)
+    assert cfg.mix.cav_penetration == (0.5, 0.5)
+    assert cfg.mix.style_preset == ("paper-congestion",)
+    assert cfg.mix.style_mix == ("D1",) and cfg.mix.kind == ("release",)

@@ -12,13 +12,18 @@ vehicles a cell can hold (checked by :func:`diacc.config.checks.validate`). The 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 from diacc.fields import MAX_ENVS, MAX_INFLOW_VPH, MAX_VEHICLES, ConfigError, check_fields, ranged
 from diacc.sim.drivers import STYLE_PRESETS
 from diacc.sim.mapgen import STREAM_SEEDS, generated_names
 from diacc.sim.scenario import EVERY_CAV, SCENARIO_KINDS, STYLE_MIXES, Scenario
+from diacc.sim.settings import SimConfig
 
+#: A demand's inflow when none is set (:class:`~diacc.sim.scenario.Demand`'s default).
+_DEFAULT_INFLOW_VPH = Scenario(kind="demand").inflow_vph
 #: Range fields: (low, high), both inclusive, drawn uniformly (N as an integer).
 RANGES = ("n_vehicles", "cav_penetration", "inflow_vph")
 #: Choice fields: each drawn uniformly among the names listed.
@@ -36,22 +41,26 @@ class MixConfig:
     drawn kind, CAV share, style mix and N (a release) or inflow (a demand, which gives
     every CAV of its ``demand_s`` seconds an agent slot); its other settings (insertion,
     warm-up) are ``env.scenario``'s. The agent slots of every env are padded to the most
-    any cell can have (:func:`~diacc.config.checks.train_slots`). Every dimension
-    defaults to the paper's training cell (``Scenario()``'s, realistic drivers), so a
-    mix varies what it lists; ``configs/suite-train.toml`` lists them all.
+    any cell can have (:func:`~diacc.config.checks.train_slots`). A dimension the mix
+    leaves out (empty) is the run's own: ``env.scenario``'s N, CAV share, style mix and
+    kind, ``env.sim.style_preset`` (:meth:`following`, applied when the
+    :class:`~diacc.config.train.TrainConfig` is built), so a mix varies what it lists and
+    nothing the user set is dropped; a dimension set both here and, to another value
+    than its default, in ``env`` is refused; ``configs/suite-train.toml`` lists them all.
     """
 
     # shipped names, .toml paths or generated names (gen-train-3)
     maps: tuple[str, ...] = ()
     # and the first this many maps of the generated training stream (gen-train-0, ...)
     generated_maps: int = ranged(0, 0, STREAM_SEEDS, why="the training stream's maps")
-    n_vehicles: tuple[int, ...] = ranged((25, 25), 1, MAX_VEHICLES)  # a release's N
-    cav_penetration: tuple[float, ...] = ranged((0.4, 0.4), 0, 1)
-    style_mix: tuple[str, ...] = ("D1",)
-    style_preset: tuple[str, ...] = ("realistic",)
-    kind: tuple[str, ...] = ("release",)
+    # every dimension: () = the run's own (env.scenario's, env.sim.style_preset)
+    n_vehicles: tuple[int, ...] = ranged((), 1, MAX_VEHICLES)  # a release's N
+    cav_penetration: tuple[float, ...] = ranged((), 0, 1)
+    style_mix: tuple[str, ...] = ()
+    style_preset: tuple[str, ...] = ()
+    kind: tuple[str, ...] = ()
     inflow_vph: tuple[float, ...] = ranged(
-        (2400.0, 2400.0), 0, MAX_INFLOW_VPH, open_low=True, why="more than 4 lanes carry"
+        (), 0, MAX_INFLOW_VPH, open_low=True, why="more than 4 lanes carry"
     )  # a demand's
     # a demand's duration: inflow_vph's high end x demand_s makes its most vehicles, which
     # env.obs.max_vehicles bounds (validate)
@@ -65,14 +74,12 @@ class MixConfig:
             raise ConfigError(f"mix.n_vehicles must be integers, got {list(self.n_vehicles)}")
         for name in RANGES:
             value = getattr(self, name)
-            if len(value) != 2 or value[0] > value[1]:
+            if value and (len(value) != 2 or value[0] > value[1]):
                 raise ConfigError(
                     f"mix.{name} must be a range [low, high] with low <= high, got {list(value)}"
                 )
         for name, known in (*CHOICES.items(), ("kind", SCENARIO_KINDS)):
             value = getattr(self, name)
-            if not value:
-                raise ConfigError(f"mix.{name} is empty; list one or more of {', '.join(known)}")
             unknown = [v for v in value if v not in known]
             if unknown:
                 raise ConfigError(f"mix.{name}: unknown {unknown[0]!r}; known: {', '.join(known)}")
@@ -81,6 +88,46 @@ class MixConfig:
     def on(self) -> bool:
         """Whether the run trains on the mix (it names a map)."""
         return bool(self.maps) or self.generated_maps > 0
+
+    def following(self, scenario: Scenario, style_preset: str) -> MixConfig:
+        """This mix with every dimension it leaves out taken from the run's own cell
+        (``env.scenario``, ``env.sim.style_preset``); a dimension it sets that the run
+        also sets to a value other than the default is refused (one would be dropped)."""
+        if not self.on:
+            return self
+        own: dict[str, tuple] = {
+            "n_vehicles": (scenario.n_vehicles,) * 2,
+            "cav_penetration": (scenario.cav_penetration,) * 2,
+            "style_mix": (scenario.style_mix,) if isinstance(scenario.style_mix, str) else (),
+            "style_preset": (style_preset,),
+            "kind": (scenario.kind,),
+            "inflow_vph": (getattr(scenario, "inflow_vph", _DEFAULT_INFLOW_VPH),) * 2,
+        }
+        default = Scenario()
+        defaults = {
+            "n_vehicles": (default.n_vehicles,) * 2,
+            "cav_penetration": (default.cav_penetration,) * 2,
+            "style_mix": (default.style_mix,),
+            "style_preset": (SimConfig().style_preset,),
+            "kind": (default.kind,),
+            "inflow_vph": (_DEFAULT_INFLOW_VPH,) * 2,
+        }
+        filled: dict[str, Any] = {}
+        for name, value in own.items():
+            given = getattr(self, name)
+            if not given:
+                if not value:
+                    raise ConfigError(
+                        f"mix.{name}: the run's own is a custom style mix; list names in mix"
+                    )
+                filled[name] = value
+            elif value != defaults[name]:
+                where = "env.sim.style_preset" if name == "style_preset" else f"env.scenario.{name}"
+                raise ConfigError(
+                    f"mix.{name} and {where} ({value[0]!r}) are both set; the mix draws "
+                    f"{name}: leave {where} at its default or drop mix.{name}"
+                )
+        return dataclasses.replace(self, **filled)
 
     def map_names(self) -> tuple[str, ...]:
         """Every map a block may draw: ``maps``, then the generated ones."""

@@ -188,6 +188,10 @@ class TrainConfig:
                 f"decides it: choose one {'with' if wanted else 'without'} PSAR "
                 f"({', '.join(others)})"
             )
+        # A mix's left-out dimensions are the run's own cell's (MixConfig.following).
+        mix = self.mix.following(self.env.scenario, self.env.sim.style_preset)
+        if mix != self.mix:
+            object.__setattr__(self, "mix", mix)
         if not self.run_dir:
             object.__setattr__(self, "run_dir", default_run_dir(self))
 
