@@ -23,9 +23,11 @@ used to be written per type:
 selects envs as a batch of their own, :meth:`Batched.env` is one env as a batch of
 one, :meth:`Batched.set_rows` overwrites envs in place (new episodes' rows),
 :meth:`Batched.where_rows` zeroes the envs not kept (a crashed simulator's),
-:meth:`Batched.copy` is a deep copy, :meth:`Batched.stack` puts batches of the same
-envs (a rollout's steps) along a new leading axis, :meth:`Batched.arrays` names the
-per-env arrays (what the learner turns into tensors), and :meth:`Batched.unbatched` is one env
+:meth:`Batched.copy` is a deep copy, :meth:`Batched.padded` lengthens a named axis
+(agent slots ``C``: envs of a training mix with fewer CAVs than the run's slots),
+:meth:`Batched.stack` puts batches of the same envs (a rollout's steps) along a new
+leading axis, :meth:`Batched.arrays` names the per-env arrays (what the learner turns
+into tensors), and :meth:`Batched.unbatched` is one env
 without its env axis: the PettingZoo edge's view, the one place the batch axis
 goes ((E,) fields become Python scalars; a record declared ``keeps_batch``
 stays a batch of one there, as the traffic state does for users who index its
@@ -45,12 +47,14 @@ _AXES_KEY = "diacc.record_axes"
 EVENTS = "events"
 
 
-def per_env(axes: str = "E") -> Any:
+def per_env(axes: str = "E", pad: Any = 0) -> Any:
     """A required field holding an array with the env axis first; ``axes`` names its
-    axes, ``"E"`` first (``"E, C"``: one value per env and agent slot)."""
+    axes, ``"E"`` first (``"E, C"``: one value per env and agent slot). ``pad``: the
+    value of an entry :meth:`Batched.padded` adds (an agent slot that never holds a
+    CAV: 0, masks False; an action mask True, as for any slot without a CAV)."""
     if not axes.replace(" ", "").startswith("E"):
         raise ValueError(f"a per-env field's axes start with E, got {axes!r}")
-    return dataclasses.field(metadata={_AXES_KEY: axes})
+    return dataclasses.field(metadata={_AXES_KEY: axes, "pad": pad})
 
 
 def env_events(columns: str) -> Any:
@@ -293,6 +297,31 @@ class Batched:
             parts[name] = value
         return type(self)(**parts)
 
+    def padded(self: Record, axis: str, size: int, batched: bool = True) -> Record:
+        """This batch with every array's axis named ``axis`` (``"C"``) lengthened to
+        ``size`` with its field's ``pad`` value (:func:`per_env`); new arrays where one
+        grows, the others kept. ``batched=False``: a one-env view (:meth:`unbatched`),
+        whose arrays lack the leading E. Records and the records of a list are padded
+        by their own declarations; events, shared values and other items are kept.
+        """
+        parts: dict[str, Any] = {}
+        for f in dataclasses.fields(type(self)):  # type: ignore[arg-type]
+            value, kind = getattr(self, f.name), _kind(f)
+            if value is None or kind in (_EVENTS, _SHARED):
+                pass
+            elif kind in (_RECORD, _BATCH_OF_ONE):
+                value = value.padded(axis, size, batched or kind == _BATCH_OF_ONE)
+            elif kind == _ITEMS:
+                value = [
+                    v.padded(axis, size, False) if isinstance(v, Batched) else v for v in value
+                ]
+            else:
+                names = [a.strip() for a in f.metadata[_AXES_KEY].split(",")][0 if batched else 1 :]
+                if axis in names:
+                    value = _pad_axis(value, names.index(axis), size, f.metadata["pad"])
+            parts[f.name] = value
+        return type(self)(**parts)
+
     def unbatched(self: Record, e: int, copy: bool = False) -> Record:
         """Env ``e`` without the env axis (views, or copies): the PettingZoo edge's view.
 
@@ -319,6 +348,19 @@ class Batched:
                 value = value[e].copy() if copy else value[e]
             parts[name] = value
         return type(self)(**parts)
+
+
+def _pad_axis(value: np.ndarray, axis: int, size: int, fill: Any) -> np.ndarray:
+    """``value`` with axis ``axis`` lengthened to ``size`` by entries ``fill`` (itself
+    when it is as long already)."""
+    missing = size - value.shape[axis]
+    if missing < 0:
+        raise ValueError(f"cannot pad axis {axis} of length {value.shape[axis]} to {size}")
+    if missing == 0:
+        return value
+    shape = list(value.shape)
+    shape[axis] = missing
+    return np.concatenate([value, np.full(shape, fill, value.dtype)], axis=axis)
 
 
 def _check_all_none(cls: type, name: str, values: list) -> None:

@@ -104,6 +104,7 @@ SHARED = {
     "diacc.config": "diacc.sim",  # the config tree nests the simulator's sections
     "diacc.config.env": "diacc.sim",
     "diacc.config.train": "diacc.sim",
+    "diacc.config.mix": "diacc.sim",
     "diacc.config.overrides": "diacc.sim",
     "diacc.config.stored": "diacc.sim",
     "diacc.config.checks": "diacc.sim",

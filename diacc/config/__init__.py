@@ -18,7 +18,8 @@ live in :mod:`diacc.sim`, which never imports this package). Checked in one way:
 * :func:`validate` adds the relations a training run needs, before it writes anything.
 
 Modules: :mod:`~diacc.config.env` (the environment's sections),
-:mod:`~diacc.config.train` (the trainer's), :mod:`~diacc.config.overrides` (user
+:mod:`~diacc.config.train` (the trainer's), :mod:`~diacc.config.mix` (the training
+mix, ``[mix]``), :mod:`~diacc.config.overrides` (user
 input: :func:`override`, :func:`build_train_config`), :mod:`~diacc.config.stored`
 (checkpoints' configs and their schema version), :mod:`~diacc.config.checks`
 (:func:`validate`). Everything users import is importable from here.
@@ -26,7 +27,7 @@ input: :func:`override`, :func:`build_train_config`), :mod:`~diacc.config.stored
 
 from __future__ import annotations
 
-from diacc.config.checks import _leaves, rollout_bytes, validate  # noqa: F401
+from diacc.config.checks import _leaves, rollout_bytes, train_slots, validate  # noqa: F401
 from diacc.config.env import (  # noqa: F401 - re-exported
     CLOSENESS_MODES,
     EXIT_BONUS_SCALES,
@@ -42,6 +43,7 @@ from diacc.config.env import (  # noqa: F401 - re-exported
     RewardConfig,
     resolve_road,
 )
+from diacc.config.mix import MixConfig  # noqa: F401
 from diacc.config.overrides import build_train_config, override, parse_sets  # noqa: F401
 from diacc.config.stored import CONFIG_SCHEMA, flatten_config, stored_config  # noqa: F401
 from diacc.config.train import (  # noqa: F401 - re-exported

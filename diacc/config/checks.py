@@ -1,6 +1,6 @@
 """The relations between a training config's fields that only a run needs
-(:func:`validate`, called before a run writes anything), and the memory estimate it
-bounds (:func:`rollout_bytes`)."""
+(:func:`validate`, called before a run writes anything), the memory estimate it
+bounds (:func:`rollout_bytes`) and the agent slots of a run's envs (:func:`train_slots`)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,21 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from diacc.config.mix import corner_scenarios
 from diacc.config.train import TrainConfig
+from diacc.errors import MapError
 from diacc.fields import MAX_ROLLOUT_BYTES, ConfigError
+from diacc.sim.maps import load_map
 from diacc.sim.settings import BATCHED_BACKENDS
+
+
+def train_slots(cfg: TrainConfig) -> int:
+    """Agent slots C of every env of a run: ``env.scenario``'s, or with a mix the most
+    any of its cells has (the envs of a cell with fewer are padded with slots that never
+    hold a CAV)."""
+    if not cfg.mix.on:
+        return cfg.env.scenario.n_slots
+    return max(s.n_slots for s in corner_scenarios(cfg.mix, cfg.env.scenario))
 
 
 def rollout_bytes(cfg: TrainConfig) -> int:
@@ -23,11 +35,11 @@ def rollout_bytes(cfg: TrainConfig) -> int:
     per CAV slot its own and K neighbours' (HDV and CAV) T-step histories, masks and
     lane and road tables; per env the critic's ``max_vehicles`` rows.
     """
-    obs, scenario = cfg.env.obs, cfg.env.scenario
+    obs = cfg.env.obs
     k, t = obs.n_neighbours, obs.history_steps
     per_slot = (2 * k + 1) * t * 8 + 3 * k + 64
     per_env = obs.max_vehicles * (2 * k + 8) + 16
-    per_step = max(1, scenario.n_slots) * per_slot + per_env
+    per_step = max(1, train_slots(cfg)) * per_slot + per_env
     return 8 * cfg.rollout_steps * cfg.n_envs * per_step
 
 
@@ -44,12 +56,14 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         raise ConfigError(
             f"the rollout's observations would take about {rollout_bytes(cfg) / 2**30:.3g} GiB "
             f"(rollout_steps {cfg.rollout_steps} x n_envs {cfg.n_envs} x "
-            f"{cfg.env.scenario.n_slots} CAV slots, env.obs n_neighbours "
+            f"{train_slots(cfg)} CAV slots, env.obs n_neighbours "
             f"{cfg.env.obs.n_neighbours}, history_steps {cfg.env.obs.history_steps}, "
             f"max_vehicles {cfg.env.obs.max_vehicles}); at most "
             f"{MAX_ROLLOUT_BYTES / 2**30:g} GiB, a third of a 24 GiB machine"
         )
-    if cfg.env.scenario.n_cavs < 1:
+    if cfg.mix.on:
+        _check_mix(cfg)
+    elif cfg.env.scenario.n_cavs < 1:
         raise ConfigError(
             f"env.scenario: {cfg.env.scenario.n_vehicles} vehicles at cav_penetration "
             f"{cfg.env.scenario.cav_penetration} make 0 CAVs; training needs at least one"
@@ -106,6 +120,45 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"{cfg.chunk_len}); set minibatches <= {sequences} or raise n_envs or rollout_steps"
         )
     return cfg
+
+
+def _check_mix(cfg: TrainConfig) -> None:
+    """The relations of a training mix (``cfg.mix``) with the rest of the config: its maps
+    exist, its blocks have envs, and every cell it can draw has a CAV and fits the
+    critic's ``env.obs.max_vehicles`` rows."""
+    mix = cfg.mix
+    if cfg.extra_maps:
+        raise ConfigError(
+            "extra_maps and mix.maps both split the envs over maps; list every map in mix.maps"
+        )
+    if mix.blocks > cfg.n_envs:
+        raise ConfigError(
+            f"mix.blocks {mix.blocks} needs at least as many envs, got n_envs {cfg.n_envs}"
+        )
+    for road_map in dict.fromkeys(mix.map_names()):
+        try:
+            load_map(road_map)
+        except MapError as exc:
+            raise ConfigError(f"mix.maps: {exc}") from None
+    cap = cfg.env.obs.max_vehicles
+    for scenario in corner_scenarios(mix, cfg.env.scenario):
+        if scenario.n_vehicles > cap:
+            what = (
+                f"mix.n_vehicles up to {scenario.n_vehicles}"
+                if scenario.kind == "release"
+                else f"a demand of mix.inflow_vph {scenario.inflow_vph:g} x mix.demand_s "
+                f"{scenario.demand_s:g} s ({scenario.n_vehicles} vehicles)"
+            )
+            raise ConfigError(
+                f"{what} exceeds env.obs.max_vehicles {cap}, the critic's rows; "
+                "narrow the mix or raise max_vehicles"
+            )
+        if scenario.n_cavs < 1:
+            raise ConfigError(
+                f"mix: a {scenario.kind} of {scenario.n_vehicles} vehicles at cav_penetration "
+                f"{scenario.cav_penetration:g} makes 0 CAVs; training needs at least one "
+                "(raise the low end of mix.cav_penetration, n_vehicles or inflow_vph)"
+            )
 
 
 def _leaves(obj: Any, prefix: str = "") -> list[tuple[str, Any]]:

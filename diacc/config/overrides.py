@@ -84,11 +84,15 @@ def _replace(obj: Any, tree: dict[str, Any], prefix: str) -> Any:
 
 
 def _unset_as(obj: Any, name: str, current: Any) -> Any:
-    """A value of the type a field ``X | None`` takes when it is None (unset), so that
-    :func:`_coerce` parses a given value by it (``--set env.use_psar=false``)."""
+    """A value of the type a field ``X | None`` takes when it is None (unset), or an
+    empty tuple field an item of its declared type, so that :func:`_coerce` parses a
+    given value by it (``--set env.use_psar=false``, ``--set mix.n_vehicles=15,40``)."""
+    hint = next(f.type for f in dataclasses.fields(obj) if f.name == name)
+    if current == ():  # an empty list: an item of its declared type to parse items by
+        item = str(hint).removeprefix("tuple[").split(",")[0].strip()
+        return ({"int": 0, "float": 0.0}.get(item, ""),)
     if current is not None:
         return current
-    hint = next(f.type for f in dataclasses.fields(obj) if f.name == name)
     kind = str(hint).split("|")[0].strip()
     return {"bool": False, "int": 0, "float": 0.0, "str": ""}.get(kind, current)
 
@@ -102,6 +106,15 @@ def _rederive_psar(tree: dict[str, Any]) -> bool:
 
 def _coerce(current: Any, value: Any, key: str) -> Any:
     kind = type(current)
+    if kind is tuple and current and not isinstance(current[0], str):
+        # of numbers (a range, mix.n_vehicles): "15,40" (--set) or a list, each item
+        # parsed as the default's are
+        items = value.split(",") if isinstance(value, str) else value
+        if not isinstance(items, list | tuple):
+            raise ConfigError(f"config key {key!r} expects a list of numbers, got {value!r}")
+        return tuple(
+            _coerce(current[0], v.strip() if isinstance(v, str) else v, key) for v in items
+        )
     if kind is tuple:  # of strings: "a,b" (--set) or a TOML / JSON list
         items = value.split(",") if isinstance(value, str) else value
         if not isinstance(items, list | tuple) or not all(isinstance(v, str) for v in items):

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from diacc.config.env import EnvConfig
+from diacc.config.mix import MixConfig
 from diacc.fields import (
     MAX_ENVS,
     MAX_EPISODE_STEPS,
@@ -158,6 +159,9 @@ class TrainConfig:
     # share (extra_maps=train-50,train-25 with env.map train-50: 2/3 of the envs on it);
     # () trains on env.map alone
     extra_maps: tuple[str, ...] = ()
+    # a distribution of maps and traffic each block of envs draws its cell from, anew
+    # every mix.redraw_every updates (diacc.config.mix); off unless it names a map
+    mix: MixConfig = field(default_factory=MixConfig)
     # a checkpoint whose networks and value normaliser start this run (fine-tuning, e.g. a
     # highway-trained agent on SUMO: --init-from); the optimiser, the step count and the
     # lr and tau schedules start afresh. "" trains from random weights.
@@ -184,6 +188,10 @@ class TrainConfig:
                 f"decides it: choose one {'with' if wanted else 'without'} PSAR "
                 f"({', '.join(others)})"
             )
+        # A mix's left-out dimensions are the run's own cell's (MixConfig.following).
+        mix = self.mix.following(self.env.scenario, self.env.sim.style_preset)
+        if mix != self.mix:
+            object.__setattr__(self, "mix", mix)
         if not self.run_dir:
             object.__setattr__(self, "run_dir", default_run_dir(self))
 

@@ -35,24 +35,31 @@ beside the terms R is made of. What a learner uses of them is
 A run may train on several maps (``TrainConfig.extra_maps``): the environments
 are split into contiguous blocks, one per map (:func:`maps_of_envs`), each
 block one batch (a batch shares one road). Observations have one layout for
-every map, so the trainer sees E environments as before.
+every map, so the trainer sees E environments as before. A training mix
+(``TrainConfig.mix``) goes further: each block's *cell* (map, scenario, driver
+preset; :class:`~diacc.envs.mix.Cell`) is drawn anew between updates
+(:meth:`VectorEnv.set_cells`), and every batch's agent slots are padded to the
+most any cell has (slots that never hold a CAV), so that the learner sees one C.
 """
 
 from __future__ import annotations
 
+import itertools
 import os
-from dataclasses import replace
-from typing import Protocol
+from typing import Protocol, TypeVar
 
 import numpy as np
 
 from diacc.config import EnvConfig, resolve_road
 from diacc.envs.batch import EnvBatch, Simulators
 from diacc.envs.metrics import EpisodeRecorder
+from diacc.envs.mix import Cell
 from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.step import VectorStep, joined, score
 from diacc.envs.vector_process import ProcessVectorEnv
 from diacc.sim.backends.base import backend_class, make_backend
+
+Padded = TypeVar("Padded", ActorObs, VectorStep)
 
 
 class TrainingEnvs(Protocol):
@@ -71,6 +78,9 @@ class TrainingEnvs(Protocol):
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]: ...
 
     def step(self, actions: np.ndarray) -> VectorStep: ...  # actions (E, C)
+
+    #: The cell of each env from the next reset on (a training mix's draw; diacc.envs.mix).
+    def set_cells(self, env_cells: list[Cell]) -> None: ...
 
     def close(self) -> None: ...
 
@@ -123,38 +133,76 @@ class VectorEnv:
         run_seed: int,
         env_indices: list[int] | None = None,
         env_maps: list[str] | None = None,
+        env_cells: list[Cell] | None = None,
+        n_slots: int | None = None,
     ) -> None:
         self.config, self.run_seed = config, run_seed
         self.tau = config.reward.tau_init  # the team reward's temperature (TrainingEnvs)
         self.env_index = list(range(n_envs)) if env_indices is None else list(env_indices)
-        maps = [config.map if env_maps is None else env_maps[e] for e in self.env_index]
-        self.n_envs, self.n_cavs = len(self.env_index), config.scenario.n_slots
+        self.n_envs = len(self.env_index)
+        #: C: every batch's slots are padded to it (a training mix: its cells' most)
+        self.n_cavs = config.scenario.n_slots if n_slots is None else n_slots
         #: Each batch with the positions (in this object) of the envs it holds.
         self.groups: list[tuple[EnvBatch, np.ndarray]] = []
-        for road_map in dict.fromkeys(maps):  # in order of first appearance
-            members = np.flatnonzero([m == road_map for m in maps])
-            cfg = replace(config, map=road_map)
-            road = resolve_road(cfg)
-            if self.batched:
-                cls = backend_class(cfg.backend)
-                if cls.vector_mode != "batched":
-                    raise ValueError(
-                        f"vector mode batched needs the highway backend, not {cfg.backend}"
-                    )
-                backends = [cls(road, cfg.sim, n_envs=len(members))]
-            else:
-                backends = [make_backend(cfg.backend, road, cfg.sim) for _ in members]
-            self.groups.append((EnvBatch(cfg, Simulators(backends)), members))
-        order = np.concatenate([members for _, members in self.groups])
-        if not np.array_equal(order, np.arange(self.n_envs)):
-            raise ValueError("each map's envs must be one contiguous block (maps_of_envs)")
+        self.cells: list[Cell] = []  # each batch's
+        self.recorders: list[EpisodeRecorder] = []  # each batch's episode metrics
+        if env_cells is None:
+            if env_maps is not None:
+                runs = [m for m, _ in itertools.groupby(env_maps[e] for e in self.env_index)]
+                if len(runs) != len(set(runs)):
+                    raise ValueError("each map's envs must be one contiguous block (maps_of_envs)")
+            by_env = env_maps or [config.map] * (max(self.env_index, default=-1) + 1)
+            env_cells = [Cell.of(config, road_map) for road_map in by_env]
+        self.set_cells(env_cells)
         self.episode = [0] * self.n_envs  # next episode (seed) of each env
-        #: each batch's episode metrics, its envs side by side
-        self.recorders = [
-            EpisodeRecorder(batch.road, config.events, config.scenario.warmup_s, len(members))
-            for batch, members in self.groups
-        ]
         self._critic: list[CriticState] = []  # each group's latest critic states (crashes)
+
+    def set_cells(self, env_cells: list[Cell]) -> None:
+        """Make each env train on its cell (``env_cells``: one per env of the run).
+
+        The envs of one cell next to each other are one batch. A batch whose envs and
+        cell are unchanged is kept, the others are closed and built anew (on SUMO their
+        simulators restart). Takes effect at the next :meth:`reset`.
+        """
+        cells = [env_cells[e] for e in self.env_index]
+        old = {
+            (cell, tuple(members)): g
+            for g, (cell, (_, members)) in enumerate(zip(self.cells, self.groups, strict=True))
+        }
+        groups, recorders, start = [], [], 0
+        runs = [(cell, len(list(run))) for cell, run in itertools.groupby(cells)]
+        for cell, size in runs:
+            members = np.arange(start, start + size)
+            start += size
+            kept = old.pop((cell, tuple(members)), None)
+            if kept is not None:
+                groups.append(self.groups[kept])
+                recorders.append(self.recorders[kept])
+                continue
+            cfg = cell.env_config(self.config)
+            batch = EnvBatch(cfg, self._simulators(cfg, size))
+            if batch.n_cavs > self.n_cavs:
+                raise ValueError(
+                    f"{cell.label}: {batch.n_cavs} agent slots, more than {self.n_cavs}"
+                )
+            groups.append((batch, members))
+            recorders.append(EpisodeRecorder(batch.road, cfg.events, cfg.scenario.warmup_s, size))
+        for g in old.values():
+            self.groups[g][0].close()
+        self.groups, self.recorders = groups, recorders
+        self.cells = [cell for cell, _ in runs]
+
+    def _simulators(self, cfg: EnvConfig, n_envs: int) -> Simulators:
+        """The simulations of ``n_envs`` envs of ``cfg``: one batched, or one each."""
+        road = resolve_road(cfg)
+        if self.batched:
+            cls = backend_class(cfg.backend)
+            if cls.vector_mode != "batched":
+                raise ValueError(
+                    f"vector mode batched needs the highway backend, not {cfg.backend}"
+                )
+            return Simulators([cls(road, cfg.sim, n_envs=n_envs)])
+        return Simulators([make_backend(cfg.backend, road, cfg.sim) for _ in range(n_envs)])
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
         """Reset every environment (optionally restarting their episode counters)."""
@@ -164,7 +212,8 @@ class VectorEnv:
         for g, (batch, members) in enumerate(self.groups):
             rows = np.arange(len(members))
             self._start(g, batch, members, rows)
-            pairs.append(batch.observe())
+            actor, critic = batch.observe()
+            pairs.append((self._padded(batch, actor), critic))
         self._critic = [critic for _, critic in pairs]
         return ActorObs.concat([a for a, _ in pairs]), CriticState.concat([c for _, c in pairs])
 
@@ -187,9 +236,19 @@ class VectorEnv:
         """:meth:`step` without the team reward (a worker's part: its parent scores)."""
         parts, start = [], 0
         for g, (batch, members) in enumerate(self.groups):
-            parts.append(self._step_group(g, batch, members, actions[start : start + len(members)]))
+            own = actions[start : start + len(members), : batch.n_cavs]  # (E_g, C_g)
+            parts.append(self._padded(batch, self._step_group(g, batch, members, own)))
             start += len(members)
         return joined(parts)
+
+    def _padded(self, batch: EnvBatch, record: Padded) -> Padded:
+        """``record`` of ``batch`` with its agent slots padded to this vector env's C by
+        slots that never hold a CAV (not alive, zero, every action allowed), so that its
+        rows join the others' and add nothing to a loss, an advantage or the team reward
+        (a training mix: cells with fewer CAVs than the most; the record itself else)."""
+        if batch.n_cavs == self.n_cavs:
+            return record
+        return record.padded("C", self.n_cavs)
 
     def _step_group(
         self, g: int, batch: EnvBatch, members: np.ndarray, actions: np.ndarray
@@ -265,6 +324,8 @@ def make_vector_env(
     mode: str = "auto",
     extra_maps: tuple[str, ...] = (),
     learner_device: str = "cpu",
+    env_cells: list[Cell] | None = None,
+    n_slots: int | None = None,
 ) -> TrainingEnvs:
     """``mode``: ``sync``, ``batched``, ``process`` or ``auto`` (:func:`auto_vector_mode`).
 
@@ -273,20 +334,24 @@ def make_vector_env(
     more than one env (the same results, :class:`BatchedVectorEnv`).
     ``extra_maps``: maps beside ``config.map`` that the environments are split
     over (:func:`maps_of_envs`). ``learner_device``: where the PPO update runs
-    (``cpu``, ``cuda``), which ``auto`` depends on.
+    (``cpu``, ``cuda``), which ``auto`` depends on. ``env_cells``: each env's cell
+    (a training mix's first draw, :mod:`diacc.envs.mix`) instead of ``config``'s and
+    ``extra_maps``; ``n_slots``: the agent slots C every env is padded to (default
+    ``config.scenario``'s).
     """
     env_maps = maps_of_envs((config.map, *extra_maps), n_envs) if extra_maps else None
+    kwargs = {"env_maps": env_maps, "env_cells": env_cells, "n_slots": n_slots}
     if mode == "auto":
         mode = auto_vector_mode(config.backend, n_envs, learner_device)
     if mode == "sync":
-        return SyncVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
+        return SyncVectorEnv(config, n_envs, run_seed, **kwargs)
     if mode == "batched":
-        return BatchedVectorEnv(config, n_envs, run_seed, env_maps=env_maps)
+        return BatchedVectorEnv(config, n_envs, run_seed, **kwargs)
     if mode == "process":
         workers = min(n_envs, os.cpu_count() or 1)
         batches = backend_class(config.backend).vector_mode == "batched" and n_envs > workers
         group = BatchedVectorEnv if batches else SyncVectorEnv
-        return ProcessVectorEnv(group, config, n_envs, run_seed, workers, env_maps=env_maps)
+        return ProcessVectorEnv(group, config, n_envs, run_seed, workers, **kwargs)
     raise ValueError(f"unknown vector mode {mode!r}; choose sync, batched, process or auto")
 
 

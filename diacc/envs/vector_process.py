@@ -17,6 +17,7 @@ import signal
 import numpy as np
 
 from diacc.config import EnvConfig
+from diacc.envs.mix import Cell
 from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.step import VectorStep, cut_steps, joined, score
 from diacc.runlog import join_parent_log, log
@@ -34,12 +35,14 @@ def _worker(
     env_indices: list[int],
     episode: int,
     env_maps: list[str] | None = None,
+    env_cells: list[Cell] | None = None,
+    n_slots: int | None = None,
 ) -> None:
     # Ctrl-C is for the trainer, which stops at the next update boundary; the
     # worker (and the SUMO processes it starts, which inherit this) carries on.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     join_parent_log()  # e.g. a SUMO worker restarted at reset
-    group = group_class(config, 0, run_seed, env_indices, env_maps)
+    group = group_class(config, 0, run_seed, env_indices, env_maps, env_cells, n_slots)
     group.episode = [episode] * group.n_envs
     try:
         while True:
@@ -48,6 +51,9 @@ def _worker(
                 conn.send(group.step_terms(payload))
             elif command == "reset":
                 conn.send(group.reset(payload))
+            elif command == "cells":
+                group.set_cells(payload)
+                conn.send(None)
             elif command == "close":
                 break
     except (EOFError, KeyboardInterrupt):
@@ -75,11 +81,15 @@ class ProcessVectorEnv:
         run_seed: int,
         n_workers: int | None = None,
         env_maps: list[str] | None = None,
+        env_cells: list[Cell] | None = None,
+        n_slots: int | None = None,
     ) -> None:
         self.group_class = group_class
         self.config, self.run_seed, self.env_maps = config, run_seed, env_maps
+        self.env_cells = env_cells  # each env's cell (a training mix), or None
         self.tau = config.reward.tau_init  # the team reward's temperature (TrainingEnvs)
-        self.n_envs, self.n_cavs = n_envs, config.scenario.n_slots
+        self.n_envs = n_envs
+        self.n_cavs = config.scenario.n_slots if n_slots is None else n_slots
         n_workers = min(n_envs, n_workers or os.cpu_count() or 1)
         self.groups = [g.tolist() for g in np.array_split(np.arange(n_envs), n_workers)]
         self.ctx = mp.get_context("spawn")
@@ -102,6 +112,8 @@ class ProcessVectorEnv:
                 self.groups[w],
                 episode,
                 self.env_maps,
+                self.env_cells,
+                self.n_cavs,
             ),
             daemon=True,
         )
@@ -146,6 +158,13 @@ class ProcessVectorEnv:
         finals = [self._last_critic[e] for e in self.groups[w]]
         actor, critic = self._call(w, ("reset", None))
         return cut_steps(actor, critic, finals, self.n_cavs)
+
+    def set_cells(self, env_cells: list[Cell]) -> None:
+        """Each env's cell from the next reset on (each worker rebuilds the batches whose
+        cell changed; a worker started later starts with them)."""
+        self.env_cells = list(env_cells)
+        for w in range(len(self.pipes)):
+            self._call(w, ("cells", self.env_cells))
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:
         """Reset every environment (optionally restarting their episode counters).

@@ -36,9 +36,11 @@ import numpy as np
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from diacc.config import TrainConfig, flatten_config, resolve_road, validate
+from diacc.config import TrainConfig, flatten_config, resolve_road, train_slots, validate
+from diacc.config.mix import corner_scenarios
 from diacc.console import TrainProgress
 from diacc.envs.actions import ACTION_NAMES
+from diacc.envs.mix import Cell, cells_of_envs, describe, draw_cells, redraw_index
 from diacc.envs.observation import check_road
 from diacc.envs.vector import TrainingEnvs, make_vector_env
 from diacc.errors import DiaccError
@@ -211,6 +213,12 @@ def check_config(cfg: TrainConfig) -> None:
         road = resolve_road(replace(cfg.env, map=road_map))
         check_road(road)  # the observation's road and lane tables hold it
         draw_population(cfg.env.scenario, road, cfg.seed)
+    if cfg.mix.on:  # every map of the mix, with the most vehicles a cell has
+        largest = max(corner_scenarios(cfg.mix, cfg.env.scenario), key=lambda s: s.n_vehicles)
+        for road_map in dict.fromkeys(cfg.mix.map_names()):
+            road = resolve_road(replace(cfg.env, map=road_map))
+            check_road(road)
+            draw_population(largest, road, cfg.seed)
 
 
 def train(
@@ -327,8 +335,16 @@ def _train_loop(
     ckpt_path = run_dir / "checkpoint.pt"
     steps_per_update = cfg.rollout_steps * cfg.n_envs
     saved_update = first_update if first_update else None
+    mix = _MixDraws(cfg) if cfg.mix.on else None
     envs = make_vector_env(
-        cfg.env, cfg.n_envs, cfg.seed, cfg.vector, cfg.extra_maps, learner_device=device.type
+        cfg.env,
+        cfg.n_envs,
+        cfg.seed,
+        cfg.vector,
+        cfg.extra_maps,
+        learner_device=device.type,
+        env_cells=None if mix is None else mix.env_cells(first_update),
+        n_slots=train_slots(cfg),
     )
     # purge_step: TensorBoard drops the events a resumed run logged after its checkpoint.
     # It reads event files in name order, and names start with the creation second:
@@ -370,6 +386,8 @@ def _train_loop(
                 if cfg.lr_decay:
                     for group in agent.optimizer.param_groups:
                         group["lr"] = cfg.lr * (1.0 - update / n_updates)
+                if mix is not None:
+                    mix.set(envs, update)
                 if collected is None:
                     collected, lagged = (
                         collect_rollout(agent, envs, cfg, update, global_step, values=False),
@@ -404,7 +422,13 @@ def _train_loop(
                 try:
                     if prefetch:
                         returns, losses, collected = _learn_beside_rollout(
-                            learn_roll, agent, envs, cfg, update, global_step + steps_per_update
+                            learn_roll,
+                            agent,
+                            envs,
+                            cfg,
+                            update,
+                            global_step + steps_per_update,
+                            mix,
                         )
                         lagged = True
                     else:
@@ -471,6 +495,7 @@ def _learn_beside_rollout(
     cfg: TrainConfig,
     update: int,
     next_step: int,
+    mix: _MixDraws | None = None,
 ):
     """Run ``learn_roll`` (:func:`learn` of this update) on a second thread while
     this one collects update + 1's rollout.
@@ -492,6 +517,8 @@ def _learn_beside_rollout(
     learner = threading.Thread(target=run_update, name="diacc-learner")
     learner.start()
     try:
+        if mix is not None:
+            mix.set(envs, update + 1)
         collected = collect_rollout(
             agent, envs, cfg, update + 1, next_step, sync=False, values=False
         )
@@ -501,6 +528,29 @@ def _learn_beside_rollout(
         raise result["error"]
     agent.sync_rollout()
     return (*result["learnt"], collected)
+
+
+class _MixDraws:
+    """The training mix's cells of each update (:mod:`diacc.envs.mix`): drawn at each
+    redraw from (run seed, redraw, block) alone, so that a resumed run trains on the
+    cells an uninterrupted one did; each new draw is one line of the run log."""
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        self.cfg, self.current = cfg, -1  # the redraw the envs hold
+
+    def env_cells(self, update: int) -> list[Cell]:
+        """Each env's cell at ``update`` (logged when it is a new draw)."""
+        cfg, redraw = self.cfg, redraw_index(self.cfg.mix, update)
+        blocks = draw_cells(cfg.mix, cfg.env.scenario, cfg.seed, redraw)
+        if redraw != self.current:
+            log.info("update %d: mix draw %d: %s", update + 1, redraw, describe(blocks, cfg.n_envs))
+            self.current = redraw
+        return cells_of_envs(blocks, cfg.n_envs)
+
+    def set(self, envs: TrainingEnvs, update: int) -> None:
+        """Give ``envs`` the cells of ``update`` if they hold another draw's."""
+        if redraw_index(self.cfg.mix, update) != self.current:
+            envs.set_cells(self.env_cells(update))
 
 
 def _wait_past_event_files(tb_dir: Path) -> None:

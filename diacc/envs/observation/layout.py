@@ -130,7 +130,8 @@ class ActorObs(Batched):
     lane_mask: np.ndarray = per_env("E, C, LANE_SLOTS")  # bool
     road: np.ndarray = per_env("E, C, ROAD_FEATURES_PER_SEGMENT * MAX_SEGMENTS")  # float32
     action_memory: np.ndarray = per_env("E, C, 2")  # int64
-    action_mask: np.ndarray = per_env("E, C, N_ACTIONS")  # bool legal (diacc.envs.action_mask)
+    # bool legal (diacc.envs.action_mask); every action for a slot without a CAV
+    action_mask: np.ndarray = per_env("E, C, N_ACTIONS", pad=True)
     alive: np.ndarray = per_env("E, C")  # bool
 
 
