@@ -298,7 +298,12 @@ def test_sigterm_to_sumo_train_ends_every_child(tmp_path, vector, times):
     """One SIGTERM checkpoints after the update, a second stops at once: 143 both times."""
     argv = ["train", "--backend", "sumo", "--envs", "2", "--steps", "100000", "--run-dir", "run"]
     argv += ["--set", f"vector={vector}"]
-    err = _signal_ends_every_child(tmp_path, argv, _count("sumo.worker", 2), times=times)
+    log = tmp_path / "run" / "train.log"
+
+    def training(commands) -> bool:  # workers up and the loop started (its handler set)
+        return _count("sumo.worker", 2)(commands) and log.exists() and "start:" in log.read_text()
+
+    err = _signal_ends_every_child(tmp_path, argv, training, times=times)
     assert ("checkpoint saved" if times == 1 else "stopped at once by a second SIGTERM") in err
 
 

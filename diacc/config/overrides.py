@@ -87,12 +87,12 @@ def _unset_as(obj: Any, name: str, current: Any) -> Any:
     """A value of the type a field ``X | None`` takes when it is None (unset), or an
     empty tuple field an item of its declared type, so that :func:`_coerce` parses a
     given value by it (``--set env.use_psar=false``, ``--set mix.n_vehicles=15,40``)."""
-    hint = next(f.type for f in dataclasses.fields(obj) if f.name == name)
+    if current is not None and current != ():
+        return current
+    hint = next((f.type for f in dataclasses.fields(obj) if f.name == name), None)
     if current == ():  # an empty list: an item of its declared type to parse items by
         item = str(hint).removeprefix("tuple[").split(",")[0].strip()
         return ({"int": 0, "float": 0.0}.get(item, ""),)
-    if current is not None:
-        return current
     kind = str(hint).split("|")[0].strip()
     return {"bool": False, "int": 0, "float": 0.0, "str": ""}.get(kind, current)
 
