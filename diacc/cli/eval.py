@@ -212,16 +212,23 @@ def add_parsers(sub) -> None:
         "test seed stream, 330-step episodes, PSAR headway / known; writes\n"
         "scorecard.md and scorecard.json (changes paired by episode seed, 95 %\n"
         "bootstrap intervals) into --out. Run from the repository root (the geometry\n"
-        "maps and the shipped agent live there). Resumable: finished cells are skipped.",
+        "maps and the shipped agent live there). Resumable: finished cells are skipped.\n"
+        "Several --policy (a recipe's seeds): every seed's entries, in how many seeds\n"
+        "each cell is better / worse, and the seeds' episodes pooled; never a best seed.",
     )
     p.add_argument(
         "--policy",
         required=True,
+        action="append",
         help="the policy to score: any --policy of 'diacc eval' (a checkpoint, a baseline, "
-        "package.module:factory)",
+        "package.module:factory); repeat it for the seeds of a recipe (each scored on its "
+        "own, the references once; with their agreement and pooled episodes)",
     )
     p.add_argument(
-        "--actions", choices=ACTION_MODES, default="greedy", help="a checkpoint's actions"
+        "--actions",
+        choices=ACTION_MODES,
+        default="greedy",
+        help="a checkpoint's actions (every --policy's)",
     )
     p.add_argument("--episodes", type=int, default=30, help="seeded episodes per cell")
     p.add_argument(
@@ -449,7 +456,7 @@ def cmd_scorecard(args: argparse.Namespace) -> None:
     if unknown or not backends:
         raise ConfigError(f"unknown backend {(unknown or [''])[0]!r}; use {', '.join(BACKENDS)}")
     cfg = ScorecardConfig(
-        policy=parse_policy(args.policy, sampled=args.actions == "sampled"),
+        policy=tuple(parse_policy(p, sampled=args.actions == "sampled") for p in args.policy),
         out_dir=args.out,
         episodes=args.episodes,
         suites=tuple(SUITES) if args.suites == "all" else tuple(options.csv_list(args.suites)),
