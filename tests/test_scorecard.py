@@ -170,3 +170,161 @@ def test_the_summary_counts_better_same_and_worse_cells():
         "notes": [],
     }
     assert "| geometry | sumo | 3 | 1 / 1 / 1 | 0 / 0 / 1 | — | 1 |" in to_markdown(card)
+
+
+# ------------------------------------------------ a recipe's seeds: several --policy (issue 60)
+SEEDS = ["scorecard", "--policy", "accelerate", "--policy", "remain", *TINY]
+
+
+def test_several_policies_are_scored_seed_by_seed_against_references_run_once(
+    tmp_path, monkeypatch
+):
+    import diacc.experiments.scorecard as scorecard
+
+    runs: list[tuple[str, int]] = []  # (results directory, cells it ran)
+    real = scorecard.evaluate
+
+    def counting(spec, cells, episodes, out, *args, **kwargs):
+        summary = real(spec, cells, episodes, out, *args, **kwargs)
+        runs.append((Path(out).name, len(summary.cells_run)))
+        return summary
+
+    monkeypatch.setattr(scorecard, "evaluate", counting)
+    out = tmp_path / "card"
+    assert main([*SEEDS, "--out", str(out)]) == 0
+    results = sorted(p.name for p in (out / "highway" / "train").iterdir())
+    assert results == sorted(["policy-1", "policy-2", *REFERENCES])  # each reference once
+    assert sorted(runs) == sorted((name, 1) for name in results)
+    card = json.loads((out / "scorecard.json").read_text())
+    assert card["scorecard_version"] == 2 and "entries" not in card
+    seeds = card["seeds"]
+    assert [(s["results"], s["policy_spec"]) for s in seeds] == [
+        ("policy-1", "accelerate"),
+        ("policy-2", "remain"),
+    ]
+    for seed in seeds:  # per seed: today's entries and summary
+        assert [e["metric"] for e in seed["entries"]] == list(scorecard.METRICS)
+        assert all(e["n_episodes"] == 2 for e in seed["entries"])
+        assert seed["summary"] == scorecard.summarise(seed["entries"])
+        delay = seed["entries"][0]["vs"]
+        assert all(v is not None and v["n_pairs"] == 2 for v in delay.values())
+    assert card["agreement"] == scorecard.agreement(seeds)
+    (row,) = card["agreement"]
+    assert row["seeds"] == 2 and row["delay_vs_same-mix"]["cells"] == 1
+    assert sum(row["delay_vs_heuristic"]["better"]) == 1  # one cell, k seeds better
+    # the pooled column: both seeds' episodes of the cell, paired by episode seed
+    pooled = card["pooled"]["entries"]
+    assert [e["metric"] for e in pooled] == list(scorecard.METRICS)
+    assert all(e["n_episodes"] == 4 and e["n_seeds"] == 2 for e in pooled)
+    assert pooled[0]["vs"]["same-mix"]["n_pairs"] == 2  # pairs are episode seeds
+    markdown = (out / "scorecard.md").read_text()
+    assert markdown.startswith("# Scorecard: 2 seeds of accelerate, remain (greedy)")
+    for line in (
+        "## Agreement of the seeds",
+        "## Summary: pooled",
+        "## Summary: policy-1",
+        "## Summary: policy-2",
+        "| highway | policy-1 | train-50_N25_rho0.40_D1 | delay |",
+        "| highway | policy-2 | train-50_N25_rho0.40_D1 | delay |",
+        "| highway | pooled | train-50_N25_rho0.40_D1 | delay |",
+    ):
+        assert line in markdown, line
+    assert "best" not in markdown.replace("none selected", "")  # no seed is singled out
+    # resume: nothing left to run for any candidate or reference, the same card
+    before = (out / "scorecard.json").read_bytes()
+    runs.clear()
+    assert main([*SEEDS, "--out", str(out)]) == 0
+    assert sorted(runs) == sorted((name, 0) for name in results)
+    assert (out / "scorecard.json").read_bytes() == before
+
+
+def test_the_seeds_agreement_counts_cells_by_how_many_seeds_are_better_or_worse():
+    from diacc.experiments.scorecard import agreement, seeds_markdown
+
+    def entry(cell, change, measurable):
+        vs = {"change": change, "low": change, "high": change, "n_pairs": 30}
+        vs["measurable"] = measurable
+        return {
+            "suite": "zero-shot",
+            "backend": "highway",
+            "cell": cell,
+            "metric": "delay",
+            "unit": "%",
+            "mean": 1.0,
+            "std": 0.0,
+            "n_episodes": 30,
+            "vs": {"same-mix": vs, "heuristic": None, "diacc": None},
+        }
+
+    # cell a: 3 seeds less delay; b: 2 less, 1 level; c: 1 less, 1 level, 1 more;
+    # d: played by two seeds only (left out)
+    verdicts = {
+        "a": [(-9, True), (-5, True), (-1, True)],
+        "b": [(-9, True), (-5, True), (1, False)],
+        "c": [(-9, True), (1, False), (4, True)],
+        "d": [(-9, True), (-5, True)],
+    }
+    seeds = [{"results": f"policy-{i + 1}", "entries": [], "summary": []} for i in range(3)]
+    for cell, found in verdicts.items():
+        for seed, (change, measurable) in zip(seeds, found, strict=False):
+            seed["entries"].append(entry(cell, change, measurable))
+    (row,) = agreement(seeds)
+    assert (row["suite"], row["backend"], row["seeds"]) == ("zero-shot", "highway", 3)
+    delay = row["delay_vs_same-mix"]
+    assert delay["cells"] == 3 and delay["cells_left_out"] == 1
+    assert delay["better"] == [0, 1, 1, 1]  # k = 0, 1, 2, 3 seeds
+    assert delay["worse"] == [2, 1, 0, 0]
+    assert "delay_vs_heuristic" not in row and "throughput_vs_same-mix" not in row
+    for seed in seeds:
+        seed.update(policy="diacc", policy_spec=f"runs/r-{seed['results']}/checkpoint.pt")
+    card = {
+        "scorecard_version": 2,
+        "actions": "greedy",
+        "episodes_per_cell": 30,
+        "stream": "test",
+        "episode_steps": 330,
+        "psar_horizon": "headway",
+        "psar_full_brake": "known",
+        "agent": "a.pt",
+        "suites": {},
+        "seeds": seeds,
+        "agreement": [row],
+        "pooled": {"summary": [], "entries": []},
+        "notes": [],
+    }
+    markdown = seeds_markdown(card)
+    assert "| zero-shot | highway | delay vs same-mix | 3 | 1 / 1 / 1 / 0 | 0 / 0 / 1 / 2 |" in (
+        markdown
+    )
+    assert "better in 3 / 2 / 1 / 0 of 3 seeds" in markdown
+
+
+def test_two_candidates_that_are_one_policy_are_refused(tmp_path, capsys):
+    agent = "checkpoints/diacc-train50-realistic-headway-threat-s1.pt"
+    for twice in (["heuristic", "heuristic"], [agent, str(REPO_ROOT / agent)]):
+        argv = ["scorecard", *(a for p in twice for a in ("--policy", p)), *TINY]
+        assert main([*argv, "--out", str(tmp_path / "c")]) == 2
+        err = capsys.readouterr().err
+        assert "again: the candidates of a scorecard must be distinct" in err
+        assert err.count("\n") == 1 and not (tmp_path / "c").exists()
+
+
+def test_the_committed_single_policy_scorecard_still_renders():
+    """The version-1 layout (one candidate, no scorecard_version) renders as committed."""
+    from diacc.experiments.scorecard import to_markdown
+
+    results = REPO_ROOT / "benchmarks/studies/scorecard/results/shipped-threat-s1"
+    card = json.loads((results / "scorecard.json").read_text(encoding="utf-8"))
+    assert "scorecard_version" not in card
+    assert to_markdown(card) == (results / "scorecard.md").read_text(encoding="utf-8")
+
+
+def test_a_candidate_checkpoint_is_paired_with_the_agent(tmp_path):
+    """Both are `diacc` by name: the pairing is by results directory, so a checkpoint other
+    than the agent gets its change against DIACC."""
+    other = "checkpoints/diacc-train50-realistic-headway-s1.pt"
+    out = tmp_path / "card"
+    assert main(["scorecard", "--policy", other, *TINY, "--out", str(out)]) == 0
+    card = json.loads((out / "scorecard.json").read_text())
+    delay = card["entries"][0]
+    assert delay["metric"] == "delay" and delay["vs"]["diacc"]["n_pairs"] == 2

@@ -691,7 +691,7 @@ def seeds_markdown(card: dict) -> str:
     ]
     lines += ["", *agreement_lines(card)]
     pooled = card["pooled"]
-    lines += ["", *summary_lines(card, pooled["summary"], "Summary: pooled", "the pooled seeds")]
+    lines += ["", *summary_lines(card, pooled["summary"], "Summary: pooled", "the pooled column")]
     for s in seeds:
         title = f"Summary: {s['results']}"
         lines += ["", *summary_lines(card, s["summary"], title, f"`{s['policy_spec']}`")]
