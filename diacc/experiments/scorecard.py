@@ -368,10 +368,12 @@ def _pooled(cfg: ScorecardConfig, suites: dict[str, list[Cell]]) -> list[dict]:
     for suite, cells in suites.items():
         for backend in cfg.backends:
             where = cfg.out_dir / backend / suite
-            rows, metas, played = [], [], {}
+            rows: list[dict[str, str]] = []
+            metas: list[dict] = []
+            played: dict[str, set[int]] = {}  # cell -> the candidates that played it
             for run, name in enumerate(cfg.candidates):
                 for _, meta, seed_rows in _load(where / name):
-                    rows += [dict(r, **{TRAINING_RUN: run}) for r in seed_rows]
+                    rows += [{**r, TRAINING_RUN: str(run)} for r in seed_rows]
                     metas.append(meta)
                     for r in seed_rows:
                         played.setdefault(row_cell(r), set()).add(run)
