@@ -29,6 +29,15 @@ with PSAR):
 A policy that cannot play a cell (a checkpoint that observes fewer vehicles
 than the cell has) skips it, and the scorecard says so; results directories
 are ``diacc eval``'s, so an interrupted scorecard resumes where it stopped.
+
+A recipe is its training seeds, reported seed by seed and never the best alone:
+several candidates (``--policy`` repeated) are each scored as one would be, into
+``policy-1``, ``policy-2`` ... beside the references, which run once. Their card
+(``scorecard_version`` 2; one candidate's has none and keeps the layout of
+version 1) holds every seed's entries and summary, the seeds' agreement (per cell,
+in how many seeds the change is measurably better / worse: :func:`agreement`) and
+a pooled column (every seed's episodes of a cell, paired by episode seed with the
+references, the bootstrap resampling the seeds too).
 """
 
 from __future__ import annotations
