@@ -91,7 +91,9 @@ def _slot_arrays(per_agent: bool) -> set[str]:
 def _by_axis(records: list, cls: type, axis: str) -> tuple[int, int]:
     """(bytes of the fields whose second axis is ``axis``, bytes of the others) summed
     over ``records`` (one :class:`ActorObs` / :class:`CriticState` per step)."""
-    grows = {name for name, axes in declared_axes(cls) if axes.split(",")[1].strip() == axis}
+    grows = {
+        name for name, axes in declared_axes(cls) if axes and axes.split(",")[1].strip() == axis
+    }
     names = [name for name, _ in declared_axes(cls)]
     on_axis = sum(getattr(r, name).nbytes for r in records for name in names if name in grows)
     other = sum(getattr(r, name).nbytes for r in records for name in names if name not in grows)
