@@ -1,13 +1,14 @@
 """CPU-minutes against validation delay, per run and arm, of the learner-cost study.
 
-    python benchmarks/studies/learner-cost/analyse.py > benchmarks/studies/learner-cost/results/summary.md
+    cd benchmarks/studies/learner-cost && python analyse.py > results/summary.md
 
 Reads each run's ``progress.jsonl`` (the CPU seconds of every update's rollout and
 learner, ``rollout_cpu_s`` + ``learner_cpu_s``) and the validation evaluations
 ``run.sh`` made at its stages (``results/<arm>/eval/validation-highway-<k>k/``).
 The target is the shipped agent's delay per vehicle on the same validation
 episodes (``results/shipped/``); a run reaches it at the first stage whose mean
-delay is at or below it. Every run is listed, none left out.
+delay is within ``TOLERANCE`` of it (10 episodes do not tell 10.8 from 11.0 s).
+Every run is listed, none left out.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
+#: A stage reaches the target when its delay is at most this much above it.
+TOLERANCE = 0.05
 
 
 def episodes(folder: Path) -> list[dict[str, str]]:
@@ -45,7 +48,10 @@ def cpu_minutes_to(progress: Path, step: int) -> float:
 def main() -> None:
     shipped = sorted((RESULTS / "shipped/eval/validation-highway").glob("*/episodes.csv"))
     target_s = mean_delay_s(episodes(shipped[0].parent)) if shipped else math.nan
-    print(f"Target: the shipped agent's validation delay, {target_s:.2f} s per vehicle.\n")
+    print(
+        f"Target: the shipped agent's validation delay, {target_s:.2f} s per vehicle "
+        f"(reached within {TOLERANCE:.0%}: at most {target_s * (1 + TOLERANCE):.2f} s).\n"
+    )
     print("| arm | run | env steps | CPU min | delay / vehicle [s] | with a collision |")
     print("|---|---|---|---|---|---|")
     reach: dict[str, list[float]] = {}
@@ -66,10 +72,10 @@ def main() -> None:
                 f"| {arm} | {run.name} | {step:,} | {cpu_min:.1f} | {delay_s:.2f} | "
                 f"{crashed} / {len(rows)} |"
             )
-            if math.isnan(first) and delay_s <= target_s:
+            if math.isnan(first) and delay_s <= target_s * (1 + TOLERANCE):
                 first = cpu_min
         reach.setdefault(arm, []).append(first)
-    print("\n| arm | runs | CPU min to the target (first stage at or below it), per run |")
+    print("\n| arm | runs | CPU min to the target (first stage within the tolerance), per run |")
     print("|---|---|---|")
     for arm, minutes in reach.items():
         shown = ", ".join("not reached" if math.isnan(m) else f"{m:.1f}" for m in minutes)

@@ -1,6 +1,6 @@
 """One row per evaluated run of the no-PSAR study: collisions, arrivals, delay.
 
-    python benchmarks/studies/nopsar-learning/summarise.py [--stream validation]
+    python benchmarks/studies/nopsar-learning/summarise.py [--stream validation] [--paired]
 
 Reads ``results/<arm>/eval/<stream>-<backend>/<run>/episodes.csv`` (``eval.sh``)
 and prints a markdown table: per run and simulator, the share of episodes
@@ -34,10 +34,61 @@ def mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else math.nan
 
 
+def delays_by_seed(csv_path: Path) -> dict[str, float]:
+    with csv_path.open() as fh:
+        return {r["seed"]: float(r["delay_per_vehicle_s"]) for r in csv.DictReader(fh)}
+
+
+def paired(results: Path, stream: str) -> None:
+    """Delay change against the references on the same episodes; pooled collisions."""
+    print("\n| arm | run | simulator | episodes | delay vs same-mix [s, 95 % CI] | vs heuristic |")
+    print("|---|---|---|---|---|---|")
+    pooled: dict[tuple[str, str], list[int]] = {}
+    for csv_path in sorted(results.glob(f"*/eval/{stream}-*/*/episodes.csv")):
+        arm, folder = csv_path.parents[3].name, csv_path.parent.parent.name
+        if arm == "reference":
+            continue
+        mine = delays_by_seed(csv_path)
+        cells = []
+        for ref in ("same-mix", "heuristic"):
+            # the references evaluated under the same suffix (-30ep), else the plain folder
+            # (the same seeds: a stream's episode i has one seed)
+            ref_csv = results / "reference" / "eval" / folder / ref / "episodes.csv"
+            if not ref_csv.is_file():
+                plain = "-".join(folder.split("-")[:2])
+                ref_csv = results / "reference" / "eval" / plain / ref / "episodes.csv"
+            if not ref_csv.is_file():
+                cells.append("(not evaluated)")
+                continue
+            theirs = delays_by_seed(ref_csv)
+            diffs = [mine[s] - theirs[s] for s in mine if s in theirs]
+            if len(diffs) < 2:
+                cells.append("(no shared episodes)")
+                continue
+            m = sum(diffs) / len(diffs)
+            sd = math.sqrt(sum((d - m) ** 2 for d in diffs) / (len(diffs) - 1))
+            half = 1.96 * sd / math.sqrt(len(diffs))
+            cells.append(f"{m:+.2f} [{m - half:+.2f}, {m + half:+.2f}]")
+        backend = folder.split("-", 1)[1]
+        run = csv_path.parent.name
+        print(f"| {arm} | {run} | {backend} | {len(mine)} | {cells[0]} | {cells[1]} |")
+        with csv_path.open() as fh:
+            rows = list(csv.DictReader(fh))
+        count = pooled.setdefault((arm, backend), [0, 0])
+        count[0] += sum(int(float(r["collision"])) > 0 for r in rows)
+        count[1] += len(rows)
+    print("\n| arm | simulator | episodes with a collision, pooled [95 % CI] |")
+    print("|---|---|---|")
+    for (arm, backend), (k, n) in pooled.items():
+        lo, hi = wilson(k, n)
+        print(f"| {arm} | {backend} | {k} / {n} = {k / n:.1%} [{lo:.1%}, {hi:.1%}] |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--stream", default="validation")
     parser.add_argument("--results", type=Path, default=HERE / "results")
+    parser.add_argument("--paired", action="store_true", help="delay changes, pooled shares")
     args = parser.parse_args()
     print(
         "| arm | run | simulator | episodes | with a collision [95 % CI] | "
@@ -60,6 +111,8 @@ def main() -> None:
             f"| {arm} | {run} | {backend} | {n} | {k / n:.0%} [{lo:.0%}, {hi:.0%}] | "
             f"{crashes:.1f} | {arrived:.2f} | {delay:.1f} |"
         )
+    if args.paired:
+        paired(args.results, args.stream)
 
 
 if __name__ == "__main__":
