@@ -9,12 +9,13 @@
 # evaluation exists is skipped.
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
-ARM=${ARM:?name the arm: base | mb1}
+ARM=${ARM:?name the arm: base | mb1 | lr1e3}
 SEED=${SEED:-1}
 STAGES=${STAGES:-50000 100000 150000 200000}
 case "$ARM" in
     base) SETS=() ;;                             # today's defaults: 5 epochs x 4 minibatches
     mb1) SETS=(--set minibatches=1) ;;           # MAPPO's finding: one minibatch per epoch
+    lr1e3) SETS=(--set lr=0.001) ;;              # twice the learning rate: fewer steps to it?
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
 esac
 HERE=benchmarks/studies/learner-cost
