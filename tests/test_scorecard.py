@@ -31,6 +31,19 @@ def _at_repo_root(monkeypatch):
     monkeypatch.chdir(REPO_ROOT)  # the geometry maps and the shipped agent live there
 
 
+#: The settings every hand-built card of these tests carries.
+CARD_SETTINGS = {
+    "actions": "greedy",
+    "episodes_per_cell": 30,
+    "stream": "test",
+    "episode_steps": 330,
+    "psar_horizon": "headway",
+    "psar_full_brake": "known",
+    "agent": "a.pt",
+    "suites": {},
+}
+
+
 def test_scorecard_of_the_example_controller(tmp_path, capsys):
     out = tmp_path / "card"
     argv = ["scorecard", "--policy", "examples.keep_right_controller:make", *TINY]
@@ -157,14 +170,7 @@ def test_the_summary_counts_better_same_and_worse_cells():
     assert "delay_vs_heuristic" not in row and row["cells_with_collision"] == 1
     card = {
         "policy": "p",
-        "actions": "greedy",
-        "episodes_per_cell": 30,
-        "stream": "test",
-        "episode_steps": 330,
-        "psar_horizon": "headway",
-        "psar_full_brake": "known",
-        "agent": "a.pt",
-        "suites": {},
+        **CARD_SETTINGS,
         "summary": [row],
         "entries": [],
         "notes": [],
@@ -279,14 +285,7 @@ def test_the_seeds_agreement_counts_cells_by_how_many_seeds_are_better_or_worse(
         seed.update(policy="diacc", policy_spec=f"runs/r-{seed['results']}/checkpoint.pt")
     card = {
         "scorecard_version": 2,
-        "actions": "greedy",
-        "episodes_per_cell": 30,
-        "stream": "test",
-        "episode_steps": 330,
-        "psar_horizon": "headway",
-        "psar_full_brake": "known",
-        "agent": "a.pt",
-        "suites": {},
+        **CARD_SETTINGS,
         "seeds": seeds,
         "agreement": [row],
         "pooled": {"summary": [], "entries": []},
