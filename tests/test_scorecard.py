@@ -15,8 +15,10 @@ from diacc.experiments.scorecard import (
     REFERENCES,
     SUITES,
     ScorecardConfig,
+    ScorecardError,
     _playable,
     _settings,
+    check_config,
     suite_cells,
 )
 from diacc.sim.scenario import Scenario
@@ -327,3 +329,20 @@ def test_a_candidate_checkpoint_is_paired_with_the_agent(tmp_path):
     card = json.loads((out / "scorecard.json").read_text())
     delay = card["entries"][0]
     assert delay["metric"] == "delay" and delay["vs"]["diacc"]["n_pairs"] == 2
+
+
+def test_a_validation_scorecard_plays_the_validation_streams_maps(tmp_path, capsys):
+    """Choosing on `validation` never sees a test map: the generated suite's maps are the
+    validation stream's of the same index; shipped maps stay (their seeds change)."""
+    cells = suite_cells(SUITES["generated"], "validation")
+    assert [c.map for c in cells] == [f"gen-validation-{i}" for i in range(20)]
+    assert suite_cells(SUITES["geometry"], "validation") == suite_cells(SUITES["geometry"])
+    out = tmp_path / "card"
+    argv = ["scorecard", "--policy", "heuristic", *TINY, "--stream", "validation"]
+    assert main([*argv, "--out", str(out)]) == 0
+    card = json.loads((out / "scorecard.json").read_text())
+    assert card["stream"] == "validation"
+    assert "of the `validation` seed stream" in (out / "scorecard.md").read_text()
+    bad = ScorecardConfig(PolicySpec("heuristic"), tmp_path / "bad", stream="legacy")
+    with pytest.raises(ScorecardError, match="unknown stream 'legacy'"):
+        check_config(bad)

@@ -208,11 +208,12 @@ def add_parsers(sub) -> None:
         "scorecard",
         "a policy through the standard suite against same-mix, the heuristic and DIACC",
         "Evaluates --policy and the three references on every cell of the suites\n"
-        "(train, zero-shot, geometry, paper-congestion, demand) and backends, on the\n"
-        "test seed stream, 330-step episodes, PSAR headway / known; writes\n"
-        "scorecard.md and scorecard.json (changes paired by episode seed, 95 %\n"
-        "bootstrap intervals) into --out. Run from the repository root (the geometry\n"
-        "maps and the shipped agent live there). Resumable: finished cells are skipped.\n"
+        "(train, zero-shot, geometry, generated, paper-congestion, demand) and\n"
+        "backends, on the test seed stream (--stream validation to choose on), 330-step\n"
+        "episodes, PSAR headway / known; writes scorecard.md and scorecard.json\n"
+        "(changes paired by episode seed, 95 % bootstrap intervals) into --out. Run\n"
+        "from the repository root (the geometry maps and the shipped agent live\n"
+        "there). Resumable: finished cells are skipped.\n"
         "Several --policy (a recipe's seeds): every seed's entries, in how many seeds\n"
         "each cell is better / worse, and the seeds' episodes pooled; never a best seed.",
     )
@@ -246,6 +247,13 @@ def add_parsers(sub) -> None:
         "checkpoints/diacc-train50-realistic-headway-threat-s1.pt)",
     )
     p.add_argument("--episode-steps", type=int, default=330, help="decisions per episode")
+    p.add_argument(
+        "--stream",
+        choices=("test", "validation"),
+        default="test",
+        help="episode seeds and generated maps: test (to report) or validation (to choose "
+        "a recipe's checkpoints and seeds on: its own seeds, gen-validation-* maps)",
+    )
     p.add_argument("--workers", type=int, default=1, help="local worker processes (spawn)")
     p.add_argument("--out", required=True, type=Path, help="results directory (required)")
 
@@ -463,6 +471,7 @@ def cmd_scorecard(args: argparse.Namespace) -> None:
         backends=backends,
         agent=args.agent or DEFAULT_AGENT,
         episode_steps=args.episode_steps,
+        stream=args.stream,
         workers=args.workers,
     )
     run_scorecard(cfg, say=lambda line: print(line, flush=True))

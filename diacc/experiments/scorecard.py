@@ -56,7 +56,12 @@ from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy, p
 from diacc.experiments.report import TRAINING_RUN, Table, change_unit, table_from_results
 from diacc.experiments.sametraffic import row_cell
 from diacc.fileio import atomic_write, check_output_file
-from diacc.sim.mapgen import generated_names
+from diacc.sim.mapgen import (
+    generated_name,
+    generated_names,
+    is_generated_name,
+    parse_generated_name,
+)
 from diacc.sim.scenario import EVERY_CAV
 
 #: The shipped agent every scorecard compares with.
@@ -91,6 +96,9 @@ GEOMETRY_MAPS = (
 #: Maps of the ``generated`` suite: the first of the generator's ``test`` stream, which
 #: no training or choice may use (diacc.sim.mapgen).
 GENERATED_MAPS = 20
+#: Seed streams a scorecard runs on: ``test`` to report, ``validation`` to choose a
+#: recipe's checkpoints and seeds on (its episode seeds and generated maps disjoint).
+STREAMS = ("test", "validation")
 
 
 class ScorecardError(DiaccError, ValueError):
@@ -173,16 +181,31 @@ class ScorecardConfig:
         return {f"{CANDIDATE}-{i}": spec for i, spec in enumerate(specs, 1)}
 
 
-def suite_cells(suite: Suite) -> list[Cell]:
+def suite_cells(suite: Suite, stream: str = "test") -> list[Cell]:
     """The suite's cells (map paths relative to the repository root, as ``diacc eval``
-    takes them from there); one line if the checkout lacks a map file."""
+    takes them from there); one line if the checkout lacks a map file.
+
+    On the ``validation`` stream a generated map is the validation stream's map of the
+    same index: a recipe's checkpoints and seeds are chosen on roads as new to it as the
+    test stream's, but never on those (diacc.sim.mapgen's streams are disjoint)."""
     for values in suite.cells:
         if values["map"].endswith(".toml") and not Path(values["map"]).exists():
             raise ScorecardError(
                 f"suite {suite.name} needs {values['map']}: run the scorecard from the root "
                 "of a diacc clone (its benchmarks/ folder is not installed)"
             )
-    return [make_cell(dict(values), f"suite {suite.name}") for values in suite.cells]
+    return [
+        make_cell({**values, "map": _on_stream(values["map"], stream)}, f"suite {suite.name}")
+        for values in suite.cells
+    ]
+
+
+def _on_stream(map_name: str, stream: str) -> str:
+    """A generated map's counterpart on ``stream``; any other map itself."""
+    if not is_generated_name(map_name):
+        return map_name
+    _, index = parse_generated_name(map_name)
+    return generated_name(stream, index)
 
 
 def check_config(cfg: ScorecardConfig) -> None:
@@ -196,6 +219,8 @@ def check_config(cfg: ScorecardConfig) -> None:
         raise ScorecardError(
             f"reference agent {cfg.agent} not found: run from the repository root or give --agent"
         )
+    if cfg.stream not in STREAMS:
+        raise ScorecardError(f"unknown stream {cfg.stream!r}; use {' or '.join(STREAMS)}")
     if cfg.episodes < 2:
         raise ScorecardError(f"--episodes must be >= 2 (intervals need pairs), got {cfg.episodes}")
     _check_distinct(list(cfg.candidates.values()))
@@ -273,7 +298,7 @@ def run_scorecard(cfg: ScorecardConfig, say: Callable[[str], None] = print) -> d
     """Evaluate every (suite, backend) and write :data:`SCORECARD_MD` and
     :data:`SCORECARD_JSON` into ``cfg.out_dir``; returns the JSON's content."""
     check_config(cfg)
-    suites = {name: suite_cells(SUITES[name]) for name in cfg.suites}
+    suites = {name: suite_cells(SUITES[name], cfg.stream) for name in cfg.suites}
     notes: list[str] = []
     for name, cells in suites.items():
         for backend in cfg.backends:
