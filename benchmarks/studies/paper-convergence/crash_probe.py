@@ -5,9 +5,10 @@
 
 Plays ``validation`` episodes of the paper's training cell (``train-50``, N = 25,
 rho = 0.4, D1, ``paper-congestion`` drivers unless told otherwise) with the
-checkpoint, greedy, on highway (or ``--backend sumo``), and prints for every collision the step, both vehicles (kind, lane,
-position along the route, speed) and the segment: what the 100 % collision
-rate of the variants without PSAR is made of (docs/results/paper-convergence.md).
+checkpoint, greedy, on highway (or ``--backend sumo``), and prints for every
+collision the step, both vehicles (kind, lane, position along the route, speed) and
+the segment: what the 100 % collision rate of the variants without PSAR is made of
+(docs/results/paper-convergence.md).
 """
 
 from __future__ import annotations
