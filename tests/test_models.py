@@ -316,9 +316,13 @@ def test_episode_start_resets_the_hidden_state():
     assert (h[3:] - h0[3:]).abs().amax() > 1e-3  # no reset: the carried state matters
 
 
-@pytest.mark.parametrize("variant", ["mappo", "diacc"])
-def test_sequence_replay_equals_step_by_step(variant):
-    actor, critic = build_networks(variant, CFG, SPEC)
+@pytest.mark.parametrize(
+    "variant, input_norm", [("mappo", False), ("diacc", False), ("diacc", True)]
+)
+def test_sequence_replay_equals_step_by_step(variant, input_norm):
+    actor, critic = build_networks(
+        variant, dataclasses.replace(CFG, gru_input_norm=input_norm), SPEC
+    )
     rng = np.random.default_rng(14)
     obs = to_tensors(random_actor_obs(SPEC, (4, 5), rng))
     state = to_tensors(random_critic_state(SPEC, (4, 2), rng))
@@ -579,3 +583,17 @@ def test_star_pool_under_bf16_autocast_returns_gradients_in_input_dtypes():
     out.float().sum().backward()
     assert out.dtype == torch.bfloat16 and query.grad.dtype == keys.grad.dtype == torch.float32
     assert all(torch.isfinite(p.grad).all() for p in (query, keys, *layer.parameters()))
+
+
+def test_the_gru_input_norm_is_an_option_that_adds_parameters_only_when_on():
+    """Off (the default), a network's parameters are those of every checkpoint trained
+    before the option; on, every GRU reads layer-normalised features whatever their
+    scale, so a common offset in the features cannot pin the GRU's units."""
+    plain, _ = build_networks("diacc", CFG, SPEC)
+    normed, critic = build_networks("diacc", dataclasses.replace(CFG, gru_input_norm=True), SPEC)
+    assert not any("input_norm" in name for name in plain.state_dict())
+    assert {"input_norm.weight", "input_norm.bias"} <= set(normed.state_dict())
+    assert "input_norm.weight" in critic.state_dict()
+    features = torch.randn(7, normed.encoder.out_dim)
+    shifted = normed.input_norm(3.0 * features + 5.0)
+    torch.testing.assert_close(shifted, normed.input_norm(features), atol=1e-4, rtol=1e-4)

@@ -9,13 +9,17 @@
 # evaluation exists is skipped.
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
-ARM=${ARM:?name the arm: base | mb1 | lr1e3}
+ARM=${ARM:?name the arm: base | mb1 | lr1e3 | norm | mb1-norm}
 SEED=${SEED:-1}
 STAGES=${STAGES:-50000 100000 150000 200000}
 case "$ARM" in
     base) SETS=() ;;                             # today's defaults: 5 epochs x 4 minibatches
     mb1) SETS=(--set minibatches=1) ;;           # MAPPO's finding: one minibatch per epoch
     lr1e3) SETS=(--set lr=0.001) ;;              # twice the learning rate: fewer steps to it?
+    # Issue 58 item 2: the collapsed actors' GRUs are saturated (logit_probe.py); a
+    # LayerNorm on the GRU input, alone and on the arm that collapses every seed
+    norm) SETS=(--set model.gru_input_norm=true) ;;
+    mb1-norm) SETS=(--set minibatches=1 --set model.gru_input_norm=true) ;;
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
 esac
 HERE=benchmarks/studies/learner-cost

@@ -131,4 +131,11 @@ class CIECCritic(RecurrentNet):
     """
 
     def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
-        super().__init__(ITDR(cfg, spec), cfg.gru_hidden, 1, VALUE_GAIN, squeeze=True)
+        super().__init__(
+            ITDR(cfg, spec),
+            cfg.gru_hidden,
+            1,
+            VALUE_GAIN,
+            squeeze=True,
+            input_norm=cfg.gru_input_norm,
+        )

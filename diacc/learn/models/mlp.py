@@ -109,7 +109,9 @@ class MLPActor(RecurrentNet):
 
     def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
         encoder = _FlatEncoder(actor_flat_dim(spec), cfg, flatten_actor_obs, ACTOR_KEYS)
-        super().__init__(encoder, cfg.gru_hidden, N_ACTIONS, POLICY_GAIN)
+        super().__init__(
+            encoder, cfg.gru_hidden, N_ACTIONS, POLICY_GAIN, input_norm=cfg.gru_input_norm
+        )
 
 
 class MLPCritic(RecurrentNet):
@@ -117,4 +119,6 @@ class MLPCritic(RecurrentNet):
 
     def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
         encoder = _FlatEncoder(critic_flat_dim(spec), cfg, flatten_critic_state, CRITIC_KEYS)
-        super().__init__(encoder, cfg.gru_hidden, 1, VALUE_GAIN, squeeze=True)
+        super().__init__(
+            encoder, cfg.gru_hidden, 1, VALUE_GAIN, squeeze=True, input_norm=cfg.gru_input_norm
+        )

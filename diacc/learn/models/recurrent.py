@@ -36,6 +36,12 @@ class RecurrentNet(nn.Module):
         n_outputs: head outputs (5 logits, or 1 value).
         head_gain: orthogonal gain of the head (0.01 policy, 1 value).
         squeeze: drop the last axis of the head output (value networks).
+        input_norm: layer-normalise the encoder's features before the GRU
+            (``model.gru_input_norm``). Without it, features of a few units' size and
+            a large part common to every situation can drive the GRU's candidate
+            state into tanh saturation: most units pinned at +-1 whatever the input,
+            the logits a constant, one greedy action everywhere
+            (docs/results/suite-training.md, "What a collapsed actor computes").
     """
 
     def __init__(
@@ -45,9 +51,12 @@ class RecurrentNet(nn.Module):
         n_outputs: int,
         head_gain: float,
         squeeze: bool = False,
+        input_norm: bool = False,
     ) -> None:
         super().__init__()
         self.encoder = encoder
+        # No parameters without the norm: checkpoints trained before it load unchanged.
+        self.input_norm: nn.Module = nn.LayerNorm(encoder.out_dim) if input_norm else nn.Identity()
         self.gru = nn.GRUCell(encoder.out_dim, gru_hidden)
         self.head = nn.Linear(gru_hidden, n_outputs)
         self.squeeze = squeeze
@@ -73,7 +82,7 @@ class RecurrentNet(nn.Module):
         The output is (B, n_outputs), or (B,) for value networks.
         """
         require(inputs, self.encoder.input_keys, tuple(hidden.shape[:1]), type(self).__name__)
-        features = self.encoder(inputs)  # (B, E)
+        features = self.input_norm(self.encoder(inputs))  # (B, E)
         keep = 1.0 - episode_start.to(hidden.dtype)  # (B,)
         new_hidden = self.gru(features, hidden * keep[:, None])  # (B, H)
         return self._out(self.head(new_hidden)), new_hidden
@@ -96,10 +105,11 @@ class RecurrentNet(nn.Module):
         flat = merge_leading(inputs, 2)
         needed = needed_rows(inputs, episode_starts)  # (T*B,) or None: every row
         if needed is None:
-            features = self.encoder(flat)  # (T*B, E)
+            features = self.input_norm(self.encoder(flat))  # (T*B, E)
         else:  # encode the rows that matter; the others get zero features
             rows = needed.nonzero().squeeze(1)  # (R,)
-            encoded = self.encoder({k: v.index_select(0, rows) for k, v in flat.items()})
+            selected = {k: v.index_select(0, rows) for k, v in flat.items()}
+            encoded = self.input_norm(self.encoder(selected))  # (R, E)
             features = encoded.new_zeros(n_steps * n_batch, encoded.shape[-1])
             features = features.index_copy(0, rows, encoded)  # (T*B, E)
         # The GRU's input half for all T steps in one product; only the hidden half

@@ -133,4 +133,10 @@ class DIADMActor(RecurrentNet):
     """
 
     def __init__(self, cfg: ModelConfig, spec: ObservationSpec) -> None:
-        super().__init__(DIADMEncoder(cfg, spec), cfg.gru_hidden, N_ACTIONS, POLICY_GAIN)
+        super().__init__(
+            DIADMEncoder(cfg, spec),
+            cfg.gru_hidden,
+            N_ACTIONS,
+            POLICY_GAIN,
+            input_norm=cfg.gru_input_norm,
+        )
