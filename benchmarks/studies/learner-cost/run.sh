@@ -9,7 +9,7 @@
 # evaluation exists is skipped.
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
-ARM=${ARM:?name the arm: base | mb1 | lr1e3 | norm | mb1-norm}
+ARM=${ARM:?name the arm: base | mb1 | lr1e3 | norm | mb1-norm | mb1-lr2e3}
 SEED=${SEED:-1}
 STAGES=${STAGES:-50000 100000 150000 200000}
 case "$ARM" in
@@ -20,6 +20,9 @@ case "$ARM" in
     # LayerNorm on the GRU input, alone and on the arm that collapses every seed
     norm) SETS=(--set model.gru_input_norm=true) ;;
     mb1-norm) SETS=(--set minibatches=1 --set model.gru_input_norm=true) ;;
+    # ... or under-stepping: one minibatch moves the policy by KL ~1e-4 per update;
+    # four times the learning rate for a quarter of the gradient steps
+    mb1-lr2e3) SETS=(--set minibatches=1 --set lr=0.002) ;;
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
 esac
 HERE=benchmarks/studies/learner-cost

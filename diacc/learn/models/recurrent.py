@@ -37,11 +37,12 @@ class RecurrentNet(nn.Module):
         head_gain: orthogonal gain of the head (0.01 policy, 1 value).
         squeeze: drop the last axis of the head output (value networks).
         input_norm: layer-normalise the encoder's features before the GRU
-            (``model.gru_input_norm``). Without it, features of a few units' size and
-            a large part common to every situation can drive the GRU's candidate
-            state into tanh saturation: most units pinned at +-1 whatever the input,
-            the logits a constant, one greedy action everywhere
-            (docs/results/suite-training.md, "What a collapsed actor computes").
+            (``model.gru_input_norm``, MAPPO's feature normalisation). Without it,
+            encoder features a few units large, much of them common to every
+            situation, pin many GRU units at +-1 (tanh saturation) whatever the
+            input. With it no unit is pinned, but a collapsed actor stays collapsed:
+            the saturation is how a constant preference is carried, not its cause
+            (docs/guide/reproducing.md, "What a collapsed actor computes").
     """
 
     def __init__(
