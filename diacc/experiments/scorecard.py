@@ -140,7 +140,7 @@ SUITES = {
             "generated",
             tuple({**TRAINING_CELL, "map": m} for m in generated_names("test", GENERATED_MAPS)),
             "realistic",
-            f"the training traffic on {GENERATED_MAPS} generated maps (test generator seeds)",
+            f"the training traffic on {GENERATED_MAPS} generated maps of the card's stream",
         ),
         Suite("paper-congestion", (TRAINING_CELL,), "paper-congestion", "stuck cautious drivers"),
         Suite(
