@@ -94,7 +94,8 @@ def report(probe: Probe) -> None:
     margin = logits[:, first] - logits[:, second]  # (D,)
     print(
         f"  margin {ACTION_NAMES[first]} - {ACTION_NAMES[second]}: mean {margin.mean():+.2f}, "
-        f"sd {margin.std():.2f} across decisions (|mean| / sd = {abs(margin.mean()) / margin.std():.1f})"
+        f"sd {margin.std():.2f} across decisions "
+        f"(|mean| / sd = {abs(margin.mean()) / margin.std():.1f})"
     )
     for key in ("features", "gru"):
         x = np.concatenate(probe.rows[key])  # (D, units)
