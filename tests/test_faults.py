@@ -570,3 +570,30 @@ def _live_pids() -> set[int]:
         except OSError:
             continue
     return live
+
+
+def _die_once(task: tuple[str, str]) -> str:
+    """Pool task: ``("die", marker)`` kills its worker the first time (no marker file
+    yet), like a SIGKILL, after a short delay; any other task returns its name."""
+    name, marker = task
+    if name == "die" and not Path(marker).exists():
+        Path(marker).touch()
+        time.sleep(0.3)
+        os._exit(1)
+    return name
+
+
+def test_a_worker_that_dies_between_results_breaks_the_next_submit_not_the_run(tmp_path):
+    """The pool can break after one result was taken and before the next task is
+    submitted (the consumer is busy meanwhile): that task is resubmitted to a new pool,
+    not lost in a BrokenProcessPool traceback (CI caught it on test_case1 above)."""
+    from diacc.experiments.workpool import map_resilient
+
+    marker = str(tmp_path / "died")
+    tasks = [("a", marker), ("die", marker), ("b", marker), ("c", marker)]
+    results = {}
+    for i, result in map_resilient(_die_once, tasks, workers=2):
+        results[i] = result
+        if i == 0:
+            time.sleep(1.5)  # the worker of task 1 dies while the consumer holds task 0
+    assert results == {0: "a", 1: "die", 2: "b", 3: "c"}

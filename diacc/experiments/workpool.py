@@ -60,9 +60,15 @@ def map_resilient(
         try:
             while queue or running:
                 while queue and len(running) < workers and not broken:
-                    i = queue.pop()
+                    i = queue[-1]
+                    try:  # a worker that died since the last wait breaks the pool here
+                        future = executor.submit(fn, tasks[i])
+                    except BrokenProcessPool:
+                        broken = True
+                        break
+                    queue.pop()
                     attempts[i] += 1
-                    running[executor.submit(fn, tasks[i])] = i
+                    running[future] = i
                 if not running:
                     break
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
