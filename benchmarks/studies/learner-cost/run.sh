@@ -20,7 +20,7 @@ case "$ARM" in
     # LayerNorm on the GRU input, alone and on the arm that collapses every seed
     norm) SETS=(--set model.gru_input_norm=true) ;;
     mb1-norm) SETS=(--set minibatches=1 --set model.gru_input_norm=true) ;;
-    # ... or under-stepping: one minibatch moves the policy by KL ~1e-4 per update;
+    # ... or under-stepping: one minibatch moves the policy by a median KL of 2-3e-4 per update;
     # four times the learning rate for a quarter of the gradient steps
     mb1-lr2e3) SETS=(--set minibatches=1 --set lr=0.002) ;;
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
