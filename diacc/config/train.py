@@ -46,8 +46,8 @@ class ModelConfig:
     gru_hidden: int = ranged(64, 1, MAX_NETWORK_DIM, why=_DIM_WHY)
     leaky_slope: float = ranged(0.2, 0)
     taie_concat_heads: bool = False  # TAIE GAT heads hidden/heads wide, concatenated (cheaper)
-    # LayerNorm on every GRU's input (actor and critic): no GRU unit pinned by tanh
-    # saturation; did not prevent a collapse (diacc.learn.models.recurrent.RecurrentNet)
+    # LayerNorm on every GRU's input, actor and critic (diacc.learn.models.recurrent;
+    # what it was measured to do: docs/guide/reproducing.md#what-a-collapsed-actor-computes)
     gru_input_norm: bool = False
 
     def __post_init__(self) -> None:

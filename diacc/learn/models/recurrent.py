@@ -39,10 +39,10 @@ class RecurrentNet(nn.Module):
         input_norm: layer-normalise the encoder's features before the GRU
             (``model.gru_input_norm``, MAPPO's feature normalisation). Without it,
             encoder features a few units large, much of them common to every
-            situation, pin many GRU units at +-1 (tanh saturation) whatever the
-            input. With it no unit is pinned, but a collapsed actor stays collapsed:
-            the saturation is how a constant preference is carried, not its cause
-            (docs/guide/reproducing.md, "What a collapsed actor computes").
+            situation, can pin GRU units at +-1 (tanh saturation) whatever the
+            input; the norm bounds the GRU's input scale. What it was measured to
+            change, and not to change, is in docs/guide/reproducing.md ("What a
+            collapsed actor computes").
     """
 
     def __init__(
