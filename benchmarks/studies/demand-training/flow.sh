@@ -31,6 +31,10 @@ declare -A POLICY=(
   [demand-ft-s1]=benchmarks/studies/demand-training/results/finetune/seed-1/checkpoint.pt
   [demand-ft-s2]=benchmarks/studies/demand-training/results/finetune/seed-2/checkpoint.pt
   [demand-ft-s3]=benchmarks/studies/demand-training/results/finetune/seed-3/checkpoint.pt
+  # issue 60's agents trained across the suite (demands with every CAV an agent among them)
+  [suite-s1]=benchmarks/studies/suite-training/results/mix/runs/diacc-s1/checkpoint.pt
+  [suite-s2]=benchmarks/studies/suite-training/results/mix/runs/diacc-s2/checkpoint.pt
+  [suite-s3]=benchmarks/studies/suite-training/results/mix/runs/diacc-s3/checkpoint.pt
 )
 mkdir -p "$OUT/$ROOT"
 for q in $INFLOWS; do

@@ -6,6 +6,7 @@ Pairs every candidate episode with the reference's episode of the same cell and 
 and prints the relative change of the suite's mean delay per vehicle with a 95 %
 paired bootstrap interval (2,000 resamples of the pairs, seeded): issue 60's
 "generated suite: delay against the heuristic better with the interval excluding 0".
+With several seeds a last line per reference pools them (the recipe, no seed chosen).
 """
 
 from __future__ import annotations
@@ -28,26 +29,36 @@ def delays(results: Path) -> dict[tuple[str, ...], float]:
         }
 
 
+def change_line(label: str, name: str, pairs: list[tuple[float, float]], rng) -> str:
+    """The relative change of the mean delay over ``pairs`` (candidate, reference)."""
+    a = np.array([p[0] for p in pairs])  # (P,)
+    b = np.array([p[1] for p in pairs])  # (P,)
+    picks = rng.integers(0, len(pairs), (2000, len(pairs)))  # (R, P)
+    change = (a[picks].mean(1) / b[picks].mean(1) - 1) * 100  # (R,)
+    low, high = np.percentile(change, [2.5, 97.5])
+    return (
+        f"{label} vs {name}: {a.mean():.2f} vs {b.mean():.2f} s, "
+        f"{(a.mean() / b.mean() - 1) * 100:+.1f} % [{low:+.1f}, {high:+.1f}], "
+        f"{len(pairs)} pairs"
+    )
+
+
 def main() -> None:
     card, suite = Path(sys.argv[1]), sys.argv[2]
     where = card / (sys.argv[3] if len(sys.argv) > 3 else "highway") / suite
     refs = {name: delays(where / name) for name in REFERENCES if (where / name).exists()}
     rng = np.random.default_rng(0)
-    for cand in sorted(p.name for p in where.iterdir() if p.name.startswith("policy")):
+    candidates = sorted(p.name for p in where.iterdir() if p.name.startswith("policy"))
+    pooled: dict[str, list[tuple[float, float]]] = {name: [] for name in refs}
+    for cand in candidates:
         mine = delays(where / cand)
         for name, ref in refs.items():
-            keys = sorted(set(mine) & set(ref))
-            a = np.array([mine[k] for k in keys])  # (P,)
-            b = np.array([ref[k] for k in keys])  # (P,)
-            picks = rng.integers(0, len(keys), (2000, len(keys)))  # (R, P)
-            change = (a[picks].mean(1) / b[picks].mean(1) - 1) * 100  # (R,)
-            low, high = np.percentile(change, [2.5, 97.5])
-            print(
-                f"{suite} {cand} vs {name}: {a.mean():.2f} vs {b.mean():.2f} s, "
-                f"{(a.mean() / b.mean() - 1) * 100:+.1f} % [{low:+.1f}, {high:+.1f}], "
-                f"{len(keys)} pairs"
-            )
-
+            pairs = [(mine[k], ref[k]) for k in sorted(set(mine) & set(ref))]
+            pooled[name] += pairs
+            print(change_line(f"{suite} {cand}", name, pairs, rng))
+    if len(candidates) > 1:  # the recipe: every seed's episodes, each paired with its reference
+        for name, pairs in pooled.items():
+            print(change_line(f"{suite} pooled ({len(candidates)} seeds)", name, pairs, rng))
 
 if __name__ == "__main__":
     main()
