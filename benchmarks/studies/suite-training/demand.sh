@@ -9,7 +9,7 @@
 # eval's folders: `diacc table` reads them); a finished (policy, backend) is skipped.
 set -euo pipefail
 cd "$(dirname "$0")/../../.."
-LABELS="same-mix release-3to1-s3"
+LABELS=${REFS-same-mix release-3to1-s3}  # REFS="" once the references are done
 for seed in ${SEEDS:-1 2 3}; do LABELS="$LABELS suite-s$seed"; done
 export OUT=benchmarks/studies/suite-training/results/mix/demand SLOTS=every INFLOWS=4800
 export EPISODES=${EPISODES:-10} LABELS PARALLEL=${PARALLEL:-1}
