@@ -60,5 +60,6 @@ def main() -> None:
         for name, pairs in pooled.items():
             print(change_line(f"{suite} pooled ({len(candidates)} seeds)", name, pairs, rng))
 
+
 if __name__ == "__main__":
     main()
