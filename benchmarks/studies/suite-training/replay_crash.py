@@ -23,9 +23,8 @@ FIELDS = ("x_m", "y_m", "speed_mps", "lane", "is_cav", "style")
 
 def main() -> None:
     if len(sys.argv) < 4 or sys.argv[2] not in SUITES or not sys.argv[3].isdigit():
-        sys.exit(
-            f"usage: replay_crash.py POLICY SUITE EPISODE_SEED [BACKEND]; SUITE one of {', '.join(SUITES)}"
-        )
+        suites = ", ".join(SUITES)
+        sys.exit(f"usage: replay_crash.py POLICY SUITE EPISODE_SEED [BACKEND]; SUITE: {suites}")
     name, suite, seed = sys.argv[1], sys.argv[2], int(sys.argv[3])
     backend = sys.argv[4] if len(sys.argv) > 4 else "highway"
     spec = PolicySpec(name)
