@@ -12,6 +12,7 @@ from diacc.config import AGGRESSIVE, CAUTIOUS, STYLE_PRESETS, SimConfig
 from diacc.sim.backends.base import Backend, CavCommands
 from diacc.sim.backends.highway.backend import HighwayBackend
 from diacc.sim.backends.highway.dynamics import refresh_road_facts, refresh_speed_bounds
+from diacc.sim.backends.highway.lanes import decide_lane_changes
 from diacc.sim.maps import load_map
 from diacc.sim.scenario import Scenario
 from diacc.sim.state import validate_state
@@ -40,14 +41,20 @@ def single_lane_backend(n: int, x_m: list[float], speed_mps: list[float], styles
 
     Discretionary lane changes are switched off so that car following is tested alone.
     """
-    backend = make()
-    backend.model = dataclasses.replace(backend.model, min_lane_change_speed_mps=1e9)
-    backend.reset(Scenario.with_cavs(n, 0), 0)
+    return placed_backend("train-25", x_m, speed_mps, [0] * n, min_lane_change_speed_mps=1e9)
+
+
+def placed_backend(map_name: str, x_m: list, speed_mps: list, lanes: list, **model):
+    """A backend whose human drivers are placed by hand (after a normal reset), with
+    ``model`` replacing fields of its :class:`HighwayModel`."""
+    backend = make(map_name)
+    backend.model = dataclasses.replace(backend.model, **model)
+    backend.reset(Scenario.with_cavs(len(x_m), 0), 0)
     # The backend's arrays are (E, V) with E = 1 environment.
     backend.state.x_m = np.array([x_m], dtype=float)
     backend.state.speed_mps = np.array([speed_mps], dtype=float)
-    backend.state.lane_from = np.zeros((1, n), dtype=np.intp)
-    backend.state.lane_to = np.zeros((1, n), dtype=np.intp)
+    backend.state.lane_from = np.array([lanes], dtype=np.intp)
+    backend.state.lane_to = np.array([lanes], dtype=np.intp)
     backend.state.y_m = backend.road.lane_center_y_m(backend.state.lane_from).astype(float)
     backend.caches.leaders_dirty[:] = True
     refresh_road_facts(backend, np.ones(1, bool))
@@ -241,3 +248,29 @@ def test_lane_change_cooldown_counts_down_so_drivers_change_lanes_again():
         changes += ~same_lane
         lane = backend.state.lane_from[0].copy()
     assert changes.max() >= 2  # some driver changed lanes more than once
+
+
+def test_no_lane_change_the_driver_cannot_brake_for():
+    """A car cuts in 1.3 m ahead of driver 0; the next lane has a car at 7 m/s 15 m ahead.
+    MOBIL's unclipped IDM accelerations rank that lane "better" (both are hopeless), but
+    it needs more than the driver's physical braking: no change (before 2026-12-06 the
+    driver changed and ran into the slow car; a heuristic crash at 3600 veh/h)."""
+    x_m, speed_mps, lanes = [250.0, 256.3, 270.6, 250.0], [22.5, 23.4, 7.3, 22.5], [2, 2, 1, 3]
+    unlimited = placed_backend("train-50", x_m, speed_mps, lanes, max_brake_mps2=1e9)
+    decide_lane_changes(unlimited)
+    assert unlimited.state.lane_to[0, 0] == 1  # a driver who could brake at will would go
+    backend = placed_backend("train-50", x_m, speed_mps, lanes)
+    decide_lane_changes(backend)
+    assert backend.state.lane_to[0].tolist() == lanes
+    assert backend.stats["unsafe_change_vetoes"].tolist() == [1]
+
+
+def test_two_drivers_level_with_each_other_never_enter_one_lane_together():
+    """Drivers 0 (lane 0) and 1 (lane 2), side by side at the same x (two cars entering
+    in the same sub-step), both want lane 1: only one goes (before 2026-12-06 both did and
+    collided, a crash at 4800 veh/h)."""
+    backend = placed_backend(
+        "train-50", [100.0, 100.0, 120.0, 120.0], [20.0, 20.0, 0.0, 0.0], [0, 2, 0, 2]
+    )
+    decide_lane_changes(backend)
+    assert backend.state.lane_to[0].tolist() == [1, 2, 0, 2]

@@ -149,7 +149,13 @@ class HighwayBackend:
         #: Per-env event counters, each (E,) int64.
         self.stats: dict[str, np.ndarray] = {
             key: np.zeros(n_envs, np.int64)
-            for key in ("guard_events", "forced_merges", "mobil_changes", "cav_lane_end_stops")
+            for key in (
+                "guard_events",
+                "forced_merges",
+                "mobil_changes",
+                "unsafe_change_vetoes",
+                "cav_lane_end_stops",
+            )
         }
 
     # ------------------------------------------------------------------ API

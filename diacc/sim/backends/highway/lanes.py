@@ -174,6 +174,13 @@ def decide_lane_changes(hw: HighwaySim) -> None:
         & (nf_after >= -m.mobil_max_imposed_brake_mps2)
         & (gain >= params.gain_threshold_mps2[:, None, :])
     )
+    # MOBIL's incentive compares the two lanes' IDM accelerations, which are not
+    # clipped: with a car cutting in just ahead, a change into a lane behind a much
+    # slower car "gains" though it needs more than the driver's physical braking.
+    # Like LC2013's secure gap to the new leader, no change the driver cannot brake for.
+    own_safe = self_acc[:, side] >= -m.max_brake_mps2  # (E, 2, V)
+    hw.stats["unsafe_change_vetoes"] += (mobil_ok & ~own_safe).any(axis=1).sum(axis=1)
+    mobil_ok &= own_safe
     urgency = np.minimum(np.maximum(1.0 - dist_end / params.merge_zone_m, 0.0), 1.0)  # (E, V)
     accept_brake = m.mobil_max_imposed_brake_mps2 + urgency * (
         m.forced_max_imposed_brake_mps2 - m.mobil_max_imposed_brake_mps2
@@ -190,16 +197,20 @@ def decide_lane_changes(hw: HighwaySim) -> None:
     target = np.where(score.argmax(axis=1) == 0, dest_c[:, 0], dest_c[:, 1])
 
     # Two vehicles entering the same lane side by side in the same instant
-    # would not see each other: keep the front one.
+    # would not see each other: keep the front one; of two level ones (two entering
+    # the road in the same sub-step, both at its start) the one with the lower index.
     rear_gap_need = params.idm.min_gap_m + v * params.idm.headway_s  # (E, V)
+    level = x[:, None, :] == x[:, :, None]
+    # (E, V, V) [e, i, j]: j is ahead of i, or level with it and listed before it
+    in_front = (x[:, None, :] > x[:, :, None]) | (level & np.tri(n, k=-1, dtype=bool))
     clash = (
         start[:, :, None]
         & start[:, None, :]
         & (target[:, :, None] == target[:, None, :])
         & hw.not_self
         & (np.abs(dx) - length < np.maximum(rear_gap_need[:, :, None], rear_gap_need[:, None, :]))
-        & (x[:, None, :] > x[:, :, None])
-    )  # (E, V, V)
+        & in_front
+    )  # (E, V, V) [e, i, j]: j keeps i out
     start &= ~clash.any(axis=2)
 
     hw.stats["forced_merges"] += (start & forced).sum(axis=1)
