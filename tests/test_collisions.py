@@ -144,14 +144,20 @@ def test_a_table_shows_the_collision_row_wherever_an_episode_crashed():
 
 
 # ------------------------------------------------------------------ PSAR: a human joining
-def _right_from_lane_2(human_x_m: float, human_speed_mps: float, drift_m: float):
-    """PSAR for a standing CAV in lane 2 asking to move right, one human in lane 0 behind
-    it, ``drift_m`` off its centre line towards lane 1 (+: to the left)."""
+def _right_from_lane_2(
+    human_x_m: float, human_speed_mps: float, drift_m: float, cav_speed_mps: float = 0.0
+):
+    """PSAR for a CAV at x = 100 m in lane 2 asking to move right, one human in lane 0,
+    ``drift_m`` off its centre line towards lane 1 (+: to the left)."""
     road = load_map("train-50")
     lane_m = road.lane_width_m
     y_m = [2.5 * lane_m, 0.5 * lane_m + drift_m]
     state = make_state(
-        [100.0, human_x_m], [2, 0], [0.0, human_speed_mps], is_cav=[True, False], y_m=y_m
+        [100.0, human_x_m],
+        [2, 0],
+        [cav_speed_mps, human_speed_mps],
+        is_cav=[True, False],
+        y_m=y_m,
     )
     res = psar(state, np.array([[0]]), np.array([[LANE_RIGHT]]), PSARConfig(), road)
     return int(res.action[0, 0]), int(res.rule[0, 0])
@@ -169,6 +175,18 @@ def test_a_human_already_moving_into_the_target_lane_behind_cancels_the_change()
     assert _right_from_lane_2(83.3, 18.0, drift_m=-0.8)[0] == LANE_RIGHT
     # nor when it is far enough back to brake for the CAV
     assert _right_from_lane_2(-200.0, 18.0, drift_m=0.8)[0] == LANE_RIGHT
+
+
+def test_a_human_already_moving_into_the_target_lane_ahead_cancels_the_change():
+    """SUMO, 4800 veh/h (issue 60, a suite-trained agent): a CAV at 10.5 m/s moved right
+    into lane 1 while a standing human 10 m ahead, 1 m over from lane 0, moved into it
+    too; they collided. Such a vehicle is one of the target lane's front vehicles."""
+    ahead = dict(human_x_m=115.0, human_speed_mps=0.1, cav_speed_mps=10.5)
+    assert _right_from_lane_2(**ahead, drift_m=1.0) == (REMAIN, CANCEL_LC)
+    assert _right_from_lane_2(**ahead, drift_m=0.0)[0] == LANE_RIGHT  # on its centre line
+    assert _right_from_lane_2(**ahead, drift_m=-1.0)[0] == LANE_RIGHT  # moving away
+    far = dict(ahead, human_x_m=400.0)
+    assert _right_from_lane_2(**far, drift_m=1.0)[0] == LANE_RIGHT  # far enough ahead
 
 
 # ------------------------------------------------------------------ the demand road

@@ -59,7 +59,7 @@ def check_lane_changes(
     still_lc = is_lc & ~cancel_front
     cancel_rear = _check_rear(still_lc, near.tr_vehicle, near.tr_index, b_lc_mps2, horizon, cfg)
     # A vehicle behind whose change into the target lane is under way is one of its rear
-    # vehicles already, though its centre is not there yet (scene.joining_behind).
+    # vehicles already, though its centre is not there yet (scene.joining_target).
     cancel_rear |= _check_rear(
         still_lc, near.joining_rear, near.joining_rear_index, b_lc_mps2, horizon, cfg
     )
@@ -93,7 +93,18 @@ def _check_front(
     b_lc_mps2 = np.zeros(cavs.shape)
     # Under "headway" a CAV in front is followed with its command known (car following).
     tf_cav = take(cavs.state.is_cav, np.maximum(near.tf_index, 0)) & near.tf_vehicle.valid
-    for tf, tf_is_cav in ((near.tf_vehicle, tf_cav), (near.target_wall, None)):
+    # A vehicle ahead whose change into the target lane is under way is one of its front
+    # vehicles already (scene.joining_target).
+    joining_cav = (
+        take(cavs.state.is_cav, np.maximum(near.joining_front_index, 0))
+        & near.joining_front.valid
+    )
+    fronts = (
+        (near.tf_vehicle, tf_cav),
+        (near.joining_front, joining_cav),
+        (near.target_wall, None),
+    )
+    for tf, tf_is_cav in fronts:
         has_front = is_lc & tf.valid
         cancel = has_front & (
             (tf.d_long_m <= cfg.d_lc_min_m + horizon.front_margin_m(tf, a, tf_is_cav))

@@ -74,7 +74,9 @@ class Obstacles:
     target_wall: PairKinematics  # (..., C) the end of the target lane (with its queue)
     own_wall: PairKinematics  # (..., C) the end of the own lane (with its queue)
     joining_rear: PairKinematics  # (..., C) a vehicle behind moving across into the
-    joining_rear_index: np.ndarray  # (..., C) target lane (:func:`joining_behind`)
+    joining_rear_index: np.ndarray  # (..., C) target lane (:func:`joining_target`)
+    joining_front: PairKinematics  # (..., C) a vehicle ahead moving across into the
+    joining_front_index: np.ndarray  # (..., C) target lane from the lane beyond
 
 
 def find_obstacles(cavs: Cavs, offset: np.ndarray, road: Map, queue_gap_m: float) -> Obstacles:
@@ -90,11 +92,13 @@ def find_obstacles(cavs: Cavs, offset: np.ndarray, road: Map, queue_gap_m: float
         ],
     )  # (..., C, 3): target-lane front j, target-lane rear k, same-lane front j
     cut_in = cut_in_front(state, cav_index, road)  # (..., C)
-    joining = joining_behind(state, cav_index, offset, road)  # (..., C)
+    joining = np.stack(
+        [joining_target(state, cav_index, offset, road, ahead) for ahead in (False, True)], -1
+    )  # (..., C, 2): behind, ahead
     # One call per kind of obstacle (the formulas are elementwise): the three neighbours,
-    # the vehicle cutting in and the one joining the target lane behind as columns, the
-    # target and own lanes' ends side by side.
-    others = np.concatenate([pairs, cut_in[..., None], joining[..., None]], -1)  # (..., C, 5)
+    # the vehicle cutting in and those joining the target lane behind and ahead as
+    # columns, the target and own lanes' ends side by side.
+    others = np.concatenate([pairs, cut_in[..., None], joining], -1)  # (..., C, 6)
     # checked slots, found neighbours; the ego column broadcasts against the four others
     kin = pair_kinematics(state, cav_index[..., None], others, check=False)
     n_cav = cav_index.shape[-1]
@@ -117,7 +121,9 @@ def find_obstacles(cavs: Cavs, offset: np.ndarray, road: Map, queue_gap_m: float
         target_wall=walls.column(slice(None, n_cav)),
         own_wall=walls.column(slice(n_cav, None)),
         joining_rear=kin.column(4),
-        joining_rear_index=joining,
+        joining_rear_index=joining[..., 0],
+        joining_front=kin.column(5),
+        joining_front_index=joining[..., 1],
     )
 
 
@@ -131,29 +137,33 @@ def _drifting_toward(state: TrafficState, lane: np.ndarray, road: Map) -> np.nda
     )
 
 
-def joining_behind(
-    state: TrafficState, cav_index: np.ndarray, offset: np.ndarray, road: Map
+def joining_target(
+    state: TrafficState, cav_index: np.ndarray, offset: np.ndarray, road: Map, ahead: bool
 ) -> np.ndarray:
-    """(..., C) the nearest vehicle behind each CAV that is moving across into the lane its
-    lane change ``offset`` (..., C) goes to, -1 if none or no change.
+    """(..., C) the nearest vehicle behind (``ahead``: ahead of) each CAV that is moving
+    across into the lane its lane change ``offset`` (..., C) goes to, -1 if none or no
+    change.
 
-    The target lane's rear vehicle is found by the lane each vehicle's centre is in;
-    one whose change into that lane is under way still counts in its old lane. On
-    SUMO a standing CAV moved right into such a human's path: the human, 12 m back at
-    18 m/s and half-way over from the lane beyond, hit it (issue 57). The lane-change
-    checks give it the target lane's rear test (:mod:`diacc.envs.psar.lane_change`).
+    The target lane's rear and front vehicles are found by the lane each vehicle's
+    centre is in; one whose change into that lane is under way still counts in its old
+    lane. On SUMO a standing CAV moved right into such a human's path: the human, 12 m
+    back at 18 m/s and half-way over from the lane beyond, hit it (issue 57); and a CAV
+    at 10.5 m/s moved into a lane a standing human 10 m ahead was moving into from the
+    other side (issue 60). The lane-change checks give them the target lane's rear and
+    front tests (:mod:`diacc.envs.psar.lane_change`).
     """
     if not np.any(offset):  # no lane change asked: skip the (..., C, V) search
         return np.full(cav_index.shape, -1, np.int64)
     target = take(state.lane, cav_index).astype(np.int64) + offset  # (..., C)
     dx_m = state.x_m[..., None, :] - take(state.x_m, cav_index)[..., None]  # (..., C, V)
+    side = (dx_m >= 0.0) if ahead else (dx_m < 0.0)
     candidate = (
         _drifting_toward(state, target, road)
-        & (dx_m < 0.0)
+        & side
         & state.active[..., None, :]
         & (offset != 0)[..., None]
     )
-    dist_m = np.where(candidate, -dx_m, np.inf)
+    dist_m = np.where(candidate, np.abs(dx_m), np.inf)
     nearest = np.argmin(dist_m, axis=-1)  # (..., C)
     return np.where(np.isfinite(np.min(dist_m, axis=-1)), nearest, -1)
 

@@ -39,6 +39,13 @@ Modelling choices (documented here because both backends must agree on them):
   step and then braking at ``cav.safe_decel_mps2``, stays ``cav.min_gap_m`` behind
   (:func:`diacc.sim.kinematics.safe_gap_m`, the margin PSAR uses); IDM's view
   of the follower would assume it brakes at once.
+* **No HDV lane change into a crash**: MOBIL's incentive compares unclipped IDM
+  accelerations, so with a car cutting in just ahead a lane behind a much slower
+  car can "gain"; a change is made only if the driver's own IDM deceleration
+  behind its new leader is within ``max_brake_mps2`` (like LC2013's secure gap to
+  the new leader; vetoes counted in ``stats["unsafe_change_vetoes"]``). Of two
+  drivers entering one lane side by side in the same instant only the front one
+  goes, of two level ones (entered in the same sub-step) the one listed first.
 * **Cooperative CAVs** (``SimConfig.cav_mode="cooperative"``, the paper's non-learning
   "cooperative" baseline; SUMO uses CACC with ``lcCooperative = 1``): CAVs
   ignore the commands and are driven by the same vectorised IDM / MOBIL /
