@@ -485,12 +485,84 @@ def scorecard_heuristic_claims() -> list[Claim]:
     return claims
 
 
+#: The shipped generalist's scorecard (issue 60), one directory per backend.
+GENERALIST = {
+    "highway": ROOT / "benchmarks/studies/scorecard/results/suite-s3",
+    "sumo": ROOT / "benchmarks/studies/scorecard/results/suite-s3-sumo",
+}
+#: The suites of the scorecard before `generated` (18 cells per backend).
+CURRENT_SUITES = ("train", "zero-shot", "geometry", "paper-congestion", "demand")
+
+
+def _suite_change(backend: str, suite: str, reference: str) -> float:
+    """The change (%) of the generalist's mean delay over a suite against a reference,
+    every episode paired with the reference's of the same cell and seed."""
+    key = ("map", "n_vehicles", "cav_penetration", "style_mix", "inflow_vph", "seed")
+
+    def delays(column: str) -> dict[tuple[str, ...], float]:
+        path = GENERALIST[backend] / backend / suite / column / "episodes.csv"
+        with path.open(newline="") as f:
+            return {
+                tuple(r[k] for k in key): float(r["delay_per_vehicle_s"]) for r in csv.DictReader(f)
+            }
+
+    mine, ref = delays("policy"), delays(reference)
+    both = sorted(set(mine) & set(ref))
+    return (sum(mine[k] for k in both) / sum(ref[k] for k in both) - 1) * 100
+
+
+def generalist_claims() -> list[Claim]:
+    """README's paragraph on the recommended agent: per backend the 18 scorecard cells
+    where its delay is measurably less / level / more than the heuristic's, its suite
+    means against the heuristic on highway, the training cell's change, its collisions."""
+    cards = {
+        b: json.loads((d / "scorecard.json").read_text(encoding="utf-8"))
+        for b, d in GENERALIST.items()
+    }
+    claims = []
+    for backend, card in cards.items():
+        rows = [r for r in card["summary"] if r["suite"] in CURRENT_SUITES]
+        counts = [
+            sum(r["delay_vs_heuristic"][k] for r in rows) for k in ("better", "same", "worse")
+        ]
+        cells = sum(r["cells"] for r in rows)
+        text = " / ".join(map(str, counts))
+        claims.append(Claim(f"{text} of the scorecard's {cells} {backend} cells", ("heuristic",)))
+    labels = {
+        "zero-shot": "on the paper's zero-shot rows",
+        "geometry": "on the maps never trained on",
+        "demand": "on the demand road",
+        "generated": "on the 20 generated test maps",
+    }
+    for suite, label in labels.items():
+        change = _suite_change("highway", suite, "heuristic")
+        claims.append(Claim(f"{change:+.1f} % {label}", ("heuristic",)))
+    (train,) = [
+        e["vs"]["heuristic"]
+        for e in cards["highway"]["entries"]
+        if e["suite"] == "train" and e["metric"] == "delay"
+    ]
+    claims.append(Claim(f"{_interval(train)} on the training cell", ("heuristic",)))
+    episodes = crashes = 0
+    for path in (GENERALIST["highway"] / "highway").glob("*/policy/episodes.csv"):
+        with path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        episodes += len(rows)
+        crashes += sum(int(float(r["collision"])) for r in rows)
+    if crashes == 0:
+        claims.append(Claim(f"no collision in any of its {episodes:,} highway card episodes"))
+    else:
+        claims.append(Claim(f"a collision in {crashes} of its {episodes:,} highway card episodes"))
+    return claims
+
+
 def readme_claims() -> list[tuple[str, list[Claim]]]:
     """Every prose claim of README, by kind."""
     capacity = ("pure HDV's capacity", "`test`")
     return [
         ("paper", paper_paragraph_claims()),
         ("scorecard", scorecard_heuristic_claims()),
+        ("generalist", generalist_claims()),
         ("demand", demand_sentence_claims()),
         ("figure", figure_claims() + [Claim(c, capacity) for c in capacity_claims()]),
     ]
