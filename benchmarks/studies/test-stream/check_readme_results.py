@@ -527,7 +527,8 @@ def generalist_claims() -> list[Claim]:
         ]
         cells = sum(r["cells"] for r in rows)
         text = " / ".join(map(str, counts))
-        claims.append(Claim(f"{text} of the scorecard's {cells} {backend} cells", ("heuristic",)))
+        name = "SUMO" if backend == "sumo" else backend
+        claims.append(Claim(f"{text} of the scorecard's {cells} {name} cells", ("heuristic",)))
     labels = {
         "zero-shot": "on the paper's zero-shot rows",
         "geometry": "on the maps never trained on",
