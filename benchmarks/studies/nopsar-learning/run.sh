@@ -32,6 +32,15 @@ case "$ARM" in
         SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
         --set critic_values=per_agent --set credit=own --set entropy_coef=0.01
         --set lr=0.0001 --set env.reward.tau_init=0.05) ;;
+    own-penalty50-ent01-sumo-ft2)
+        # The SUMO fine-tuning's training collisions were still falling at its end: 300k
+        # more steps on SUMO from each seed's fine-tuned policy, the same settings (a
+        # fresh optimiser, lr 1e-4 decaying to 0 again).
+        BACKEND=sumo STEPS=300000
+        INIT=(--init-from "benchmarks/studies/nopsar-learning/results/own-penalty50-ent01-sumo-ft/runs/$VARIANT-s$SEED/checkpoint.pt")
+        SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
+        --set critic_values=per_agent --set credit=own --set entropy_coef=0.01
+        --set lr=0.0001 --set env.reward.tau_init=0.05) ;;
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
 esac
 STOP=${STOP:-$STEPS}
