@@ -22,22 +22,17 @@ case "$ARM" in
     own-penalty50-ent01-bumper) SETS=(--set env.sim.on_collision=remove
         --set env.reward.crash_penalty=50 --set critic_values=per_agent --set credit=own
         --set entropy_coef=0.01 --set env.reward.closeness=bumper) ;;
-    own-penalty50-ent01-sumo-ft)
+    own-penalty50-ent01-sumo-ft | own-penalty50-ent01-sumo-ft2)
         # Fine-tune the highway-trained 1 M-step policy of the same seed on SUMO: a 300k
         # schedule, lr 1e-4 (a fresh Adam at 5e-4 moved the policy by KL 0.26 in one
         # update), tau held at its final value (the policy was trained to the end of the
-        # anneal; a fresh schedule would restart it at 2.0).
+        # anneal; a fresh schedule would restart it at 2.0). ft2: the fine-tuning's
+        # training collisions were still falling at its end, so 300k more SUMO steps from
+        # each seed's fine-tuned policy, the same settings (a fresh optimiser again).
         BACKEND=sumo STEPS=300000
-        INIT=(--init-from "benchmarks/studies/nopsar-learning/results/own-penalty50-ent01/runs/$VARIANT-s$SEED/checkpoint.pt")
-        SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
-        --set critic_values=per_agent --set credit=own --set entropy_coef=0.01
-        --set lr=0.0001 --set env.reward.tau_init=0.05) ;;
-    own-penalty50-ent01-sumo-ft2)
-        # The SUMO fine-tuning's training collisions were still falling at its end: 300k
-        # more steps on SUMO from each seed's fine-tuned policy, the same settings (a
-        # fresh optimiser, lr 1e-4 decaying to 0 again).
-        BACKEND=sumo STEPS=300000
-        INIT=(--init-from "benchmarks/studies/nopsar-learning/results/own-penalty50-ent01-sumo-ft/runs/$VARIANT-s$SEED/checkpoint.pt")
+        FROM=own-penalty50-ent01
+        if [ "$ARM" = own-penalty50-ent01-sumo-ft2 ]; then FROM=own-penalty50-ent01-sumo-ft; fi
+        INIT=(--init-from "benchmarks/studies/nopsar-learning/results/$FROM/runs/$VARIANT-s$SEED/checkpoint.pt")
         SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
         --set critic_values=per_agent --set credit=own --set entropy_coef=0.01
         --set lr=0.0001 --set env.reward.tau_init=0.05) ;;
