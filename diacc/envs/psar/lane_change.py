@@ -96,8 +96,7 @@ def _check_front(
     # A vehicle ahead whose change into the target lane is under way is one of its front
     # vehicles already (scene.joining_target).
     joining_cav = (
-        take(cavs.state.is_cav, np.maximum(near.joining_front_index, 0))
-        & near.joining_front.valid
+        take(cavs.state.is_cav, np.maximum(near.joining_front_index, 0)) & near.joining_front.valid
     )
     fronts = (
         (near.tf_vehicle, tf_cav),

@@ -92,9 +92,7 @@ def find_obstacles(cavs: Cavs, offset: np.ndarray, road: Map, queue_gap_m: float
         ],
     )  # (..., C, 3): target-lane front j, target-lane rear k, same-lane front j
     cut_in = cut_in_front(state, cav_index, road)  # (..., C)
-    joining = np.stack(
-        [joining_target(state, cav_index, offset, road, ahead) for ahead in (False, True)], -1
-    )  # (..., C, 2): behind, ahead
+    joining = joining_target(state, cav_index, offset, road)  # (..., C, 2): behind, ahead
     # One call per kind of obstacle (the formulas are elementwise): the three neighbours,
     # the vehicle cutting in and those joining the target lane behind and ahead as
     # columns, the target and own lanes' ends side by side.
@@ -138,11 +136,11 @@ def _drifting_toward(state: TrafficState, lane: np.ndarray, road: Map) -> np.nda
 
 
 def joining_target(
-    state: TrafficState, cav_index: np.ndarray, offset: np.ndarray, road: Map, ahead: bool
+    state: TrafficState, cav_index: np.ndarray, offset: np.ndarray, road: Map
 ) -> np.ndarray:
-    """(..., C) the nearest vehicle behind (``ahead``: ahead of) each CAV that is moving
-    across into the lane its lane change ``offset`` (..., C) goes to, -1 if none or no
-    change.
+    """(..., C, 2) the nearest vehicle behind (column 0) and ahead of (column 1) each CAV
+    that is moving across into the lane its lane change ``offset`` (..., C) goes to, -1
+    if none or no change.
 
     The target lane's rear and front vehicles are found by the lane each vehicle's
     centre is in; one whose change into that lane is under way still counts in its old
@@ -153,19 +151,21 @@ def joining_target(
     front tests (:mod:`diacc.envs.psar.lane_change`).
     """
     if not np.any(offset):  # no lane change asked: skip the (..., C, V) search
-        return np.full(cav_index.shape, -1, np.int64)
+        return np.full((*cav_index.shape, 2), -1, np.int64)
     target = take(state.lane, cav_index).astype(np.int64) + offset  # (..., C)
     dx_m = state.x_m[..., None, :] - take(state.x_m, cav_index)[..., None]  # (..., C, V)
-    side = (dx_m >= 0.0) if ahead else (dx_m < 0.0)
     candidate = (
         _drifting_toward(state, target, road)
-        & side
         & state.active[..., None, :]
         & (offset != 0)[..., None]
-    )
-    dist_m = np.where(candidate, np.abs(dx_m), np.inf)
-    nearest = np.argmin(dist_m, axis=-1)  # (..., C)
-    return np.where(np.isfinite(np.min(dist_m, axis=-1)), nearest, -1)
+    )  # (..., C, V)
+    ahead = dx_m >= 0.0
+    dist_m = np.stack(
+        [np.where(candidate & ~ahead, -dx_m, np.inf), np.where(candidate & ahead, dx_m, np.inf)],
+        -1,
+    )  # (..., C, V, 2)
+    nearest = np.argmin(dist_m, axis=-2)  # (..., C, 2)
+    return np.where(np.isfinite(np.min(dist_m, axis=-2)), nearest, -1)
 
 
 def cut_in_front(state: TrafficState, cav_index: np.ndarray, road: Map) -> np.ndarray:

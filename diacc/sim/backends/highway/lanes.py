@@ -200,9 +200,8 @@ def decide_lane_changes(hw: HighwaySim) -> None:
     # would not see each other: keep the front one; of two level ones (two entering
     # the road in the same sub-step, both at its start) the one with the lower index.
     rear_gap_need = params.idm.min_gap_m + v * params.idm.headway_s  # (E, V)
-    level = x[:, None, :] == x[:, :, None]
     # (E, V, V) [e, i, j]: j is ahead of i, or level with it and listed before it
-    in_front = (x[:, None, :] > x[:, :, None]) | (level & np.tri(n, k=-1, dtype=bool))
+    in_front = (dx > 0.0) | ((dx == 0.0) & np.tri(n, k=-1, dtype=bool))
     clash = (
         start[:, :, None]
         & start[:, None, :]
