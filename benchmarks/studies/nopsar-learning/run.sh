@@ -22,20 +22,25 @@ case "$ARM" in
     own-penalty50-ent01-bumper) SETS=(--set env.sim.on_collision=remove
         --set env.reward.crash_penalty=50 --set critic_values=per_agent --set credit=own
         --set entropy_coef=0.01 --set env.reward.closeness=bumper) ;;
-    own-penalty50-ent01-sumo-ft | own-penalty50-ent01-sumo-ft2)
+    own-penalty50-ent01-sumo-ft | own-penalty50-ent01-sumo-ft2 | own-penalty50-ent01-sumo-ft-bumper)
         # Fine-tune the highway-trained 1 M-step policy of the same seed on SUMO: a 300k
         # schedule, lr 1e-4 (a fresh Adam at 5e-4 moved the policy by KL 0.26 in one
         # update), tau held at its final value (the policy was trained to the end of the
         # anneal; a fresh schedule would restart it at 2.0). ft2: the fine-tuning's
         # training collisions were still falling at its end, so 300k more SUMO steps from
         # each seed's fine-tuned policy, the same settings (a fresh optimiser again).
+        # ft-bumper: sumo-ft with the bumper-gap warning term, one change: SUMO's crashes
+        # follow a human at a 0.6-1.5 m bumper gap, which the paper's reward never warns of.
         BACKEND=sumo STEPS=300000
         FROM=own-penalty50-ent01
         if [ "$ARM" = own-penalty50-ent01-sumo-ft2 ]; then FROM=own-penalty50-ent01-sumo-ft; fi
         INIT=(--init-from "benchmarks/studies/nopsar-learning/results/$FROM/runs/$VARIANT-s$SEED/checkpoint.pt")
         SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
         --set critic_values=per_agent --set credit=own --set entropy_coef=0.01
-        --set lr=0.0001 --set env.reward.tau_init=0.05) ;;
+        --set lr=0.0001 --set env.reward.tau_init=0.05)
+        if [ "$ARM" = own-penalty50-ent01-sumo-ft-bumper ]; then
+            SETS+=(--set env.reward.closeness=bumper)
+        fi ;;
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
 esac
 STOP=${STOP:-$STEPS}
