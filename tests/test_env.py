@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from diacc.envs.actions import ACCELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
+from diacc.envs.actions import ACCELERATE, DECELERATE, LANE_LEFT, LANE_RIGHT, REMAIN
 from diacc.envs.env import AnnealTemperature, BottleneckEnv, EnvConfig
 from diacc.envs.reward import RewardError, team_reward, temperature
 from diacc.sim.scenario import Scenario
@@ -65,6 +65,34 @@ def _two_cav_episode(backend: str, use_psar: bool, tmp_path) -> tuple[int, int]:
             if out.terminated:
                 break
         return collisions, t + 1
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("scale", [1.0, 2.0])
+def test_decelerate_lowers_the_speed_by_the_scaled_step(backend, scale, tmp_path):
+    """Without PSAR, *decelerate* brakes by ``speed_change_mps x decelerate_scale`` per step
+    (the paper's 2 m/s at the default 1; 4 m/s at 2, within the CAV's 5 m/s^2)."""
+    road = tmp_path / "two.toml"
+    road.write_text(TWO_LANES)
+    sim = SimConfig(decelerate_scale=scale)
+    config = EnvConfig(
+        backend=backend,
+        map=str(road),
+        use_psar=False,
+        sim=sim,
+        scenario=Scenario(n_vehicles=2, cav_penetration=1.0),
+    )
+    env = BottleneckEnv(config)
+    try:
+        env.reset_arrays(seed=0)
+        for _ in range(3):  # from the release speed (10 m/s) to 16
+            env.step_arrays(np.full(2, ACCELERATE))
+        before = env.state_.speed_mps[0, env.cav_index].copy()
+        after = env.step_arrays(np.full(2, DECELERATE)).state.speed_mps[0, env.cav_index]
+        assert before == pytest.approx([16.0, 16.0], abs=0.05)
+        assert after == pytest.approx(before - 2.0 * scale, abs=0.05)
     finally:
         env.close()
 

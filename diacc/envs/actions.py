@@ -20,10 +20,17 @@ ACTION_NAMES = ("remain", "left", "right", "accelerate", "decelerate")
 ACTION_LANE_OFFSET = np.array([0, +1, -1, 0, 0], dtype=np.int64)
 
 
-def action_speed_change_mps(action: np.ndarray, step_mps: float) -> np.ndarray:
-    """(C,) speed change of each action: +-``step_mps`` for accelerate/decelerate, else 0."""
+def action_speed_change_mps(action: np.ndarray, sim: SimConfig) -> np.ndarray:
+    """(C,) speed change of each action: ``+speed_change_mps`` for accelerate,
+    ``-speed_change_mps * decelerate_scale`` for decelerate, else 0.
+
+    The paper's actions move the target speed by +-2 m/s per 1 s step, so the policy
+    can brake at 2 m/s^2 where a human ahead may brake at 4-7; PSAR brakes harder
+    when it must. ``decelerate_scale`` lets a policy without PSAR do so too.
+    """
     action = np.asarray(action)
-    return np.where(action == ACCELERATE, step_mps, np.where(action == DECELERATE, -step_mps, 0.0))
+    up_mps, down_mps = sim.speed_change_mps, sim.speed_change_mps * sim.decelerate_scale
+    return np.where(action == ACCELERATE, up_mps, np.where(action == DECELERATE, -down_mps, 0.0))
 
 
 def lane_change_allowed(

@@ -106,7 +106,7 @@ def decide(
         is_lc = ACTION_LANE_OFFSET[world] != 0
         result, executed = None, np.where(alive & (allowed | ~is_lc), world, REMAIN)
         rule, rule_mask = no_rule, no_rule
-        speed_change_mps = action_speed_change_mps(executed, sim.speed_change_mps)
+        speed_change_mps = action_speed_change_mps(executed, sim)
     lane_change = np.zeros(state.x_m.shape, np.int8)  # (..., V)
     speed_change = np.zeros(state.x_m.shape, np.float64)
     # Added, not put: empty slots may share a vehicle (not on the road) and add 0 there.

@@ -91,6 +91,8 @@ class SimConfig:
         100, 1, MAX_EPISODE_STEPS, why="an episode's steps are stored and replayed in training"
     )
     speed_change_mps: float = ranged(2.0, 0)  # accelerate/decelerate action, over one step
+    # decelerate lowers the target speed by speed_change_mps x this (1: the paper's +-2 m/s)
+    decelerate_scale: float = ranged(1.0, 0, open_low=True)
     vehicle_length_m: float = ranged(5.0, 0, open_low=True)
     vehicle_width_m: float = ranged(1.8, 0, open_low=True)
     idm_delta: float = ranged(4.0, 0, open_low=True)  # IDM acceleration exponent

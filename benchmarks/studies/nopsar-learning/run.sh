@@ -22,7 +22,8 @@ case "$ARM" in
     own-penalty50-ent01-bumper) SETS=(--set env.sim.on_collision=remove
         --set env.reward.crash_penalty=50 --set critic_values=per_agent --set credit=own
         --set entropy_coef=0.01 --set env.reward.closeness=bumper) ;;
-    own-penalty50-ent01-sumo-ft | own-penalty50-ent01-sumo-ft2 | own-penalty50-ent01-sumo-ft-bumper)
+    own-penalty50-ent01-sumo-ft | own-penalty50-ent01-sumo-ft2 | own-penalty50-ent01-sumo-ft-bumper \
+        | own-penalty50-ent01-sumo-ft-brake4)
         # Fine-tune the highway-trained 1 M-step policy of the same seed on SUMO: a 300k
         # schedule, lr 1e-4 (a fresh Adam at 5e-4 moved the policy by KL 0.26 in one
         # update), tau held at its final value (the policy was trained to the end of the
@@ -31,6 +32,8 @@ case "$ARM" in
         # each seed's fine-tuned policy, the same settings (a fresh optimiser again).
         # ft-bumper: sumo-ft with the bumper-gap warning term, one change: SUMO's crashes
         # follow a human at a 0.6-1.5 m bumper gap, which the paper's reward never warns of.
+        # ft-brake4: sumo-ft with decelerate braking 4 m/s per step instead of 2, one change:
+        # in every replayed SUMO crash the human ahead braked at 4-7 m/s^2.
         BACKEND=sumo STEPS=300000
         FROM=own-penalty50-ent01
         if [ "$ARM" = own-penalty50-ent01-sumo-ft2 ]; then FROM=own-penalty50-ent01-sumo-ft; fi
@@ -40,6 +43,9 @@ case "$ARM" in
         --set lr=0.0001 --set env.reward.tau_init=0.05)
         if [ "$ARM" = own-penalty50-ent01-sumo-ft-bumper ]; then
             SETS+=(--set env.reward.closeness=bumper)
+        fi
+        if [ "$ARM" = own-penalty50-ent01-sumo-ft-brake4 ]; then
+            SETS+=(--set env.sim.decelerate_scale=2)
         fi ;;
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
 esac

@@ -68,9 +68,7 @@ def psar(
     a, speed_change, mask, b_lc_mps2 = horizon.car_following(
         a, b_lc_mps2, mask, near, asked_lane
     )  # lines 17-27
-    return result_of(
-        a, proposed, speed_change, mask, b_lc_mps2, invalid_lc, cavs.active, sim.speed_change_mps
-    )
+    return result_of(a, proposed, speed_change, mask, b_lc_mps2, invalid_lc, cavs.active, sim)
 
 
 def _checked(

@@ -46,8 +46,7 @@ def threshold_car_following(
         fires_brake |= br1 | br3
         fires_suppress |= br2 | br4
 
-    dv_action = sim.speed_change_mps
-    speed_change = action_speed_change_mps(a, dv_action) - b_lc_mps2 * sim.step_s  # (..., C)
+    speed_change = action_speed_change_mps(a, sim) - b_lc_mps2 * sim.step_s  # (..., C)
     brake_mps, brake = FORCE_BRAKES[cfg.force_brake](a, fires_brake, need_mps, speed_change, sim)
     suppress = fires_suppress & ~fires_brake & (a != REMAIN)
     a = np.where(fires_brake, np.where(brake, DECELERATE, a), np.where(suppress, REMAIN, a))

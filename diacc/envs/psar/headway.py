@@ -55,7 +55,7 @@ def headway_car_following(
     brake_mps = max_brake_mps(state, cav_index, slots, near, cfg, sim)  # (..., C)
     offset = ACTION_LANE_OFFSET[a]
     changing = cavs.active & (offset != 0)
-    speed_change = action_speed_change_mps(a, sim.speed_change_mps) - b_lc_mps2 * sim.step_s
+    speed_change = action_speed_change_mps(a, sim) - b_lc_mps2 * sim.step_s
     entering_lane = np.where(changing, cavs.lane + offset, asked_lane)  # (..., C) -1: none
     bound_mps, brake_mps = headway_bound_mps(
         cavs, entering_lane, changing, speed_change, slots, near, brake_mps, cfg, road, sim

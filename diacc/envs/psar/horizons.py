@@ -89,9 +89,7 @@ class StoppingHorizon(PaperHorizon):
     def _front_gap_m(self, kin, action, front_is_cav):
         sim, ego_mps = self.sim, self.cavs.speed_mps
         lead_speed_mps = ego_mps - nan_to_num(kin.dv_long_mps)  # 0 for a wall
-        end_speed_mps = ego_mps + np.maximum(
-            action_speed_change_mps(action, sim.speed_change_mps), 0
-        )
+        end_speed_mps = ego_mps + np.maximum(action_speed_change_mps(action, sim), 0)
         return safe_gap_m(
             ego_mps, lead_speed_mps, sim.step_s, sim.cav.safe_decel_mps2, end_speed_mps
         )

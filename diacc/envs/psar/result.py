@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from diacc.config import SimConfig
 from diacc.envs.actions import action_speed_change_mps
 from diacc.records import Batched, per_env
 
@@ -58,7 +59,7 @@ def result_of(
     b_lc_mps2: np.ndarray,
     invalid_lc: np.ndarray,
     active: np.ndarray,
-    dv_action: float,
+    sim: SimConfig,
 ) -> PSARResult:
     """The :class:`PSARResult` of refined actions; inactive CAVs keep their proposal."""
     rule = np.full(a.shape, RULE_NONE, dtype=np.int8)
@@ -67,7 +68,7 @@ def result_of(
     return PSARResult(
         action=np.where(active, a, proposed).astype(np.int64),
         speed_change_mps=np.where(
-            active, speed_change, action_speed_change_mps(proposed, dv_action)
+            active, speed_change, action_speed_change_mps(proposed, sim)
         ).astype(np.float64),
         rule=rule,
         rule_mask=mask,
