@@ -33,7 +33,7 @@ case "$ARM" in
         # ft-bumper: sumo-ft with the bumper-gap warning term, one change: SUMO's crashes
         # follow a human at a 0.6-1.5 m bumper gap, which the paper's reward never warns of.
         # ft-brake4: sumo-ft with decelerate braking 4 m/s per step instead of 2, one change:
-        # in every replayed SUMO crash the human ahead braked at 4-7 m/s^2.
+        # in 5 of the 12 replayed SUMO test crashes the human ahead braked at 4-7 m/s^2.
         BACKEND=sumo STEPS=300000
         FROM=own-penalty50-ent01
         if [ "$ARM" = own-penalty50-ent01-sumo-ft2 ]; then FROM=own-penalty50-ent01-sumo-ft; fi
