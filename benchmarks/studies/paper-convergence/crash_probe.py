@@ -9,8 +9,8 @@ rho = 0.4, D1, ``paper-congestion`` drivers unless told otherwise) with the
 checkpoint, greedy, on highway (or ``--backend sumo``), and prints for every
 collision the step, both vehicles (kind, lane, position along the route, speed) and
 the segment, and each vehicle's lane, position and speed over the steps before
-(``--history``, the oldest first; a backend may update its state in place, so
-each step's state is copied): what the 100 % collision rate of the variants without PSAR is made of
+(``--history``, the oldest first; a collided vehicle is reported where it was at the
+start of its crash step): what the 100 % collision rate of the variants without PSAR is made of
 (docs/results/paper-convergence.md). ``--stream test --only 6,8,25`` replays the given
 episodes of another stream: what the collisions an evaluation reported were (it plays
 the same seeds as ``diacc eval``'s episodes of those numbers).
@@ -19,7 +19,6 @@ the same seeds as ``diacc eval``'s episodes of those numbers).
 from __future__ import annotations
 
 import argparse
-import copy
 from collections import deque
 
 import torch
@@ -64,7 +63,7 @@ def main() -> None:
     chosen = [int(e) for e in args.only.split(",")] if args.only else range(args.episodes)
     for episode in chosen:
         driver_seed = cell.seed(episode, args.stream)
-        history = deque([copy.deepcopy(driver.reset(driver_seed))], maxlen=args.history)
+        history = deque([driver.reset(driver_seed)], maxlen=args.history)
         while not driver.done:
             state = driver.step()
             for env, i, j in state.collisions:
@@ -72,7 +71,7 @@ def main() -> None:
                     f"episode {episode} (seed {driver_seed}), step {driver.steps}: "
                     f"{describe(state, history, env, i)} with {describe(state, history, env, j)}"
                 )
-            history.append(copy.deepcopy(state))
+            history.append(state)  # each step's state is a new one
     driver.close()
 
 
