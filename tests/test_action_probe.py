@@ -38,11 +38,16 @@ CRASH_PROBE = SCRIPT.with_name("crash_probe.py")
 
 def test_crash_probe_names_each_colliding_pair_with_its_speeds_before():
     """Always accelerating without PSAR rear-ends a slower vehicle: the line gives both
-    vehicles' speeds a step before the crash (the crash itself sets them to 0)."""
+    vehicles' lane, position and speed over the steps before the crash (the crash itself
+    may zero the speeds); ``--stream test --only`` replays a chosen episode of another
+    stream, named with its seed."""
     command = [sys.executable, str(CRASH_PROBE), "accelerate-nopsar", "1"]
     lines = subprocess.run(command, capture_output=True, text=True, check=True).stdout.splitlines()
-    assert lines and all(line.startswith("episode 0, step ") for line in lines)
-    assert all(line.count("a step before: lane ") == 2 for line in lines)
-    assert " m, 25.0 m/s; segment" in lines[0]  # the CAV at its top speed
+    assert lines and all(line.startswith("episode 0 (seed ") for line in lines)
+    assert all(line.count("before, lane/x m/speed m/s: ") == 2 for line in lines)
+    assert "/25.0)" in lines[0]  # the CAV at its top speed the step before
+    chosen = [*command, "--stream", "test", "--only", "2"]
+    replayed = subprocess.run(chosen, capture_output=True, text=True, check=True).stdout
+    assert replayed.startswith("episode 2 (seed ")
     bad = subprocess.run([*command[:2], "/no/such/run"], capture_output=True, text=True)
     assert bad.returncode == 1 and bad.stderr.startswith("crash_probe.py: error: unknown policy")
