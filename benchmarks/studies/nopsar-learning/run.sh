@@ -22,8 +22,14 @@ case "$ARM" in
     own-penalty50-ent01-bumper) SETS=(--set env.sim.on_collision=remove
         --set env.reward.crash_penalty=50 --set critic_values=per_agent --set credit=own
         --set entropy_coef=0.01 --set env.reward.closeness=bumper) ;;
+    own-penalty50-ent01-h700k)
+        # own-penalty50-ent01 on a 700k-step schedule, so that the SUMO fine-tuning after
+        # it (h700k-sumo-ft-brake4) ends within the target's 1 M steps in all.
+        STEPS=700000
+        SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
+        --set critic_values=per_agent --set credit=own --set entropy_coef=0.01) ;;
     own-penalty50-ent01-sumo-ft | own-penalty50-ent01-sumo-ft2 | own-penalty50-ent01-sumo-ft-bumper \
-        | own-penalty50-ent01-sumo-ft-brake4)
+        | own-penalty50-ent01-sumo-ft-brake4 | own-penalty50-ent01-h700k-sumo-ft-brake4)
         # Fine-tune the highway-trained 1 M-step policy of the same seed on SUMO: a 300k
         # schedule, lr 1e-4 (a fresh Adam at 5e-4 moved the policy by KL 0.26 in one
         # update), tau held at its final value (the policy was trained to the end of the
@@ -34,9 +40,11 @@ case "$ARM" in
         # follow a human at a 0.6-1.5 m bumper gap, which the paper's reward never warns of.
         # ft-brake4: sumo-ft with decelerate braking 4 m/s per step instead of 2, one change:
         # in 5 of the 12 replayed SUMO test crashes the human ahead braked at 4-7 m/s^2.
+        # h700k-sumo-ft-brake4: the same from the 700k-step highway policy, 1 M steps in all.
         BACKEND=sumo STEPS=300000
         FROM=own-penalty50-ent01
         if [ "$ARM" = own-penalty50-ent01-sumo-ft2 ]; then FROM=own-penalty50-ent01-sumo-ft; fi
+        if [ "$ARM" = own-penalty50-ent01-h700k-sumo-ft-brake4 ]; then FROM=own-penalty50-ent01-h700k; fi
         INIT=(--init-from "benchmarks/studies/nopsar-learning/results/$FROM/runs/$VARIANT-s$SEED/checkpoint.pt")
         SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
         --set critic_values=per_agent --set credit=own --set entropy_coef=0.01
@@ -44,7 +52,7 @@ case "$ARM" in
         if [ "$ARM" = own-penalty50-ent01-sumo-ft-bumper ]; then
             SETS+=(--set env.reward.closeness=bumper)
         fi
-        if [ "$ARM" = own-penalty50-ent01-sumo-ft-brake4 ]; then
+        if [ "${ARM%-brake4}" != "$ARM" ]; then
             SETS+=(--set env.sim.decelerate_scale=2)
         fi ;;
     *) echo "unknown arm: $ARM" >&2; exit 2 ;;
