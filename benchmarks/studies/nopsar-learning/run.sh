@@ -28,6 +28,14 @@ case "$ARM" in
         STEPS=700000
         SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
         --set critic_values=per_agent --set credit=own --set entropy_coef=0.01) ;;
+    own-penalty50-ent01-sumo-brake4)
+        # SUMO from the first step with the harder braking, the whole 1 M-step schedule:
+        # the highway stage cut to 700k (h700k) left one seed of three not braking, and
+        # every fine-tuning that worked started from a policy trained for 1 M steps.
+        BACKEND=sumo
+        SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
+        --set critic_values=per_agent --set credit=own --set entropy_coef=0.01
+        --set env.sim.decelerate_scale=2) ;;
     own-penalty50-ent01-sumo-ft | own-penalty50-ent01-sumo-ft2 | own-penalty50-ent01-sumo-ft-bumper \
         | own-penalty50-ent01-sumo-ft-brake4 | own-penalty50-ent01-h700k-sumo-ft-brake4)
         # Fine-tune the highway-trained 1 M-step policy of the same seed on SUMO: a 300k
