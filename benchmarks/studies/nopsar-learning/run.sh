@@ -36,6 +36,16 @@ case "$ARM" in
         SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
         --set critic_values=per_agent --set credit=own --set entropy_coef=0.01
         --set env.sim.decelerate_scale=2) ;;
+    own-penalty50-ent03-sumo-brake4)
+        # sumo-brake4 with three times the entropy bonus, one change: its seed 2 fell to
+        # 0.4 nats by update 50 (greedy *remain* on 94 % of decisions), never learned to
+        # brake and crashed in 60 % of its training episodes at 1 M steps (seed 1: 0.9
+        # nats, 11 %); h700k's seed 3, which never learned to brake either, fell to 0.7
+        # nats as early.
+        BACKEND=sumo
+        SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
+        --set critic_values=per_agent --set credit=own --set entropy_coef=0.03
+        --set env.sim.decelerate_scale=2) ;;
     own-penalty50-ent01-sumo-ft | own-penalty50-ent01-sumo-ft2 | own-penalty50-ent01-sumo-ft-bumper \
         | own-penalty50-ent01-sumo-ft-brake4 | own-penalty50-ent01-h700k-sumo-ft-brake4)
         # Fine-tune the highway-trained 1 M-step policy of the same seed on SUMO: a 300k
