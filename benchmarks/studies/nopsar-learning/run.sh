@@ -10,32 +10,30 @@ ARM=${ARM:?name the arm: remove | ...}
 SEED=${SEED:-1}
 VARIANT=${VARIANT:-diacc-nopsar}
 BACKEND=highway STEPS=1000000 INIT=()
+# The own-credit arms' shared changes: crash ends only the crasher's trip, penalty 50,
+# each CAV credited with its own reward and value.
+OWN=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
+    --set critic_values=per_agent --set credit=own)
 case "$ARM" in
     remove) SETS=(--set env.sim.on_collision=remove) ;;
     remove-penalty50) SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50) ;;
     remove-penalty50-ent01) SETS=(--set env.sim.on_collision=remove
         --set env.reward.crash_penalty=50 --set entropy_coef=0.01) ;;
-    own-penalty50) SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
-        --set critic_values=per_agent --set credit=own) ;;
-    own-penalty50-ent01) SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
-        --set critic_values=per_agent --set credit=own --set entropy_coef=0.01) ;;
-    own-penalty50-ent01-bumper) SETS=(--set env.sim.on_collision=remove
-        --set env.reward.crash_penalty=50 --set critic_values=per_agent --set credit=own
-        --set entropy_coef=0.01 --set env.reward.closeness=bumper) ;;
+    own-penalty50) SETS=("${OWN[@]}") ;;
+    own-penalty50-ent01) SETS=("${OWN[@]}" --set entropy_coef=0.01) ;;
+    own-penalty50-ent01-bumper) SETS=("${OWN[@]}" --set entropy_coef=0.01
+        --set env.reward.closeness=bumper) ;;
     own-penalty50-ent01-h700k)
         # own-penalty50-ent01 on a 700k-step schedule, so that the SUMO fine-tuning after
         # it (h700k-sumo-ft-brake4) ends within the target's 1 M steps in all.
         STEPS=700000
-        SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
-        --set critic_values=per_agent --set credit=own --set entropy_coef=0.01) ;;
+        SETS=("${OWN[@]}" --set entropy_coef=0.01) ;;
     own-penalty50-ent01-sumo-brake4)
         # SUMO from the first step with the harder braking, the whole 1 M-step schedule:
         # the highway stage cut to 700k (h700k) left one seed of three not braking, and
         # every fine-tuning that worked started from a policy trained for 1 M steps.
         BACKEND=sumo
-        SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
-        --set critic_values=per_agent --set credit=own --set entropy_coef=0.01
-        --set env.sim.decelerate_scale=2) ;;
+        SETS=("${OWN[@]}" --set entropy_coef=0.01 --set env.sim.decelerate_scale=2) ;;
     own-penalty50-ent03-sumo-brake4)
         # sumo-brake4 with three times the entropy bonus, one change: its seed 2 fell to
         # 0.4 nats by update 50 (greedy *remain* on 94 % of decisions), never learned to
@@ -43,9 +41,7 @@ case "$ARM" in
         # nats, 11 %); h700k's seed 3, which never learned to brake either, fell to 0.7
         # nats as early.
         BACKEND=sumo
-        SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
-        --set critic_values=per_agent --set credit=own --set entropy_coef=0.03
-        --set env.sim.decelerate_scale=2) ;;
+        SETS=("${OWN[@]}" --set entropy_coef=0.03 --set env.sim.decelerate_scale=2) ;;
     own-penalty50-ent01-sumo-ft | own-penalty50-ent01-sumo-ft2 | own-penalty50-ent01-sumo-ft-bumper \
         | own-penalty50-ent01-sumo-ft-brake4 | own-penalty50-ent01-h700k-sumo-ft-brake4)
         # Fine-tune the highway-trained 1 M-step policy of the same seed on SUMO: a 300k
@@ -64,8 +60,7 @@ case "$ARM" in
         if [ "$ARM" = own-penalty50-ent01-sumo-ft2 ]; then FROM=own-penalty50-ent01-sumo-ft; fi
         if [ "$ARM" = own-penalty50-ent01-h700k-sumo-ft-brake4 ]; then FROM=own-penalty50-ent01-h700k; fi
         INIT=(--init-from "benchmarks/studies/nopsar-learning/results/$FROM/runs/$VARIANT-s$SEED/checkpoint.pt")
-        SETS=(--set env.sim.on_collision=remove --set env.reward.crash_penalty=50
-        --set critic_values=per_agent --set credit=own --set entropy_coef=0.01
+        SETS=("${OWN[@]}" --set entropy_coef=0.01
         --set lr=0.0001 --set env.reward.tau_init=0.05)
         if [ "$ARM" = own-penalty50-ent01-sumo-ft-bumper ]; then
             SETS+=(--set env.reward.closeness=bumper)
