@@ -1,6 +1,7 @@
 """The shipped trained checkpoints (checkpoints/*.pt) load and drive both backends.
 
-They are the agents of docs/results/trained-agent.md: a refactor that cannot read them, or
+They are the agents of docs/results/trained-agent.md (and the no-PSAR agent of
+docs/results/nopsar-learning.md): a refactor that cannot read them, or
 a backend change that makes them crash, must fail here rather than in a
 newcomer's first command.
 """
@@ -18,6 +19,8 @@ from diacc.experiments.policies import EvalSettings, PolicySpec, build_policy
 from diacc.learn.checkpoint import config_from_checkpoint
 
 CHECKPOINTS = sorted((Path(__file__).resolve().parent.parent / "checkpoints").glob("*.pt"))
+#: The agents that drive under PSAR; a ``-nopsar-`` agent brakes on its own (PSAR off).
+PSAR_CHECKPOINTS = [path for path in CHECKPOINTS if "-nopsar-" not in path.name]
 
 
 def test_checkpoints_are_shipped():
@@ -27,8 +30,12 @@ def test_checkpoints_are_shipped():
 @pytest.mark.parametrize("backend", ["highway", "sumo"])
 @pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
 def test_checkpoint_drives_the_training_cell(path, backend):
-    policy = build_policy(PolicySpec(str(path), "diacc", sampled=True))
-    assert policy.base.sim.style_preset in path.name and policy.base.use_psar
+    """Sampled actions under PSAR; a no-PSAR agent greedy, as it is evaluated (nothing
+    would stop a sampled *lane left* into a neighbour)."""
+    use_psar = path in PSAR_CHECKPOINTS
+    variant = "diacc" if use_psar else "diacc-nopsar"
+    policy = build_policy(PolicySpec(str(path), variant, sampled=use_psar))
+    assert policy.base.sim.style_preset in path.name and policy.base.use_psar == use_psar
     cfg = policy.env_config(
         Cell("train-50", 25, 0.4, "D1"), EvalSettings(backend, episode_steps=20)
     )
@@ -44,7 +51,7 @@ def test_checkpoint_drives_the_training_cell(path, backend):
     assert (state.x_m[state.is_cav] > start_m + 100.0).all()  # every CAV drove on
 
 
-@pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
+@pytest.mark.parametrize("path", PSAR_CHECKPOINTS, ids=lambda p: p.name)
 def test_checkpoint_keeps_the_psar_horizon_it_was_trained_with(path):
     """The default horizon changed to "headway" (2026-12-02); the paper-congestion agents
     were trained with "stopping" (the file name says the horizon of the others), which
@@ -68,7 +75,7 @@ def test_checkpoint_keeps_the_psar_horizon_it_was_trained_with(path):
     assert config_from_checkpoint({"config": stored}).env.psar.horizon == "paper"
 
 
-@pytest.mark.parametrize("path", CHECKPOINTS, ids=lambda p: p.name)
+@pytest.mark.parametrize("path", PSAR_CHECKPOINTS, ids=lambda p: p.name)
 def test_checkpoint_keeps_the_full_brake_rule_of_its_time(path):
     """PSAR's full_brake became "threat" (2026-12-03), then "known" (later that day); the
     agents trained before kept "bound", which their stored config lacks and loading must
