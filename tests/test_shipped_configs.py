@@ -35,3 +35,26 @@ def test_paper_learner_file_is_the_named_constant():
     assert from_file == override(TrainConfig(), PAPER_LEARNER)
     assert (from_file.model.hidden_dim, from_file.model.gru_hidden) == (128, 128)
     assert from_file.minibatches == 1
+
+
+def test_nopsar_recipe_is_the_shipped_nopsar_agents():
+    """configs/nopsar.toml is the recipe the shipped no-PSAR agent was trained with: its
+    stored config differs from the file's only in what the command line gave (steps,
+    seed, threads, run directory), so the file's command reproduces that run."""
+    import dataclasses
+
+    import torch
+
+    from diacc.learn.checkpoint import config_from_checkpoint
+
+    root = CONFIGS[0].parent.parent
+    recipe = validate(override(TrainConfig(), read_toml(root / "configs/nopsar.toml", ConfigError)))
+    path = root / "checkpoints/diacc-nopsar-train50-sumo-realistic-brake4-ent03-s2.pt"
+    shipped = config_from_checkpoint(torch.load(path, map_location="cpu", weights_only=True))
+    differ = {
+        f.name
+        for f in dataclasses.fields(recipe)
+        if getattr(recipe, f.name) != getattr(shipped, f.name)
+    }
+    assert differ == {"total_steps", "seed", "torch_threads", "run_dir"}
+    assert not shipped.env.use_psar and recipe.variant == "diacc-nopsar"
