@@ -116,6 +116,11 @@ def test_mix_from_a_toml_file_and_set_is_one_checked_section(tmp_path):
         (["mix.maps=train-50", "mix.blocks=30"], "mix.blocks 30"),
         (["mix.maps=train-50", "extra_maps=train-25"], "extra_maps and mix.maps"),
         (["mix.maps=train-50", "mix.generated_maps=-1"], "mix.generated_maps"),
+        (["mix.maps=train-50", "mix.backends=highway,carla"], "unknown 'carla'"),
+        (
+            ["mix.maps=train-50", "mix.backends=highway,sumo", "env.backend=sumo"],
+            "mix.backends and env.backend",
+        ),
     ],
 )
 def test_bad_mixes_are_one_line_config_errors_before_anything_runs(sets, message):
@@ -145,7 +150,7 @@ def test_draws_are_seeded_by_run_redraw_and_block():
         inflow_vph=(2400.0, 4800.0),
         style_mix=("D1", "D2", "D3"),
         blocks=4,
-    ).following(Scenario(), "realistic")  # the preset left out: the run's own
+    ).following(Scenario(), "realistic", "highway")  # preset, backend: the run's own
     base = Scenario()
     first = draw_cells(mix, base, run_seed=3, redraw=7)
     assert first == draw_cells(mix, base, run_seed=3, redraw=7)
@@ -174,8 +179,18 @@ def test_padded_slots_never_hold_a_cav_and_add_nothing(tmp_path):
     features, every action allowed), which the rollout stores as dead and the team
     reward weighs 0."""
     cfg = override(TrainConfig(), tiny_mix(tmp_path))
-    small = Cell(str(tmp_path / "left.toml"), Scenario(n_vehicles=6, cav_penetration=0.34), "paper")
-    big = Cell(str(tmp_path / "right.toml"), Scenario(n_vehicles=10, cav_penetration=0.6), "paper")
+    small = Cell(
+        str(tmp_path / "left.toml"),
+        Scenario(n_vehicles=6, cav_penetration=0.34),
+        "paper",
+        "highway",
+    )
+    big = Cell(
+        str(tmp_path / "right.toml"),
+        Scenario(n_vehicles=10, cav_penetration=0.6),
+        "paper",
+        "highway",
+    )
     assert (small.scenario.n_slots, big.scenario.n_slots) == (2, 6)
     for mode in ("batched", "sync"):
         envs = make_vector_env(
@@ -263,7 +278,9 @@ def test_sumo_envs_take_new_cells(tmp_path):
     try:
         envs.reset(0)
         envs.step(np.zeros((2, envs.n_cavs), np.int64))
-        other = [Cell("test-25", Scenario(n_vehicles=6, cav_penetration=0.5), "realistic")] * 2
+        other = [
+            Cell("test-25", Scenario(n_vehicles=6, cav_penetration=0.5), "realistic", "sumo")
+        ] * 2
         envs.set_cells(other)
         actor, _ = envs.reset(1)
         assert actor.alive.sum(axis=1).tolist() == [3, 3]
@@ -329,3 +346,57 @@ def test_dimensions_a_mix_leaves_out_are_the_runs_own():
     assert cfg.mix.cav_penetration == (0.5, 0.5)
     assert cfg.mix.style_preset == ("paper-congestion",)
     assert cfg.mix.style_mix == ("D1",) and cfg.mix.kind == ("release",)
+    assert cfg.mix.backends == ("highway",)
+
+
+def test_blocks_take_the_backends_in_turn_without_moving_the_draws():
+    """``mix.backends``: block b on backends[b % len]; the other dimensions' draws are
+    those of a mix on one backend (no random number is spent on the backend)."""
+    one = build_train_config(sets=["mix.maps=train-50,train-25", "mix.blocks=4"])
+    two = override(one, {"mix.backends": ("highway", "sumo")})
+    for redraw in range(3):
+        cells = draw_cells(two.mix, two.env.scenario, 1, redraw)
+        assert [c.backend for c in cells] == ["highway", "sumo"] * 2
+        same = draw_cells(one.mix, one.env.scenario, 1, redraw)
+        assert [dataclasses.replace(c, backend="highway") for c in cells] == same
+
+
+def test_a_run_on_both_backends_at_once(tmp_path):
+    """One run, one highway block (one batched simulator) and one SUMO block (one
+    libsumo per env): both step, train, and resume."""
+    pytest.importorskip("libsumo")
+    sets = {
+        **TINY,
+        "total_steps": 160,
+        "run_dir": str(tmp_path / "run"),
+        "env.scenario.n_vehicles": 8,
+        "mix.maps": ("train-50",),
+        "mix.backends": ("highway", "sumo"),
+        "mix.blocks": 2,
+    }
+    cfg = override(TrainConfig(), sets)
+    check_config(cfg)
+    envs = make_vector_env(
+        cfg.env,
+        4,
+        cfg.seed,
+        "batched",
+        env_cells=cells_of_envs(draw_cells(cfg.mix, cfg.env.scenario, cfg.seed, 0), 4),
+        n_slots=train_slots(cfg),
+    )
+    try:
+        (highway, _), (sumo, _) = envs.groups
+        assert highway.sims.batched and [b.name for b in highway.sims.backends] == ["highway"]
+        assert not sumo.sims.batched and [b.name for b in sumo.sims.backends] == ["sumo"] * 2
+        actor, _ = envs.reset(0)
+        assert actor.alive.sum(axis=1).tolist() == [3, 3, 3, 3]
+        out = envs.step(np.zeros((4, envs.n_cavs), np.int64))
+        assert not out.crashed.any()
+    finally:
+        envs.close()
+    train(override(cfg, {"total_steps": 80}), progress=False)
+    train(cfg, resume=True, progress=False)
+    log = (tmp_path / "run" / "train.log").read_text()
+    assert "envs 0-1: train-50 release N8 cav0.40 D1 realistic highway" in log
+    assert "envs 2-3: train-50 release N8 cav0.40 D1 realistic sumo" in log
+    assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["global_step"] == 160

@@ -20,10 +20,14 @@ from diacc.fields import MAX_ENVS, MAX_INFLOW_VPH, MAX_VEHICLES, ConfigError, ch
 from diacc.sim.drivers import STYLE_PRESETS
 from diacc.sim.mapgen import STREAM_SEEDS, generated_names
 from diacc.sim.scenario import EVERY_CAV, SCENARIO_KINDS, STYLE_MIXES, Scenario
-from diacc.sim.settings import SimConfig
+from diacc.sim.settings import BACKENDS, SimConfig
 
 #: A demand's inflow when none is set (:class:`~diacc.sim.scenario.Demand`'s default).
 _DEFAULT_INFLOW_VPH = Scenario(kind="demand").inflow_vph
+#: The backend a run names when it names none (``EnvConfig.backend``'s default).
+_DEFAULT_BACKEND = "highway"
+#: Where the run's own value of a dimension is set, when not in ``env.scenario``.
+_RUN_FIELD = {"style_preset": "env.sim.style_preset", "backends": "env.backend"}
 #: Range fields: (low, high), both inclusive, drawn uniformly (N as an integer).
 RANGES = ("n_vehicles", "cav_penetration", "inflow_vph")
 #: Choice fields: each drawn uniformly among the names listed.
@@ -59,6 +63,9 @@ class MixConfig:
     style_mix: tuple[str, ...] = ()
     style_preset: tuple[str, ...] = ()
     kind: tuple[str, ...] = ()
+    # each block's simulator, given in turn (block b: backends[b % len]), not drawn: every
+    # update then trains on each one listed, and no draw of the other dimensions moves
+    backends: tuple[str, ...] = ()
     inflow_vph: tuple[float, ...] = ranged(
         (), 0, MAX_INFLOW_VPH, open_low=True, why="more than 4 lanes carry"
     )  # a demand's
@@ -78,7 +85,7 @@ class MixConfig:
                 raise ConfigError(
                     f"mix.{name} must be a range [low, high] with low <= high, got {list(value)}"
                 )
-        for name, known in (*CHOICES.items(), ("kind", SCENARIO_KINDS)):
+        for name, known in (*CHOICES.items(), ("kind", SCENARIO_KINDS), ("backends", BACKENDS)):
             value = getattr(self, name)
             unknown = [v for v in value if v not in known]
             if unknown:
@@ -89,10 +96,11 @@ class MixConfig:
         """Whether the run trains on the mix (it names a map)."""
         return bool(self.maps) or self.generated_maps > 0
 
-    def following(self, scenario: Scenario, style_preset: str) -> MixConfig:
+    def following(self, scenario: Scenario, style_preset: str, backend: str) -> MixConfig:
         """This mix with every dimension it leaves out taken from the run's own cell
-        (``env.scenario``, ``env.sim.style_preset``); a dimension it sets that the run
-        also sets to a value other than the default is refused (one would be dropped)."""
+        (``env.scenario``, ``env.sim.style_preset``, ``env.backend``); a dimension it sets
+        that the run also sets to a value other than the default is refused (one would be
+        dropped)."""
         if not self.on:
             return self
         own: dict[str, tuple] = {
@@ -102,6 +110,7 @@ class MixConfig:
             "style_preset": (style_preset,),
             "kind": (scenario.kind,),
             "inflow_vph": (getattr(scenario, "inflow_vph", _DEFAULT_INFLOW_VPH),) * 2,
+            "backends": (backend,),
         }
         default = Scenario()
         defaults = {
@@ -111,6 +120,7 @@ class MixConfig:
             "style_preset": (SimConfig().style_preset,),
             "kind": (default.kind,),
             "inflow_vph": (_DEFAULT_INFLOW_VPH,) * 2,
+            "backends": (_DEFAULT_BACKEND,),
         }
         filled: dict[str, Any] = {}
         for name, value in own.items():
@@ -121,10 +131,10 @@ class MixConfig:
                         f"mix.{name}: the run's own is a custom style mix; list names in mix"
                     )
                 filled[name] = value
-            elif value != defaults[name]:
-                where = "env.sim.style_preset" if name == "style_preset" else f"env.scenario.{name}"
+            elif value != defaults[name] and given != value:  # (equal: filled before)
+                where = _RUN_FIELD.get(name, f"env.scenario.{name}")
                 raise ConfigError(
-                    f"mix.{name} and {where} ({value[0]!r}) are both set; the mix draws "
+                    f"mix.{name} and {where} ({value[0]!r}) are both set; the mix sets "
                     f"{name}: leave {where} at its default or drop mix.{name}"
                 )
         return dataclasses.replace(self, **filled)

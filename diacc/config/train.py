@@ -192,7 +192,7 @@ class TrainConfig:
                 f"({', '.join(others)})"
             )
         # A mix's left-out dimensions are the run's own cell's (MixConfig.following).
-        mix = self.mix.following(self.env.scenario, self.env.sim.style_preset)
+        mix = self.mix.following(self.env.scenario, self.env.sim.style_preset, self.env.backend)
         if mix != self.mix:
             object.__setattr__(self, "mix", mix)
         if not self.run_dir:

@@ -2,8 +2,8 @@
 training mix (:class:`~diacc.config.mix.MixConfig`) or, without one, ``env.map`` and
 ``extra_maps`` (:func:`~diacc.envs.vector.maps_of_envs`).
 
-A :class:`Cell` is one road, one scenario and one driver preset: what one
-:class:`~diacc.envs.batch.EnvBatch` holds. The draw of block ``b`` at redraw ``r``
+A :class:`Cell` is one road, one scenario, one driver preset and one simulator: what
+one :class:`~diacc.envs.batch.EnvBatch` holds. The draw of block ``b`` at redraw ``r``
 (updates ``r * redraw_every ...``) depends on (run seed, r, b) alone
 (:func:`draw_cells`), so a resumed run draws the cells an uninterrupted one drew,
 whatever happened before.
@@ -27,33 +27,37 @@ _MIX_TAG = 0x6D1C
 
 @dataclass(frozen=True)
 class Cell:
-    """What one batch of envs trains on: a map, a scenario, a driver preset."""
+    """What one batch of envs trains on: a map, a scenario, a driver preset, a backend."""
 
     map: str
     scenario: Scenario
     style_preset: str
+    backend: str
 
     @classmethod
     def of(cls, config: EnvConfig, road_map: str | None = None) -> Cell:
         """``config``'s own cell (on ``road_map`` if given)."""
-        return cls(road_map or config.map, config.scenario, config.sim.style_preset)
+        return cls(road_map or config.map, config.scenario, config.sim.style_preset, config.backend)
 
     def env_config(self, config: EnvConfig) -> EnvConfig:
-        """``config`` with this cell's map, scenario and preset."""
+        """``config`` with this cell's map, scenario, preset and backend."""
         sim = config.sim
         if sim.style_preset != self.style_preset:
             sim = dataclasses.replace(sim, style_preset=self.style_preset)
-        return dataclasses.replace(config, map=self.map, scenario=self.scenario, sim=sim)
+        return dataclasses.replace(
+            config, map=self.map, scenario=self.scenario, sim=sim, backend=self.backend
+        )
 
     @property
     def label(self) -> str:
-        """One short line: ``train-50 release N23 cav0.41 D2 realistic`` (a map file by its
-        :func:`~diacc.sim.maps.map_tag`)."""
+        """One short line: ``train-50 release N23 cav0.41 D2 realistic highway`` (a map
+        file by its :func:`~diacc.sim.maps.map_tag`)."""
         s = self.scenario
         size = f"N{s.n_vehicles}" if s.kind == "release" else f"{s.inflow_vph:.0f}vph"
         mix = s.style_mix if isinstance(s.style_mix, str) else "custom"
         share = f"cav{s.cav_penetration:.2f}"
-        return f"{map_tag(self.map)} {s.kind} {size} {share} {mix} {self.style_preset}"
+        tail = f"{self.style_preset} {self.backend}"
+        return f"{map_tag(self.map)} {s.kind} {size} {share} {mix} {tail}"
 
 
 def redraw_index(mix: MixConfig, update: int) -> int:
@@ -64,7 +68,8 @@ def redraw_index(mix: MixConfig, update: int) -> int:
 def draw_cells(mix: MixConfig, base: Scenario, run_seed: int, redraw: int) -> list[Cell]:
     """Each block's cell at redraw ``redraw``: map, kind, style mix and preset uniformly
     among those listed, N (a release, an integer), the CAV share and the inflow (a
-    demand) uniformly in their ranges; ``base`` (``env.scenario``) gives the rest."""
+    demand) uniformly in their ranges, the backend in turn (block ``b``:
+    ``backends[b % len]``, no draw); ``base`` (``env.scenario``) gives the rest."""
     maps = mix.map_names()
     cells = []
     for block in range(mix.blocks):
@@ -77,7 +82,8 @@ def draw_cells(mix: MixConfig, base: Scenario, run_seed: int, redraw: int) -> li
         share = float(rng.uniform(mix.cav_penetration[0], mix.cav_penetration[1]))
         inflow = float(rng.uniform(mix.inflow_vph[0], mix.inflow_vph[1]))
         scenario = cell_scenario(base, kind, share, style_mix, n_vehicles, inflow, mix.demand_s)
-        cells.append(Cell(road_map, scenario, preset))
+        backend = mix.backends[block % len(mix.backends)]
+        cells.append(Cell(road_map, scenario, preset, backend))
     return cells
 
 

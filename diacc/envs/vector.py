@@ -114,7 +114,8 @@ class VectorEnv:
     reset, per-episode seeds (:func:`episode_seed`), episode metrics and recovery from
     a crashed simulator (the episode is cut: :func:`~diacc.envs.step.cut_steps`).
 
-    :attr:`batched`: each map's envs are rows of one batched simulator (``highway``);
+    :attr:`batched`: each map's envs are rows of one batched simulator (``highway``;
+    a training mix's SUMO block has one simulator per env);
     otherwise every env has its own simulator, stepped one after another. Either
     way PSAR, observations and rewards run once per step for the whole batch.
     ``env_indices``: the run's envs this object holds (their seeds; all of
@@ -195,13 +196,12 @@ class VectorEnv:
     def _simulators(self, cfg: EnvConfig, n_envs: int) -> Simulators:
         """The simulations of ``n_envs`` envs of ``cfg``: one batched, or one each."""
         road = resolve_road(cfg)
-        if self.batched:
-            cls = backend_class(cfg.backend)
-            if cls.vector_mode != "batched":
-                raise ValueError(
-                    f"vector mode batched needs the highway backend, not {cfg.backend}"
-                )
+        cls = backend_class(cfg.backend)
+        if self.batched and cls.vector_mode == "batched":
             return Simulators([cls(road, cfg.sim, n_envs=n_envs)])
+        if self.batched and cfg.backend == self.config.backend:
+            raise ValueError(f"vector mode batched needs the highway backend, not {cfg.backend}")
+        # else one each: a training mix's block on a backend that does not batch (SUMO)
         return Simulators([make_backend(cfg.backend, road, cfg.sim) for _ in range(n_envs)])
 
     def reset(self, first_episode: int | None = None) -> tuple[ActorObs, CriticState]:

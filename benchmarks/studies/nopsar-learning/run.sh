@@ -42,6 +42,13 @@ case "$ARM" in
         # nats as early.
         BACKEND=sumo
         SETS=("${OWN[@]}" --set entropy_coef=0.03 --set env.sim.decelerate_scale=2) ;;
+    own-penalty50-ent03-both-brake4)
+        # ent03-sumo-brake4 on both simulators at once, one change: 10 envs on highway
+        # and 10 on SUMO in every update (a mix of the one cell, mix.backends). Three of
+        # its five test crashes were highway side contacts just after the release, where
+        # every vehicle starts 8 m from the next: SUMO alone never showed it that start.
+        SETS=("${OWN[@]}" --set entropy_coef=0.03 --set env.sim.decelerate_scale=2
+        --set mix.maps=train-50 --set mix.backends=highway,sumo --set mix.blocks=2) ;;
     own-penalty50-ent01-sumo-ft | own-penalty50-ent01-sumo-ft2 | own-penalty50-ent01-sumo-ft-bumper \
         | own-penalty50-ent01-sumo-ft-brake4 | own-penalty50-ent01-h700k-sumo-ft-brake4)
         # Fine-tune the highway-trained 1 M-step policy of the same seed on SUMO: a 300k
