@@ -40,10 +40,11 @@ def delays_by_seed(csv_path: Path) -> dict[str, float]:
 
 
 def paired(results: Path, stream: str) -> None:
-    """Delay change against the references on the same episodes; pooled collisions."""
+    """Delay change against the references on the same episodes; collisions pooled over
+    the seeds of each arm and variant (a run folder is ``<variant>-s<seed>``)."""
     print("\n| arm | run | simulator | episodes | delay vs same-mix [s, 95 % CI] | vs heuristic |")
     print("|---|---|---|---|---|---|")
-    pooled: dict[tuple[str, str], list[int]] = {}
+    pooled: dict[tuple[str, str, str], list[int]] = {}
     for csv_path in sorted(results.glob(f"*/eval/{stream}-*/*/episodes.csv")):
         arm, folder = csv_path.parents[3].name, csv_path.parent.parent.name
         if arm == "reference":
@@ -74,14 +75,16 @@ def paired(results: Path, stream: str) -> None:
         print(f"| {arm} | {run} | {backend} | {len(mine)} | {cells[0]} | {cells[1]} |")
         with csv_path.open() as fh:
             rows = list(csv.DictReader(fh))
-        count = pooled.setdefault((arm, backend), [0, 0])
+        variant = run.rsplit("-s", 1)[0]
+        count = pooled.setdefault((arm, variant, backend), [0, 0])
         count[0] += sum(int(float(r["collision"])) > 0 for r in rows)
         count[1] += len(rows)
-    print("\n| arm | simulator | episodes with a collision, pooled [95 % CI] |")
-    print("|---|---|---|")
-    for (arm, backend), (k, n) in pooled.items():
+    print("\n| arm | variant | simulator | episodes with a collision, pooled [95 % CI] |")
+    print("|---|---|---|---|")
+    for (arm, variant, backend), (k, n) in pooled.items():
         lo, hi = wilson(k, n)
-        print(f"| {arm} | {backend} | {k} / {n} = {k / n:.1%} [{lo:.1%}, {hi:.1%}] |")
+        share = f"{k} / {n} = {k / n:.1%} [{lo:.1%}, {hi:.1%}]"
+        print(f"| {arm} | {variant} | {backend} | {share} |")
 
 
 def main() -> None:
