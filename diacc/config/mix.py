@@ -16,6 +16,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+from diacc.config.env import EnvConfig
 from diacc.fields import MAX_ENVS, MAX_INFLOW_VPH, MAX_VEHICLES, ConfigError, check_fields, ranged
 from diacc.sim.drivers import STYLE_PRESETS
 from diacc.sim.mapgen import STREAM_SEEDS, generated_names
@@ -24,8 +25,6 @@ from diacc.sim.settings import BACKENDS, SimConfig
 
 #: A demand's inflow when none is set (:class:`~diacc.sim.scenario.Demand`'s default).
 _DEFAULT_INFLOW_VPH = Scenario(kind="demand").inflow_vph
-#: The backend a run names when it names none (``EnvConfig.backend``'s default).
-_DEFAULT_BACKEND = "highway"
 #: Where the run's own value of a dimension is set, when not in ``env.scenario``.
 _RUN_FIELD = {"style_preset": "env.sim.style_preset", "backends": "env.backend"}
 #: Range fields: (low, high), both inclusive, drawn uniformly (N as an integer).
@@ -120,7 +119,7 @@ class MixConfig:
             "style_preset": (SimConfig().style_preset,),
             "kind": (default.kind,),
             "inflow_vph": (_DEFAULT_INFLOW_VPH,) * 2,
-            "backends": (_DEFAULT_BACKEND,),
+            "backends": (EnvConfig().backend,),
         }
         filled: dict[str, Any] = {}
         for name, value in own.items():
