@@ -363,7 +363,8 @@ def test_blocks_take_the_backends_in_turn_without_moving_the_draws():
 
 def test_a_run_on_both_backends_at_once(tmp_path):
     """One run, one highway block (one batched simulator) and one SUMO block (one
-    libsumo per env): both step, train, and resume."""
+    libsumo per env): both step, train, and resume; the one cell's draw, the same at
+    every update, is logged once, not again on resume."""
     pytest.importorskip("libsumo")
     sets = {
         **TINY,
@@ -399,4 +400,5 @@ def test_a_run_on_both_backends_at_once(tmp_path):
     log = (tmp_path / "run" / "train.log").read_text()
     assert "envs 0-1: train-50 release N8 cav0.40 D1 realistic highway" in log
     assert "envs 2-3: train-50 release N8 cav0.40 D1 realistic sumo" in log
+    assert log.count("mix draw") == 1 and "checkpoint: update 2," in log
     assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["global_step"] == 160

@@ -533,7 +533,8 @@ def _learn_beside_rollout(
 class _MixDraws:
     """The training mix's cells of each update (:mod:`diacc.envs.mix`): drawn at each
     redraw from (run seed, redraw, block) alone, so that a resumed run trains on the
-    cells an uninterrupted one did; each new draw is one line of the run log."""
+    cells an uninterrupted one did; a draw that changes the cells is one line of the
+    run log (a one-cell mix draws the same cells every update: one line in all)."""
 
     def __init__(self, cfg: TrainConfig) -> None:
         self.cfg, self.current = cfg, -1  # the redraw the envs hold
@@ -543,7 +544,10 @@ class _MixDraws:
         cfg, redraw = self.cfg, redraw_index(self.cfg.mix, update)
         blocks = draw_cells(cfg.mix, cfg.env.scenario, cfg.seed, redraw)
         if redraw != self.current:
-            log.info("update %d: mix draw %d: %s", update + 1, redraw, describe(blocks, cfg.n_envs))
+            line = describe(blocks, cfg.n_envs)
+            before = draw_cells(cfg.mix, cfg.env.scenario, cfg.seed, redraw - 1) if redraw else []
+            if not before or line != describe(before, cfg.n_envs):  # the same on resume
+                log.info("update %d: mix draw %d: %s", update + 1, redraw, line)
             self.current = redraw
         return cells_of_envs(blocks, cfg.n_envs)
 
