@@ -252,9 +252,9 @@ def test_sumo_crash_inside_a_rollout_is_a_truncation():
         envs.close()
 
 
-def test_a_crashed_simulator_cuts_only_its_own_env():
+def test_a_crashed_simulator_cuts_only_its_own_env(caplog):
     """Two SUMO envs stepped as one batch: the one whose simulator dies is cut and
-    restarted, the other steps on as if alone."""
+    restarted (the log says which env and why), the other steps on as if alone."""
     config = EnvConfig(backend="sumo", scenario=CONFIG.scenario)
     envs, alone = SyncVectorEnv(config, 2, run_seed=3), SyncVectorEnv(config, 2, 3, [0])
     actions = np.zeros((2, envs.n_cavs), np.int64)
@@ -266,6 +266,7 @@ def test_a_crashed_simulator_cuts_only_its_own_env():
         os.kill(envs.groups[0][0].sims.backends[1].worker_pid, signal.SIGKILL)
         out, one = envs.step(actions), alone.step(actions[:1])
         assert out.restarts == 1 and out.crashed.tolist() == [False, True]
+        assert "env 1: SUMO worker died while stepping" in caplog.text
         assert out.truncated[1] and not out.alive[1].any() and 1 not in out.episodes
         np.testing.assert_array_equal(out.actor_obs.self_state[0], one.actor_obs.self_state[0])
         assert out.global_reward[0] == one.global_reward[0]

@@ -57,6 +57,7 @@ from diacc.envs.mix import Cell
 from diacc.envs.observation import ActorObs, CriticState
 from diacc.envs.step import VectorStep, joined, score
 from diacc.envs.vector_process import ProcessVectorEnv
+from diacc.runlog import log
 from diacc.sim.backends.base import backend_class, make_backend
 
 Padded = TypeVar("Padded", ActorObs, VectorStep)
@@ -264,6 +265,7 @@ class VectorEnv:
         recorder.record(out.state, psar=out.psar, critical=out.critical, rows=~crashed)
         for row in np.flatnonzero(crashed).tolist():
             finals[row] = before.unbatched(row)
+            log.warning("env %d: %s; its episode is cut", members[row], batch.sims.errors[row])
         for row in np.flatnonzero(ended & ~crashed).tolist():
             finals[row] = out.critic_state.unbatched(row, copy=True)
             final_actors[row] = out.actor_obs.unbatched(row, copy=True)
