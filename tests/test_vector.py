@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import signal
 
 import numpy as np
@@ -266,7 +267,8 @@ def test_a_crashed_simulator_cuts_only_its_own_env(caplog):
         os.kill(envs.groups[0][0].sims.backends[1].worker_pid, signal.SIGKILL)
         out, one = envs.step(actions), alone.step(actions[:1])
         assert out.restarts == 1 and out.crashed.tolist() == [False, True]
-        assert "env 1: SUMO worker died while stepping" in caplog.text
+        # found dead when the step is sent or when its reply is awaited: either names it
+        assert re.search(r"env 1: SUMO worker (died|is not running) while stepping", caplog.text)
         assert out.truncated[1] and not out.alive[1].any() and 1 not in out.episodes
         np.testing.assert_array_equal(out.actor_obs.self_state[0], one.actor_obs.self_state[0])
         assert out.global_reward[0] == one.global_reward[0]
