@@ -261,6 +261,46 @@ def test_no_worker_left_after_close_or_interpreter_exit(tmp_path):
     assert _pid_gone(child_worker)
 
 
+def test_removing_a_crashed_vehicle_that_has_left_the_road(tmp_path):
+    """``on_collision = "remove"``: a vehicle that collided in one substep and reached
+    its route's end in a later one is no longer known to SUMO. Taking it off used to
+    fail the step ("Vehicle 'v5' is not known", cutting a training episode every 80
+    or so updates); it is now marked removed (its trip ended in the crash) and the
+    simulation steps on. Run in a child process: libsumo lives in worker processes."""
+    script = textwrap.dedent(
+        """
+        import numpy as np
+        from diacc.config import SimConfig
+        from diacc.sim.backends.sumo.backend import SumoBackend
+        from diacc.sim.backends.sumo.worker import SumoSim
+        from diacc.sim.maps import load_map
+        from diacc.sim.scenario import Scenario, draw_population
+        with SumoBackend(load_map("train-25"), SimConfig(on_collision="remove")) as backend:
+            spec = backend._spec
+        sim = SumoSim(spec)
+        n = 6
+        sim.reset(0, draw_population(Scenario(n_vehicles=n), spec.road, 0))
+        idle = (np.zeros(n, np.int64), np.full(n, np.nan))
+        for _ in range(300):
+            sim.step(*idle)
+            if sim.state.arrived[0].any() and sim.state.active[0].any():
+                break
+        gone = int(np.flatnonzero(sim.state.arrived[0])[0])
+        on_road = int(np.flatnonzero(sim.state.active[0])[0])
+        sim._remove([gone, on_road])
+        assert sim.removed[[gone, on_road]].all()
+        assert f"v{on_road}" not in sim.ls.vehicle.getIDList()
+        sim.step(*idle)
+        assert not sim.state.active[0, on_road] and not sim.state.arrived[0, on_road]
+        print("stepped on")
+        """
+    )
+    path = Path(tmp_path) / "remove.py"
+    path.write_text(script)
+    out = subprocess.run([sys.executable, str(path)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and "stepped on" in out.stdout, out.stderr[-2000:]
+
+
 def test_bad_inputs_raise_backend_error():
     road = load_map("train-25")
     with pytest.raises(ConfigError, match="cav_mode"):

@@ -249,12 +249,19 @@ class SumoSim:
 
     def _remove(self, crashed: list[int]) -> None:
         """Take the vehicles that collided this step off the road (``on_collision =
-        "remove"``): gone, never arrived (:meth:`_read_state` tells them apart)."""
+        "remove"``): gone, never arrived (:meth:`_read_state` tells them apart).
+
+        A vehicle that collided in one substep may have reached its route's end in a
+        later one: SUMO no longer knows it, so there is nothing to take off, but its
+        trip still ended in the crash, as on highway, where wrecks leave at once.
+        """
+        crashed = [i for i in crashed if not self.removed[i]]
+        on_road = set(self.ls.vehicle.getIDList()) if crashed else set()
         for i in crashed:
-            if not self.removed[i]:
+            if self.ids[i] in on_road:
                 self.ls.vehicle.unsubscribe(self.ids[i])  # else the next step fails on it
                 self.ls.vehicle.remove(self.ids[i])
-                self.removed[i] = True
+            self.removed[i] = True
 
     def _subscribe(self, vids) -> None:
         """Subscribe vehicles that just entered. A release's CAVs are handed to the
