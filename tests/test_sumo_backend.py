@@ -264,9 +264,9 @@ def test_no_worker_left_after_close_or_interpreter_exit(tmp_path):
 def test_removing_a_crashed_vehicle_that_has_left_the_road(tmp_path):
     """``on_collision = "remove"``: a vehicle that collided in one substep and reached
     its route's end in a later one is no longer known to SUMO. Taking it off used to
-    fail the step ("Vehicle 'v5' is not known", cutting a training episode every 80
-    or so updates); it is now marked removed (its trip ended in the crash) and the
-    simulation steps on. Run in a child process: libsumo lives in worker processes."""
+    fail the step ("Vehicle 'v5' is not known", which cut that env's training episode;
+    docs/history/fixes.md); it is now marked removed (its trip ended in the crash) and
+    the simulation steps on. Run in a child process: libsumo lives in worker processes."""
     script = textwrap.dedent(
         """
         import numpy as np
