@@ -49,7 +49,7 @@ def test_nopsar_recipe_is_the_shipped_nopsar_agents():
 
     root = CONFIGS[0].parent.parent
     recipe = validate(override(TrainConfig(), read_toml(root / "configs/nopsar.toml", ConfigError)))
-    path = root / "checkpoints/diacc-nopsar-train50-sumo-realistic-brake4-ent03-s2.pt"
+    path = root / "checkpoints/diacc-nopsar-train50-both-realistic-brake4-ent03-s5.pt"
     shipped = config_from_checkpoint(torch.load(path, map_location="cpu", weights_only=True))
     differ = {
         f.name
@@ -58,3 +58,34 @@ def test_nopsar_recipe_is_the_shipped_nopsar_agents():
     }
     assert differ == {"total_steps", "seed", "torch_threads", "run_dir"}
     assert not shipped.env.use_psar and recipe.variant == "diacc-nopsar"
+
+
+def test_nopsar_recipe_on_sumo_alone_is_the_earlier_agents():
+    """configs/nopsar.toml's comment trains the earlier SUMO-only recipe (the agent shipped
+    before, seed 2 of docs/results/nopsar-learning.md's `ent03-sumo-brake4`) with
+    ``--backend sumo --set mix.maps=``: that run's stored config, but for the command
+    line's keys and the mix, which an empty map list turns off."""
+    import dataclasses
+
+    import torch
+
+    from diacc.config.overrides import build_train_config
+    from diacc.learn.checkpoint import config_from_checkpoint
+
+    root = CONFIGS[0].parent.parent
+    recipe = validate(
+        build_train_config(root / "configs/nopsar.toml", backend="sumo", sets=["mix.maps="])
+    )
+    run = "benchmarks/studies/nopsar-learning/results/own-penalty50-ent03-sumo-brake4/runs"
+    earlier = config_from_checkpoint(
+        torch.load(
+            root / run / "diacc-nopsar-s2/checkpoint.pt", map_location="cpu", weights_only=True
+        )
+    )
+    differ = {
+        f.name
+        for f in dataclasses.fields(recipe)
+        if getattr(recipe, f.name) != getattr(earlier, f.name)
+    }
+    assert differ <= {"total_steps", "seed", "torch_threads", "run_dir", "mix"}
+    assert not recipe.mix.on and not earlier.mix.on and recipe.env == earlier.env
