@@ -1,6 +1,7 @@
 """diacc-nopsar against mappo on the paper's dense zero-shot rows (issue 60, item 4).
 
     python benchmarks/studies/nopsar-learning/dense_rows.py [--arm ARM] > results/ARM/dense-rows.md
+    python benchmarks/studies/nopsar-learning/dense_rows.py --at 30ep   # the training cell
 
 Reads the `test` evaluations that ``eval.sh`` writes with ``AT=dense
 GRID=benchmarks/studies/paper-convergence/dense-rows.toml`` (``results/<arm>/eval/
@@ -71,6 +72,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arm", default="own-penalty50-ent03-sumo-brake4")
     parser.add_argument("--results", type=Path, default=HERE / "results")
+    parser.add_argument(
+        "--at", default="dense", help="the evaluations' AT (30ep: the training cell, to compare)"
+    )
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     print(
@@ -80,8 +84,8 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     pooled_lines = []
     for backend in ("highway", "sumo"):
-        evals = args.results / args.arm / "eval" / f"test-{backend}-dense"
-        refs = args.results / "reference" / "eval" / f"test-{backend}-dense"
+        evals = args.results / args.arm / "eval" / f"test-{backend}-{args.at}"
+        refs = args.results / "reference" / "eval" / f"test-{backend}-{args.at}"
         runs = {
             p.name: read(p) for p in sorted(evals.glob("*-s*")) if (p / "episodes.csv").is_file()
         }
