@@ -123,6 +123,8 @@ def main() -> None:
                     f"{fast.mean():.2f} / {slow.mean():.2f} | "
                     f"{change(fast, slow, rng, relative=True)} |"
                 )
+    if not pooled_lines:  # an arm without mappo runs
+        return
     print("\nThe variants pooled over their seeds, diacc-nopsar against mappo (same episodes):\n")
     print(
         "| row | simulator | seeds (diacc-nopsar / mappo) | delay [s] | change [s] "
