@@ -34,9 +34,16 @@ def mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else math.nan
 
 
-def delays_by_seed(csv_path: Path) -> dict[str, float]:
+def delays_by_episode(csv_path: Path) -> dict[tuple[str, ...], float]:
+    """Delay per vehicle keyed by (cell, episode seed): a grid of several cells (the dense
+    rows) plays the same episode seeds in each."""
     with csv_path.open() as fh:
-        return {r["seed"]: float(r["delay_per_vehicle_s"]) for r in csv.DictReader(fh)}
+        return {
+            tuple(r[k] for k in ("map", "n_vehicles", "cav_penetration", "seed")): float(
+                r["delay_per_vehicle_s"]
+            )
+            for r in csv.DictReader(fh)
+        }
 
 
 def paired(results: Path, stream: str) -> None:
@@ -49,7 +56,7 @@ def paired(results: Path, stream: str) -> None:
         arm, folder = csv_path.parents[3].name, csv_path.parent.parent.name
         if arm == "reference":
             continue
-        mine = delays_by_seed(csv_path)
+        mine = delays_by_episode(csv_path)
         cells = []
         for ref in ("same-mix", "heuristic"):
             # the references evaluated under the same suffix (-30ep), else the plain folder
@@ -61,7 +68,7 @@ def paired(results: Path, stream: str) -> None:
             if not ref_csv.is_file():
                 cells.append("(not evaluated)")
                 continue
-            theirs = delays_by_seed(ref_csv)
+            theirs = delays_by_episode(ref_csv)
             diffs = [mine[s] - theirs[s] for s in mine if s in theirs]
             if len(diffs) < 2:
                 cells.append("(no shared episodes)")
