@@ -1,6 +1,7 @@
-"""benchmarks/studies/nopsar-learning/dense_rows.py: the per-seed and pooled comparison of
+"""The no-PSAR study's scripts. dense_rows.py: the per-seed and pooled comparison of
 the dense zero-shot rows (issue 60 item 4) pairs episodes by row and episode number,
-counts collisions per row, and marks a change whose interval holds 0."""
+counts collisions per row, and marks a change whose interval holds 0; situation_probe.py
+files each decision under its situation."""
 
 from __future__ import annotations
 
@@ -66,3 +67,25 @@ def test_dense_rows_pairs_by_row_and_episode(tmp_path):
     pooled = [line for line in lines if "| 2 / 1 |" in line]
     assert len(pooled) == 4  # two rows x two simulators
     assert "-2.00 [" in pooled[0] and "%" in pooled[0]
+
+
+def test_situation_probe_files_every_decision_under_one_situation_of_each_kind():
+    """situation_probe.py (the same study): the heuristic's decisions, each filed once under
+    a following situation and once under a lane situation, and its rule shows: where its
+    lane ends within 300 m it moves right or keeps to its lane, never accelerates."""
+    script = SCRIPT.with_name("situation_probe.py")
+    out = subprocess.run(
+        [sys.executable, str(script), "heuristic", "--episodes", "1", "--episode-steps", "40"],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    rows = [line.split("|")[1:-1] for line in out.splitlines() if line.startswith("| ")]
+    rows = [[cell.strip() for cell in row] for row in rows if row[0].strip() != "situation"]
+    following = [r for r in rows if r[0].startswith(("gap", "no vehicle"))]
+    lane = [r for r in rows if r[0].startswith("its lane")]
+    assert following and lane and len(following) + len(lane) == len(rows)
+    for kind in (following, lane):
+        assert abs(sum(int(r[1].rstrip("%")) for r in kind) - 100) <= len(kind)  # rounding
+        for r in kind:  # each row's action shares add up to 100 % too
+            assert abs(sum(int(c.rstrip("%")) for c in r[2:]) - 100) <= 5
+    near_end = [r for r in lane if r[0] == "its lane ends < 300 m ahead"]
+    assert not near_end or near_end[0][5] == "0%"  # accelerate, the 4th action
