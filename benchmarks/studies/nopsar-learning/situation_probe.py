@@ -73,11 +73,11 @@ def following(state: TrafficState, v: int) -> str:
     ahead = state.active[0] & (lane == lane[v]) & (x > x[v])  # (V,)
     ahead[v] = False
     if not ahead.any():
-        return "no vehicle within 100 m"
+        return SITUATIONS["following"][0]
     lead = int(np.flatnonzero(ahead)[np.argmin(x[ahead])])
     gap_m = x[lead] - x[v] - 0.5 * (state.length_m[0, lead] + state.length_m[0, v])
     if gap_m > LOOK_AHEAD_M:
-        return "no vehicle within 100 m"
+        return SITUATIONS["following"][0]
     speed = state.speed_mps[0]
     gap_s = gap_m / max(speed[v], 0.1)
     band = ">= 2 s" if gap_s >= 2 else ("1-2 s" if gap_s >= 1 else "< 1 s")
@@ -89,10 +89,8 @@ def lane_end(state: TrafficState, v: int, lane_end_m: np.ndarray) -> str:
     """How far ahead vehicle ``v``'s lane ends (``lane_end_m`` (S, L): inf if it does not)."""
     to_end_m = lane_end_m[state.segment[0, v], state.lane[0, v]] - state.x_m[0, v]
     if not np.isfinite(to_end_m):
-        return "its lane does not end"
-    return (
-        "its lane ends < 300 m ahead" if to_end_m < NEAR_END_M else "its lane ends >= 300 m ahead"
-    )
+        return SITUATIONS["lane"][0]
+    return SITUATIONS["lane"][2 if to_end_m < NEAR_END_M else 1]
 
 
 def probe(policy_name: str, backend: str, episodes: int, episode_steps: int) -> Counter:
@@ -104,11 +102,11 @@ def probe(policy_name: str, backend: str, episodes: int, episode_steps: int) -> 
     counts: Counter = Counter()
     try:
         for episode in range(episodes):
-            state = driver.reset(CELL.seed(episode, "validation"))
+            driver.reset(CELL.seed(episode, "validation"))
             while not driver.done:
                 alive = driver._obs.alive.copy()  # (C,) slots with a CAV on the road
                 cavs = driver.env.cav_index.copy()  # (C,) their vehicles
-                state = driver.state
+                state = driver.state  # before the step: the situation the decision met
                 driver.step()
                 for slot in np.flatnonzero(alive):
                     v, action = int(cavs[slot]), ACTION_NAMES[int(policy.last[slot])]
