@@ -87,6 +87,11 @@ def main() -> None:
         runs = {
             p.name: read(p) for p in sorted(evals.glob("*-s*")) if (p / "episodes.csv").is_file()
         }
+        missing = [
+            n for n in ("same-mix", "heuristic") if not (refs / n / "episodes.csv").is_file()
+        ]
+        if missing:  # run eval.sh with ARM=reference and the same AT and GRID first
+            raise SystemExit(f"dense_rows.py: error: no {', '.join(missing)} results in {refs}")
         references = {name: read(refs / name) for name in ("same-mix", "heuristic")}
         for row in sorted(references["same-mix"], key=lambda k: int(k[1])):
             episodes = sorted(references["same-mix"][row])
