@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-REFERENCES = ("same-mix", "heuristic", "diacc")
+#: "suite-s3": the shipped suite agent, a reference of the fine-tuned agents' card (finetune_eval.sh)
+REFERENCES = ("same-mix", "heuristic", "diacc", "suite-s3")
 #: What identifies one episode of a suite: its cell and its episode number.
 KEY = ("map", "n_vehicles", "cav_penetration", "style_mix", "inflow_vph", "episode")
 
