@@ -34,8 +34,8 @@ last = json.loads((run / "progress.jsonl").read_text().splitlines()[-1])["global
 sys.exit(0 if last >= steps else 1)
 PY
 }
-for arm in $ARMS; do
-    for seed in $SEEDS; do
+for seed in $SEEDS; do  # seed-major: a card scored with SEEDS=1 keeps its folders when seed 2 joins
+    for arm in $ARMS; do
         run="$HERE/results/finetune-$arm/runs/diacc-s$seed"
         if [ -f "$run/checkpoint.pt" ] && finished "$run"; then
             POLICIES+=(--policy "$run")
