@@ -4,9 +4,10 @@
 #     suite agent (policy-1), suites train + generated (the generator's validation maps),
 #     both simulators, 10 episodes per cell, every reference evaluated afresh.
 #   STREAM=test: the report, every seed of the chosen arm (ARMS=both), 30 episodes per
-#     cell, every suite; the references and the shipped suite agent ("suite-s3", read by
-#     suite_means.py) are copied from its own scorecard (results/suite-s3[-sumo], the same
-#     test episodes) instead of evaluated again.
+#     cell, every suite; the references and the shipped suite agent (folder "suite-s3":
+#     suite_means.py --against suite-s3) are copied from its own scorecard
+#     (benchmarks/studies/scorecard/results/suite-s3[-sumo], the same test episodes)
+#     instead of evaluated again.
 #   STREAM=validation bash benchmarks/studies/suite-training/finetune_eval.sh
 #   STREAM=test ARMS=both bash benchmarks/studies/suite-training/finetune_eval.sh
 # Resumable: finished cells are skipped. A run that has not reached its last step is left out.
