@@ -89,3 +89,16 @@ def test_situation_probe_files_every_decision_under_one_situation_of_each_kind()
             assert abs(sum(int(c.rstrip("%")) for c in r[2:]) - 100) <= 5
     near_end = [r for r in lane if r[0] == "its lane ends < 300 m ahead"]
     assert not near_end or near_end[0][5] == "0%"  # accelerate, the 4th action
+
+
+def test_situation_probe_plays_the_training_traffic_on_another_road():
+    """``--map``: the same traffic on another road (issue 60: why a seed stalls on a
+    generated road whose lanes narrow to one), named in each table's title."""
+    script = SCRIPT.with_name("situation_probe.py")
+    out = subprocess.run(
+        [sys.executable, str(script), "heuristic", "--episodes", "1", "--episode-steps", "20",
+         "--map", "gen-validation-17"],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    assert "heuristic (gen-validation-17) on highway:" in out
+    assert any(line.startswith("| its lane") for line in out.splitlines())

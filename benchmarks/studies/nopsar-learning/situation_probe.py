@@ -1,10 +1,11 @@
 """Which greedy action a policy picks in which situation (issue 58, item 5).
 
     python benchmarks/studies/nopsar-learning/situation_probe.py POLICY [POLICY ...] \
-        [--backend highway|sumo] [--episodes 10] [--episode-steps 330]
+        [--backend highway|sumo] [--episodes 10] [--episode-steps 330] [--map train-50]
 
 Plays ``validation`` episodes of the training cell (``train-50``, N = 25, 40 % CAVs,
-D1, ``realistic``) with each policy (anything ``diacc eval --policy`` takes), greedy,
+D1, ``realistic``; ``--map`` another road with that traffic, e.g. a generated
+``gen-validation-17``) with each policy (anything ``diacc eval --policy`` takes), greedy,
 and files every living CAV's decision under the situation it was taken in, read
 from the traffic state before the step:
 
@@ -23,6 +24,7 @@ each action among them (the policy's own choice, before PSAR where it has PSAR):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from collections import Counter
 
 import numpy as np
@@ -36,6 +38,7 @@ from diacc.experiments.grid import Cell
 from diacc.experiments.policies import build_policy, parse_policy
 from diacc.sim.state import TrafficState
 
+#: The training cell's traffic; ``--map`` puts it on another road.
 CELL = Cell(map="train-50", n_vehicles=25, cav_penetration=0.4, style_mix="D1")
 LOOK_AHEAD_M = 100.0
 CLOSING_MPS = 2.0
@@ -93,16 +96,18 @@ def lane_end(state: TrafficState, v: int, lane_end_m: np.ndarray) -> str:
     return SITUATIONS["lane"][2 if to_end_m < NEAR_END_M else 1]
 
 
-def probe(policy_name: str, backend: str, episodes: int, episode_steps: int) -> Counter:
+def probe(
+    policy_name: str, backend: str, episodes: int, episode_steps: int, cell: Cell = CELL
+) -> Counter:
     """Counter of (situation kind, situation, action) over every living CAV's decision."""
     policy = Recording(build_policy(parse_policy(policy_name)))
     settings = EvalSettings(backend=backend, episode_steps=episode_steps, style_preset="realistic")
-    driver = EpisodeDriver(policy, policy.env_config(CELL, settings))
+    driver = EpisodeDriver(policy, policy.env_config(cell, settings))
     lane_end_m = driver.road.lane_end_m()  # (S, L)
     counts: Counter = Counter()
     try:
         for episode in range(episodes):
-            driver.reset(CELL.seed(episode, "validation"))
+            driver.reset(cell.seed(episode, "validation"))
             while not driver.done:
                 alive = driver._obs.alive.copy()  # (C,) slots with a CAV on the road
                 cavs = driver.env.cav_index.copy()  # (C,) their vehicles
@@ -140,14 +145,16 @@ def main() -> None:
     parser.add_argument("--backend", default="highway", choices=("highway", "sumo"))
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--episode-steps", type=int, default=330)
+    parser.add_argument("--map", default=CELL.map, help="the road (default: train-50)")
     args = parser.parse_args()
+    cell = dataclasses.replace(CELL, map=args.map)
     torch.set_num_threads(1)
     for name in args.policies:
         try:
-            counts = probe(name, args.backend, args.episodes, args.episode_steps)
+            counts = probe(name, args.backend, args.episodes, args.episode_steps, cell)
         except DiaccError as error:  # no checkpoint there, or an unusable one: one line
             raise SystemExit(f"situation_probe.py: error: {error}") from None
-        print(table(name.rstrip("/").split("/")[-1], args.backend, counts))
+        print(table(f"{name.rstrip('/').split('/')[-1]} ({cell.map})", args.backend, counts))
 
 
 if __name__ == "__main__":
