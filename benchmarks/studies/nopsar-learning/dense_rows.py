@@ -106,8 +106,9 @@ def main() -> None:
             for name, evaluation in runs.items():
                 crashes = sum(evaluation[row][e][2] for e in episodes)
                 mine = column(evaluation)[None]  # (1, P)
-                by_variant[name.rsplit("-s", 1)[0]].append(mine[0])
-                speeds[name.rsplit("-s", 1)[0]].append(column(evaluation, field=1))
+                variant = name.rsplit("-s", 1)[0]  # diacc-nopsar-s2 -> diacc-nopsar
+                by_variant[variant].append(mine[0])
+                speeds[variant].append(column(evaluation, field=1))
                 print(
                     f"| {label} | {backend} | {name} | {crashes} of {len(episodes)} | "
                     f"{mine.mean():.2f} | {change(mine, ref['same-mix'])} | "

@@ -56,16 +56,18 @@ SITUATIONS = {
 
 
 class Recording:
-    """The policy, with the actions of its last ``act`` kept for the probe."""
+    """The policy, with its last ``act``'s actions and living slots kept for the probe."""
 
     def __init__(self, policy) -> None:
         self.policy = policy
         self.last: np.ndarray | None = None
+        self.alive: np.ndarray | None = None  # (C,) slots with a CAV on the road
 
     def __getattr__(self, name: str):  # everything else is the policy's
         return getattr(self.policy, name)
 
     def act(self, actor_obs, first_step):
+        self.alive = actor_obs.alive.copy()
         self.last = np.asarray(self.policy.act(actor_obs, first_step=first_step))  # (C,)
         return self.last
 
@@ -109,11 +111,10 @@ def probe(
         for episode in range(episodes):
             driver.reset(cell.seed(episode, "validation"))
             while not driver.done:
-                alive = driver._obs.alive.copy()  # (C,) slots with a CAV on the road
-                cavs = driver.env.cav_index.copy()  # (C,) their vehicles
+                cavs = driver.env.cav_index.copy()  # (C,) the slots' vehicles
                 state = driver.state  # before the step: the situation the decision met
                 driver.step()
-                for slot in np.flatnonzero(alive):
+                for slot in np.flatnonzero(policy.alive):
                     v, action = int(cavs[slot]), ACTION_NAMES[int(policy.last[slot])]
                     counts["following", following(state, v), action] += 1
                     counts["lane", lane_end(state, v, lane_end_m), action] += 1
